@@ -1,0 +1,1 @@
+"""nhfd.calib: focal-stack capture and bench-model fitting."""

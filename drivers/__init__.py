@@ -1,0 +1,1 @@
+"""nhfd.drivers: one small interface per device kind, real backends, and simulated twins."""

@@ -1,0 +1,1 @@
+"""nhfd.models: the NHF network, training, evaluation and ONNX export."""

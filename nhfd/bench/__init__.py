@@ -1,0 +1,1 @@
+"""`nhfd bench ...`: benchmarks as user commands (figures for the README come from here)."""

@@ -1,0 +1,1 @@
+"""Command-line entry points: `nhfd` (offline tools and the daemon) and `nhfctl` (control)."""

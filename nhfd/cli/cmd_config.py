@@ -1,0 +1,63 @@
+"""`nhfd config show|check`: the resolved configuration and where each value came from."""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from nhfd.config import check_file, load_config
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "config",
+        help="show or check the configuration",
+        description="Show the resolved configuration (search order: --config, $NHFD_CONFIG, "
+        "./nhfd.toml, $XDG_CONFIG_HOME/nhfd/nhfd.toml, /etc/nhfd/nhfd.toml, packaged default) "
+        "or validate a file.",
+    )
+    verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
+    show = verbs.add_parser("show", help="print every resolved value and where it came from")
+    show.add_argument("--config", help="configuration file to use (overrides the search order)")
+    show.add_argument("--json", action="store_true", help="machine-readable output")
+    show.set_defaults(handler=_show)
+    check = verbs.add_parser("check", help="validate a configuration file")
+    check.add_argument("file", nargs="?", help="file to check (default: the one found by search)")
+    check.set_defaults(handler=_check)
+
+
+def _flatten(data: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            out.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def _show(args: argparse.Namespace) -> int:
+    loaded = load_config(args.config)
+    values = _flatten(loaded.config.model_dump())
+    if args.json:
+        rows = {k: {"value": v, "source": loaded.sources.get(k, "packaged default")}
+                for k, v in values.items()}
+        print(json.dumps({"file": str(loaded.path) if loaded.path else None, "values": rows},
+                         indent=2))
+        return 0
+    print(f"# configuration file: {loaded.path or 'none (packaged default only)'}")
+    width = max(len(k) for k in values)
+    for key, value in values.items():
+        shown = json.dumps(value)
+        print(f"{key:<{width}} = {shown:<24} # {loaded.sources.get(key, 'packaged default')}")
+    return 0
+
+
+def _check(args: argparse.Namespace) -> int:
+    if args.file:
+        check_file(args.file)
+        print(f"{args.file}: ok")
+    else:
+        loaded = load_config()
+        print(f"{loaded.path or 'packaged default'}: ok")
+    return 0

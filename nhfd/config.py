@@ -1,0 +1,269 @@
+"""Configuration: the packaged default, the search order, validation and provenance.
+
+The first file found in the search order overlays the packaged default (`nhfd/default.toml`, the
+repository's annotated `nhfd.toml`), so a lab's file holds only what it changes. Every value is
+validated once here; an unknown key, a wrong type or an out-of-range value raises `ConfigError`
+naming the file, the key, the value and what is allowed.
+
+This module imports no torch: control commands read the configuration too.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from collections.abc import Mapping
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+DEFAULT_NAME = "packaged default"
+
+
+class ConfigError(ValueError):
+    """A configuration file is missing, unreadable or invalid; the message says where and why."""
+
+
+def _finite(value: float) -> float:
+    if not math.isfinite(value):
+        raise ValueError("must be finite")
+    return value
+
+
+class _Section(BaseModel):
+    # strict: TOML is typed, so "8" where 8.0 is expected is a mistake worth reporting.
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+
+
+PositiveMicrons = Annotated[float, Field(gt=0, lt=1000)]
+Radians = Annotated[float, Field(gt=0, le=4 * math.pi)]
+Nanometres = Annotated[float, Field(ge=200, le=2000)]
+CyclesPerPixel = Annotated[float, Field(gt=0, le=0.5)]
+Pixels = Annotated[int, Field(ge=1, le=32768)]
+
+
+class SLMSettings(_Section):
+    width_px: Pixels = 1920
+    height_px: Pixels = 1080
+    pitch_um: PositiveMicrons = 8.0
+    phase_stroke_rad: Annotated[list[Radians], Field(min_length=3, max_length=3)] = [
+        2 * math.pi
+    ] * 3
+    phase_sign: Literal[1, -1] = 1
+    grey_invert: bool = False
+
+    @property
+    def pitch_m(self) -> float:
+        return self.pitch_um * 1e-6
+
+
+class ApertureSettings(_Section):
+    shape: Literal["square", "circle", "diamond"] = "square"
+    cutoff_per_px: Annotated[list[CyclesPerPixel], Field(min_length=3, max_length=3)] = [0.25] * 3
+
+
+class OpticsSettings(_Section):
+    wavelengths_nm: Annotated[list[Nanometres], Field(min_length=3, max_length=3)] = [
+        660.0,
+        520.0,
+        450.0,
+    ]
+    hologram_width_px: Pixels = 1024
+    hologram_height_px: Pixels = 576
+    z0_mm: Annotated[float, Field(gt=0, le=1000)] = 6.0
+    volume_mm: Annotated[list[float], Field(min_length=2, max_length=2)] = [-3.0, 3.0]
+    padding: Literal["none", "2x", "auto"] = "auto"
+    precision: Literal["float32", "float64"] = "float32"
+    kernel_cache_mb: Annotated[int, Field(ge=0, le=65536)] = 512
+    aperture: ApertureSettings = ApertureSettings()
+
+    @model_validator(mode="after")
+    def _volume_in_front_of_slm(self) -> OpticsSettings:
+        z_min, z_max = (_finite(v) for v in self.volume_mm)
+        if not z_min < z_max:
+            raise ValueError(f"volume_mm = {self.volume_mm}: needs z_min < z_max")
+        if self.z0_mm + z_min <= 0:
+            raise ValueError(
+                f"z0_mm = {self.z0_mm} with volume_mm = {self.volume_mm} puts the volume's far end "
+                f"at {self.z0_mm + z_min:g} mm, on or behind the SLM; needs z0_mm > {-z_min:g}"
+            )
+        return self
+
+    @property
+    def wavelengths_m(self) -> tuple[float, ...]:
+        return tuple(w * 1e-9 for w in self.wavelengths_nm)
+
+    @property
+    def z0_m(self) -> float:
+        return self.z0_mm * 1e-3
+
+    @property
+    def volume_m(self) -> tuple[float, float]:
+        return (self.volume_mm[0] * 1e-3, self.volume_mm[1] * 1e-3)
+
+
+class CodingSettings(_Section):
+    antialias: bool = True
+
+
+Backend = Literal["simulated", "none", "real"]
+
+
+class DeviceSettings(_Section):
+    slm: Backend = "simulated"
+    laser: Backend = "simulated"
+    stage: Backend = "simulated"
+    camera: Backend = "simulated"
+    navigator: Backend = "none"
+
+
+class Config(_Section):
+    slm: SLMSettings = SLMSettings()
+    optics: OpticsSettings = OpticsSettings()
+    coding: CodingSettings = CodingSettings()
+    devices: DeviceSettings = DeviceSettings()
+
+    @model_validator(mode="after")
+    def _window_fits_panel(self) -> Config:
+        o, s = self.optics, self.slm
+        if o.hologram_width_px > s.width_px or o.hologram_height_px > s.height_px:
+            raise ValueError(
+                f"optics.hologram_width_px x hologram_height_px = {o.hologram_width_px} x "
+                f"{o.hologram_height_px} does not fit the panel {s.width_px} x {s.height_px}"
+            )
+        return self
+
+
+@dataclass(frozen=True)
+class LoadedConfig:
+    """A validated configuration, the file it came from (None: the packaged default) and, for
+    every dotted key, where its value came from."""
+
+    config: Config
+    path: Path | None
+    sources: dict[str, str]
+
+
+def default_text() -> str:
+    return resources.files("nhfd").joinpath("default.toml").read_text(encoding="utf-8")
+
+
+def search_paths(env: Mapping[str, str] | None = None, cwd: Path | None = None) -> list[Path]:
+    """Optional locations after --config and $NHFD_CONFIG, in the order they are tried."""
+    env = os.environ if env is None else env
+    cwd = Path.cwd() if cwd is None else cwd
+    xdg = env.get("XDG_CONFIG_HOME") or str(Path(env.get("HOME", "~")).expanduser() / ".config")
+    return [cwd / "nhfd.toml", Path(xdg) / "nhfd" / "nhfd.toml", Path("/etc/nhfd/nhfd.toml")]
+
+
+def find_config(
+    explicit: str | os.PathLike[str] | None = None,
+    env: Mapping[str, str] | None = None,
+    cwd: Path | None = None,
+) -> Path | None:
+    """The file to use, or None for the packaged default alone.
+
+    A file named explicitly (--config or $NHFD_CONFIG) must exist: silently falling back to the
+    default would drive the bench with settings nobody chose.
+    """
+    env = os.environ if env is None else env
+    for origin, named in (("--config", explicit), ("$NHFD_CONFIG", env.get("NHFD_CONFIG"))):
+        if named:
+            path = Path(named).expanduser()
+            if not path.is_file():
+                raise ConfigError(f"{origin} names {path}, which is not a readable file")
+            return path
+    for path in search_paths(env, cwd):
+        if path.is_file():
+            return path
+    return None
+
+
+def _parse(text: str, origin: str) -> dict[str, Any]:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{origin}: not valid TOML: {exc}") from None
+
+
+def _overlay(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
+    merged = dict(base)
+    for key, value in top.items():
+        if isinstance(value, Mapping) and isinstance(merged.get(key), dict):
+            merged[key] = _overlay(merged[key], value)
+        else:
+            merged[key] = value
+    return merged
+
+
+def _leaves(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        name = f"{prefix}{key}"
+        if isinstance(value, Mapping):
+            out.update(_leaves(value, name + "."))
+        else:
+            out[name] = value
+    return out
+
+
+def _describe(error: Mapping[str, Any], model: type[BaseModel]) -> str:
+    loc = [str(p) for p in error["loc"]]
+    key = ".".join(loc)
+    value = error.get("input")
+    if error["type"] == "extra_forbidden":
+        allowed = _allowed_keys(model, loc[:-1])
+        return f"{key}: unknown key; allowed here: {', '.join(allowed)}"
+    if error["type"] == "value_error" and not loc:
+        return str(error["msg"]).removeprefix("Value error, ")
+    return f"{key} = {value!r}: {str(error['msg']).removeprefix('Value error, ')}"
+
+
+def _allowed_keys(model: type[BaseModel], path: list[str]) -> list[str]:
+    for part in path:
+        field = model.model_fields.get(part)
+        annotation = field.annotation if field else None
+        if not (isinstance(annotation, type) and issubclass(annotation, BaseModel)):
+            return []
+        model = annotation
+    return sorted(model.model_fields)
+
+
+def validate(data: Mapping[str, Any], origin: str) -> Config:
+    """Validate a parsed TOML mapping (already overlaid on the default) as a `Config`."""
+    try:
+        return Config.model_validate(dict(data))
+    except ValidationError as exc:
+        lines = [_describe(e, Config) for e in exc.errors()]
+        raise ConfigError(f"{origin}: " + "; ".join(lines)) from None
+
+
+def load_config(
+    explicit: str | os.PathLike[str] | None = None,
+    env: Mapping[str, str] | None = None,
+    cwd: Path | None = None,
+) -> LoadedConfig:
+    """Find, read, overlay on the packaged default and validate the configuration."""
+    default = _parse(default_text(), DEFAULT_NAME)
+    path = find_config(explicit, env, cwd)
+    sources = dict.fromkeys(_leaves(default), DEFAULT_NAME)
+    data = default
+    if path is not None:
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+        user = _parse(text, str(path))
+        data = _overlay(default, user)
+        sources.update(dict.fromkeys(_leaves(user), str(path)))
+    config = validate(data, str(path) if path else DEFAULT_NAME)
+    return LoadedConfig(config=config, path=path, sources=sources)
+
+
+def check_file(path: str | os.PathLike[str]) -> Config:
+    """Validate one file as a lab would use it (overlaid on the packaged default)."""
+    return load_config(explicit=path, env={}).config
