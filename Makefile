@@ -9,7 +9,7 @@ STAMP := $(VENV)/.nhfd-installed
 
 $(STAMP): pyproject.toml setup.py
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
-	$(VENV)/bin/python -m pip install -q "$(TORCH)"
+	$(VENV)/bin/python -m pip install -q $(TORCH)
 	$(VENV)/bin/python -m pip install -q -e ".[dev]"
 	@touch $(STAMP)
 

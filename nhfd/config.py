@@ -108,6 +108,7 @@ class OpticsSettings(_Section):
 
 class CodingSettings(_Section):
     antialias: bool = True
+    zero_below: Annotated[float, Field(ge=0, lt=1)] = 0.03
 
 
 Backend = Literal["simulated", "none", "real"]

@@ -1,0 +1,155 @@
+"""Hologram quality as optics.md defines it ("Measuring hologram quality").
+
+Focal stacks are compared in linear intensity after the aperture, on a fixed set of planes, inside
+a mask of the scene's pixels, with prediction and target normalised by the same robust percentile
+of the target (one scale for all planes and colours, so colour balance counts). The baselines, an
+all-black prediction and the 2D hologram, go through the very same function.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from nhfd.optics import _validate
+from nhfd.optics.aperture import Aperture
+from nhfd.optics.asm import propagate
+from nhfd.optics.cache import KernelCache
+from nhfd.optics.color import srgb_to_linear
+from nhfd.optics.padding import Policy
+
+# PSNR of identical stacks would be infinite; report this ceiling instead (never Inf).
+PSNR_CEILING_DB = 120.0
+SSIM_WINDOW_PX = 11
+SSIM_SIGMA_PX = 1.5
+
+
+@dataclass(frozen=True)
+class Quality:
+    """Focal-stack PSNR (dB) and SSIM, overall and per plane (`[D]`)."""
+
+    psnr_db: float
+    ssim: float
+    planes_m: tuple[float, ...]
+    psnr_per_plane_db: tuple[float, ...]
+    ssim_per_plane: tuple[float, ...]
+
+
+def quality_planes(volume_m: tuple[float, float], n: int = 5) -> tuple[float, ...]:
+    """The fixed evaluation planes: `n` evenly from z_min to z_max, plus the reference plane 0."""
+    z_min, z_max = (_validate.finite("volume_m", v) for v in volume_m)
+    if not z_min < z_max or n < 2:
+        raise ValueError(f"volume_m = {volume_m}, n = {n}: need z_min < z_max and n >= 2")
+    planes = {round(z_min + (z_max - z_min) * i / (n - 1), 12) for i in range(n)} | {0.0}
+    return tuple(sorted(planes))
+
+
+def focal_stack(
+    field: torch.Tensor,
+    planes_m: Sequence[float],
+    pitch_m: float,
+    wavelengths_m: Sequence[float],
+    aperture: Aperture | None,
+    *,
+    padding: Policy | tuple[int, int] = "auto",
+    cache: KernelCache | None = None,
+) -> torch.Tensor:
+    """Linear intensity `[..., D, C, H, W]` of `field` `[..., C, H, W]` seen through the aperture
+    at each plane."""
+    stack = propagate(
+        field, list(planes_m), pitch_m, wavelengths_m,
+        padding=padding, aperture=aperture, cache=cache,
+    )
+    return stack.abs().square()
+
+
+def hologram_2d(view_srgb: torch.Tensor) -> torch.Tensor:
+    """The "2D hologram" baseline: `sqrt` of the view's linear intensity with zero phase,
+    `[..., C, H, W]` sRGB in [0, 1] -> complex64."""
+    return torch.sqrt(srgb_to_linear(view_srgb.float())).to(torch.complex64)
+
+
+def _gaussian_window(device: torch.device) -> torch.Tensor:
+    x = torch.arange(SSIM_WINDOW_PX, dtype=torch.float32, device=device) - SSIM_WINDOW_PX // 2
+    g = torch.exp(-(x**2) / (2 * SSIM_SIGMA_PX**2))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :])[None, None]
+
+
+def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """SSIM map of images in [0, 1], `[N, H, W]` -> `[N, H, W]` (Gaussian window 11, sigma 1.5,
+    K1 = 0.01, K2 = 0.03; reflect padding keeps the map the images' size)."""
+    c1, c2 = 0.01**2, 0.03**2
+    win = _gaussian_window(x.device)
+    pad = SSIM_WINDOW_PX // 2
+    stack = torch.stack([x, y, x * x, y * y, x * y], dim=1).reshape(-1, 1, *x.shape[-2:])
+    mode = "reflect" if min(x.shape[-2:]) > pad else "replicate"
+    blurred = F.conv2d(F.pad(stack, (pad, pad, pad, pad), mode=mode), win)
+    mx, my, mxx, myy, mxy = blurred.reshape(x.shape[0], 5, *x.shape[-2:]).unbind(1)
+    vx, vy, cov = mxx - mx * mx, myy - my * my, mxy - mx * my
+    return ((2 * mx * my + c1) * (2 * cov + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
+
+
+def focal_stack_quality(
+    prediction: torch.Tensor,
+    target: torch.Tensor,
+    *,
+    planes_m: Sequence[float],
+    pitch_m: float,
+    wavelengths_m: Sequence[float],
+    aperture: Aperture | None,
+    mask: torch.Tensor | None = None,
+    percentile: float = 99.5,
+    padding: Policy | tuple[int, int] = "auto",
+    cache: KernelCache | None = None,
+) -> Quality:
+    """PSNR and SSIM of the prediction's focal stack against the target's.
+
+    Args:
+        prediction, target: complex fields `[C, H, W]` on the same plane (the reference plane).
+        planes_m: the fixed planes to compare on (see `quality_planes`).
+        mask: `[H, W]` bool, the scene's pixels (None: all pixels).
+        percentile: the target intensity percentile (inside the mask, over all planes and
+            colours) that both stacks are divided by before clipping to [0, 1].
+    """
+    if prediction.shape != target.shape or prediction.dim() != 3:
+        raise ValueError(
+            f"prediction {tuple(prediction.shape)} and target {tuple(target.shape)} must both be "
+            "[C, H, W]"
+        )
+    if not 0 < percentile <= 100:
+        raise ValueError(f"percentile = {percentile}: must be in (0, 100]")
+    h, w = target.shape[-2:]
+    if mask is None:
+        mask = torch.ones((h, w), dtype=torch.bool, device=target.device)
+    if mask.shape != (h, w) or not mask.any():
+        raise ValueError(f"mask must be a non-empty [H, W] = [{h}, {w}] boolean image")
+    kw = dict(padding=padding, cache=cache)
+    stacks = focal_stack(
+        torch.stack([prediction, target]).to(torch.complex64),
+        planes_m, pitch_m, wavelengths_m, aperture, **kw,
+    )
+    pred_i, targ_i = stacks[0], stacks[1]  # [D, C, H, W]
+    inside = targ_i[..., mask]
+    scale = torch.quantile(inside.flatten().double()[:16_000_000], percentile / 100).item()
+    scale = scale if scale > 0 else 1.0
+    p = (pred_i / scale).clamp(0, 1).float()
+    t = (targ_i / scale).clamp(0, 1).float()
+    se = ((p - t) ** 2)[..., mask]  # [D, C, M]
+    mse_plane = se.mean(dim=(1, 2))
+    ssim = ssim_map(p.flatten(0, 1), t.flatten(0, 1)).reshape(p.shape)[..., mask].mean(dim=(1, 2))
+
+    def psnr(mse: float) -> float:
+        return min(PSNR_CEILING_DB, -10 * math.log10(max(mse, 1e-30)))
+
+    return Quality(
+        psnr_db=psnr(float(se.mean())),
+        ssim=float(ssim.mean()),
+        planes_m=tuple(float(z) for z in planes_m),
+        psnr_per_plane_db=tuple(psnr(float(m)) for m in mse_plane),
+        ssim_per_plane=tuple(float(s) for s in ssim),
+    )

@@ -1,0 +1,133 @@
+"""Configuration: search order, provenance, and every validation error with its message."""
+
+from __future__ import annotations
+
+import json
+import tomllib
+from pathlib import Path
+
+import pytest
+
+from nhfd.cli.main import main
+from nhfd.config import Config, ConfigError, check_file, default_text, load_config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def write(tmp_path: Path, text: str, name: str = "nhfd.toml") -> Path:
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def test_packaged_default_is_the_repository_file_and_validates():
+    assert default_text() == (REPO / "nhfd.toml").read_text()
+    cfg = Config.model_validate(tomllib.loads(default_text()))
+    assert cfg.slm.width_px == 1920 and cfg.slm.height_px == 1080 and cfg.slm.pitch_um == 8.0
+    assert cfg.optics.wavelengths_nm == [660.0, 520.0, 450.0]
+    assert cfg.optics.wavelengths_m == pytest.approx((660e-9, 520e-9, 450e-9))
+    assert cfg.devices.laser == "simulated"
+    # the schema's own defaults agree with the annotated file
+    assert Config() == cfg
+
+
+def test_search_order(tmp_path, monkeypatch):
+    cwd, xdg = tmp_path / "cwd", tmp_path / "xdg"
+    (xdg / "nhfd").mkdir(parents=True)
+    cwd.mkdir()
+    env = {"XDG_CONFIG_HOME": str(xdg), "HOME": str(tmp_path)}
+    assert load_config(env=env, cwd=cwd).path is None  # packaged default only
+    xdg_file = write(xdg / "nhfd", "[optics]\nz0_mm = 7.0\n")
+    assert load_config(env=env, cwd=cwd).path == xdg_file
+    cwd_file = write(cwd, "[optics]\nz0_mm = 8.0\n")
+    assert load_config(env=env, cwd=cwd).path == cwd_file
+    env_file = write(tmp_path, "[optics]\nz0_mm = 9.0\n", "env.toml")
+    loaded = load_config(env={**env, "NHFD_CONFIG": str(env_file)}, cwd=cwd)
+    assert loaded.path == env_file and loaded.config.optics.z0_mm == 9.0
+    explicit = write(tmp_path, "[optics]\nz0_mm = 10.0\n", "explicit.toml")
+    loaded = load_config(explicit, env={**env, "NHFD_CONFIG": str(env_file)}, cwd=cwd)
+    assert loaded.config.optics.z0_mm == 10.0
+
+
+def test_partial_file_overlays_default_and_sources_say_which(tmp_path):
+    path = write(tmp_path, "[optics.aperture]\nshape = 'circle'\n")
+    loaded = load_config(path, env={})
+    assert loaded.config.optics.aperture.shape == "circle"
+    assert loaded.config.optics.aperture.cutoff_per_px == [0.25, 0.25, 0.25]
+    assert loaded.sources["optics.aperture.shape"] == str(path)
+    assert loaded.sources["optics.aperture.cutoff_per_px"] == "packaged default"
+
+
+def test_named_file_must_exist(tmp_path):
+    with pytest.raises(ConfigError, match=r"--config names .*missing\.toml, which is not"):
+        load_config(tmp_path / "missing.toml", env={})
+    with pytest.raises(ConfigError, match=r"\$NHFD_CONFIG names"):
+        load_config(env={"NHFD_CONFIG": str(tmp_path / "nope.toml")}, cwd=tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[slm]\nwidth = 1920\n", r"slm\.width: unknown key; allowed here: grey_invert, height_px"),
+        ("[lasers]\n", r"lasers: unknown key; allowed here: coding, devices, optics, slm"),
+        ("[optics.aperture]\nradius = 1\n", r"optics\.aperture\.radius: unknown key"),
+        ("[slm]\npitch_um = '8'\n", r"slm\.pitch_um = '8': Input should be a valid number"),
+        ("[slm]\nwidth_px = 1920.5\n", r"slm\.width_px = 1920\.5: Input should be a valid integer"),
+        ("[slm]\ngrey_invert = 1\n", r"slm\.grey_invert = 1: Input should be a valid boolean"),
+        ("[slm]\npitch_um = 0.0\n", r"slm\.pitch_um = 0\.0: Input should be greater than 0"),
+        ("[slm]\nphase_sign = 2\n", r"slm\.phase_sign = 2: Input should be 1 or -1"),
+        (
+            "[slm]\nphase_stroke_rad = [6.0, 6.0]\n",
+            r"slm\.phase_stroke_rad = \[6\.0, 6\.0\]: "
+            r"List should have at least 3 items",
+        ),
+        (
+            "[optics]\nwavelengths_nm = [660.0, -520.0, 450.0]\n",
+            r"optics\.wavelengths_nm\.1 = -520\.0: Input should be greater than or equal to 200",
+        ),
+        ("[optics]\nwavelengths_nm = [660.0, nan, 450.0]\n", r"optics\.wavelengths_nm\.1 = nan"),
+        ("[optics]\npadding = '3x'\n", r"optics\.padding = '3x': Input should be 'none', '2x' or"),
+        (
+            "[optics.aperture]\ncutoff_per_px = [0.25, 0.6, 0.25]\n",
+            r"optics\.aperture\.cutoff_per_px\.1 = 0\.6: "
+            r"Input should be less than or equal to 0\.5",
+        ),
+        ("[optics.aperture]\nshape = 'hexagon'\n", r"optics\.aperture\.shape = 'hexagon'"),
+        (
+            "[optics]\nvolume_mm = [3.0, -3.0]\n",
+            r"volume_mm = \[3\.0, -3\.0\]: needs z_min < z_max",
+        ),
+        (
+            "[optics]\nz0_mm = 2.0\n",
+            r"z0_mm = 2\.0 with volume_mm = \[-3\.0, 3\.0\] puts the volume's far end at -1 mm",
+        ),
+        ("[optics]\nhologram_width_px = 4096\n", r"4096 x 576 does not fit the panel 1920 x 1080"),
+        ("[devices]\nlaser = 'fisba'\n", r"devices\.laser = 'fisba': Input should be 'simulated'"),
+        ("[optics\n", r"not valid TOML"),
+    ],
+)
+def test_validation_errors_name_key_value_and_allowed(tmp_path, text, message):
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError, match=message) as info:
+        check_file(path)
+    assert str(path) in str(info.value)
+
+
+def test_cli_show_and_check(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("NHFD_CONFIG", raising=False)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
+    path = write(tmp_path, "[optics]\nz0_mm = 7.5\n", "lab.toml")
+    assert main(["config", "show", "--config", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["values"]["optics.z0_mm"] == {"value": 7.5, "source": str(path)}
+    assert out["values"]["slm.pitch_um"]["source"] == "packaged default"
+    assert main(["config", "show"]) == 0
+    text = capsys.readouterr().out
+    assert "none (packaged default only)" in text and "optics.z0_mm" in text
+    assert main(["config", "check", str(path)]) == 0
+    assert f"{path}: ok" in capsys.readouterr().out
+    bad = write(tmp_path, "[optics]\nz0_mm = -1.0\n", "bad.toml")
+    assert main(["config", "check", str(bad)]) == 2
+    err = capsys.readouterr().err
+    assert "optics.z0_mm = -1.0: Input should be greater than 0" in err
