@@ -111,13 +111,14 @@ def run_demo(cfg: Config) -> DemoResult:
     word_depths = (z_max, 0.5 * (z_min + z_max), z_min)
     cache = KernelCache(o.kernel_cache_mb * 2**20)
     kw = dict(aperture=aperture, padding=o.padding, cache=cache)
+    dtype = torch.complex128 if o.precision == "float64" else torch.complex64
     t: dict[str, float] = {}
 
     t0 = time.perf_counter()
     images, rows = text_target(window_hw)
     reference = sum(
-        propagate(torch.polar(torch.sqrt(img), smooth_phase(window_hw, SEED + i)), -z, pitch,
-                  lams, **kw)
+        propagate(torch.polar(torch.sqrt(img), smooth_phase(window_hw, SEED + i)).to(dtype), -z,
+                  pitch, lams, **kw)
         for i, (img, z) in enumerate(zip(images, word_depths, strict=True))
     )
     t["target"] = time.perf_counter() - t0
