@@ -136,6 +136,17 @@ def _nearest_level(phase: torch.Tensor, curve: PhaseCurve) -> torch.Tensor:
     return torch.where((v_hi - p) < (p - v_lo), g_hi, g_lo)
 
 
+def _curves_per_channel(
+    curves: Sequence[PhaseCurve], n_colours: int, sign: int
+) -> list[PhaseCurve]:
+    """One curve per colour channel (a single curve serves all), after checking the sign."""
+    if sign not in (1, -1):
+        raise ValueError(f"sign = {sign!r}: must be +1 or -1")
+    if len(curves) not in (1, n_colours):
+        raise ValueError(f"{len(curves)} phase curves for {n_colours} colour channels")
+    return list(curves) * n_colours if len(curves) == 1 else list(curves)
+
+
 def phase_to_grey(
     phase_rad: torch.Tensor,
     curves: Sequence[PhaseCurve],
@@ -148,17 +159,12 @@ def phase_to_grey(
     `sign` = -1 writes the conjugate; `invert` writes `255 - grey`. With the default curve this is
     `round(wrap(phi) / 2 pi * 256) mod 256`.
     """
-    if sign not in (1, -1):
-        raise ValueError(f"sign = {sign!r}: must be +1 or -1")
-    n_col = phase_rad.shape[-3]
-    if len(curves) not in (1, n_col):
-        raise ValueError(f"{len(curves)} phase curves for {n_col} colour channels")
+    per_channel = _curves_per_channel(curves, phase_rad.shape[-3], sign)
     if not torch.isfinite(phase_rad).all():
         raise ValueError("phase_rad contains NaN or Inf")
     signed = phase_rad * sign
     out = torch.empty(phase_rad.shape, dtype=torch.uint8, device=phase_rad.device)
-    for c in range(n_col):
-        curve = curves[c if len(curves) > 1 else 0]
+    for c, curve in enumerate(per_channel):
         p = signed[..., c, :, :]
         if curve.is_default:
             grey = torch.round(torch.remainder(p.double(), TWO_PI) / TWO_PI * GREY_LEVELS)
@@ -178,12 +184,9 @@ def grey_to_phase(
 ) -> torch.Tensor:
     """Grey levels `[..., C, H, W]` -> the phase (float32 radians) the panel shows: the inverse of
     `phase_to_grey` up to quantisation and wrapping."""
-    if sign not in (1, -1):
-        raise ValueError(f"sign = {sign!r}: must be +1 or -1")
-    n_col = grey.shape[-3]
+    per_channel = _curves_per_channel(curves, grey.shape[-3], sign)
     out = torch.empty(grey.shape, dtype=torch.float32, device=grey.device)
-    for c in range(n_col):
-        curve = curves[c if len(curves) > 1 else 0]
+    for c, curve in enumerate(per_channel):
         table = torch.tensor(curve.phase_rad, dtype=torch.float64, device=grey.device)
         g = grey[..., c, :, :].long()
         g = GREY_LEVELS - 1 - g if invert else g
