@@ -1,0 +1,223 @@
+"""6-DoF navigator: SpaceMouse HID report parsing, a hidapi backend, and a simulated navigator.
+
+HID reports (hardware.md): id 1 translation (3 x int16 little-endian), id 2 rotation (3 x int16),
+id 3 buttons (bitmask); some models send translation and rotation together in one 13-byte report
+id 1. Other ids (battery, LEDs) are ignored. Devices are matched by vendor AND product id: vendor
+0x046d is Logitech's, shared with mice and keyboards.
+
+`Navigator.read()` returns velocities: each raw axis through a dead zone, scaled linearly from the
+dead-zone edge to full deflection, times the configured maximum. hidapi is optional (the
+`navigator` extra) and imported only when a real device is opened.
+"""
+
+from __future__ import annotations
+
+import struct
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+from .errors import DeviceError, PortNotFound, ProtocolError
+from .settings import NavigatorSettings
+
+REPORT_TRANSLATION = 1
+REPORT_ROTATION = 2
+REPORT_BUTTONS = 3
+COMBINED_REPORT_BYTES = 13  # id + 6 x int16
+AXES = struct.Struct("<3h")
+AXES6 = struct.Struct("<6h")
+
+
+@dataclass(frozen=True)
+class RawState:
+    """Raw axis counts x, y, z, rx, ry, rz and the button bitmask."""
+
+    axes: tuple[int, int, int, int, int, int] = (0, 0, 0, 0, 0, 0)
+    buttons: int = 0
+
+
+def parse_report(report: bytes | Sequence[int], state: RawState = RawState()) -> RawState:
+    """The state after one HID report (report id first)."""
+    data = bytes(report)
+    if not data:
+        raise ProtocolError("empty HID report")
+    rid, body = data[0], data[1:]
+    if rid == REPORT_TRANSLATION:
+        if len(data) >= COMBINED_REPORT_BYTES:
+            return RawState(AXES6.unpack_from(body), state.buttons)
+        if len(body) < AXES.size:
+            raise ProtocolError(f"translation report of {len(data)} bytes: {data.hex(' ')}")
+        return RawState(AXES.unpack_from(body) + state.axes[3:], state.buttons)
+    if rid == REPORT_ROTATION:
+        if len(body) < AXES.size:
+            raise ProtocolError(f"rotation report of {len(data)} bytes: {data.hex(' ')}")
+        return RawState(state.axes[:3] + AXES.unpack_from(body), state.buttons)
+    if rid == REPORT_BUTTONS:
+        return RawState(state.axes, int.from_bytes(body, "little"))
+    return state
+
+
+def matches(vendor_id: int, product_id: int, usb_ids: Sequence[Sequence[int]]) -> bool:
+    return any(vendor_id == v and product_id == p for v, p in usb_ids)
+
+
+@dataclass(frozen=True)
+class NavigatorReading:
+    translation_m_s: tuple[float, float, float]
+    rotation_deg_s: tuple[float, float, float]
+    buttons: int
+    time_s: float
+
+    def pressed(self, button: int) -> bool:
+        return bool(self.buttons >> button & 1)
+
+
+def scale_axis(raw: int, dead_zone: int, full_scale: int) -> float:
+    """Raw counts -> [-1, 1]: 0 inside the dead zone, linear from its edge, clipped at 1."""
+    magnitude = abs(raw)
+    if magnitude <= dead_zone:
+        return 0.0
+    span = max(full_scale - dead_zone, 1)
+    return (1.0 if raw > 0 else -1.0) * min(1.0, (magnitude - dead_zone) / span)
+
+
+def to_reading(state: RawState, settings: NavigatorSettings, time_s: float) -> NavigatorReading:
+    s = settings
+    unit = [sign * scale_axis(v, s.dead_zone_counts, s.full_scale_counts)
+            for v, sign in zip(state.axes, s.axis_signs, strict=True)]
+    return NavigatorReading(
+        translation_m_s=(unit[0] * s.max_translation_m_s, unit[1] * s.max_translation_m_s,
+                         unit[2] * s.max_translation_m_s),
+        rotation_deg_s=(unit[3] * s.max_rotation_deg_s, unit[4] * s.max_rotation_deg_s,
+                        unit[5] * s.max_rotation_deg_s),
+        buttons=state.buttons,
+        time_s=time_s,
+    )
+
+
+class Navigator(ABC):
+    def __init__(self, settings: NavigatorSettings | None = None, *,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.settings = settings or NavigatorSettings()
+        self._clock = clock
+
+    def open(self) -> Navigator:
+        self._open()
+        return self
+
+    def close(self) -> None:
+        self._close()
+
+    def __enter__(self) -> Navigator:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def read(self) -> NavigatorReading:
+        """The current velocities and buttons (consumes every report waiting)."""
+        return to_reading(self._poll(), self.settings, self._clock())
+
+    # -- backend hooks -------------------------------------------------------------------------
+
+    def _open(self) -> None:  # noqa: B027 - optional hook
+        pass
+
+    def _close(self) -> None:  # noqa: B027 - optional hook
+        pass
+
+    @abstractmethod
+    def _poll(self) -> RawState: ...
+
+
+class SpaceMouseNavigator(Navigator):
+    """A 3Dconnexion SpaceMouse through hidapi (`pip install nhfd[navigator]`)."""
+
+    def __init__(self, settings: NavigatorSettings | None = None, *,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(settings, clock=clock)
+        self._device: Any = None
+        self._state = RawState()
+        self.product: str = ""
+
+    def _open(self) -> None:
+        try:
+            import hid
+        except ImportError:
+            raise DeviceError(
+                "the SpaceMouse backend needs hidapi: pip install 'nhfd[navigator]'"
+            ) from None
+        found = [d for d in hid.enumerate()
+                 if matches(d["vendor_id"], d["product_id"], self.settings.usb_ids)]
+        # A device may expose several interfaces; the multi-axis controller is usage page 1,
+        # usage 8 where hidapi reports usages.
+        found.sort(key=lambda d: (d.get("usage_page"), d.get("usage")) != (1, 8))
+        if not found:
+            raise PortNotFound("no SpaceMouse found (vendor and product id; is the udev rule "
+                               "installed?)")
+        info = found[0]
+        device = hid.device()
+        device.open_path(info["path"])
+        device.set_nonblocking(True)
+        self._device = device
+        self.product = info.get("product_string") or f"{info['vendor_id']:04x}:" \
+            f"{info['product_id']:04x}"
+
+    def _close(self) -> None:
+        if self._device is not None:
+            self._device.close()
+            self._device = None
+
+    def _poll(self) -> RawState:
+        if self._device is None:
+            raise DeviceError("navigator not open")
+        deadline = time.monotonic() + self.settings.read_timeout_ms / 1000
+        for _ in range(256):  # drain, bounded
+            try:
+                report = self._device.read(64)
+            except OSError as exc:
+                raise DeviceError(f"SpaceMouse read failed (unplugged?): {exc}") from None
+            if not report:
+                if time.monotonic() >= deadline:
+                    break
+                time.sleep(0.001)
+                continue
+            self._state = parse_report(report, self._state)
+        return self._state
+
+
+@dataclass(frozen=True)
+class Waypoint:
+    """From t_s on (seconds after open), the puck reads axes_counts and these buttons."""
+
+    t_s: float
+    axes_counts: tuple[int, int, int, int, int, int]
+    buttons: int = 0
+
+
+class SimulatedNavigator(Navigator):
+    """Replays a scripted trajectory on the clock, holding each waypoint until the next (and the
+    last one for ever: end a script with a zero waypoint)."""
+
+    def __init__(self, trajectory: Sequence[Waypoint], settings: NavigatorSettings | None = None,
+                 *, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(settings, clock=clock)
+        self.trajectory = list(trajectory)
+        times = [w.t_s for w in self.trajectory]
+        if times != sorted(times):
+            raise ValueError("waypoints must be in time order")
+        self._t0 = clock()
+
+    def _open(self) -> None:
+        self._t0 = self._clock()
+
+    def _poll(self) -> RawState:
+        t = self._clock() - self._t0
+        state = RawState()
+        for w in self.trajectory:
+            if w.t_s > t:
+                break
+            state = RawState(w.axes_counts, w.buttons)
+        return state

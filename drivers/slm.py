@@ -1,0 +1,206 @@
+"""SLM output: a base class that validates and quantises frames, and the simulated SLM.
+
+`show(frame)` takes grey levels shaped [H, W] (the same pattern in all three colour channels, the
+usual phase frame) or [3, H, W] / [1, H, W] (R, G, B patterns, one per channel), as uint8 or any
+array of values in [0, 255] (floats are rounded to the nearest level; anything outside, NaN, or a
+wrong shape is refused before the panel changes). The base class checks the output's health
+before writing (a framebuffer write does not fail on an unplugged cable), keeps the last frame,
+and knows when the liquid crystal has settled.
+
+A backend implements `_write(rgb)` with rgb a C-contiguous uint8 array [H, W, 3] in R, G, B
+order, plus `_health()` and optionally `_open()` / `_close()`.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import DeviceError
+from .settings import SLMOutputSettings
+
+log = logging.getLogger(__name__)
+
+GREY_LEVELS = 256
+
+
+class SLMOutputLost(DeviceError):
+    """The SLM's output is gone (cable unplugged, output disabled): nothing reaches the panel."""
+
+
+@dataclass(frozen=True)
+class SLMHealth:
+    ok: bool
+    detail: str
+
+
+def to_rgb(frame: Any, height_px: int, width_px: int) -> np.ndarray:
+    """Validate and quantise a grey frame -> uint8 [H, W, 3] (R, G, B), C-contiguous."""
+    a = np.asarray(frame)
+    if a.ndim == 2:
+        a = a[None]
+    if a.ndim != 3 or a.shape[0] not in (1, 3) or a.shape[1:] != (height_px, width_px):
+        raise ValueError(
+            f"SLM frame shape {np.shape(frame)}: expected [{height_px}, {width_px}] or "
+            f"[1 or 3, {height_px}, {width_px}]"
+        )
+    if a.dtype == np.uint8:
+        grey = a
+    elif np.issubdtype(a.dtype, np.integer) or a.dtype == np.bool_:
+        if a.size and (a.min() < 0 or a.max() > GREY_LEVELS - 1):
+            raise ValueError(f"SLM grey levels span [{a.min()}, {a.max()}]: must be in [0, 255]")
+        grey = a.astype(np.uint8)
+    elif np.issubdtype(a.dtype, np.floating):
+        if not np.isfinite(a).all():
+            raise ValueError("SLM frame contains NaN or Inf")
+        rounded = np.rint(a)
+        if a.size and (rounded.min() < 0 or rounded.max() > GREY_LEVELS - 1):
+            raise ValueError(
+                f"SLM grey levels span [{a.min():g}, {a.max():g}]: must round into [0, 255]"
+            )
+        grey = rounded.astype(np.uint8)
+    else:
+        raise ValueError(f"SLM frame dtype {a.dtype}: expected integers or floats")
+    return np.ascontiguousarray(np.broadcast_to(grey, (3, height_px, width_px)).transpose(1, 2, 0))
+
+
+class SLM(ABC):
+    """A phase SLM of width_px x height_px driven with 8-bit grey levels per colour channel."""
+
+    def __init__(
+        self,
+        width_px: int,
+        height_px: int,
+        settings: SLMOutputSettings | None = None,
+        *,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if width_px < 1 or height_px < 1:
+            raise ValueError(f"SLM geometry {width_px} x {height_px}: must be positive")
+        self.width_px = width_px
+        self.height_px = height_px
+        self.settings = settings or SLMOutputSettings()
+        self._clock = clock
+        self._last: np.ndarray | None = None
+        self._shown_at = -float("inf")
+        self._open = False
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(height_px, width_px)."""
+        return self.height_px, self.width_px
+
+    @property
+    def settle_s(self) -> float:
+        return self.settings.settle_ms / 1000
+
+    def open(self) -> SLM:
+        if not self._open:
+            self._open_output()
+            self._open = True
+        return self
+
+    def close(self) -> None:
+        if self._open:
+            self._open = False
+            self._close_output()
+
+    def __enter__(self) -> SLM:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def show(self, frame: Any, *, wait_settled: bool = False) -> float:
+        """Show a grey frame; returns the clock time at which the liquid crystal has settled."""
+        if not self._open:
+            raise DeviceError(f"{self.name}: not open")
+        rgb = to_rgb(frame, self.height_px, self.width_px)
+        health = self.health()
+        if not health.ok:
+            raise SLMOutputLost(f"{self.name}: output lost: {health.detail}")
+        self._write(rgb)
+        self._last = rgb
+        self._shown_at = self._clock()
+        if wait_settled:
+            self.wait_settled()
+        return self._shown_at + self.settle_s
+
+    def blank(self) -> float:
+        return self.show(np.zeros(self.shape, np.uint8))
+
+    def wait_settled(self) -> None:
+        remaining = self._shown_at + self.settle_s - self._clock()
+        if remaining > 0:
+            time.sleep(remaining)
+
+    @property
+    def settled(self) -> bool:
+        return self._clock() >= self._shown_at + self.settle_s
+
+    @property
+    def last_frame(self) -> np.ndarray | None:
+        """The last frame shown, [3, H, W] uint8 (R, G, B), or None."""
+        return None if self._last is None else self._last.transpose(2, 0, 1).copy()
+
+    def health(self) -> SLMHealth:
+        return self._health()
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    # -- backend hooks -------------------------------------------------------------------------
+
+    def _open_output(self) -> None:  # noqa: B027 - optional hook
+        pass
+
+    def _close_output(self) -> None:  # noqa: B027 - optional hook
+        pass
+
+    @abstractmethod
+    def _write(self, rgb: np.ndarray) -> None:
+        """Put uint8 [H, W, 3] R, G, B pixels on the panel."""
+
+    @abstractmethod
+    def _health(self) -> SLMHealth: ...
+
+
+class SimulatedSLM(SLM):
+    """Keeps recent frames in memory; optionally writes each as PNG (settings.png_dir)."""
+
+    def __init__(self, width_px: int, height_px: int, settings: SLMOutputSettings | None = None,
+                 *, clock: Callable[[], float] = time.monotonic) -> None:
+        super().__init__(width_px, height_px, settings, clock=clock)
+        self.frames: deque[np.ndarray] = deque(maxlen=self.settings.history_frames)
+        self.count = 0
+        self._plugged = True
+
+    def unplug(self) -> None:
+        self._plugged = False
+
+    def replug(self) -> None:
+        self._plugged = True
+
+    def _write(self, rgb: np.ndarray) -> None:
+        self.frames.append(rgb.transpose(2, 0, 1).copy())
+        self.count += 1
+        if self.settings.png_dir:
+            # matplotlib.image.imsave is what plt.imsave calls; importing it directly picks no
+            # GUI backend, which a daemon must not do.
+            from matplotlib import image
+
+            out = Path(self.settings.png_dir)
+            out.mkdir(parents=True, exist_ok=True)
+            image.imsave(out / f"slm_{self.count:06d}.png", rgb)
+
+    def _health(self) -> SLMHealth:
+        return SLMHealth(True, "simulated") if self._plugged else SLMHealth(False, "unplugged")

@@ -1,0 +1,153 @@
+"""A protocol peer served from a thread on the master side of a pseudo-terminal pair.
+
+The driver opens the slave path like a serial port (`PtyTransport`). The peer keeps its own slave
+descriptor open so the pair survives the driver closing and reopening. `vanish()` closes both
+ends, which is what an unplugged USB adapter looks like to the driver (reads hit end-of-file,
+writes fail with EIO, the path disappears); `replug()` makes a new pair under a new path, and
+`opener()` always opens the current one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import select
+import threading
+import time
+import tty
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+
+from ..errors import PortNotFound
+from ..transport import Opener, pty_opener
+from .clock import Clock, real_clock
+
+_TICK_S = 0.002
+
+
+class PtyPeer(ABC):
+    def __init__(self, *, clock: Clock = real_clock) -> None:
+        self.clock = clock
+        self.lock = threading.RLock()
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._path: str | None = None
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    # -- lifecycle -----------------------------------------------------------------------------
+
+    def start(self) -> PtyPeer:
+        self._open_pair()
+        self._thread = threading.Thread(target=self._serve, name=type(self).__name__, daemon=True)
+        self._thread.start()
+        return self
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        with self.lock:
+            self._close_pair()
+
+    def __enter__(self) -> PtyPeer:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    @property
+    def port_path(self) -> str:
+        if self._path is None:
+            raise RuntimeError(f"{type(self).__name__}: not started, or the port has vanished")
+        return self._path
+
+    def opener(self) -> Opener:
+        """Opens the current pty; PortNotFound while the port has vanished (like a USB port
+        that is not plugged in)."""
+
+        def current_path() -> str:
+            if self._path is None:
+                raise PortNotFound(f"{type(self).__name__}: port not present")
+            return self._path
+
+        return pty_opener(current_path)
+
+    def vanish(self) -> None:
+        """The port disappears (USB cable pulled)."""
+        with self.lock:
+            self._close_pair()
+
+    def replug(self) -> str:
+        """The port comes back (under a new path, as a re-enumerated USB device may)."""
+        with self.lock:
+            if self._master is None:
+                self._open_pair()
+            return self.port_path
+
+    def wait_for(self, condition: Callable[[], bool], timeout_s: float = 2.0) -> None:
+        """Until condition() holds (checked under the lock); TimeoutError after timeout_s.
+        Tests use it to let the peer catch up with bytes already written to it."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self.lock:
+                if condition():
+                    return
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"{type(self).__name__}: condition not met in {timeout_s} s")
+            time.sleep(_TICK_S)
+
+    @property
+    def present(self) -> bool:
+        return self._master is not None
+
+    # -- pair ----------------------------------------------------------------------------------
+
+    def _open_pair(self) -> None:
+        master, slave = os.openpty()
+        # Raw: MeCom ends frames with \r, which a cooked line discipline would turn into \n.
+        tty.setraw(slave)
+        self._master, self._slave, self._path = master, slave, os.ttyname(slave)
+
+    def _close_pair(self) -> None:
+        for fd in (self._master, self._slave):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._master = self._slave = self._path = None
+
+    def send(self, data: bytes) -> None:
+        """Bytes to the driver (dropped while the port is absent)."""
+        with self.lock:
+            if self._master is None:
+                return
+            with contextlib.suppress(OSError):
+                os.write(self._master, data)
+
+    # -- serving -------------------------------------------------------------------------------
+
+    def _serve(self) -> None:
+        while not self._stop.is_set():
+            master = self._master
+            data = b""
+            if master is None:
+                self._stop.wait(_TICK_S)
+            else:
+                try:
+                    ready, _, _ = select.select([master], [], [], _TICK_S)
+                    if ready:
+                        data = os.read(master, 4096)
+                except (OSError, ValueError):
+                    # The pair was closed under us (vanish), or no slave is open right now.
+                    self._stop.wait(_TICK_S)
+            with self.lock:
+                if data:
+                    self.on_bytes(data)
+                self.tick()
+
+    @abstractmethod
+    def on_bytes(self, data: bytes) -> None:
+        """Bytes from the driver (called with `self.lock` held)."""
+
+    def tick(self) -> None:  # noqa: B027 - optional hook
+        """Called every few ms with `self.lock` held: advance simulated state to clock()."""

@@ -1,0 +1,116 @@
+"""Fixtures for driver tests: twins on pseudo-terminals, fast settings, a per-test deadline."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import selectors
+import shutil
+import signal
+import subprocess
+import tempfile
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+from nhfd.drivers.settings import LaserSettings, StageSettings
+from nhfd.drivers.twins.apt_twin import AptTwin
+from nhfd.drivers.twins.clock import ManualClock
+from nhfd.drivers.twins.mecom_twin import MecomTwin
+
+TEST_DEADLINE_S = 30
+
+
+class Deadline(Exception):
+    pass
+
+
+@pytest.fixture(autouse=True)
+def _deadline() -> Iterator[None]:
+    """No driver test may hang: SIGALRM interrupts any wait in the main thread."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def _expired(signum, frame):
+        raise Deadline(f"test exceeded {TEST_DEADLINE_S} s")
+
+    old = signal.signal(signal.SIGALRM, _expired)
+    signal.setitimer(signal.ITIMER_REAL, TEST_DEADLINE_S)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+@pytest.fixture
+def laser_settings() -> LaserSettings:
+    return LaserSettings(reply_timeout_s=0.1, retries=2, reconnect_backoff_s=0.05,
+                         reconnect_attempts=4, latency_timer_ms=1)
+
+
+@pytest.fixture
+def mecom_twin() -> Iterator[MecomTwin]:
+    twin = MecomTwin()
+    twin.start()
+    try:
+        yield twin
+    finally:
+        twin.close()
+
+
+@pytest.fixture
+def clock() -> ManualClock:
+    return ManualClock()
+
+
+@pytest.fixture
+def stage_settings() -> StageSettings:
+    return StageSettings(enable_settle_s=0.0, reply_timeout_s=0.2, reconnect_backoff_s=0.05,
+                         reconnect_attempts=4, home_timeout_s=2.0, move_timeout_s=2.0)
+
+
+@pytest.fixture
+def apt_twin(clock: ManualClock) -> Iterator[AptTwin]:
+    twin = AptTwin(clock=clock)
+    twin.start()
+    try:
+        yield twin
+    finally:
+        twin.close()
+
+
+@pytest.fixture
+def short_dir() -> Iterator[Path]:
+    """A short directory for Unix sockets (their paths are limited to ~107 bytes)."""
+    path = Path(tempfile.mkdtemp(prefix="nhfd-t"))
+    try:
+        yield path
+    finally:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+def read_line(proc: subprocess.Popen, timeout_s: float) -> str:
+    """One line of a child's stdout, or AssertionError after timeout_s."""
+    assert proc.stdout is not None
+    with selectors.DefaultSelector() as sel:
+        sel.register(proc.stdout, selectors.EVENT_READ)
+        if not sel.select(timeout=timeout_s):
+            raise AssertionError(f"child printed nothing within {timeout_s} s")
+    return proc.stdout.readline()
+
+
+@contextlib.contextmanager
+def reaped(*procs: subprocess.Popen) -> Iterator[None]:
+    """Kill and reap child processes whatever happens in the block."""
+    try:
+        yield
+    finally:
+        for proc in procs:
+            if proc.poll() is None:
+                with contextlib.suppress(ProcessLookupError):
+                    os.kill(proc.pid, signal.SIGKILL)
+            with contextlib.suppress(subprocess.TimeoutExpired):
+                proc.wait(timeout=5)

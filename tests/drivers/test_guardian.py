@@ -1,0 +1,195 @@
+"""The laser guardian process: lasers off within a second when the daemon dies or hangs.
+
+Each test runs a real guardian process on the twin's pty and, where needed, a daemon-like child
+that talks to it; the twin's emission record (same monotonic clock as this process) measures
+how long light kept coming after the daemon stopped.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import pytest
+from nhfd.drivers.guardian import GuardianClient, GuardianError, GuardianUnavailable, spawn_guardian
+from nhfd.drivers.settings import GuardianSettings, LaserSettings
+from nhfd.drivers.twins.mecom_twin import MecomTwin
+
+from nhfd.cli.main import main
+
+from .conftest import read_line, reaped
+
+HEAVY = ("torch", "numba", "onnxruntime")
+
+DAEMON = """
+import sys, time
+from nhfd.drivers.guardian import GuardianClient
+c = GuardianClient({sock!r})
+c.heartbeat()
+c.arm(60)
+c.set_power("red", 80.0)
+c.set_power("blue", 4.0)
+c.enable("red")
+c.enable("blue")
+print("on", flush=True)
+while True:
+    c.heartbeat()
+    time.sleep(0.05)
+"""
+
+
+def guardian_settings(sock, heartbeat_timeout_s: float = 0.5) -> LaserSettings:
+    return LaserSettings(
+        reply_timeout_s=0.2,
+        guardian=GuardianSettings(socket_path=str(sock), heartbeat_timeout_s=heartbeat_timeout_s,
+                                  start_timeout_s=15.0),
+    )
+
+
+def wait_dark(twin, timeout_s: float = 3.0) -> float:
+    deadline = time.monotonic() + timeout_s
+    while (dark := twin.dark_since()) is None:
+        assert time.monotonic() < deadline, f"still emitting {twin.emitting()}"
+        time.sleep(0.005)
+    return dark
+
+
+@pytest.mark.parametrize("how", ["SIGKILL", "hang"])
+def test_lasers_go_off_within_a_second_when_the_daemon_dies_or_hangs(mecom_twin, short_dir,
+                                                                     how):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock), port=mecom_twin.port_path,
+                              stderr=subprocess.DEVNULL)
+    daemon = subprocess.Popen([sys.executable, "-c", DAEMON.format(sock=str(sock))],
+                              stdout=subprocess.PIPE, text=True)
+    with reaped(daemon, guardian):
+        assert read_line(daemon, 10).strip() == "on"
+        assert mecom_twin.emitting() == {"red": 10.0, "green": 0.0, "blue": 4.0}  # capped
+        n_before = len(mecom_twin.requests)
+        stopped = time.monotonic()
+        # SIGKILL: nothing in the daemon runs. SIGSTOP: a hung daemon, socket still open.
+        os.kill(daemon.pid, signal.SIGKILL if how == "SIGKILL" else signal.SIGSTOP)
+        dark = wait_dark(mecom_twin)
+        assert dark - stopped < 1.0
+        # ...and the guardian read the enables back after switching them off.
+        time.sleep(0.1)
+        after = [r.payload for r in mecom_twin.requests[n_before:]]
+        for instance in ("01", "02", "03"):
+            assert f"?VR1B5E{instance}" in after
+        assert guardian.poll() is None  # still on duty
+    assert mecom_twin.max_emitted_pct() == 10.0
+
+
+def test_emission_needs_a_live_heartbeat(mecom_twin, short_dir):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock), port=mecom_twin.port_path,
+                              stderr=subprocess.DEVNULL)
+    with reaped(guardian), GuardianClient(sock) as client:
+        with pytest.raises(GuardianError, match="heartbeat"):
+            client.arm(10)
+        client.heartbeat()
+        client.arm(10)
+        client.set_power("green", 1.0)
+        time.sleep(0.7)  # the heartbeat lapses: the session trips
+        with pytest.raises(GuardianError, match="heartbeat"):
+            client.enable("green")
+        client.heartbeat()
+        with pytest.raises(GuardianError, match="NotArmed"):  # the trip disarmed it
+            client.enable("green")
+        assert client.hello()["max_power_pct"] == [10.0, 10.0, 10.0]
+        with pytest.raises(GuardianError, match="unknown op"):
+            client.call("fire")
+    assert mecom_twin.max_emitted_pct() == 0.0
+
+
+def test_nhfd_laser_off_through_the_guardian(mecom_twin, short_dir, capsys):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
+                              port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
+    with reaped(guardian), GuardianClient(sock) as client:
+        client.heartbeat()
+        client.arm(30)
+        client.set_power("green", 2.0)
+        client.enable("green")
+        assert mecom_twin.emitting()["green"] == 2.0
+        assert main(["laser-off", "--socket", str(sock)]) == 0
+        assert mecom_twin.emitting()["green"] == 0.0
+        assert "read back by the guardian" in capsys.readouterr().out
+        assert client.status()["armed"] is False
+
+
+def test_the_guardian_switches_off_and_exits_on_sigterm(mecom_twin, short_dir):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
+                              port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
+    with reaped(guardian):
+        with GuardianClient(sock) as client:
+            client.heartbeat()
+            client.arm(30)
+            client.set_power("red", 1.0)
+            client.enable("red")
+            sent = time.monotonic()
+            guardian.send_signal(signal.SIGTERM)
+            assert guardian.wait(timeout=5) == 0
+        assert wait_dark(mecom_twin) - sent < 1.0
+        assert not sock.exists()
+
+
+def test_nhfd_laser_off_without_a_guardian_opens_the_port_itself(mecom_twin, short_dir, capsys):
+    mecom_twin.set_state("blue", enabled=1, power_pct=30.0)
+    code = main(["laser-off", "--socket", str(short_dir / "none.sock"),
+                 "--port", mecom_twin.port_path])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "read back on" in out.out and "no guardian" in out.out
+    assert mecom_twin.emitting()["blue"] == 0.0
+    assert mecom_twin.requests[0].payload == "?VR006401"  # identified first
+
+
+def test_nhfd_laser_off_fails_loudly_when_nothing_can_be_reached(short_dir, capsys):
+    code = main(["laser-off", "--socket", str(short_dir / "none.sock"), "--timeout-s", "0.2"])
+    assert code == 1
+    assert "no laser port is configured" in capsys.readouterr().err
+
+
+def test_a_second_guardian_can_take_neither_the_port_nor_the_socket(mecom_twin, short_dir):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock), port=mecom_twin.port_path,
+                              stderr=subprocess.DEVNULL)
+    with reaped(guardian), MecomTwin() as other_twin:
+        settings = guardian_settings(sock).model_copy(update={"guardian": GuardianSettings(
+            socket_path=str(sock), start_timeout_s=5.0)})
+        # The port is held exclusively by the first guardian.
+        with pytest.raises(GuardianError, match="did not become ready"):
+            spawn_guardian(settings, port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
+        # Another laser, same socket: refused, and the socket is left to the first one.
+        with pytest.raises(GuardianError, match="did not become ready"):
+            spawn_guardian(settings, port=other_twin.port_path, stderr=subprocess.DEVNULL)
+        with GuardianClient(sock) as client:
+            assert client.hello()["pid"] == guardian.pid
+
+
+def test_guardian_client_reports_a_missing_guardian(short_dir):
+    with pytest.raises(GuardianUnavailable, match="no laser guardian"):
+        GuardianClient(short_dir / "absent.sock", timeout_s=0.2)
+
+
+def test_the_guardian_and_drivers_import_no_heavy_libraries():
+    probe = (
+        "import sys, json\n"
+        "import nhfd.drivers.guardian, nhfd.drivers.laser, nhfd.drivers.stage\n"
+        "import nhfd.drivers.slm, nhfd.drivers.framebuffer, nhfd.drivers.navigator\n"
+        "import nhfd.drivers.twins.mecom_twin, nhfd.drivers.twins.apt_twin\n"
+        "import nhfd.cli.cmd_laser\n"
+        "print(json.dumps(sorted(sys.modules)))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         check=True, timeout=60)
+    loaded = set(json.loads(out.stdout))
+    assert not loaded & set(HEAVY)
+    assert "hid" not in loaded  # hidapi is optional and imported only by the backend
+    assert not any(m.startswith(("nhfd.models", "nhfd.optics")) for m in loaded)
