@@ -6,12 +6,15 @@
   stage        Stage base (motion rules) + AptStage (Thorlabs KDC101 / TDC001 over APT)
   slm          SLM base (frame validation, settle, health) + SimulatedSLM
   framebuffer  FramebufferSLM (/dev/fbN, geometry from sysfs)
+  window       WindowSLM (full-screen window on a named output, vsync; needs pyglet)
   navigator    SpaceMouse HID parsing, SpaceMouseNavigator (hidapi, optional), SimulatedNavigator
   mecom, apt   protocol frames, every constant in one place
   settings     pydantic settings for each device kind (imports nothing from nhfd)
   twins        MecomTwin and AptTwin: protocol peers on pseudo-terminals, with faults
+  factory      [devices] -> drivers (simulated laser / stage = real driver + its twin)
+  discovery    what is plugged in and which [devices] entry would use it (`nhfd devices`)
   templates    how a lab adds its own backend
 
-Nothing here imports torch, numba or onnxruntime; hidapi is imported only by the SpaceMouse
-backend. Software safety never replaces the lab's hardware laser interlock.
+Nothing here imports torch, numba or onnxruntime; hidapi, pyusb and pyglet are imported only
+where used. Software safety never replaces the lab's hardware laser interlock.
 """

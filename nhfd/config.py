@@ -21,6 +21,13 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from nhfd.drivers.settings import (
+    LaserSettings,
+    NavigatorSettings,
+    SLMOutputSettings,
+    StageSettings,
+)
+
 DEFAULT_NAME = "packaged default"
 
 
@@ -115,11 +122,21 @@ Backend = Literal["simulated", "none", "real"]
 
 
 class DeviceSettings(_Section):
-    slm: Backend = "simulated"
-    laser: Backend = "simulated"
-    stage: Backend = "simulated"
+    """Which backend drives each device (simulated twins by default) and each device's settings.
+
+    The device settings models live in `nhfd.drivers.settings` (pydantic only, no nhfd imports),
+    so the laser guardian validates them without loading the rest of nhfd.
+    """
+
+    slm: Literal["simulated", "framebuffer", "window", "none"] = "simulated"
+    laser: Literal["simulated", "readybeam", "none"] = "simulated"
+    stage: Literal["simulated", "apt", "none"] = "simulated"
     camera: Backend = "simulated"
-    navigator: Backend = "none"
+    navigator: Literal["none", "simulated", "spacemouse"] = "none"
+    slm_output: SLMOutputSettings = SLMOutputSettings()
+    readybeam: LaserSettings = LaserSettings()
+    apt: StageSettings = StageSettings()
+    spacemouse: NavigatorSettings = NavigatorSettings()
 
 
 class Config(_Section):

@@ -128,22 +128,30 @@ class PtyPeer(ABC):
 
     def _serve(self) -> None:
         while not self._stop.is_set():
-            master = self._master
+            self._wait_readable(self._master)
             data = b""
-            if master is None:
-                self._stop.wait(_TICK_S)
-            else:
-                try:
-                    ready, _, _ = select.select([master], [], [], _TICK_S)
-                    if ready:
-                        data = os.read(master, 4096)
-                except (OSError, ValueError):
-                    # The pair was closed under us (vanish), or no slave is open right now.
-                    self._stop.wait(_TICK_S)
             with self.lock:
+                # Read only under the lock, which vanish() closes the pair under: this never
+                # reads a descriptor number that has since been reused for another file.
+                master = self._master
+                if master is not None and self._wait_readable(master, 0.0):
+                    try:
+                        data = os.read(master, 4096)
+                    except OSError:
+                        data = b""  # no slave open right now
                 if data:
                     self.on_bytes(data)
                 self.tick()
+
+    def _wait_readable(self, fd: int | None, timeout_s: float = _TICK_S) -> bool:
+        if fd is None:
+            self._stop.wait(timeout_s)
+            return False
+        try:
+            return bool(select.select([fd], [], [], timeout_s)[0])
+        except (OSError, ValueError):  # closed under us (vanish)
+            self._stop.wait(timeout_s)
+            return False
 
     @abstractmethod
     def on_bytes(self, data: bytes) -> None:

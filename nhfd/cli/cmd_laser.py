@@ -37,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _common(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--config", help="configuration file (its [laser] section, when present)")
+    p.add_argument("--config", help="configuration file (its [devices.readybeam] section)")
     p.add_argument("--socket", help="guardian socket path")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--port", help="laser port path, e.g. /dev/ttyUSB0")
@@ -45,18 +45,16 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _settings(args: argparse.Namespace) -> Any:
-    """LaserSettings from the configuration's [laser] section (once nhfd.config has one), with
-    the command line's port and socket on top. A broken configuration file must not stop an
-    emergency off, so it is reported and the defaults are used."""
+    """LaserSettings from the configuration's [devices.readybeam], with the command line's port
+    and socket on top. A broken configuration file must not stop an emergency off, so it is
+    reported and the defaults are used."""
     from nhfd.drivers.settings import LaserSettings
 
     settings = LaserSettings()
     try:
         from nhfd.config import load_config
 
-        configured = getattr(load_config(args.config).config, "laser", None)
-        if isinstance(configured, LaserSettings):
-            settings = configured
+        settings = load_config(args.config).config.devices.readybeam
     except Exception as exc:
         print(f"nhfd {args.command}: warning: configuration not used: {exc}", file=sys.stderr)
     update: dict[str, Any] = {}

@@ -184,12 +184,14 @@ def test_the_guardian_and_drivers_import_no_heavy_libraries():
         "import nhfd.drivers.guardian, nhfd.drivers.laser, nhfd.drivers.stage\n"
         "import nhfd.drivers.slm, nhfd.drivers.framebuffer, nhfd.drivers.navigator\n"
         "import nhfd.drivers.twins.mecom_twin, nhfd.drivers.twins.apt_twin\n"
-        "import nhfd.cli.cmd_laser\n"
+        "import nhfd.drivers.factory, nhfd.drivers.discovery, nhfd.drivers.window\n"
+        "import nhfd.cli.cmd_laser, nhfd.cli.cmd_devices\n"
         "print(json.dumps(sorted(sys.modules)))\n"
     )
     out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
                          check=True, timeout=60)
     loaded = set(json.loads(out.stdout))
     assert not loaded & set(HEAVY)
-    assert "hid" not in loaded  # hidapi is optional and imported only by the backend
+    # hidapi, pyusb and pyglet are optional and imported only where used
+    assert not loaded & {"hid", "usb", "pyglet"}
     assert not any(m.startswith(("nhfd.models", "nhfd.optics")) for m in loaded)

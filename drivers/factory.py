@@ -1,0 +1,123 @@
+"""Build each device's driver from the configuration's `[devices]` section.
+
+`[devices]` names a backend per device; "simulated" is the default everywhere. A simulated laser
+or stage is the *real* driver talking to its twin on a pseudo-terminal (`MecomLaser` +
+`MecomTwin`, `AptStage` + `AptTwin`), built from the same settings as the real device, caps and
+soft limits included; closing the driver also stops its twin. The camera is built elsewhere
+(`nhfd.drivers.camera`).
+
+Nothing is opened here: the caller opens (which identifies, and for lasers switches everything
+off) and closes. `devices` is `nhfd.config.DeviceSettings` (duck-typed, so this module imports
+nothing outside `nhfd.drivers`); SLM geometry comes from `[slm]`.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from .laser import Laser, MecomLaser
+from .navigator import Navigator, SimulatedNavigator, SpaceMouseNavigator, Waypoint
+from .settings import LaserSettings, StageSettings
+from .slm import SLM, SimulatedSLM
+from .stage import AptStage, Stage
+from .twins.apt_twin import AptTwin
+from .twins.clock import Clock
+from .twins.mecom_twin import MecomTwin
+
+
+class SimulatedLaser(MecomLaser):
+    """The READYBeam driver on a `MecomTwin` it owns: `twin` holds the emission record."""
+
+    def __init__(self, settings: LaserSettings, *, clock: Clock = time.monotonic) -> None:
+        self.twin = MecomTwin(device_type=settings.device_type, address=settings.address,
+                              channel_instances=settings.channel_instances,
+                              parameter_ids=settings.parameter_ids, clock=clock)
+        self.twin.start()
+        super().__init__(settings, self.twin.opener(), clock=clock)
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self.twin.close()
+
+
+class SimulatedStage(AptStage):
+    """The APT driver on an `AptTwin` it owns (a KDC101 with the settings' serial number)."""
+
+    def __init__(self, settings: StageSettings, *, clock: Clock = time.monotonic) -> None:
+        serial = int(settings.usb_serial) if settings.usb_serial.isdigit() else 27000001
+        self.twin = AptTwin(serial_number=serial, model=settings.allowed_models[0][:8],
+                            channel=settings.channel, counts_per_mm=settings.counts_per_mm,
+                            time_unit_s=settings.time_unit_s, clock=clock)
+        self.twin.start()
+        super().__init__(settings, self.twin.opener())
+
+    def close(self) -> None:
+        try:
+            super().close()
+        finally:
+            self.twin.close()
+
+
+def _require_port(entry: str, settings: LaserSettings | StageSettings) -> None:
+    if not (settings.port or settings.usb_serial):
+        raise ValueError(f"devices.{entry}: set usb_serial (better: `nhfd devices` lists it) or "
+                         "port to use the real device")
+
+
+def make_laser(devices: Any, *, clock: Clock = time.monotonic) -> Laser | None:
+    backend, settings = devices.laser, devices.readybeam
+    if backend == "none":
+        return None
+    if backend == "readybeam":
+        _require_port("readybeam", settings)
+        return MecomLaser(settings, clock=clock)
+    if backend == "simulated":
+        return SimulatedLaser(settings, clock=clock)
+    raise ValueError(f"devices.laser = {backend!r}: no such backend")
+
+
+def make_stage(devices: Any, *, clock: Clock = time.monotonic) -> Stage | None:
+    backend, settings = devices.stage, devices.apt
+    if backend == "none":
+        return None
+    if backend == "apt":
+        _require_port("apt", settings)
+        return AptStage(settings)
+    if backend == "simulated":
+        return SimulatedStage(settings, clock=clock)
+    raise ValueError(f"devices.stage = {backend!r}: no such backend")
+
+
+def make_slm(devices: Any, width_px: int, height_px: int, *,
+             clock: Callable[[], float] = time.monotonic) -> SLM | None:
+    backend, settings = devices.slm, devices.slm_output
+    if backend == "none":
+        return None
+    if backend == "simulated":
+        return SimulatedSLM(width_px, height_px, settings, clock=clock)
+    if backend == "framebuffer":
+        from .framebuffer import FramebufferSLM
+
+        return FramebufferSLM(width_px, height_px, settings, clock=clock)
+    if backend == "window":
+        from .window import WindowSLM
+
+        return WindowSLM(width_px, height_px, settings, clock=clock)
+    raise ValueError(f"devices.slm = {backend!r}: no such backend")
+
+
+def make_navigator(devices: Any, trajectory: Sequence[Waypoint] = (), *,
+                   clock: Callable[[], float] = time.monotonic) -> Navigator | None:
+    """`trajectory` scripts the simulated navigator (empty: the puck rests)."""
+    backend, settings = devices.navigator, devices.spacemouse
+    if backend == "none":
+        return None
+    if backend == "spacemouse":
+        return SpaceMouseNavigator(settings, clock=clock)
+    if backend == "simulated":
+        return SimulatedNavigator(trajectory, settings, clock=clock)
+    raise ValueError(f"devices.navigator = {backend!r}: no such backend")

@@ -1,0 +1,102 @@
+"""`[devices]` chooses each backend; simulated is the default and runs the real driver code."""
+
+from __future__ import annotations
+
+import pytest
+from nhfd.drivers import factory
+from nhfd.drivers.framebuffer import FramebufferSLM
+from nhfd.drivers.laser import MecomLaser
+from nhfd.drivers.navigator import SimulatedNavigator, SpaceMouseNavigator, Waypoint
+from nhfd.drivers.slm import SimulatedSLM
+from nhfd.drivers.stage import AptStage
+from nhfd.drivers.twins.clock import ManualClock
+
+from nhfd.config import Config, ConfigError, check_file
+
+
+def devices(**update):
+    return Config().devices.model_copy(update=update)
+
+
+def test_defaults_are_simulated_and_built_from_the_same_settings():
+    d = Config().devices
+    assert (d.slm, d.laser, d.stage, d.navigator) == ("simulated", "simulated", "simulated",
+                                                      "none")
+    assert d.readybeam.max_power_pct == [10.0, 10.0, 10.0]  # the cap for real lasers too
+    laser = factory.make_laser(d)
+    try:
+        assert isinstance(laser, factory.SimulatedLaser) and isinstance(laser, MecomLaser)
+        assert not laser.twin.requests  # nothing is opened or sent until open()
+        with laser:
+            laser.arm(10)
+            assert laser.set_power("green", 50.0) == 10.0  # the configured cap
+            laser.enable("green")
+            assert laser.twin.emitting()["green"] == 10.0
+        assert laser.twin.emitting()["green"] == 0.0
+        assert not laser.twin.present  # closing the driver stopped its twin
+    finally:
+        laser.twin.close()
+    assert factory.make_navigator(d) is None
+
+
+def test_a_lab_config_reaches_the_simulated_laser_and_stage(tmp_path):
+    path = tmp_path / "lab.toml"
+    path.write_text("[devices.readybeam]\nmax_power_pct = [2.0, 3.0, 4.0]\n"
+                    "[devices.apt]\nusb_serial = \"83000042\"\nallowed_models = [\"TDC001\"]\n"
+                    "enable_settle_s = 0.0\n")
+    d = check_file(path).devices
+    laser = factory.make_laser(d)
+    with laser:
+        laser.arm(10)
+        assert [laser.set_power(c, 99.0) for c in ("red", "green", "blue")] == [2.0, 3.0, 4.0]
+    clock = ManualClock()
+    stage = factory.make_stage(d, clock=clock)
+    assert isinstance(stage, factory.SimulatedStage) and isinstance(stage, AptStage)
+    with stage:
+        assert (stage.info.model, stage.info.serial_number) == ("TDC001", "83000042")
+        assert not stage.twin.moving  # never moves at start-up
+    assert not stage.twin.present
+
+
+def test_real_backends_are_chosen_by_name_and_nothing_is_opened():
+    d = devices(laser="readybeam", stage="apt", slm="framebuffer", navigator="spacemouse")
+    with pytest.raises(ValueError, match=r"devices\.readybeam: set usb_serial"):
+        factory.make_laser(d)
+    with pytest.raises(ValueError, match=r"devices\.apt: set usb_serial"):
+        factory.make_stage(d)
+    d = d.model_copy(update={
+        "readybeam": d.readybeam.model_copy(update={"usb_serial": "FT5LASER"}),
+        "apt": d.apt.model_copy(update={"port": "/dev/ttyUSB0"})})
+    assert type(factory.make_laser(d)) is MecomLaser
+    assert type(factory.make_stage(d)) is AptStage
+    slm = factory.make_slm(d, 1920, 1080)
+    assert isinstance(slm, FramebufferSLM) and slm.shape == (1080, 1920)
+    assert isinstance(factory.make_navigator(d), SpaceMouseNavigator)
+    assert isinstance(factory.make_slm(Config().devices, 8, 4), SimulatedSLM)
+    sim = factory.make_navigator(devices(navigator="simulated"),
+                                 [Waypoint(0.0, (350, 0, 0, 0, 0, 0))])
+    assert isinstance(sim, SimulatedNavigator) and sim.read().translation_m_s[0] == 0.1
+    none = devices(laser="none", stage="none", slm="none")
+    assert (factory.make_laser(none), factory.make_stage(none),
+            factory.make_slm(none, 8, 4)) == (None, None, None)
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("[devices]\nlaser = 'real'\n", r"devices\.laser = 'real': Input should be 'simulated'"),
+        ("[devices.readybeam]\nmax_power_pct = [10.0, 150.0, 10.0]\n",
+         r"devices\.readybeam\.max_power_pct\.1 = 150\.0: Input should be less than or equal "
+         r"to 100"),
+        ("[devices.apt]\nsoft_limits_mm = [5.0, 1.0]\n", r"needs min < max"),
+        ("[devices.readybeam]\ncap = 5\n",
+         r"devices\.readybeam\.cap: unknown key; allowed here: address, arm_max_s"),
+        ("[devices.readybeam.guardian]\nheartbeat_timeout_s = 60.0\n",
+         r"devices\.readybeam\.guardian\.heartbeat_timeout_s = 60\.0"),
+    ],
+)
+def test_device_settings_are_validated_with_the_key_named(tmp_path, text, message):
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=message):
+        check_file(path)
