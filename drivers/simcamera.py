@@ -1,0 +1,512 @@
+"""The simulated camera: what the simulated SLM shows, imaged through a "true" bench.
+
+`TrueBench` is the bench as it really is, deliberately richer than the model that calibration
+fits (design.md, "twins are faithful"), so calibration is never tested against its own equations:
+
+    grey frame --(per-colour, non-parametric, wiggly grey->phase table, random sign)--> phase
+      --(SLM pixels oversampled 2x, inter-pixel crosstalk = blur of the LC phase,
+         fill factor: the inter-pixel gap reflects unmodulated light)--> field on the panel
+      --(zero-order leakage: a fraction of unmodulated light; Gaussian illumination, offset)-->
+      --(Fourier aperture of the relay + ASM to z = (stage - stage_at_slm) / M^2 + offset[colour])
+      --(lateral magnification M, rotation, mirror flip, shift; camera pixel integration)-->
+      --(laser power, exposure, gain, PRNU, dark current, shot + read noise, full well,
+         dark offset + DSNU, gamma-like response, ADC bits)--> raw levels
+
+Propagation and the aperture are `nhfd.optics` (`propagate`, `Aperture`), never re-implemented.
+Units are SI (metres, seconds, radians). SLM-plane coordinates: x along columns, y along rows,
+origin at the panel's centre; camera pixel (row, col) has its centre at (col, row).
+
+The camera base class (`nhfd.drivers.camera.Camera`) then inverts the response, averages bursts
+and subtracts the dark frame, exactly as it does for a real camera.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from nhfd.optics import Aperture, KernelCache, PhaseCurve, propagate
+
+from .camera import Camera, CameraSettings, ResponseCurve
+from .errors import DeviceError
+
+GREY_LEVELS = 256
+# HOLOEYE ships PLUTO-VIS panels with a 2 pi table at 532 nm; at other wavelengths the stroke
+# scales roughly as 532 / lambda (optics.md, "Phase to grey").
+PANEL_CALIBRATION_WAVELENGTH_M = 532e-9
+
+FrameSource = Callable[[], Any]
+PowerSource = Callable[[], Sequence[float]]
+PositionSource = Callable[[], float]
+
+
+def wiggly_phase_table(
+    stroke_rad: float, seed: int, wiggle: float = 0.25, levels: int = GREY_LEVELS
+) -> tuple[float, ...]:
+    """A strictly increasing grey -> phase table with `phase[levels-1] = stroke (levels-1)/levels`
+    (like the linear curve's end point) but an S-shaped, wiggly course in between.
+
+    The increments are `1 + sum_k a_k sin(2 pi k t + theta_k)` with `sum |a_k| < 1`, so they stay
+    positive (monotone) whatever the seed; the S-shape is the slow start and end that real LC
+    panels show at the ends of their voltage range.
+    """
+    rng = np.random.default_rng(seed)
+    t = (np.arange(levels) + 0.5) / levels
+    amps = wiggle * rng.uniform(0.5, 1.0, 4) / np.arange(1, 5) / 2.1
+    phases = rng.uniform(0, 2 * np.pi, 4)
+    inc = 1 + sum(a * np.sin(2 * np.pi * (k + 1) * t + p)
+                  for k, (a, p) in enumerate(zip(amps, phases, strict=True)))
+    inc *= 0.55 + 1.8 * t * (1 - t)  # S-shape: slow at both ends
+    table = np.concatenate([[0.0], np.cumsum(inc[:-1])])
+    table *= stroke_rad * (levels - 1) / levels / table[-1]
+    return tuple(float(v) for v in table)
+
+
+def camera_response(gamma: float, wiggle: float, bit_depth: int) -> ResponseCurve:
+    """A gamma-like camera response with a small smooth wiggle (not a pure power law), as a
+    table: linear = t^gamma + wiggle sin(2 pi t) t (1 - t), t = raw / max."""
+    levels = 2**bit_depth
+    t = np.arange(levels) / (levels - 1)
+    linear = t**gamma + wiggle * np.sin(2 * np.pi * t) * t * (1 - t)
+    if np.any(np.diff(linear) <= 0):
+        raise ValueError(f"camera response gamma {gamma}, wiggle {wiggle} is not increasing")
+    return ResponseCurve(linear / linear[-1])
+
+
+@dataclass(frozen=True)
+class TrueBench:
+    """The bench as it really is. Defaults are realistic, not ideal. Colours are R, G, B."""
+
+    # --- SLM (geometry of nhfd.toml's [slm]; the panel size comes from the frames shown)
+    pitch_m: float = 8e-6
+    wavelengths_m: tuple[float, float, float] = (660e-9, 520e-9, 450e-9)
+    # Samples per SLM pixel per axis on the simulation grid (resolves the crosstalk).
+    oversample: int = 2
+    # Fraction of each pixel's area that is modulated (PLUTO-2.1: 93%).
+    fill_factor: float = 0.93
+    # Amplitude reflectance of the inter-pixel gap (unmodulated light) relative to a pixel.
+    gap_reflectance: float = 0.5
+    # Fringing field: the LC phase is blurred across pixel edges by a Gaussian of this sigma.
+    crosstalk_sigma_m: float = 1.0e-6
+    # Grey -> phase tables, one per colour (256 values, strictly increasing, unwrapped).
+    # None: wiggly tables with a stroke of 2 pi * 532 nm / lambda (see wiggly_phase_table).
+    phase_tables_rad: tuple[tuple[float, ...], ...] | None = None
+    phase_table_seed: int = 11
+    # +1, or -1 where the bench shows the conjugate (the model's sign must match it).
+    phase_sign: int = 1
+    # Intensity fraction of the light that leaves the panel unmodulated (cover glass, LC that
+    # does not follow): it is coherent with the signal and passes the aperture as the zero order.
+    zero_order_fraction: float = 0.01
+    # Gaussian illumination: 1/e^2 intensity radius and the beam centre on the panel.
+    source_waist_m: float = 9e-3
+    source_offset_m: tuple[float, float] = (0.35e-3, -0.2e-3)
+
+    # --- relay (4f with an iris in its Fourier plane) and camera placement
+    aperture_shape: str = "square"
+    aperture_cutoff_per_px: tuple[float, float, float] = (0.25, 0.25, 0.25)
+    # Lateral magnification from the SLM plane to the sensor; longitudinal is its square.
+    magnification: float = 0.75
+    # Rotation of the image on the sensor (a 4f relay inverts: ~180 deg) and an optional flip of
+    # the x axis (a fold mirror), applied before the rotation.
+    rotation_deg: float = 180.4
+    mirror_x: bool = False
+    # Where the panel's centre lands on the sensor, from the sensor's centre (sensor plane, m).
+    shift_m: tuple[float, float] = (28e-6, -17e-6)
+    # Stage reading (mm) whose object plane is the SLM itself for green, and per-colour focus
+    # offsets in SLM space (chromatic focal shift of the relay).
+    stage_at_slm_mm: float = 10.0
+    z_offset_m: tuple[float, float, float] = (70e-6, 0.0, -50e-6)
+
+    # --- sensor (a 5 MP machine-vision colour camera, 3.45 um pixels)
+    camera_pitch_m: float = 3.45e-6
+    sensor_hw_px: tuple[int, int] = (2048, 2448)
+    # Electrons per second per pixel where the SLM-plane relative intensity is 1 (a flat mirror
+    # with the beam's peak amplitude), at full laser power, 0 dB.
+    electrons_per_s: tuple[float, float, float] = (0.8e6, 1.0e6, 0.7e6)
+    # Colour camera: row k = channel k's response to the R, G, B laser lines (Bayer filters).
+    colour_matrix: tuple[tuple[float, float, float], ...] = (
+        (0.92, 0.05, 0.02), (0.06, 0.88, 0.10), (0.01, 0.07, 0.85))
+    full_well_e: float = 10500.0
+    bit_depth: int = 12
+    response_gamma: float = 1.06
+    response_wiggle: float = 0.01
+    # Dark offset (fraction of full scale), its fixed pattern (DSNU, std) and dark current.
+    dark_level: float = 0.015
+    dsnu: float = 0.0015
+    dark_current_e_per_s: float = 5.0
+    # Photo-response non-uniformity (std of the per-pixel gain).
+    prnu: float = 0.008
+    read_noise_e: float = 2.5
+    shot_noise: bool = True
+    noise_seed: int = 0
+    pattern_seed: int = 1234
+
+    def __post_init__(self) -> None:
+        if self.oversample < 1:
+            raise ValueError(f"oversample = {self.oversample}: must be >= 1")
+        if not 0 < self.fill_factor <= 1:
+            raise ValueError(f"fill_factor = {self.fill_factor}: must be in (0, 1]")
+        if not 0 <= self.zero_order_fraction < 1:
+            raise ValueError(f"zero_order_fraction = {self.zero_order_fraction}: need [0, 1)")
+        if self.phase_sign not in (1, -1):
+            raise ValueError(f"phase_sign = {self.phase_sign}: must be +1 or -1")
+        if self.magnification <= 0:
+            raise ValueError(f"magnification = {self.magnification}: must be > 0 "
+                             "(an inverted image is rotation_deg = 180)")
+        tables = self.phase_tables_rad
+        if tables is None:
+            tables = tuple(
+                wiggly_phase_table(2 * math.pi * PANEL_CALIBRATION_WAVELENGTH_M / lam,
+                                   self.phase_table_seed + c)
+                for c, lam in enumerate(self.wavelengths_m)
+            )
+        if len(tables) != 3 or any(len(t) != GREY_LEVELS for t in tables):
+            raise ValueError("phase_tables_rad: need 3 tables (R, G, B) of 256 values")
+        for t in tables:
+            PhaseCurve(t)  # strictly increasing and finite, or ValueError
+        # Not a field: derived from phase_tables_rad / phase_table_seed (replace() re-derives it).
+        object.__setattr__(self, "_tables", tuple(tuple(float(v) for v in t) for t in tables))
+
+    @classmethod
+    def randomised(cls, seed: int, **overrides: Any) -> TrueBench:
+        """A plausible bench drawn at random: phase sign, tables, offsets, placement, beam."""
+        rng = np.random.default_rng(seed)
+        drawn: dict[str, Any] = dict(
+            phase_sign=int(rng.choice([1, -1])),
+            phase_table_seed=int(rng.integers(1 << 30)),
+            fill_factor=float(rng.uniform(0.88, 0.96)),
+            zero_order_fraction=float(rng.uniform(0.003, 0.03)),
+            source_offset_m=tuple(float(v) for v in rng.normal(0, 0.4e-3, 2)),
+            magnification=float(rng.uniform(0.6, 1.2)),
+            rotation_deg=float(180 + rng.normal(0, 1.0)),
+            mirror_x=bool(rng.random() < 0.5),
+            shift_m=tuple(float(v) for v in rng.normal(0, 40e-6, 2)),
+            stage_at_slm_mm=float(rng.uniform(8, 12)),
+            z_offset_m=(float(rng.normal(0, 80e-6)), 0.0, float(rng.normal(0, 80e-6))),
+            noise_seed=int(rng.integers(1 << 30)),
+        )
+        drawn.update(overrides)
+        return cls(**drawn)
+
+    # --- derived quantities -----------------------------------------------------------------
+
+    @property
+    def phase_tables(self) -> tuple[tuple[float, ...], ...]:
+        """The grey -> phase tables actually in use (R, G, B)."""
+        return self._tables
+
+    def phase_curves(self) -> list[PhaseCurve]:
+        """The true tables as `PhaseCurve`s: what a perfect calibration would hand the coder."""
+        return [PhaseCurve(t) for t in self._tables]
+
+    @property
+    def stage_scale(self) -> float:
+        """Metres of object-plane (SLM-space) depth per metre of stage travel: 1 / M^2."""
+        return 1.0 / self.magnification**2
+
+    def z_m(self, stage_mm: float, colour: int) -> float:
+        """Distance from the SLM (m) that the camera sees in focus at a stage reading."""
+        return (stage_mm - self.stage_at_slm_mm) * 1e-3 * self.stage_scale + \
+            self.z_offset_m[colour]
+
+    def stage_mm_for(self, z_m: float, colour: int = 1) -> float:
+        """The stage reading that brings distance `z_m` from the SLM into focus for a colour."""
+        return self.stage_at_slm_mm + (z_m - self.z_offset_m[colour]) / self.stage_scale * 1e3
+
+    def response(self) -> ResponseCurve:
+        return camera_response(self.response_gamma, self.response_wiggle, self.bit_depth)
+
+    def gain(self, gain_db: float) -> float:
+        return 10 ** (gain_db / 20)
+
+    def dark_level_at(self, exposure_s: float, gain_db: float = 0.0) -> float:
+        """Mean linear value of a dark frame (offset plus dark current), fraction of full
+        scale."""
+        signal = self.dark_current_e_per_s * exposure_s * self.gain(gain_db) / self.full_well_e
+        return self.dark_level + (1 - self.dark_level) * signal
+
+    def _matrix(self) -> np.ndarray:
+        """2 x 2 map from SLM-plane metres to sensor-plane metres (flip, rotate, magnify)."""
+        a = math.radians(self.rotation_deg)
+        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        flip = np.diag([-1.0 if self.mirror_x else 1.0, 1.0])
+        return self.magnification * rot @ flip
+
+    def slm_to_camera_px(self, x_m: float, y_m: float) -> tuple[float, float]:
+        """Sensor pixel (col, row) where the SLM-plane point (x, y) is imaged."""
+        v = self._matrix() @ np.array([x_m, y_m]) + np.asarray(self.shift_m)
+        h, w = self.sensor_hw_px
+        return (float((w - 1) / 2 + v[0] / self.camera_pitch_m),
+                float((h - 1) / 2 + v[1] / self.camera_pitch_m))
+
+    def camera_px_to_slm(self, col: np.ndarray, row: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """SLM-plane coordinates (m) imaged at sensor positions (col, row)."""
+        h, w = self.sensor_hw_px
+        v = np.stack([(np.asarray(col) - (w - 1) / 2) * self.camera_pitch_m - self.shift_m[0],
+                      (np.asarray(row) - (h - 1) / 2) * self.camera_pitch_m - self.shift_m[1]])
+        xy = np.tensordot(np.linalg.inv(self._matrix()), v, axes=1)
+        return xy[0], xy[1]
+
+    def roi_for_panel(self, panel_hw_px: tuple[int, int], margin_px: int = 8
+                      ) -> tuple[int, int, int, int]:
+        """(top, left, height, width) of the sensor region that holds a panel's image."""
+        ph, pw = panel_hw_px
+        hx, hy = pw * self.pitch_m / 2, ph * self.pitch_m / 2
+        pts = [self.slm_to_camera_px(sx * hx, sy * hy) for sx in (-1, 1) for sy in (-1, 1)]
+        cols, rows = [p[0] for p in pts], [p[1] for p in pts]
+        h, w = self.sensor_hw_px
+        top = max(0, math.floor(min(rows)) - margin_px)
+        left = max(0, math.floor(min(cols)) - margin_px)
+        bottom = min(h, math.ceil(max(rows)) + margin_px + 1)
+        right = min(w, math.ceil(max(cols)) + margin_px + 1)
+        return top, left, bottom - top, right - left
+
+
+def slm_frame_source(slm: Any) -> FrameSource:
+    """Adapt an `nhfd.drivers.slm.SLM` (its `last_frame`, [3, H, W] or None) to a frame source;
+    a panel that has shown nothing shows grey 0."""
+
+    def source() -> np.ndarray:
+        last = slm.last_frame
+        if last is None:
+            return np.zeros(slm.shape, np.uint8)
+        return np.ascontiguousarray(np.asarray(last).transpose(1, 2, 0))
+
+    return source
+
+
+class SimulatedCamera(Camera):
+    """Images the frame shown on the simulated SLM through a `TrueBench`.
+
+    Decoupled from the other drivers by three callables: `frame_source()` -> uint8 [H, W] or
+    [H, W, 3] (R, G, B patterns), `laser_powers()` -> 3 relative powers in [0, 1], and
+    `stage_position_mm()`. `roi` = (top, left, height, width) on the sensor (default: the whole
+    sensor); keep it small for speed. The response curve used to linearise defaults to the
+    bench's true one (as after a radiometric calibration); pass another to model an error.
+    """
+
+    def __init__(
+        self,
+        frame_source: FrameSource,
+        laser_powers: PowerSource,
+        stage_position_mm: PositionSource,
+        bench: TrueBench | None = None,
+        settings: CameraSettings | None = None,
+        *,
+        roi: tuple[int, int, int, int] | None = None,
+        response: ResponseCurve | None = None,
+        cache: KernelCache | None = None,
+    ) -> None:
+        self.bench = bench or TrueBench()
+        base = settings or CameraSettings()
+        # The bench's sensor decides the ADC depth; the settings' value describes a real camera.
+        base = base.model_copy(update={"bit_depth": self.bench.bit_depth})
+        super().__init__(base, response=response or self.bench.response())
+        self._true_response = self.bench.response()
+        self._frame_source = frame_source
+        self._laser_powers = laser_powers
+        self._stage_mm = stage_position_mm
+        sh, sw = self.bench.sensor_hw_px
+        self.roi = roi or (0, 0, sh, sw)
+        top, left, h, w = self.roi
+        if not (0 <= top and 0 <= left and h >= 1 and w >= 1 and top + h <= sh
+                and left + w <= sw):
+            raise ValueError(f"roi {roi}: must lie on the {sh} x {sw} sensor")
+        self._cache = cache if cache is not None else KernelCache(64 * 2**20)
+        self._rng = np.random.default_rng(self.bench.noise_seed)
+        self._optical_key: tuple[Any, ...] | None = None
+        self._optical: np.ndarray | None = None
+        self._prnu, self._dsnu = self._patterns()
+
+    def reseed(self, seed: int) -> None:
+        """Restart the noise generator (captures after this repeat for the same seed)."""
+        self._rng = np.random.default_rng(seed)
+
+    # -- Camera hooks ------------------------------------------------------------------------
+
+    def _open_device(self) -> None:
+        pass
+
+    def _close_device(self) -> None:
+        pass
+
+    def _exposure_limits_s(self) -> tuple[float, float]:
+        return (1e-6, 10.0)
+
+    def _apply_exposure(self, exposure_s: float) -> float:
+        return exposure_s
+
+    def _apply_gain(self, gain_db: float) -> float:
+        return gain_db
+
+    def _grab(self) -> np.ndarray:
+        b = self.bench
+        powers = np.asarray(self._laser_powers(), dtype=np.float64).reshape(-1)
+        if powers.shape != (3,) or not np.isfinite(powers).all() or \
+                powers.min() < 0 or powers.max() > 1:
+            raise DeviceError(f"{self.name}: laser powers {powers.tolist()}: need 3 in [0, 1]")
+        t = self._exposure_s
+        # Colours whose laser is off are not propagated at all (zeros), which also keeps
+        # field-sequential captures three times cheaper.
+        lit = tuple(bool(p > 0) for p in powers)
+        per_colour = self.optical_image(lit) if any(lit) else None  # [3, h, w] relative
+        _, _, h, w = self.roi
+        rate = powers * np.asarray(b.electrons_per_s)
+        if self.settings.channels == "rgb":
+            mix = np.asarray(b.colour_matrix) * rate[None, :]  # [channel, colour]
+            shape: tuple[int, ...] = (3, h, w)
+        else:
+            mix = rate[None, :]
+            shape = (1, h, w)
+        electrons = np.zeros(shape, np.float64)
+        if per_colour is not None:
+            electrons += np.tensordot(mix, per_colour, axes=1) * t
+        electrons *= self._prnu
+        electrons += b.dark_current_e_per_s * t
+        if b.shot_noise:
+            electrons = self._rng.poisson(electrons).astype(np.float64)
+        if b.read_noise_e > 0:
+            electrons += self._rng.normal(0.0, b.read_noise_e, electrons.shape)
+        # The pixel holds at most its full well; the ADC then clips at full scale.
+        electrons = np.clip(electrons, 0.0, b.full_well_e)
+        signal = b.dark_level + self._dsnu + \
+            (1 - b.dark_level) * b.gain(self._gain_db) * electrons / b.full_well_e
+        raw = np.rint(self._true_response.to_raw(np.clip(signal, 0.0, 1.0)))
+        raw = raw.astype(np.uint16)
+        return raw[0] if self.settings.channels == "mono" else raw.transpose(1, 2, 0)
+
+    # -- the optics ----------------------------------------------------------------------------
+
+    def _frame(self) -> np.ndarray:
+        """The shown frame as uint8 [3, H, W] (one pattern per colour)."""
+        a = np.asarray(self._frame_source())
+        if a.dtype != np.uint8:
+            raise DeviceError(f"{self.name}: SLM frame dtype {a.dtype}: expected uint8")
+        if a.ndim == 2:
+            return np.broadcast_to(a, (3, *a.shape))
+        if a.ndim == 3 and a.shape[2] == 3:
+            return a.transpose(2, 0, 1)
+        raise DeviceError(f"{self.name}: SLM frame shape {a.shape}: expected [H, W] or [H, W, 3]")
+
+    def optical_image(self, colours: Sequence[bool] = (True, True, True)) -> np.ndarray:
+        """Noise-free relative irradiance per laser colour on the ROI, [3, h, w] (1 = a flat
+        mirror at the beam's peak, full power), for the current frame and stage position;
+        colours not asked for are zero."""
+        frame = self._frame()
+        stage = float(self._stage_mm())
+        if not math.isfinite(stage):
+            raise DeviceError(f"{self.name}: stage position {stage!r}")
+        key = (hashlib.blake2b(np.ascontiguousarray(frame).tobytes(), digest_size=16).digest(),
+               frame.shape, stage, tuple(colours))
+        if key != self._optical_key or self._optical is None:
+            with torch.no_grad():
+                panel = self.panel_field(frame)
+                self._optical = self._image(panel, stage, colours)
+            self._optical_key = key
+        return self._optical
+
+    def panel_field(self, frame: np.ndarray) -> torch.Tensor:
+        """The complex field leaving the panel, [3, s H, s W] on the oversampled grid."""
+        b = self.bench
+        s = b.oversample
+        grey = torch.from_numpy(np.ascontiguousarray(frame)).long()
+        tables = torch.tensor(b.phase_tables, dtype=torch.float64)
+        phase = torch.stack([tables[c][grey[c]] for c in range(3)])  # unwrapped, per pixel
+        phase = phase.repeat_interleave(s, dim=-2).repeat_interleave(s, dim=-1)
+        pitch = b.pitch_m / s
+        if b.crosstalk_sigma_m > 0:
+            # The fringing field smooths the LC's *unwrapped* phase (the voltage), so a jump
+            # from grey 0 to 255 passes through every phase in between.
+            phase = _gaussian_blur(phase, b.crosstalk_sigma_m / pitch)
+        modulated = torch.polar(torch.ones_like(phase), b.phase_sign * phase)
+        # Each sample holds the area mean of the reflected field: the fill factor's share is
+        # modulated, the gap's share reflects unmodulated light.
+        u = b.fill_factor * modulated + (1 - b.fill_factor) * b.gap_reflectance
+        u = math.sqrt(1 - b.zero_order_fraction) * u + math.sqrt(b.zero_order_fraction)
+        hs, ws = u.shape[-2:]
+        y = (torch.arange(hs, dtype=torch.float64) - (hs - 1) / 2) * pitch
+        x = (torch.arange(ws, dtype=torch.float64) - (ws - 1) / 2) * pitch
+        r2 = (x[None, :] - b.source_offset_m[0]) ** 2 + (y[:, None] - b.source_offset_m[1]) ** 2
+        return (u * torch.exp(-r2 / b.source_waist_m**2)).to(torch.complex64)
+
+    def _image(self, panel: torch.Tensor, stage_mm: float, colours: Sequence[bool]
+               ) -> np.ndarray:
+        b = self.bench
+        s = b.oversample
+        pitch = b.pitch_m / s
+        out = []
+        for c in range(3):
+            if not colours[c]:
+                out.append(torch.zeros(panel.shape[-2:]))
+                continue
+            # The aperture's cutoff is per SLM pixel; on the oversampled grid it is s times less.
+            ap = Aperture(b.aperture_shape, (b.aperture_cutoff_per_px[c] / s,))
+            u = propagate(panel[c : c + 1], b.z_m(stage_mm, c), pitch, [b.wavelengths_m[c]],
+                          aperture=ap, padding="auto", cache=self._cache)
+            out.append(u.abs().square()[0])
+        return self.project_to_camera(torch.stack(out), pitch)
+
+    def project_to_camera(self, image: torch.Tensor | np.ndarray, pitch_m: float) -> np.ndarray:
+        """Map an SLM-plane image [C, H, W] (sample pitch `pitch_m`, centred on the panel) onto
+        the ROI with the bench's geometry and camera pixel integration -> [C, h, w] float64.
+        Outside the image is 0. Also useful to put a target where the camera sees it."""
+        img = torch.as_tensor(image, dtype=torch.float32)
+        c, hs, ws = img.shape
+        top, left, h, w = self.roi
+        b = self.bench
+        # Supersample each camera pixel finely enough to integrate over its footprint.
+        footprint = b.camera_pitch_m / b.magnification
+        k = max(1, math.ceil(2 * footprint / pitch_m))
+        sub = (np.arange(k) + 0.5) / k - 0.5
+        rows = (top + np.arange(h))[:, None] + sub[None, :]
+        cols = (left + np.arange(w))[:, None] + sub[None, :]
+        rr, cc = np.meshgrid(rows.reshape(-1), cols.reshape(-1), indexing="ij")
+        x, y = b.camera_px_to_slm(cc, rr)
+        # grid_sample with align_corners=True: -1 and +1 are the centres of the end samples.
+        gx = x / pitch_m / ((ws - 1) / 2)
+        gy = y / pitch_m / ((hs - 1) / 2)
+        grid = torch.from_numpy(np.stack([gx, gy], axis=-1)).float()[None]
+        sampled = F.grid_sample(img[None], grid, mode="bilinear", padding_mode="zeros",
+                                align_corners=True)[0]
+        return sampled.reshape(c, h, k, w, k).mean(dim=(2, 4)).double().numpy()
+
+    def _patterns(self) -> tuple[np.ndarray, np.ndarray]:
+        """PRNU (gain) and DSNU (offset) of the ROI's pixels, fixed for the sensor: each sensor
+        row is drawn from its own seeded generator, so any ROI sees the same pixels."""
+        b = self.bench
+        top, left, h, w = self.roi
+        sw = b.sensor_hw_px[1]
+        chans = 3 if self.settings.channels == "rgb" else 1
+        prnu = np.empty((chans, h, w))
+        dsnu = np.empty((chans, h, w))
+        for i in range(h):
+            rng = np.random.default_rng([b.pattern_seed, top + i])
+            draw = rng.standard_normal((2, chans, sw))[..., left : left + w]
+            prnu[:, i] = 1 + b.prnu * draw[0]
+            dsnu[:, i] = b.dsnu * draw[1]
+        return prnu, dsnu
+
+
+def _gaussian_blur(image: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """Periodic Gaussian blur of a real [..., H, W] tensor (sigma in samples), via the FFT."""
+    h, w = image.shape[-2:]
+    fy = torch.fft.fftfreq(h, dtype=torch.float64)[:, None]
+    fx = torch.fft.rfftfreq(w, dtype=torch.float64)[None, :]
+    transfer = torch.exp(-2 * math.pi**2 * sigma_px**2 * (fx**2 + fy**2))
+    return torch.fft.irfft2(torch.fft.rfft2(image) * transfer, s=(h, w))
+
+
+__all__ = [
+    "SimulatedCamera",
+    "TrueBench",
+    "camera_response",
+    "slm_frame_source",
+    "wiggly_phase_table",
+]
