@@ -126,6 +126,34 @@ def render_prepared(
     return Render(rgb, alpha, depth, stats)
 
 
-def render(g: Gaussians, cam: Camera, settings: RasterSettings = RasterSettings()) -> Render:
-    """Render one view of `g` from `cam` on the CPU."""
+BACKENDS = ("cpu", "gsplat", "auto")
+
+
+def render(
+    g: Gaussians,
+    cam: Camera,
+    settings: RasterSettings = RasterSettings(),
+    backend: str = "cpu",
+) -> Render:
+    """Render one view of `g` from `cam`.
+
+    `backend`: "cpu" (this module), "gsplat" (CUDA; see gsplat_backend), or "auto" (gsplat when
+    CUDA and gsplat are present, else the CPU).
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
+    if backend != "cpu" and len(g):
+        from nhfd.scene import gsplat_backend
+
+        if backend == "gsplat" or gsplat_backend.available():
+            t0 = time.perf_counter()
+            rgb, alpha, depth = gsplat_backend.render_gsplat(
+                g, cam, settings.eps2d_px2, settings.antialias
+            )
+            return Render(
+                rgb,
+                alpha,
+                depth,
+                {"backend": "gsplat", "total_ms": 1e3 * (time.perf_counter() - t0)},
+            )
     return render_prepared(prepare(g, cam), cam, (0.0, 0.0), settings)

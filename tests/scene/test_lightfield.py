@@ -137,3 +137,18 @@ def test_light_field_shapes_and_central_view():
     views = zip(lf.depth.reshape(-1, 96, 96), lf.alpha.reshape(-1, 96, 96), strict=True)
     for view_depth, view_alpha in views:
         assert view_depth[view_alpha > 0.5] == pytest.approx(1.0, rel=1e-3)
+
+
+def test_gsplat_backend_without_cuda_says_what_is_missing():
+    from nhfd.scene import gsplat_backend
+    from nhfd.scene.raster import render
+
+    g, cam = _point_scene([1.0])
+    if gsplat_backend.available():
+        pytest.skip("CUDA and gsplat present: the GPU path is used")
+    with pytest.raises(RuntimeError, match="CUDA device and the gsplat package"):
+        render(g, cam, backend="gsplat")
+    # "auto" falls back to the CPU and still draws the point.
+    assert render(g, cam, backend="auto").alpha.max() > 0.5
+    with pytest.raises(ValueError, match="backend must be one of"):
+        render(g, cam, backend="opengl")
