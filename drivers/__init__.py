@@ -7,6 +7,8 @@
   slm          SLM base (frame validation, settle, health) + SimulatedSLM
   framebuffer  FramebufferSLM (/dev/fbN, geometry from sysfs)
   window       WindowSLM (full-screen window on a named output, vsync; needs pyglet)
+  camera       Camera base (response, bursts, dark frames) + OpenCVCamera, GenICamCamera
+  simcamera    SimulatedCamera and its TrueBench (imports torch: the only module here that does)
   navigator    SpaceMouse HID parsing, SpaceMouseNavigator (hidapi, optional), SimulatedNavigator
   mecom, apt   protocol frames, every constant in one place
   settings     pydantic settings for each device kind (imports nothing from nhfd)
@@ -15,6 +17,6 @@
   discovery    what is plugged in and which [devices] entry would use it (`nhfd devices`)
   templates    how a lab adds its own backend
 
-Nothing here imports torch, numba or onnxruntime; hidapi, pyusb and pyglet are imported only
+Nothing here but simcamera imports torch, and nothing imports numba or onnxruntime; hidapi, pyusb and pyglet are imported only
 where used. Software safety never replaces the lab's hardware laser interlock.
 """

@@ -3,8 +3,8 @@
 `[devices]` names a backend per device; "simulated" is the default everywhere. A simulated laser
 or stage is the *real* driver talking to its twin on a pseudo-terminal (`MecomLaser` +
 `MecomTwin`, `AptStage` + `AptTwin`), built from the same settings as the real device, caps and
-soft limits included; closing the driver also stops its twin. The camera is built elsewhere
-(`nhfd.drivers.camera`).
+soft limits included; closing the driver also stops its twin. The simulated camera images what
+the simulated SLM shows, lit by the laser twin's emission, at the stage twin's position.
 
 Nothing is opened here: the caller opens (which identifies, and for lasers switches everything
 off) and closes. `devices` is `nhfd.config.DeviceSettings` (duck-typed, so this module imports
@@ -17,9 +17,10 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from .camera import Camera
 from .laser import Laser, MecomLaser
 from .navigator import Navigator, SimulatedNavigator, SpaceMouseNavigator, Waypoint
-from .settings import LaserSettings, StageSettings
+from .settings import COLOURS, LaserSettings, StageSettings
 from .slm import SLM, SimulatedSLM
 from .stage import AptStage, Stage
 from .twins.apt_twin import AptTwin
@@ -121,3 +122,46 @@ def make_navigator(devices: Any, trajectory: Sequence[Waypoint] = (), *,
     if backend == "simulated":
         return SimulatedNavigator(trajectory, settings, clock=clock)
     raise ValueError(f"devices.navigator = {backend!r}: no such backend")
+
+
+def make_camera(
+    devices: Any,
+    *,
+    slm: SLM | None = None,
+    laser: Laser | None = None,
+    stage: Stage | None = None,
+    bench: Any = None,
+    roi: tuple[int, int, int, int] | None = None,
+) -> Camera | None:
+    """The configured camera. The simulated one needs the simulated SLM, laser and stage it
+    watches (their twins are the bench's truth); `bench` is a `TrueBench` (default: its own)."""
+    backend, settings = devices.camera, devices.camera_settings
+    if backend == "none":
+        return None
+    if backend == "opencv":
+        from .camera import OpenCVCamera
+
+        return OpenCVCamera(settings)
+    if backend == "genicam":
+        from .camera import GenICamCamera
+
+        return GenICamCamera(settings)
+    if backend == "simulated":
+        twin_laser = getattr(laser, "twin", None)
+        twin_stage = getattr(stage, "twin", None)
+        if slm is None or twin_laser is None or twin_stage is None:
+            raise ValueError(
+                "devices.camera = 'simulated' images the simulated bench: it needs the simulated "
+                "SLM, laser and stage (devices.slm, .laser and .stage = 'simulated')"
+            )
+        from .simcamera import SimulatedCamera, slm_frame_source
+
+        def powers() -> list[float]:
+            emitting = twin_laser.emitting()
+            return [emitting[colour] / 100.0 for colour in COLOURS]
+
+        return SimulatedCamera(
+            slm_frame_source(slm), powers, lambda: twin_stage.position_mm, bench, settings,
+            roi=roi,
+        )
+    raise ValueError(f"devices.camera = {backend!r}: no such backend")

@@ -229,3 +229,36 @@ class NavigatorSettings(_Settings):
     # +1 or -1 per axis: x, y, z, rx, ry, rz.
     axis_signs: Annotated[list[Literal[1, -1]], Field(min_length=6, max_length=6)] = [1] * 6
     read_timeout_ms: Annotated[int, Field(ge=0, le=1000)] = 10
+
+
+# ---------------------------------------------------------------------------------------- camera
+
+
+class CameraSettings(_Settings):
+    """Camera settings, validated once (strict and frozen, like every driver's settings)."""
+
+    # Exposure time, applied on open with auto exposure off.
+    exposure_s: Annotated[float, Field(gt=0, le=60)] = 0.005
+    # Analogue gain with auto gain off: dB for GenICam and the simulated camera; V4L2 drivers
+    # take CAP_PROP_GAIN in their own units, so OpenCVCamera passes this number through.
+    gain_db: Annotated[float, Field(ge=0, le=48)] = 0.0
+    # Frames averaged by a capture unless the call says otherwise.
+    burst_frames: Annotated[int, Field(ge=1, le=10000)] = 1
+    # "mono": [H, W]; "rgb": [3, H, W] (R, G, B).
+    channels: Literal["mono", "rgb"] = "mono"
+    # ADC bits of the raw frames (8 for most V4L2 cameras; 10/12/16 for Mono12-style formats).
+    bit_depth: Annotated[int, Field(ge=1, le=16)] = 8
+    # Response curve: raw/full = linear ** (1 / response_gamma); 1.0 = linear (raw machine-vision
+    # formats). Consumer webcams apply ~2.2. A measured table can be given to the class instead.
+    response_gamma: Annotated[float, Field(ge=0.1, le=5)] = 1.0
+    # OpenCV: device path or index ("/dev/video0", "0"); GenICam: ignored.
+    device: str = "/dev/video0"
+    # OpenCV: frames dropped after a settings change or before a burst (V4L2 queues old frames).
+    discard_frames: Annotated[int, Field(ge=0, le=100)] = 2
+    # GenICam: the vendor's GenTL producer and the camera's serial number ("" = the first).
+    cti_path: str = ""
+    serial_number: str = ""
+    # GenICam PixelFormat to set on open ("" = leave the camera's), e.g. "Mono12", "RGB8".
+    pixel_format: str = ""
+    # Longest wait for one frame beyond the exposure itself.
+    frame_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0

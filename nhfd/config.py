@@ -22,6 +22,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from nhfd.drivers.settings import (
+    CameraSettings,
     LaserSettings,
     NavigatorSettings,
     SLMOutputSettings,
@@ -118,9 +119,6 @@ class CodingSettings(_Section):
     zero_below: Annotated[float, Field(ge=0, lt=1)] = 0.03
 
 
-Backend = Literal["simulated", "none", "real"]
-
-
 class DeviceSettings(_Section):
     """Which backend drives each device (simulated twins by default) and each device's settings.
 
@@ -131,12 +129,13 @@ class DeviceSettings(_Section):
     slm: Literal["simulated", "framebuffer", "window", "none"] = "simulated"
     laser: Literal["simulated", "readybeam", "none"] = "simulated"
     stage: Literal["simulated", "apt", "none"] = "simulated"
-    camera: Backend = "simulated"
+    camera: Literal["simulated", "opencv", "genicam", "none"] = "simulated"
     navigator: Literal["none", "simulated", "spacemouse"] = "none"
     slm_output: SLMOutputSettings = SLMOutputSettings()
     readybeam: LaserSettings = LaserSettings()
     apt: StageSettings = StageSettings()
     spacemouse: NavigatorSettings = NavigatorSettings()
+    camera_settings: CameraSettings = CameraSettings()
 
 
 class Config(_Section):

@@ -10,5 +10,6 @@ configuration, add its name to the device's backend choices in `nhfd/config.py`
   laser_backend.py      Laser: identify, read/write one channel's enable and power
   stage_backend.py      Stage: identify, start home/moves, stop, read state, wait for the end
   slm_backend.py        SLM: write one RGB frame, report output health
+  camera_backend.py     Camera: open, set exposure and gain, grab one raw frame
   navigator_backend.py  Navigator: return the latest raw axes and buttons
 """

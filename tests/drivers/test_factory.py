@@ -100,3 +100,39 @@ def test_device_settings_are_validated_with_the_key_named(tmp_path, text, messag
     path.write_text(text)
     with pytest.raises(ConfigError, match=message):
         check_file(path)
+
+
+def test_simulated_camera_sees_the_simulated_bench():
+    """The factory's camera images what the simulated SLM shows, only while a laser emits."""
+    import numpy as np
+    from nhfd.drivers.simcamera import TrueBench
+
+    d = Config().devices
+    # A small panel and sensor crop keep this fast; the bench's geometry is its own.
+    slm = factory.make_slm(d, 128, 128)
+    laser, stage = factory.make_laser(d), factory.make_stage(d)
+    bench = TrueBench(zero_order_fraction=0.0)
+    roi = bench.roi_for_panel((128, 128))
+    camera = factory.make_camera(d, slm=slm, laser=laser, stage=stage, bench=bench, roi=roi)
+    with slm, laser, stage, camera:
+        # A grey step: phase 0 on the left, pi on the right; its edge diffracts.
+        frame = np.zeros((128, 128), np.uint8)
+        frame[:, 64:] = 128
+        slm.show(frame)
+        camera.capture_dark(4)  # lasers are off on open: this is the dark frame
+        dark = camera.capture().image
+        assert float(np.abs(dark).mean()) < 1e-3
+        laser.arm(10)
+        laser.set_power("green", 10.0)
+        laser.enable("green")
+        lit = camera.capture().image
+        assert float(lit.mean()) > 20 * max(float(np.abs(dark).mean()), 1e-5)
+        laser.enable("green", False)
+        assert float(np.abs(camera.capture().image).mean()) < 1e-3
+
+
+def test_simulated_camera_needs_the_simulated_bench():
+    d = Config().devices
+    with pytest.raises(ValueError, match="needs the simulated SLM, laser and stage"):
+        factory.make_camera(d)
+    assert factory.make_camera(devices(camera="none")) is None
