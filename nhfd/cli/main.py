@@ -15,7 +15,15 @@ from nhfd import __version__
 from nhfd.config import ConfigError
 
 # Modules under nhfd.cli, in the order their commands appear in --help.
-COMMANDS = ("cmd_config", "cmd_demo", "cmd_scene", "cmd_bench", "cmd_laser", "cmd_devices")
+COMMANDS = (
+    "cmd_config",
+    "cmd_demo",
+    "cmd_scene",
+    "cmd_dataset",
+    "cmd_bench",
+    "cmd_laser",
+    "cmd_devices",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

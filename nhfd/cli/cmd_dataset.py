@@ -1,0 +1,159 @@
+"""`nhfd dataset build|show`: training data from a splat scene (views + complex holograms)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+BUILD_HELP = """\
+Render the central view and depth of every pose, compute each view's complex hologram on the
+reference plane by wavefront inversion of its light field (all colours), and write one shard per
+view plus manifest.json. A first depth-only pass over all poses fixes the scene's depth mapping.
+Interrupted builds resume (run the same command again); nothing is overwritten without --force.
+
+Poses: --views N samples a train / interpolation / extrapolation split around the scene (about
+100 / 20 / 10 of N by default; see nhfd.dataset.poses), or --poses FILE reads them.
+"""
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--size {text!r} is not of the form WxH (e.g. 1024x576)") from None
+    if not (1 <= w <= 8192 and 1 <= h <= 8192):
+        raise ValueError(f"--size {text!r}: width and height must be 1..8192 px")
+    return w, h
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("dataset", help="build and inspect training datasets",
+                       description=__doc__)  # fmt: skip
+    cmds = p.add_subparsers(dest="dataset_command", metavar="COMMAND", required=True)
+    b = cmds.add_parser("build", help="build (or resume) a dataset", description=BUILD_HELP,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    b.add_argument("--scene", required=True, help="splat scene (.ply, .compressed.ply, .splat)")
+    b.add_argument("--out", required=True, help="dataset folder")
+    b.add_argument("--views", type=int, default=130, help="poses to sample (default 130)")
+    b.add_argument("--poses", help="JSON poses file instead of sampling (see nhfd.dataset.poses)")
+    b.add_argument("--size", default="1024x576", help="view and hologram WxH (default 1024x576)")
+    b.add_argument("--fov", type=float, default=40.0, help="horizontal field of view, degrees")
+    b.add_argument("--up", default=None, help="scene up axis (default: detected), e.g. --up=-y")
+    b.add_argument("--azimuth", default="-30,30", help="training azimuth sector, degrees")
+    b.add_argument("--elevation", default="10,30", help="elevation range, degrees")
+    b.add_argument("--radius-scale", default="0.9,1.1",
+                   help="radius range as multiples of the suggested camera distance")
+    b.add_argument("--phase", default="depth", choices=("depth", "zero", "random"),
+                   help="phase heuristic (optics.md; default depth-aware)")
+    b.add_argument("--per-colour-views", action="store_true",
+                   help="render each colour's own directions instead of one shared set")
+    b.add_argument("--d-near", type=float, help="override the measured scene near depth")
+    b.add_argument("--d-far", type=float, help="override the measured scene far depth")
+    b.add_argument("--seed", type=int, default=0, help="base seed (poses, random phase)")
+    b.add_argument("--workers", type=int, default=1, help="processes (2 uses both cores)")
+    b.add_argument("--force", action="store_true", help="replace a dataset built differently")
+    b.add_argument("--config", help="nhfd.toml to take the optics from")
+    b.set_defaults(handler=run_build)
+    s = cmds.add_parser("show", help="PNG of a shard's view and its hologram's focal stack")
+    s.add_argument("dir", help="dataset folder")
+    s.add_argument("--index", type=int, default=0, help="view index (default 0)")
+    s.add_argument("-o", "--out", default=None, help="PNG path (default DIR/show_INDEX.png)")
+    s.set_defaults(handler=run_show)
+
+
+def _pair(text: str, name: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"{name} {text!r}: give two numbers, LOW,HIGH") from None
+    if not lo <= hi:
+        raise ValueError(f"{name} {text!r}: need LOW <= HIGH")
+    return lo, hi
+
+
+def settings_from_config(config, w: int, h: int, fov: float, phase: str, shared: bool):
+    from nhfd.dataset.shard import ExampleSettings
+
+    o = config.optics
+    return ExampleSettings(
+        width_px=w, height_px=h, fov_x_deg=fov,
+        wavelengths_m=tuple(v * 1e-9 for v in o.wavelengths_nm),
+        pitch_m=config.slm.pitch_um * 1e-6,
+        volume_m=(o.volume_mm[0] * 1e-3, o.volume_mm[1] * 1e-3),
+        z0_m=o.z0_mm * 1e-3,
+        panel_hw=(config.slm.height_px, config.slm.width_px),
+        aperture_shape=o.aperture.shape,
+        cutoff_per_px=tuple(o.aperture.cutoff_per_px),
+        phase=phase, shared_views=shared,
+    )  # fmt: skip
+
+
+def run_build(args: argparse.Namespace) -> int:
+    import numpy as np
+    from tqdm import tqdm
+
+    from nhfd.config import load_config
+    from nhfd.dataset.build import build
+    from nhfd.dataset.poses import PoseSampler, load_poses
+    from nhfd.scene.io import load_scene
+    from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
+
+    w, h = _size(args.size)
+    if args.workers < 1:
+        raise ValueError(f"--workers {args.workers}: must be >= 1")
+    config = load_config(args.config).config
+    settings = settings_from_config(config, w, h, args.fov, args.phase, not args.per_colour_views)
+    scene = Path(args.scene)
+    g = load_scene(scene)
+    sampler = None
+    if args.poses:
+        poses = load_poses(Path(args.poses))
+    else:
+        if args.views < 1:
+            raise ValueError(f"--views {args.views}: must be >= 1")
+        up = args.up or detect_up_axis(g, format_hint(scene))[0]
+        cam = suggest_camera(g, w, h, up, fov_x_deg=args.fov)
+        center = np.median(g.means, axis=0)
+        dist = float(np.linalg.norm(cam.position - center))
+        r_lo, r_hi = _pair(args.radius_scale, "--radius-scale")
+        n_interp = round(args.views * 20 / 130)
+        n_extrap = round(args.views * 10 / 130)
+        ps = PoseSampler(
+            center=tuple(float(v) for v in center), up=up, radius=(r_lo * dist, r_hi * dist),
+            azimuth_deg=_pair(args.azimuth, "--azimuth"),
+            elevation_deg=_pair(args.elevation, "--elevation"),
+            jitter=0.02 * dist, n_train=max(1, args.views - n_interp - n_extrap),
+            n_interp=n_interp, n_extrap=n_extrap, seed=args.seed,
+        )  # fmt: skip
+        poses, sampler = ps.sample(), ps.describe()
+    bar = tqdm(total=len(poses), unit="view", desc="dataset", file=sys.stderr)
+
+    def progress(done: int, total: int, r: dict) -> None:
+        bar.n = done
+        bar.set_postfix(render=f"{r['render_s']:.1f}s", invert=f"{r['invert_s']:.1f}s")
+        bar.refresh()
+
+    manifest = build(scene, Path(args.out), poses, settings, seed=args.seed, sampler=sampler,
+                     workers=args.workers, force=args.force, d_near=args.d_near,
+                     d_far=args.d_far, progress=progress)  # fmt: skip
+    bar.close()
+    m = manifest["mapping"]
+    print(f"{args.out}: {len(poses)} views ({', '.join(f'{k} {len(v)}' for k, v in manifest['splits'].items())})")  # noqa: E501
+    print(f"mapping: d_near {m['d_near']:.4g}, d_far {m['d_far']:.4g} -> z_h in "
+          f"[{m['z_min_m'] * 1e3:+.1f}, {m['z_max_m'] * 1e3:+.1f}] mm; depth exaggeration "
+          f"{m['depth_exaggeration']:.0f}x")  # fmt: skip
+    print("windows: " + ", ".join(f"{s['wavelength_nm']:.0f} nm W={s['window']} "
+                                  f"({s['n_views']} views)" for s in manifest["sampling"]))
+    print(f"amplitude scale: {manifest['amplitude_scale']['value']:.4g} "
+          f"(p{manifest['amplitude_scale']['percentile']} on the SLM plane)")
+    return 0
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from nhfd.dataset.show import show
+
+    out = Path(args.out) if args.out else Path(args.dir) / f"show_{args.index:05d}.png"
+    info = show(Path(args.dir), args.index, out)
+    print(f"wrote {out} (planes {', '.join(f'{z:+.1f}' for z in info['planes_mm'])} mm)")
+    return 0

@@ -1,0 +1,7 @@
+"""Training datasets: poses, a resumable shard builder, and pictures of what was built.
+
+  poses  the documented pose sampler (train / interpolation / extrapolation splits) and pose files
+  shard  one view's record: the pure unit of work, and atomic shard files
+  build  the builder: depth pass -> scene mapping -> manifest -> shards (resumable, workers)
+  show   a PNG of a shard's central view and its hologram's focal stack
+"""

@@ -1,0 +1,182 @@
+"""Camera poses for a dataset: a seeded sampler around the scene, or a poses file.
+
+The sampler orbits the scene centre (azimuth about the scene's up axis, elevation toward it,
+radius), with a look-at point jittered about the centre. Splits follow the paper's setting:
+
+- `train`: `n_train` poses, stratified in azimuth over the training sector (so they cover it
+  evenly) and uniform in elevation, radius and jitter;
+- `interp`: `n_interp` poses inside the training sector, each halfway (in azimuth) between two
+  neighbouring training poses: views the network has not seen but is surrounded by;
+- `extrap`: `n_extrap` poses from a held-out azimuth sector just beyond the training sector.
+
+Everything derives from `seed`; the same settings give the same poses.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from nhfd.scene.cameras import look_at, parse_axis
+
+SPLITS = ("train", "interp", "extrap")
+
+
+@dataclass(frozen=True)
+class Pose:
+    """World-to-camera rotation `R` (3x3, row-major list) and translation `t`, with its split and
+    the orbit parameters it came from (for reports; None for poses read from a file)."""
+
+    R: tuple[tuple[float, ...], ...]
+    t: tuple[float, ...]
+    split: str
+    azimuth_deg: float | None = None
+    elevation_deg: float | None = None
+    radius: float | None = None
+
+    def matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.array(self.R, np.float64), np.array(self.t, np.float64)
+
+    @property
+    def position(self) -> np.ndarray:
+        r, t = self.matrices()
+        return -r.T @ t
+
+
+@dataclass(frozen=True)
+class PoseSampler:
+    """Orbit ranges around `center` (scene units, degrees). `azimuth_deg` is the training sector;
+    the extrapolation sector is `extrap_width_deg` wide, starting `extrap_gap_deg` past its upper
+    end. `radius` is `(min, max)`; `jitter` moves the look-at point uniformly within a cube of
+    that half-size (scene units)."""
+
+    center: tuple[float, float, float]
+    up: str
+    radius: tuple[float, float]
+    azimuth_deg: tuple[float, float] = (-30.0, 30.0)
+    elevation_deg: tuple[float, float] = (10.0, 30.0)
+    jitter: float = 0.0
+    extrap_gap_deg: float = 2.0
+    extrap_width_deg: float = 10.0
+    n_train: int = 100
+    n_interp: int = 20
+    n_extrap: int = 10
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("azimuth_deg", "elevation_deg", "radius"):
+            lo, hi = getattr(self, name)
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+                raise ValueError(f"{name} = ({lo}, {hi}): need finite low <= high")
+        if not -89.0 <= self.elevation_deg[0] <= self.elevation_deg[1] <= 89.0:
+            raise ValueError(f"elevation_deg = {self.elevation_deg}: must lie in [-89, 89]")
+        if not self.radius[0] > 0:
+            raise ValueError(f"radius = {self.radius}: must be positive")
+        if self.n_train < 1 or self.n_interp < 0 or self.n_extrap < 0:
+            raise ValueError("n_train must be >= 1 and n_interp, n_extrap >= 0")
+        if not (self.jitter >= 0 and self.extrap_width_deg >= 0 and self.extrap_gap_deg >= 0):
+            raise ValueError("jitter, extrap_gap_deg and extrap_width_deg must be >= 0")
+        parse_axis(self.up)
+
+    def sample(self) -> list[Pose]:
+        rng = np.random.default_rng(self.seed)
+        a0, a1 = self.azimuth_deg
+        # Stratified azimuths: one per equal slice of the sector, at a random place in it.
+        edges = np.linspace(a0, a1, self.n_train + 1)
+        train_az = edges[:-1] + rng.uniform(0, 1, self.n_train) * np.diff(edges)
+        sorted_az = np.sort(train_az)
+        if self.n_train > 1:
+            n_gaps = self.n_train - 1
+            gaps = rng.choice(n_gaps, self.n_interp, replace=self.n_interp > n_gaps)
+            interp_az = 0.5 * (sorted_az[gaps] + sorted_az[gaps + 1])
+        else:
+            interp_az = np.full(self.n_interp, sorted_az[0])
+        e0 = a1 + self.extrap_gap_deg
+        extrap_az = rng.uniform(e0, e0 + self.extrap_width_deg, self.n_extrap)
+        poses = []
+        for split, azs in (("train", train_az), ("interp", interp_az), ("extrap", extrap_az)):
+            for az in azs:
+                poses.append(self._pose(rng, float(az), split))
+        return poses
+
+    def _pose(self, rng: np.random.Generator, az: float, split: str) -> Pose:
+        el = float(rng.uniform(*self.elevation_deg))
+        r = float(rng.uniform(*self.radius))
+        jitter = rng.uniform(-self.jitter, self.jitter, 3)
+        up = parse_axis(self.up)
+        ref = np.array([1.0, 0, 0]) if abs(up[0]) < 0.9 else np.array([0, 1.0, 0])
+        e1 = ref - up * (ref @ up)
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(up, e1)
+        a, e = math.radians(az), math.radians(el)
+        direction = math.cos(e) * (math.cos(a) * e1 + math.sin(a) * e2) + math.sin(e) * up
+        center = np.asarray(self.center, np.float64)
+        rot, t = look_at(center + r * direction, center + jitter, up)
+        return Pose(_tuple2(rot), tuple(float(v) for v in t), split, az, el, r)
+
+    def describe(self) -> dict:
+        return asdict(self)
+
+
+def _tuple2(m: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(float(v) for v in row) for row in m)
+
+
+def envelope(poses: list[Pose], center: np.ndarray) -> dict:
+    """The pose envelope: ranges of distance to the centre and of camera positions, for the
+    manifest (the daemon warns when a requested view leaves it)."""
+    pos = np.array([p.position for p in poses])
+    dist = np.linalg.norm(pos - np.asarray(center), axis=1)
+    out: dict = {
+        "n": len(poses),
+        "distance": [float(dist.min()), float(dist.max())],
+        "position_min": [float(v) for v in pos.min(0)],
+        "position_max": [float(v) for v in pos.max(0)],
+    }
+    az = [p.azimuth_deg for p in poses if p.azimuth_deg is not None]
+    el = [p.elevation_deg for p in poses if p.elevation_deg is not None]
+    if az:
+        out["azimuth_deg"] = [min(az), max(az)]
+        out["elevation_deg"] = [min(el), max(el)]
+    return out
+
+
+def save_poses(path: Path, poses: list[Pose]) -> None:
+    path.write_text(json.dumps([asdict(p) for p in poses], indent=1))
+
+
+def load_poses(path: Path) -> list[Pose]:
+    """A poses file: a JSON list of objects with `R` (3x3) and `t` (3), or `position` and
+    `look_at` (and optional `up`, default "+z"); `split` defaults to "train"."""
+    try:
+        items = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path}: not valid JSON ({exc})") from exc
+    if not isinstance(items, list) or not items:
+        raise ValueError(f"{path}: expected a non-empty JSON list of poses")
+    poses = []
+    for i, item in enumerate(items):
+        where = f"{path}: pose {i}"
+        if not isinstance(item, dict):
+            raise ValueError(f"{where}: expected an object")
+        split = item.get("split", "train")
+        if split not in SPLITS:
+            raise ValueError(f"{where}: split {split!r} is not one of {SPLITS}")
+        try:
+            if "R" in item:
+                rot = np.array(item["R"], np.float64).reshape(3, 3)
+                t = np.array(item["t"], np.float64).reshape(3)
+            else:
+                rot, t = look_at(item["position"], item["look_at"], item.get("up", "+z"))
+        except (KeyError, ValueError, TypeError) as exc:
+            raise ValueError(f"{where}: needs R and t, or position and look_at ({exc})") from exc
+        if not (np.isfinite(rot).all() and np.isfinite(t).all()):
+            raise ValueError(f"{where}: values must be finite")
+        if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-5):
+            raise ValueError(f"{where}: R is not a rotation matrix")
+        poses.append(Pose(_tuple2(rot), tuple(float(v) for v in t), split))
+    return poses
