@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
-BENCHES: tuple[str, ...] = ("optics", "render")
+BENCHES: tuple[str, ...] = ("optics", "render", "holo")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
