@@ -141,11 +141,13 @@ def iter_views(
     taus_x: np.ndarray,
     taus_y: np.ndarray,
     settings: RasterSettings | None = None,
+    out: Callable[[int, int], tuple[np.ndarray, np.ndarray, np.ndarray]] | None = None,
 ) -> Iterator[tuple[int, int, Render]]:
     """Yield `(iy, ix, view)` for every direction, rows (y) outer: memory for one view at a time.
 
     Rendered against the central pose with the view's shift applied to camera-space means, so
-    the one `prepare` (covariances, depth order) serves all views.
+    the one `prepare` (covariances, depth order) serves all views. `out(iy, ix)`, if given,
+    returns the arrays to render that view into (see `raster.render_prepared`).
     """
     settings = settings or RasterSettings()
     prep = prepare(g, cam)
@@ -155,7 +157,8 @@ def iter_views(
             # Shifting the prepared camera-space means is the same as rendering `moved` from
             # scratch; only its principal point is taken from it.
             intrinsics = replace(cam, cx=moved.cx, cy=moved.cy)
-            yield iy, ix, render_prepared(prep, intrinsics, shift, settings)
+            dest = out(iy, ix) if out is not None else None
+            yield iy, ix, render_prepared(prep, intrinsics, shift, settings, dest)
 
 
 @dataclass
@@ -191,8 +194,9 @@ def render_light_field(
     depth = np.empty((n, n, h, w), np.float32)
     alpha = np.empty((n, n, h, w), np.float32)
     t0 = time.perf_counter()
-    for done, (iy, ix, view) in enumerate(iter_views(g, cam, mapping, pitch_m, tau, tau, settings)):
-        rgb[iy, ix], depth[iy, ix], alpha[iy, ix] = view.rgb, view.depth, view.alpha
+    views = iter_views(g, cam, mapping, pitch_m, tau, tau, settings,
+                       out=lambda iy, ix: (rgb[iy, ix], alpha[iy, ix], depth[iy, ix]))  # fmt: skip
+    for done, _ in enumerate(views):
         if progress is not None:
             progress(done + 1, n * n)
     return LightField(rgb, depth, alpha, k, k, tau, tau, time.perf_counter() - t0)

@@ -88,17 +88,31 @@ def render_prepared(
     cam: Camera,
     shift: tuple[float, float] = (0.0, 0.0),
     settings: RasterSettings = RasterSettings(),
+    out: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> Render:
     """Render `cam` (its intrinsics and size) with the camera centre moved by `(dx, dy, 0)` in its
-    own frame (`shift`, scene units) relative to the pose `prep` was made for."""
+    own frame (`shift`, scene units) relative to the pose `prep` was made for.
+
+    `out`: optional C-contiguous float32 arrays `(rgb [3, H, W], alpha [H, W], depth [H, W])` to
+    render into (every pixel is written), e.g. slices of a light field: no allocation, no copy.
+    """
     from nhfd.scene import _kernels as k
 
     w, h, tile = int(cam.width_px), int(cam.height_px), settings.tile_px
-    rgb = np.zeros((3, h, w), np.float32)
-    alpha = np.zeros((h, w), np.float32)
-    depth = np.zeros((h, w), np.float32)
+    if out is None:
+        rgb = np.empty((3, h, w), np.float32)
+        alpha = np.empty((h, w), np.float32)
+        depth = np.empty((h, w), np.float32)
+    else:
+        rgb, alpha, depth = out
+        for name, a, shape in (("rgb", rgb, (3, h, w)), ("alpha", alpha, (h, w)),
+                               ("depth", depth, (h, w))):  # fmt: skip
+            if a.shape != shape or a.dtype != np.float32 or not a.flags.c_contiguous:
+                raise ValueError(f"out {name} must be C-contiguous float32 {shape}")
     stats: dict = {"gaussians_in_front": int(prep.order.shape[0]), "visible": 0, "tile_pairs": 0}
     if prep.order.shape[0] == 0:
+        for a in (rgb, alpha, depth):
+            a.fill(0.0)
         return Render(rgb, alpha, depth, stats)
     t0 = time.perf_counter()
     rec, counts = k.project_view(
