@@ -157,3 +157,33 @@ def test_one_gaussian_and_empty_scenes_still_get_a_camera():
     assert np.allclose(uv[0], [32, 32]) and 0 < z[0] < 10
     cam = suggest_camera(Gaussians.empty(), 64, 64, "+z")
     assert np.isfinite(cam.position).all() and np.linalg.norm(cam.position) > 0
+
+
+@pytest.mark.parametrize(
+    ("name", "hint", "covered"),
+    [
+        ("donut.ply", None, (0.15, 0.8)),
+        ("guitar.compressed.ply", "compressed", (0.02, 0.8)),  # a slim guitar: 3.6%
+        ("tiny-sh.compressed.ply", "compressed", (0.005, 0.9)),
+    ],
+)
+def test_shared_scenes_render_plausibly_from_their_suggested_cameras(
+    shared_scenes, name, hint, covered
+):
+    from nhfd.scene.raster import render
+
+    g = load_scene(shared_scenes / name)
+    up, _ = detect_up_axis(g, hint)
+    cam = suggest_camera(g, 160, 90, up)
+    view = render(g, cam)
+    opaque = float((view.alpha > 0.5).mean())
+    # Something is in view, centred, and not filling the frame.
+    assert covered[0] < opaque < covered[1], opaque
+    ys, xs = np.nonzero(view.alpha > 0.5)
+    assert abs(xs.mean() - 80) < 25 and abs(ys.mean() - 45) < 20
+    # Colours of a trained scene stay (nearly) in the displayable range, depth near the camera's
+    # distance to the centre.
+    rgb = view.rgb[:, view.alpha > 0.5]
+    assert np.isfinite(view.rgb).all() and float(np.quantile(rgb, 0.99)) < 1.5
+    distance = float(np.linalg.norm(cam.position - np.median(g.means, axis=0)))
+    assert 0.5 * distance < float(np.median(view.depth[view.alpha > 0.5])) < 1.5 * distance
