@@ -17,6 +17,7 @@
   discovery    what is plugged in and which [devices] entry would use it (`nhfd devices`)
   templates    how a lab adds its own backend
 
-Nothing here but simcamera imports torch, and nothing imports numba or onnxruntime; hidapi, pyusb and pyglet are imported only
-where used. Software safety never replaces the lab's hardware laser interlock.
+Nothing here but simcamera imports torch, and nothing imports numba or onnxruntime; hidapi,
+pyusb and pyglet are imported only where used. Software safety never replaces the lab's
+hardware laser interlock.
 """
