@@ -1,1 +1,14 @@
-"""nhfd.models: the NHF network, training, evaluation and ONNX export."""
+"""nhfd.models: the NHF network, training, evaluation and ONNX export.
+
+Modules (import what you need; nothing heavy is imported here):
+- `net`: `NetSpec`, `NHFNet`, `build_net`, `predict` (any size: pad outside the graph, crop back),
+  `to_field`;
+- `loss`: `Optics`, `FocalStackLoss` (aperture + ASM focal stack, L2 + box SSIM / VGG),
+  `choose_planes`, `uniform_planes`;
+- `data`: `HoloData` (a dataset in memory), deterministic `batch_views`, `step_rng`, crops;
+- `train`: `TrainOptions`, `train` (seeded, resumable), `load_run`;
+- `evaluate`: `evaluate` (optics.md quality vs the baselines, focus check, PNG);
+- `export`: `export_onnx`, `OnnxModel`, `load_model`; `metadata`: what a model records and the
+  check that refuses a model for other optics;
+- `synthetic`: a tiny dataset in the real format, for tests and smoke runs.
+"""

@@ -138,11 +138,67 @@ class DeviceSettings(_Section):
     camera_settings: CameraSettings = CameraSettings()
 
 
+class ModelProfile(_Section):
+    """One network size: U-Net base width (channels at the first level), depth (levels below the
+    first, each halving the size) and the input pixel-unshuffle factor (the first downsampling)."""
+
+    width: Annotated[int, Field(ge=1, le=512)]
+    depth: Annotated[int, Field(ge=0, le=6)]
+    unshuffle: Literal[1, 2, 4, 8]
+
+
+def _default_profiles() -> dict[str, ModelProfile]:
+    return {
+        "fast": ModelProfile(width=16, depth=3, unshuffle=4),
+        "balanced": ModelProfile(width=16, depth=3, unshuffle=2),
+        "accurate": ModelProfile(width=32, depth=3, unshuffle=2),
+    }
+
+
+class TrainSettings(_Section):
+    """Defaults of `nhfd train` (each has a command-line flag that overrides it)."""
+
+    steps: Annotated[int, Field(ge=1, le=10_000_000)] = 10_000
+    batch: Annotated[int, Field(ge=1, le=256)] = 1
+    crop_width_px: Pixels = 512
+    crop_height_px: Pixels = 288
+    learning_rate: Annotated[float, Field(gt=0, le=1)] = 1e-3
+    seed: Annotated[int, Field(ge=0)] = 0
+    plane_mode: Literal["depth", "uniform"] = "depth"
+    planes_from_depth: Annotated[int, Field(ge=0, le=64)] = 4
+    planes_random: Annotated[int, Field(ge=0, le=64)] = 2
+    plane_step_mm: Annotated[float, Field(gt=0, le=10)] = 0.1
+    perceptual: Literal["ssim", "vgg", "none"] = "ssim"
+    perceptual_weight: Annotated[float, Field(ge=0, le=1000)] = 0.1
+    perceptual_planes: Annotated[int, Field(ge=0, le=64)] = 2
+    ssim_window_px: Annotated[int, Field(ge=3, le=63)] = 7
+    vgg_weights: str = ""
+    checkpoint_every: Annotated[int, Field(ge=1)] = 250
+    val_views: Annotated[int, Field(ge=1, le=10_000)] = 8
+    threads: Annotated[int, Field(ge=0, le=1024)] = 0
+
+
+class ModelSettings(_Section):
+    profile: str = "balanced"
+    profiles: dict[str, ModelProfile] = Field(default_factory=_default_profiles)
+    train: TrainSettings = TrainSettings()
+
+    @model_validator(mode="after")
+    def _profile_exists(self) -> ModelSettings:
+        if self.profile not in self.profiles:
+            raise ValueError(
+                f"model.profile = {self.profile!r}: not one of the profiles "
+                f"{', '.join(sorted(self.profiles))}"
+            )
+        return self
+
+
 class Config(_Section):
     slm: SLMSettings = SLMSettings()
     optics: OpticsSettings = OpticsSettings()
     coding: CodingSettings = CodingSettings()
     devices: DeviceSettings = DeviceSettings()
+    model: ModelSettings = ModelSettings()
 
     @model_validator(mode="after")
     def _window_fits_panel(self) -> Config:

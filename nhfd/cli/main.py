@@ -20,6 +20,7 @@ COMMANDS = (
     "cmd_demo",
     "cmd_scene",
     "cmd_dataset",
+    "cmd_train",
     "cmd_bench",
     "cmd_laser",
     "cmd_devices",

@@ -1,0 +1,267 @@
+"""`nhfd eval`: hologram quality on held-out views, next to the two baselines.
+
+Measures (optics.md, "Measuring hologram quality"): focal-stack PSNR and SSIM from
+`nhfd.optics.focal_stack_quality` (linear intensity after the aperture, the fixed planes of
+`quality_planes`, inside the scene's pixels, one robust percentile of the target), per plane and
+overall, for the model, an all-black prediction and the 2D hologram; the per-depth-bin focus
+check (pixels binned by their mapped depth; the plane whose image best correlates with the view
+must lie within tolerance of the bin's depth); quality against the angular distance to the
+nearest training pose; and a PNG of predicted vs target focal slices.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import torch
+from nhfd.models.data import ALPHA_CONTENT, HoloData
+from nhfd.models.loss import Optics
+
+from nhfd.optics import (
+    Aperture,
+    KernelCache,
+    focal_stack,
+    focal_stack_quality,
+    hologram_2d,
+    linear_to_srgb,
+    quality_planes,
+    srgb_to_linear,
+)
+
+FOCUS_BINS = 5
+FOCUS_SWEEP = 31
+FOCUS_MIN_PIXELS = 64
+Predictor = Callable[[torch.Tensor], torch.Tensor]  # sRGB [3,H,W] -> field [3,H,W] (scale units)
+
+
+def torch_predictor(run_dir: str | Path) -> tuple[Predictor, dict]:
+    from nhfd.models.net import predict, to_field
+    from nhfd.models.train import load_run
+
+    net, info = load_run(run_dir)
+
+    def run(rgb: torch.Tensor) -> torch.Tensor:
+        with torch.no_grad():
+            amp, phase = predict(net, rgb)
+        return to_field(amp, phase, 1.0)
+
+    return run, {"source": str(run_dir), "kind": "torch run", "profile":
+                 info["options"].get("profile"), "net": info["net"]}  # fmt: skip
+
+
+def onnx_predictor(path: str | Path, manifest: dict) -> tuple[Predictor, dict]:
+    from nhfd.models.export import OnnxModel
+    from nhfd.models.metadata import expected_from_manifest
+
+    model = OnnxModel(path, expected=expected_from_manifest(manifest))
+
+    def run(rgb: torch.Tensor) -> torch.Tensor:
+        amp, phase = model(rgb.numpy())
+        return torch.polar(torch.from_numpy(amp), torch.from_numpy(phase))
+
+    return run, {"source": str(path), "kind": "onnx", "profile": model.metadata.get("profile"),
+                 "net": model.metadata.get("net")}  # fmt: skip
+
+
+def _camera_dirs(manifest: dict) -> np.ndarray:
+    centre = np.asarray(manifest.get("center", [0, 0, 0]), np.float64)
+    dirs = []
+    for p in manifest["poses"]:
+        r, t = np.asarray(p["R"], np.float64), np.asarray(p["t"], np.float64)
+        d = -r.T @ t - centre
+        dirs.append(d / max(np.linalg.norm(d), 1e-12))
+    return np.array(dirs)
+
+
+def nearest_train_angle_deg(manifest: dict, index: int) -> float:
+    dirs = _camera_dirs(manifest)
+    train = manifest["splits"].get("train", [])
+    if not train:
+        return float("nan")
+    cos = np.clip(dirs[train] @ dirs[index], -1, 1)
+    return float(np.degrees(np.arccos(cos.max())))
+
+
+def focus_check(
+    field: torch.Tensor, target: torch.Tensor, rgb: torch.Tensor, zh: torch.Tensor,
+    optics: Optics, cache: KernelCache,
+) -> list[dict]:  # fmt: skip
+    """Per depth bin (green channel): the sweep plane whose intensity best correlates with the
+    view's linear intensity, for the prediction and the target. Tolerance: half a bin plus half
+    the filtered depth of field (`4 p^2 / lambda`)."""
+    lo, hi = optics.volume_m
+    g = 1 if len(optics.wavelengths_m) > 1 else 0
+    lam = optics.wavelengths_m[g]
+    ap = Aperture(optics.aperture.shape, (optics.aperture.cutoffs(len(optics.wavelengths_m))[g],))
+    sweep = np.linspace(lo, hi, FOCUS_SWEEP).tolist()
+    fields = torch.stack([field[g : g + 1], target[g : g + 1]]).to(torch.complex64)
+    stacks = focal_stack(fields, sweep, optics.pitch_m, [lam], ap, cache=cache)[:, :, 0]
+    view = srgb_to_linear(rgb[g])
+    edges = np.linspace(lo, hi, FOCUS_BINS + 1)
+    tol = 0.5 * (hi - lo) / FOCUS_BINS + 2 * optics.pitch_m**2 / lam
+    out = []
+    z = zh.numpy()
+    for b in range(FOCUS_BINS):
+        sel = np.isfinite(z) & (z >= edges[b]) & (z <= edges[b + 1])
+        if sel.sum() < FOCUS_MIN_PIXELS:
+            continue
+        m = torch.from_numpy(sel)
+        v = view[m] - view[m].mean()
+        best = []
+        for s in range(2):
+            x = stacks[s][:, m]  # [Z, P]
+            x = x - x.mean(dim=1, keepdim=True)
+            corr = (x @ v) / (x.norm(dim=1) * v.norm()).clamp(min=1e-20)
+            best.append(sweep[int(corr.argmax())])
+        centre = float(z[sel].mean())
+        out.append({"bin_mm": [edges[b] * 1e3, edges[b + 1] * 1e3], "pixels": int(sel.sum()),
+                    "content_mm": centre * 1e3, "predicted_focus_mm": best[0] * 1e3,
+                    "target_focus_mm": best[1] * 1e3, "tolerance_mm": tol * 1e3,
+                    "pass": abs(best[0] - centre) <= tol})  # fmt: skip
+    return out
+
+
+def evaluate(
+    source: str | Path,
+    data_dir: str | Path,
+    *,
+    splits: tuple[str, ...] = ("interp", "extrap"),
+    max_views: int | None = None,
+    out_dir: str | Path | None = None,
+    data: HoloData | None = None,
+    log: Callable[[str], None] = print,
+) -> dict:
+    """Quality of a run folder or an exported .onnx on a dataset's held-out views."""
+    source = Path(source)
+    limits = {s: max_views for s in splits} if max_views else None
+    data = data or HoloData(data_dir, splits=splits, max_views=limits)
+    if source.suffix == ".onnx":
+        predictor, about = onnx_predictor(source, data.manifest)
+    else:
+        predictor, about = torch_predictor(source)
+    optics = Optics.from_manifest(data.manifest)
+    planes = quality_planes(optics.volume_m)
+    cache = KernelCache()
+    kw = dict(planes_m=planes, pitch_m=optics.pitch_m, wavelengths_m=optics.wavelengths_m,
+              aperture=optics.aperture, cache=cache)  # fmt: skip
+    views, examples = [], []
+    for split in splits:
+        if split not in data.splits:
+            continue
+        s = data.splits[split]
+        for j, index in enumerate(s.indices):
+            rgb, target = s.rgb[j], s.field[j]
+            mask = s.alpha[j] >= ALPHA_CONTENT
+            mask = mask if mask.any() else None
+            pred = predictor(rgb)
+            flat = hologram_2d(rgb) / data.amplitude_scale
+            q = {name: focal_stack_quality(f, target, mask=mask, **kw)
+                 for name, f in (("model", pred), ("black", torch.zeros_like(target)),
+                                 ("hologram_2d", flat))}  # fmt: skip
+            focus = focus_check(pred, target, rgb, s.zh[j], optics, cache)
+            views.append({
+                "index": index, "split": split,
+                "nearest_train_deg": nearest_train_angle_deg(data.manifest, index),
+                **{f"{k}_psnr_db": v.psnr_db for k, v in q.items()},
+                **{f"{k}_ssim": v.ssim for k, v in q.items()},
+                "model_psnr_per_plane_db": list(q["model"].psnr_per_plane_db),
+                "model_ssim_per_plane": list(q["model"].ssim_per_plane),
+                "hologram_2d_psnr_per_plane_db": list(q["hologram_2d"].psnr_per_plane_db),
+                "focus": focus,
+            })  # fmt: skip
+            if j == 0:
+                examples.append((split, index, rgb, pred, target, flat))
+    if not views:
+        raise ValueError(f"{data_dir}: no views in the splits {', '.join(splits)}")
+    summary = summarise(views, planes)
+    result = {"model": about, "data": str(data.dir), "planes_m": list(planes),
+              "summary": summary, "views": views}  # fmt: skip
+    if out_dir is not None:
+        out = Path(out_dir)
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "eval.json").write_text(json.dumps(result, indent=1))
+        if examples:
+            result["png"] = str(slices_png(examples, planes, optics, cache, out / "eval.png"))
+    for line in format_summary(summary, planes):
+        log(line)
+    return result
+
+
+def summarise(views: list[dict], planes) -> dict:
+    out: dict = {}
+    for split in [*sorted({v["split"] for v in views}), "all"]:
+        vs = [v for v in views if split in ("all", v["split"])]
+        focus = [b["pass"] for v in vs for b in v["focus"]]
+        out[split] = {
+            "views": len(vs),
+            **{f"{k}_{m}": float(np.mean([v[f"{k}_{m}"] for v in vs]))
+               for k in ("model", "black", "hologram_2d") for m in ("psnr_db", "ssim")},
+            "model_psnr_per_plane_db": np.mean([v["model_psnr_per_plane_db"] for v in vs],
+                                               axis=0).tolist(),
+            "hologram_2d_psnr_per_plane_db": np.mean(
+                [v["hologram_2d_psnr_per_plane_db"] for v in vs], axis=0).tolist(),
+            "focus_bins_passed": int(sum(focus)),
+            "focus_bins": len(focus),
+            "margin_over_2d_db": float(np.mean([v["model_psnr_db"] - v["hologram_2d_psnr_db"]
+                                                for v in vs])),
+        }  # fmt: skip
+    angles = [(v["nearest_train_deg"], v["model_psnr_db"]) for v in views]
+    out["psnr_vs_angle"] = sorted(angles)
+    return out
+
+
+def format_summary(summary: dict, planes) -> list[str]:
+    lines = [f"{'split':<8}{'views':>6}{'model dB':>10}{'2D dB':>8}{'black dB':>10}"
+             f"{'model SSIM':>12}{'2D SSIM':>9}{'focus':>8}"]  # fmt: skip
+    for split, s in summary.items():
+        if split == "psnr_vs_angle":
+            continue
+        lines.append(
+            f"{split:<8}{s['views']:>6}{s['model_psnr_db']:>10.2f}{s['hologram_2d_psnr_db']:>8.2f}"
+            f"{s['black_psnr_db']:>10.2f}{s['model_ssim']:>12.3f}{s['hologram_2d_ssim']:>9.3f}"
+            f"{s['focus_bins_passed']:>4}/{s['focus_bins']:<3}"
+        )
+    a = summary["all"]
+    lines.append("per plane (mm): " + ", ".join(
+        f"{z * 1e3:+.1f}: {p:.1f} (2D {q:.1f})" for z, p, q in
+        zip(planes, a["model_psnr_per_plane_db"], a["hologram_2d_psnr_per_plane_db"], strict=True)
+    ))  # fmt: skip
+    lines.append("PSNR vs angle to nearest training pose: " + ", ".join(
+        f"{d:.1f} deg: {p:.1f} dB" for d, p in summary["psnr_vs_angle"] if math.isfinite(d)))
+    return lines
+
+
+def slices_png(examples: list, planes, optics: Optics, cache: KernelCache, path: Path) -> Path:
+    """Rows: target, model, 2D hologram; columns: the quality planes (sRGB of intensity)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = []
+    for split, index, _rgb, pred, target, flat in examples:
+        stacks = focal_stack(torch.stack([target, pred, flat]).to(torch.complex64), planes,
+                             optics.pitch_m, optics.wavelengths_m, optics.aperture, cache=cache)
+        scale = float(torch.quantile(stacks[0].flatten()[::7].double(), 0.995)) or 1.0
+        for name, st in zip(("target", "model", "2D hologram"), stacks, strict=True):
+            rows.append((f"{split} #{index} {name}", linear_to_srgb(st / scale)))
+    fig, axes = plt.subplots(len(rows), len(planes), figsize=(2.2 * len(planes), 1.6 * len(rows)),
+                             squeeze=False)  # fmt: skip
+    for r, (label, st) in enumerate(rows):
+        for c, z in enumerate(planes):
+            ax = axes[r][c]
+            ax.imshow(st[c].permute(1, 2, 0).numpy())
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(f"{z * 1e3:+.1f} mm", fontsize=8)
+            if c == 0:
+                ax.set_ylabel(label, fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path

@@ -1,0 +1,169 @@
+"""ONNX export of a trained run, its check against torch, and the runtime loader.
+
+The exported graph takes `rgb` `[B, 3, H, W]` with H and W dynamic multiples of the network's
+stride (`input_multiple` in the metadata) and returns `amplitude` and `phase`. `OnnxModel` pads
+any input to that multiple outside the graph and crops back, and refuses a model trained for
+optics other than the configured ones.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from nhfd.models.metadata import (
+    METADATA_KEY,
+    NotAModel,
+    build_metadata,
+    check_metadata,
+    parse_metadata,
+)
+
+MIN_OPSET = 18
+# Sizes (in strides) the export is checked at, besides the example it was traced with.
+CHECK_SIZES_STRIDES = ((3, 5), (5, 4))
+
+
+@dataclass
+class ExportResult:
+    path: Path
+    max_abs_diff: float
+    checked_sizes: list[tuple[int, int]]
+    metadata: dict
+
+
+def export_onnx(
+    run_dir: str | Path, out_path: str | Path, *, opset: int = MIN_OPSET, check: bool = True
+) -> ExportResult:
+    """Export a run's network to ONNX with its metadata; check it with onnxruntime against torch
+    (max abs difference over amplitude and phase, at sizes other than the traced one)."""
+    import onnx
+    import torch
+    from nhfd.models.train import load_run
+
+    if opset < MIN_OPSET:
+        raise ValueError(f"--opset {opset}: must be {MIN_OPSET} or newer")
+    net, info = load_run(run_dir)
+    m = net.spec.multiple
+    out_path = Path(out_path)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    example = torch.rand(1, 3, 2 * m, 3 * m)
+    hd, wd = torch.export.Dim("h_strides", min=1, max=8192 // m), torch.export.Dim(
+        "w_strides", min=1, max=8192 // m
+    )
+    dynamic = {"rgb": {0: torch.export.Dim("batch", min=1, max=64), 2: m * hd, 3: m * wd}}
+    tmp = out_path.with_name(out_path.name + ".tmp")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the exporter's deprecation chatter, not ours
+        torch.onnx.export(
+            net, (example,), str(tmp), input_names=["rgb"],
+            output_names=["amplitude", "phase"], opset_version=opset, dynamo=True,
+            dynamic_shapes=dynamic, external_data=False, verbose=False,
+        )  # fmt: skip
+    model = onnx.load(str(tmp))
+    meta = build_metadata(info, opset=opset)
+    del model.metadata_props[:]
+    props = ((METADATA_KEY, json.dumps(meta)), ("nhfd_version", str(meta["nhfd_version"])))
+    for key, value in props:
+        prop = model.metadata_props.add()
+        prop.key, prop.value = key, value
+    model.producer_name = "nhfd"
+    onnx.checker.check_model(model)
+    onnx.save(model, str(tmp))
+    tmp.replace(out_path)
+    diff, sizes = (float("nan"), [])
+    if check:
+        diff, sizes = compare_with_torch(net, out_path)
+    return ExportResult(out_path, diff, sizes, meta)
+
+
+def compare_with_torch(net, onnx_path: str | Path) -> tuple[float, list[tuple[int, int]]]:
+    """Max abs difference between torch and onnxruntime outputs on random inputs."""
+    import torch
+
+    model = OnnxModel(onnx_path)
+    m = net.spec.multiple
+    rng = np.random.default_rng(0)
+    worst, sizes = 0.0, []
+    for hs, ws in CHECK_SIZES_STRIDES:
+        x = rng.random((1, 3, hs * m, ws * m), dtype=np.float32)
+        with torch.no_grad():
+            ta, tp = net(torch.from_numpy(x))
+        oa, op = model.run_raw(x)
+        worst = max(worst, float(np.abs(ta.numpy() - oa).max()),
+                    float(np.abs(tp.numpy() - op).max()))
+        sizes.append((hs * m, ws * m))
+    return worst, sizes
+
+
+class OnnxModel:
+    """An exported NHF network under onnxruntime, with its metadata.
+
+    `expected` (optics keys, see `nhfd.models.metadata.expected_from_config`) makes loading refuse
+    a model trained for other optics, with a message that says what differs.
+    """
+
+    def __init__(self, path: str | Path, *, expected: dict | None = None, threads: int = 0,
+                 source: str | None = None) -> None:  # fmt: skip
+        import onnxruntime as ort
+
+        self.path = Path(path)
+        name = source or str(self.path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"{name}: no such model file")
+        opts = ort.SessionOptions()
+        if threads:
+            opts.intra_op_num_threads = threads
+            opts.inter_op_num_threads = 1
+        opts.log_severity_level = 3
+        try:
+            self.session = ort.InferenceSession(
+                str(self.path), sess_options=opts, providers=["CPUExecutionProvider"]
+            )
+        except Exception as exc:  # onnxruntime raises its own exception types for bad files
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise NotAModel(f"{name}: not a readable ONNX model ({first[:200]})") from None
+        props = dict(self.session.get_modelmeta().custom_metadata_map)
+        self.metadata = parse_metadata(props, name)
+        inputs = [i.name for i in self.session.get_inputs()]
+        outputs = [o.name for o in self.session.get_outputs()]
+        if inputs != ["rgb"] or outputs != ["amplitude", "phase"]:
+            raise NotAModel(f"{name}: inputs {inputs} / outputs {outputs} are not rgb -> "
+                            "amplitude, phase")  # fmt: skip
+        if expected is not None:
+            check_metadata(self.metadata, expected, name)
+        self.multiple = int(self.metadata["input_multiple"])
+        self.amplitude_scale = float(self.metadata["amplitude_scale"])
+
+    def run_raw(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The graph as is: `[B, 3, H, W]` float32 with H, W multiples of `multiple`."""
+        amp, phase = self.session.run(["amplitude", "phase"], {"rgb": rgb})
+        return amp, phase
+
+    def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Amplitude (amplitude-scale units) and phase for sRGB `[3, H, W]` or `[B, 3, H, W]` of
+        any size: padded with black to the multiple outside the graph and cropped back."""
+        x = np.asarray(rgb, dtype=np.float32)
+        single = x.ndim == 3
+        if single:
+            x = x[None]
+        if x.ndim != 4 or x.shape[1] != 3:
+            raise ValueError(f"rgb {x.shape}: expected [3, H, W] or [B, 3, H, W] (R, G, B)")
+        h, w = x.shape[-2:]
+        ph, pw = (-h) % self.multiple, (-w) % self.multiple
+        if ph or pw:
+            x = np.pad(x, ((0, 0), (0, 0), (0, ph), (0, pw)))
+        amp, phase = self.run_raw(np.ascontiguousarray(x))
+        amp, phase = amp[..., :h, :w], phase[..., :h, :w]
+        return (amp[0], phase[0]) if single else (amp, phase)
+
+
+def load_model(path: str | Path, config=None, *, threads: int = 0) -> OnnxModel:
+    """Load an exported model; with a `nhfd.config.Config`, refuse one trained for other optics."""
+    from nhfd.models.metadata import expected_from_config
+
+    expected = expected_from_config(config) if config is not None else None
+    return OnnxModel(path, expected=expected, threads=threads)

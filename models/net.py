@@ -1,0 +1,149 @@
+"""The NHF network: a small U-Net from one sRGB view to the complex reference-plane hologram.
+
+Conventions (the exported ONNX graph has the same ones):
+- input `rgb` `[B, 3, H, W]`, the renderer's sRGB in [0, 1] composited on black; normalisation
+  happens inside the graph, so callers feed what the renderer gives them;
+- outputs `amplitude` and `phase`, each `[B, 3, H, W]` (R, G, B): amplitude through softplus, in
+  units of the dataset's amplitude scale; phase unconstrained (used only through cos/sin, so no
+  wrapping in the graph: double-phase coding wraps);
+- H and W must be multiples of `multiple = unshuffle * 2**depth`. `pad_to_multiple` /
+  `predict` pad outside the graph and crop back, so any size works (an exported U-Net fails at
+  1080 rows otherwise).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+# sRGB renders of splat scenes on black are dark on average; centring them is enough.
+INPUT_MEAN = 0.5
+INPUT_STD = 0.25
+
+
+@dataclass(frozen=True)
+class NetSpec:
+    """The network's shape: base width, depth (levels below the first) and unshuffle factor."""
+
+    width: int = 16
+    depth: int = 3
+    unshuffle: int = 2
+
+    def __post_init__(self) -> None:
+        if not 1 <= self.width <= 512:
+            raise ValueError(f"width = {self.width}: must be in 1..512 channels")
+        if not 0 <= self.depth <= 6:
+            raise ValueError(f"depth = {self.depth}: must be in 0..6 levels")
+        if self.unshuffle not in (1, 2, 4, 8):
+            raise ValueError(f"unshuffle = {self.unshuffle}: must be 1, 2, 4 or 8")
+
+    @property
+    def multiple(self) -> int:
+        """Input H and W must be multiples of this (the network's total stride)."""
+        return self.unshuffle * 2**self.depth
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
+
+def _block(c_in: int, c_out: int) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(c_in, c_out, 3, padding=1),
+        nn.ReLU(inplace=True),
+        nn.Conv2d(c_out, c_out, 3, padding=1),
+        nn.ReLU(inplace=True),
+    )
+
+
+class NHFNet(nn.Module):
+    """U-Net: pixel-unshuffle, `depth` stride-2 levels with skips, pixel-shuffle back."""
+
+    def __init__(self, spec: NetSpec) -> None:
+        super().__init__()
+        self.spec = spec
+        f, w = spec.unshuffle, spec.width
+        widths = [w * 2**i for i in range(spec.depth + 1)]
+        self.inc = _block(3 * f * f, widths[0])
+        # Strided convolutions downsample: cheaper than pooling + conv, and export cleanly.
+        self.down = nn.ModuleList(
+            nn.Sequential(nn.Conv2d(widths[i], widths[i + 1], 3, stride=2, padding=1),
+                          nn.ReLU(inplace=True), _block(widths[i + 1], widths[i + 1]))
+            for i in range(spec.depth)
+        )  # fmt: skip
+        self.up = nn.ModuleList(
+            nn.ConvTranspose2d(widths[i + 1], widths[i], 2, stride=2) for i in range(spec.depth)
+        )
+        self.dec = nn.ModuleList(_block(2 * widths[i], widths[i]) for i in range(spec.depth))
+        self.head = nn.Conv2d(widths[0], 6 * f * f, 1)
+
+    def forward(self, rgb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`rgb` `[B, 3, H, W]` sRGB (H, W multiples of `spec.multiple`) -> (amplitude, phase)."""
+        # float16 (or float64) input is computed in float32: the weights are float32.
+        x = (rgb.float() - INPUT_MEAN) / INPUT_STD
+        f = self.spec.unshuffle
+        if f > 1:
+            x = F.pixel_unshuffle(x, f)
+        x = self.inc(x)
+        skips = [x]
+        for down in self.down:
+            x = down(x)
+            skips.append(x)
+        skips.pop()
+        for i in reversed(range(self.spec.depth)):
+            x = self.dec[i](torch.cat([self.up[i](x), skips[i]], dim=1))
+        x = self.head(x)
+        if f > 1:
+            x = F.pixel_shuffle(x, f)
+        return F.softplus(x[:, :3]), x[:, 3:]
+
+
+def build_net(spec: NetSpec, seed: int | None = None) -> NHFNet:
+    """A freshly initialised network (seeded from `seed` when given, without touching the global
+    RNG's later draws: its state is saved and restored)."""
+    if seed is None:
+        return NHFNet(spec)
+    state = torch.random.get_rng_state()
+    torch.manual_seed(seed)
+    try:
+        return NHFNet(spec)
+    finally:
+        torch.random.set_rng_state(state)
+
+
+def parameter_count(net: nn.Module) -> int:
+    return sum(p.numel() for p in net.parameters())
+
+
+def pad_amounts(h: int, w: int, multiple: int) -> tuple[int, int]:
+    """Rows and columns to add (bottom, right) to reach multiples of `multiple`."""
+    return (-h) % multiple, (-w) % multiple
+
+
+def pad_to_multiple(rgb: torch.Tensor, multiple: int) -> tuple[torch.Tensor, tuple[int, int]]:
+    """Pad `[..., H, W]` at the bottom and right with black (the renderer's background) to
+    multiples of `multiple`; returns the padded tensor and the original (H, W) to crop back to."""
+    h, w = rgb.shape[-2:]
+    ph, pw = pad_amounts(h, w, multiple)
+    if ph or pw:
+        rgb = F.pad(rgb, (0, pw, 0, ph))
+    return rgb, (h, w)
+
+
+def predict(net: NHFNet, rgb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Amplitude and phase for sRGB views of any size (`[3, H, W]` or `[B, 3, H, W]`)."""
+    if rgb.dim() not in (3, 4) or rgb.shape[-3] != 3:
+        raise ValueError(f"rgb {tuple(rgb.shape)}: expected [3, H, W] or [B, 3, H, W] (R, G, B)")
+    single = rgb.dim() == 3
+    x = rgb[None] if single else rgb
+    x, (h, w) = pad_to_multiple(x.float(), net.spec.multiple)
+    amp, phase = net(x)
+    amp, phase = amp[..., :h, :w], phase[..., :h, :w]
+    return (amp[0], phase[0]) if single else (amp, phase)
+
+
+def to_field(amplitude: torch.Tensor, phase: torch.Tensor, amplitude_scale: float) -> torch.Tensor:
+    """Complex field (the dataset's units) from the network's outputs."""
+    return torch.polar(amplitude * amplitude_scale, phase)

@@ -1,0 +1,465 @@
+"""Training: seeded, resumable, validated every epoch, logged as CSV and a PNG of the curves.
+
+A run folder holds `run.json` (the options, the network, the dataset it was trained on),
+`checkpoint.pt` (weights, optimiser, step, every RNG state and the data order; written
+atomically every `checkpoint_every` steps and at the end), `train_log.csv`, `val_log.csv` and
+`curves.png`. Running the same command again continues from the checkpoint's step with the same
+data order: every random draw of a step comes from (seed, step) and the order of an epoch from
+(seed, epoch), so an interrupted run ends with the same weights as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import csv
+import ctypes
+import json
+import math
+import os
+import random
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from nhfd.models.data import HoloData, batch_views, centre_crop, random_crop, step_rng
+from nhfd.models.loss import FocalStackLoss, Optics, choose_planes, uniform_planes
+from nhfd.models.metadata import manifest_sha256
+from nhfd.models.net import NetSpec, build_net, parameter_count, predict, to_field
+
+from nhfd import __version__
+
+CHECKPOINT = "checkpoint.pt"
+RUN_JSON = "run.json"
+TRAIN_LOG = "train_log.csv"
+VAL_LOG = "val_log.csv"
+CURVES = "curves.png"
+TRAIN_COLUMNS = ("step", "epoch", "loss", "l2", "perceptual", "lr", "planes", "seconds")
+VAL_COLUMNS = ("step", "epoch", "split", "views", "loss", "l2", "psnr_db")
+# The learning rate decays along a cosine to this fraction of its start over the budget.
+LR_FLOOR = 0.05
+# Options that may change when a run is resumed (they do not change what a step computes).
+RESUMABLE_CHANGES = ("steps", "checkpoint_every", "val_views", "threads", "progress")
+
+
+@dataclass(frozen=True)
+class TrainOptions:
+    """Everything a training run depends on besides the dataset (see nhfd.toml [model.train])."""
+
+    width: int = 16
+    depth: int = 3
+    unshuffle: int = 2
+    profile: str = "balanced"
+    steps: int = 10_000
+    batch: int = 1
+    crop_width_px: int = 512
+    crop_height_px: int = 288
+    learning_rate: float = 1e-3
+    seed: int = 0
+    plane_mode: str = "depth"
+    planes_from_depth: int = 4
+    planes_random: int = 2
+    plane_step_mm: float = 0.1
+    perceptual: str = "ssim"
+    perceptual_weight: float = 0.1
+    perceptual_planes: int = 2
+    ssim_window_px: int = 7
+    vgg_weights: str = ""
+    checkpoint_every: int = 250
+    val_views: int = 8
+    threads: int = 0
+    progress: bool = True
+
+    def __post_init__(self) -> None:
+        NetSpec(self.width, self.depth, self.unshuffle)  # validates the shape
+        checks = {
+            "steps": self.steps >= 1,
+            "batch": self.batch >= 1,
+            "crop_width_px": self.crop_width_px >= 1,
+            "crop_height_px": self.crop_height_px >= 1,
+            "learning_rate": 0 < self.learning_rate <= 1,
+            "planes_from_depth": self.planes_from_depth >= 0,
+            "planes_random": self.planes_random >= 0,
+            "plane_step_mm": self.plane_step_mm > 0,
+            "checkpoint_every": self.checkpoint_every >= 1,
+            "val_views": self.val_views >= 1,
+        }
+        for name, ok in checks.items():
+            if not ok:
+                raise ValueError(f"{name} = {getattr(self, name)!r}: out of range")
+        if self.planes_from_depth + self.planes_random < 1:
+            raise ValueError("planes_from_depth + planes_random must be at least 1")
+        if self.plane_mode not in ("depth", "uniform"):
+            raise ValueError(f"plane_mode = {self.plane_mode!r}: must be depth or uniform")
+        if self.perceptual not in ("ssim", "vgg", "none"):
+            raise ValueError(f"perceptual = {self.perceptual!r}: must be ssim, vgg or none")
+
+    @property
+    def spec(self) -> NetSpec:
+        return NetSpec(self.width, self.depth, self.unshuffle)
+
+    @property
+    def crop_hw(self) -> tuple[int, int]:
+        return self.crop_height_px, self.crop_width_px
+
+    @staticmethod
+    def from_config(config, profile: str | None = None, **overrides) -> TrainOptions:
+        """Options from a validated `nhfd.config.Config` (its [model] section)."""
+        m = config.model
+        name = profile or m.profile
+        if name not in m.profiles:
+            raise ValueError(
+                f"--profile {name!r}: not one of the configured profiles "
+                f"{', '.join(sorted(m.profiles))}"
+            )
+        p = m.profiles[name]
+        base = {f.name: getattr(m.train, f.name) for f in fields(TrainOptions)
+                if hasattr(m.train, f.name)}  # fmt: skip
+        base.update(width=p.width, depth=p.depth, unshuffle=p.unshuffle, profile=name)
+        base.update({k: v for k, v in overrides.items() if v is not None})
+        return TrainOptions(**base)
+
+
+@dataclass
+class TrainResult:
+    run_dir: Path
+    step: int
+    last_loss: float
+    seconds_per_step: float
+    resumed_from: int
+
+
+def tune_malloc() -> str:
+    """Raise glibc's mmap and trim thresholds: large FFT buffers otherwise go back to the kernel
+    after every step and come back as page faults (820 -> 271 ms per step measured here)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return "malloc: not glibc, left as is"
+    m_trim, m_top_pad, m_mmap = -1, -2, -3
+    ok = [
+        libc.mallopt(m_mmap, 32 * 2**20),  # glibc's largest allowed mmap threshold
+        libc.mallopt(m_trim, 2**30),
+        libc.mallopt(m_top_pad, 256 * 2**20),
+    ]
+    return "malloc: thresholds raised" if all(ok) else f"malloc: mallopt returned {ok}"
+
+
+def _rng_states() -> dict:
+    return {
+        "torch": torch.random.get_rng_state(),
+        "numpy": np.random.get_state(),  # noqa: NPY002 (the legacy global, in case a caller uses it)
+        "python": random.getstate(),
+    }
+
+
+def _set_rng_states(states: dict) -> None:
+    torch.random.set_rng_state(states["torch"])
+    np.random.set_state(states["numpy"])  # noqa: NPY002
+    random.setstate(states["python"])
+
+
+def _atomic_save(obj: object, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+def lr_at(step: int, options: TrainOptions) -> float:
+    t = min(1.0, step / max(1, options.steps))
+    return options.learning_rate * (LR_FLOOR + (1 - LR_FLOOR) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def _truncate_csv(path: Path, columns: tuple[str, ...], max_step: int) -> None:
+    """Keep the header and the rows up to `max_step` (rows written after the last checkpoint
+    are repeated by the resumed run)."""
+    if not path.exists():
+        with open(path, "w", newline="") as f:
+            csv.writer(f).writerow(columns)
+        return
+    with open(path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(columns))
+        w.writeheader()
+        for r in rows:
+            if int(r["step"]) <= max_step:
+                w.writerow(r)
+
+
+def _append(path: Path, columns: tuple[str, ...], row: dict) -> None:
+    with open(path, "a", newline="") as f:
+        csv.DictWriter(f, fieldnames=list(columns)).writerow(row)
+
+
+def plot_curves(run_dir: Path) -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    with open(run_dir / TRAIN_LOG, newline="") as f:
+        train = list(csv.DictReader(f))
+    with open(run_dir / VAL_LOG, newline="") as f:
+        val = list(csv.DictReader(f))
+    fig, ax = plt.subplots(1, 2, figsize=(10, 4))
+    if train:
+        steps = [int(r["step"]) for r in train]
+        ax[0].semilogy(steps, [max(float(r["loss"]), 1e-12) for r in train], lw=0.6, label="loss")
+        ax[0].semilogy(steps, [max(float(r["l2"]), 1e-12) for r in train], lw=0.6, label="L2")
+    for split in sorted({r["split"] for r in val}):
+        rows = [r for r in val if r["split"] == split]
+        s = [int(r["step"]) for r in rows]
+        ax[0].semilogy(s, [max(float(r["loss"]), 1e-12) for r in rows], "o-", label=f"{split}")
+        ax[1].plot(s, [float(r["psnr_db"]) for r in rows], "o-", label=split)
+    ax[0].set_xlabel("step")
+    ax[0].set_title("focal-stack loss")
+    ax[0].legend()
+    ax[1].set_xlabel("step")
+    ax[1].set_title("validation PSNR of the loss's planes (dB)")
+    if val:
+        ax[1].legend()
+    fig.tight_layout()
+    out = run_dir / CURVES
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out
+
+
+def _optics_summary(data: HoloData) -> dict:
+    """What the exported model's metadata needs from the dataset (kept in run.json)."""
+    m = data.manifest
+    return {
+        "data_dir": str(data.dir.resolve()),
+        "manifest_key": m.get("key"),
+        "settings": m["settings"],
+        "mapping": m["mapping"],
+        "amplitude_scale": data.amplitude_scale,
+        "camera": data.camera,
+        "envelope": m.get("envelope"),
+        "scene": m.get("scene"),
+        "splits": {k: len(v) for k, v in m["splits"].items()},
+        "manifest_sha256": manifest_sha256(data.dir),
+    }
+
+
+def validate_views(
+    net: torch.nn.Module, data: HoloData, loss_fn: FocalStackLoss, options: TrainOptions,
+    split: str,
+) -> dict | None:  # fmt: skip
+    """Mean loss and PSNR of the loss's intensity L2 over centre crops of a held-out split, on
+    fixed uniform planes (comparable between epochs)."""
+    if split not in data.splits:
+        return None
+    s = data.splits[split]
+    n = min(len(s), options.val_views)
+    planes = uniform_planes(data_volume(data), options.planes_from_depth + options.planes_random)
+    k = list(range(min(options.perceptual_planes, len(planes))))
+    losses, l2s, psnrs = [], [], []
+    net.eval()
+    with torch.no_grad():
+        for v in range(n):
+            rgb = centre_crop(s.rgb[v : v + 1], options.crop_hw)
+            target = centre_crop(s.field[v : v + 1], options.crop_hw)
+            amp, phase = predict(net, rgb)
+            out = loss_fn(to_field(amp, phase, 1.0), target, planes, k)
+            peak = float(loss_fn.stack(target, planes).max())
+            losses.append(float(out["loss"]))
+            l2s.append(float(out["l2"]))
+            psnrs.append(10 * math.log10(max(peak, 1e-30) ** 2 / max(float(out["l2"]), 1e-30)))
+    net.train()
+    return {"split": split, "views": n, "loss": float(np.mean(losses)), "l2": float(np.mean(l2s)),
+            "psnr_db": float(np.mean(psnrs))}  # fmt: skip
+
+
+def data_volume(data: HoloData) -> tuple[float, float]:
+    v = data.manifest["settings"]["volume_m"]
+    return float(v[0]), float(v[1])
+
+
+def train(
+    data_dir: str | Path,
+    run_dir: str | Path,
+    options: TrainOptions,
+    *,
+    force: bool = False,
+    log: Callable[[str], None] | None = None,
+    data: HoloData | None = None,
+    stop_at: int | None = None,
+) -> TrainResult:
+    """Train (or continue training) a network on a dataset folder into `run_dir`.
+
+    `stop_at` stops (with a checkpoint) at that step as an interruption would; the learning-rate
+    schedule follows `options.steps`, so raising the budget on resume changes the remaining
+    steps' rates."""
+    say = log or (lambda msg: print(msg, file=sys.stderr))
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    say(tune_malloc())
+    if options.threads:
+        torch.set_num_threads(options.threads)
+    data = data or HoloData(data_dir, max_views={"interp": options.val_views,
+                                                 "extrap": options.val_views})  # fmt: skip
+    train_split = data.splits["train"]
+    optics = Optics.from_manifest(data.manifest)
+    loss_fn = FocalStackLoss(
+        optics, perceptual=options.perceptual, perceptual_weight=options.perceptual_weight,
+        ssim_window_px=options.ssim_window_px, vgg_weights=options.vgg_weights or None,
+    )  # fmt: skip
+    net = build_net(options.spec, seed=options.seed)
+    opt = torch.optim.Adam(net.parameters(), lr=options.learning_rate)
+    ckpt_path = run_dir / CHECKPOINT
+    step = 0
+    if ckpt_path.exists() and not force:
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        _check_resumable(ckpt, options, data, ckpt_path)
+        net.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        _set_rng_states(ckpt["rng"])
+        step = int(ckpt["step"])
+        say(f"resuming {run_dir} at step {step} of {options.steps}")
+    elif force:
+        ckpt_path.unlink(missing_ok=True)
+        for name in (TRAIN_LOG, VAL_LOG):
+            (run_dir / name).unlink(missing_ok=True)
+    resumed_from = step
+    _truncate_csv(run_dir / TRAIN_LOG, TRAIN_COLUMNS, step)
+    _truncate_csv(run_dir / VAL_LOG, VAL_COLUMNS, step)
+    n_train = len(train_split)
+    per_epoch = -(-n_train // options.batch)
+    run_info = {
+        "options": asdict(options),
+        "net": options.spec.to_json(),
+        "parameters": parameter_count(net),
+        "loss": loss_fn.describe(),
+        "dataset": _optics_summary(data),
+        "steps_per_epoch": per_epoch,
+        "nhfd_version": __version__,
+    }
+    (run_dir / RUN_JSON).write_text(json.dumps(run_info, indent=1, default=str))
+    say(f"network {options.spec.to_json()} ({run_info['parameters']} parameters, input multiple "
+        f"{options.spec.multiple}); {n_train} training views, {per_epoch} steps per epoch; "
+        f"crops {options.crop_width_px}x{options.crop_height_px}")  # fmt: skip
+    say(f"loss: {loss_fn.describe()}; planes: {options.plane_mode}")
+    fixed = uniform_planes(data_volume(data), options.planes_from_depth + options.planes_random)
+    bar = None
+    if options.progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=options.steps, initial=step, unit="step", desc="train", file=sys.stderr)
+    net.train()
+    last_loss = float("nan")
+    t_start, steps_done = time.perf_counter(), 0
+
+    def checkpoint() -> None:
+        _atomic_save({
+            "step": step, "model": net.state_dict(), "optimizer": opt.state_dict(),
+            "rng": _rng_states(),
+            "data_order": {"seed": options.seed, "epoch": step // per_epoch,
+                           "position": step % per_epoch, "batch": options.batch,
+                           "n_train": n_train},
+            "options": asdict(options), "net": options.spec.to_json(),
+            "manifest_key": data.manifest.get("key"), "nhfd_version": __version__,
+        }, ckpt_path)  # fmt: skip
+
+    try:
+        end = options.steps if stop_at is None else min(options.steps, stop_at)
+        while step < end:
+            t0 = time.perf_counter()
+            rng = step_rng(options.seed, step)
+            views = batch_views(options.seed, step, options.batch, n_train)
+            rgb, target, zh = random_crop(train_split, views, options.crop_hw, rng)
+            if options.plane_mode == "uniform":
+                planes = fixed
+            else:
+                planes = choose_planes(zh, data_volume(data), options.planes_from_depth,
+                                       options.planes_random, rng, options.plane_step_mm * 1e-3)
+            k = min(options.perceptual_planes, len(planes))
+            perc = sorted(rng.choice(len(planes), size=k, replace=False).tolist()) if k else []
+            lr = lr_at(step, options)
+            for g in opt.param_groups:
+                g["lr"] = lr
+            amp, phase = predict(net, rgb)
+            out = loss_fn(to_field(amp, phase, 1.0), target, planes, perc)
+            opt.zero_grad(set_to_none=True)
+            out["loss"].backward()
+            opt.step()
+            step += 1
+            steps_done += 1
+            last_loss = float(out["loss"].detach())
+            if not math.isfinite(last_loss):
+                raise FloatingPointError(f"step {step}: loss is {last_loss}; lower the rate")
+            _append(run_dir / TRAIN_LOG, TRAIN_COLUMNS, {
+                "step": step, "epoch": (step - 1) // per_epoch, "loss": f"{last_loss:.6g}",
+                "l2": f"{float(out['l2'].detach()):.6g}",
+                "perceptual": f"{float(out['perceptual'].detach()):.6g}",
+                "lr": f"{lr:.4g}", "planes": " ".join(f"{z * 1e3:.2f}" for z in planes),
+                "seconds": f"{time.perf_counter() - t0:.4f}",
+            })  # fmt: skip
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{last_loss:.4g}")
+            if step % per_epoch == 0 or step == options.steps:
+                for split in ("interp", "extrap"):
+                    res = validate_views(net, data, loss_fn, options, split)
+                    if res:
+                        _append(run_dir / VAL_LOG, VAL_COLUMNS, {
+                            "step": step, "epoch": (step - 1) // per_epoch, **{
+                                k2: (f"{v:.6g}" if isinstance(v, float) else v)
+                                for k2, v in res.items()}})  # fmt: skip
+            if step % options.checkpoint_every == 0 or step == end:
+                checkpoint()
+    except KeyboardInterrupt:
+        checkpoint()
+        say(f"interrupted: checkpoint at step {step}; run the same command to continue")
+        raise
+    finally:
+        if bar is not None:
+            bar.close()
+    if steps_done == 0 and not ckpt_path.exists():
+        checkpoint()
+    elapsed = time.perf_counter() - t_start
+    try:
+        plot_curves(run_dir)
+    except Exception as exc:  # a plot is a convenience; a finished run must not fail over it
+        say(f"curves.png not written: {exc}")
+    return TrainResult(run_dir, step, last_loss, elapsed / max(1, steps_done), resumed_from)
+
+
+def _check_resumable(ckpt: dict, options: TrainOptions, data: HoloData, path: Path) -> None:
+    saved = ckpt.get("options", {})
+    now = asdict(options)
+    diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
+    if diff:
+        pairs = ", ".join(f"{k}: {saved.get(k)!r} -> {now[k]!r}" for k in diff)
+        raise ValueError(
+            f"{path} was trained with other options ({pairs}); use another --out, or --force "
+            "to start over"
+        )
+    if ckpt.get("manifest_key") != data.manifest.get("key"):
+        raise ValueError(
+            f"{path} was trained on another dataset (manifest key "
+            f"{str(ckpt.get('manifest_key'))[:12]} != {str(data.manifest.get('key'))[:12]}); "
+            "use another --out, or --force to start over"
+        )
+
+
+def load_run(run_dir: str | Path) -> tuple[torch.nn.Module, dict]:
+    """The trained network (eval mode) and run.json of a run folder."""
+    run_dir = Path(run_dir)
+    info_path, ckpt_path = run_dir / RUN_JSON, run_dir / CHECKPOINT
+    if not info_path.exists() or not ckpt_path.exists():
+        raise FileNotFoundError(f"{run_dir}: not a training run (needs {RUN_JSON} and "
+                                f"{CHECKPOINT}; see `nhfd train`)")  # fmt: skip
+    info = json.loads(info_path.read_text())
+    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    net = build_net(NetSpec(**ckpt["net"]))
+    net.load_state_dict(ckpt["model"])
+    info["step"] = int(ckpt["step"])
+    return net.eval(), info
+
+
+def with_overrides(options: TrainOptions, **kw) -> TrainOptions:
+    return replace(options, **{k: v for k, v in kw.items() if v is not None})

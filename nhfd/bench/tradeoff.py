@@ -1,0 +1,271 @@
+"""`nhfd bench tradeoff`: network size against speed and held-out quality (the paper's Fig. 3).
+
+Every variant (the configured profiles, plus any --widths x --depths x --unshuffles grid) is
+trained on the same reduced budget (--steps, said in the output), exported to ONNX, and
+measured: parameter count, onnxruntime and torch latency per frame at --size on --threads
+threads in the same run (their ratio reported, not assumed), and held-out focal-stack PSNR/SSIM
+(`nhfd eval`'s measure). --int8 adds onnxruntime's static int8 quantisation of each variant (QDQ,
+per channel, the last layer kept in float32, calibrated on training views). Writes a table, a
+JSON file and a PNG of PSNR against latency with the Pareto front marked. Runs are kept under
+OUT/runs and resume, so a second call only measures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from pathlib import Path
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("tradeoff", help="network size vs latency vs held-out quality",
+                       description=__doc__)  # fmt: skip
+    p.add_argument("--data", required=True, help="dataset folder (nhfd dataset build)")
+    p.add_argument("--profiles", default="all", help="comma-separated profiles, all, or none")
+    p.add_argument("--widths", default="", help="grid: comma-separated base widths")
+    p.add_argument("--depths", default="", help="grid: comma-separated depths")
+    p.add_argument("--unshuffles", default="", help="grid: comma-separated unshuffle factors")
+    p.add_argument("--steps", type=int, default=1000, help="training budget per variant")
+    p.add_argument("--crop", default=None, help="training crop WxH (default: nhfd.toml)")
+    p.add_argument("--size", default="1024x576", help="latency frame WxH (default 1024x576)")
+    p.add_argument("--threads", type=int, default=2, help="threads for latency (default 2)")
+    p.add_argument("--repeats", type=int, default=5, help="timed repeats; the median is kept")
+    p.add_argument("--eval-views", type=int, default=4, help="held-out views per split")
+    p.add_argument("--int8", action="store_true", help="also measure static int8 models")
+    p.add_argument("--out", default="out/bench/tradeoff", help="output folder")
+    p.add_argument("--config", help="nhfd.toml to take [model] from")
+    p.set_defaults(handler=run)
+
+
+def _ints(text: str, name: str) -> list[int]:
+    try:
+        values = [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise ValueError(f"{name} {text!r}: give comma-separated integers") from None
+    if any(v <= 0 for v in values):
+        raise ValueError(f"{name} {text!r}: values must be positive")
+    return values
+
+
+def _size(text: str, name: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"{name} {text!r} is not of the form WxH") from None
+    if w < 1 or h < 1:
+        raise ValueError(f"{name} {text!r}: must be positive")
+    return w, h
+
+
+def variants(config, profiles: str, widths: list[int], depths: list[int],
+             unshuffles: list[int]) -> list[tuple[str, str, int, int, int]]:  # fmt: skip
+    """(name, profile, width, depth, unshuffle) of every variant, without duplicates."""
+    m = config.model
+    names = [] if profiles == "none" else (
+        sorted(m.profiles) if profiles == "all" else [p.strip() for p in profiles.split(",")]
+    )  # fmt: skip
+    out, seen = [], set()
+    for n in names:
+        if n not in m.profiles:
+            raise ValueError(f"--profiles: {n!r} is not one of {', '.join(sorted(m.profiles))}")
+        p = m.profiles[n]
+        key = (p.width, p.depth, p.unshuffle)
+        if key not in seen:
+            seen.add(key)
+            out.append((n, n, *key))
+    base = m.profiles[m.profile]
+    if widths or depths or unshuffles:
+        for w in widths or [base.width]:
+            for d in depths or [base.depth]:
+                for u in unshuffles or [base.unshuffle]:
+                    if (w, d, u) not in seen:
+                        seen.add((w, d, u))
+                        out.append((f"w{w}-d{d}-u{u}", m.profile, w, d, u))
+    if not out:
+        raise ValueError("no variants: give --profiles and/or --widths/--depths/--unshuffles")
+    return out
+
+
+def _median_s(fn, repeats: int) -> float:
+    fn()  # warm-up
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def quantise_int8(src: Path, dst: Path, data, multiple: int, n_calib: int = 8) -> Path:
+    """Static int8 (QDQ, per channel), the last Conv kept in float32, calibrated on training
+    views; the nhfd metadata is carried over."""
+    import numpy as np
+    import onnx
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
+
+    model = onnx.load(str(src))
+    convs = [n.name for n in model.graph.node if n.op_type == "Conv"]
+    split = data.splits["train"]
+
+    class Reader(CalibrationDataReader):
+        def __init__(self) -> None:
+            self.items = []
+            for j in range(min(n_calib, len(split))):
+                x = split.rgb[j : j + 1].numpy()
+                h, w = x.shape[-2:]
+                x = np.pad(x, ((0, 0), (0, 0), (0, (-h) % multiple), (0, (-w) % multiple)))
+                self.items.append({"rgb": np.ascontiguousarray(x, np.float32)})
+            self.it = iter(self.items)
+
+        def get_next(self):
+            return next(self.it, None)
+
+    quantize_static(str(src), str(dst), Reader(), quant_format=QuantFormat.QDQ,
+                    per_channel=True, activation_type=QuantType.QUInt8,
+                    weight_type=QuantType.QInt8, nodes_to_exclude=convs[-1:])  # fmt: skip
+    q = onnx.load(str(dst))
+    del q.metadata_props[:]
+    for prop in model.metadata_props:
+        q.metadata_props.add().CopyFrom(prop)
+    onnx.save(q, str(dst))
+    return dst
+
+
+def pareto(points: list[tuple[float, float]]) -> list[int]:
+    """Indices of points (latency, psnr) that no other point beats on both."""
+    front = []
+    for i, (lat, q) in enumerate(points):
+        if not any((l2 <= lat and q2 >= q) and (l2 < lat or q2 > q) for l2, q2 in points):
+            front.append(i)
+    return sorted(front, key=lambda i: points[i][0])
+
+
+def run(args: argparse.Namespace) -> int:
+    w, h = _size(args.size, "--size")
+    crop = _size(args.crop, "--crop") if args.crop else None
+    widths = _ints(args.widths, "--widths")
+    depths = _ints(args.depths, "--depths")
+    unshuffles = _ints(args.unshuffles, "--unshuffles")
+    for name in ("steps", "threads", "repeats", "eval_views"):
+        if getattr(args, name) < 1:
+            raise ValueError(f"--{name.replace('_', '-')} {getattr(args, name)}: must be positive")
+    bad = [u for u in unshuffles if u not in (1, 2, 4, 8)]
+    if bad:
+        raise ValueError(f"--unshuffles {args.unshuffles!r}: each must be 1, 2, 4 or 8")
+    if not Path(args.data).is_dir():
+        raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
+    from nhfd.config import load_config
+
+    config = load_config(args.config).config
+    todo = variants(config, args.profiles, widths, depths, unshuffles)
+
+    import numpy as np
+    import torch
+
+    from nhfd.bench.machine import describe
+    from nhfd.models.data import HoloData
+    from nhfd.models.evaluate import evaluate
+    from nhfd.models.export import OnnxModel, export_onnx
+    from nhfd.models.net import parameter_count
+    from nhfd.models.train import TrainOptions, load_run, train
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    data = HoloData(args.data, max_views={"interp": args.eval_views, "extrap": args.eval_views})
+    machine = describe()
+    print(f"{len(todo)} variants, each trained for {args.steps} steps (a reduced budget); "
+          f"latency at {w}x{h} on {args.threads} threads; {machine}", flush=True)
+    rows = []
+    for name, profile, width, depth, unshuffle in todo:
+        crop_kw = {"crop_width_px": crop[0], "crop_height_px": crop[1]} if crop else {}
+        opts = TrainOptions.from_config(config, profile, width=width, depth=depth,
+                                        unshuffle=unshuffle, steps=args.steps,
+                                        val_views=args.eval_views, **crop_kw)  # fmt: skip
+        run_dir = out / "runs" / name
+        result = train(args.data, run_dir, opts, data=data)
+        net, _ = load_run(run_dir)
+        onnx_path = export_onnx(run_dir, out / "models" / f"{name}.onnx")
+        models = [(name, onnx_path.path, onnx_path.max_abs_diff)]
+        if args.int8:
+            q = quantise_int8(onnx_path.path, out / "models" / f"{name}-int8.onnx", data,
+                              net.spec.multiple)  # fmt: skip
+            models.append((f"{name}-int8", q, float("nan")))
+        m = net.spec.multiple
+        x = np.random.default_rng(0).random((1, 3, h + (-h) % m, w + (-w) % m), np.float32)
+        torch.set_num_threads(args.threads)
+        with torch.no_grad():
+            xt = torch.from_numpy(x)
+            torch_s = _median_s(lambda n=net, t=xt: n(t), args.repeats)
+        for label, path, diff in models:
+            ort_model = OnnxModel(path, threads=args.threads)
+            ort_s = _median_s(lambda om=ort_model, xx=x: om.run_raw(xx), args.repeats)
+            ev = evaluate(path, args.data, data=data, log=lambda _m: None)
+            s = ev["summary"]["all"]
+            row = {
+                "name": label, "profile": profile, "width": width, "depth": depth,
+                "unshuffle": unshuffle, "int8": label.endswith("-int8"),
+                "parameters": parameter_count(net), "steps": result.step,
+                "train_ms_per_step": result.seconds_per_step * 1e3,
+                "onnxruntime_ms": ort_s * 1e3, "torch_ms": torch_s * 1e3,
+                "torch_over_onnxruntime": torch_s / ort_s,
+                "psnr_db": s["model_psnr_db"], "ssim": s["model_ssim"],
+                "psnr_2d_db": s["hologram_2d_psnr_db"], "focus_bins_passed":
+                f"{s['focus_bins_passed']}/{s['focus_bins']}", "onnx_vs_torch_max_abs": diff,
+            }  # fmt: skip
+            rows.append(row)
+            print(f"  {label:<18} {row['parameters']:>8} params  ort {row['onnxruntime_ms']:7.1f} "
+                  f"ms  torch {row['torch_ms']:7.1f} ms  PSNR {row['psnr_db']:6.2f} dB  SSIM "
+                  f"{row['ssim']:.3f}", flush=True)  # fmt: skip
+    front = pareto([(r["onnxruntime_ms"], r["psnr_db"]) for r in rows])
+    for i, r in enumerate(rows):
+        r["pareto"] = i in front
+    print_table(rows)
+    report = {"machine": machine, "budget_steps": args.steps, "size_wh": [w, h],
+              "threads": args.threads, "data": str(Path(args.data).resolve()), "rows": rows}
+    (out / "tradeoff.json").write_text(json.dumps(report, indent=1))
+    plot(rows, out / "tradeoff.png", args.steps, (w, h), args.threads)
+    print(f"wrote {out / 'tradeoff.json'} and {out / 'tradeoff.png'}")
+    return 0
+
+
+def print_table(rows: list[dict]) -> None:
+    print(f"{'variant':<18}{'params':>9}{'ort ms':>9}{'torch ms':>10}{'torch/ort':>10}"
+          f"{'PSNR dB':>9}{'SSIM':>7}{'2D dB':>7}{'focus':>7}  pareto")  # fmt: skip
+    for r in rows:
+        print(f"{r['name']:<18}{r['parameters']:>9}{r['onnxruntime_ms']:>9.1f}"
+              f"{r['torch_ms']:>10.1f}{r['torch_over_onnxruntime']:>10.2f}{r['psnr_db']:>9.2f}"
+              f"{r['ssim']:>7.3f}{r['psnr_2d_db']:>7.2f}{r['focus_bins_passed']:>7}  "
+              f"{'*' if r['pareto'] else ''}")  # fmt: skip
+
+
+def plot(rows: list[dict], path: Path, steps: int, size: tuple[int, int], threads: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    for r in rows:
+        ax.scatter(r["onnxruntime_ms"], r["psnr_db"], marker="s" if r["int8"] else "o",
+                   color="C1" if r["pareto"] else "C0")  # fmt: skip
+        ax.annotate(r["name"], (r["onnxruntime_ms"], r["psnr_db"]), fontsize=7,
+                    xytext=(3, 3), textcoords="offset points")  # fmt: skip
+    front = sorted((r for r in rows if r["pareto"]), key=lambda r: r["onnxruntime_ms"])
+    ax.plot([r["onnxruntime_ms"] for r in front], [r["psnr_db"] for r in front], "C1--",
+            label="Pareto front")  # fmt: skip
+    if rows:
+        ax.axhline(rows[0]["psnr_2d_db"], color="grey", lw=0.8, label="2D hologram")
+    ax.set_xlabel(f"onnxruntime ms per {size[0]}x{size[1]} frame ({threads} threads)")
+    ax.set_ylabel("held-out focal-stack PSNR (dB)")
+    ax.set_title(f"speed vs quality, {steps} training steps each", fontsize=9)
+    ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)

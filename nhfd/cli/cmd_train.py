@@ -1,0 +1,151 @@
+"""`nhfd train|eval|export`: the NHF network (nhfd.models).
+
+torch, onnx and onnxruntime are imported inside the handlers only, so `nhfd --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+TRAIN_HELP = """\
+Train the U-Net that maps a view to its reference-plane hologram, with the focal-stack loss, on a
+dataset folder from `nhfd dataset build`. Seeded; checkpoints every --checkpoint-every steps
+and at the end; running the same command again resumes where it stopped, with the same data
+order (--steps may be raised to continue). Writes RUN/train_log.csv, val_log.csv (interpolation
+and extrapolation views, every epoch), curves.png and run.json. Defaults: nhfd.toml [model].
+"""
+
+
+def _crop(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--crop {text!r} is not of the form WxH (e.g. 512x288)") from None
+    if not (1 <= w <= 8192 and 1 <= h <= 8192):
+        raise ValueError(f"--crop {text!r}: width and height must be 1..8192 px")
+    return w, h
+
+
+def _positive(name: str, value: int | float | None) -> None:
+    if value is not None and value <= 0:
+        raise ValueError(f"{name} {value}: must be positive")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    t = sub.add_parser("train", help="train the NHF network on a dataset", description=TRAIN_HELP,
+                       formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    t.add_argument("--data", required=True, help="dataset folder (nhfd dataset build)")
+    t.add_argument("--out", required=True, help="run folder (checkpoints, logs)")
+    t.add_argument("--profile", help="network profile from nhfd.toml [model.profiles]")
+    t.add_argument("--width", type=int, help="override the profile's base width")
+    t.add_argument("--depth", type=int, help="override the profile's depth")
+    t.add_argument("--unshuffle", type=int, help="override the profile's unshuffle factor")
+    t.add_argument("--steps", type=int, help="budget in optimiser steps")
+    t.add_argument("--batch", type=int, help="views per step")
+    t.add_argument("--crop", help="training crop WxH (e.g. 512x288)")
+    t.add_argument("--lr", type=float, help="Adam learning rate")
+    t.add_argument("--seed", type=int, help="seed of everything random")
+    t.add_argument("--planes", choices=("depth", "uniform"), help="how the loss picks planes")
+    t.add_argument("--perceptual", choices=("ssim", "vgg", "none"), help="perceptual term")
+    t.add_argument("--vgg-weights", help="local torchvision VGG-16 weights (for --perceptual vgg)")
+    t.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
+    t.add_argument("--val-views", type=int, help="held-out views per split validated per epoch")
+    t.add_argument("--threads", type=int, help="torch threads (0: torch's default)")
+    t.add_argument("--force", action="store_true", help="start over in an existing run folder")
+    t.add_argument("--no-progress", action="store_true", help="no progress bar")
+    t.add_argument("--config", help="nhfd.toml to read [model] from")
+    t.set_defaults(handler=run_train)
+
+    e = sub.add_parser("eval", help="hologram quality of a run or .onnx on held-out views",
+                       description=__doc__)  # fmt: skip
+    e.add_argument("model", help="run folder (nhfd train) or exported .onnx")
+    e.add_argument("--data", required=True, help="dataset folder")
+    e.add_argument("--splits", default="interp,extrap", help="comma-separated splits")
+    e.add_argument("--max-views", type=int, help="at most this many views per split")
+    e.add_argument("--out", help="folder for eval.json and eval.png (default: RUN/eval or "
+                   "beside the .onnx)")  # fmt: skip
+    e.set_defaults(handler=run_eval)
+
+    x = sub.add_parser("export", help="export a run to ONNX (checked against torch)")
+    x.add_argument("run", help="run folder (nhfd train)")
+    x.add_argument("-o", "--out", required=True, help="the .onnx file to write")
+    x.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or newer (default 18)")
+    x.add_argument("--no-check", action="store_true", help="skip the onnxruntime check")
+    x.set_defaults(handler=run_export)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from nhfd.config import load_config
+
+    config = load_config(args.config).config
+    for name in ("steps", "batch", "lr", "checkpoint_every", "val_views", "width"):
+        _positive("--" + name.replace("_", "-"), getattr(args, name))
+    if args.threads is not None and args.threads < 0:
+        raise ValueError(f"--threads {args.threads}: must be >= 0")
+    if args.depth is not None and not 0 <= args.depth <= 6:
+        raise ValueError(f"--depth {args.depth}: must be in 0..6")
+    if args.unshuffle is not None and args.unshuffle not in (1, 2, 4, 8):
+        raise ValueError(f"--unshuffle {args.unshuffle}: must be 1, 2, 4 or 8")
+    if not Path(args.data).is_dir():
+        raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
+    crop = _crop(args.crop) if args.crop else (None, None)
+
+    from nhfd.models.train import TrainOptions, train
+
+    options = TrainOptions.from_config(
+        config, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
+        steps=args.steps, batch=args.batch, crop_width_px=crop[0], crop_height_px=crop[1],
+        learning_rate=args.lr, seed=args.seed, plane_mode=args.planes,
+        perceptual=args.perceptual, vgg_weights=args.vgg_weights,
+        checkpoint_every=args.checkpoint_every, val_views=args.val_views, threads=args.threads,
+        progress=not args.no_progress,
+    )  # fmt: skip
+    result = train(args.data, args.out, options, force=args.force)
+    print(f"{result.run_dir}: step {result.step}, loss {result.last_loss:.4g}, "
+          f"{result.seconds_per_step * 1e3:.0f} ms per step"
+          + (f" (resumed at step {result.resumed_from})" if result.resumed_from else ""))
+    return 0
+
+
+def run_eval(args: argparse.Namespace) -> int:
+    splits = tuple(s.strip() for s in args.splits.split(",") if s.strip())
+    bad = [s for s in splits if s not in ("train", "interp", "extrap")]
+    if bad or not splits:
+        raise ValueError(f"--splits {args.splits!r}: use train, interp and/or extrap")
+    _positive("--max-views", args.max_views)
+    model = Path(args.model)
+    if not model.exists():
+        raise FileNotFoundError(f"{model}: no such run folder or .onnx file")
+    out = Path(args.out) if args.out else (
+        model.parent / (model.stem + "_eval") if model.suffix == ".onnx"
+        else model / "eval"
+    )  # fmt: skip
+
+    from nhfd.models.evaluate import evaluate
+
+    result = evaluate(model, args.data, splits=splits, max_views=args.max_views, out_dir=out)
+    print(f"wrote {out / 'eval.json'}" + (f" and {result['png']}" if "png" in result else ""))
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    if args.opset < 18:
+        raise ValueError(f"--opset {args.opset}: must be 18 or newer")
+    if not Path(args.run).is_dir():
+        raise FileNotFoundError(f"{args.run}: no such run folder")
+
+    from nhfd.models.export import export_onnx
+
+    res = export_onnx(args.run, args.out, opset=args.opset, check=not args.no_check)
+    m = res.metadata
+    print(f"{res.path}: profile {m['profile']}, {m['parameters']} parameters, input multiple "
+          f"{m['input_multiple']}, opset {m['opset']}")
+    if not args.no_check:
+        sizes = ", ".join(f"{w}x{h}" for h, w in res.checked_sizes)
+        print(f"onnxruntime vs torch: max abs difference {res.max_abs_diff:.3g} ({sizes})")
+    json.dump({"path": str(res.path), "max_abs_diff": res.max_abs_diff}, sys.stdout)
+    print()
+    return 0

@@ -1,0 +1,55 @@
+"""`nhfd train|eval|export` from the command line: a round trip, and errors naming bad values."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from nhfd.cli.main import main
+
+
+def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
+    run = tmp_path / "run"
+    args = ["train", "--data", str(tiny_data), "--out", str(run), "--profile", "fast",
+            "--width", "8", "--depth", "1", "--steps", "2", "--crop", "48x48", "--no-progress",
+            "--val-views", "1", "--threads", "1"]  # fmt: skip
+    assert main(args) == 0
+    assert "step 2" in capsys.readouterr().out
+    info = json.loads((run / "run.json").read_text())
+    assert info["net"] == {"width": 8, "depth": 1, "unshuffle": 4}
+    assert "box-window SSIM" in info["loss"]  # the log says which perceptual term ran
+    onnx_path = tmp_path / "m.onnx"
+    assert main(["export", str(run), "-o", str(onnx_path)]) == 0
+    assert "max abs difference" in capsys.readouterr().out
+    assert main(["eval", str(onnx_path), "--data", str(tiny_data), "--out",
+                 str(tmp_path / "ev")]) == 0  # fmt: skip
+    out = capsys.readouterr().out
+    assert "model dB" in out and "2D dB" in out and "black dB" in out
+    result = json.loads((tmp_path / "ev" / "eval.json").read_text())
+    assert {"interp", "extrap", "all"} <= set(result["summary"])
+    assert result["views"][0]["focus"] and (tmp_path / "ev" / "eval.png").exists()
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["train", "--data", "{data}", "--out", "{tmp}/r", "--profile", "huge"],
+     "--profile 'huge': not one of the configured profiles accurate, balanced, fast"),
+    (["train", "--data", "{data}", "--out", "{tmp}/r", "--crop", "512"],
+     "--crop '512' is not of the form WxH"),
+    (["train", "--data", "{data}", "--out", "{tmp}/r", "--steps", "0"],
+     "--steps 0: must be positive"),
+    (["train", "--data", "{data}", "--out", "{tmp}/r", "--unshuffle", "3"],
+     "--unshuffle 3: must be 1, 2, 4 or 8"),
+    (["train", "--data", "{tmp}/nowhere", "--out", "{tmp}/r"], "--data {tmp}/nowhere: no such"),
+    (["export", "{tmp}", "-o", "{tmp}/m.onnx", "--opset", "17"], "--opset 17: must be 18"),
+    (["export", "{tmp}", "-o", "{tmp}/m.onnx"], "not a training run"),
+    (["eval", "{tmp}/none.onnx", "--data", "{data}"], "no such run folder or .onnx"),
+    (["eval", "{tmp}", "--data", "{data}", "--splits", "test"], "--splits 'test'"),
+])  # fmt: skip
+def test_bad_values_are_named(argv, message, tiny_data, tmp_path, capsys):
+    fill = {"data": str(tiny_data), "tmp": str(tmp_path)}
+    argv = [a.format(**fill) for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message.format(**fill) in err, err
+    assert len(err.strip().splitlines()) == 1

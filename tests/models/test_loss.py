@@ -1,0 +1,83 @@
+"""The focal-stack loss: zero for identical fields, growing with defocus; plane choice."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import torch
+from nhfd.models.data import HoloData
+from nhfd.models.loss import FocalStackLoss, Optics, box_ssim, choose_planes, uniform_planes
+
+from nhfd.optics import propagate
+
+
+def test_loss_is_zero_for_identical_fields_and_grows_with_defocus(tiny_data):
+    data = HoloData(tiny_data, splits=("train",))
+    optics = Optics.from_manifest(data.manifest)
+    loss = FocalStackLoss(optics)
+    target = data.splits["train"].field[:1]
+    planes = uniform_planes(optics.volume_m, 5)
+    same = loss(target.clone(), target, planes, [0, 2])
+    assert float(same["l2"]) == 0.0
+    assert abs(float(same["loss"])) < 1e-5
+    values = []
+    for dz_mm in (0.25, 0.5, 1.0, 2.0):
+        moved = propagate(target, dz_mm * 1e-3, optics.pitch_m, optics.wavelengths_m,
+                          aperture=optics.aperture)  # fmt: skip
+        values.append(float(loss(moved, target, planes, [0, 2])["loss"]))
+    assert values[0] > 0
+    assert all(b > a for a, b in itertools.pairwise(values)), values
+
+
+def test_margin_masks_the_band_that_propagation_contaminates(tiny_data):
+    optics = Optics.from_manifest(HoloData(tiny_data, splits=("train",)).manifest)
+    loss = FocalStackLoss(optics)
+    # 3 mm at 8 um, 660 nm, quarter-band square aperture: about 8 px of reach + 8 guard.
+    assert 12 <= loss.margin <= 20
+    stack = loss.stack(torch.ones(1, 3, 64, 64, dtype=torch.complex64), [0.0, 1e-3])
+    assert stack.shape == (1, 2, 3, 64 - 2 * loss.margin, 64 - 2 * loss.margin)
+
+
+def test_planes_follow_the_depth_histogram():
+    rng = np.random.default_rng(0)
+    zh = np.full((40, 40), np.nan)
+    zh[:, :30] = 1.5e-3
+    zh[:, 30:] = -2.0e-3
+    picks = [choose_planes(zh, (-3e-3, 3e-3), 4, 0, rng, 1e-4) for _ in range(20)]
+    flat = {z for p in picks for z in p}
+    assert flat <= {1.5e-3, -2.0e-3}  # only where the content is
+    with_random = choose_planes(zh, (-3e-3, 3e-3), 4, 2, rng, 1e-4)
+    assert all(-3e-3 <= z <= 3e-3 for z in with_random)
+    assert all(abs(z / 1e-4 - round(z / 1e-4)) < 1e-6 for z in with_random)  # on the cache grid
+    empty = choose_planes(np.full((8, 8), np.nan), (-3e-3, 3e-3), 3, 0, rng, 1e-4)
+    assert len(empty) >= 1
+
+
+def test_box_ssim_is_one_for_identical_images_and_lower_otherwise():
+    x = torch.rand(2, 32, 32)
+    assert float(box_ssim(x, x)) == pytest_approx(1.0)
+    assert float(box_ssim(x, torch.rand(2, 32, 32))) < 0.5
+
+
+def pytest_approx(v):
+    import pytest
+
+    return pytest.approx(v, abs=1e-5)
+
+
+def test_vgg_term_loads_only_a_local_file(tiny_data, tmp_path):
+    import pytest
+    from nhfd.models.vgg import VGGFeatures
+
+    optics = Optics.from_manifest(HoloData(tiny_data, splits=("train",)).manifest)
+    with pytest.raises(FileNotFoundError, match="nothing is downloaded"):
+        FocalStackLoss(optics, perceptual="vgg", vgg_weights=str(tmp_path / "none.pth"))
+    path = tmp_path / "vgg16.pth"
+    torch.save({k: v for k, v in VGGFeatures().state_dict().items()
+                if k.startswith("features.")}, path)  # fmt: skip
+    loss = FocalStackLoss(optics, perceptual="vgg", vgg_weights=str(path))
+    assert "VGG-16" in loss.describe()
+    target = torch.rand(1, 3, 64, 64).to(torch.complex64)
+    out = loss(target * 0.5, target, [0.0, 1e-3], [0, 1])
+    assert torch.isfinite(out["loss"]) and float(out["perceptual"]) > 0

@@ -1,0 +1,60 @@
+"""The network's shapes and conventions."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from nhfd.models.net import NetSpec, build_net, pad_to_multiple, predict
+
+
+@pytest.mark.parametrize("spec", [NetSpec(8, 2, 1), NetSpec(8, 1, 2), NetSpec(4, 3, 4)])
+def test_any_size_in_gives_the_same_size_out(spec):
+    net = build_net(spec, seed=0).eval()
+    rgb = torch.rand(3, 37, 53)
+    with torch.no_grad():
+        amp, phase = predict(net, rgb)
+        amp_b, _ = predict(net, rgb[None].repeat(2, 1, 1, 1))
+    assert amp.shape == phase.shape == (3, 37, 53)
+    assert amp_b.shape == (2, 3, 37, 53)
+    assert (amp > 0).all()  # softplus: amplitude is positive
+    assert spec.multiple == spec.unshuffle * 2**spec.depth
+
+
+def test_padding_is_outside_the_graph_and_cropped_back():
+    spec = NetSpec(8, 2, 2)
+    x, hw = pad_to_multiple(torch.rand(1, 3, 37, 53), spec.multiple)
+    assert hw == (37, 53) and x.shape[-2:] == (40, 56)
+    assert (x[..., 37:, :] == 0).all() and (x[..., :, 53:] == 0).all()  # black, as rendered
+    net = build_net(spec, seed=0).eval()
+    with pytest.raises(RuntimeError):
+        net(torch.rand(1, 3, 37, 53))  # the graph itself needs multiples of the stride
+
+
+def test_seeded_build_is_reproducible_and_leaves_the_global_rng_alone():
+    state = torch.random.get_rng_state()
+    a, b = build_net(NetSpec(8, 2, 1), seed=3), build_net(NetSpec(8, 2, 1), seed=3)
+    assert torch.equal(torch.random.get_rng_state(), state)
+    for pa, pb in zip(a.parameters(), b.parameters(), strict=True):
+        assert torch.equal(pa, pb)
+
+
+@pytest.mark.parametrize("name,rgb", [
+    ("black", torch.zeros(1, 3, 32, 48)),
+    ("white", torch.ones(1, 3, 32, 48)),
+    ("saturated", torch.full((1, 3, 32, 48), 4.0)),
+    ("negative", torch.full((1, 3, 32, 48), -1.0)),
+    ("float16", torch.rand(1, 3, 32, 48).half()),
+])  # fmt: skip
+def test_extreme_inputs_give_finite_outputs(name, rgb):
+    net = build_net(NetSpec(8, 2, 2), seed=0).eval()
+    with torch.no_grad():
+        amp, phase = predict(net, rgb)
+    assert amp.dtype == torch.float32
+    assert torch.isfinite(amp).all() and torch.isfinite(phase).all(), name
+
+
+def test_bad_specs_are_refused_by_name():
+    with pytest.raises(ValueError, match="unshuffle = 3"):
+        NetSpec(8, 2, 3)
+    with pytest.raises(ValueError, match="depth = 9"):
+        NetSpec(8, 9, 1)

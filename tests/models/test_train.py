@@ -1,0 +1,75 @@
+"""Training reduces the loss, and a resumed run continues exactly where it stopped."""
+
+from __future__ import annotations
+
+import csv
+
+import torch
+from nhfd.models.data import HoloData, batch_views
+from nhfd.models.loss import FocalStackLoss, Optics, uniform_planes
+from nhfd.models.net import predict, to_field
+from nhfd.models.train import CHECKPOINT, TRAIN_LOG, load_run, train
+
+from .conftest import tiny_options
+
+
+def _mean_loss(net, data: HoloData) -> float:
+    optics = Optics.from_manifest(data.manifest)
+    loss = FocalStackLoss(optics)
+    planes = uniform_planes(optics.volume_m, 5)
+    s = data.splits["train"]
+    with torch.no_grad():
+        amp, phase = predict(net, s.rgb)
+        return float(loss(to_field(amp, phase, 1.0), s.field, planes, [1, 3])["loss"])
+
+
+def test_a_few_steps_reduce_the_loss(tiny_data, tmp_path):
+    data = HoloData(tiny_data)
+    opts = tiny_options(steps=24, learning_rate=3e-3, plane_mode="uniform")
+    train(tiny_data, tmp_path / "run", tiny_options(steps=1, learning_rate=1e-12),
+          log=lambda _m: None, data=data)  # fmt: skip
+    before = _mean_loss(load_run(tmp_path / "run")[0], data)
+    result = train(tiny_data, tmp_path / "run2", opts, log=lambda _m: None, data=data)
+    after = _mean_loss(load_run(tmp_path / "run2")[0], data)
+    assert result.step == 24
+    assert after < 0.8 * before, (before, after)
+    assert (tmp_path / "run2" / "curves.png").stat().st_size > 0
+
+
+def _log(run) -> list[tuple[str, str, str]]:
+    with open(run / TRAIN_LOG, newline="") as f:
+        return [(r["step"], r["loss"], r["planes"]) for r in csv.DictReader(f)]
+
+
+def test_resume_continues_from_the_same_step_with_the_same_data_order(tiny_data, tmp_path):
+    data = HoloData(tiny_data)
+    quiet = {"log": lambda _m: None, "data": data}
+    full = train(tiny_data, tmp_path / "full", tiny_options(steps=6), **quiet)
+    half = train(tiny_data, tmp_path / "split", tiny_options(steps=6), stop_at=3, **quiet)
+    assert half.step == 3
+    ckpt = torch.load(tmp_path / "split" / CHECKPOINT, weights_only=False)
+    assert ckpt["step"] == 3 and {"torch", "numpy", "python"} <= set(ckpt["rng"])
+    assert ckpt["data_order"]["position"] == 3 % 4
+    rest = train(tiny_data, tmp_path / "split", tiny_options(steps=6), **quiet)
+    assert rest.resumed_from == 3 and rest.step == full.step == 6
+    assert _log(tmp_path / "full") == _log(tmp_path / "split")
+    a, b = load_run(tmp_path / "full")[0], load_run(tmp_path / "split")[0]
+    for (name, pa), pb in zip(a.state_dict().items(), b.state_dict().values(), strict=True):
+        assert torch.equal(pa, pb), name
+
+
+def test_each_epoch_visits_every_training_view_once():
+    seen = [v for step in range(4) for v in batch_views(7, step, 1, 4)]
+    assert sorted(seen) == [0, 1, 2, 3]
+    again = [batch_views(7, s, 2, 5) for s in range(3)]
+    assert [batch_views(7, s, 2, 5) for s in range(3)] == again
+
+
+def test_resume_with_other_options_is_refused(tiny_data, tmp_path):
+    import pytest
+
+    data = HoloData(tiny_data)
+    train(tiny_data, tmp_path / "r", tiny_options(steps=1), log=lambda _m: None, data=data)
+    with pytest.raises(ValueError, match="learning_rate"):
+        train(tiny_data, tmp_path / "r", tiny_options(steps=2, learning_rate=0.5),
+              log=lambda _m: None, data=data)  # fmt: skip
