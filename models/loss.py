@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from nhfd.optics import Aperture, KernelCache, propagate
+from nhfd.optics import Aperture, KernelCache, plan_padding, propagate
 from nhfd.optics.refplane import margin_px
 
 SSIM_C1 = 0.01**2
@@ -144,15 +144,17 @@ class FocalStackLoss:
         return f"L2 of intensities + perceptual term: {term}; edge margin masked {self.margin} px"
 
     def stack(self, field: torch.Tensor, planes_m: Sequence[float]) -> torch.Tensor:
-        """Intensities `[B, D, C, H, W]` after the aperture, one propagation per plane so that
-        each plane's kernel is cached on its own (a step's plane set rarely repeats)."""
+        """Intensities `[B, D, C, H, W]` after the aperture: one batched propagation (one forward
+        FFT for all planes) on a padding sized for the whole volume, so every plane's kernel has
+        the same shape and is cached on its own whatever the step's set of planes."""
         o = self.optics
-        slices = [
-            propagate(field, float(z), o.pitch_m, o.wavelengths_m, padding="auto",
-                      aperture=o.aperture, cache=self.cache)
-            for z in planes_m
-        ]  # fmt: skip
-        inten = torch.stack(slices, dim=-4).abs().square()
+        h, w = field.shape[-2:]
+        z_max = max(abs(v) for v in o.volume_m)
+        padded = plan_padding((h, w), o.pitch_m, o.wavelengths_m, z_max, o.aperture).padded_hw
+        inten = propagate(
+            field, [float(z) for z in planes_m], o.pitch_m, o.wavelengths_m, padding=padded,
+            aperture=o.aperture, cache=self.cache,
+        ).abs().square()  # fmt: skip
         m = self.margin
         h, w = inten.shape[-2:]
         if m and h > 2 * m + 2 and w > 2 * m + 2:

@@ -212,18 +212,18 @@ def propagate(
     kernels = _kernels(plan, pitch, lams, depths, aperture, band_limit, u.dtype, u.device, cache)
     spectrum = torch.fft.fft2(u, s=plan.padded_hw)
     # One depth at a time bounds memory at one padded stack per colour, not one per depth.
-    if torch.is_grad_enabled() and (spectrum.requires_grad or kernels.requires_grad):
-        slices = [
-            torch.fft.ifft2(spectrum * kernels[d])[..., :h, :w] for d in range(kernels.shape[0])
-        ]
+    n_depths = len(kernels)
+    kernel_grad = any(k.requires_grad for k in kernels)
+    if torch.is_grad_enabled() and (spectrum.requires_grad or kernel_grad):
+        slices = [torch.fft.ifft2(spectrum * kernels[d])[..., :h, :w] for d in range(n_depths)]
         out = torch.stack(slices, dim=-4)
     else:
         # Without autograd, reuse one padded buffer: fresh 100 MB allocations per depth cost
         # page faults that rival the FFTs themselves.
-        out = torch.empty((*u.shape[:-3], kernels.shape[0], *u.shape[-3:]), dtype=u.dtype,
+        out = torch.empty((*u.shape[:-3], n_depths, *u.shape[-3:]), dtype=u.dtype,
                           device=u.device)
         buf = torch.empty_like(spectrum)
-        for d in range(kernels.shape[0]):
+        for d in range(n_depths):
             torch.mul(spectrum, kernels[d], out=buf)
             torch.fft.ifft2(buf, out=buf)
             out[..., d, :, :, :] = buf[..., :h, :w]
@@ -240,7 +240,9 @@ def _kernels(
     dtype: torch.dtype,
     device: torch.device,
     cache: KernelCache | None,
-) -> torch.Tensor:
+) -> torch.Tensor | list[torch.Tensor]:
+    """Kernels indexable by depth: a `[D, C, Hpad, Wpad]` tensor, or a list of `[C, Hpad, Wpad]`
+    tensors when several fixed depths come from the cache."""
     if isinstance(depths, torch.Tensor):
         return transfer_function_z(
             plan.padded_hw, pitch, lams, depths.to(device),
@@ -255,5 +257,18 @@ def _kernels(
 
     if cache is None:
         return compute()
-    key = ("asm", plan.padded_hw, pitch, lams, depths, aperture, band_limit, dtype, str(device))
-    return cache.get(key, compute)
+    if len(depths) == 1:
+        key = ("asm", plan.padded_hw, pitch, lams, depths, aperture, band_limit, dtype, str(device))
+        return cache.get(key, compute)
+
+    # One entry per depth: a caller whose set of planes changes from call to call (the training
+    # loss picks planes from each view's depths) still hits the cache for every plane it reuses.
+    def one(z: float) -> torch.Tensor:
+        key = ("asm", plan.padded_hw, pitch, lams, (z,), aperture, band_limit, dtype, str(device))
+        return cache.get(key, lambda: transfer_function(
+            plan.padded_hw, pitch, lams, (z,),
+            aperture=aperture, band_limit=band_limit, dtype=dtype, device=device,
+        ))  # fmt: skip
+
+    # A list, not a stacked tensor: stacking would copy every kernel on every call.
+    return [one(z)[0] for z in depths]

@@ -267,3 +267,18 @@ def test_aperture_is_applied_with_propagation():
     assert aperture_mask((64, 64), Aperture("square", (0.25,)), 1)[
         0, 0
     ].nonzero().flatten().tolist() == (list(range(16)) + list(range(48, 64)))
+
+
+def test_cache_reuses_each_depth_across_different_plane_sets():
+    """A caller whose planes change between calls (the training loss) still hits the cache for
+    every plane it has used before, and cached results equal uncached ones."""
+    field = torch.randn(3, 48, 40, dtype=torch.complex64)
+    lams = (660e-9, 520e-9, 450e-9)
+    cache = KernelCache(max_bytes=2**28)
+    first = propagate(field, [1e-3, -2e-3], 8e-6, lams, padding=(64, 64), cache=cache)
+    assert (cache.hits, cache.misses) == (0, 2)
+    second = propagate(field, [-2e-3, 3e-3, 1e-3], 8e-6, lams, padding=(64, 64), cache=cache)
+    assert (cache.hits, cache.misses) == (2, 3)
+    plain = propagate(field, [-2e-3, 3e-3, 1e-3], 8e-6, lams, padding=(64, 64))
+    assert torch.equal(second, plain)
+    assert torch.equal(second[0], first[1]) and torch.equal(second[2], first[0])
