@@ -193,6 +193,60 @@ class ModelSettings(_Section):
         return self
 
 
+class DaemonSettings(_Section):
+    """`nhfd serve`: control sockets, where files may be read and written, focus mapping.
+
+    Relative paths are taken from the daemon's working directory (the unit's WorkingDirectory).
+    """
+
+    # Runtime directory for the control socket, the lock and the TCP token ("" = systemd's
+    # $RUNTIME_DIRECTORY, else $XDG_RUNTIME_DIR/nhfd, else /tmp/nhfd-<uid>).
+    runtime_dir: str = ""
+    # Group of the control socket (mode 0660); "" = the daemon's own group.
+    socket_group: str = ""
+    # Loopback TCP port (0 = off). TCP clients must send `auth` with the token first; arming the
+    # lasers is refused over TCP whatever the token.
+    tcp_port: Annotated[int, Field(ge=0, le=65535)] = 0
+    # File holding the TCP token ("" = <runtime_dir>/tcp.token, created mode 0600 at start).
+    tcp_token_file: str = ""
+    # Longest request line accepted (bytes); clients connected at once; requests in one batch.
+    max_line_bytes: Annotated[int, Field(ge=1024, le=16_777_216)] = 65536
+    max_clients: Annotated[int, Field(ge=1, le=4096)] = 64
+    max_batch: Annotated[int, Field(ge=0, le=1024)] = 32
+    # Control loop period (s): it sends the laser guardian's heartbeat, so it must stay well
+    # below devices.readybeam.guardian.heartbeat_timeout_s.
+    tick_s: Annotated[float, Field(ge=0.005, le=0.25)] = 0.05
+    # "auto": use a running laser guardian, else start one; "spawn": always start one; "connect":
+    # only use a running one (e.g. a separate service).
+    guardian: Literal["auto", "spawn", "connect"] = "auto"
+    # How often the laser's channels are read back for `status` (s).
+    laser_refresh_s: Annotated[float, Field(ge=0.05, le=60)] = 1.0
+    # Scene loaded at start ("" = none); directories load_scene may read from.
+    scene: str = ""
+    scene_dirs: list[str] = ["scenes"]
+    # Directories load_model may read from; directory snapshots are written into.
+    model_dirs: list[str] = ["models"]
+    snapshot_dir: str = "out/snapshots"
+    # Audit log, JSON lines ("" = $LOGS_DIRECTORY/audit.jsonl under systemd, else
+    # <runtime_dir>/audit.jsonl).
+    audit_log: str = ""
+    # Log lines on stderr: "logfmt" (key=value) or "json".
+    log_format: Literal["logfmt", "json"] = "logfmt"
+    # Focus without a calibration file: stage_mm = stage_at_reference_mm + z_mm, with z_mm (the
+    # hologram depth from the reference plane) limited to focus_range_mm.
+    stage_at_reference_mm: Annotated[float, Field(ge=-1000, le=1000)] = 12.5
+    focus_range_mm: Annotated[list[float], Field(min_length=2, max_length=2)] = [-5.0, 5.0]
+    # Finished jobs kept for `status`.
+    jobs_kept: Annotated[int, Field(ge=1, le=10000)] = 32
+
+    @model_validator(mode="after")
+    def _focus_range_ordered(self) -> DaemonSettings:
+        low, high = (_finite(v) for v in self.focus_range_mm)
+        if not low < high:
+            raise ValueError(f"focus_range_mm = {self.focus_range_mm}: needs min < max")
+        return self
+
+
 class Config(_Section):
     slm: SLMSettings = SLMSettings()
     optics: OpticsSettings = OpticsSettings()
@@ -209,6 +263,8 @@ class Config(_Section):
                 f"{o.hologram_height_px} does not fit the panel {s.width_px} x {s.height_px}"
             )
         return self
+
+    daemon: DaemonSettings = DaemonSettings()
 
 
 @dataclass(frozen=True)

@@ -69,7 +69,10 @@ def test_named_file_must_exist(tmp_path):
     ("text", "message"),
     [
         ("[slm]\nwidth = 1920\n", r"slm\.width: unknown key; allowed here: grey_invert, height_px"),
-        ("[lasers]\n", r"lasers: unknown key; allowed here: coding, devices, model, optics, slm"),
+        (
+            "[lasers]\n",
+            r"lasers: unknown key; allowed here: coding, daemon, devices, model, optics, slm",
+        ),
         ("[optics.aperture]\nradius = 1\n", r"optics\.aperture\.radius: unknown key"),
         ("[slm]\npitch_um = '8'\n", r"slm\.pitch_um = '8': Input should be a valid number"),
         ("[slm]\nwidth_px = 1920.5\n", r"slm\.width_px = 1920\.5: Input should be a valid integer"),

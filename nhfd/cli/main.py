@@ -22,6 +22,7 @@ COMMANDS = (
     "cmd_dataset",
     "cmd_train",
     "cmd_bench",
+    "cmd_serve",
     "cmd_laser",
     "cmd_devices",
 )

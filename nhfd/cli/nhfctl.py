@@ -1,42 +1,244 @@
 """`nhfctl`: steer a running `nhfd serve` over its control socket.
 
-The daemon arrives with issue 7; until then every command says what it will do and exits 1.
-This module must never import torch, numba or onnxruntime: a control command answers at once.
+Human output by default, `--json` for scripts. Exit codes: 0 ok, 1 the daemon refused (one line:
+the error's name and message), 2 usage, 3 no daemon answers. This module must never import torch,
+numba or onnxruntime (a test checks `sys.modules`): a control command answers at once.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import time
 from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
 
-PLANNED = {
-    "set-view": "move the displayed view (6-DoF pose, orbit, or a relative move)",
-    "focus": "move the camera stage to a hologram depth in mm",
-    "laser": "arm, disarm, or set per-channel laser power (capped)",
-    "status": "devices, model, scene, calibration, last frame's timings, errors, jobs",
-    "snapshot": "capture the camera to a PNG",
-    "blank": "show the blank (zero-amplitude) pattern",
-    "stop": "stop the stage and running jobs",
-    "shutdown": "shut the daemon down cleanly with lasers off",
-    "watch": "live status",
-}
+from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.daemon.protocol import RpcError, describe_codes
+
+
+def _floats(n: int, what: str):  # argparse type factory
+    def parse(text: str) -> list[float]:
+        try:
+            values = [float(v) for v in text.split(",")]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what}: numbers separated by commas") from None
+        if len(values) != n:
+            raise argparse.ArgumentTypeError(f"{what}: {n} numbers, got {len(values)}")
+        return values
+
+    return parse
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="nhfctl", description="Control a running `nhfd serve`.",
+                                epilog="Error codes:\n" + describe_codes(),
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--socket", help="control socket (default: from the configuration)")
+    p.add_argument("--config", help="configuration file whose daemon.runtime_dir to use")
+    p.add_argument("--tcp", metavar="HOST:PORT", help="loopback TCP instead of the socket")
+    p.add_argument("--token-file", help="TCP token file")
+    p.add_argument("--timeout-s", type=float, default=5.0, help="per-call timeout (default 5)")
+    p.add_argument("--json", action="store_true", help="print the raw JSON result")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    sv = sub.add_parser("set-view", help="move the displayed view (pose, orbit or relative)")
+    g = sv.add_mutually_exclusive_group(required=True)
+    g.add_argument("--orbit", type=_floats(3, "--orbit"), metavar="AZ,EL,R",
+                   help="azimuth and elevation (deg), radius (scene units)")
+    g.add_argument("--pose", type=_floats(7, "--pose"), metavar="X,Y,Z,QW,QX,QY,QZ",
+                   help="camera position and camera-to-world quaternion (OpenCV axes)")
+    g.add_argument("--by-orbit", type=_floats(3, "--by-orbit"), metavar="DAZ,DEL,DR",
+                   help="relative orbit move")
+    g.add_argument("--by-pose", type=_floats(6, "--by-pose"), metavar="DX,DY,DZ,RX,RY,RZ",
+                   help="relative camera-frame translation and rotation (deg)")
+
+    fo = sub.add_parser("focus", help="move the camera stage to a hologram depth (mm)")
+    fo.add_argument("z_mm", type=float)
+    fo.add_argument("--home", action="store_true", help="home the stage first")
+    fo.add_argument("--wait", action="store_true", help="wait for the job to finish")
+
+    la = sub.add_parser("laser", help="arm, disarm, off, or per-channel power (capped)")
+    la.add_argument("action", choices=("arm", "disarm", "off", "power", "enable", "disable"))
+    la.add_argument("channel", nargs="?", choices=("red", "green", "blue"))
+    la.add_argument("power_pct", nargs="?", type=float)
+    la.add_argument("--duration-s", type=float, default=60.0, help="arming time (default 60)")
+
+    sub.add_parser("status", help="devices, laser, scene, model, view, errors, jobs")
+    sn = sub.add_parser("snapshot", help="capture the camera to a PNG")
+    sn.add_argument("--out", help="file name inside daemon.snapshot_dir")
+    sn.add_argument("--frames", type=int)
+    sn.add_argument("--wait", action="store_true", help="wait for the job to finish")
+    sub.add_parser("blank", help="show the blank (zero-amplitude) pattern")
+    sub.add_parser("stop", help="stop the stage and running jobs")
+    sub.add_parser("shutdown", help="shut the daemon down cleanly with lasers off")
+    ls = sub.add_parser("load-scene", help="load a scene (inside daemon.scene_dirs)")
+    ls.add_argument("path")
+    jb = sub.add_parser("job", help="one job's state")
+    jb.add_argument("id", type=int)
+    wa = sub.add_parser("watch", help="live status")
+    wa.add_argument("--interval-s", type=float, default=1.0)
+    wa.add_argument("--count", type=int, default=0, help="stop after N updates (0 = never)")
+    return p
+
+
+def _request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
+    cmd = args.command
+    if cmd == "set-view":
+        if args.orbit:
+            az, el, r = args.orbit
+            return "set_view", {"orbit": {"azimuth_deg": az, "elevation_deg": el, "radius": r}}
+        if args.pose:
+            return "set_view", {"pose": {"position": args.pose[:3],
+                                         "quaternion_wxyz": args.pose[3:]}}
+        if args.by_orbit:
+            daz, de, dr = args.by_orbit
+            return "set_view", {"relative": {"d_azimuth_deg": daz, "d_elevation_deg": de,
+                                             "d_radius": dr}}
+        return "set_view", {"relative": {"translate": args.by_pose[:3],
+                                         "rotate_deg": args.by_pose[3:]}}
+    if cmd == "focus":
+        return "focus", {"z_mm": args.z_mm, **({"home": True} if args.home else {})}
+    if cmd == "laser":
+        params: dict[str, Any] = {"action": args.action}
+        if args.action == "arm":
+            params["duration_s"] = args.duration_s
+        if args.action in ("power", "enable", "disable"):
+            if args.channel is None:
+                raise SystemExit(f"nhfctl laser {args.action}: a channel is needed")
+            params["channel"] = args.channel
+        if args.action == "power":
+            if args.power_pct is None:
+                raise SystemExit("nhfctl laser power: CHANNEL POWER_PCT")
+            params["power_pct"] = args.power_pct
+        return "laser", params
+    if cmd == "snapshot":
+        params = {}
+        if args.out:
+            params["path"] = args.out
+        if args.frames:
+            params["frames"] = args.frames
+        return "snapshot", params
+    if cmd == "load-scene":
+        return "load_scene", {"path": args.path}
+    if cmd == "job":
+        return "job", {"id": args.id}
+    return cmd.replace("-", "_"), {}
+
+
+def _socket(args: argparse.Namespace) -> str | None:
+    if args.socket:
+        return args.socket
+    # Same rules as the daemon; the configuration is read only when it is needed.
+    from nhfd.config import load_config
+    from nhfd.daemon.paths import control_socket
+
+    return str(control_socket(load_config(args.config).config.daemon.runtime_dir))
+
+
+def _connect(args: argparse.Namespace) -> Client:
+    if args.tcp:
+        host, _, port = args.tcp.rpartition(":")
+        token = Path(args.token_file).read_text().strip() if args.token_file else None
+        return Client(tcp=(host, int(port)), token=token, timeout_s=args.timeout_s)
+    return Client(_socket(args), timeout_s=args.timeout_s)
+
+
+def human_status(s: dict[str, Any]) -> str:
+    d, laser, dev = s["daemon"], s["laser"], s["devices"]
+    lines = [f"daemon   {d['state']}, pid {d['pid']}, up {d['uptime_s']:.0f} s, {d['socket']}"]
+    if laser.get("backend") == "none":
+        lines.append("laser    none")
+    else:
+        on = [f"{ch} {c['power_pct']:g}%" for ch, c in laser.get("channels", {}).items()
+              if c["enabled"]]
+        armed = (f"ARMED {laser['armed_remaining_s']:.0f} s left" if laser["armed"]
+                 else "not armed")
+        lines.append(f"laser    {armed}; emitting: {', '.join(on) or 'none'}"
+                     + (f"; FAULT {laser['fault']}" if laser.get("fault") else ""))
+    for name, info in dev.items():
+        extra = ""
+        if name == "stage" and "position_mm" in info:
+            extra = (f" at {info['position_mm']:.3f} mm"
+                     f"{', homed' if info.get('homed') else ', not homed'}"
+                     f"{', moving' if info.get('moving') else ''}")
+        if name == "slm" and info["open"]:
+            extra = f" showing {info['showing']}"
+        state = "open" if info["open"] else "closed"
+        lines.append(f"{name:<8} {info['backend']}, {state}{extra}"
+                     + (f"; error: {info['error']}" if info.get("error") else ""))
+    scene = s.get("scene")
+    shown = f"{scene['path']} ({scene['gaussians']} Gaussians)" if scene else "none"
+    lines.append(f"scene    {shown}")
+    lines.append(f"model    {s['model']}")
+    v = s["view"]
+    lines.append(f"view     seq {v['seq']}: {json.dumps(v['requested'])}")
+    active = [j for j in s["jobs"] if j["state"] in ("queued", "running")]
+    lines.append(f"jobs     {len(active)} active, {len(s['jobs'])} listed")
+    for e in s["errors"][-5:]:
+        lines.append(f"error    {e['source']}: {e['message']}")
+    return "\n".join(lines)
+
+
+def _human(cmd: str, result: Any) -> str:
+    if cmd == "status":
+        return human_status(result)
+    if isinstance(result, dict) and "job" in result and len(result) <= 3:
+        rest = ", ".join(f"{k} {v}" for k, v in result.items() if k != "job")
+        return f"job {result['job']} queued" + (f" ({rest})" if rest else "")
+    if cmd == "set-view":
+        return f"view seq {result['seq']}: {json.dumps(result['view'])}"
+    if isinstance(result, dict):
+        return ", ".join(f"{k}: {v}" for k, v in result.items())
+    return str(result)
+
+
+def _wait_job(client: Client, job_id: int, timeout_s: float = 600.0) -> dict[str, Any]:
+    end = time.monotonic() + timeout_s
+    while True:
+        job = client.call("job", id=job_id)
+        if job["state"] not in ("queued", "running") or time.monotonic() > end:
+            return job
+        time.sleep(0.1)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(
-        prog="nhfctl", description="Control a running `nhfd serve` (not available yet)."
-    )
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name, text in PLANNED.items():
-        sub.add_parser(name, help=text)
-    args = parser.parse_args(argv)
-    print(
-        f"nhfctl {args.command}: not available yet: the daemon `nhfd serve` does not exist in "
-        f"this version; this command will {PLANNED[args.command]}.",
-        file=sys.stderr,
-    )
-    return 1
+    args = build_parser().parse_args(argv)
+    cmd = args.command
+    try:
+        method, params = _request(args)
+        with _connect(args) as client:
+            if cmd == "watch":
+                n = 0
+                while True:
+                    s = client.status()
+                    print(json.dumps(s) if args.json else human_status(s) + "\n", flush=True)
+                    n += 1
+                    if args.count and n >= args.count:
+                        return 0
+                    time.sleep(args.interval_s)
+            result = client.call(method, **params)
+            if getattr(args, "wait", False) and isinstance(result, dict) and "job" in result:
+                result = _wait_job(client, int(result["job"]))
+                if result["state"] != "done":
+                    print(f"nhfctl {cmd}: error: job {result['id']} {result['state']}: "
+                          f"{result['error']}", file=sys.stderr)
+                    return 1
+        print(json.dumps(result) if args.json else _human(cmd, result))
+        return 0
+    except RpcError as exc:
+        print(f"nhfctl {cmd}: error: {exc.name}: {exc.message}", file=sys.stderr)
+        return 1
+    except DaemonUnavailable as exc:
+        print(f"nhfctl {cmd}: error: {exc}", file=sys.stderr)
+        return 3
+    except (OSError, ValueError) as exc:
+        print(f"nhfctl {cmd}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
 
 
 if __name__ == "__main__":

@@ -26,12 +26,14 @@ def test_control_client_and_config_import_no_heavy_libraries():
         assert not loaded & set(HEAVY), (code, loaded & set(HEAVY))
 
 
-def test_nhfctl_says_what_it_will_do_and_fails_until_the_daemon_exists():
+def test_nhfctl_without_a_daemon_fails_with_a_one_line_reason(tmp_path):
     res = subprocess.run(
-        [sys.executable, "-m", "nhfd.cli.nhfctl", "focus"], capture_output=True, text=True
+        [sys.executable, "-m", "nhfd.cli.nhfctl", "--socket", str(tmp_path / "none.sock"),
+         "focus", "1.0"], capture_output=True, text=True
     )
-    assert res.returncode == 1
-    assert "not available yet" in res.stderr and "stage to a hologram depth" in res.stderr
+    assert res.returncode == 3
+    assert res.stderr.count("\n") == 1
+    assert res.stderr.startswith("nhfctl focus: error: no nhfd serve at ")
 
 
 def test_bad_cli_values_give_one_line_reasons(capsys):

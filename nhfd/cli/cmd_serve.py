@@ -1,0 +1,51 @@
+"""`nhfd serve`: run the daemon in the foreground (systemd Type=notify ready).
+
+The daemon's modules are imported inside the handler so `nhfd --help` stays instant.
+Exit codes: 0 clean shutdown with lasers read back off, 1 lasers not confirmed off or a failed
+start, 2 configuration error, 3 another daemon holds the lock.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "serve",
+        help="run the bench daemon in the foreground",
+        description="Run the daemon: laser guardian, devices (lasers off and read back), the "
+        "JSON-RPC control socket; logs to stderr; systemd Type=notify ready. Steer it with "
+        "nhfctl.",
+    )
+    p.add_argument("--config", help="configuration file")
+    p.add_argument("--scene", help="scene to load at start (inside daemon.scene_dirs)")
+    p.add_argument("--runtime-dir", help="runtime directory (overrides daemon.runtime_dir)")
+    p.set_defaults(handler=_serve)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from nhfd.config import load_config
+    from nhfd.daemon.service import AlreadyRunning, Daemon, setup_logging
+
+    config = load_config(args.config).config
+    update = {}
+    if args.scene:
+        update["scene"] = args.scene
+    if args.runtime_dir:
+        update["runtime_dir"] = args.runtime_dir
+    if update:
+        config = config.model_copy(update={"daemon": config.daemon.model_copy(update=update)})
+    setup_logging(config.daemon.log_format)
+    daemon = Daemon(config)
+    try:
+        daemon.start()
+    except AlreadyRunning as exc:
+        print(f"nhfd serve: error: {exc}", file=sys.stderr)
+        return 3
+    except Exception as exc:
+        print(f"nhfd serve: error: start failed, lasers left to the guardian: "
+              f"{type(exc).__name__}: {exc}", file=sys.stderr)
+        return 1
+    return daemon.run()

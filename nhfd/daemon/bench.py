@@ -1,0 +1,192 @@
+"""The bench's non-laser devices for the daemon: SLM, stage, camera; blank pattern; focus; PNGs.
+
+A device that fails to open is recorded (its error shows in `status`) and left out; the daemon
+still starts, because the lasers are held off by the guardian regardless. A monitor thread
+refreshes the stage state and the SLM's health for `status`, so a slow or vanished device never
+stalls the control loop that sends the laser heartbeat.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import math
+import struct
+import threading
+import time
+import zlib
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from nhfd.drivers import factory
+
+log = logging.getLogger("nhfd.daemon.bench")
+
+
+def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
+    """The documented default mapping without calibration: the camera sees the reference plane
+    at `stage_at_reference_mm`, and one mm of hologram depth is one mm of stage travel."""
+    return stage_at_reference_mm + z_mm
+
+
+def zero_amplitude_frame(config: Any) -> np.ndarray:
+    """The pattern that shows nothing: double-phase coding of amplitude 0 is a checkerboard of
+    +pi/2 and -pi/2, which the aperture filters to zero. Grey levels per colour through the
+    configured phase curves ([3, H, W] uint8, the whole panel)."""
+    import torch
+
+    from nhfd.optics import PhaseCurve
+    from nhfd.optics.dpac import phase_to_grey
+
+    s = config.slm
+    curves = [PhaseCurve.linear(stroke) for stroke in s.phase_stroke_rad]
+    pair = torch.tensor([math.pi / 2, -math.pi / 2], dtype=torch.float64).expand(3, 1, 2)
+    grey = phase_to_grey(pair.contiguous(), curves, sign=s.phase_sign,
+                         invert=s.grey_invert).numpy()[:, 0, :]
+    rows = np.arange(s.height_px)[:, None]
+    cols = np.arange(s.width_px)[None, :]
+    even = (rows + cols) % 2 == 0
+    return np.stack([np.where(even, grey[c, 0], grey[c, 1]) for c in range(3)]).astype(np.uint8)
+
+
+def write_png16(path: Path, image: np.ndarray) -> None:
+    """A 16-bit greyscale PNG (image in [0, 1], clipped), written atomically. Standard library
+    zlib only: no imaging library in the daemon for one file format."""
+    a = np.clip(np.nan_to_num(np.asarray(image, np.float64)), 0.0, 1.0)
+    if a.ndim == 3:  # colour captures: written as the mean over channels
+        a = a.mean(axis=0)
+    h, w = a.shape
+    raw = np.round(a * 65535).astype(">u2")
+    rows = b"".join(b"\x00" + raw[r].tobytes() for r in range(h))
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (struct.pack(">I", len(data)) + kind + data
+                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
+
+    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0))
+           + chunk(b"IDAT", zlib.compress(rows, 6)) + chunk(b"IEND", b""))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_bytes(png)
+    tmp.replace(path)
+
+
+class Bench:
+    def __init__(self, config: Any, laser_twin: Any = None) -> None:
+        self.config = config
+        self.laser_twin = laser_twin
+        self.slm: Any = None
+        self.stage: Any = None
+        self.camera: Any = None
+        self.errors: dict[str, str | None] = {"slm": None, "stage": None, "camera": None}
+        self.showing = "nothing"
+        self._blank: np.ndarray | None = None
+        self._stage_state: dict[str, Any] = {}
+        self._slm_health: dict[str, Any] = {}
+        self._stop = threading.Event()
+        self._monitor: threading.Thread | None = None
+
+    # -- open / close --------------------------------------------------------------------------
+
+    def open(self) -> None:
+        d = self.config.devices
+        try:
+            self.slm = factory.make_slm(d, self.config.slm.width_px, self.config.slm.height_px)
+            if self.slm is not None:
+                self.slm.open()
+                self.show_blank()
+        except Exception as exc:
+            self._failed("slm", exc)
+            self.slm = None
+        try:
+            self.stage = factory.make_stage(d)
+            if self.stage is not None:
+                self.stage.open()  # identifies; never moves
+        except Exception as exc:
+            self._failed("stage", exc)
+            self.stage = None
+        try:
+            laser = SimpleNamespace(twin=self.laser_twin)  # the simulated camera reads its twin
+            self.camera = factory.make_camera(d, slm=self.slm, laser=laser, stage=self.stage)
+            if self.camera is not None:
+                self.camera.open()
+        except Exception as exc:
+            self._failed("camera", exc)
+            self.camera = None
+        self._refresh()  # status has the stage's state from the first request on
+        self._monitor = threading.Thread(target=self._watch, name="nhfd-bench-monitor",
+                                         daemon=True)
+        self._monitor.start()
+
+    def _failed(self, device: str, exc: Exception) -> None:
+        self.errors[device] = f"{type(exc).__name__}: {exc}"
+        log.error("%s: %s", device, self.errors[device])
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._monitor is not None:
+            self._monitor.join(2.0)
+        for name in ("camera", "stage", "slm"):
+            device = getattr(self, name)
+            if device is None:
+                continue
+            try:
+                if name == "slm":
+                    self.show_blank()  # leave the panel showing nothing
+                device.close()
+            except Exception as exc:
+                log.warning("%s close: %s", name, exc)
+
+    # -- actions -------------------------------------------------------------------------------
+
+    def show_blank(self) -> None:
+        if self.slm is None:
+            raise RuntimeError(self.errors["slm"] or "no SLM configured")
+        if self._blank is None:
+            self._blank = zero_amplitude_frame(self.config)
+        self.slm.show(self._blank)
+        self.showing = "blank"
+
+    def stop_stage(self) -> str:
+        if self.stage is None:
+            return "no stage"
+        self.stage.stop(immediate=True)  # the driver: safe from any thread at any time
+        return "stop sent"
+
+    # -- monitor -------------------------------------------------------------------------------
+
+    def _watch(self) -> None:
+        while not self._stop.wait(0.2):
+            self._refresh()
+
+    def _refresh(self) -> None:
+        if self.stage is not None:
+            try:
+                st = self.stage.state()
+                self._stage_state = {"position_mm": st.position_mm, "homed": st.homed,
+                                     "moving": st.moving or self.stage.moving,
+                                     "at_limit": st.at_limit,
+                                     "motion_error": st.motion_error}
+                self.errors["stage"] = None
+            except Exception as exc:
+                self.errors["stage"] = f"{type(exc).__name__}: {exc}"
+                with contextlib.suppress(Exception):
+                    self.stage.reconnect()
+        if self.slm is not None:
+            with contextlib.suppress(Exception):
+                h = self.slm.health()
+                self._slm_health = {"ok": h.ok, "detail": h.detail, "checked_s": time.time()}
+
+    def status(self) -> dict[str, Any]:
+        d = self.config.devices
+        return {
+            "slm": {"backend": d.slm, "open": self.slm is not None, "showing": self.showing,
+                    "health": self._slm_health, "error": self.errors["slm"]},
+            "stage": {"backend": d.stage, "open": self.stage is not None, **self._stage_state,
+                      "error": self.errors["stage"]},
+            "camera": {"backend": d.camera, "open": self.camera is not None,
+                       "error": self.errors["camera"]},
+        }

@@ -1,0 +1,101 @@
+"""The reference client of `nhfd serve`: JSON-RPC 2.0 lines over the Unix socket or loopback TCP.
+
+Standard library only (no torch, numba, onnxruntime, not even numpy), so `nhfctl` answers in a
+fraction of a second. Every call is bounded by `timeout_s`.
+
+    with Client() as c:                       # the socket from the configuration's rules
+        c.call("set_view", orbit={"azimuth_deg": 30, "elevation_deg": 10, "radius": 4})
+        print(c.status()["laser"]["armed"])
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import socket
+from pathlib import Path
+from typing import Any
+
+from . import protocol
+from .paths import control_socket
+from .protocol import RpcError
+
+
+class DaemonUnavailable(ConnectionError):
+    """Nothing answers on the socket (or it hung up / timed out)."""
+
+
+class Client:
+    def __init__(self, socket_path: str | os.PathLike[str] | None = None, *,
+                 tcp: tuple[str, int] | None = None, token: str | None = None,
+                 timeout_s: float = 5.0) -> None:
+        self._ids = itertools.count(1)
+        self._buffer = bytearray()
+        if tcp is not None:
+            self.where = f"{tcp[0]}:{tcp[1]}"
+            family, address = socket.AF_INET, tcp
+        else:
+            path = Path(socket_path) if socket_path else control_socket()
+            self.where = str(path)
+            family, address = socket.AF_UNIX, str(path)  # type: ignore[assignment]
+        self._sock = socket.socket(family, socket.SOCK_STREAM)
+        self._sock.settimeout(timeout_s)
+        try:
+            self._sock.connect(address)
+        except OSError as exc:
+            self._sock.close()
+            raise DaemonUnavailable(f"no nhfd serve at {self.where} "
+                                    f"({exc.strerror or exc})") from None
+        if token is not None:
+            self.call("auth", token=token)
+
+    def send_raw(self, data: bytes) -> None:
+        try:
+            self._sock.sendall(data)
+        except OSError as exc:
+            raise DaemonUnavailable(f"nhfd serve at {self.where}: {exc}") from None
+
+    def read_reply(self) -> Any:
+        """The next reply line, parsed."""
+        try:
+            while (end := self._buffer.find(b"\n")) < 0:
+                chunk = self._sock.recv(65536)
+                if not chunk:
+                    raise DaemonUnavailable(f"nhfd serve at {self.where} hung up")
+                self._buffer += chunk
+        except TimeoutError:
+            raise DaemonUnavailable(f"nhfd serve at {self.where} did not answer") from None
+        except OSError as exc:
+            raise DaemonUnavailable(f"nhfd serve at {self.where}: {exc}") from None
+        line = bytes(self._buffer[:end])
+        del self._buffer[: end + 1]
+        return protocol.loads(line)
+
+    def call(self, method: str, **params: Any) -> Any:
+        """Call and wait; RpcError (with the daemon's code, message and data) on an error."""
+        request_id = next(self._ids)
+        self.send_raw(protocol.dumps(protocol.request(method, params, request_id)))
+        reply = self.read_reply()
+        if not isinstance(reply, dict) or reply.get("id") != request_id:
+            raise DaemonUnavailable(f"nhfd serve at {self.where}: unexpected reply {reply!r:.200}")
+        if "error" in reply:
+            err = reply["error"]
+            raise RpcError(int(err.get("code", 0)), str(err.get("message", "")),
+                           err.get("data"), request_id=request_id)
+        return reply.get("result")
+
+    def notify(self, method: str, **params: Any) -> None:
+        """A notification: no reply comes back."""
+        self.send_raw(protocol.dumps(protocol.request(method, params)))
+
+    def status(self) -> dict[str, Any]:
+        return self.call("status")
+
+    def close(self) -> None:
+        self._sock.close()
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

@@ -1,0 +1,137 @@
+"""Jobs: slow work (stage moves, captures, scene loads) off the control loop.
+
+Each runner is one worker thread with a bounded queue: bench jobs run one at a time, because
+they share the stage and camera, and loads get their own runner so a scene load never waits
+behind a move. The control loop never blocks on a job: `stop` cancels queued jobs, sets the
+running job's cancel flag and (in the caller) stops the stage directly, which is what ends a
+blocking move at once.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import queue
+import threading
+import time
+import traceback
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+_ids = itertools.count(1)
+
+
+class Cancelled(Exception):
+    """Raised inside a job that saw its cancel flag."""
+
+
+@dataclass
+class Job:
+    kind: str
+    describe: dict[str, Any]
+    run: Callable[[Job], Any]
+    id: int = field(default_factory=lambda: next(_ids))
+    state: str = "queued"  # queued, running, done, failed, cancelled
+    result: Any = None
+    error: str | None = None
+    created_s: float = field(default_factory=time.time)
+    started_s: float | None = None
+    ended_s: float | None = None
+    cancel: threading.Event = field(default_factory=threading.Event)
+    done: threading.Event = field(default_factory=threading.Event)
+
+    def check(self) -> None:
+        if self.cancel.is_set():
+            raise Cancelled(f"{self.kind} job {self.id} cancelled")
+
+    def to_json(self) -> dict[str, Any]:
+        return {"id": self.id, "kind": self.kind, "state": self.state, "params": self.describe,
+                "result": self.result, "error": self.error, "created_s": self.created_s,
+                "started_s": self.started_s, "ended_s": self.ended_s}
+
+
+class JobRunner:
+    def __init__(self, name: str, *, max_queued: int = 16, kept: int = 32,
+                 on_finish: Callable[[Job], None] | None = None) -> None:
+        self.name = name
+        self._queue: queue.Queue[Job | None] = queue.Queue(maxsize=max_queued)
+        self._lock = threading.Lock()
+        self._active: dict[int, Job] = {}
+        self._finished: deque[Job] = deque(maxlen=kept)
+        self._on_finish = on_finish
+        self.current: Job | None = None
+        self._thread = threading.Thread(target=self._work, name=f"nhfd-{name}", daemon=True)
+        self._thread.start()
+
+    def submit(self, job: Job) -> Job:
+        """Queue a job; queue.Full when the queue is full (the caller answers BUSY)."""
+        with self._lock:
+            self._queue.put_nowait(job)
+            self._active[job.id] = job
+        return job
+
+    def get(self, job_id: int) -> Job | None:
+        with self._lock:
+            if job_id in self._active:
+                return self._active[job_id]
+            return next((j for j in self._finished if j.id == job_id), None)
+
+    def jobs(self) -> list[Job]:
+        with self._lock:
+            return [*self._finished, *sorted(self._active.values(), key=lambda j: j.id)]
+
+    def cancel_all(self) -> list[int]:
+        """Cancel queued jobs and flag the running one; returns the ids touched. Never waits."""
+        with self._lock:
+            touched = []
+            for job in self._active.values():
+                job.cancel.set()
+                touched.append(job.id)
+            return touched
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        self.cancel_all()
+        try:
+            self._queue.put(None, timeout=timeout_s)
+        except queue.Full:
+            pass
+        self._thread.join(timeout_s)
+
+    def _work(self) -> None:
+        while (job := self._queue.get()) is not None:
+            self._execute(job)
+
+    def _execute(self, job: Job) -> None:
+        self.current = job
+        job.started_s = time.time()
+        try:
+            job.check()
+            job.state = "running"
+            job.result = job.run(job)
+            job.check()
+            job.state = "done"
+        except Cancelled as exc:
+            job.state, job.error = "cancelled", str(exc)
+        except Exception as exc:
+            # A cancel that surfaces as a device error (a stopped move) is still a cancel.
+            job.state = "cancelled" if job.cancel.is_set() else "failed"
+            job.error = f"{type(exc).__name__}: {exc}"
+            if job.state == "failed":
+                log.error("job %s %d failed: %s", job.kind, job.id, job.error)
+                log.debug("%s", traceback.format_exc())
+        finally:
+            job.ended_s = time.time()
+            self.current = None
+            with self._lock:
+                self._active.pop(job.id, None)
+                self._finished.append(job)
+            job.done.set()
+            if self._on_finish is not None:
+                try:
+                    self._on_finish(job)
+                except Exception:
+                    log.exception("job finish hook")

@@ -1,0 +1,262 @@
+"""The RPC methods. Each reads and checks all its parameters first (`Params.done()`), then acts,
+so a bad request changes nothing.
+
+  status       {}                                     -> devices, laser, scene, model, view, jobs
+  set_view     {orbit|pose|relative: {...}}           -> {seq, view}
+  focus        {z_mm, home?}                          -> {job, stage_mm}
+  laser        {action: arm|disarm|off|power|enable|disable, duration_s?, channel?, power_pct?}
+  stop         {}                                     -> jobs cancelled, stage stop sent
+  blank        {}                                     -> the zero-amplitude pattern is shown
+  snapshot     {path?, frames?}                       -> {job, path}
+  load_scene   {path}                                 -> {job}
+  load_model   {path}                                 -> not_available (no model exporter yet)
+  job          {id}                                   -> one job's state
+  auth         {token}                                -> TCP connections only
+  shutdown     {}                                     -> lasers off, devices closed, exit
+
+`stop`, `blank` and laser `off`/`disarm` act on the control loop directly: they never wait
+behind a job.
+"""
+
+from __future__ import annotations
+
+import hmac
+import queue
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+from nhfd.drivers.settings import COLOURS
+
+from .jobs import Job
+from .paths import inside
+from .protocol import (
+    BUSY,
+    DEVICE_ERROR,
+    FORBIDDEN,
+    INVALID_FILE,
+    NO_SUCH_JOB,
+    NOT_AVAILABLE,
+    UNAUTHORIZED,
+    Params,
+    RpcError,
+    bad_param,
+)
+from .server import Connection
+from .views import parse_view
+
+if TYPE_CHECKING:
+    from .service import Daemon
+
+SCENE_SUFFIXES = (".ply", ".splat")
+MODEL_SUFFIXES = (".onnx",)
+
+
+@dataclass(frozen=True)
+class Method:
+    func: Callable[[Daemon, Connection, Params], Any]
+    audited: bool  # changes the bench: written to the audit log with who and what
+    while_stopping: bool = False  # still served during shutdown
+
+
+def _status(d: Daemon, conn: Connection, p: Params) -> Any:
+    p.done()
+    return d.status()
+
+
+def _set_view(d: Daemon, conn: Connection, p: Params) -> Any:
+    view = parse_view(p, d.views.view)
+    seq = d.views.submit(view)
+    d.audit.view(conn.who, seq, view)
+    return {"seq": seq, "view": view}
+
+
+def _focus(d: Daemon, conn: Connection, p: Params) -> Any:
+    cfg = d.config.daemon
+    low, high = cfg.focus_range_mm
+    z_mm = p.number("z_mm", low, high)
+    home = p.boolean("home", False)
+    p.done()
+    stage = d.bench.stage
+    if stage is None:
+        raise RpcError(NOT_AVAILABLE, f"no stage: {d.bench.errors['stage'] or 'none configured'}",
+                       {"device": "stage"})
+    target = d.focus_stage_mm(z_mm)
+    s_low, s_high = stage.settings.soft_limits_mm
+    if not s_low <= target <= s_high:
+        z_lo = max(low, s_low - cfg.stage_at_reference_mm)
+        z_hi = min(high, s_high - cfg.stage_at_reference_mm)
+        raise bad_param("z_mm", f"{z_mm:g} mm needs the stage at {target:g} mm, outside its soft "
+                        f"limits [{s_low:g}, {s_high:g}] mm", f"[{z_lo:g}, {z_hi:g}] mm")
+
+    def run(job: Job) -> dict[str, Any]:
+        if home:
+            stage.home()
+            job.check()
+        state = stage.move_to(target)
+        return {"z_mm": z_mm, "stage_mm": state.position_mm if state else target}
+
+    job = d.submit_bench_job(Job("focus", {"z_mm": z_mm, "home": home}, run))
+    return {"job": job.id, "stage_mm": target}
+
+
+def _laser(d: Daemon, conn: Connection, p: Params) -> Any:
+    action = p.choice("action", ("arm", "disarm", "off", "power", "enable", "disable"))
+    link = d.laser
+    if action == "arm":
+        cap_s = link.settings.arm_max_s
+        duration_s = p.number("duration_s", 0.0, cap_s, low_open=True)
+        p.done()
+        if conn.transport != "unix":
+            # A person arms from the bench's machine, identified by uid; never over the network.
+            raise RpcError(FORBIDDEN, "arming is accepted only over the Unix socket",
+                           {"field": "action", "allowed": "arm over the Unix socket only"})
+        reply = link.arm(duration_s)
+        return {"armed": True, "armed_remaining_s": reply.get("armed_remaining_s"),
+                "by_uid": conn.peer.get("uid")}
+    if action in ("disarm", "off"):
+        p.done()
+        link.disarm() if action == "disarm" else link.off()
+        return {"armed": False, "all_off": True}
+    channel = p.choice("channel", COLOURS)
+    if action == "power":
+        power_pct = p.number("power_pct", 0.0, 100.0)
+        p.done()
+        applied = link.power(channel, power_pct)
+        return {"channel": channel, "power_pct": applied, "capped": applied < power_pct}
+    p.done()
+    link.enable(channel, action == "enable")
+    return {"channel": channel, "enabled": action == "enable"}
+
+
+def _stop(d: Daemon, conn: Connection, p: Params) -> Any:
+    p.done()
+    cancelled = d.bench_jobs.cancel_all() + d.load_jobs.cancel_all()
+    try:
+        stage = d.bench.stop_stage()
+    except Exception as exc:
+        raise RpcError(DEVICE_ERROR, f"stage stop failed: {exc}", {"device": "stage"}) from None
+    return {"cancelled_jobs": cancelled, "stage": stage}
+
+
+def _blank(d: Daemon, conn: Connection, p: Params) -> Any:
+    p.done()
+    try:
+        d.bench.show_blank()
+    except Exception as exc:
+        raise RpcError(DEVICE_ERROR, f"blank failed: {exc}", {"device": "slm"}) from None
+    d.display = "blank"
+    return {"showing": "blank"}
+
+
+def _snapshot(d: Daemon, conn: Connection, p: Params) -> Any:
+    raw = p.string("path", None)
+    frames = p.integer("frames", 1, 1000, None)
+    p.done()
+    name = raw or time.strftime("snapshot-%Y%m%d-%H%M%S") + f"-{d.next_snapshot()}.png"
+    path = inside("path", name, d.snapshot_dirs, d.base_dir)
+    if path.suffix.lower() != ".png":
+        raise bad_param("path", f"{raw!r} does not end in .png", "a .png file name")
+    camera = d.bench.camera
+    if camera is None:
+        raise RpcError(NOT_AVAILABLE,
+                       f"no camera: {d.bench.errors['camera'] or 'none configured'}",
+                       {"device": "camera"})
+
+    def run(job: Job) -> dict[str, Any]:
+        from .bench import write_png16
+
+        cap = camera.capture(frames)
+        job.check()
+        write_png16(path, cap.image)
+        return {"path": str(path), "frames": cap.frames, "exposure_s": cap.exposure_s,
+                "saturated_fraction": cap.saturated_fraction,
+                "max_linear": float(cap.image.max()) if cap.image.size else 0.0}
+
+    job = d.submit_bench_job(Job("snapshot", {"path": str(path), "frames": frames}, run))
+    return {"job": job.id, "path": str(path)}
+
+
+def _checked_file(field: str, raw: str, dirs: list[Any], base: Any,
+                  suffixes: tuple[str, ...]) -> Any:
+    path = inside(field, raw, dirs, base)
+    if path.suffix.lower() not in suffixes:
+        raise bad_param(field, f"{raw!r} has the wrong suffix", " or ".join(suffixes))
+    if not path.is_file():
+        raise RpcError(INVALID_FILE, f"{field}: {path} is not a readable file",
+                       {"field": field})
+    return path
+
+
+def _load_scene(d: Daemon, conn: Connection, p: Params) -> Any:
+    raw = p.string("path")
+    p.done()
+    path = _checked_file("path", raw, d.scene_dirs, d.base_dir, SCENE_SUFFIXES)
+
+    def run(job: Job) -> dict[str, Any]:
+        from nhfd.scene.io import load_scene
+
+        scene = load_scene(path)
+        job.check()
+        info = {"path": str(path), "gaussians": len(scene.means),
+                "loaded_s": time.time()}
+        d.scene = info  # replaced only now: on failure the old scene keeps running
+        return info
+
+    try:
+        job = d.load_jobs.submit(Job("load_scene", {"path": str(path)}, run))
+    except queue.Full:
+        raise RpcError(BUSY, "too many loads queued", {"field": "path"}) from None
+    return {"job": job.id, "path": str(path)}
+
+
+def _load_model(d: Daemon, conn: Connection, p: Params) -> Any:
+    raw = p.string("path")
+    p.done()
+    _checked_file("path", raw, d.model_dirs, d.base_dir, MODEL_SUFFIXES)
+    raise RpcError(NOT_AVAILABLE, "load_model is not available until a model exporter exists "
+                   "(issue 5); the daemon runs with no model", {"field": "path"})
+
+
+def _job(d: Daemon, conn: Connection, p: Params) -> Any:
+    job_id = p.integer("id", 1, 2**53)
+    p.done()
+    job = d.bench_jobs.get(job_id) or d.load_jobs.get(job_id)
+    if job is None:
+        raise RpcError(NO_SUCH_JOB, f"no job {job_id} (finished jobs are kept: "
+                       f"daemon.jobs_kept = {d.config.daemon.jobs_kept})", {"field": "id"})
+    return job.to_json()
+
+
+def _auth(d: Daemon, conn: Connection, p: Params) -> Any:
+    token = p.string("token", max_len=1024)
+    p.done()
+    if conn.transport == "unix":
+        return {"authenticated": True}  # the socket's mode and group already decide
+    if d.tcp_token is None or not hmac.compare_digest(token.encode(), d.tcp_token.encode()):
+        raise RpcError(UNAUTHORIZED, "wrong token", {"field": "token"})
+    conn.authed = True
+    return {"authenticated": True}
+
+
+def _shutdown(d: Daemon, conn: Connection, p: Params) -> Any:
+    p.done()
+    d.request_shutdown(f"shutdown requested by {conn.who}")
+    return {"shutting_down": True}
+
+
+METHODS: dict[str, Method] = {
+    "status": Method(_status, audited=False, while_stopping=True),
+    "set_view": Method(_set_view, audited=False),  # audited, summarised, in _set_view
+    "focus": Method(_focus, audited=True),
+    "laser": Method(_laser, audited=True, while_stopping=True),
+    "stop": Method(_stop, audited=True, while_stopping=True),
+    "blank": Method(_blank, audited=True, while_stopping=True),
+    "snapshot": Method(_snapshot, audited=True),
+    "load_scene": Method(_load_scene, audited=True),
+    "load_model": Method(_load_model, audited=True),
+    "job": Method(_job, audited=False, while_stopping=True),
+    "auth": Method(_auth, audited=False, while_stopping=True),
+    "shutdown": Method(_shutdown, audited=True, while_stopping=True),
+}

@@ -1,0 +1,412 @@
+"""The daemon core: start-up in a safe order, the control loop, and shutdown with lasers off.
+
+Start-up: runtime directory -> single-instance lock (fcntl on `nhfd.lock`) -> audit log ->
+laser guardian (connect or start) -> every laser off *and read back* -> SLM (showing the
+zero-amplitude pattern), stage (identified, never moved), camera -> sockets -> READY=1.
+
+The loop (main thread): serve requests, heartbeat to the guardian, feed systemd's watchdog,
+write audit summaries. Every tick; so a stuck loop stops both the heartbeat (the guardian switches
+the lasers off) and the watchdog (systemd restarts the unit; its stop hook runs `nhfd laser-off`).
+
+Exit paths and the lasers:
+  shutdown / SIGTERM / SIGINT / an exception in the loop -> `close()`: lasers off via the
+      guardian and read back first, then jobs, stage, SLM (blank), sockets, lock;
+  SIGKILL, OOM, a native crash, a hang -> the guardian sees the connection close or the
+      heartbeat stop and switches everything off (it keeps running and owns the port);
+  afterwards, under systemd -> ExecStopPost=nhfd laser-off.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import logging
+import os
+import queue
+import secrets
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from pathlib import Path
+from typing import Any
+
+from nhfd import __version__
+
+from . import protocol
+from .audit import AuditLog
+from .bench import Bench, focus_stage_mm
+from .guardian_link import LaserLink
+from .jobs import Job, JobRunner
+from .methods import METHODS
+from .notify import Notifier
+from .paths import LOCK_NAME, SOCKET_NAME, TOKEN_NAME, resolve_dirs, runtime_dir
+from .protocol import (
+    BUSY,
+    INTERNAL_ERROR,
+    INVALID_PARAMS,
+    INVALID_REQUEST,
+    METHOD_NOT_FOUND,
+    SHUTTING_DOWN,
+    UNAUTHORIZED,
+    Params,
+    RpcError,
+)
+from .server import Connection, LineServer
+from .views import ViewSlot
+
+log = logging.getLogger("nhfd.daemon")
+
+
+class AlreadyRunning(RuntimeError):
+    """Another `nhfd serve` holds the lock in this runtime directory."""
+
+
+class _Logfmt(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        msg = record.getMessage().replace('"', "'").replace("\n", " | ")
+        when = time.strftime("%Y-%m-%dT%H:%M:%S", time.gmtime(record.created))
+        line = f'ts={when}.{int(record.msecs):03d}Z level={record.levelname.lower()} ' \
+               f'logger={record.name} msg="{msg}"'
+        if record.exc_info:
+            line += ' exc="' + self.formatException(record.exc_info).replace("\n", " | ") + '"'
+        return line
+
+
+class _Json(logging.Formatter):
+    def format(self, record: logging.LogRecord) -> str:
+        out = {"ts": record.created, "level": record.levelname.lower(), "logger": record.name,
+               "msg": record.getMessage()}
+        if record.exc_info:
+            out["exc"] = self.formatException(record.exc_info)
+        return json.dumps(out)
+
+
+def setup_logging(fmt: str, level: int = logging.INFO) -> None:
+    """Structured lines on stderr (journald stores them as they are)."""
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(_Json() if fmt == "json" else _Logfmt())
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+
+
+class Daemon:
+    def __init__(self, config: Any, *, base_dir: Path | None = None,
+                 env: dict[str, str] | None = None, handle_signals: bool = True) -> None:
+        self.config = config
+        self.env = dict(os.environ if env is None else env)
+        self.base_dir = (base_dir or Path.cwd()).resolve()
+        c = config.daemon
+        self.runtime_dir = runtime_dir(c.runtime_dir, self.env)
+        self.socket_path = self.runtime_dir / SOCKET_NAME
+        self.scene_dirs = resolve_dirs(c.scene_dirs, self.base_dir)
+        self.model_dirs = resolve_dirs(c.model_dirs, self.base_dir)
+        self.snapshot_dirs = resolve_dirs([c.snapshot_dir], self.base_dir)
+        self.handle_signals = handle_signals
+        self.notifier = Notifier(self.env)
+        self.audit = AuditLog(None)
+        self.laser: LaserLink = LaserLink(config.devices.readybeam, config.devices.laser,
+                                          c.guardian, self.audit, refresh_s=c.laser_refresh_s)
+        self.bench = Bench(config)
+        self.views = ViewSlot()
+        self.scene: dict[str, Any] | None = None
+        self.display = "blank"
+        self.errors: deque[dict[str, Any]] = deque(maxlen=20)
+        self.bench_jobs: JobRunner = None  # type: ignore[assignment]  # set in start()
+        self.load_jobs: JobRunner = None  # type: ignore[assignment]
+        self.server: LineServer | None = None
+        self.tcp_token: str | None = None
+        self.state = "starting"
+        self.started_s = time.time()
+        self._lock_file: Any = None
+        self._shutdown = threading.Event()
+        self._shutdown_reason = ""
+        self._snapshots = 0
+        self._closed = False
+
+    # -- start ---------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """Everything up to READY=1; on any failure, what was started is undone (lasers off)."""
+        try:
+            self._start()
+        except BaseException:
+            self.close()
+            raise
+
+    def _start(self) -> None:
+        c = self.config.daemon
+        if c.tick_s * 4 > self.config.devices.readybeam.guardian.heartbeat_timeout_s:
+            raise ValueError(
+                f"daemon.tick_s = {c.tick_s:g} s: must be at most a quarter of "
+                "devices.readybeam.guardian.heartbeat_timeout_s = "
+                f"{self.config.devices.readybeam.guardian.heartbeat_timeout_s:g} s"
+            )
+        self.runtime_dir.mkdir(mode=0o750, parents=True, exist_ok=True)
+        self._take_lock()
+        self.audit = AuditLog(self._audit_path())
+        self.laser.audit = self.audit
+        self.audit.write({"who": "daemon", "pid": os.getpid()}, "start",
+                         version=__version__, runtime_dir=str(self.runtime_dir))
+        self.notifier.status("starting: laser guardian")
+        self.laser.start()  # every channel off and read back, or this raises
+        self.bench = Bench(self.config, laser_twin=self.laser.twin)
+        self.notifier.status("starting: devices")
+        self.bench.open()
+        kept = c.jobs_kept
+        self.bench_jobs = JobRunner("bench", kept=kept, on_finish=self._job_finished)
+        self.load_jobs = JobRunner("load", kept=kept, on_finish=self._job_finished)
+        if c.scene:
+            from .methods import _load_scene
+
+            _load_scene(self, Connection(None, "config", {}),  # type: ignore[arg-type]
+                        Params({"path": c.scene}))
+        if c.tcp_port:
+            self.tcp_token = self._token()
+        self.server = LineServer(self.handle_line, unix_path=self.socket_path,
+                                 socket_group=c.socket_group, tcp_port=c.tcp_port,
+                                 max_line_bytes=c.max_line_bytes, max_clients=c.max_clients)
+        self.server.listen()
+        if self.handle_signals:
+            signal.signal(signal.SIGTERM, self._on_signal)
+            signal.signal(signal.SIGINT, self._on_signal)
+        self.state = "ready"
+        devices = ", ".join(k for k, v in self.bench.status().items() if v["open"])
+        log.info("ready: lasers off (read back); devices: %s; socket %s", devices or "none",
+                 self.socket_path)
+        self.notifier.ready(f"ready: lasers off; devices: {devices or 'none'}")
+
+    def _take_lock(self) -> None:
+        path = self.runtime_dir / LOCK_NAME
+        f = path.open("a+")
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            f.seek(0)
+            other = f.read().strip() or "?"
+            f.close()
+            raise AlreadyRunning(f"another nhfd serve (pid {other}) holds {path}") from None
+        f.seek(0)
+        f.truncate()
+        f.write(f"{os.getpid()}\n")
+        f.flush()
+        self._lock_file = f
+
+    def _audit_path(self) -> Path:
+        c = self.config.daemon
+        if c.audit_log:
+            return self.base_dir / Path(c.audit_log).expanduser()
+        logs = self.env.get("LOGS_DIRECTORY")
+        return (Path(logs.split(":")[0]) if logs else self.runtime_dir) / "audit.jsonl"
+
+    def _token(self) -> str:
+        c = self.config.daemon
+        path = (self.base_dir / c.tcp_token_file) if c.tcp_token_file else (
+            self.runtime_dir / TOKEN_NAME)
+        if c.tcp_token_file:
+            return path.read_text().strip()
+        token = secrets.token_urlsafe(32)
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+        with os.fdopen(fd, "w") as f:
+            f.write(token + "\n")
+        return token
+
+    def _on_signal(self, signum: int, frame: Any) -> None:
+        self.request_shutdown(f"signal {signal.Signals(signum).name}")
+
+    # -- loop ----------------------------------------------------------------------------------
+
+    def run(self) -> int:
+        """The control loop until shutdown; then close(). Returns the exit code."""
+        assert self.server is not None, "start() first"
+        tick = self.config.daemon.tick_s
+        try:
+            while not self._shutdown.is_set():
+                self.step(tick)
+        except BaseException:
+            log.exception("control loop failed; shutting down with lasers off")
+            self.close()
+            return 1
+        return 0 if self.close() else 1
+
+    def step(self, timeout_s: float) -> None:
+        assert self.server is not None
+        self.server.poll(timeout_s)
+        now = time.monotonic()
+        self.laser.heartbeat(now)
+        self.notifier.watchdog(now)
+        self.audit.tick()
+
+    def request_shutdown(self, reason: str) -> None:
+        if not self._shutdown.is_set():
+            self._shutdown_reason = reason
+            log.info("shutting down: %s", reason)
+            self._shutdown.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._shutdown.is_set()
+
+    def close(self) -> bool:
+        """Lasers off (read back) first, then everything else. True when lasers were confirmed
+        off (or there are none)."""
+        if self._closed:
+            return True
+        self._closed = True
+        self.state = "stopping"
+        self.notifier.stopping()
+        if self.server is not None:
+            self.server.flush_all()  # the shutdown caller hears its reply
+        how = self.laser.close()
+        confirmed = how != "not confirmed"
+        for runner in (self.bench_jobs, self.load_jobs):
+            if runner is not None:
+                runner.cancel_all()
+        with contextlib.suppress(Exception):
+            self.bench.stop_stage()
+        for runner in (self.bench_jobs, self.load_jobs):
+            if runner is not None:
+                runner.close()
+        self.bench.close()
+        if self.server is not None:
+            self.server.close()  # removes the socket
+        self.audit.write({"who": "daemon", "pid": os.getpid()}, "stop",
+                         reason=self._shutdown_reason or "start failed or loop error",
+                         lasers=how)
+        self.audit.close()
+        (log.info if confirmed else log.error)("stopped; lasers: %s", how)
+        self.notifier.close()
+        if self._lock_file is not None:
+            self._lock_file.close()  # releases the flock
+            self._lock_file = None
+        return confirmed
+
+    # -- requests ------------------------------------------------------------------------------
+
+    def handle_line(self, conn: Connection, line: bytes) -> bytes | None:
+        try:
+            msg = protocol.loads(line)
+        except RpcError as exc:
+            return protocol.dumps(protocol.error_reply(None, exc))
+        if isinstance(msg, list):
+            return self._batch(conn, msg)
+        reply = self.handle_message(conn, msg)
+        return protocol.dumps(reply) if reply is not None else None
+
+    def _batch(self, conn: Connection, batch: list[Any]) -> bytes | None:
+        cap = self.config.daemon.max_batch
+        if cap == 0:
+            err = RpcError(INVALID_REQUEST, "batches are not supported (daemon.max_batch = 0); "
+                           "send one request per line")
+        elif not batch:
+            err = RpcError(INVALID_REQUEST, "empty batch")
+        elif len(batch) > cap:
+            err = RpcError(INVALID_REQUEST, f"batch of {len(batch)} requests",
+                           {"field": "batch", "allowed": f"1 to {cap} requests"})
+        else:
+            replies = [r for m in batch if (r := self.handle_message(conn, m)) is not None]
+            return protocol.dumps(replies) if replies else None
+        return protocol.dumps(protocol.error_reply(None, err))
+
+    def handle_message(self, conn: Connection, msg: Any) -> dict[str, Any] | None:
+        """One request -> its reply (None for a notification, even when it failed)."""
+        notification = isinstance(msg, dict) and "id" not in msg
+        try:
+            req = protocol.to_request(msg)
+        except RpcError as exc:
+            if notification and exc.code == INVALID_PARAMS.code:
+                return None
+            return protocol.error_reply(exc.request_id, exc)
+        try:
+            result = self._call(conn, req)
+        except RpcError as exc:
+            return None if req.notification else protocol.error_reply(req.id, exc)
+        return None if req.notification else protocol.result_reply(req.id, result)
+
+    def _call(self, conn: Connection, req: protocol.Request) -> Any:
+        if conn.transport == "tcp" and not conn.authed and req.method != "auth":
+            raise RpcError(UNAUTHORIZED, "send auth {token} first on a TCP connection")
+        method = METHODS.get(req.method)
+        if method is None:
+            raise RpcError(METHOD_NOT_FOUND, f"no method {req.method[:80]!r}",
+                           {"field": "method", "allowed": sorted(METHODS)})
+        if self.stopping and not method.while_stopping:
+            raise RpcError(SHUTTING_DOWN, "the daemon is shutting down")
+        try:
+            result = method.func(self, conn, Params(req.params))
+        except RpcError as exc:
+            if method.audited:
+                self.audit.write(conn.who, req.method, params=req.params,
+                                 outcome=f"refused: {exc.name}: {exc.message}")
+            raise
+        except Exception as exc:
+            log.exception("%s failed", req.method)
+            self._error("daemon", f"{req.method}: {type(exc).__name__}: {exc}")
+            if method.audited:
+                self.audit.write(conn.who, req.method, params=req.params,
+                                 outcome=f"internal error: {exc}")
+            raise RpcError(INTERNAL_ERROR, f"{req.method} failed: {type(exc).__name__}: "
+                           f"{exc}") from None
+        if method.audited:
+            self.audit.write(conn.who, req.method, params=req.params, outcome="ok",
+                             result=result)
+        return result
+
+    # -- helpers for methods -------------------------------------------------------------------
+
+    def focus_stage_mm(self, z_mm: float) -> float:
+        return focus_stage_mm(z_mm, self.config.daemon.stage_at_reference_mm)
+
+    def submit_bench_job(self, job: Job) -> Job:
+        try:
+            return self.bench_jobs.submit(job)
+        except queue.Full:
+            raise RpcError(BUSY, "the bench job queue is full; wait or stop") from None
+
+    def next_snapshot(self) -> int:
+        self._snapshots += 1
+        return self._snapshots
+
+    def _job_finished(self, job: Job) -> None:
+        if job.state == "failed":
+            self._error(f"job {job.id} ({job.kind})", job.error or "failed")
+        self.audit.write({"who": "daemon"}, f"job {job.kind} {job.state}", job=job.id,
+                         error=job.error)
+
+    def _error(self, source: str, message: str) -> None:
+        self.errors.append({"time_s": time.time(), "source": source, "message": message})
+
+    def status(self) -> dict[str, Any]:
+        c = self.config.daemon
+        jobs = [*(self.bench_jobs.jobs() if self.bench_jobs else []),
+                *(self.load_jobs.jobs() if self.load_jobs else [])]
+        devices = self.bench.status()
+        device_errors = [{"source": k, "message": v["error"]} for k, v in devices.items()
+                         if v.get("error")]
+        laser = self.laser.status()
+        if laser.get("error"):
+            device_errors.append({"source": "laser", "message": laser["error"]})
+        return {
+            "daemon": {"version": __version__, "pid": os.getpid(), "state": self.state,
+                       "uptime_s": round(time.time() - self.started_s, 3),
+                       "socket": str(self.socket_path),
+                       "tcp": (f"{self.server.tcp_address[0]}:{self.server.tcp_address[1]}"
+                               if self.server and self.server.tcp_address else None),
+                       "clients": len(self.server.connections) if self.server else 0},
+            "laser": laser,
+            "devices": devices,
+            "display": self.display,
+            "scene": self.scene,
+            "model": "none loaded",
+            "calibration": {"loaded": False,
+                            "focus_mapping": "stage_mm = stage_at_reference_mm + z_mm",
+                            "stage_at_reference_mm": c.stage_at_reference_mm,
+                            "focus_range_mm": list(c.focus_range_mm)},
+            "view": self.views.snapshot(),
+            "timings": None,  # the last frame's per-stage timings, once frames are computed
+            "errors": [*device_errors, *self.errors],
+            "jobs": [j.to_json() for j in sorted(jobs, key=lambda j: j.id)],
+        }

@@ -1,0 +1,127 @@
+"""Fixtures: a laser twin in the test process, a small simulated bench, an in-process daemon."""
+
+from __future__ import annotations
+
+import contextlib
+import shutil
+import signal
+import socket
+import tempfile
+import threading
+import time
+import tomllib
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from nhfd.drivers.twins.mecom_twin import MecomTwin
+
+from nhfd.config import Config, _overlay, default_text
+from nhfd.daemon.client import Client
+from nhfd.daemon.service import Daemon
+
+TEST_DEADLINE_S = 30
+
+
+@pytest.fixture(autouse=True)
+def _deadline() -> Iterator[None]:
+    """No daemon test may hang: SIGALRM interrupts any wait in the main thread."""
+
+    def expired(signum: int, frame: Any) -> None:
+        raise TimeoutError(f"test exceeded {TEST_DEADLINE_S} s")
+
+    old = signal.signal(signal.SIGALRM, expired)
+    signal.setitimer(signal.ITIMER_REAL, TEST_DEADLINE_S)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
+
+
+@pytest.fixture
+def short_dir() -> Iterator[Path]:
+    """Unix socket paths must stay under ~107 bytes: pytest's tmp_path can be longer."""
+    path = Path(tempfile.mkdtemp(prefix="nhfd-d-", dir="/tmp"))
+    try:
+        yield path
+    finally:
+        shutil.rmtree(path, ignore_errors=True)
+
+
+@pytest.fixture
+def mecom_twin() -> Iterator[MecomTwin]:
+    twin = MecomTwin()
+    twin.start()
+    try:
+        yield twin
+    finally:
+        twin.close()
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def bench_config(root: Path, twin: MecomTwin | None, **daemon: Any) -> Config:
+    """A small simulated bench: 64 x 36 panel, no camera, the laser twin given (or the
+    daemon's own simulated laser when None), everything under `root`."""
+    for sub in ("scenes", "models", "snaps"):
+        (root / sub).mkdir(exist_ok=True)
+    laser: dict[str, Any] = {
+        "reply_timeout_s": 0.2,
+        "guardian": {"socket_path": str(root / "laser.sock"), "heartbeat_timeout_s": 0.5},
+    }
+    if twin is not None:
+        laser["port"] = twin.port_path
+    user = {
+        "slm": {"width_px": 64, "height_px": 36},
+        "optics": {"hologram_width_px": 32, "hologram_height_px": 18},
+        "devices": {"laser": "readybeam" if twin is not None else "simulated",
+                    "camera": "none", "readybeam": laser,
+                    "apt": {"enable_settle_s": 0.0, "reply_timeout_s": 0.5,
+                            "velocity_mm_s": 2.0}},
+        "daemon": {"runtime_dir": str(root / "run"), "scene_dirs": [str(root / "scenes")],
+                   "model_dirs": [str(root / "models")], "snapshot_dir": str(root / "snaps"),
+                   **daemon},
+    }
+    return Config.model_validate(_overlay(tomllib.loads(default_text()), user))
+
+
+class Running:
+    """A daemon whose control loop runs on a thread of this process."""
+
+    def __init__(self, config: Config, root: Path, env: dict[str, str] | None = None) -> None:
+        self.daemon = Daemon(config, base_dir=root, env=env or {}, handle_signals=False)
+        self.daemon.start()
+        self.thread = threading.Thread(target=self.daemon.run, daemon=True)
+        self.thread.start()
+        self.socket = self.daemon.socket_path
+
+    def client(self, **kw: Any) -> Client:
+        return Client(self.socket, **kw)
+
+    def stop(self) -> None:
+        self.daemon.request_shutdown("test over")
+        self.thread.join(10)
+        assert not self.thread.is_alive()
+
+
+@pytest.fixture
+def running(short_dir: Path, mecom_twin: MecomTwin) -> Iterator[Running]:
+    r = Running(bench_config(short_dir, mecom_twin), short_dir)
+    try:
+        yield r
+    finally:
+        with contextlib.suppress(Exception):
+            r.stop()
+
+
+def wait_until(condition: Any, timeout_s: float = 20.0, what: str = "condition") -> None:
+    end = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < end, f"timed out waiting for {what}"
+        time.sleep(0.02)

@@ -1,0 +1,62 @@
+"""nhfctl against a running daemon: human output, --json, one-line errors, light imports."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+from nhfd.cli.nhfctl import main
+
+from .conftest import Running
+
+HEAVY = ("torch", "numba", "onnxruntime")
+
+
+def test_client_and_nhfctl_import_nothing_heavy_and_answer_fast(running: Running):
+    probe = ("import sys, time; t = time.monotonic()\n"
+             "from nhfd.cli.nhfctl import main\n"
+             f"code = main(['--socket', {str(running.socket)!r}, '--json', 'status'])\n"
+             "print('ELAPSED', time.monotonic() - t, file=sys.stderr)\n"
+             "print('MODULES', ' '.join(sorted(sys.modules)), file=sys.stderr)\n"
+             "sys.exit(code)\n")
+    t = time.monotonic()
+    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True,
+                         timeout=20)
+    wall = time.monotonic() - t
+    assert res.returncode == 0, res.stderr
+    modules = set(res.stderr.split("MODULES ")[1].split())
+    assert not modules & set(HEAVY)
+    assert json.loads(res.stdout)["daemon"]["state"] == "ready"
+    elapsed = float(res.stderr.split("ELAPSED ")[1].split()[0])
+    # What makes it fast is the import list above; these bounds only catch a gross regression
+    # and stay loose so a loaded CI machine cannot fail them.
+    assert elapsed < 3.0, elapsed  # import + connect + status, after interpreter start
+    assert wall < 15.0
+
+
+def test_nhfctl_commands(running: Running, capsys):
+    sock = ["--socket", str(running.socket)]
+    assert main([*sock, "set-view", "--orbit", "30,10,4"]) == 0
+    assert capsys.readouterr().out.startswith("view seq 1: ")
+    assert main([*sock, "--json", "set-view", "--by-orbit", "5,0,0"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["seq"] == 2 and out["view"]["azimuth_deg"] == 35.0
+    assert main([*sock, "status"]) == 0
+    text = capsys.readouterr().out
+    assert "laser    not armed; emitting: none" in text and "model    none loaded" in text
+    assert main([*sock, "blank"]) == 0 and "showing: blank" in capsys.readouterr().out
+    assert main([*sock, "focus", "9"]) == 1
+    err = capsys.readouterr().err
+    assert err == ("nhfctl focus: error: invalid_params: z_mm: got 9.0; allowed: a finite number "
+                   "in [-5, 5]\n")
+    assert main([*sock, "laser", "power", "red", "3"]) == 0  # power alone emits nothing
+    assert "power_pct: 3.0" in capsys.readouterr().out
+    assert main([*sock, "stop"]) == 0
+    assert main([*sock, "--json", "watch", "--count", "2", "--interval-s", "0.05"]) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert len(lines) == 3 and json.loads(lines[-1])["view"]["seq"] == 2
+    assert main([*sock, "shutdown"]) == 0
+    running.thread.join(10)
+    assert not running.socket.exists()
