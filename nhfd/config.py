@@ -238,12 +238,34 @@ class DaemonSettings(_Section):
     focus_range_mm: Annotated[list[float], Field(min_length=2, max_length=2)] = [-5.0, 5.0]
     # Finished jobs kept for `status`.
     jobs_kept: Annotated[int, Field(ge=1, le=10000)] = 32
+    # Model loaded at start ("" = none; then `load_model`). Its metadata must match [optics].
+    model: str = ""
+    # Hologram window rendered and propagated per frame, [width, height] in pixels ([] = the
+    # model's training size). The trained fx is kept, so another size shows more or less of the
+    # scene at the same scale.
+    frame_size_px: Annotated[list[Pixels], Field(max_length=2)] = []
+    # Frames kept by the frame worker, keyed by view and settings (a revisited view is instant).
+    frame_cache_frames: Annotated[int, Field(ge=0, le=1024)] = 16
+    # Threads of the frame worker process for torch (intra-op; inter-op is 1), numba and
+    # onnxruntime (intra-op; inter-op 1, spinning off), and numba's threading layer.
+    worker_threads: Annotated[int, Field(ge=1, le=256)] = 2
+    worker_threading_layer: Literal["omp", "tbb", "workqueue"] = "omp"
+    # The simulated camera's sensor region, [top, left, height, width] in sensor pixels ([] =
+    # the whole sensor). A small region keeps simulated captures fast; real cameras ignore it.
+    camera_roi_px: Annotated[list[Annotated[int, Field(ge=0, le=65536)]],
+                             Field(max_length=4)] = []
 
     @model_validator(mode="after")
     def _focus_range_ordered(self) -> DaemonSettings:
         low, high = (_finite(v) for v in self.focus_range_mm)
         if not low < high:
             raise ValueError(f"focus_range_mm = {self.focus_range_mm}: needs min < max")
+        if len(self.frame_size_px) not in (0, 2):
+            raise ValueError(f"frame_size_px = {self.frame_size_px}: give [width, height] or []")
+        if len(self.camera_roi_px) not in (0, 4) or (
+                self.camera_roi_px and min(self.camera_roi_px[2:]) < 1):
+            raise ValueError(f"camera_roi_px = {self.camera_roi_px}: give [top, left, height, "
+                             "width] (height and width >= 1) or []")
         return self
 
 

@@ -36,7 +36,7 @@ def test_demo_command_writes_its_files(tmp_path, monkeypatch):
     path = tmp_path / "small.toml"
     path.write_text(SMALL)
     out = tmp_path / "demo"
-    assert main(["demo", "--config", str(path), "--out", str(out)]) == 0
+    assert main(["demo", "optics", "--config", str(path), "--out", str(out)]) == 0
     assert (out / "focal_stack.png").stat().st_size > 10_000
     assert (out / "slm_green.png").exists()
     summary = json.loads((out / "summary.json").read_text())

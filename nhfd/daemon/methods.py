@@ -2,14 +2,14 @@
 so a bad request changes nothing.
 
   status       {}                                     -> devices, laser, scene, model, view, jobs
-  set_view     {orbit|pose|relative: {...}}           -> {seq, view}
+  set_view     {orbit|pose|relative: {...}, refocus_mm?} -> {seq, view}
   focus        {z_mm, home?}                          -> {job, stage_mm}
   laser        {action: arm|disarm|off|power|enable|disable, duration_s?, channel?, power_pct?}
   stop         {}                                     -> jobs cancelled, stage stop sent
   blank        {}                                     -> the zero-amplitude pattern is shown
   snapshot     {path?, frames?}                       -> {job, path}
   load_scene   {path}                                 -> {job}
-  load_model   {path}                                 -> not_available (no model exporter yet)
+  load_model   {path}                                 -> {job} (old model kept on failure)
   job          {id}                                   -> one job's state
   auth         {token}                                -> TCP connections only
   shutdown     {}                                     -> lasers off, devices closed, exit
@@ -50,6 +50,7 @@ if TYPE_CHECKING:
     from .service import Daemon
 
 SCENE_SUFFIXES = (".ply", ".splat")
+REFOCUS_MM = (-10.0, 10.0)
 MODEL_SUFFIXES = (".onnx",)
 
 
@@ -66,7 +67,13 @@ def _status(d: Daemon, conn: Connection, p: Params) -> Any:
 
 
 def _set_view(d: Daemon, conn: Connection, p: Params) -> Any:
-    view = parse_view(p, d.views.view)
+    current = d.views.view
+    # Digital refocus (mm, + toward the viewer) travels with the view; it stays as it was when
+    # not given.
+    refocus = p.number("refocus_mm", *REFOCUS_MM, default=None)
+    view = parse_view(p, current)
+    view["refocus_mm"] = refocus if refocus is not None else (
+        current.get("refocus_mm", 0.0) if current else 0.0)
     seq = d.views.submit(view)
     d.audit.view(conn.who, seq, view)
     return {"seq": seq, "view": view}
@@ -201,6 +208,8 @@ def _load_scene(d: Daemon, conn: Connection, p: Params) -> Any:
         job.check()
         info = {"path": str(path), "gaussians": len(scene.means),
                 "loaded_s": time.time()}
+        # The frame worker loads its own copy (it renders in another process).
+        info.update(d.frames.load_scene(str(path)), loaded_s=time.time())
         d.scene = info  # replaced only now: on failure the old scene keeps running
         return info
 
@@ -214,9 +223,18 @@ def _load_scene(d: Daemon, conn: Connection, p: Params) -> Any:
 def _load_model(d: Daemon, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
-    _checked_file("path", raw, d.model_dirs, d.base_dir, MODEL_SUFFIXES)
-    raise RpcError(NOT_AVAILABLE, "load_model is not available until a model exporter exists "
-                   "(issue 5); the daemon runs with no model", {"field": "path"})
+    path = _checked_file("path", raw, d.model_dirs, d.base_dir, MODEL_SUFFIXES)
+
+    def run(job: Job) -> dict[str, Any]:
+        # The worker checks the metadata against [optics] (ModelMismatch names each differing
+        # field) and swaps models only on success: on failure the old one keeps running.
+        return d.frames.load_model(str(path))
+
+    try:
+        job = d.load_jobs.submit(Job("load_model", {"path": str(path)}, run))
+    except queue.Full:
+        raise RpcError(BUSY, "too many loads queued", {"field": "path"}) from None
+    return {"job": job.id, "path": str(path)}
 
 
 def _job(d: Daemon, conn: Connection, p: Params) -> Any:

@@ -56,6 +56,7 @@ from .protocol import (
 )
 from .server import Connection, LineServer
 from .views import ViewSlot
+from .worker import FrameLink, apply_camera_roi
 
 log = logging.getLogger("nhfd.daemon")
 
@@ -112,6 +113,7 @@ class Daemon:
                                           c.guardian, self.audit, refresh_s=c.laser_refresh_s)
         self.bench = Bench(config)
         self.views = ViewSlot()
+        self.frames = FrameLink(self)  # the spawned render/inference worker, started on demand
         self.scene: dict[str, Any] | None = None
         self.display = "blank"
         self.errors: deque[dict[str, Any]] = deque(maxlen=20)
@@ -156,6 +158,7 @@ class Daemon:
         self.bench = Bench(self.config, laser_twin=self.laser.twin)
         self.notifier.status("starting: devices")
         self.bench.open()
+        apply_camera_roi(self.bench, self.config)
         kept = c.jobs_kept
         self.bench_jobs = JobRunner("bench", kept=kept, on_finish=self._job_finished)
         self.load_jobs = JobRunner("load", kept=kept, on_finish=self._job_finished)
@@ -164,6 +167,11 @@ class Daemon:
 
             _load_scene(self, Connection(None, "config", {}),  # type: ignore[arg-type]
                         Params({"path": c.scene}))
+        if c.model:
+            from .methods import _load_model
+
+            _load_model(self, Connection(None, "config", {}),  # type: ignore[arg-type]
+                        Params({"path": c.model}))
         if c.tcp_port:
             self.tcp_token = self._token()
         self.server = LineServer(self.handle_line, unix_path=self.socket_path,
@@ -235,6 +243,7 @@ class Daemon:
     def step(self, timeout_s: float) -> None:
         assert self.server is not None
         self.server.poll(timeout_s)
+        self.frames.step()  # never blocks: collects finished frames, sends the newest view
         now = time.monotonic()
         self.laser.heartbeat(now)
         self.notifier.watchdog(now)
@@ -262,6 +271,8 @@ class Daemon:
             self.server.flush_all()  # the shutdown caller hears its reply
         how = self.laser.close()
         confirmed = how != "not confirmed"
+        with contextlib.suppress(Exception):
+            self.frames.close()
         for runner in (self.bench_jobs, self.load_jobs):
             if runner is not None:
                 runner.cancel_all()
@@ -400,13 +411,16 @@ class Daemon:
             "devices": devices,
             "display": self.display,
             "scene": self.scene,
-            "model": "none loaded",
+            "model": self.frames.model_info or "none loaded",
             "calibration": {"loaded": False,
                             "focus_mapping": "stage_mm = stage_at_reference_mm + z_mm",
                             "stage_at_reference_mm": c.stage_at_reference_mm,
                             "focus_range_mm": list(c.focus_range_mm)},
             "view": self.views.snapshot(),
-            "timings": None,  # the last frame's per-stage timings, once frames are computed
+            "timings": self.frames.timings,  # the last frame's per-stage timings (ms)
+            "frames": self.frames.status(),
+            "warnings": [f"view outside the model's pose envelope: {w}"
+                         for w in self.frames.warnings],
             "errors": [*device_errors, *self.errors],
             "jobs": [j.to_json() for j in sorted(jobs, key=lambda j: j.id)],
         }

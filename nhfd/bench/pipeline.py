@@ -1,0 +1,139 @@
+"""`nhfd bench pipeline`: view-change-to-SLM latency, split into render, inference, propagation,
+coding and output, through the daemon's own frame worker (a spawned process with 2 threads).
+
+For each model given (the shipped 512 x 288 one by default; add a 1024 x 576 model with another
+--model), the views move along an orbit inside the model's pose envelope, one request at a time:
+the clock runs from sending the view to the worker until the full panel frame has been shown on a
+simulated SLM (the daemon's path, IPC included). The first views warm the caches (numba, kernels)
+and are not counted. The frame cache is off: every view is computed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+STAGES = ("render", "inference", "propagation", "coding", "output")
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("pipeline", help="view-change-to-SLM latency per stage",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", action="append", default=None,
+                   help="exported model (repeatable; default models/nhf-donut-512.onnx)")
+    p.add_argument("--scene", default="models/scenes/donut.ply")
+    p.add_argument("--config", help="configuration file (default: the search order)")
+    p.add_argument("--views", type=int, default=12, help="views measured per model")
+    p.add_argument("--warmup", type=int, default=3, help="views not counted")
+    p.add_argument("--json", default="out/bench/pipeline.json", help="JSON results file")
+    p.set_defaults(handler=run)
+
+
+class _Host:
+    """The slice of the daemon a FrameLink needs: views, SLM, error list."""
+
+    def __init__(self, config: Any) -> None:
+        from nhfd.daemon.views import ViewSlot
+        from nhfd.drivers.slm import SimulatedSLM
+
+        self.config = config
+        self.views = ViewSlot()
+        self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
+        self.bench = type("B", (), {"slm": self.slm, "showing": ""})()
+        self.display = ""
+        self.errors: list[str] = []
+
+    def _error(self, source: str, message: str) -> None:
+        self.errors.append(f"{source}: {message}")
+
+
+def measure(config: Any, model: Path, scene: Path, views: int, warmup: int) -> dict[str, Any]:
+    from nhfd.config import Config, _overlay
+    from nhfd.daemon.worker import FrameLink
+    from nhfd.models.export import OnnxModel
+
+    meta = OnnxModel(model).metadata
+    no_cache = {"daemon": {"frame_cache_frames": 0}}
+    cfg = Config.model_validate(_overlay(config.model_dump(), no_cache))
+    host = _Host(cfg)
+    link = FrameLink(host)
+    try:
+        # Loads wait for the control loop (here: this thread stepping the link) to answer.
+        loads = threading.Thread(target=lambda: (link.load_scene(str(scene.resolve())),
+                                                 link.load_model(str(model.resolve()))))
+        loads.start()
+        while loads.is_alive():
+            link.step()
+            time.sleep(0.01)
+        if link.model_info is None or link.scene_path is None:
+            raise RuntimeError(f"loading failed: {host.errors or 'see the log'}")
+        env = meta.get("pose_envelope") or {}
+        az = env.get("azimuth_deg") or [-20.0, 20.0]
+        el = env.get("elevation_deg") or [20.0, 20.0]
+        dist = env.get("distance") or [2.0, 2.0]
+        rows = []
+        for i, a in enumerate(np.linspace(az[0], az[1], warmup + views)):
+            seq = host.views.submit({"kind": "orbit", "azimuth_deg": float(a),
+                                     "elevation_deg": 0.5 * (el[0] + el[1]),
+                                     "radius": 0.5 * (dist[0] + dist[1]), "refocus_mm": 0.0})
+            t0 = time.perf_counter()
+            while link.shown_seq < seq:
+                link.step()
+                if host.errors:
+                    raise RuntimeError(host.errors[-1])
+                time.sleep(0.0005)
+            total_ms = (time.perf_counter() - t0) * 1e3
+            if i >= warmup:
+                t = link.timings or {}
+                rows.append({**{k: t[f"{k}_ms"] for k in STAGES}, "total": total_ms})
+    finally:
+        link.close()
+    h, w = (int(v) for v in meta["train_size_hw"])
+    size = list(cfg.daemon.frame_size_px) or [w, h]
+    summary = {k: {"median_ms": float(np.median([r[k] for r in rows])),
+                   "p90_ms": float(np.percentile([r[k] for r in rows], 90))}
+               for k in (*STAGES, "total")}
+    after = float(np.median([r["total"] - r["render"] for r in rows]))
+    return {"model": str(model), "profile": meta.get("profile"), "size_wh": size,
+            "views": len(rows), "stages": summary, "after_render_median_ms": after,
+            "ipc_and_wait_median_ms": float(np.median(
+                [r["total"] - sum(r[k] for k in STAGES) for r in rows])),
+            "rows": rows}
+
+
+def run(args: argparse.Namespace) -> int:
+    import os
+
+    from nhfd import __version__
+    from nhfd.config import load_config
+
+    config = load_config(args.config).config
+    models = [Path(m) for m in (args.model or ["models/nhf-donut-512.onnx"])]
+    missing = [m for m in models if not m.is_file()]
+    if missing:
+        raise FileNotFoundError(f"{missing[0]}: no such model (see `nhfd demo` for how to build "
+                                "the default one)")
+    results = []
+    for model in models:
+        r = measure(config, model, Path(args.scene), args.views, args.warmup)
+        results.append(r)
+        s = r["stages"]
+        print(f"{model} ({r['profile']}, {r['size_wh'][0]} x {r['size_wh'][1]}), "
+              f"{r['views']} views, worker threads {config.daemon.worker_threads}:")
+        print(f"  {'stage':<12} {'median ms':>10} {'p90 ms':>8}")
+        for k in (*STAGES, "total"):
+            print(f"  {k:<12} {s[k]['median_ms']:>10.1f} {s[k]['p90_ms']:>8.1f}")
+        print(f"  after rendering: {r['after_render_median_ms']:.1f} ms (goal <= 100 ms); "
+              f"IPC and waiting: {r['ipc_and_wait_median_ms']:.1f} ms")
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"nhfd_version": __version__, "cpus": os.cpu_count(),
+                               "results": results}, indent=1))
+    print(f"wrote {out}")
+    return 0

@@ -1,0 +1,316 @@
+"""The frame pipeline: a view of the scene -> the SLM's grey frame (issue 7, optics.md).
+
+    render the central view (the model's training window, its trained fx)
+      -> onnxruntime: amplitude, phase on the reference plane (x the model's amplitude scale)
+      -> one cached kernel per colour: the Fourier aperture and the propagation by
+         -(z0 + refocus) to the SLM plane, on the window plus the margin the kernel reaches only
+      -> double-phase coding with the model's amplitude scale and coding.zero_below
+      -> grey levels through the configured phase curve(s)
+      -> the full panel: the precomputed zero-amplitude pattern with the coded region pasted in.
+
+Everything here is a pure function of its inputs (no devices, no processes); the spawned frame
+worker (`nhfd.daemon.worker`) runs it, the tests and `nhfd bench pipeline` call it directly.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from nhfd.optics import Aperture, KernelCache, PhaseCurve, double_phase, phase_to_grey, propagate
+from nhfd.optics.refplane import margin_px, window_offset
+
+# Stage names, in order, as status and the benchmark report them.
+STAGES = ("render", "inference", "propagation", "coding", "output")
+# Envelope checks allow this much beyond the trained range before warning (a view at the edge of
+# the training poses is still a trained view).
+ENVELOPE_SLACK_DEG = 1.0
+ENVELOPE_SLACK_FRACTION = 0.02
+
+
+@dataclass(frozen=True)
+class FrameSettings:
+    """Everything a frame depends on besides the view, the scene and the network's weights."""
+
+    panel_hw: tuple[int, int]
+    window_hw: tuple[int, int]
+    pitch_m: float
+    wavelengths_m: tuple[float, ...]
+    z0_m: float
+    aperture_shape: str
+    cutoff_per_px: tuple[float, ...]
+    amplitude_scale: float
+    zero_below: float
+    phase_stroke_rad: tuple[float, ...]
+    phase_sign: int = 1
+    grey_invert: bool = False
+    # Digital refocus: the reference plane is placed at z0 + refocus_m from the SLM (positive
+    # moves the whole volume toward the viewer).
+    refocus_m: float = 0.0
+    padding: str = "auto"
+
+    @property
+    def aperture(self) -> Aperture:
+        return Aperture(self.aperture_shape, tuple(self.cutoff_per_px))  # type: ignore[arg-type]
+
+    @property
+    def propagation_z_m(self) -> float:
+        return -(self.z0_m + self.refocus_m)
+
+    def curves(self) -> list[PhaseCurve]:
+        return [PhaseCurve.linear(stroke) for stroke in self.phase_stroke_rad]
+
+
+@dataclass(frozen=True)
+class Region:
+    """The part of the panel a frame changes: the window plus the kernel's reach, with an even
+    top-left corner so its checkerboard lines up with the zero pattern's."""
+
+    top: int
+    left: int
+    height: int
+    width: int
+    # Where the window sits inside the region.
+    window_top: int
+    window_left: int
+
+    @property
+    def rows(self) -> slice:
+        return slice(self.top, self.top + self.height)
+
+    @property
+    def cols(self) -> slice:
+        return slice(self.left, self.left + self.width)
+
+
+def frame_region(s: FrameSettings) -> Region:
+    ph, pw = s.panel_hw
+    wh, ww = s.window_hw
+    top, left = window_offset(s.panel_hw, s.window_hw)
+    m = margin_px(abs(s.propagation_z_m), s.pitch_m, s.wavelengths_m, s.aperture)
+    r0, c0 = max(0, top - m), max(0, left - m)
+    r0, c0 = r0 - r0 % 2, c0 - c0 % 2  # even: the checkerboard's parity is the panel's
+    r1, c1 = min(ph, top + wh + m), min(pw, left + ww + m)
+    return Region(r0, c0, r1 - r0, c1 - c0, top - r0, left - c0)
+
+
+def zero_pattern(s: FrameSettings) -> np.ndarray:
+    """The whole panel coding zero amplitude: +pi/2 / -pi/2 on the pixel checkerboard (+ on even
+    row + col), which the aperture blocks. `[3, H, W]` uint8 through the same curves as frames."""
+    pair = torch.tensor([math.pi / 2, -math.pi / 2], dtype=torch.float64).expand(
+        len(s.wavelengths_m), 1, 2).contiguous()
+    grey = phase_to_grey(pair, s.curves(), sign=s.phase_sign, invert=s.grey_invert).numpy()
+    rows = np.arange(s.panel_hw[0])[:, None]
+    cols = np.arange(s.panel_hw[1])[None, :]
+    even = (rows + cols) % 2 == 0
+    return np.stack([np.where(even, grey[c, 0, 0], grey[c, 0, 1])
+                     for c in range(grey.shape[0])]).astype(np.uint8)
+
+
+@dataclass
+class Frame:
+    """One computed frame: the coded region (grey `[3, h, w]` uint8) and where it goes, the
+    rendered view (sRGB `[3, H, W]` float32) and the seconds each stage took."""
+
+    region: Region
+    grey: np.ndarray
+    timings_s: dict[str, float] = field(default_factory=dict)
+    rgb: np.ndarray | None = None
+    clipped_fraction: tuple[float, ...] = ()
+
+
+class Encoder:
+    """Reference-plane field -> coded grey region; owns the kernel cache and the zero pattern."""
+
+    def __init__(self, settings: FrameSettings, cache_bytes: int = 256 * 2**20) -> None:
+        self.settings = settings
+        self.region = frame_region(settings)
+        self.cache = KernelCache(cache_bytes)
+        self.curves = settings.curves()
+        self._zero: np.ndarray | None = None
+
+    @property
+    def zero(self) -> np.ndarray:
+        if self._zero is None:  # 6 MB at 1920 x 1080: only where a full panel is wanted
+            self._zero = zero_pattern(self.settings)
+        return self._zero
+
+    def to_slm(self, reference: torch.Tensor) -> torch.Tensor:
+        """Window field `[3, h, w]` on the reference plane -> region field on the SLM plane."""
+        s, r = self.settings, self.region
+        h, w = reference.shape[-2:]
+        buf = torch.zeros((reference.shape[0], r.height, r.width), dtype=torch.complex64)
+        buf[:, r.window_top : r.window_top + h, r.window_left : r.window_left + w] = reference
+        return propagate(buf, s.propagation_z_m, s.pitch_m, s.wavelengths_m,
+                         padding=s.padding, aperture=s.aperture, cache=self.cache)  # type: ignore[arg-type]
+
+    def code(self, slm_field: torch.Tensor) -> tuple[np.ndarray, tuple[float, ...]]:
+        """SLM-plane region field -> grey `[3, h, w]` uint8 and the clipped fraction per colour.
+
+        No antialias pass: the propagation kernel already applied the aperture."""
+        s = self.settings
+        coded = double_phase(slm_field, s.amplitude_scale, zero_below=s.zero_below)
+        grey = phase_to_grey(coded.phase_rad, self.curves, sign=s.phase_sign,
+                             invert=s.grey_invert)
+        return grey.numpy(), tuple(float(c) for c in coded.clipped_fraction)
+
+    def panel(self, grey: np.ndarray) -> np.ndarray:
+        """The full panel frame: the zero pattern with the coded region pasted in."""
+        out = self.zero.copy()
+        out[:, self.region.rows, self.region.cols] = grey
+        return out
+
+
+def reference_field(amplitude: np.ndarray, phase: np.ndarray, amplitude_scale: float
+                    ) -> torch.Tensor:
+    """The network's outputs -> the complex reference-plane field in the dataset's units."""
+    amp = torch.from_numpy(np.ascontiguousarray(amplitude, np.float32)) * float(amplitude_scale)
+    return torch.polar(amp, torch.from_numpy(np.ascontiguousarray(phase, np.float32)))
+
+
+# -- views and the render camera ---------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SceneFrame:
+    """What orbit views are relative to: the scene's centre and up axis (as the dataset builder
+    chose them: the median of the means and the detected up axis)."""
+
+    center: tuple[float, float, float]
+    up: str
+
+
+def scene_frame(g: Any, path: str | None = None) -> SceneFrame:
+    from nhfd.scene.suggest import detect_up_axis, format_hint
+
+    up = detect_up_axis(g, format_hint(path) if path else None)[0]
+    center = np.median(g.means, axis=0) if len(g) else np.zeros(3)
+    return SceneFrame(tuple(float(v) for v in center), up)  # type: ignore[arg-type]
+
+
+def view_pose(view: dict[str, Any], frame: SceneFrame) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera `(R, t)` of a normalised view (see `nhfd.daemon.views`)."""
+    from nhfd.scene.cameras import orbit, pose_from_quaternion
+
+    if view["kind"] == "orbit":
+        return orbit(np.array(frame.center), view["azimuth_deg"], view["elevation_deg"],
+                     view["radius"], frame.up)
+    return pose_from_quaternion(np.array(view["position"]), np.array(view["quaternion_wxyz"]))
+
+
+def render_camera(view: dict[str, Any], frame: SceneFrame, metadata: dict[str, Any],
+                  window_hw: tuple[int, int]) -> Any:
+    """The central camera: the model's trained fx, fy (a pixel subtends the angle it was trained
+    on), centred on the window; the near plane at 1% of the distance to the centre, as the
+    dataset builder sets it."""
+    from nhfd.scene.cameras import Camera
+
+    r, t = view_pose(view, frame)
+    h, w = window_hw
+    fx = float(metadata.get("fx") or 0.0)
+    fy = float(metadata.get("fy") or fx)
+    if not fx > 0:
+        _th, tw = metadata["train_size_hw"]
+        fov = float(metadata.get("fov_x_deg") or 40.0)
+        fx = fy = 0.5 * tw / math.tan(math.radians(fov) / 2)
+    position = -r.T @ t
+    distance = float(np.linalg.norm(position - np.array(frame.center)))
+    return Camera(r, t, fx, fy, w / 2, h / 2, w, h, near=max(0.01 * distance, 1e-9))
+
+
+def envelope_warnings(view: dict[str, Any], frame: SceneFrame, envelope: dict[str, Any] | None
+                      ) -> list[str]:
+    """Why a view lies outside the model's pose envelope (empty when inside or unknown)."""
+    if not envelope:
+        return []
+    out: list[str] = []
+    r, t = view_pose(view, frame)
+    position = -r.T @ t
+    distance = float(np.linalg.norm(position - np.array(frame.center)))
+
+    def check(name: str, value: float, bounds: Any, slack: float, unit: str) -> None:
+        if bounds and not bounds[0] - slack <= value <= bounds[1] + slack:
+            out.append(f"{name} {value:.3g}{unit} is outside the model's trained range "
+                       f"[{bounds[0]:.3g}, {bounds[1]:.3g}]{unit}")
+
+    if view["kind"] == "orbit":
+        check("azimuth", view["azimuth_deg"], envelope.get("azimuth_deg"), ENVELOPE_SLACK_DEG,
+              " deg")
+        check("elevation", view["elevation_deg"], envelope.get("elevation_deg"),
+              ENVELOPE_SLACK_DEG, " deg")
+    dist = envelope.get("distance")
+    if dist:
+        check("distance to the scene centre", distance, dist,
+              ENVELOPE_SLACK_FRACTION * dist[1], "")
+    lo, hi = envelope.get("position_min"), envelope.get("position_max")
+    if view["kind"] == "pose" and lo and hi:
+        span = max(float(np.max(np.subtract(hi, lo))), 1e-12)
+        slack = ENVELOPE_SLACK_FRACTION * span
+        if any(not a - slack <= p <= b + slack for p, a, b in zip(position, lo, hi, strict=True)):
+            out.append("camera position is outside the box of the trained positions")
+    return out
+
+
+class Pipeline:
+    """Scene + model + settings -> frames. Not thread-safe; one per worker process."""
+
+    def __init__(self, model: Any, settings: FrameSettings, scene: Any, frame: SceneFrame,
+                 cache_bytes: int = 256 * 2**20) -> None:
+        self.model = model
+        self.settings = settings
+        self.scene = scene
+        self.frame = frame
+        self.encoder = Encoder(settings, cache_bytes)
+
+    def compute(self, view: dict[str, Any]) -> Frame:
+        from nhfd.scene.raster import render
+
+        s = self.settings
+        t: dict[str, float] = {}
+        t0 = time.perf_counter()
+        cam = render_camera(view, self.frame, self.model.metadata, s.window_hw)
+        rgb = render(self.scene, cam).rgb
+        t1 = time.perf_counter()
+        t["render"] = t1 - t0
+        amp, phase = self.model(rgb)
+        t2 = time.perf_counter()
+        t["inference"] = t2 - t1
+        with torch.no_grad():
+            slm = self.encoder.to_slm(reference_field(amp, phase, s.amplitude_scale))
+            t3 = time.perf_counter()
+            t["propagation"] = t3 - t2
+            grey, clipped = self.encoder.code(slm)
+        t["coding"] = time.perf_counter() - t3
+        return Frame(self.encoder.region, grey, t, rgb, clipped)
+
+
+def frame_settings(config: Any, metadata: dict[str, Any], *, refocus_m: float = 0.0
+                   ) -> FrameSettings:
+    """The settings of frames for a model under a configuration. The optics (z0, aperture,
+    wavelengths, pitch) are the model's: `load_model` has already checked they match the
+    configuration. The window is the model's training size unless `daemon.frame_size_px` says
+    otherwise (the trained fx is kept either way)."""
+    size = list(config.daemon.frame_size_px)
+    window_hw = (size[1], size[0]) if size else tuple(int(v) for v in metadata["train_size_hw"])
+    s = config.slm
+    return FrameSettings(
+        panel_hw=(s.height_px, s.width_px),
+        window_hw=window_hw,  # type: ignore[arg-type]
+        pitch_m=float(metadata["pitch_m"]),
+        wavelengths_m=tuple(float(v) for v in metadata["wavelengths_m"]),
+        z0_m=float(metadata["z0_m"]),
+        aperture_shape=str(metadata["aperture_shape"]),
+        cutoff_per_px=tuple(float(v) for v in metadata["cutoff_per_px"]),
+        amplitude_scale=float(metadata["amplitude_scale"]),
+        zero_below=float(config.coding.zero_below),
+        phase_stroke_rad=tuple(float(v) for v in s.phase_stroke_rad),
+        phase_sign=int(s.phase_sign),
+        grey_invert=bool(s.grey_invert),
+        refocus_m=float(refocus_m),
+        padding=config.optics.padding,
+    )
