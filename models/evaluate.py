@@ -158,7 +158,9 @@ def evaluate(
             mask = s.alpha[j] >= ALPHA_CONTENT
             mask = mask if mask.any() else None
             pred = predictor(rgb)
-            flat = hologram_2d(rgb) / data.amplitude_scale
+            # Energy-matched to the target: a baseline in other units would be judged on its
+            # brightness, not on its (missing) depth.
+            flat = hologram_2d(rgb, like=target, mask=mask)
             q = {name: focal_stack_quality(f, target, mask=mask, **kw)
                  for name, f in (("model", pred), ("black", torch.zeros_like(target)),
                                  ("hologram_2d", flat))}  # fmt: skip

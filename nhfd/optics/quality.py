@@ -67,10 +67,23 @@ def focal_stack(
     return stack.abs().square()
 
 
-def hologram_2d(view_srgb: torch.Tensor) -> torch.Tensor:
+def hologram_2d(view_srgb: torch.Tensor, like: torch.Tensor | None = None,
+                mask: torch.Tensor | None = None) -> torch.Tensor:
     """The "2D hologram" baseline: `sqrt` of the view's linear intensity with zero phase,
-    `[..., C, H, W]` sRGB in [0, 1] -> complex64."""
-    return torch.sqrt(srgb_to_linear(view_srgb.float())).to(torch.complex64)
+    `[..., C, H, W]` sRGB in [0, 1] -> complex64.
+
+    `like`: a target field `[..., C, H, W]`; the baseline is then scaled to the target's energy
+    (inside `mask` [H, W] if given), one factor for all colours. Without it the baseline is in
+    sRGB-linear amplitude units, which differ from a hologram's by the inversion's gain (about
+    3.4x on the donut dataset): its focal stack would be dark and its PSNR unfairly low (6.8 dB
+    instead of 21 dB there)."""
+    flat = torch.sqrt(srgb_to_linear(view_srgb.float())).to(torch.complex64)
+    if like is None:
+        return flat
+    sel = (lambda t: t[..., mask]) if mask is not None else (lambda t: t)
+    want = sel(like.abs().square()).sum()
+    have = sel(flat.abs().square()).sum()
+    return flat * torch.sqrt(want / have) if have > 0 else flat
 
 
 def _gaussian_window(device: torch.device) -> torch.Tensor:

@@ -69,9 +69,10 @@ def test_shipped_model_beats_the_2d_hologram_on_new_views(shipped, tmp_path):
                            torch.from_numpy(phase[0]))  # fmt: skip
         mask = torch.from_numpy(shard["alpha"] > 0.5)
         ours = focal_stack_quality(pred, target, mask=mask, **kw)
-        flat = focal_stack_quality(hologram_2d(rgb), target, mask=mask, **kw)
+        flat = focal_stack_quality(hologram_2d(rgb, like=target, mask=mask), target, mask=mask,
+                                   **kw)  # fmt: skip
         black = focal_stack_quality(torch.zeros_like(target), target, mask=mask, **kw)
         assert np.isfinite(amp).all() and np.isfinite(phase).all()
-        # Measured: model 24.9 dB, 2D hologram 6.6 dB, black 5.9 dB on both views.
-        assert ours.psnr_db > flat.psnr_db + 3.0, (ours, flat)
+        # Measured: model 24.9 dB, energy-matched 2D hologram 22.0 / 22.2 dB, black 5.9 dB.
+        assert ours.psnr_db > flat.psnr_db + 1.0, (ours, flat)
         assert ours.psnr_db > black.psnr_db + 3.0
