@@ -37,11 +37,12 @@ FOCUS_PLANES = 5
 EXPOSURE_S = 0.05
 HOW_TO_BUILD = """\
 The demo needs the trained default model {model}, which is not there.
-Build it (about 8 min + 40 min on 2 cores; see README "The network"):
+Build it (about 8 min + 45 min on 2 cores; see README "The network"):
   .venv/bin/nhfd dataset build --scene models/scenes/donut.ply --out datasets/donut-512 \\
       --views 130 --size 512x288 --workers 2
   .venv/bin/nhfd train --data datasets/donut-512 --out runs/donut-512-balanced \\
       --profile balanced --steps 3000 --checkpoint-every 250
+  (run the same command again with --steps 6000 to continue, as the shipped model was)
   .venv/bin/nhfd export runs/donut-512-balanced -o {model}
 or copy a released nhf-donut-512.onnx there, or pass --model PATH."""
 
