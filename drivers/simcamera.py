@@ -32,6 +32,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from nhfd.config import Config
 from nhfd.optics import Aperture, KernelCache, PhaseCurve, propagate
 
 from .camera import Camera, CameraSettings, ResponseCurve
@@ -80,13 +81,19 @@ def camera_response(gamma: float, wiggle: float, bit_depth: int) -> ResponseCurv
     return ResponseCurve(linear / linear[-1])
 
 
+_CONFIG = Config()
+
+
 @dataclass(frozen=True)
 class TrueBench:
     """The bench as it really is. Defaults are realistic, not ideal. Colours are R, G, B."""
 
-    # --- SLM (geometry of nhfd.toml's [slm]; the panel size comes from the frames shown)
-    pitch_m: float = 8e-6
-    wavelengths_m: tuple[float, float, float] = (660e-9, 520e-9, 450e-9)
+    # --- SLM (pitch and wavelengths of the packaged nhfd.toml; the panel size comes from the
+    # frames shown)
+    pitch_m: float = _CONFIG.slm.pitch_um * 1e-6
+    wavelengths_m: tuple[float, float, float] = tuple(  # type: ignore[assignment]
+        v * 1e-9 for v in _CONFIG.optics.wavelengths_nm
+    )
     # Samples per SLM pixel per axis on the simulation grid (resolves the crosstalk).
     oversample: int = 2
     # Fraction of each pixel's area that is modulated (PLUTO-2.1: 93%).

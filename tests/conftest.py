@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import signal
+import threading
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -14,6 +17,31 @@ SHARED_DATA = REPO.parent / "shared" / "data"
 @pytest.fixture(autouse=True)
 def _seeded() -> None:
     torch.manual_seed(1234)
+
+
+# Tests of devices and the daemon wait on sockets, ptys and processes: none may hang.
+DEADLINE_DIRS = ("drivers", "daemon")
+TEST_DEADLINE_S = 30
+
+
+@pytest.fixture(autouse=True)
+def _deadline(request: pytest.FixtureRequest) -> Iterator[None]:
+    """SIGALRM interrupts any wait in the main thread after TEST_DEADLINE_S (a TimeoutError)."""
+    if (request.node.path.parent.name not in DEADLINE_DIRS
+            or threading.current_thread() is not threading.main_thread()):  # fmt: skip
+        yield
+        return
+
+    def expired(signum: int, frame: object) -> None:
+        raise TimeoutError(f"test exceeded {TEST_DEADLINE_S} s")
+
+    old = signal.signal(signal.SIGALRM, expired)
+    signal.setitimer(signal.ITIMER_REAL, TEST_DEADLINE_S)
+    try:
+        yield
+    finally:
+        signal.setitimer(signal.ITIMER_REAL, 0)
+        signal.signal(signal.SIGALRM, old)
 
 
 @pytest.fixture

@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from nhfd.cli.args import parse_wxh
+
 PAPER_S_PER_MONOCHROME = 210.0
 
 
@@ -37,8 +39,8 @@ def run(args: argparse.Namespace) -> int:
     import torch
 
     from nhfd.bench.machine import describe
-    from nhfd.cli.cmd_dataset import settings_from_config
     from nhfd.config import load_config
+    from nhfd.dataset.shard import ExampleSettings
     from nhfd.holo import band_limit, colour_sampling, scene_hologram, scene_mapping
     from nhfd.optics import Aperture, propagate
     from nhfd.scene.io import load_scene
@@ -57,8 +59,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"{scene.name}: {len(g)} Gaussians; {machine}")
     results: dict = {"scene": scene.name, "sizes": {}}
     for size in args.sizes.split(","):
-        w, h = (int(v) for v in size.lower().split("x"))
-        s = settings_from_config(config, w, h, 40.0, "depth", True)
+        w, h = parse_wxh(size, "--sizes")
+        s = ExampleSettings.from_config(config, width_px=w, height_px=h)
         cam = suggest_camera(g, w, h, up, fov_x_deg=s.fov_x_deg)
         central = render(g, cam)
         d = central.depth[central.alpha > 0.5]

@@ -14,6 +14,8 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from nhfd.cli.args import parse_wxh
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("optics", help="angular-spectrum propagation vs the bare FFT pair",
@@ -42,7 +44,7 @@ def run(args: argparse.Namespace) -> int:
     from nhfd.bench.machine import describe
     from nhfd.optics import Aperture, KernelCache, plan_padding, propagate
 
-    w, h = (int(v) for v in args.size.lower().split("x"))
+    w, h = parse_wxh(args.size, "--size")
     if args.depths < 1 or args.repeats < 1 or w < 1 or h < 1:
         raise ValueError("--size, --depths and --repeats must be positive")
     pitch, lams = 8e-6, (660e-9, 520e-9, 450e-9)

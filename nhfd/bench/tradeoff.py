@@ -18,6 +18,8 @@ import statistics
 import time
 from pathlib import Path
 
+from nhfd.cli.args import parse_wxh
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("tradeoff", help="network size vs latency vs held-out quality",
@@ -47,16 +49,6 @@ def _ints(text: str, name: str) -> list[int]:
     if any(v <= 0 for v in values):
         raise ValueError(f"{name} {text!r}: values must be positive")
     return values
-
-
-def _size(text: str, name: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"{name} {text!r} is not of the form WxH") from None
-    if w < 1 or h < 1:
-        raise ValueError(f"{name} {text!r}: must be positive")
-    return w, h
 
 
 def variants(config, profiles: str, widths: list[int], depths: list[int],
@@ -148,8 +140,8 @@ def pareto(points: list[tuple[float, float]]) -> list[int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    w, h = _size(args.size, "--size")
-    crop = _size(args.crop, "--crop") if args.crop else None
+    w, h = parse_wxh(args.size, "--size")
+    crop = parse_wxh(args.crop, "--crop") if args.crop else None
     widths = _ints(args.widths, "--widths")
     depths = _ints(args.depths, "--depths")
     unshuffles = _ints(args.unshuffles, "--unshuffles")

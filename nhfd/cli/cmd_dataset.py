@@ -6,6 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from nhfd.cli.args import parse_wxh
+
 BUILD_HELP = """\
 Render the central view and depth of every pose, compute each view's complex hologram on the
 reference plane by wavefront inversion of its light field (all colours), and write one shard per
@@ -15,16 +17,6 @@ Interrupted builds resume (run the same command again); nothing is overwritten w
 Poses: --views N samples a train / interpolation / extrapolation split around the scene (about
 100 / 20 / 10 of N by default; see nhfd.dataset.poses), or --poses FILE reads them.
 """
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--size {text!r} is not of the form WxH (e.g. 1024x576)") from None
-    if not (1 <= w <= 8192 and 1 <= h <= 8192):
-        raise ValueError(f"--size {text!r}: width and height must be 1..8192 px")
-    return w, h
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -72,23 +64,6 @@ def _pair(text: str, name: str) -> tuple[float, float]:
     return lo, hi
 
 
-def settings_from_config(config, w: int, h: int, fov: float, phase: str, shared: bool):
-    from nhfd.dataset.shard import ExampleSettings
-
-    o = config.optics
-    return ExampleSettings(
-        width_px=w, height_px=h, fov_x_deg=fov,
-        wavelengths_m=tuple(v * 1e-9 for v in o.wavelengths_nm),
-        pitch_m=config.slm.pitch_um * 1e-6,
-        volume_m=(o.volume_mm[0] * 1e-3, o.volume_mm[1] * 1e-3),
-        z0_m=o.z0_mm * 1e-3,
-        panel_hw=(config.slm.height_px, config.slm.width_px),
-        aperture_shape=o.aperture.shape,
-        cutoff_per_px=tuple(o.aperture.cutoff_per_px),
-        phase=phase, shared_views=shared,
-    )  # fmt: skip
-
-
 def run_build(args: argparse.Namespace) -> int:
     import numpy as np
     from tqdm import tqdm
@@ -96,14 +71,17 @@ def run_build(args: argparse.Namespace) -> int:
     from nhfd.config import load_config
     from nhfd.dataset.build import build
     from nhfd.dataset.poses import PoseSampler, load_poses
+    from nhfd.dataset.shard import ExampleSettings
     from nhfd.scene.io import load_scene
     from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
 
-    w, h = _size(args.size)
+    w, h = parse_wxh(args.size, "--size", 8192)
     if args.workers < 1:
         raise ValueError(f"--workers {args.workers}: must be >= 1")
     config = load_config(args.config).config
-    settings = settings_from_config(config, w, h, args.fov, args.phase, not args.per_colour_views)
+    settings = ExampleSettings.from_config(config, width_px=w, height_px=h, fov_x_deg=args.fov,
+                                           phase=args.phase,
+                                           shared_views=not args.per_colour_views)  # fmt: skip
     scene = Path(args.scene)
     g = load_scene(scene)
     sampler = None

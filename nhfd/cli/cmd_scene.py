@@ -9,15 +9,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import re
 import shlex
 import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from nhfd.cli.args import MAX_SIDE_PX, parse_wxh
+
 AXIS_NAMES = ("+x", "-x", "+y", "-y", "+z", "-z")  # cameras.AXES, without importing numpy
-MAX_SIDE_PX = 16384
 DEFAULT_SIZE = "1024x576"
 DEFAULT_FOV_DEG = 40.0
 
@@ -112,13 +112,7 @@ def _register_render(verbs: argparse._SubParsersAction) -> None:
 
 def parse_size(text: str) -> tuple[int, int]:
     """'WxH' -> (W, H), each 1..MAX_SIDE_PX."""
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not m:
-        raise ValueError(f"--size {text!r} is not of the form WxH (e.g. 1024x576)")
-    w, h = int(m.group(1)), int(m.group(2))
-    if not (1 <= w <= MAX_SIDE_PX and 1 <= h <= MAX_SIDE_PX):
-        raise ValueError(f"--size {text!r}: width and height must be 1..{MAX_SIDE_PX} px")
-    return w, h
+    return parse_wxh(text, "--size", MAX_SIDE_PX)
 
 
 def parse_pose(text: str) -> tuple[str, list[float]]:

@@ -10,6 +10,8 @@ import json
 import sys
 from pathlib import Path
 
+from nhfd.cli.args import parse_wxh
+
 TRAIN_HELP = """\
 Train the U-Net that maps a view to its reference-plane hologram, with the focal-stack loss, on a
 dataset folder from `nhfd dataset build`. Seeded; checkpoints every --checkpoint-every steps
@@ -17,16 +19,6 @@ and at the end; running the same command again resumes where it stopped, with th
 order (--steps may be raised to continue). Writes RUN/train_log.csv, val_log.csv (interpolation
 and extrapolation views, every epoch), curves.png and run.json. Defaults: nhfd.toml [model].
 """
-
-
-def _crop(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise ValueError(f"--crop {text!r} is not of the form WxH (e.g. 512x288)") from None
-    if not (1 <= w <= 8192 and 1 <= h <= 8192):
-        raise ValueError(f"--crop {text!r}: width and height must be 1..8192 px")
-    return w, h
 
 
 def _positive(name: str, value: int | float | None) -> None:
@@ -91,7 +83,7 @@ def run_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--unshuffle {args.unshuffle}: must be 1, 2, 4 or 8")
     if not Path(args.data).is_dir():
         raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
-    crop = _crop(args.crop) if args.crop else (None, None)
+    crop = parse_wxh(args.crop, "--crop", 8192) if args.crop else (None, None)
 
     from nhfd.models.train import TrainOptions, train
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import struct
 import threading
 import time
@@ -33,23 +32,14 @@ def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
 
 
 def zero_amplitude_frame(config: Any) -> np.ndarray:
-    """The pattern that shows nothing: double-phase coding of amplitude 0 is a checkerboard of
-    +pi/2 and -pi/2, which the aperture filters to zero. Grey levels per colour through the
-    configured phase curves ([3, H, W] uint8, the whole panel)."""
-    import torch
-
+    """The blank pattern of the whole panel through the configured phase curves ([3, H, W]
+    uint8); see `nhfd.daemon.frames.zero_amplitude_grey`."""
+    from nhfd.daemon.frames import zero_amplitude_grey
     from nhfd.optics import PhaseCurve
-    from nhfd.optics.dpac import phase_to_grey
 
     s = config.slm
     curves = [PhaseCurve.linear(stroke) for stroke in s.phase_stroke_rad]
-    pair = torch.tensor([math.pi / 2, -math.pi / 2], dtype=torch.float64).expand(3, 1, 2)
-    grey = phase_to_grey(pair.contiguous(), curves, sign=s.phase_sign,
-                         invert=s.grey_invert).numpy()[:, 0, :]
-    rows = np.arange(s.height_px)[:, None]
-    cols = np.arange(s.width_px)[None, :]
-    even = (rows + cols) % 2 == 0
-    return np.stack([np.where(even, grey[c, 0], grey[c, 1]) for c in range(3)]).astype(np.uint8)
+    return zero_amplitude_grey((s.height_px, s.width_px), curves, s.phase_sign, s.grey_invert)
 
 
 def write_png16(path: Path, image: np.ndarray) -> None:

@@ -100,13 +100,20 @@ def frame_region(s: FrameSettings) -> Region:
 
 
 def zero_pattern(s: FrameSettings) -> np.ndarray:
-    """The whole panel coding zero amplitude: +pi/2 / -pi/2 on the pixel checkerboard (+ on even
-    row + col), which the aperture blocks. `[3, H, W]` uint8 through the same curves as frames."""
+    """The whole panel coding zero amplitude, through the same curves as frames."""
+    return zero_amplitude_grey(s.panel_hw, s.curves(), s.phase_sign, s.grey_invert)
+
+
+def zero_amplitude_grey(panel_hw: tuple[int, int], curves: list[PhaseCurve], sign: int,
+                        invert: bool) -> np.ndarray:
+    """`[C, H, W]` uint8 grey levels that show nothing: double-phase coding of amplitude 0 is
+    +pi/2 / -pi/2 on the pixel checkerboard (+ on even row + col), which the aperture blocks.
+    The one definition of the blank pattern (the daemon's `blank` shows it too)."""
     pair = torch.tensor([math.pi / 2, -math.pi / 2], dtype=torch.float64).expand(
-        len(s.wavelengths_m), 1, 2).contiguous()
-    grey = phase_to_grey(pair, s.curves(), sign=s.phase_sign, invert=s.grey_invert).numpy()
-    rows = np.arange(s.panel_hw[0])[:, None]
-    cols = np.arange(s.panel_hw[1])[None, :]
+        len(curves), 1, 2).contiguous()
+    grey = phase_to_grey(pair, curves, sign=sign, invert=invert).numpy()
+    rows = np.arange(panel_hw[0])[:, None]
+    cols = np.arange(panel_hw[1])[None, :]
     even = (rows + cols) % 2 == 0
     return np.stack([np.where(even, grey[c, 0, 0], grey[c, 0, 1])
                      for c in range(grey.shape[0])]).astype(np.uint8)

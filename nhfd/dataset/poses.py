@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nhfd.scene.cameras import look_at, parse_axis
+from nhfd.scene.cameras import look_at, orbit_position, parse_axis
 
 SPLITS = ("train", "interp", "extrap")
 
@@ -107,15 +107,9 @@ class PoseSampler:
         el = float(rng.uniform(*self.elevation_deg))
         r = float(rng.uniform(*self.radius))
         jitter = rng.uniform(-self.jitter, self.jitter, 3)
-        up = parse_axis(self.up)
-        ref = np.array([1.0, 0, 0]) if abs(up[0]) < 0.9 else np.array([0, 1.0, 0])
-        e1 = ref - up * (ref @ up)
-        e1 /= np.linalg.norm(e1)
-        e2 = np.cross(up, e1)
-        a, e = math.radians(az), math.radians(el)
-        direction = math.cos(e) * (math.cos(a) * e1 + math.sin(a) * e2) + math.sin(e) * up
         center = np.asarray(self.center, np.float64)
-        rot, t = look_at(center + r * direction, center + jitter, up)
+        eye = orbit_position(center, az, el, r, self.up)
+        rot, t = look_at(eye, center + jitter, self.up)
         return Pose(_tuple2(rot), tuple(float(v) for v in t), split, az, el, r)
 
     def describe(self) -> dict:

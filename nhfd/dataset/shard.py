@@ -26,27 +26,54 @@ SHARD_KEYS = ("rgb", "depth", "alpha", "field", "amp_samples", "meta")
 FORMAT_VERSION = 1
 
 
+def _optics_defaults(config=None) -> dict:
+    """The optics of a configuration (default: the packaged nhfd.toml) in ExampleSettings' SI
+    fields: the one source of wavelengths, pitch, volume, z0, panel and aperture."""
+    from nhfd.config import Config
+
+    c = config if config is not None else Config()
+    o = c.optics
+    return {
+        "wavelengths_m": tuple(v * 1e-9 for v in o.wavelengths_nm),
+        "pitch_m": c.slm.pitch_um * 1e-6,
+        "volume_m": (o.volume_mm[0] * 1e-3, o.volume_mm[1] * 1e-3),
+        "z0_m": o.z0_mm * 1e-3,
+        "panel_hw": (c.slm.height_px, c.slm.width_px),
+        "aperture_shape": o.aperture.shape,
+        "cutoff_per_px": tuple(o.aperture.cutoff_per_px),
+    }
+
+
+_DEFAULT_OPTICS = _optics_defaults()
+
+
 @dataclass(frozen=True)
 class ExampleSettings:
-    """Everything an example depends on besides the scene, the pose and the seed (SI units)."""
+    """Everything an example depends on besides the scene, the pose and the seed (SI units).
+    The optics default to the packaged nhfd.toml; `from_config` takes a lab's."""
 
     width_px: int = 1024
     height_px: int = 576
     fov_x_deg: float = 40.0
     near_fraction: float = 0.01
-    wavelengths_m: tuple[float, ...] = (660e-9, 520e-9, 450e-9)
-    pitch_m: float = 8e-6
-    volume_m: tuple[float, float] = (-3e-3, 3e-3)
-    z0_m: float = 6e-3
-    panel_hw: tuple[int, int] = (1080, 1920)
-    aperture_shape: str = "square"
-    cutoff_per_px: tuple[float, ...] = (0.25, 0.25, 0.25)
+    wavelengths_m: tuple[float, ...] = _DEFAULT_OPTICS["wavelengths_m"]
+    pitch_m: float = _DEFAULT_OPTICS["pitch_m"]
+    volume_m: tuple[float, float] = _DEFAULT_OPTICS["volume_m"]
+    z0_m: float = _DEFAULT_OPTICS["z0_m"]
+    panel_hw: tuple[int, int] = _DEFAULT_OPTICS["panel_hw"]
+    aperture_shape: str = _DEFAULT_OPTICS["aperture_shape"]
+    cutoff_per_px: tuple[float, ...] = _DEFAULT_OPTICS["cutoff_per_px"]
     phase: str = "depth"
     shared_views: bool = True
     windows: tuple[int | None, ...] | None = None
     antialias: bool = False
     amplitude_samples: int = 4096
     extra: dict = field(default_factory=dict)
+
+    @staticmethod
+    def from_config(config, **overrides) -> ExampleSettings:
+        """The optics of `config` (a validated nhfd.config.Config), plus `overrides`."""
+        return ExampleSettings(**{**_optics_defaults(config), **overrides})
 
     def __post_init__(self) -> None:
         if not (1 <= self.width_px <= 8192 and 1 <= self.height_px <= 8192):

@@ -64,14 +64,18 @@ class ColourInverter:
         rgb: np.ndarray | torch.Tensor,
         depth: np.ndarray | torch.Tensor,
         alpha: np.ndarray | torch.Tensor,
+        z_h_m: torch.Tensor | None = None,
     ) -> None:
         """Add view (iy, ix): `rgb` [3, H, W] sRGB (or [H, W], this colour's channel), `depth` and
-        `alpha` [H, W] (camera z in scene units, 0 where nothing was drawn)."""
+        `alpha` [H, W] (camera z in scene units, 0 where nothing was drawn). `z_h_m`: the view's
+        hologram depth if the caller already has it (colours sharing a view share it)."""
         if self.skip is not None and self.skip[iy, ix]:
             return
         channel = rgb[self.colour] if rgb.ndim == 3 else rgb
         tau = self.sampling.tau
-        z_h = hologram_depth(depth, self.mapping) if self.phase == "depth" else None
+        z_h = None
+        if self.phase == "depth":
+            z_h = z_h_m if z_h_m is not None else hologram_depth(depth, self.mapping)
         phi = view_phase(
             self.phase, self.shape_hw, wavelength_m=self.sampling.wavelength_m,
             tau_x=float(tau[ix]), tau_y=float(tau[iy]), z_h_m=z_h, seed=self.seed,
@@ -156,9 +160,12 @@ def scene_hologram(
                 break
             iy, ix, view = item
             render_s += t1 - t0
+            # One hologram depth per view, whichever colours use it (the mapping is the scene's).
+            z_h = hologram_depth(view.depth, mapping) if phase == "depth" else None
             for c, index in maps:
                 if iy in index and ix in index:
-                    inverters[c].add_view(index[iy], index[ix], view.rgb, view.depth, view.alpha)
+                    inverters[c].add_view(index[iy], index[ix], view.rgb, view.depth, view.alpha,
+                                          z_h_m=z_h)
             invert_s += time.perf_counter() - t1
             done += 1
             if progress is not None:

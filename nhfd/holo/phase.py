@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from nhfd.optics.color import srgb_to_amplitude
 from nhfd.scene.lightfield import DepthMapping
 
 PhaseMode = Literal["depth", "zero", "random"]
@@ -83,13 +84,8 @@ def view_phase(
 
 
 def srgb_amplitude(srgb: np.ndarray | torch.Tensor) -> torch.Tensor:
-    """`sqrt(srgb_to_linear(x))` float32, fused: `((x + 0.055) / 1.055)^1.2` above 0.04045,
-    `sqrt(x / 12.92)` below, on x clamped to [0, 1] (NaN -> 0). Same values as
-    `nhfd.optics.srgb_to_linear(x).sqrt()` (tested to 1e-6) at about a fifth of its cost, which
-    matters here: it runs once per view and pixel."""
-    x = torch.nan_to_num(as_tensor(srgb), nan=0.0).clamp_(0.0, 1.0)
-    hi = x.add(0.055).mul_(1.0 / 1.055).pow_(1.2)
-    return torch.where(x <= 0.04045, x.mul(1.0 / 12.92).sqrt_(), hi)
+    """`sqrt(srgb_to_linear(x))` float32 of an array or tensor (`nhfd.optics.srgb_to_amplitude`)."""
+    return srgb_to_amplitude(as_tensor(srgb))
 
 
 def view_spectrum(

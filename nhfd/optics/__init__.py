@@ -7,7 +7,7 @@ Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength e
 from nhfd.optics.aperture import Aperture, aperture_mask, apply_aperture
 from nhfd.optics.asm import propagate, transfer_function, transfer_function_z
 from nhfd.optics.cache import KernelCache
-from nhfd.optics.color import linear_to_srgb, srgb_to_linear
+from nhfd.optics.color import linear_to_srgb, srgb_to_amplitude, srgb_to_linear
 from nhfd.optics.dpac import (
     DoublePhase,
     PhaseCurve,
@@ -58,6 +58,7 @@ __all__ = [
     "quality_planes",
     "reference_to_slm",
     "slm_to_reference",
+    "srgb_to_amplitude",
     "srgb_to_linear",
     "transfer_function",
     "transfer_function_z",

@@ -153,14 +153,26 @@ def orbit(
 ) -> tuple:
     """`(R, t)` of a camera on a sphere around `center` looking at it. Azimuth turns about `up`
     (0 along the world axis first in x, y order that is not `up`), elevation tilts toward `up`."""
+    center = np.asarray(center, np.float64)
+    eye = orbit_position(center, azimuth_deg, elevation_deg, radius, up)
+    return look_at(eye, center, up)
+
+
+def orbit_position(
+    center: np.ndarray,
+    azimuth_deg: float,
+    elevation_deg: float,
+    radius: float,
+    up: str | np.ndarray = "+z",
+) -> np.ndarray:
+    """The camera position of `orbit(...)`: on the sphere of `radius` around `center`."""
     if not (math.isfinite(radius) and radius > 0):
         raise ValueError(f"orbit radius must be positive, got {radius}")
     u = parse_axis(up)
     e1, e2 = _horizontal_basis(u)
     az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
     direction = math.cos(el) * (math.cos(az) * e1 + math.sin(az) * e2) + math.sin(el) * u
-    center = np.asarray(center, np.float64)
-    return look_at(center + radius * direction, center, u)
+    return np.asarray(center, np.float64) + radius * direction
 
 
 def quat_to_matrix(q_wxyz: np.ndarray) -> np.ndarray:

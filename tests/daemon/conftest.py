@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-import signal
 import socket
 import tempfile
 import threading
@@ -20,24 +19,6 @@ from nhfd.drivers.twins.mecom_twin import MecomTwin
 from nhfd.config import Config, _overlay, default_text
 from nhfd.daemon.client import Client
 from nhfd.daemon.service import Daemon
-
-TEST_DEADLINE_S = 30
-
-
-@pytest.fixture(autouse=True)
-def _deadline() -> Iterator[None]:
-    """No daemon test may hang: SIGALRM interrupts any wait in the main thread."""
-
-    def expired(signum: int, frame: Any) -> None:
-        raise TimeoutError(f"test exceeded {TEST_DEADLINE_S} s")
-
-    old = signal.signal(signal.SIGALRM, expired)
-    signal.setitimer(signal.ITIMER_REAL, TEST_DEADLINE_S)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
 
 
 @pytest.fixture

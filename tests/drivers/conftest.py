@@ -1,4 +1,5 @@
-"""Fixtures for driver tests: twins on pseudo-terminals, fast settings, a per-test deadline."""
+"""Fixtures for driver tests: twins on pseudo-terminals and fast settings (the per-test
+deadline is in tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,6 @@ import shutil
 import signal
 import subprocess
 import tempfile
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -18,31 +18,6 @@ from nhfd.drivers.settings import LaserSettings, StageSettings
 from nhfd.drivers.twins.apt_twin import AptTwin
 from nhfd.drivers.twins.clock import ManualClock
 from nhfd.drivers.twins.mecom_twin import MecomTwin
-
-TEST_DEADLINE_S = 30
-
-
-class Deadline(Exception):
-    pass
-
-
-@pytest.fixture(autouse=True)
-def _deadline() -> Iterator[None]:
-    """No driver test may hang: SIGALRM interrupts any wait in the main thread."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-
-    def _expired(signum, frame):
-        raise Deadline(f"test exceeded {TEST_DEADLINE_S} s")
-
-    old = signal.signal(signal.SIGALRM, _expired)
-    signal.setitimer(signal.ITIMER_REAL, TEST_DEADLINE_S)
-    try:
-        yield
-    finally:
-        signal.setitimer(signal.ITIMER_REAL, 0)
-        signal.signal(signal.SIGALRM, old)
 
 
 @pytest.fixture
