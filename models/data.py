@@ -121,25 +121,51 @@ def batch_views(seed: int, step: int, batch: int, n: int) -> list[int]:
     return [int(order[p]) for p in pos]
 
 
+Edges = tuple[bool, bool, bool, bool]
+
+
+def interior_edges(top: int, left: int, crop_hw: tuple[int, int], view_hw: tuple[int, int]
+                   ) -> Edges:  # fmt: skip
+    """(top, bottom, left, right): which edges of a crop lie inside the view, not on its border."""
+    (ch, cw), (h, w) = crop_hw, view_hw
+    return top > 0, top + ch < h, left > 0, left + cw < w
+
+
 def random_crop(
     split: Split, views: list[int], crop_hw: tuple[int, int], rng: np.random.Generator
-) -> tuple[torch.Tensor, torch.Tensor, np.ndarray]:
-    """rgb `[B,3,h,w]`, field `[B,3,h,w]` and zh `[B,h,w]` (numpy) of random crops."""
+) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, Edges]:
+    """rgb `[B,3,h,w]`, field `[B,3,h,w]` and zh `[B,h,w]` (numpy) of random crops, and which
+    crop edges lie inside the view for any of them (`interior_edges`)."""
     h, w = split.rgb.shape[-2:]
     ch, cw = min(crop_hw[0], h), min(crop_hw[1], w)
     rgbs, fields, zhs = [], [], []
+    edges = [False] * 4
     for v in views:
         top = int(rng.integers(0, h - ch + 1))
         left = int(rng.integers(0, w - cw + 1))
+        edges = [a or b for a, b in zip(edges, interior_edges(top, left, (ch, cw), (h, w)),
+                                        strict=True)]  # fmt: skip
         sl = (v, slice(None), slice(top, top + ch), slice(left, left + cw))
         rgbs.append(split.rgb[sl])
         fields.append(split.field[sl])
         zhs.append(split.zh[v, top : top + ch, left : left + cw])
-    return torch.stack(rgbs), torch.stack(fields), torch.stack(zhs).numpy()
+    top_e, bottom_e, left_e, right_e = edges
+    return (torch.stack(rgbs), torch.stack(fields), torch.stack(zhs).numpy(),
+            (top_e, bottom_e, left_e, right_e))  # fmt: skip
 
 
 def centre_crop(t: torch.Tensor, crop_hw: tuple[int, int]) -> torch.Tensor:
-    h, w = t.shape[-2:]
-    ch, cw = min(crop_hw[0], h), min(crop_hw[1], w)
-    top, left = (h - ch) // 2, (w - cw) // 2
+    top, left, ch, cw = _centre(t.shape[-2:], crop_hw)
     return t[..., top : top + ch, left : left + cw]
+
+
+def centre_crop_edges(view_hw: tuple[int, int], crop_hw: tuple[int, int]) -> Edges:
+    """`interior_edges` of `centre_crop`."""
+    top, left, ch, cw = _centre(view_hw, crop_hw)
+    return interior_edges(top, left, (ch, cw), tuple(view_hw))  # type: ignore[arg-type]
+
+
+def _centre(view_hw, crop_hw: tuple[int, int]) -> tuple[int, int, int, int]:
+    h, w = view_hw
+    ch, cw = min(crop_hw[0], h), min(crop_hw[1], w)
+    return (h - ch) // 2, (w - cw) // 2, ch, cw

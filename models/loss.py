@@ -141,12 +141,21 @@ class FocalStackLoss:
             "vgg": f"VGG-16 features at half resolution x {self.weight:g}",
             "none": "none",
         }[self.perceptual]
-        return f"L2 of intensities + perceptual term: {term}; edge margin masked {self.margin} px"
+        return (f"L2 of intensities + perceptual term: {term}; "
+                f"margin masked {self.margin} px on crop edges inside the view")
 
-    def stack(self, field: torch.Tensor, planes_m: Sequence[float]) -> torch.Tensor:
+    def stack(
+        self, field: torch.Tensor, planes_m: Sequence[float],
+        interior_edges: Sequence[bool] = (True, True, True, True),
+    ) -> torch.Tensor:  # fmt: skip
         """Intensities `[B, D, C, H, W]` after the aperture: one batched propagation (one forward
         FFT for all planes) on a padding sized for the whole volume, so every plane's kernel has
-        the same shape and is cached on its own whatever the step's set of planes."""
+        the same shape and is cached on its own whatever the step's set of planes.
+
+        `interior_edges` (top, bottom, left, right): which edges of the field were cut from a
+        larger view. Only those are masked by the margin: light from beyond a cut edge is
+        missing there, while beyond the view's own edge there is none, so masking it would leave
+        the network free to put junk on the window's border (which the SLM would then show)."""
         o = self.optics
         h, w = field.shape[-2:]
         z_max = max(abs(v) for v in o.volume_m)
@@ -158,7 +167,8 @@ class FocalStackLoss:
         m = self.margin
         h, w = inten.shape[-2:]
         if m and h > 2 * m + 2 and w > 2 * m + 2:
-            inten = inten[..., m : h - m, m : w - m]
+            top, bottom, left, right = (m if e else 0 for e in interior_edges)
+            inten = inten[..., top : h - bottom, left : w - right]
         return inten
 
     def __call__(
@@ -167,12 +177,13 @@ class FocalStackLoss:
         target: torch.Tensor,
         planes_m: Sequence[float],
         perceptual_planes: Sequence[int] = (),
+        interior_edges: Sequence[bool] = (True, True, True, True),
     ) -> dict[str, torch.Tensor]:
         if pred.shape != target.shape:
             raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ")
-        ip = self.stack(pred, planes_m)
+        ip = self.stack(pred, planes_m, interior_edges)
         with torch.no_grad():
-            it = self.stack(target, planes_m)
+            it = self.stack(target, planes_m, interior_edges)
         l2 = (ip - it).square().mean()
         zero = l2.new_zeros(())
         perc = zero

@@ -24,7 +24,14 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from nhfd.models.data import HoloData, batch_views, centre_crop, random_crop, step_rng
+from nhfd.models.data import (
+    HoloData,
+    batch_views,
+    centre_crop,
+    centre_crop_edges,
+    random_crop,
+    step_rng,
+)
 from nhfd.models.loss import FocalStackLoss, Optics, choose_planes, uniform_planes
 from nhfd.models.metadata import manifest_sha256
 from nhfd.models.net import NetSpec, build_net, parameter_count, predict, to_field
@@ -263,9 +270,10 @@ def validate_views(
         for v in range(n):
             rgb = centre_crop(s.rgb[v : v + 1], options.crop_hw)
             target = centre_crop(s.field[v : v + 1], options.crop_hw)
+            edges = centre_crop_edges(tuple(s.rgb.shape[-2:]), options.crop_hw)
             amp, phase = predict(net, rgb)
-            out = loss_fn(to_field(amp, phase, 1.0), target, planes, k)
-            peak = float(loss_fn.stack(target, planes).max())
+            out = loss_fn(to_field(amp, phase, 1.0), target, planes, k, edges)
+            peak = float(loss_fn.stack(target, planes, edges).max())
             losses.append(float(out["loss"]))
             l2s.append(float(out["l2"]))
             psnrs.append(10 * math.log10(max(peak, 1e-30) ** 2 / max(float(out["l2"]), 1e-30)))
@@ -370,7 +378,7 @@ def train(
             t0 = time.perf_counter()
             rng = step_rng(options.seed, step)
             views = batch_views(options.seed, step, options.batch, n_train)
-            rgb, target, zh = random_crop(train_split, views, options.crop_hw, rng)
+            rgb, target, zh, edges = random_crop(train_split, views, options.crop_hw, rng)
             if options.plane_mode == "uniform":
                 planes = fixed
             else:
@@ -382,7 +390,7 @@ def train(
             for g in opt.param_groups:
                 g["lr"] = lr
             amp, phase = predict(net, rgb)
-            out = loss_fn(to_field(amp, phase, 1.0), target, planes, perc)
+            out = loss_fn(to_field(amp, phase, 1.0), target, planes, perc, edges)
             opt.zero_grad(set_to_none=True)
             out["loss"].backward()
             opt.step()

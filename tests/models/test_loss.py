@@ -6,7 +6,7 @@ import itertools
 
 import numpy as np
 import torch
-from nhfd.models.data import HoloData
+from nhfd.models.data import HoloData, centre_crop_edges, random_crop
 from nhfd.models.loss import FocalStackLoss, Optics, box_ssim, choose_planes, uniform_planes
 
 from nhfd.optics import propagate
@@ -37,6 +37,33 @@ def test_margin_masks_the_band_that_propagation_contaminates(tiny_data):
     assert 12 <= loss.margin <= 20
     stack = loss.stack(torch.ones(1, 3, 64, 64, dtype=torch.complex64), [0.0, 1e-3])
     assert stack.shape == (1, 2, 3, 64 - 2 * loss.margin, 64 - 2 * loss.margin)
+    only_left = loss.stack(torch.ones(1, 3, 64, 64, dtype=torch.complex64), [0.0],
+                           (False, False, True, False))  # fmt: skip
+    assert only_left.shape == (1, 1, 3, 64, 64 - loss.margin)
+
+
+def test_a_whole_view_is_not_masked_so_junk_on_its_border_costs(tiny_data):
+    """A crop that is the whole view has no light missing beyond its edges, so nothing may be
+    masked there: otherwise the network learns to leave junk on the window's border, and the
+    SLM shows it."""
+    data = HoloData(tiny_data, splits=("train",))
+    optics = Optics.from_manifest(data.manifest)
+    loss = FocalStackLoss(optics)
+    split = data.splits["train"]
+    h, w = split.rgb.shape[-2:]
+    *_, edges = random_crop(split, [0], (h, w), np.random.default_rng(0))
+    assert edges == (False, False, False, False)
+    *_, inner = random_crop(split, [0], (h // 2, w // 2), np.random.default_rng(0))
+    assert centre_crop_edges((h, w), (h // 2, w // 2)) == (True, True, True, True)
+    assert sum(inner) >= 2  # a half-size crop leaves at least one edge of each axis inside
+    target = split.field[:1]
+    junk = target.clone()
+    peak = float(target.abs().max())
+    junk[..., :3, :] = peak  # a bright band on the top border, where the scene has nothing
+    planes = uniform_planes(optics.volume_m, 3)
+    masked = float(loss(junk, target, planes, [], (True, True, True, True))["l2"])
+    whole = float(loss(junk, target, planes, [], edges)["l2"])
+    assert whole > 10 * max(masked, 1e-12)
 
 
 def test_planes_follow_the_depth_histogram():
