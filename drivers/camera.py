@@ -37,6 +37,10 @@ class CameraUnavailable(DeviceError):
     """The camera's backend library or device is missing; the message says what to install/do."""
 
 
+class CameraTimeout(DeviceError):
+    """No frame arrived within exposure + frame_timeout_s (a hung camera, a pulled cable)."""
+
+
 class ResponseCurve:
     """The camera's response: `linear[level]` is the linear signal (fraction of full scale) that
     produces raw level `level`. Non-decreasing; `linear[-1]` is 1 (the top level = saturation)."""

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -35,7 +36,7 @@ import torch.nn.functional as F
 from nhfd.config import Config
 from nhfd.optics import Aperture, KernelCache, PhaseCurve, propagate
 
-from .camera import Camera, CameraSettings, ResponseCurve
+from .camera import Camera, CameraSettings, CameraTimeout, ResponseCurve
 from .errors import DeviceError
 
 GREY_LEVELS = 256
@@ -331,10 +332,22 @@ class SimulatedCamera(Camera):
         self._optical_key: tuple[Any, ...] | None = None
         self._optical: np.ndarray | None = None
         self._prnu, self._dsnu = self._patterns()
+        self._stalled = False
 
     def reseed(self, seed: int) -> None:
         """Restart the noise generator (captures after this repeat for the same seed)."""
         self._rng = np.random.default_rng(seed)
+
+    # -- test-only fault injection -------------------------------------------------------------
+
+    def stall(self) -> None:
+        """Test-only: from now on every frame times out as a hung real camera's does (after
+        exposure + frame_timeout_s, then CameraTimeout), until `resume()`."""
+        self._stalled = True
+
+    def resume(self) -> None:
+        """Test-only: frames arrive again (the camera came back)."""
+        self._stalled = False
 
     # -- Camera hooks ------------------------------------------------------------------------
 
@@ -354,6 +367,11 @@ class SimulatedCamera(Camera):
         return gain_db
 
     def _grab(self) -> np.ndarray:
+        if self._stalled:
+            timeout_s = self._exposure_s + self.settings.frame_timeout_s
+            time.sleep(timeout_s)
+            raise CameraTimeout(f"{self.name}: no frame within {timeout_s:g} s "
+                                "(exposure + frame_timeout_s)")
         b = self.bench
         powers = np.asarray(self._laser_powers(), dtype=np.float64).reshape(-1)
         if powers.shape != (3,) or not np.isfinite(powers).all() or \

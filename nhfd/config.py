@@ -250,6 +250,21 @@ class DaemonSettings(_Section):
     # onnxruntime (intra-op; inter-op 1, spinning off), and numba's threading layer.
     worker_threads: Annotated[int, Field(ge=1, le=256)] = 2
     worker_threading_layer: Literal["omp", "tbb", "workqueue"] = "omp"
+    # onnxruntime execution providers of the frame worker's session, in order of preference
+    # (e.g. ["CUDAExecutionProvider", "CPUExecutionProvider"]). One this onnxruntime lacks makes
+    # load_model fail with the list of those available (the previous model keeps running).
+    onnx_providers: Annotated[list[str], Field(min_length=1)] = ["CPUExecutionProvider"]
+    # Colour timing (hardware.md): "single" (daemon.single_colour's pattern in every channel,
+    # only that diode may be on), "capture" (snapshots step through the colours: all off, the
+    # colour's pattern, settle, that diode on, capture, off; clients only set powers) or
+    # "hw-sync" (each colour's pattern in its own channel, lasers modulated by the SLM's sync).
+    colour_mode: Literal["single", "capture", "hw-sync"] = "hw-sync"
+    single_colour: Literal["red", "green", "blue"] = "green"
+    # How often the control loop reads the navigator (devices.navigator) and moves the view (s).
+    navigator_period_s: Annotated[float, Field(ge=0.005, le=1.0)] = 0.05
+    # Session recording: every bench-changing request, timed, as JSON lines ("" = off;
+    # `nhfd serve --record FILE` sets it); `nhfd replay FILE` plays it against a daemon.
+    record: str = ""
     # The simulated camera's sensor region, [top, left, height, width] in sensor pixels ([] =
     # the whole sensor). A small region keeps simulated captures fast; real cameras ignore it.
     camera_roi_px: Annotated[list[Annotated[int, Field(ge=0, le=65536)]],
@@ -267,6 +282,13 @@ class DaemonSettings(_Section):
             raise ValueError(f"camera_roi_px = {self.camera_roi_px}: give [top, left, height, "
                              "width] (height and width >= 1) or []")
         return self
+
+
+class CalibrationSettings(_Section):
+    # calibration.toml written by `nhfd calib fit` ("" = none: the configured phase curves, sign
+    # and daemon.stage_at_reference_mm focus mapping apply). The daemon applies its phase curves
+    # and sign, and maps focus through its depth -> stage fit.
+    file: str = ""
 
 
 class Config(_Section):
@@ -287,6 +309,7 @@ class Config(_Section):
         return self
 
     daemon: DaemonSettings = DaemonSettings()
+    calibration: CalibrationSettings = CalibrationSettings()
 
 
 @dataclass(frozen=True)

@@ -71,7 +71,8 @@ def test_named_file_must_exist(tmp_path):
         ("[slm]\nwidth = 1920\n", r"slm\.width: unknown key; allowed here: grey_invert, height_px"),
         (
             "[lasers]\n",
-            r"lasers: unknown key; allowed here: coding, daemon, devices, model, optics, slm",
+            r"lasers: unknown key; allowed here: calibration, coding, daemon, devices, model, "
+            r"optics, slm",
         ),
         ("[optics.aperture]\nradius = 1\n", r"optics\.aperture\.radius: unknown key"),
         ("[slm]\npitch_um = '8'\n", r"slm\.pitch_um = '8': Input should be a valid number"),

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
-BENCHES: tuple[str, ...] = ("optics", "render", "holo", "tradeoff", "pipeline")
+BENCHES: tuple[str, ...] = ("optics", "render", "holo", "tradeoff", "pipeline", "load")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -22,6 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--config", help="configuration file")
     p.add_argument("--scene", help="scene to load at start (inside daemon.scene_dirs)")
     p.add_argument("--runtime-dir", help="runtime directory (overrides daemon.runtime_dir)")
+    p.add_argument("--record", metavar="FILE",
+                   help="record every bench-changing request to FILE (JSON lines; overrides "
+                   "daemon.record); `nhfd replay FILE` plays it back")
     p.set_defaults(handler=_serve)
 
 
@@ -35,6 +38,8 @@ def _serve(args: argparse.Namespace) -> int:
         update["scene"] = args.scene
     if args.runtime_dir:
         update["runtime_dir"] = args.runtime_dir
+    if args.record:
+        update["record"] = args.record
     if update:
         config = config.model_copy(update={"daemon": config.daemon.model_copy(update=update)})
     setup_logging(config.daemon.log_format)

@@ -23,8 +23,10 @@ COMMANDS = (
     "cmd_train",
     "cmd_bench",
     "cmd_serve",
+    "cmd_replay",
     "cmd_laser",
     "cmd_devices",
+    "calib",
 )
 
 

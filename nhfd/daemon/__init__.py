@@ -10,6 +10,9 @@
   bench     devices, the zero-amplitude pattern, the focus mapping, snapshots
   guardian_link  the daemon's side of the laser guardian
   notify, audit, paths  systemd notify, the audit log, runtime dirs and allowed directories
+  colour    colour modes: single, capture (per-colour snapshot sequence), hw-sync
+  navigation  navigator motion -> relative view moves through the set_view path
+  recording session recording (JSON lines) and replay
 
 Nothing here imports torch, numba or onnxruntime at module level.
 """

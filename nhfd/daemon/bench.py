@@ -4,12 +4,19 @@ A device that fails to open is recorded (its error shows in `status`) and left o
 still starts, because the lasers are held off by the guardian regardless. A monitor thread
 refreshes the stage state and the SLM's health for `status`, so a slow or vanished device never
 stalls the control loop that sends the laser heartbeat.
+
+Faults and the light path: an SLM whose output is lost (cable unplugged, output disabled) no
+longer shows what the daemon computed, so the lasers must go off. The monitor only *notices*
+(it must not talk to the laser guardian: the control loop owns that link); it queues the change
+in `faults`, and the control loop switches the lasers off (`Daemon._device_faults`). The stage
+and the camera sit on the detection side: their faults fail jobs and show in `status`, the
+lasers stay as they are. Every fault clears when the device answers again.
 """
 
 from __future__ import annotations
 
-import contextlib
 import logging
+import queue
 import struct
 import threading
 import time
@@ -76,8 +83,14 @@ class Bench:
         self._blank: np.ndarray | None = None
         self._stage_state: dict[str, Any] = {}
         self._slm_health: dict[str, Any] = {}
+        # SLM output lost / back, for the control loop: (device, lost, detail).
+        self.faults: queue.SimpleQueue[tuple[str, bool, str]] = queue.SimpleQueue()
+        self.slm_lost: str | None = None  # why the SLM's output is lost, while it is
+        # Set while a capture-mode sequence owns the panel: new view frames wait (colour.py).
+        self.held = False
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
+        self._reconnect: threading.Thread | None = None
 
     # -- open / close --------------------------------------------------------------------------
 
@@ -119,6 +132,8 @@ class Bench:
         self._stop.set()
         if self._monitor is not None:
             self._monitor.join(2.0)
+        if self._reconnect is not None:  # a stage reconnect in its backoff: not for long
+            self._reconnect.join(1.0)
         for name in ("camera", "stage", "slm"):
             device = getattr(self, name)
             if device is None:
@@ -132,13 +147,37 @@ class Bench:
 
     # -- actions -------------------------------------------------------------------------------
 
+    def blank_frame(self) -> np.ndarray:
+        if self._blank is None:
+            self._blank = zero_amplitude_frame(self.config)
+        return self._blank
+
     def show_blank(self) -> None:
         if self.slm is None:
             raise RuntimeError(self.errors["slm"] or "no SLM configured")
-        if self._blank is None:
-            self._blank = zero_amplitude_frame(self.config)
-        self.slm.show(self._blank)
+        self.slm.show(self.blank_frame())
         self.showing = "blank"
+
+    def capture(self, frames: int | None = None) -> Any:
+        """One camera capture; a failure (a timeout) is the camera's error in `status` until a
+        capture succeeds again."""
+        if self.camera is None:
+            raise RuntimeError(self.errors["camera"] or "no camera configured")
+        try:
+            cap = self.camera.capture(frames)
+        except Exception as exc:
+            self.errors["camera"] = f"{type(exc).__name__}: {exc}"
+            raise
+        self.errors["camera"] = None
+        return cap
+
+    def note_slm_lost(self, detail: str) -> None:
+        """The SLM's output is gone (from the monitor, or a failed show): queue it once."""
+        if self.slm_lost is None:
+            self.slm_lost = detail
+            self.errors["slm"] = f"output lost: {detail}"
+            log.error("SLM output lost: %s", detail)
+            self.faults.put(("slm", True, detail))
 
     def stop_stage(self) -> str:
         if self.stage is None:
@@ -153,7 +192,22 @@ class Bench:
             self._refresh()
 
     def _refresh(self) -> None:
-        if self.stage is not None:
+        # The SLM first: it is the light path's check, and a stage reconnect never delays it.
+        if self.slm is not None:
+            try:
+                h = self.slm.health()
+                ok, detail = h.ok, h.detail
+            except Exception as exc:
+                ok, detail = False, f"health check failed: {type(exc).__name__}: {exc}"
+            self._slm_health = {"ok": ok, "detail": detail, "checked_s": time.time()}
+            if not ok:
+                self.note_slm_lost(detail)
+            elif self.slm_lost is not None:
+                log.warning("SLM output back (was: %s)", self.slm_lost)
+                self.slm_lost = None
+                self.errors["slm"] = None
+                self.faults.put(("slm", False, detail))
+        if self.stage is not None and not (self._reconnect and self._reconnect.is_alive()):
             try:
                 st = self.stage.state()
                 self._stage_state = {"position_mm": st.position_mm, "homed": st.homed,
@@ -162,13 +216,20 @@ class Bench:
                                      "motion_error": st.motion_error}
                 self.errors["stage"] = None
             except Exception as exc:
-                self.errors["stage"] = f"{type(exc).__name__}: {exc}"
-                with contextlib.suppress(Exception):
-                    self.stage.reconnect()
-        if self.slm is not None:
-            with contextlib.suppress(Exception):
-                h = self.slm.health()
-                self._slm_health = {"ok": h.ok, "detail": h.detail, "checked_s": time.time()}
+                # A vanished port: say so at once, then try to come back (same serial only) on
+                # a thread of its own: the reconnect backs off for seconds.
+                self.errors["stage"] = f"{type(exc).__name__}: {exc}; reconnecting"
+                self._stage_state = {}
+                self._reconnect = threading.Thread(target=self._reconnect_stage, args=(exc,),
+                                                   name="nhfd-stage-reconnect", daemon=True)
+                self._reconnect.start()
+
+    def _reconnect_stage(self, why: Exception) -> None:
+        try:
+            self.stage.reconnect()
+            log.warning("stage: link back after: %s", why)
+        except Exception as again:
+            self.errors["stage"] = f"{type(again).__name__}: {again}"
 
     def status(self) -> dict[str, Any]:
         d = self.config.devices

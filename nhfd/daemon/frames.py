@@ -53,6 +53,9 @@ class FrameSettings:
     # moves the whole volume toward the viewer).
     refocus_m: float = 0.0
     padding: str = "auto"
+    # Measured grey -> phase tables per colour (a calibration file); () = linear curves of
+    # phase_stroke_rad.
+    phase_tables_rad: tuple[tuple[float, ...], ...] = ()
 
     @property
     def aperture(self) -> Aperture:
@@ -63,6 +66,8 @@ class FrameSettings:
         return -(self.z0_m + self.refocus_m)
 
     def curves(self) -> list[PhaseCurve]:
+        if self.phase_tables_rad:
+            return [PhaseCurve(table) for table in self.phase_tables_rad]
         return [PhaseCurve.linear(stroke) for stroke in self.phase_stroke_rad]
 
 
@@ -302,9 +307,12 @@ def frame_settings(config: Any, metadata: dict[str, Any], *, refocus_m: float = 
     wavelengths, pitch) are the model's: `load_model` has already checked they match the
     configuration. The window is the model's training size unless `daemon.frame_size_px` says
     otherwise (the trained fx is kept either way)."""
+    from nhfd.calib.active import active_calibration
+
     size = list(config.daemon.frame_size_px)
     window_hw = (size[1], size[0]) if size else tuple(int(v) for v in metadata["train_size_hw"])
     s = config.slm
+    cal = active_calibration(config)  # measured curves and sign replace the configured ones
     return FrameSettings(
         panel_hw=(s.height_px, s.width_px),
         window_hw=window_hw,  # type: ignore[arg-type]
@@ -316,8 +324,9 @@ def frame_settings(config: Any, metadata: dict[str, Any], *, refocus_m: float = 
         amplitude_scale=float(metadata["amplitude_scale"]),
         zero_below=float(config.coding.zero_below),
         phase_stroke_rad=tuple(float(v) for v in s.phase_stroke_rad),
-        phase_sign=int(s.phase_sign),
+        phase_sign=int(cal.phase_sign if cal else s.phase_sign),
         grey_invert=bool(s.grey_invert),
         refocus_m=float(refocus_m),
         padding=config.optics.padding,
+        phase_tables_rad=cal.phase_tables_rad if cal else (),
     )

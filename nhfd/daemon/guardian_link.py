@@ -14,6 +14,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import subprocess
+import threading
 import time
 from typing import Any
 
@@ -56,6 +57,9 @@ class LaserLink:
         self._channels: dict[str, Any] = {}
         self._read_at = 0.0
         self._next_reconnect = 0.0
+        # One socket, one request at a time: the control loop (heartbeats, commands) and the
+        # capture-mode snapshot job (per-colour enables) both use it.
+        self._lock = threading.RLock()
 
     @property
     def present(self) -> bool:
@@ -143,6 +147,10 @@ class LaserLink:
         """From the control loop, every tick."""
         if not self.present:
             return
+        with self._lock:
+            self._heartbeat(now)
+
+    def _heartbeat(self, now: float) -> None:
         if self.client is None:
             self._reconnect(now)
             return
@@ -160,6 +168,10 @@ class LaserLink:
             self.refresh(now)
 
     def refresh(self, now: float | None = None) -> None:
+        with self._lock:
+            self._refresh(now)
+
+    def _refresh(self, now: float | None) -> None:
         client = self._require()
         try:
             self._channels = client.status()["channels"]
@@ -207,6 +219,10 @@ class LaserLink:
         return self.client
 
     def _call(self, op: str, **params: Any) -> dict[str, Any]:
+        with self._lock:
+            return self._call_locked(op, **params)
+
+    def _call_locked(self, op: str, **params: Any) -> dict[str, Any]:
         client = self._require()
         try:
             reply = client.call(op, **params)

@@ -7,7 +7,8 @@ so a bad request changes nothing.
   laser        {action: arm|disarm|off|power|enable|disable, duration_s?, channel?, power_pct?}
   stop         {}                                     -> jobs cancelled, stage stop sent
   blank        {}                                     -> the zero-amplitude pattern is shown
-  snapshot     {path?, frames?}                       -> {job, path}
+  snapshot     {path?, frames?}                       -> {job, path} (colour_mode "capture":
+                                                         one capture per colour, see colour.py)
   load_scene   {path}                                 -> {job}
   load_model   {path}                                 -> {job} (old model kept on failure)
   job          {id}                                   -> one job's state
@@ -29,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 from nhfd.drivers.settings import COLOURS
 
+from .colour import capture_colours, check_laser_command
 from .jobs import Job
 from .paths import inside
 from .protocol import (
@@ -36,6 +38,7 @@ from .protocol import (
     DEVICE_ERROR,
     FORBIDDEN,
     INVALID_FILE,
+    LASER_REFUSED,
     NO_SUCH_JOB,
     NOT_AVAILABLE,
     UNAUTHORIZED,
@@ -130,9 +133,15 @@ def _laser(d: Daemon, conn: Connection, p: Params) -> Any:
     if action == "power":
         power_pct = p.number("power_pct", 0.0, 100.0)
         p.done()
+        check_laser_command(d, action, channel, power_pct)
         applied = link.power(channel, power_pct)
         return {"channel": channel, "power_pct": applied, "capped": applied < power_pct}
     p.done()
+    check_laser_command(d, action, channel, None)
+    if action == "enable" and d.bench.slm_lost is not None:
+        # The light would fall on a panel the daemon does not control.
+        raise RpcError(LASER_REFUSED, f"SLM output lost ({d.bench.slm_lost}): no diode may be "
+                       "enabled until it is back", {"device": "slm"})
     link.enable(channel, action == "enable")
     return {"channel": channel, "enabled": action == "enable"}
 
@@ -174,7 +183,9 @@ def _snapshot(d: Daemon, conn: Connection, p: Params) -> Any:
     def run(job: Job) -> dict[str, Any]:
         from .bench import write_png16
 
-        cap = camera.capture(frames)
+        if d.config.daemon.colour_mode == "capture":
+            return capture_colours(d, job, path, frames)
+        cap = d.bench.capture(frames)  # a failure is the camera's error in status until it works
         job.check()
         write_png16(path, cap.image)
         return {"path": str(path), "frames": cap.frames, "exposure_s": cap.exposure_s,

@@ -41,6 +41,7 @@ from .bench import Bench, focus_stage_mm
 from .guardian_link import LaserLink
 from .jobs import Job, JobRunner
 from .methods import METHODS
+from .navigation import NavigatorInput
 from .notify import Notifier
 from .paths import LOCK_NAME, SOCKET_NAME, TOKEN_NAME, resolve_dirs, runtime_dir
 from .protocol import (
@@ -54,6 +55,7 @@ from .protocol import (
     Params,
     RpcError,
 )
+from .recording import SessionRecorder, view_params
 from .server import Connection, LineServer
 from .views import ViewSlot
 from .worker import FrameLink, apply_camera_roi
@@ -114,6 +116,8 @@ class Daemon:
         self.bench = Bench(config)
         self.views = ViewSlot()
         self.frames = FrameLink(self)  # the spawned render/inference worker, started on demand
+        self.navigation = NavigatorInput(self)
+        self.recorder: SessionRecorder | None = None  # daemon.record / serve --record
         self.scene: dict[str, Any] | None = None
         self.display = "blank"
         self.errors: deque[dict[str, Any]] = deque(maxlen=20)
@@ -147,18 +151,24 @@ class Daemon:
                 "devices.readybeam.guardian.heartbeat_timeout_s = "
                 f"{self.config.devices.readybeam.guardian.heartbeat_timeout_s:g} s"
             )
+        from nhfd.calib.active import active_calibration
+
+        active_calibration(self.config)  # a configured but unreadable file stops the start here
         self.runtime_dir.mkdir(mode=0o750, parents=True, exist_ok=True)
         self._take_lock()
         self.audit = AuditLog(self._audit_path())
         self.laser.audit = self.audit
         self.audit.write({"who": "daemon", "pid": os.getpid()}, "start",
                          version=__version__, runtime_dir=str(self.runtime_dir))
+        if c.record:
+            self.recorder = SessionRecorder(self.base_dir / Path(c.record).expanduser())
         self.notifier.status("starting: laser guardian")
         self.laser.start()  # every channel off and read back, or this raises
         self.bench = Bench(self.config, laser_twin=self.laser.twin)
         self.notifier.status("starting: devices")
         self.bench.open()
         apply_camera_roi(self.bench, self.config)
+        self.navigation.open()
         kept = c.jobs_kept
         self.bench_jobs = JobRunner("bench", kept=kept, on_finish=self._job_finished)
         self.load_jobs = JobRunner("load", kept=kept, on_finish=self._job_finished)
@@ -243,11 +253,48 @@ class Daemon:
     def step(self, timeout_s: float) -> None:
         assert self.server is not None
         self.server.poll(timeout_s)
+        self._device_faults()
         self.frames.step()  # never blocks: collects finished frames, sends the newest view
         now = time.monotonic()
+        self.navigation.step(now)  # navigator motion -> the same latest-wins view slot
         self.laser.heartbeat(now)
         self.notifier.watchdog(now)
         self.audit.tick()
+
+    def _device_faults(self) -> None:
+        """Act on what the bench monitor noticed. SLM output lost: the panel no longer shows
+        what the daemon computed, so every laser goes off (the guardian reads it back); back:
+        the blank pattern, then the current view again. Lasers and arming are never restored
+        automatically: a person turns them on again."""
+        while True:
+            try:
+                device, lost, detail = self.bench.faults.get_nowait()
+            except queue.Empty:
+                return
+            if lost:
+                message = f"output lost ({detail})"
+                try:
+                    if self.laser.present:
+                        self.laser.off()
+                        message += "; lasers switched off"
+                except Exception as exc:
+                    message += f"; lasers off FAILED: {exc}"
+                log.error("%s: %s", device, message)
+                self.display = "nothing (SLM output lost)"
+                self.bench.showing = "nothing (output lost)"
+                self._error(device, message)
+                self.audit.write({"who": "daemon"}, "slm output lost", detail=message)
+            else:
+                try:
+                    self.bench.show_blank()
+                    self.display = "blank"
+                except Exception as exc:
+                    self._error(device, f"output back, but blank failed: {exc}")
+                    continue
+                self.frames.sent_seq = 0  # the current view again (a frame cache hit)
+                log.warning("%s: output back (%s); blank, then the current view; lasers stay "
+                            "off until turned on", device, detail)
+                self.audit.write({"who": "daemon"}, "slm output back", detail=detail)
 
     def request_shutdown(self, reason: str) -> None:
         if not self._shutdown.is_set():
@@ -273,6 +320,7 @@ class Daemon:
         confirmed = how != "not confirmed"
         with contextlib.suppress(Exception):
             self.frames.close()
+        self.navigation.close()
         for runner in (self.bench_jobs, self.load_jobs):
             if runner is not None:
                 runner.cancel_all()
@@ -288,6 +336,8 @@ class Daemon:
                          reason=self._shutdown_reason or "start failed or loop error",
                          lasers=how)
         self.audit.close()
+        if self.recorder is not None:
+            self.recorder.close()
         (log.info if confirmed else log.error)("stopped; lasers: %s", how)
         self.notifier.close()
         if self._lock_file is not None:
@@ -364,11 +414,28 @@ class Daemon:
         if method.audited:
             self.audit.write(conn.who, req.method, params=req.params, outcome="ok",
                              result=result)
+        if self.recorder is not None and (method.audited or req.method == "set_view"):
+            self.record(req.method, req.params, conn.who, result)
         return result
+
+    def record(self, method: str, params: dict[str, Any], who: dict[str, Any],
+               result: Any = None) -> None:
+        """One bench-changing request into the session recording; a view as the absolute view
+        it produced, so that replay does not depend on where a relative move started."""
+        if self.recorder is None:
+            return
+        if method == "set_view" and isinstance(result, dict) and "view" in result:
+            params = view_params(result["view"])
+        self.recorder.record(method, params, who)
 
     # -- helpers for methods -------------------------------------------------------------------
 
     def focus_stage_mm(self, z_mm: float) -> float:
+        from nhfd.calib.active import active_calibration
+
+        cal = active_calibration(self.config)
+        if cal is not None:  # the fitted depth -> stage mapping, green's focus
+            return cal.stage_mm_for(self.config.optics.z0_m + z_mm * 1e-3, 1)
         return focus_stage_mm(z_mm, self.config.daemon.stage_at_reference_mm)
 
     def submit_bench_job(self, job: Job) -> Job:
@@ -390,6 +457,26 @@ class Daemon:
     def _error(self, source: str, message: str) -> None:
         self.errors.append({"time_s": time.time(), "source": source, "message": message})
 
+    def _calibration_status(self) -> dict[str, Any]:
+        from nhfd.calib.active import active_calibration
+
+        c = self.config.daemon
+        try:
+            cal = active_calibration(self.config)
+        except ValueError as exc:  # the file changed on disk into something unreadable
+            return {"loaded": False, "error": str(exc), "focus_range_mm": list(c.focus_range_mm)}
+        if cal is None:
+            return {"loaded": False,
+                    "focus_mapping": "stage_mm = stage_at_reference_mm + z_mm",
+                    "stage_at_reference_mm": c.stage_at_reference_mm,
+                    "focus_range_mm": list(c.focus_range_mm)}
+        return {"loaded": True, "file": cal.source, "created": cal.created,
+                "fitted_on": cal.fitted_on.get("capture", ""),
+                "focus_mapping": "stage_mm = stage_at_slm_mm + (z0 + z_mm - z_offset_G) / "
+                                 "stage_scale",
+                "stage_at_slm_mm": cal.stage_at_slm_mm, "stage_scale": cal.stage_scale,
+                "phase_sign": cal.phase_sign, "focus_range_mm": list(c.focus_range_mm)}
+
     def status(self) -> dict[str, Any]:
         c = self.config.daemon
         jobs = [*(self.bench_jobs.jobs() if self.bench_jobs else []),
@@ -410,13 +497,12 @@ class Daemon:
             "laser": laser,
             "devices": devices,
             "display": self.display,
+            "colour": {"mode": c.colour_mode, "single_colour": c.single_colour},
             "scene": self.scene,
             "model": self.frames.model_info or "none loaded",
-            "calibration": {"loaded": False,
-                            "focus_mapping": "stage_mm = stage_at_reference_mm + z_mm",
-                            "stage_at_reference_mm": c.stage_at_reference_mm,
-                            "focus_range_mm": list(c.focus_range_mm)},
+            "calibration": self._calibration_status(),
             "view": self.views.snapshot(),
+            "navigator": self.navigation.status(),
             "timings": self.frames.timings,  # the last frame's per-stage timings (ms)
             "frames": self.frames.status(),
             "warnings": [f"view outside the model's pose envelope: {w}"

@@ -35,6 +35,8 @@ from typing import Any
 
 import numpy as np
 
+from .colour import panel_for_mode
+
 log = logging.getLogger("nhfd.daemon.worker")
 
 # How long a load may take in the worker before the load job gives up waiting (s).
@@ -66,6 +68,8 @@ def open_model(path: str, config: Any, threads: int) -> Any:
 
     from nhfd.models.export import load_model
 
+    providers = check_providers(list(config.daemon.onnx_providers),
+                                ort.get_available_providers())
     model = load_model(path, config, threads=threads)  # validates; raises ModelMismatch etc.
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
@@ -75,9 +79,20 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     opts.log_severity_level = 3
     # OnnxModel has no hook for session options: replace its session (a second parse of a
     # file of a few MB, once per load).
-    model.session = ort.InferenceSession(path, sess_options=opts,
-                                         providers=["CPUExecutionProvider"])
+    model.session = ort.InferenceSession(path, sess_options=opts, providers=providers)
     return model
+
+
+def check_providers(wanted: list[str], available: list[str]) -> list[str]:
+    """The configured execution providers, in order, or a ValueError naming the missing ones and
+    listing what this onnxruntime has. No silent fallback: a bench configured for CUDA that
+    quietly runs on the CPU would be 10x slower with nothing but a warning to say why; the load
+    fails instead and the previous model keeps running."""
+    missing = [p for p in wanted if p not in available]
+    if missing:
+        raise ValueError(f"daemon.onnx_providers: {', '.join(missing)} not available in this "
+                         f"onnxruntime; available: {', '.join(available)}")
+    return wanted
 
 
 def model_info(model: Any, path: str) -> dict[str, Any]:
@@ -87,7 +102,7 @@ def model_info(model: Any, path: str) -> dict[str, Any]:
             "z0_m": m.get("z0_m"), "volume_m": m.get("volume_m"), "mapping": m.get("mapping"),
             "pose_envelope": m.get("pose_envelope"), "parameters": m.get("parameters"),
             "train_steps": m.get("train_steps"), "scene_sha256": m.get("scene_sha256"),
-            "loaded_s": time.time()}
+            "providers": list(model.session.get_providers()), "loaded_s": time.time()}
 
 
 class _WorkerState:
@@ -418,13 +433,19 @@ class FrameLink:
         self.inflight = None
         t0 = time.perf_counter()
         frame = self._panel(payload)
+        c = self.d.config.daemon
+        frame = panel_for_mode(frame, c.colour_mode, c.single_colour)
         bench = self.d.bench
-        if bench.slm is not None:
+        if bench.slm is not None and not bench.held:  # held: the capture job shows it after
             try:
                 bench.slm.show(frame)
                 bench.showing = f"view {seq}"
             except Exception as exc:
+                from nhfd.drivers.slm import SLMOutputLost
+
                 self.d._error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
+                if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
+                    bench.note_slm_lost(str(exc))
                 return
         done = time.perf_counter()
         stages = dict(payload["timings_s"])

@@ -106,3 +106,13 @@ def wait_until(condition: Any, timeout_s: float = 20.0, what: str = "condition")
     while not condition():
         assert time.monotonic() < end, f"timed out waiting for {what}"
         time.sleep(0.02)
+
+
+@pytest.fixture(scope="session")
+def tiny(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    """A 2-step model exported to ONNX and a small Gaussian cloud, made once per session (~10 s)
+    and shared by every test file that needs the frame worker."""
+    from .test_frames import make_tiny_model, make_tiny_scene
+
+    root = tmp_path_factory.mktemp("tiny_model")
+    return {"model": make_tiny_model(root), "scene": make_tiny_scene(root / "cloud.ply")}

@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pytest
 import torch
 
 from nhfd.config import Config, _overlay, default_text
@@ -85,12 +84,6 @@ def make_tiny_scene(path: Path, n: int = 300, seed: int = 0) -> Path:
     )
     save_ply(path, g)
     return path
-
-
-@pytest.fixture(scope="session")
-def tiny(tmp_path_factory) -> dict[str, Path]:
-    root = tmp_path_factory.mktemp("tiny_model")
-    return {"model": make_tiny_model(root), "scene": make_tiny_scene(root / "cloud.ply")}
 
 
 def wrong_optics_copy(model: Path, out: Path, z0_m: float = 0.007) -> Path:

@@ -1,0 +1,258 @@
+"""The differentiable bench model, and the depth mapping fitted through it.
+
+The model is the nominal bench: a grey frame goes through the fitted grey->phase table and the
+fitted sign to the SLM's phase (each pixel a flat square: `pixel_transfer`), the relay's Fourier
+aperture and the angular spectrum method
+(`nhfd.optics.propagate`, never re-implemented) carry it to depth `z`, and the fitted camera
+geometry maps the intensity onto the sensor with each camera pixel's area integrated. What the
+model leaves out (fill factor, gap light, zero order, illumination envelope) reaches the camera,
+after the dot/negated-dot pair average of the fine sweep, as an additive smooth background and a
+common factor: each colour gets a gain and a background level.
+
+Why a model fit for the depths: a dot's focus curve, sampled every half depth of field or so, is
+neither symmetric nor alone (neighbouring dots' defocused light and the coding haze interfere
+with it), so peak-finding on it is biased by about a tenth of the depth of field. The model
+contains all of that interference, so fitting whole images removes the bias.
+
+The depth mapping is `z = (stage - s0) * scale * 1e-3 + offset[colour]` (metres, SLM space,
+offset[G] = 0). Fitted by Levenberg-Marquardt (a damped Gauss-Newton descent) on the sum of
+squared image residuals over every fine-sweep image, with the image's derivative in `z` taken by
+central differences of the propagation (the model is smooth in z on a scale of the depth of
+field, thousands of times the step).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from nhfd.optics import Aperture, PhaseCurve, grey_to_phase, propagate
+
+from .focus import STAGE_M_PER_MM, FocusError
+from .geometry import Geometry
+
+# Central-difference step for d(image)/dz (SLM metres): far below the depth of field (~1 mm)
+# and far above float32 noise in the propagated intensity.
+DZ_M = 5e-6
+# Pixels (SLM) left out along the panel's edge: the edge diffracts light that the model's
+# missing background terms would otherwise have to explain.
+EDGE_MARGIN_PX = 6
+# The descent stops when no image's depth moves by more than this (SLM metres): a thousandth of
+# the depth of field, far below the 5% the calibration must reach.
+Z_TOL_M = 1e-6
+
+
+def pixel_transfer(hw: tuple[int, int]) -> torch.Tensor:
+    """Spectrum factor [H, W] of a flat square pixel (width = pitch) on the fftfreq grid.
+
+    Within the aperture's band (|f| < 1/(2 pitch)) the continuous field leaving a panel of flat
+    pixels has the spectrum `sinc(fx p) sinc(fy p)` times that of the pixel values, so the
+    samples that propagate from pixel values filtered by this are the exact band-limited field at
+    the pixel centres: no oversampled grid is needed."""
+    fy = torch.fft.fftfreq(hw[0], dtype=torch.float64)[:, None]
+    fx = torch.fft.fftfreq(hw[1], dtype=torch.float64)[None, :]
+    return torch.sinc(fx) * torch.sinc(fy)
+
+
+class BenchModel:
+    """What the camera sees of a grey frame at depth z, for one colour, sampled at the SLM
+    pixel centres (the captured images are resampled there once, with `to_slm_grid`)."""
+
+    def __init__(self, frames: list[np.ndarray], colour: int, curve: PhaseCurve, sign: int,
+                 pitch_m: float, wavelength_m: float, cutoff_per_px: float,
+                 aperture_shape: str) -> None:
+        grey = torch.from_numpy(np.stack([f[..., colour] for f in frames]))[:, None]
+        phase = grey_to_phase(grey, [curve], sign=sign).double()
+        u = torch.polar(torch.ones_like(phase), phase)
+        u = torch.fft.ifft2(torch.fft.fft2(u) * pixel_transfer(tuple(u.shape[-2:])))
+        self.field = u.to(torch.complex64)  # [F, 1, H, W]: the frames whose images are averaged
+        self.pitch_m = pitch_m
+        self.wavelength_m = wavelength_m
+        self.aperture = Aperture(aperture_shape, (cutoff_per_px,))  # type: ignore[arg-type]
+
+    def render(self, z_m: np.ndarray | list[float]) -> torch.Tensor:
+        """Relative irradiance at the pixel centres [D, H, W] (float64) at depths `z_m`."""
+        with torch.no_grad():
+            # A depth tensor that requires grad selects propagate's differentiable path, which
+            # computes the frequency coefficients once per call, not once per depth: several
+            # times cheaper for a batch of depths (the result is the same to ~1e-7).
+            z = torch.tensor(np.asarray(z_m, np.float64), requires_grad=True)
+            u = propagate(self.field, z, self.pitch_m, [self.wavelength_m],
+                          aperture=self.aperture, padding="auto")
+            return u.abs().square()[:, :, 0].mean(dim=0).double()
+
+
+def to_slm_grid(image: np.ndarray, geo: Geometry, panel_hw: tuple[int, int], pitch_m: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """A camera image sampled (bilinearly) at the SLM pixel centres through the geometry:
+    ([H, W] values, [H, W] bool: inside the image and EDGE_MARGIN_PX inside the panel)."""
+    h, w = panel_hw
+    rows, cols = np.mgrid[0:h, 0:w]
+    xy = np.stack([(cols - (w - 1) / 2) * pitch_m, (rows - (h - 1) / 2) * pitch_m], -1)
+    cam = geo.to_camera(xy.reshape(-1, 2))
+    ih, iw = image.shape
+    ok = (cam[:, 0] >= 0) & (cam[:, 1] >= 0) & (cam[:, 0] <= iw - 1) & (cam[:, 1] <= ih - 1)
+    grid = torch.from_numpy(np.stack([cam[:, 0] / ((iw - 1) / 2) - 1,
+                                      cam[:, 1] / ((ih - 1) / 2) - 1], -1)).double()
+    vals = F.grid_sample(torch.from_numpy(np.asarray(image, np.float64))[None, None],
+                         grid[None, None], mode="bilinear", align_corners=True)[0, 0, 0]
+    m = EDGE_MARGIN_PX
+    inner = (rows >= m) & (rows < h - m) & (cols >= m) & (cols < w - m)
+    return vals.numpy().reshape(h, w), ok.reshape(h, w) & inner
+
+
+@dataclass(frozen=True)
+class ModelDepthFit:
+    """The depth mapping fitted through the bench model (see the module docstring), with
+    one-sigma uncertainties from the Gauss-Newton covariance and the relative RMS residual."""
+
+    stage_scale: float
+    stage_at_slm_mm: float
+    z_offset_m: tuple[float, float, float]
+    stage_scale_std: float
+    stage_at_slm_std_mm: float
+    z_offset_std_m: tuple[float, float, float]
+    gain: tuple[float, float, float]
+    rms_rel: float
+    iterations: int
+
+
+def fit_depth_model(sweeps: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                    models: dict[int, BenchModel], init: tuple[float, float, tuple[float, ...]],
+                    *, scale_std: float | None = None, max_iter: int = 12,
+                    say: Callable[[str], None] = lambda _m: None) -> ModelDepthFit:
+    """Levenberg-Marquardt on (s0 mm, scale, offset_R, offset_B, gain_c, background_c).
+
+    `sweeps[c]` = (stage mm [S], images [S, H, W] resampled on the SLM grid, valid [H, W] bool);
+    `init` = (s0 mm, scale, offsets m), e.g. from the focus peaks. With `scale_std` given, the
+    scale stays at `init`'s (set from the lateral magnification, 1 / M^2) and that is its
+    uncertainty; otherwise the images fit it too."""
+    s0, scale, offsets = init
+    colours = sorted(sweeps)
+    # Parameters: 0 s0 (mm), 1 scale, 2 off_R (mm), 3 off_B (mm), then gain_c, bg_c per colour.
+    theta = np.zeros(4 + 2 * len(colours))
+    theta[0], theta[1] = s0, scale
+    theta[2], theta[3] = offsets[0] * 1e3, offsets[2] * 1e3
+    ys = {c: sweeps[c][1][:, sweeps[c][2]] for c in colours}  # [S, P] valid samples
+    masks = {c: sweeps[c][2] for c in colours}
+
+    def z_of(th: np.ndarray, c: int, stages: np.ndarray) -> np.ndarray:
+        off_mm = {0: th[2], 1: 0.0, 2: th[3]}[c]
+        return ((stages - th[0]) * th[1] + off_mm) * STAGE_M_PER_MM
+
+    def dz_dtheta(th: np.ndarray, c: int, stages: np.ndarray) -> np.ndarray:
+        """[S, 4] derivative of z (m) w.r.t. (s0, scale, off_R, off_B)."""
+        j = np.zeros((len(stages), 4))
+        j[:, 0] = -th[1] * STAGE_M_PER_MM
+        j[:, 1] = (stages - th[0]) * STAGE_M_PER_MM
+        if c == 0:
+            j[:, 2] = STAGE_M_PER_MM
+        elif c == 2:
+            j[:, 3] = STAGE_M_PER_MM
+        return j
+
+    # Per image at the last Jacobian: the Gauss-Newton step in its own depth alone (m), which
+    # shows how far each image would rather sit from the fitted line (model mismatch, noise).
+    own_step: dict[int, np.ndarray] = {}
+
+    def evaluate(th: np.ndarray, with_jac: bool
+                 ) -> tuple[float, np.ndarray, np.ndarray, int]:
+        cost = 0.0
+        jtj = np.zeros((len(th), len(th)))
+        jtr = np.zeros(len(th))
+        npix = 0
+        for ci, c in enumerate(colours):
+            stages = sweeps[c][0]
+            z = z_of(th, c, stages)
+            zs = np.concatenate([z, z + DZ_M]) if with_jac else z
+            imgs = models[c].render(zs).numpy()[:, masks[c]]  # [S or 2S, P]
+            n = len(stages)
+            m = imgs[:n]
+            gain, bg = th[4 + ci], th[4 + len(colours) + ci]
+            r = gain * m + bg - ys[c]
+            cost += float((r**2).sum())
+            npix += r.size
+            if not with_jac:
+                continue
+            # Forward difference: its O(DZ_M) error only slows the descent, it cannot move the
+            # minimum (the cost itself is exact).
+            dm_dz = (imgs[n:] - m) / DZ_M
+            dzt = dz_dtheta(th, c, stages)
+            jz = gain * dm_dz  # [S, P]
+            own_step[c] = -(jz * r).sum(axis=1) / np.maximum((jz * jz).sum(axis=1), 1e-300)
+            for i in range(n):
+                cols = np.zeros((r.shape[1], len(th)))
+                cols[:, :4] = gain * dm_dz[i][:, None] * dzt[i][None, :]
+                cols[:, 4 + ci] = m[i]
+                cols[:, 4 + len(colours) + ci] = 1.0
+                jtj += cols.T @ cols
+                jtr += cols.T @ r[i]
+        return cost, jtj, jtr, npix
+
+    # Linear parameters first (gain, background) at the initial depths.
+    for ci, c in enumerate(colours):
+        m = models[c].render(z_of(theta, c, sweeps[c][0])).numpy()[:, masks[c]].ravel()
+        y = ys[c].ravel()
+        a = np.stack([m, np.ones_like(m)], 1)
+        (theta[4 + ci], theta[4 + len(colours) + ci]), *_ = np.linalg.lstsq(a, y, rcond=None)
+
+    free = np.array([i for i in range(len(theta)) if not (i == 1 and scale_std is not None)])
+    lam = 1e-3
+    cost, jtj, jtr, npix = evaluate(theta, True)
+    it = 0
+    for it in range(1, max_iter + 1):
+        a = jtj[np.ix_(free, free)]
+        step = np.zeros_like(theta)
+        step[free] = np.linalg.solve(a + lam * np.diag(np.diag(a)), -jtr[free])
+        trial = theta + step
+        # Converged when no image's depth moves by more than Z_TOL_M.
+        moved = max(float(np.abs(z_of(trial, c, sweeps[c][0]) -
+                                 z_of(theta, c, sweeps[c][0])).max()) for c in colours)
+        new_cost = evaluate(trial, False)[0]
+        say(f"  LM {it}: cost {cost:.6g} -> {new_cost:.6g}, s0 {trial[0]:.5f} mm, scale "
+            f"{trial[1]:.5f}, offsets R {trial[2] * 1e3:.1f} B {trial[3] * 1e3:.1f} um")
+        if new_cost < cost:
+            theta = trial
+            if moved < Z_TOL_M:
+                cost = new_cost
+                break
+            cost, jtj, jtr, npix = evaluate(theta, True)
+            lam = max(lam / 10, 1e-7)
+        elif moved < Z_TOL_M or lam > 1e6:
+            break
+        else:
+            lam *= 10
+    dof = max(1, npix - len(theta))
+    sigma2 = cost / dof
+    a = jtj[np.ix_(free, free)]
+    if not np.isfinite(a).all() or np.linalg.cond(a) > 1e14:
+        raise FocusError("the depth mapping is undetermined by the fine sweeps (singular "
+                         "normal equations: too few in-view dots or stage positions)")
+    std = np.zeros_like(theta)
+    std[free] = np.sqrt(np.clip(np.diag(sigma2 * np.linalg.inv(a)), 0, None))
+    # Honest depth uncertainties: the formal ones above assume the model exact and are far too
+    # small; the scatter of the images' own preferred depths about the fitted line is not.
+    design = np.concatenate([dz_dtheta(theta, c, sweeps[c][0]) for c in colours])
+    e = np.concatenate([own_step[c] for c in colours])
+    dcols = [0, 2, 3] if scale_std is not None else [0, 1, 2, 3]
+    d = design[:, dcols]
+    sol, *_ = np.linalg.lstsq(d, e, rcond=None)
+    s2 = float(((e - d @ sol) ** 2).sum()) / max(1, len(e) - len(dcols))
+    dstd = np.sqrt(np.clip(np.diag(s2 * np.linalg.pinv(d.T @ d)), 0, None))
+    for k, i in enumerate(dcols):
+        std[i] = max(std[i], dstd[k])
+    if scale_std is not None:
+        std[1] = scale_std
+    y_rms = math.sqrt(sum(float((ys[c] ** 2).sum()) for c in colours) / npix)
+    return ModelDepthFit(
+        stage_scale=float(theta[1]), stage_at_slm_mm=float(theta[0]),
+        z_offset_m=(float(theta[2]) * 1e-3, 0.0, float(theta[3]) * 1e-3),
+        stage_scale_std=float(std[1]), stage_at_slm_std_mm=float(std[0]),
+        z_offset_std_m=(float(std[2]) * 1e-3, 0.0, float(std[3]) * 1e-3),
+        gain=tuple(float(theta[4 + i]) for i in range(len(colours))),  # type: ignore[arg-type]
+        rms_rel=math.sqrt(cost / npix) / y_rms, iterations=it)

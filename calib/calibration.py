@@ -1,0 +1,218 @@
+"""The calibration file (`calibration.toml`): versioned, self-describing, validated on load.
+
+What the daemon takes from it: per-colour `PhaseCurve`s and the phase sign (coding), the
+per-colour focus offsets (digital refocus), the depth -> stage mapping (focus), the per-colour
+intensity (amplitude compensation). Aberrations are not fitted yet: the file says so
+(`[aberration] fitted = false`) rather than pretend.
+
+Units follow the keys: `_m`, `_mm`, `_rad`, `_deg`, `_px`. Colours are R, G, B.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import numbers
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nhfd.optics import PhaseCurve
+
+FORMAT = "nhfd-calibration"
+FORMAT_VERSION = 1
+
+
+class CalibrationFileError(ValueError):
+    """A calibration file is missing, corrupt, foreign or from an unknown version."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    wavelengths_m: tuple[float, float, float]
+    pitch_m: float
+    phase_sign: int
+    phase_tables_rad: tuple[tuple[float, ...], ...]
+    phase_table_std_rad: tuple[float, ...]
+    stage_scale: float
+    stage_scale_std: float
+    stage_at_slm_mm: float
+    stage_at_slm_std_mm: float
+    z_offset_m: tuple[float, float, float]
+    z_offset_std_m: tuple[float, float, float]
+    magnification: float
+    magnification_std: float
+    rotation_deg: float
+    rotation_std_deg: float
+    mirror_x: bool
+    shift_px: tuple[float, float]
+    intensity: tuple[float, ...]
+    intensity_std: tuple[float, ...]
+    residuals: dict[str, Any] = field(default_factory=dict)
+    fitted_on: dict[str, Any] = field(default_factory=dict)
+    created: str = ""
+    source: str = ""  # the file it was loaded from ("" when fitted in this process)
+
+    def __post_init__(self) -> None:
+        if self.phase_sign not in (1, -1):
+            raise ValueError(f"phase_sign = {self.phase_sign!r}: must be +1 or -1")
+        for name in ("stage_scale", "magnification", "pitch_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} = {v!r}: must be finite and > 0")
+        for name in ("stage_at_slm_mm", "rotation_deg"):
+            if not math.isfinite(getattr(self, name)):
+                raise ValueError(f"{name} = {getattr(self, name)!r}: must be finite")
+        if len(self.phase_tables_rad) != 3 or len(self.z_offset_m) != 3 or \
+                len(self.intensity) != 3:
+            raise ValueError("phase tables, z offsets and intensities: need one per colour")
+        for c, t in enumerate(self.phase_tables_rad):
+            if len(t) != 256:
+                raise ValueError(f"phase table {c}: {len(t)} values, need 256")
+            PhaseCurve(tuple(t))  # finite and strictly increasing, or ValueError
+        for c, (z, k) in enumerate(zip(self.z_offset_m, self.intensity, strict=True)):
+            if not math.isfinite(z) or abs(z) > 0.05:
+                raise ValueError(f"z_offset_m[{c}] = {z!r}: must be finite, |z| <= 0.05 m")
+            if not (math.isfinite(k) and k > 0):
+                raise ValueError(f"intensity[{c}] = {k!r}: must be finite and > 0")
+
+    # -- what the daemon uses ------------------------------------------------------------------
+
+    def phase_curves(self) -> list[PhaseCurve]:
+        return [PhaseCurve(tuple(t)) for t in self.phase_tables_rad]
+
+    def relative_intensity(self) -> tuple[float, float, float]:
+        """Per-colour intensity relative to green."""
+        g = self.intensity[1]
+        return tuple(k / g for k in self.intensity)  # type: ignore[return-value]
+
+    def amplitude_gain(self) -> tuple[float, float, float]:
+        """Per-colour amplitude factors (<= 1) that equalise the colours' intensity: the
+        brightest colour is attenuated to the dimmest."""
+        k_min = min(self.intensity)
+        return tuple(math.sqrt(k_min / k) for k in self.intensity)  # type: ignore[return-value]
+
+    def stage_mm_for(self, z_m: float, colour: int = 1) -> float:
+        """The stage reading at which colour `colour` images distance `z_m` from the SLM."""
+        if not math.isfinite(z_m):
+            raise ValueError(f"z_m = {z_m!r}: must be finite")
+        return self.stage_at_slm_mm + (z_m - self.z_offset_m[colour]) / self.stage_scale * 1e3
+
+    def refocus_m(self, colour: int) -> float:
+        """Digital refocus per colour that puts every colour's focus where green's is: a colour
+        imaged `z_offset` beyond the stage's plane is shown that much nearer."""
+        return -(self.z_offset_m[colour] - self.z_offset_m[1])
+
+    @property
+    def label(self) -> str:
+        return f"{self.source or '(unsaved)'} fitted {self.created or 'now'}"
+
+    # -- file ----------------------------------------------------------------------------------
+
+    def to_toml(self) -> str:
+        created = self.created or _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+        doc: dict[str, Any] = {
+            "format": FORMAT, "version": FORMAT_VERSION, "created": created,
+            "bench": {"wavelengths_m": list(self.wavelengths_m), "pitch_m": self.pitch_m},
+            "phase": {"sign": self.phase_sign,
+                      "table_std_rad": list(self.phase_table_std_rad),
+                      "R_rad": list(self.phase_tables_rad[0]),
+                      "G_rad": list(self.phase_tables_rad[1]),
+                      "B_rad": list(self.phase_tables_rad[2])},
+            "depth": {"stage_scale": self.stage_scale, "stage_scale_std": self.stage_scale_std,
+                      "stage_at_slm_mm": self.stage_at_slm_mm,
+                      "stage_at_slm_std_mm": self.stage_at_slm_std_mm,
+                      "z_offset_m": list(self.z_offset_m),
+                      "z_offset_std_m": list(self.z_offset_std_m)},
+            "geometry": {"magnification": self.magnification,
+                         "magnification_std": self.magnification_std,
+                         "rotation_deg": self.rotation_deg,
+                         "rotation_std_deg": self.rotation_std_deg,
+                         "mirror_x": self.mirror_x, "shift_px": list(self.shift_px)},
+            "intensity": {"per_second": list(self.intensity),
+                          "per_second_std": list(self.intensity_std)},
+            "aberration": {"fitted": False},
+            "residuals": dict(self.residuals),
+            "fitted_on": dict(self.fitted_on),
+        }
+        return _dump(doc)
+
+    def save(self, path: Path | str) -> Path:
+        path = Path(path)
+        tmp = path.with_name(f".{path.name}.tmp")
+        tmp.write_text(self.to_toml())
+        tmp.replace(path)
+        return path
+
+    @classmethod
+    def load(cls, path: Path | str) -> Calibration:
+        path = Path(path)
+        if not path.is_file():
+            raise CalibrationFileError(f"calibration file {path}: not found")
+        try:
+            doc = tomllib.loads(path.read_text())
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            raise CalibrationFileError(f"calibration file {path}: corrupt ({exc})") from None
+        if doc.get("format") != FORMAT:
+            raise CalibrationFileError(f"calibration file {path}: not an nhfd calibration "
+                                       f"(format = {doc.get('format')!r})")
+        if doc.get("version") != FORMAT_VERSION:
+            raise CalibrationFileError(f"calibration file {path}: version "
+                                       f"{doc.get('version')!r}, this nhfd reads "
+                                       f"{FORMAT_VERSION}")
+        try:
+            ph, dp, ge, it = doc["phase"], doc["depth"], doc["geometry"], doc["intensity"]
+            return cls(
+                wavelengths_m=tuple(doc["bench"]["wavelengths_m"]),
+                pitch_m=doc["bench"]["pitch_m"],
+                phase_sign=ph["sign"],
+                phase_tables_rad=tuple(tuple(ph[f"{c}_rad"]) for c in "RGB"),
+                phase_table_std_rad=tuple(ph["table_std_rad"]),
+                stage_scale=dp["stage_scale"], stage_scale_std=dp["stage_scale_std"],
+                stage_at_slm_mm=dp["stage_at_slm_mm"],
+                stage_at_slm_std_mm=dp["stage_at_slm_std_mm"],
+                z_offset_m=tuple(dp["z_offset_m"]),
+                z_offset_std_m=tuple(dp["z_offset_std_m"]),
+                magnification=ge["magnification"], magnification_std=ge["magnification_std"],
+                rotation_deg=ge["rotation_deg"], rotation_std_deg=ge["rotation_std_deg"],
+                mirror_x=ge["mirror_x"], shift_px=tuple(ge["shift_px"]),
+                intensity=tuple(it["per_second"]), intensity_std=tuple(it["per_second_std"]),
+                residuals=doc.get("residuals", {}), fitted_on=doc.get("fitted_on", {}),
+                created=str(doc.get("created", "")), source=str(path),
+            )
+        except (KeyError, TypeError) as exc:
+            raise CalibrationFileError(f"calibration file {path}: missing or malformed key "
+                                       f"{exc}") from None
+        except ValueError as exc:
+            raise CalibrationFileError(f"calibration file {path}: {exc}") from None
+
+
+# -- a minimal TOML writer (tomllib reads; the standard library has no writer) ------------------
+
+def _value(v: Any) -> str:
+    if isinstance(v, bool | np.bool_):
+        return "true" if v else "false"
+    if isinstance(v, numbers.Integral):
+        return str(int(v))
+    if isinstance(v, numbers.Real):  # numpy scalars too
+        if not math.isfinite(v):
+            raise ValueError(f"cannot write {v!r} to a calibration file")
+        return repr(float(v))
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"').replace("\n", "\\n") + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {type(v).__name__} to TOML")
+
+
+def _dump(doc: dict[str, Any], prefix: str = "") -> str:
+    lines = [f"{k} = {_value(v)}" for k, v in doc.items() if not isinstance(v, dict)]
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for k, v in doc.items():
+        if isinstance(v, dict):
+            name = f"{prefix}{k}"
+            out += f"\n[{name}]\n" + _dump(v, f"{name}.")
+    return out

@@ -1,0 +1,284 @@
+"""Capture calibration focal stacks into a directory with a manifest.
+
+The capture talks to the bench through `BenchIO` (show a frame, move the stage, set the lasers,
+capture a linear dark-subtracted image). `SimBenchIO` drives the twins directly (a `TrueBench`
+and a `SimulatedCamera`); `nhfd.calib.daemon_io.DaemonBenchIO` drives a running daemon.
+
+Layout of a capture directory:
+
+    manifest.json          what was shown, where and how (see `Manifest`), rewritten after
+                           every image so an interrupted capture resumes where it stopped
+    frames/NAME.npy        every SLM frame shown, uint8 [H, W, 3]
+    images/KEY.npz         `image` float32 (linear, dark subtracted), `saturated` bool
+    dark.npz               the dark frame (lasers off)
+
+Procedure: dark frame; a coarse green sweep over the user's stage range to locate the SLM plane
+and the magnification (from the in-focus dots); a fine sweep per colour around it covering every
+dot depth; the grating frames per colour at the located SLM plane.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+from .patterns import PatternSpec, dots_frame, grating_frames
+
+MANIFEST = "manifest.json"
+MANIFEST_VERSION = 1
+COLOURS = ("R", "G", "B")
+
+
+class CaptureError(RuntimeError):
+    """The capture cannot go on (existing data without --force, a foreign manifest...)."""
+
+
+class BenchIO(Protocol):
+    """What the capture needs from a bench. Images are linear float32 [h, w], dark subtracted
+    once `capture_dark` has run (mono camera)."""
+
+    def show(self, frame: np.ndarray) -> None: ...
+    def move_stage(self, position_mm: float) -> float: ...
+    def set_lasers(self, powers: tuple[float, float, float]) -> None: ...
+    def capture_dark(self, frames: int) -> np.ndarray: ...
+    def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]: ...
+
+
+class SimBenchIO:
+    """The twins driven directly: a `SimulatedCamera` imaging whatever was last shown.
+
+    `roi` defaults to the sensor region that holds the panel's image (what a lab sets once)."""
+
+    def __init__(self, bench: Any, panel_hw: tuple[int, int], *, exposure_s: float = 0.005,
+                 roi: tuple[int, int, int, int] | None = None, noise_seed: int = 0) -> None:
+        from nhfd.drivers.settings import CameraSettings
+        from nhfd.drivers.simcamera import SimulatedCamera
+
+        self.bench = bench
+        self.frame = np.zeros((*panel_hw, 3), np.uint8)
+        self.powers = (0.0, 0.0, 0.0)
+        self.stage_mm = float(bench.stage_at_slm_mm)
+        class _Camera(SimulatedCamera):
+            # The panel's field depends on the frame only, not on the stage: a sweep shows one
+            # frame at many positions, so remember the last one (the twin recomputes it).
+            _memo: tuple[bytes, Any] | None = None
+
+            def panel_field(self, frame: np.ndarray) -> Any:
+                key = hashlib.blake2b(np.ascontiguousarray(frame).tobytes(),
+                                      digest_size=16).digest()
+                if self._memo is None or self._memo[0] != key:
+                    self._memo = (key, super().panel_field(frame))
+                return self._memo[1]
+
+        self.camera = _Camera(
+            lambda: self.frame, lambda: self.powers, lambda: self.stage_mm, bench,
+            CameraSettings(exposure_s=exposure_s, channels="mono"),
+            roi=roi or bench.roi_for_panel(panel_hw))
+        self.camera.reseed(noise_seed)
+        self.camera.open()
+
+    def show(self, frame: np.ndarray) -> None:
+        self.frame = np.ascontiguousarray(frame, dtype=np.uint8)
+
+    def move_stage(self, position_mm: float) -> float:
+        self.stage_mm = float(position_mm)
+        return self.stage_mm
+
+    def set_lasers(self, powers: tuple[float, float, float]) -> None:
+        self.powers = tuple(float(p) for p in powers)  # type: ignore[assignment]
+
+    def capture_dark(self, frames: int) -> np.ndarray:
+        return self.camera.capture_dark(frames)
+
+    def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        cap = self.camera.capture(frames)
+        return cap.image, cap.saturated
+
+    @property
+    def exposure_s(self) -> float:
+        return self.camera.exposure_s
+
+
+@dataclass
+class CapturePlan:
+    """User choices. Stage positions in mm; `depth_margin_m` widens the fine sweep beyond the
+    dot depths (SLM space) so each dot's focus curve is sampled on both sides."""
+
+    stage_center_mm: float = 10.0
+    stage_range_mm: float = 2.5
+    coarse_step_mm: float = 0.25
+    fine_steps: int = 17
+    depth_margin_m: float = 1.2e-3
+    burst: int = 1
+    power: float = 1.0
+    exposure_s: float = 0.005
+    # The camera's pixel pitch (sensor metres): turns pixels per SLM metre into magnification.
+    camera_pitch_m: float = 3.45e-6
+
+    def __post_init__(self) -> None:
+        for name in ("stage_range_mm", "coarse_step_mm", "depth_margin_m", "exposure_s",
+                     "camera_pitch_m"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} = {v!r}: must be finite and > 0")
+        if self.fine_steps < 1:
+            raise ValueError(f"fine_steps = {self.fine_steps}: must be >= 1")
+        if not 0 < self.power <= 1:
+            raise ValueError(f"power = {self.power}: must be in (0, 1]")
+        if self.burst < 1:
+            raise ValueError(f"burst = {self.burst}: must be >= 1")
+
+
+def _write_json(path: Path, data: dict[str, Any]) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+def _save_npz(path: Path, **arrays: np.ndarray) -> None:
+    tmp = path.with_name(f".{path.stem}.tmp.npz")
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+class Capture:
+    """One capture directory being written (resumable)."""
+
+    def __init__(self, out: Path, io: BenchIO, spec: PatternSpec, plan: CapturePlan,
+                 *, force: bool = False, progress: Callable[[str], None] | None = None) -> None:
+        self.out = Path(out)
+        self.io = io
+        self.spec = spec
+        self.plan = plan
+        self.progress = progress or (lambda _msg: None)
+        manifest = self.out / MANIFEST
+        if manifest.exists() and not force:
+            old = json.loads(manifest.read_text())
+            if old.get("kind") != "nhfd-calib-capture":
+                raise CaptureError(f"{manifest}: not an nhfd calibration capture")
+            if old.get("complete"):
+                raise CaptureError(f"{self.out} holds a complete capture: use --force to "
+                                   "overwrite it")
+            if old.get("spec") != spec.to_dict():
+                raise CaptureError(f"{self.out} holds an interrupted capture of other patterns:"
+                                   " use --force to start again")
+            self.manifest = old
+            self.progress(f"resuming: {len(old['records'])} images already captured")
+        else:
+            if self.out.exists() and any(self.out.iterdir()) and not force and \
+                    not manifest.exists():
+                raise CaptureError(f"{self.out} exists and is not empty: use --force")
+            self.manifest = {
+                "kind": "nhfd-calib-capture", "version": MANIFEST_VERSION, "complete": False,
+                "spec": spec.to_dict(), "plan": plan.__dict__.copy(), "frames": {},
+                "records": [], "dark": None, "located": None,
+            }
+        (self.out / "images").mkdir(parents=True, exist_ok=True)
+        (self.out / "frames").mkdir(exist_ok=True)
+        self._done = {r["key"] for r in self.manifest["records"]}
+
+    # -- helpers -----------------------------------------------------------------------------
+
+    def _save(self) -> None:
+        _write_json(self.out / MANIFEST, self.manifest)
+
+    def _frame(self, name: str, frame: np.ndarray) -> None:
+        path = self.out / "frames" / f"{name}.npy"
+        np.save(path, frame)
+        self.manifest["frames"][name] = f"frames/{name}.npy"
+
+    def _shoot(self, key: str, frame_name: str, frame: np.ndarray, colour: int,
+               stage_mm: float, **extra: Any) -> None:
+        if key in self._done:
+            return
+        self.io.show(frame)
+        actual = self.io.move_stage(stage_mm)
+        powers = [0.0, 0.0, 0.0]
+        powers[colour] = self.plan.power
+        self.io.set_lasers(tuple(powers))  # type: ignore[arg-type]
+        image, saturated = self.io.capture(self.plan.burst)
+        self.io.set_lasers((0.0, 0.0, 0.0))
+        _save_npz(self.out / "images" / f"{key}.npz", image=image.astype(np.float32),
+                  saturated=saturated.astype(bool))
+        self.manifest["records"].append({
+            "key": key, "file": f"images/{key}.npz", "frame": frame_name, "colour": colour,
+            "stage_mm": float(actual), "exposure_s": self.plan.exposure_s,
+            "powers": powers, "burst": self.plan.burst,
+            "saturated_fraction": float(saturated.mean()), **extra})
+        self._done.add(key)
+        self._save()
+
+    # -- the procedure -------------------------------------------------------------------------
+
+    def run(self) -> dict[str, Any]:
+        from nhfd.optics import PhaseCurve
+
+        from .fit import geometry_from, locate, measure_response  # late: torch
+
+        p = self.plan
+        if self.manifest["dark"] is None:
+            self.io.set_lasers((0.0, 0.0, 0.0))
+            dark = self.io.capture_dark(max(p.burst, 4))
+            _save_npz(self.out / "dark.npz", image=dark.astype(np.float32))
+            self.manifest["dark"] = "dark.npz"
+            self._save()
+        self.progress("computing the dot hologram")
+        dots = dots_frame(self.spec)
+        self._frame("dots", dots)
+        n = round(2 * p.stage_range_mm / p.coarse_step_mm) + 1
+        coarse = np.linspace(p.stage_center_mm - p.stage_range_mm,
+                             p.stage_center_mm + p.stage_range_mm, n)
+        for k, s in enumerate(coarse):
+            self._shoot(f"coarse_G_{k:03d}", "dots", dots, 1, float(s), sweep="coarse")
+        self.progress(f"coarse sweep: {n} images")
+        if self.manifest["located"] is None:
+            recs = [r for r in self.manifest["records"] if r.get("sweep") == "coarse"]
+            self.manifest["located"] = locate(self.out, self.spec, recs, p.camera_pitch_m)
+            self._save()
+        loc = self.manifest["located"]
+        s0, scale = loc["stage_at_slm_mm"], loc["stage_scale"]
+        # Gratings first: their response curves code the dots of the fine sweep, so the dots
+        # carry little coding haze (whose interference with a dot skews its focus curve).
+        for f, frame in enumerate(grating_frames(self.spec)):
+            name = f"grating_{f:02d}"
+            self._frame(name, frame)
+            for c in range(3):
+                self._shoot(f"{name}_{COLOURS[c]}", name, frame, c, float(s0),
+                            sweep="grating", grating_frame=f)
+        recs = [r for r in self.manifest["records"] if r.get("sweep") == "grating"]
+        curves = [PhaseCurve(tuple(t)) for t in
+                  measure_response(self.out, self.spec, recs, geometry_from(loc)).tables_rad]
+        pair = {"dots_fine": dots_frame(self.spec, curves),
+                "dots_fine_pi": dots_frame(self.spec, curves, math.pi)}
+        for name, frame in pair.items():
+            self._frame(name, frame)
+        zmin = min(self.spec.depths_m) - p.depth_margin_m
+        zmax = max(self.spec.depths_m) + p.depth_margin_m
+        fine = s0 + np.linspace(zmin, zmax, p.fine_steps) / scale * 1e3 if p.fine_steps > 1 \
+            else np.array([s0])
+        for c in range(3):
+            for k, s in enumerate(fine):
+                for name, frame in pair.items():
+                    self._shoot(f"fine_{COLOURS[c]}_{k:03d}{name[9:]}", name, frame, c,
+                                float(s), sweep="fine", step=k)
+            self.progress(f"fine sweep {COLOURS[c]}: {len(fine)} positions x 2 frames")
+        self.manifest["complete"] = True
+        self._save()
+        self.progress(f"capture complete: {len(self.manifest['records'])} images in {self.out}")
+        return self.manifest
+
+
+def capture(out: Path | str, io: BenchIO, spec: PatternSpec, plan: CapturePlan | None = None,
+            *, force: bool = False, progress: Callable[[str], None] | None = None
+            ) -> dict[str, Any]:
+    """Capture (or resume) a calibration data set into `out`; returns the manifest."""
+    return Capture(Path(out), io, spec, plan or CapturePlan(), force=force,
+                   progress=progress).run()

@@ -1,0 +1,79 @@
+"""Reading a capture directory back, with errors that name the file at fault."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .capture import MANIFEST, MANIFEST_VERSION
+from .patterns import PatternSpec
+
+
+class CalibrationDataError(ValueError):
+    """A capture directory is missing, foreign, incomplete or corrupt; the message names it."""
+
+
+@dataclass
+class CaptureData:
+    root: Path
+    manifest: dict[str, Any]
+    spec: PatternSpec
+
+    def records(self, sweep: str, colour: int | None = None) -> list[dict[str, Any]]:
+        return [r for r in self.manifest["records"] if r.get("sweep") == sweep
+                and (colour is None or r["colour"] == colour)]
+
+    def image(self, rec: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """(linear image [h, w] float64, saturated mask [h, w] bool) of one record."""
+        return load_image(self.root / rec["file"], rec["key"])
+
+
+def load_image(path: Path, key: str = "") -> tuple[np.ndarray, np.ndarray]:
+    name = f"{path} (capture {key!r})" if key else str(path)
+    if not path.is_file():
+        raise CalibrationDataError(f"{name}: missing")
+    try:
+        with np.load(path) as z:
+            image = np.asarray(z["image"], np.float64)
+            sat = np.asarray(z["saturated"], bool) if "saturated" in z else \
+                np.zeros(image.shape, bool)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile) as exc:
+        raise CalibrationDataError(f"{name}: corrupt or unreadable ({exc})") from None
+    if image.ndim != 2 or image.size == 0:
+        raise CalibrationDataError(f"{name}: expected a 2-D mono image, got {image.shape}")
+    if not np.isfinite(image).all():
+        raise CalibrationDataError(f"{name}: holds NaN or Inf")
+    if sat.shape != image.shape:
+        raise CalibrationDataError(f"{name}: saturation mask {sat.shape} != image {image.shape}")
+    return image, sat
+
+
+def load_capture(root: Path | str) -> CaptureData:
+    root = Path(root)
+    path = root / MANIFEST
+    if not path.is_file():
+        raise CalibrationDataError(f"{path}: missing (not a calibration capture directory)")
+    try:
+        manifest = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise CalibrationDataError(f"{path}: corrupt ({exc})") from None
+    if not isinstance(manifest, dict) or manifest.get("kind") != "nhfd-calib-capture":
+        raise CalibrationDataError(f"{path}: not an nhfd calibration capture manifest")
+    if manifest.get("version") != MANIFEST_VERSION:
+        raise CalibrationDataError(f"{path}: manifest version {manifest.get('version')!r}, "
+                                   f"this nhfd reads {MANIFEST_VERSION}")
+    if not manifest.get("complete"):
+        raise CalibrationDataError(f"{path}: the capture is incomplete (resume it with "
+                                   "`nhfd calib capture --out DIR`)")
+    try:
+        spec = PatternSpec.from_dict(manifest["spec"])
+        for r in manifest["records"]:
+            r["key"], r["file"], r["colour"], r["stage_mm"]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise CalibrationDataError(f"{path}: malformed manifest ({exc!r})") from None
+    return CaptureData(root, manifest, spec)

@@ -1,0 +1,209 @@
+"""The calibration fit: geometry -> depth mapping and sign -> phase response and intensity.
+
+`fit_capture(DIR)` reads a complete capture (see `nhfd.calib.capture`) and returns a
+`Calibration` (see `nhfd.calib.calibration`). Each stage refuses with a clear error when the
+data cannot determine what it fits (`GeometryError`, `FocusError`, `ResponseError`,
+`CalibrationDataError` naming the file at fault).
+"""
+
+from __future__ import annotations
+
+import hashlib
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .calibration import Calibration
+from .data import CaptureData, load_capture, load_image
+from .focus import FocusError, dot_metric, fit_depth, peak_position
+from .geometry import Geometry, fit_geometry
+from .patterns import PatternSpec, dot_layout, grating_tiles
+from .response import ResponseError, ResponseFit, fit_curve, tile_harmonic
+
+COLOURS = ("R", "G", "B")
+
+
+def _stack(data: CaptureData, recs: list[dict[str, Any]]) -> tuple[np.ndarray, np.ndarray]:
+    recs = sorted(recs, key=lambda r: r["stage_mm"])
+    images = [data.image(r)[0] for r in recs]
+    shapes = {im.shape for im in images}
+    if len(shapes) != 1:
+        raise ValueError(f"capture images differ in shape: {sorted(shapes)}")
+    return np.asarray([r["stage_mm"] for r in recs]), np.stack(images)
+
+
+def _dot_radius_px(geo: Geometry, spec: PatternSpec) -> float:
+    # About one SLM pixel on the camera: the in-focus spot's core.
+    return max(1.5, spec.pitch_m * geo.px_per_m)
+
+
+def _peaks(stages: np.ndarray, stack: np.ndarray, geo: Geometry, spec: PatternSpec
+           ) -> list[tuple[int, float]]:
+    """(depth group, peak stage mm) per dot whose focus the sweep brackets."""
+    lay = dot_layout(spec)
+    metric = dot_metric(stack, geo.to_camera(lay.xy_m), _dot_radius_px(geo, spec))
+    out = []
+    for k in range(len(lay.xy_m)):
+        p = peak_position(stages, metric[:, k])
+        if p is not None:
+            out.append((int(lay.group[k]), p))
+    return out
+
+
+def locate(root: Path | str, spec: PatternSpec, records: list[dict[str, Any]],
+           camera_pitch_m: float) -> dict[str, float]:
+    """From the coarse green sweep: the magnification (in-focus dots) and the stage reading
+    that images the SLM plane (the peak of the dots designed at depth 0). The stage scale is
+    estimated as 1 / M^2 for planning the fine sweep only."""
+    if 0.0 not in spec.depths_m:
+        raise FocusError("locating the SLM plane needs a dot group at depth 0")
+    data = CaptureData(Path(root), {"records": records}, spec)
+    stages, stack = _stack(data, records)
+    geo, _, _ = fit_geometry(stack.max(axis=0), dot_layout(spec))
+    g0 = spec.depths_m.index(0.0)
+    peaks = [s for g, s in _peaks(stages, stack, geo, spec) if g == g0]
+    if not peaks:
+        raise FocusError("the coarse sweep does not bracket the SLM plane's focus: widen "
+                         "--stage-range or move --stage-center")
+    m = geo.magnification(camera_pitch_m)
+    return {"stage_at_slm_mm": float(np.median(peaks)), "stage_scale": 1.0 / m**2,
+            "magnification": m, "px_per_m": geo.px_per_m, "rotation_deg": geo.rotation_deg,
+            "mirror_x": geo.mirror_x, "shift_px": list(geo.shift_px)}
+
+
+def geometry_from(loc: dict[str, Any]) -> Geometry:
+    """The coarse geometry that `locate` recorded in the manifest."""
+    return Geometry(loc["px_per_m"], loc["rotation_deg"], bool(loc["mirror_x"]),
+                    tuple(loc["shift_px"]), 0.0, 0, 0.0, 0.0)  # type: ignore[arg-type]
+
+
+def _fine_stack(data: CaptureData, colour: int) -> tuple[np.ndarray, np.ndarray]:
+    """Stage positions [S] and images [S, h, w] of a colour's fine sweep, each the mean of the
+    dot hologram and its negated twin (the pair cancels the dots' interference with light the
+    coding does not control, which would otherwise skew the focus curves)."""
+    recs = data.records("fine", colour)
+    if not recs:
+        raise FocusError(f"no fine-sweep images for colour {COLOURS[colour]}")
+    steps: dict[int, list[dict[str, Any]]] = {}
+    for r in recs:
+        steps.setdefault(int(r.get("step", len(steps))), []).append(r)
+    stages, images = [], []
+    for k in sorted(steps):
+        group = steps[k]
+        stages.append(float(np.mean([r["stage_mm"] for r in group])))
+        images.append(np.mean([data.image(r)[0] for r in group], axis=0))
+    order = np.argsort(stages)
+    return np.asarray(stages)[order], np.stack(images)[order]
+
+
+def measure_response(root: Path | str, spec: PatternSpec, records: list[dict[str, Any]],
+                     geo: Geometry) -> ResponseFit:
+    """Phase tables and intensities per colour from the grating captures."""
+    data = CaptureData(Path(root), {"records": records}, spec)
+    tiles = grating_tiles(spec)
+    tables, stds, ks, k_stds, rms, counts = [], [], [], [], [], []
+    for c in range(3):
+        ref, test, meas = [], [], []
+        for rec in data.records("grating", c):
+            image, _ = data.image(rec)
+            rate = rec["exposure_s"] * max(rec["powers"])
+            for t in tiles:
+                if t.frame != rec.get("grating_frame"):
+                    continue
+                v = tile_harmonic(image, t, geo, spec.pitch_m, spec.panel_hw)
+                if v is not None:
+                    ref.append(t.ref)
+                    test.append(t.test)
+                    meas.append(v / rate)
+        if not meas:
+            raise ResponseError(f"colour {COLOURS[c]}: no grating tile in view")
+        table, std, k, k_std, res = fit_curve(np.asarray(ref), np.asarray(test),
+                                              np.asarray(meas), spec.strokes_rad[c])
+        tables.append(tuple(float(v) for v in table))
+        stds.append(std)
+        ks.append(k)
+        k_stds.append(k_std)
+        rms.append(res)
+        counts.append(len(meas))
+    return ResponseFit(tuple(tables), tuple(stds), tuple(ks), tuple(k_stds),  # type: ignore
+                       tuple(rms), tuple(counts))  # type: ignore[arg-type]
+
+
+def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
+                ) -> Calibration:
+    say = progress or (lambda _m: None)
+    data = load_capture(root)
+    spec = data.spec
+    plan = data.manifest.get("plan", {})
+    camera_pitch_m = float(plan.get("camera_pitch_m", 3.45e-6))
+    if data.manifest.get("dark"):
+        load_image(data.root / data.manifest["dark"], "dark")  # present and readable
+    lay = dot_layout(spec)
+
+    # 1. Geometry from the in-focus dots of every colour's fine sweep (max over the stack).
+    stacks = {c: _fine_stack(data, c) for c in range(3)}
+    geo, _pts, _idx = fit_geometry(stacks[1][1].max(axis=0), lay)
+    mag = geo.magnification(camera_pitch_m)
+    say(f"geometry: M = {mag:.5f}, rotation {geo.rotation_deg:.3f} deg, mirror "
+        f"{geo.mirror_x}, {geo.n_dots} dots, rms {geo.rms_px:.3f} px")
+
+    # 2. Depth mapping and sign from each dot's focus.
+    triples = []
+    for c in range(3):
+        stages, stack = stacks[c]
+        if len(np.unique(np.round(stages, 6))) < 2:
+            raise FocusError(f"colour {COLOURS[c]}: captured at one stage position only: the "
+                             "stage scale is undetermined")
+        for g, s in _peaks(stages, stack, geo, spec):
+            triples.append((c, spec.depths_m[g], s))
+    depth = fit_depth(triples)
+    say(f"depth: sign {depth.phase_sign:+d}, scale {depth.stage_scale:.5f} "
+        f"(1/M^2 = {1 / mag**2:.5f}), stage at SLM {depth.stage_at_slm_mm:.4f} mm, offsets "
+        f"{[round(z * 1e6, 1) for z in depth.z_offset_m]} um, rms {depth.rms_mm * 1e3:.1f} um")
+
+    # 3. Phase response and intensity from the gratings.
+    resp = measure_response(data.root, spec, data.records("grating"), geo)
+    for c in range(3):
+        say(f"response {COLOURS[c]}: range {resp.tables_rad[c][-1]:.3f} rad "
+            f"(+- {resp.table_std_rad[c]:.3f} RMS), K {resp.intensity[c]:.4g}, residual "
+            f"{resp.rms_residual[c]:.3%} of K, {resp.n_tiles[c]} tiles")
+    tables, stds, ks, k_stds = (resp.tables_rad, resp.table_std_rad, resp.intensity,
+                                resp.intensity_std)
+    rms, counts = resp.rms_residual, list(resp.n_tiles)
+
+    digest = hashlib.sha256((data.root / "manifest.json").read_bytes()).hexdigest()[:16]
+    return Calibration(
+        wavelengths_m=spec.wavelengths_m,
+        pitch_m=spec.pitch_m,
+        phase_sign=depth.phase_sign,
+        phase_tables_rad=tuple(tables),
+        phase_table_std_rad=tuple(stds),
+        stage_scale=depth.stage_scale,
+        stage_scale_std=depth.stage_scale_std,
+        stage_at_slm_mm=depth.stage_at_slm_mm,
+        stage_at_slm_std_mm=depth.stage_at_slm_std_mm,
+        z_offset_m=depth.z_offset_m,
+        z_offset_std_m=depth.z_offset_std_m,
+        magnification=mag,
+        magnification_std=geo.px_per_m_std * camera_pitch_m,
+        rotation_deg=geo.rotation_deg,
+        rotation_std_deg=geo.rotation_std_deg,
+        mirror_x=geo.mirror_x,
+        shift_px=geo.shift_px,
+        intensity=tuple(ks),
+        intensity_std=tuple(k_stds),
+        residuals={"geometry_rms_px": geo.rms_px, "focus_rms_mm": depth.rms_mm,
+                   "response_rms_rel": [float(v) for v in rms],
+                   "longitudinal_vs_lateral": depth.stage_scale * mag**2 - 1.0,
+                   "sign_margin_sigma": depth.sign_margin},
+        fitted_on={"capture": str(Path(root).resolve()), "manifest_sha256_16": digest,
+                   "images": len(data.manifest["records"]), "dots": geo.n_dots,
+                   "focus_peaks": depth.n_peaks, "grating_tiles": counts,
+                   "camera_pitch_m": camera_pitch_m, "panel_hw": list(spec.panel_hw)},
+    )
+
+
+__all__ = ["fit_capture", "locate"]
+

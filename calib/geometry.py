@@ -1,0 +1,221 @@
+"""Camera geometry from the dot hologram: detect dots, identify them, fit a similarity.
+
+The camera sees the SLM plane through `camera_px = A @ xy_m + t` with `A = k R(theta) F`, where
+`k` is camera pixels per SLM metre (`magnification / camera_pitch_m`), `R` a rotation (about 180
+degrees for a 4f relay) and `F = diag(-1, 1)` when a fold mirror flips x (else the identity).
+Camera pixel coordinates are (col, row) with pixel centres at integers; SLM coordinates are
+metres from the panel centre (x along columns, y along rows), as in `nhfd.drivers.simcamera`.
+
+Dots are identified without assuming the rotation: the lattice's spacing and orientation (modulo
+90 degrees) come from nearest-neighbour vectors, every detected dot gets integer lattice
+coordinates, and the eight symmetries of the square lattice and every translation are scored
+against the layout's pattern of empty sites (which has no symmetry), so a mirror or a 180 degree
+turn is found, not assumed, and part of the lattice may be out of view.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+from .patterns import DotLayout
+
+
+class GeometryError(ValueError):
+    """The dots do not determine the geometry (too few, ambiguous); the message says why."""
+
+
+MIN_DOTS = 6
+
+
+def smooth(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Separable Gaussian blur (reflecting edges) of a 2-D float image."""
+    r = max(1, math.ceil(3 * sigma_px))
+    k = np.exp(-0.5 * (np.arange(-r, r + 1) / sigma_px) ** 2)
+    k /= k.sum()
+    a = np.pad(np.asarray(image, np.float64), r, mode="reflect")
+    a = np.apply_along_axis(lambda v: np.convolve(v, k, mode="valid"), 0, a)
+    return np.apply_along_axis(lambda v: np.convolve(v, k, mode="valid"), 1, a)
+
+
+def detect_dots(image: np.ndarray, *, threshold: float = 0.4, radius_px: int = 4
+                ) -> np.ndarray:
+    """Bright compact spots -> centroids [N, 2] (col, row), camera pixels.
+
+    The image is band-passed (difference of Gaussians, 1.2 and 5 px) so the coding haze and the
+    zero order's smooth background drop out; a local maximum (within `radius_px`) counts when it
+    reaches `threshold` of the median of the ten strongest maxima (a robust "dot height" that a
+    few hot or saturated pixels cannot set). Centroids are intensity means over a
+    (2 radius + 1)^2 window of the band-passed image, clipped at zero."""
+    img = np.nan_to_num(np.asarray(image, np.float64))
+    if img.ndim != 2:
+        raise GeometryError(f"dot image must be 2-D, got shape {img.shape}")
+    s = smooth(img, 1.2) - smooth(img, 5.0)
+    r = radius_px
+    padded = np.pad(s, r, mode="constant", constant_values=-np.inf)
+    local_max = sliding_window_view(padded, (2 * r + 1, 2 * r + 1)).max(axis=(-2, -1))
+    cand = np.argwhere((s >= local_max) & (s > 0))
+    if len(cand) == 0:
+        return np.zeros((0, 2))
+    values = np.sort(s[cand[:, 0], cand[:, 1]])[::-1]
+    height = float(np.median(values[:10]))
+    peaks = cand[s[cand[:, 0], cand[:, 1]] >= threshold * height]
+    h, w = img.shape
+    out = []
+    for row, col in peaks:
+        r0, r1 = max(0, row - r), min(h, row + r + 1)
+        c0, c1 = max(0, col - r), min(w, col + r + 1)
+        if r1 - r0 < 2 * r + 1 or c1 - c0 < 2 * r + 1:
+            continue  # cut by the image edge: its centroid would be biased
+        win = np.clip(s[r0:r1, c0:c1], 0, None)
+        total = win.sum()
+        if total <= 0:
+            continue
+        rr, cc = np.mgrid[r0:r1, c0:c1]
+        out.append(((cc * win).sum() / total, (rr * win).sum() / total))
+    return np.asarray(out, np.float64).reshape(-1, 2)
+
+
+# The eight symmetries of the square lattice as integer matrices acting on (i, j).
+_D4 = [np.array(m) for m in (
+    [[1, 0], [0, 1]], [[0, -1], [1, 0]], [[-1, 0], [0, -1]], [[0, 1], [-1, 0]],
+    [[-1, 0], [0, 1]], [[0, 1], [1, 0]], [[1, 0], [0, -1]], [[0, -1], [-1, 0]])]
+
+
+def identify_dots(points: np.ndarray, layout: DotLayout) -> np.ndarray:
+    """Index into the layout for each detected point (-1: not a dot of the layout)."""
+    n = len(points)
+    if n < MIN_DOTS:
+        raise GeometryError(f"found {n} dots, need at least {MIN_DOTS}: is the dot hologram "
+                            "in view and lit?")
+    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    np.fill_diagonal(d, np.inf)
+    nn = d.argmin(axis=1)
+    vec = points[nn] - points
+    length = np.linalg.norm(vec, axis=1)
+    spacing = float(np.median(length))
+    # Orientation modulo 90 degrees: the mean of exp(4 i phi) over the lattice steps.
+    steps = np.abs(length / spacing - 1) < 0.2
+    phi = np.arctan2(vec[steps, 1], vec[steps, 0])
+    theta = float(np.angle(np.exp(4j * phi).mean()) / 4)
+    basis = spacing * np.array([[math.cos(theta), -math.sin(theta)],
+                                [math.sin(theta), math.cos(theta)]])
+    lat = np.linalg.solve(basis, (points - points[0]).T).T
+    ab = np.rint(lat).astype(int)
+    on_lattice = np.linalg.norm(lat - ab, axis=1) < 0.3
+    nx, ny = layout.shape_ij
+    present = np.zeros((nx, ny), bool)
+    present[layout.ij[:, 0], layout.ij[:, 1]] = True
+    index = -np.ones((nx, ny), int)
+    index[layout.ij[:, 0], layout.ij[:, 1]] = np.arange(len(layout.ij))
+    scores = []
+    for t_idx, tm in enumerate(_D4):
+        mapped0 = ab[on_lattice] @ tm.T
+        for i0 in range(nx):
+            for j0 in range(ny):
+                m = mapped0 + np.array([i0, j0])
+                inside = (m[:, 0] >= 0) & (m[:, 0] < nx) & (m[:, 1] >= 0) & (m[:, 1] < ny)
+                hit = np.zeros(len(m), bool)
+                hit[inside] = present[m[inside, 0], m[inside, 1]]
+                # A detected dot on an empty or outside site contradicts the hypothesis.
+                scores.append((int(hit.sum()) - 2 * int((~hit).sum()), t_idx, i0, j0))
+    scores.sort(reverse=True)
+    best, second = scores[0], scores[1]
+    if best[0] < MIN_DOTS or best[0] - second[0] < 3:
+        raise GeometryError(
+            f"cannot identify the dot lattice: best match {best[0]}, next {second[0]} "
+            f"({int(on_lattice.sum())} dots on the lattice): too few dots in view?")
+    _, t_idx, i0, j0 = best
+    m = ab @ _D4[t_idx].T + np.array([i0, j0])
+    out = -np.ones(n, int)
+    for k in np.flatnonzero(on_lattice):
+        i, j = m[k]
+        if 0 <= i < nx and 0 <= j < ny and present[i, j]:
+            out[k] = index[i, j]
+    return out
+
+
+@dataclass(frozen=True)
+class Geometry:
+    """`camera_px = A @ xy_m + t`; `A = px_per_m R(rotation) F(mirror_x)`. Uncertainties are
+    one standard deviation from the least-squares fit."""
+
+    px_per_m: float
+    rotation_deg: float
+    mirror_x: bool
+    shift_px: tuple[float, float]
+    rms_px: float
+    n_dots: int
+    px_per_m_std: float
+    rotation_std_deg: float
+
+    @property
+    def matrix(self) -> np.ndarray:
+        a = math.radians(self.rotation_deg)
+        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+        flip = np.diag([-1.0 if self.mirror_x else 1.0, 1.0])
+        return self.px_per_m * rot @ flip
+
+    def to_camera(self, xy_m: np.ndarray) -> np.ndarray:
+        """SLM metres [N, 2] -> camera (col, row) [N, 2]."""
+        return np.asarray(xy_m) @ self.matrix.T + np.asarray(self.shift_px)
+
+    def to_slm(self, colrow: np.ndarray) -> np.ndarray:
+        return (np.asarray(colrow) - np.asarray(self.shift_px)) @ np.linalg.inv(self.matrix).T
+
+    def magnification(self, camera_pitch_m: float) -> float:
+        return self.px_per_m * camera_pitch_m
+
+
+def fit_similarity(xy_m: np.ndarray, colrow: np.ndarray) -> Geometry:
+    """Least-squares similarity (with or without the x mirror) from matched points; the model
+    with the smaller residual wins."""
+    n = len(xy_m)
+    if n < 3:
+        raise GeometryError(f"{n} matched dots: need at least 3 for a similarity")
+    x, y = xy_m[:, 0], xy_m[:, 1]
+    best = None
+    for mirror in (False, True):
+        xs = -x if mirror else x
+        # col = p xs - q y + tx ; row = q xs + p y + ty
+        rows = np.zeros((2 * n, 4))
+        rows[:n] = np.stack([xs, -y, np.ones(n), np.zeros(n)], 1)
+        rows[n:] = np.stack([y, xs, np.zeros(n), np.ones(n)], 1)
+        rhs = np.concatenate([colrow[:, 0], colrow[:, 1]])
+        sol, *_ = np.linalg.lstsq(rows, rhs, rcond=None)
+        res = rhs - rows @ sol
+        sse = float(res @ res)
+        if best is None or sse < best[0]:
+            best = (sse, mirror, sol, rows)
+    assert best is not None
+    sse, mirror, (p, q, tx, ty), rows = best
+    dof = max(1, 2 * n - 4)
+    sigma2 = sse / dof
+    cov = sigma2 * np.linalg.inv(rows.T @ rows)
+    k = math.hypot(p, q)
+    # k = |(p, q)|, angle = atan2(q, p): first-order error propagation.
+    jk = np.array([p / k, q / k])
+    ja = np.array([-q / k**2, p / k**2])
+    k_std = float(math.sqrt(max(0.0, jk @ cov[:2, :2] @ jk)))
+    a_std = float(math.degrees(math.sqrt(max(0.0, ja @ cov[:2, :2] @ ja))))
+    rot = math.degrees(math.atan2(q, p)) % 360.0
+    return Geometry(k, rot, mirror, (float(tx), float(ty)), math.sqrt(sse / n), n, k_std, a_std)
+
+
+def fit_geometry(image: np.ndarray, layout: DotLayout) -> tuple[Geometry, np.ndarray, np.ndarray]:
+    """Detect, identify and fit. Returns the geometry, the matched centroids [M, 2] and their
+    layout indices [M]. Outliers beyond 1 px (4 sigma) are dropped and the fit repeated."""
+    pts = detect_dots(image)
+    idx = identify_dots(pts, layout)
+    ok = idx >= 0
+    pts, idx = pts[ok], idx[ok]
+    geo = fit_similarity(layout.xy_m[idx], pts)
+    res = np.linalg.norm(geo.to_camera(layout.xy_m[idx]) - pts, axis=1)
+    keep = res < max(1.0, 4 * geo.rms_px)
+    if keep.sum() < len(keep):
+        pts, idx = pts[keep], idx[keep]
+        geo = fit_similarity(layout.xy_m[idx], pts)
+    return geo, pts, idx

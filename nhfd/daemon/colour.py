@@ -1,0 +1,124 @@
+"""Colour modes (hardware.md, "Colour timing"): what the panel shows per colour, which diodes a
+client may switch, and the capture-mode snapshot sequence.
+
+  single   one colour (daemon.single_colour): its pattern in every HDMI channel, and only its
+           diode may be enabled or given power. The safe choice for a bench without sync wiring.
+  capture  software field-sequential colour, for snapshots only: a MeCom command takes ~5 ms
+           plus USB latency and the liquid crystal needs its settle time, so switching diodes per
+           colour from software gives a few frames per second at best. Clients set powers and
+           arm; the daemon alone enables diodes, one at a time, inside a snapshot: all off ->
+           show the colour's pattern -> settle -> that diode on -> capture -> off; the captures
+           are combined into one colour image.
+  hw-sync  each colour's pattern in its own HDMI channel, the lasers modulated by the SLM's frame
+           sync (wired on the bench); software only shows frames and sets powers. Laser commands
+           are not restricted (the wiring decides which diode lights which field).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from nhfd.drivers.settings import COLOURS
+
+from .protocol import LASER_REFUSED, RpcError
+
+if TYPE_CHECKING:
+    from .jobs import Job
+    from .service import Daemon
+
+log = logging.getLogger("nhfd.daemon.colour")
+
+COLOUR_MODES = ("single", "capture", "hw-sync")
+
+
+def panel_for_mode(frame: np.ndarray, mode: str, colour: str) -> np.ndarray:
+    """The panel frame a mode shows: in single mode the chosen colour's pattern in all three
+    channels (whichever channel the panel reads, it shows that colour's hologram)."""
+    if mode != "single":
+        return frame
+    c = COLOURS.index(colour)
+    return np.ascontiguousarray(np.broadcast_to(frame[c], frame.shape))
+
+
+def single_colour_pattern(frame: np.ndarray, colour: str) -> np.ndarray:
+    """One colour's pattern in every channel (capture mode shows these one after another)."""
+    return panel_for_mode(frame, "single", colour)
+
+
+def check_laser_command(d: Daemon, action: str, channel: str | None, power_pct: float | None
+                        ) -> None:
+    """Refuse what the colour mode forbids, before anything reaches the guardian."""
+    c = d.config.daemon
+    mode = c.colour_mode
+    if mode == "single" and channel is not None and channel != c.single_colour:
+        if action == "enable" or (action == "power" and power_pct):
+            raise RpcError(LASER_REFUSED, f"colour_mode 'single' ({c.single_colour}): only the "
+                           f"{c.single_colour} diode may be on",
+                           {"field": "channel", "allowed": c.single_colour})
+    if mode == "capture" and action == "enable":
+        raise RpcError(LASER_REFUSED, "colour_mode 'capture': the daemon enables each diode "
+                       "itself during a snapshot; set powers and arm only",
+                       {"field": "action", "allowed": "arm, disarm, off, power, disable"})
+
+
+def capture_colours(d: Daemon, job: Job, path: Path, frames: int | None) -> dict[str, Any]:
+    """The capture-mode snapshot: one capture per colour that has power, each with only its diode
+    on and its own pattern settled on the panel; written as one PNG per colour and their mean.
+
+    The frame worker's output is held back meanwhile (`bench.held`), so a view arriving during
+    the sequence cannot replace the colour's pattern under the camera."""
+    from .bench import write_png16
+
+    bench, link = d.bench, d.laser
+    if bench.slm is None or bench.camera is None:
+        raise RuntimeError("capture mode needs the SLM and the camera")
+    link.refresh()
+    powers = {ch: float(link.status()["channels"].get(ch, {}).get("power_pct", 0.0))
+              for ch in COLOURS}
+    lit = [ch for ch in COLOURS if powers[ch] > 0]
+    if not lit:
+        raise RuntimeError("no colour has power: set per-channel power (laser power) first")
+    base = d.frames.last_frame if d.frames.last_frame is not None else bench.blank_frame()
+    images: dict[str, np.ndarray] = {}
+    bench.held = True
+    try:
+        for ch in lit:
+            job.check()
+            for other in COLOURS:  # all off, and read back by the guardian
+                link.enable(other, False)
+            bench.slm.show(single_colour_pattern(base, ch), wait_settled=True)
+            link.enable(ch, True)
+            d.audit.write({"who": "daemon", "job": job.id}, "laser enable (capture mode)",
+                          channel=ch, power_pct=powers[ch])
+            try:
+                images[ch] = bench.capture(frames).image
+            finally:
+                link.enable(ch, False)
+    finally:
+        for ch in COLOURS:
+            with contextlib.suppress(Exception):
+                link.enable(ch, False)
+        d.audit.write({"who": "daemon", "job": job.id}, "laser all disabled (capture mode)")
+        bench.held = False
+        with contextlib.suppress(Exception):  # back to what the control loop last computed
+            bench.slm.show(d.frames.last_frame if d.frames.last_frame is not None
+                           else bench.blank_frame())
+    # A colour camera sees each colour in its own channel; a mono one gives [H, W] per colour.
+    planes = {ch: img if img.ndim == 2 else img[COLOURS.index(ch)] for ch, img in images.items()}
+    zero = np.zeros_like(next(iter(planes.values())))
+    combined = np.stack([planes.get(ch, zero) for ch in COLOURS])
+    written = {}
+    for ch, image in images.items():
+        out = path.with_name(f"{path.stem}-{ch}{path.suffix}")
+        write_png16(out, image)
+        written[ch] = str(out)
+    write_png16(path, combined)
+    return {"path": str(path), "colour_mode": "capture", "colours": written,
+            "powers_pct": {ch: powers[ch] for ch in lit},
+            "max_linear": {ch: float(img.max()) if img.size else 0.0
+                           for ch, img in images.items()}}

@@ -1,0 +1,124 @@
+"""Navigator input: a 6-DoF puck moves the view continuously through the `set_view` path.
+
+Every `daemon.navigator_period_s` the control loop reads the navigator's velocities and turns
+them into a relative move of the current view over the time since the last read: for an orbit,
+yaw changes the azimuth, pitch the elevation and the z translation the radius; for a pose, the
+camera-frame translation and rotation. The move goes through the same validation
+(`views.parse_view`) and the same latest-wins `ViewSlot` as a client's `set_view`, so the frame
+worker sees no difference and the sequence number advances. The navigator never supplies the
+first view: it moves whatever a client (or the demo) set.
+
+The read happens on the control loop: the simulated navigator is a table look-up and the
+SpaceMouse reads non-blocking HID reports for at most `devices.spacemouse.read_timeout_ms`, far
+below the laser heartbeat's timeout.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING, Any
+
+from nhfd.drivers.navigator import Waypoint
+
+from .protocol import Params, RpcError
+from .views import ELEVATION_DEG, parse_view
+
+if TYPE_CHECKING:
+    from .service import Daemon
+
+log = logging.getLogger("nhfd.daemon.navigation")
+
+WHO = {"who": "navigator"}
+# The simulated navigator's script (devices.navigator = "simulated"): yaw right at half
+# deflection for 2 s, left for 4 s, right for 2 s (back where it began), then rest.
+HALF = 175
+SIMULATED_SCRIPT = (
+    Waypoint(0.0, (0, 0, 0, 0, HALF, 0)),
+    Waypoint(2.0, (0, 0, 0, 0, -HALF, 0)),
+    Waypoint(6.0, (0, 0, 0, 0, HALF, 0)),
+    Waypoint(8.0, (0, 0, 0, 0, 0, 0)),
+)
+
+
+def relative_move(view: dict[str, Any], reading: Any, dt_s: float) -> dict[str, Any] | None:
+    """The `relative` parameters that move `view` by the reading's velocities over dt_s (None
+    when the puck rests)."""
+    t = [v * dt_s for v in reading.translation_m_s]
+    r = [v * dt_s for v in reading.rotation_deg_s]
+    if not any(t) and not any(r):
+        return None
+    if view["kind"] == "orbit":
+        # Keep inside the elevation range rather than refuse the whole move at the pole.
+        elevation = min(max(view["elevation_deg"] + r[0], ELEVATION_DEG[0]), ELEVATION_DEG[1])
+        d_radius = max(t[2], -0.5 * view["radius"])  # never through the centre
+        return {"d_azimuth_deg": r[1], "d_elevation_deg": elevation - view["elevation_deg"],
+                "d_radius": d_radius}
+    return {"translate": t, "rotate_deg": r}
+
+
+class NavigatorInput:
+    def __init__(self, d: Daemon) -> None:
+        self.d = d
+        self.navigator: Any = None
+        self.error: str | None = None
+        self.moves = 0
+        self.last_seq: int | None = None
+        self._last_s: float | None = None
+        self._next_s = 0.0
+
+    def open(self) -> None:
+        from nhfd.drivers import factory
+
+        devices = self.d.config.devices
+        try:
+            self.navigator = factory.make_navigator(devices, SIMULATED_SCRIPT)
+            if self.navigator is not None:
+                self.navigator.open()
+        except Exception as exc:  # the daemon runs on without it; status says why
+            self.error = f"{type(exc).__name__}: {exc}"
+            self.navigator = None
+            log.error("navigator: %s", self.error)
+
+    def close(self) -> None:
+        if self.navigator is not None:
+            try:
+                self.navigator.close()
+            except Exception as exc:
+                log.warning("navigator close: %s", exc)
+            self.navigator = None
+
+    def step(self, now: float) -> None:
+        """From the control loop, every tick; reads at most every navigator_period_s."""
+        if self.navigator is None or now < self._next_s:
+            return
+        self._next_s = now + self.d.config.daemon.navigator_period_s
+        try:
+            reading = self.navigator.read()
+            self.error = None
+        except Exception as exc:  # unplugged: say so, keep trying
+            self.error = f"{type(exc).__name__}: {exc}"
+            self._last_s = None
+            return
+        last, self._last_s = self._last_s, now
+        current = self.d.views.view
+        if last is None or current is None:
+            return
+        rel = relative_move(current, reading, now - last)
+        if rel is None:
+            return
+        try:
+            view = parse_view(Params({"relative": rel}), current)
+        except RpcError as exc:  # e.g. a pose that would leave the coordinate range
+            self.error = f"move refused: {exc.message}"
+            return
+        view["refocus_mm"] = current.get("refocus_mm", 0.0)
+        seq = self.d.views.submit(view)
+        self.d.audit.view(WHO, seq, view)
+        self.d.record("set_view", {}, WHO, {"view": view})
+        self.moves += 1
+        self.last_seq = seq
+
+    def status(self) -> dict[str, Any]:
+        return {"backend": self.d.config.devices.navigator, "open": self.navigator is not None,
+                "moves": self.moves, "last_seq": self.last_seq, "error": self.error,
+                "period_s": self.d.config.daemon.navigator_period_s}

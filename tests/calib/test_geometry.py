@@ -1,0 +1,59 @@
+"""Dot detection and identification on synthetic images (no optics: fast), including a mirror,
+a ~180 degree turn, part of the lattice out of view, noise and saturated pixels."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from nhfd.calib.geometry import GeometryError, fit_geometry
+from nhfd.calib.patterns import PatternSpec, dot_layout
+
+
+def _render(xy_m: np.ndarray, px_per_m: float, rot_deg: float, mirror: bool,
+            shift: tuple[float, float], hw: tuple[int, int], rng: np.random.Generator
+            ) -> np.ndarray:
+    a = math.radians(rot_deg)
+    m = px_per_m * np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]]) @ \
+        np.diag([-1.0 if mirror else 1.0, 1.0])
+    cam = xy_m @ m.T + np.asarray(shift)
+    rr, cc = np.mgrid[0 : hw[0], 0 : hw[1]]
+    img = np.full(hw, 0.03)
+    for x, y in cam:
+        img += 0.6 * np.exp(-((cc - x) ** 2 + (rr - y) ** 2) / (2 * 1.3**2))
+    return img + rng.normal(0, 0.01, hw)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_geometry_recovered(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    spec = PatternSpec((128, 128), 8e-6, (6.6e-7, 5.2e-7, 4.5e-7))
+    lay = dot_layout(spec)
+    mag = rng.uniform(0.6, 1.2)
+    px_per_m = mag / 3.45e-6
+    rot = 180 + rng.normal(0, 1.0)
+    mirror = bool(seed % 2)
+    hw = (int(1.1e-3 * px_per_m) + 20,) * 2
+    shift = (hw[1] / 2 + rng.normal(0, 5), hw[0] / 2 + rng.normal(0, 5))
+    img = _render(lay.xy_m, px_per_m, rot, mirror, shift, hw, rng)
+    # A few saturated (hot) pixels.
+    img[rng.integers(0, hw[0], 5), rng.integers(0, hw[1], 5)] = 1.0
+    geo, _, _ = fit_geometry(img, lay)
+    assert geo.mirror_x is mirror
+    assert abs(geo.px_per_m / px_per_m - 1) < 0.005
+    assert abs(geo.rotation_deg - rot) < 0.2
+    # Part of the lattice out of view: the left third cut away.
+    cut = img[:, hw[1] // 3 :]
+    geo2, pts, _ = fit_geometry(cut, lay)
+    assert geo2.mirror_x is mirror
+    assert len(pts) < len(lay.xy_m)
+    assert abs(geo2.px_per_m / px_per_m - 1) < 0.005
+    assert abs(geo2.rotation_deg - rot) < 0.2
+
+
+def test_no_dots_is_a_clear_error() -> None:
+    spec = PatternSpec((128, 128), 8e-6, (6.6e-7, 5.2e-7, 4.5e-7))
+    flat = np.random.default_rng(0).normal(0.05, 0.001, (200, 200))
+    with pytest.raises(GeometryError):
+        fit_geometry(flat, dot_layout(spec))

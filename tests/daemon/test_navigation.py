@@ -1,0 +1,54 @@
+"""The simulated navigator (a scripted yaw) moves the view through the latest-wins set_view
+path: the sequence number advances and the azimuth follows the script."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+from nhfd.daemon.navigation import relative_move
+
+from .conftest import Running, bench_config, wait_until
+
+
+def test_simulated_navigator_moves_the_view_and_advances_the_sequence(short_dir, mecom_twin):
+    config = bench_config(short_dir, mecom_twin, navigator_period_s=0.02)
+    config = config.model_copy(update={"devices": config.devices.model_copy(
+        update={"navigator": "simulated"})})
+    r = Running(config, short_dir)
+    try:
+        c = r.client()
+        assert c.status()["navigator"]["open"] is True
+        assert c.status()["navigator"]["moves"] == 0  # no view yet: nothing to move
+        seq = c.call("set_view", orbit={"azimuth_deg": 0.0, "elevation_deg": 10.0,
+                                        "radius": 2.0}, refocus_mm=1.5)["seq"]
+        wait_until(lambda: c.status()["view"]["seq"] >= seq + 5, 10, "navigator moves")
+        status = c.status()
+        view = status["view"]["requested"]
+        assert status["navigator"]["moves"] >= 5 and status["navigator"]["error"] is None
+        assert status["navigator"]["last_seq"] == status["view"]["seq"]
+        # The script yaws right (+azimuth) first, at half of 45 deg/s; elevation, radius and the
+        # digital refocus stay.
+        assert view["kind"] == "orbit" and 0.0 < view["azimuth_deg"] < 45.0
+        assert view["elevation_deg"] == 10.0 and view["radius"] == 2.0
+        assert view["refocus_mm"] == 1.5
+        # A client's set_view still wins over whatever the navigator did before it.
+        seq = c.call("set_view", orbit={"azimuth_deg": -90.0, "elevation_deg": 0.0,
+                                        "radius": 3.0})["seq"]
+        wait_until(lambda: c.status()["view"]["seq"] > seq, 10, "moves from the new view")
+        assert -100.0 < c.status()["view"]["requested"]["azimuth_deg"] < -80.0
+    finally:
+        r.stop()
+
+
+def test_relative_move_from_velocities():
+    still = SimpleNamespace(translation_m_s=(0, 0, 0), rotation_deg_s=(0, 0, 0))
+    orbit = {"kind": "orbit", "azimuth_deg": 0.0, "elevation_deg": 89.0, "radius": 1.0}
+    assert relative_move(orbit, still, 0.1) is None
+    up = SimpleNamespace(translation_m_s=(0, 0, -20.0), rotation_deg_s=(30.0, 10.0, 0))
+    rel = relative_move(orbit, up, 0.1)
+    assert rel["d_azimuth_deg"] == 1.0
+    assert 89.0 + rel["d_elevation_deg"] == 89.9  # clamped at the pole, not refused
+    assert rel["d_radius"] == -0.5  # never through the centre
+    pose = {"kind": "pose", "position": [0, 0, 0], "quaternion_wxyz": [1, 0, 0, 0]}
+    assert relative_move(pose, up, 0.5) == {"translate": [0, 0, -10.0],
+                                            "rotate_deg": [15.0, 5.0, 0]}
