@@ -185,7 +185,8 @@ def run(out: Path, *, config: Any, model: Path, scene: Path, log: Any = print) -
                                            "sharpness": _sharpness(image)})
             log(f"  captured at hologram depth {z_h * 1e3:+.1f} mm")
         c.call("laser", action="off")
-        contact_sheet(images, out / "contact_sheet.png", daemon.frames.last_rgb)
+        summary["region_sharpness"] = contact_sheet(images, out / "contact_sheet.png",
+                                                    daemon.frames.last_rgb)
         summary["stages_ms_median"] = {
             k: float(np.median([v["timings"][f"{k}_ms"] for v in summary["views"]]))
             for k in ("render", "inference", "propagation", "coding", "output")}
@@ -206,33 +207,84 @@ def _sharpness(image: np.ndarray) -> float:
     return float((np.square(gy).sum() + np.square(gx).sum()) / max(np.square(a).sum(), 1e-30))
 
 
+def region_sharpness(images: list[np.ndarray]) -> tuple[list[float], list[float], tuple]:
+    """Sharpness of the content's near (bottom) and far (top) thirds in upright captures.
+
+    The orbit looks down at the donut, so its front edge (nearest the viewer, the hologram's
+    near side) is at the bottom of the upright image and its back at the top. Content is where
+    the brightest capture exceeds a fifth of its 99.9th percentile over most of a 9 x 9 box, so
+    thin lines (a window's edge, stray fringes) do not count. Returns the two sharpness lists
+    (one value per capture) and the two regions as (row slice, column slice)."""
+    peak = np.max(np.stack(images), axis=0)
+    level = np.median(peak)
+    mask = _box_mean(peak - level > 0.2 * (np.percentile(peak, 99.9) - level), 9) > 0.8
+    rows, cols = np.nonzero(mask)
+    if rows.size == 0:
+        whole = (slice(0, peak.shape[0]), slice(0, peak.shape[1]))
+        return [_sharpness(i) for i in images], [_sharpness(i) for i in images], (whole, whole)
+    top, bottom = int(rows.min()), int(rows.max()) + 1
+    left, right = int(cols.min()), int(cols.max()) + 1
+    third = max(1, (bottom - top) // 3)
+    near = (slice(bottom - third, bottom), slice(left, right))
+    far = (slice(top, top + third), slice(left, right))
+    return ([_sharpness(i[near]) for i in images], [_sharpness(i[far]) for i in images],
+            (near, far))  # fmt: skip
+
+
+def _box_mean(mask: np.ndarray, k: int) -> np.ndarray:
+    """Mean of a boolean image over the k x k box centred on each pixel (edges: zero padded)."""
+    c = np.pad(mask.astype(np.float64), k // 2 + 1).cumsum(0).cumsum(1)
+    h, w = mask.shape
+    box = c[k : k + h, k : k + w] - c[:h, k : k + w] - c[k : k + h, :w] + c[:h, :w]
+    return box / (k * k)
+
+
 def contact_sheet(images: list[tuple[float, np.ndarray]], path: Path,
-                  rgb: np.ndarray | None) -> None:
+                  rgb: np.ndarray | None) -> dict[str, list[float]]:
     """The rendered view, then the captures from near to far focus (the relay images the panel
-    upside down: rotated back for people)."""
+    upside down: rotated back for people); below, the near third of the content enlarged at each
+    focus, and the sharpness of the near and far thirds against focus (each region should be
+    sharpest where its depth is in focus). Returns those sharpness curves."""
     import matplotlib.pyplot as plt
 
-    n = len(images) + (rgb is not None)
-    fig, axes = plt.subplots(1, n, figsize=(3.2 * n, 2.6), squeeze=False)
-    col = 0
+    upright = [np.rot90(img, 2) for _, img in images]
+    near_s, far_s, (near, far) = region_sharpness(upright)
+    n = len(images) + 1
+    fig, axes = plt.subplots(2, n, figsize=(3.2 * n, 5.0), squeeze=False)
     if rgb is not None:
         axes[0][0].imshow(rgb.transpose(1, 2, 0))
         axes[0][0].set_title("rendered view", fontsize=9)
-        col = 1
-    norm = max(float(np.percentile(img, 99.9)) for _, img in images) or 1.0
-    for i, (z_h, img) in enumerate(images):
-        ax = axes[0][col + i]
-        ax.imshow(np.rot90(np.clip(img / norm, 0, 1), 2) ** 0.5, cmap="gray", vmin=0, vmax=1)
+    norm = max(float(np.percentile(img, 99.9)) for img in upright) or 1.0
+    for i, ((z_h, _), img) in enumerate(zip(images, upright, strict=True)):
         label = "near" if i == 0 else "far" if i == len(images) - 1 else ""
+        shown = np.clip(img / norm, 0, 1) ** 0.5
+        ax = axes[0][1 + i]
+        ax.imshow(shown, cmap="gray", vmin=0, vmax=1)
+        for (rs, cs), colour in ((near, "C1"), (far, "C0")):
+            ax.add_patch(plt.Rectangle((cs.start, rs.start), cs.stop - cs.start,
+                                       rs.stop - rs.start, fill=False, color=colour, lw=0.8))
         ax.set_title(f"focus {z_h * 1e3:+.1f} mm {label}", fontsize=9)
-    for ax in axes[0]:
-        ax.set_xticks([])
-        ax.set_yticks([])
+        zoom = axes[1][1 + i]
+        zoom.imshow(shown[near], cmap="gray", vmin=0, vmax=1)
+        zoom.set_title(f"near third, sharpness {near_s[i]:.3f}", fontsize=8)
+    depths = [z_h * 1e3 for z_h, _ in images]
+    curve = axes[1][0]
+    curve.plot(depths, np.asarray(near_s) / max(near_s), "o-", color="C1", label="near third")
+    curve.plot(depths, np.asarray(far_s) / max(far_s), "s-", color="C0", label="far third")
+    curve.set_xlabel("focus: hologram depth (mm)", fontsize=8)
+    curve.set_title("sharpness / its maximum", fontsize=8)
+    curve.legend(fontsize=7)
+    curve.tick_params(labelsize=7)
+    for row in axes:
+        for ax in row[1:] if row is axes[1] else row:
+            ax.set_xticks([])
+            ax.set_yticks([])
     fig.suptitle("Simulated camera, green: the hologram refocuses from the near (front of the "
                  "donut) to the far end of the volume", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+    return {"near_third": near_s, "far_third": far_s}
 
 
 def _wait(cond: Any, timeout_s: float, what: str, client: Any) -> None:
