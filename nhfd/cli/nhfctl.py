@@ -76,6 +76,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("shutdown", help="shut the daemon down cleanly with lasers off")
     ls = sub.add_parser("load-scene", help="load a scene (inside daemon.scene_dirs)")
     ls.add_argument("path")
+    lm = sub.add_parser("load-model", help="load an exported model (inside daemon.model_dirs; "
+                        "validated, the old one keeps running on failure)")
+    lm.add_argument("path")
     jb = sub.add_parser("job", help="one job's state")
     jb.add_argument("id", type=int)
     wa = sub.add_parser("watch", help="live status")
@@ -123,6 +126,8 @@ def _request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
         return "snapshot", params
     if cmd == "load-scene":
         return "load_scene", {"path": args.path}
+    if cmd == "load-model":
+        return "load_model", {"path": args.path}
     if cmd == "job":
         return "job", {"id": args.id}
     return cmd.replace("-", "_"), {}
@@ -173,6 +178,20 @@ def human_status(s: dict[str, Any]) -> str:
     shown = f"{scene['path']} ({scene['gaussians']} Gaussians)" if scene else "none"
     lines.append(f"scene    {shown}")
     lines.append(f"model    {s['model']}")
+    if "colour" in s:
+        col = s["colour"]
+        lines.append(f"colour   {col['mode']}"
+                     + (f" ({col['single_colour']})" if col["mode"] == "single" else ""))
+    cal = s.get("calibration") or {}
+    if cal.get("loaded"):
+        lines.append(f"calib    {cal['file']} (fitted on {cal.get('fitted_on') or '?'})")
+    else:
+        lines.append("calib    none" + (f"; error: {cal['error']}" if cal.get("error") else
+                                        " (uncalibrated focus mapping)"))
+    nav = s.get("navigator") or {}
+    if nav.get("backend", "none") != "none":
+        lines.append(f"navigator {nav['backend']}, {nav['moves']} moves"
+                     + (f"; error: {nav['error']}" if nav.get("error") else ""))
     v = s["view"]
     lines.append(f"view     seq {v['seq']}: {json.dumps(v['requested'])}")
     active = [j for j in s["jobs"] if j["state"] in ("queued", "running")]

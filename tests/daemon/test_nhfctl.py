@@ -46,6 +46,11 @@ def test_nhfctl_commands(running: Running, capsys):
     assert main([*sock, "status"]) == 0
     text = capsys.readouterr().out
     assert "laser    not armed; emitting: none" in text and "model    none loaded" in text
+    assert "colour   hw-sync" in text and "calib    none (uncalibrated focus mapping)" in text
+    assert main([*sock, "load-model", "/etc/passwd"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("nhfctl load-model: error: path_not_allowed: ")
+    assert "outside the allowed directories" in err
     assert main([*sock, "blank"]) == 0 and "showing: blank" in capsys.readouterr().out
     assert main([*sock, "focus", "9"]) == 1
     err = capsys.readouterr().err
