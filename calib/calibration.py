@@ -102,9 +102,11 @@ class Calibration:
         return self.stage_at_slm_mm + (z_m - self.z_offset_m[colour]) / self.stage_scale * 1e3
 
     def refocus_m(self, colour: int) -> float:
-        """Digital refocus per colour that puts every colour's focus where green's is: a colour
-        imaged `z_offset` beyond the stage's plane is shown that much nearer."""
-        return -(self.z_offset_m[colour] - self.z_offset_m[1])
+        """Digital refocus per colour that puts every colour's focus where green's is. Where the
+        camera sees green's plane z, it sees colour c's plane z + (offset_c - offset_G)
+        (`z_m(stage, c)`): content of colour c shown that much further from the SLM is seen
+        in focus together with green's."""
+        return self.z_offset_m[colour] - self.z_offset_m[1]
 
     @property
     def label(self) -> str:

@@ -53,6 +53,25 @@ def load_image(path: Path, key: str = "") -> tuple[np.ndarray, np.ndarray]:
     return image, sat
 
 
+def load_frame(root: Path, manifest: dict[str, Any], name: str) -> np.ndarray:
+    """An SLM frame the capture showed (uint8 [H, W, 3]), named in the manifest."""
+    rel = manifest.get("frames", {}).get(name)
+    if rel is None:
+        raise CalibrationDataError(f"{root / MANIFEST}: frame {name!r} is not listed")
+    path = root / rel
+    if not path.is_file():
+        raise CalibrationDataError(f"{path} (frame {name!r}): missing")
+    try:
+        frame = np.load(path, allow_pickle=False)
+    except (OSError, ValueError, EOFError) as exc:
+        raise CalibrationDataError(f"{path} (frame {name!r}): corrupt or unreadable "
+                                   f"({exc})") from None
+    if frame.dtype != np.uint8 or frame.ndim != 3 or frame.shape[2] != 3:
+        raise CalibrationDataError(f"{path} (frame {name!r}): expected uint8 [H, W, 3], got "
+                                   f"{frame.dtype} {frame.shape}")
+    return frame
+
+
 def load_capture(root: Path | str) -> CaptureData:
     root = Path(root)
     path = root / MANIFEST

@@ -1,4 +1,8 @@
-"""The calibration fit: geometry -> depth mapping and sign -> phase response and intensity.
+"""The calibration fit: geometry -> phase sign and a first depth mapping from focus peaks ->
+phase response and intensity -> the depth mapping refined through the bench model
+(`nhfd.calib.bench_model`: the fine sweeps' images fitted by damped Gauss-Newton through the
+double-phase frames, fitted curves, aperture and ASM), with the stage scale tied to the lateral
+magnification (1 / M^2).
 
 `fit_capture(DIR)` reads a complete capture (see `nhfd.calib.capture`) and returns a
 `Calibration` (see `nhfd.calib.calibration`). Each stage refuses with a clear error when the
@@ -15,8 +19,11 @@ from typing import Any
 
 import numpy as np
 
+from nhfd.optics import PhaseCurve
+
+from .bench_model import BenchModel, ModelDepthFit, fit_depth_model, to_slm_grid
 from .calibration import Calibration
-from .data import CaptureData, load_capture, load_image
+from .data import CaptureData, load_capture, load_frame, load_image
 from .focus import FocusError, dot_metric, fit_depth, peak_position
 from .geometry import Geometry, fit_geometry
 from .patterns import PatternSpec, dot_layout, grating_tiles
@@ -98,6 +105,60 @@ def _fine_stack(data: CaptureData, colour: int) -> tuple[np.ndarray, np.ndarray]
     return np.asarray(stages)[order], np.stack(images)[order]
 
 
+def _fit_depth_model(data: CaptureData, stacks: dict[int, tuple[np.ndarray, np.ndarray]],
+                     geo: Geometry, sign: int, resp: ResponseFit,
+                     init: tuple[float, float, tuple[float, ...]], scale_std: float,
+                     say: Callable[[str], None]) -> ModelDepthFit:
+    """The fine sweeps (pair means, per unit exposure and power) resampled on the SLM grid,
+    fitted through the bench model of the frames they showed."""
+    spec = data.spec
+    names = sorted({r["frame"] for r in data.records("fine")})
+    frames = [load_frame(data.root, data.manifest, n) for n in names]
+    sweeps, models = {}, {}
+    for c in range(3):
+        stages, stack = stacks[c]
+        rate = _rate(data.records("fine", c), "fine", COLOURS[c])
+        resampled = [to_slm_grid(im / rate, geo, spec.panel_hw, spec.pitch_m) for im in stack]
+        valid = np.logical_and.reduce([ok for _, ok in resampled]) & ~_saturated(data, c, geo)
+        if valid.sum() < 100:
+            raise FocusError(f"colour {COLOURS[c]}: only {int(valid.sum())} panel pixels in "
+                             "view of the camera: the depth mapping is undetermined")
+        sweeps[c] = (stages, np.stack([v for v, _ in resampled]), valid)
+        models[c] = BenchModel(frames, c, PhaseCurve(resp.tables_rad[c]), sign, spec.pitch_m,
+                               spec.wavelengths_m[c], spec.cutoff_per_px[c], spec.aperture_shape)
+    return fit_depth_model(sweeps, models, init, scale_std=scale_std, say=say)
+
+
+def _rate(recs: list[dict[str, Any]], sweep: str, colour: str) -> float:
+    """Exposure x laser power, which must be the same for every image of a sweep (the images
+    are averaged in pairs and fitted with one gain per colour)."""
+    rates = {round(r["exposure_s"] * max(r["powers"]), 12) for r in recs}
+    if len(rates) != 1:
+        raise FocusError(f"colour {colour}: the {sweep} sweep mixes exposures or laser powers "
+                         f"({sorted(rates)}): recapture with fixed settings")
+    return rates.pop()
+
+
+def _saturated(data: CaptureData, colour: int, geo: Geometry) -> np.ndarray:
+    """[H, W] SLM pixels whose camera image is saturated in any fine-sweep image of a colour
+    (clipped values would pull the fit): dilated by a pixel for the resampling's reach."""
+    spec = data.spec
+    out = np.zeros(spec.panel_hw, bool)
+    for rec in data.records("fine", colour):
+        _, sat = data.image(rec)
+        if sat.any():
+            hit, _ = to_slm_grid(sat.astype(np.float64), geo, spec.panel_hw, spec.pitch_m)
+            out |= hit > 0
+    if out.any():
+        grown = out.copy()
+        grown[1:] |= out[:-1]
+        grown[:-1] |= out[1:]
+        grown[:, 1:] |= out[:, :-1]
+        grown[:, :-1] |= out[:, 1:]
+        out = grown
+    return out
+
+
 def measure_response(root: Path | str, spec: PatternSpec, records: list[dict[str, Any]],
                      geo: Geometry) -> ResponseFit:
     """Phase tables and intensities per colour from the grating captures."""
@@ -159,12 +220,27 @@ def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
         for g, s in _peaks(stages, stack, geo, spec):
             triples.append((c, spec.depths_m[g], s))
     depth = fit_depth(triples)
-    say(f"depth: sign {depth.phase_sign:+d}, scale {depth.stage_scale:.5f} "
+    say(f"focus peaks: sign {depth.phase_sign:+d}, scale {depth.stage_scale:.5f} "
         f"(1/M^2 = {1 / mag**2:.5f}), stage at SLM {depth.stage_at_slm_mm:.4f} mm, offsets "
         f"{[round(z * 1e6, 1) for z in depth.z_offset_m]} um, rms {depth.rms_mm * 1e3:.1f} um")
 
     # 3. Phase response and intensity from the gratings.
     resp = measure_response(data.root, spec, data.records("grating"), geo)
+
+    # 4. The depth mapping refined through the bench model (the peaks above are biased by about
+    # a tenth of the depth of field: see nhfd.calib.bench_model). The stage scale is tied to
+    # the lateral magnification (longitudinal magnification = M^2): the centroids of dozens of
+    # dots measure M to ~0.05%, far better than the images can measure the scale, whose fit
+    # trades against model mismatch near the SLM plane.
+    scale = 1.0 / mag**2
+    scale_std = 2 * scale * geo.px_per_m_std / geo.px_per_m
+    model = _fit_depth_model(data, stacks, geo, depth.phase_sign, resp,
+                             (depth.stage_at_slm_mm, scale, depth.z_offset_m), scale_std, say)
+    say(f"depth (model): stage at SLM {model.stage_at_slm_mm:.4f} +- "
+        f"{model.stage_at_slm_std_mm * 1e3:.1f} um, offsets "
+        f"{[round(z * 1e6, 1) for z in model.z_offset_m]} +- "
+        f"{[round(z * 1e6, 1) for z in model.z_offset_std_m]} um, image residual "
+        f"{model.rms_rel:.1%}, {model.iterations} iterations")
     for c in range(3):
         say(f"response {COLOURS[c]}: range {resp.tables_rad[c][-1]:.3f} rad "
             f"(+- {resp.table_std_rad[c]:.3f} RMS), K {resp.intensity[c]:.4g}, residual "
@@ -180,12 +256,12 @@ def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
         phase_sign=depth.phase_sign,
         phase_tables_rad=tuple(tables),
         phase_table_std_rad=tuple(stds),
-        stage_scale=depth.stage_scale,
-        stage_scale_std=depth.stage_scale_std,
-        stage_at_slm_mm=depth.stage_at_slm_mm,
-        stage_at_slm_std_mm=depth.stage_at_slm_std_mm,
-        z_offset_m=depth.z_offset_m,
-        z_offset_std_m=depth.z_offset_std_m,
+        stage_scale=model.stage_scale,
+        stage_scale_std=model.stage_scale_std,
+        stage_at_slm_mm=model.stage_at_slm_mm,
+        stage_at_slm_std_mm=model.stage_at_slm_std_mm,
+        z_offset_m=model.z_offset_m,
+        z_offset_std_m=model.z_offset_std_m,
         magnification=mag,
         magnification_std=geo.px_per_m_std * camera_pitch_m,
         rotation_deg=geo.rotation_deg,
@@ -196,7 +272,9 @@ def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
         intensity_std=tuple(k_stds),
         residuals={"geometry_rms_px": geo.rms_px, "focus_rms_mm": depth.rms_mm,
                    "response_rms_rel": [float(v) for v in rms],
+                   # The focus peaks' own scale against 1 / M^2: a check of the tie.
                    "longitudinal_vs_lateral": depth.stage_scale * mag**2 - 1.0,
+                   "depth_model_rms_rel": model.rms_rel,
                    "sign_margin_sigma": depth.sign_margin},
         fitted_on={"capture": str(Path(root).resolve()), "manifest_sha256_16": digest,
                    "images": len(data.manifest["records"]), "dots": geo.n_dots,

@@ -3,7 +3,8 @@
     render the central view (the model's training window, its trained fx)
       -> onnxruntime: amplitude, phase on the reference plane (x the model's amplitude scale)
       -> one cached kernel per colour: the Fourier aperture and the propagation by
-         -(z0 + refocus) to the SLM plane, on the window plus the margin the kernel reaches only
+         -(z0 + refocus + the colour's calibrated focus offset) to the SLM plane, on the window
+         plus the margin the kernel reaches only
       -> double-phase coding with the model's amplitude scale and coding.zero_below
       -> grey levels through the configured phase curve(s)
       -> the full panel: the precomputed zero-amplitude pattern with the coded region pasted in.
@@ -56,6 +57,10 @@ class FrameSettings:
     # Measured grey -> phase tables per colour (a calibration file); () = linear curves of
     # phase_stroke_rad.
     phase_tables_rad: tuple[tuple[float, ...], ...] = ()
+    # Per-colour focus offsets (a calibration file; () = none): colour c's reference plane is
+    # placed at z0 + refocus_m + colour_offset_m[c], where the relay's chromatic focal shift
+    # makes the camera (or eye) see it at the same place as green's.
+    colour_offset_m: tuple[float, ...] = ()
 
     @property
     def aperture(self) -> Aperture:
@@ -64,6 +69,12 @@ class FrameSettings:
     @property
     def propagation_z_m(self) -> float:
         return -(self.z0_m + self.refocus_m)
+
+    @property
+    def colour_propagation_z_m(self) -> tuple[float, ...]:
+        """Each colour's propagation to the SLM: -(z0 + refocus + its focus offset)."""
+        offsets = self.colour_offset_m or (0.0,) * len(self.wavelengths_m)
+        return tuple(self.propagation_z_m - o for o in offsets)
 
     def curves(self) -> list[PhaseCurve]:
         if self.phase_tables_rad:
@@ -97,7 +108,8 @@ def frame_region(s: FrameSettings) -> Region:
     ph, pw = s.panel_hw
     wh, ww = s.window_hw
     top, left = window_offset(s.panel_hw, s.window_hw)
-    m = margin_px(abs(s.propagation_z_m), s.pitch_m, s.wavelengths_m, s.aperture)
+    reach_z = max(abs(z) for z in s.colour_propagation_z_m)
+    m = margin_px(reach_z, s.pitch_m, s.wavelengths_m, s.aperture)
     r0, c0 = max(0, top - m), max(0, left - m)
     r0, c0 = r0 - r0 % 2, c0 - c0 % 2  # even: the checkerboard's parity is the panel's
     r1, c1 = min(ph, top + wh + m), min(pw, left + ww + m)
@@ -158,8 +170,16 @@ class Encoder:
         h, w = reference.shape[-2:]
         buf = torch.zeros((reference.shape[0], r.height, r.width), dtype=torch.complex64)
         buf[:, r.window_top : r.window_top + h, r.window_left : r.window_left + w] = reference
-        return propagate(buf, s.propagation_z_m, s.pitch_m, s.wavelengths_m,
-                         padding=s.padding, aperture=s.aperture, cache=self.cache)  # type: ignore[arg-type]
+        zs = s.colour_propagation_z_m
+        if len(set(zs)) == 1:
+            return propagate(buf, zs[0], s.pitch_m, s.wavelengths_m,
+                             padding=s.padding, aperture=s.aperture, cache=self.cache)  # type: ignore[arg-type]
+        # Per-colour depths (calibrated focus offsets): one kernel per colour, each cached.
+        cutoffs = s.aperture.cutoffs(len(zs))
+        return torch.cat([
+            propagate(buf[c : c + 1], z, s.pitch_m, [s.wavelengths_m[c]], padding=s.padding,  # type: ignore[arg-type]
+                      aperture=Aperture(s.aperture.shape, (cutoffs[c],)), cache=self.cache)
+            for c, z in enumerate(zs)])
 
     def code(self, slm_field: torch.Tensor) -> tuple[np.ndarray, tuple[float, ...]]:
         """SLM-plane region field -> grey `[3, h, w]` uint8 and the clipped fraction per colour.
@@ -329,4 +349,5 @@ def frame_settings(config: Any, metadata: dict[str, Any], *, refocus_m: float = 
         refocus_m=float(refocus_m),
         padding=config.optics.padding,
         phase_tables_rad=cal.phase_tables_rad if cal else (),
+        colour_offset_m=tuple(cal.refocus_m(c) for c in range(3)) if cal else (),
     )

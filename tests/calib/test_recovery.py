@@ -6,7 +6,6 @@ order, Gaussian source, sensor noise and response): tolerances are the issue's."
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from nhfd.drivers.simcamera import TrueBench
 
 
@@ -29,18 +28,23 @@ def test_magnification_and_rotation(bench: TrueBench, fitted) -> None:
 
 def test_stage_scale(bench: TrueBench, fitted) -> None:
     assert abs(fitted.stage_scale / bench.stage_scale - 1) < 0.005
+    # The scale is tied to 1 / M^2; the focus peaks measure it independently and agree (the
+    # check a bench whose stage does not move the camera along the axis would fail).
+    assert abs(fitted.residuals["longitudinal_vs_lateral"]) < 0.02
 
 
-@pytest.mark.xfail(reason="not met yet: measured on this seed s0 off by ~120 um (12% of the "
-                   "DOF); the per-dot focus-peak estimator is biased (see the report)",
-                   strict=False)
 def test_depth_offsets(bench: TrueBench, fitted) -> None:
     # Where green images the SLM plane, and the per-colour offsets, within 5% of the depth of
-    # field (in SLM space).
+    # field (in SLM space). Measured on this seed with the bench-model fit: 1.8%, R 2.1%, B 1.3%
+    # (the focus-peak estimator alone: 12.3%, 13.1%, 7.7%).
     s0_err_m = (fitted.stage_at_slm_mm - bench.stage_at_slm_mm) * 1e-3 * bench.stage_scale
     assert abs(s0_err_m) < 0.05 * _dof_m(bench, 1)
     for c in (0, 2):
         assert abs(fitted.z_offset_m[c] - bench.z_offset_m[c]) < 0.05 * _dof_m(bench, c)
+    # The reported uncertainty is not the formal one of an exact model (under 1 um): it comes
+    # from the images' scatter about the fitted line (measured 4.6 um here, against an 18 um
+    # error: systematic model mismatch near the SLM plane is correlated between images).
+    assert 2e-6 < fitted.stage_at_slm_std_mm * 1e-3 * bench.stage_scale < 0.05 * _dof_m(bench, 1)
 
 
 def test_phase_curves_and_intensity(bench: TrueBench, fitted) -> None:
