@@ -63,21 +63,96 @@ def pixel_transfer(hw: tuple[int, int]) -> torch.Tensor:
     return torch.sinc(fx) * torch.sinc(fy)
 
 
+# Zernike terms the aberration fit covers: Noll j = 5 (oblique astigmatism) to 11 (primary
+# spherical). Piston is invisible, tilt is the geometry's shift, defocus the depth offsets.
+FIRST_NOLL = 5
+N_ZERNIKE = 7
+# Forward-difference step of the images' derivative in a Zernike coefficient (radians): small
+# against the 0.1 rad the fit must reach, large against float32 noise.
+DA_RAD = 0.02
+
+
+def zernike(j: int, rho: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """Zernike polynomial, Noll index j in 5..11 (RMS 1 over the unit disk; even j cos, odd j
+    sin), written out: the twin (`nhfd.drivers.simcamera`) has its own general form."""
+    r2 = rho * rho
+    if j == 5:
+        return math.sqrt(6) * r2 * torch.sin(2 * theta)
+    if j == 6:
+        return math.sqrt(6) * r2 * torch.cos(2 * theta)
+    if j == 7:
+        return math.sqrt(8) * (3 * r2 - 2) * rho * torch.sin(theta)
+    if j == 8:
+        return math.sqrt(8) * (3 * r2 - 2) * rho * torch.cos(theta)
+    if j == 9:
+        return math.sqrt(8) * r2 * rho * torch.sin(3 * theta)
+    if j == 10:
+        return math.sqrt(8) * r2 * rho * torch.cos(3 * theta)
+    if j == 11:
+        return math.sqrt(5) * (6 * r2 * r2 - 6 * r2 + 1)
+    raise ValueError(f"Noll index {j}: only {FIRST_NOLL}..{FIRST_NOLL + N_ZERNIKE - 1}")
+
+
+def pupil_phase(hw: tuple[int, int], cutoff_per_px: float, zernike_rad: tuple[float, ...],
+                scale: float = 1.0) -> torch.Tensor:
+    """The relay's pupil phase [H, W] (float64 radians) on the fftfreq grid of an H x W field
+    of SLM pixels: `scale * sum_k a_k Z_{5+k}(rho, theta)`, rho = |f| / cutoff (f in cycles per
+    pixel; the square iris's corners reach sqrt 2), theta from +x (columns) toward +y (rows).
+    `scale` = lambda_ref / lambda converts coefficients given at lambda_ref to a colour."""
+    fy = torch.fft.fftfreq(hw[0], dtype=torch.float64)[:, None]
+    fx = torch.fft.fftfreq(hw[1], dtype=torch.float64)[None, :]
+    rho = torch.sqrt(fx**2 + fy**2) / cutoff_per_px
+    theta = torch.atan2(fy.expand_as(rho), fx.expand_as(rho))
+    out = torch.zeros_like(rho)
+    for k, a in enumerate(zernike_rad):
+        if a:
+            out += a * zernike(FIRST_NOLL + k, rho, theta)
+    return out * scale
+
+
+def apply_pupil(field: torch.Tensor, cutoff_per_px: float, zernike_rad: tuple[float, ...],
+                scale: float = 1.0) -> torch.Tensor:
+    """A field [..., H, W] through the pupil phase, zero-padded 2x so that the aberrated
+    spread does not wrap around the panel (a spectral product: it commutes with the ASM)."""
+    if not any(zernike_rad):
+        return field
+    h, w = field.shape[-2:]
+    ph = pupil_phase((2 * h, 2 * w), cutoff_per_px, zernike_rad, scale)
+    spec = torch.fft.fft2(field.to(torch.complex128), s=(2 * h, 2 * w))
+    return torch.fft.ifft2(spec * torch.polar(torch.ones_like(ph), ph))[..., :h, :w].to(
+        field.dtype)
+
+
 class BenchModel:
     """What the camera sees of a grey frame at depth z, for one colour, sampled at the SLM
-    pixel centres (the captured images are resampled there once, with `to_slm_grid`)."""
+    pixel centres (the captured images are resampled there once, with `to_slm_grid`).
+
+    Optional, once fitted (`nhfd.calib.response.fit_source`): the source's amplitude profile
+    `source_amplitude` [H, W] and the unmodulated light `unmodulated` (complex amplitude
+    relative to the modulated light's); and the relay's aberrations (`set_aberration`)."""
 
     def __init__(self, frames: list[np.ndarray], colour: int, curve: PhaseCurve, sign: int,
                  pitch_m: float, wavelength_m: float, cutoff_per_px: float,
-                 aperture_shape: str) -> None:
+                 aperture_shape: str, *, source_amplitude: np.ndarray | None = None,
+                 unmodulated: complex = 0j, zernike_scale: float = 1.0) -> None:
         grey = torch.from_numpy(np.stack([f[..., colour] for f in frames]))[:, None]
         phase = grey_to_phase(grey, [curve], sign=sign).double()
-        u = torch.polar(torch.ones_like(phase), phase)
+        u = torch.polar(torch.ones_like(phase), phase) + unmodulated
+        if source_amplitude is not None:
+            u = u * torch.from_numpy(np.asarray(source_amplitude, np.float64))
         u = torch.fft.ifft2(torch.fft.fft2(u) * pixel_transfer(tuple(u.shape[-2:])))
-        self.field = u.to(torch.complex64)  # [F, 1, H, W]: the frames whose images are averaged
+        self.base_field = u.to(torch.complex64)
+        self.field = self.base_field  # [F, 1, H, W]: the frames whose images are averaged
         self.pitch_m = pitch_m
         self.wavelength_m = wavelength_m
+        self.cutoff_per_px = cutoff_per_px
+        self.zernike_scale = zernike_scale
         self.aperture = Aperture(aperture_shape, (cutoff_per_px,))  # type: ignore[arg-type]
+
+    def set_aberration(self, zernike_rad: tuple[float, ...]) -> None:
+        """Render through a pupil phase (coefficients at the reference wavelength)."""
+        self.field = apply_pupil(self.base_field, self.cutoff_per_px, tuple(zernike_rad),
+                                 self.zernike_scale)
 
     def render(self, z_m: np.ndarray | list[float]) -> torch.Tensor:
         """Relative irradiance at the pixel centres [D, H, W] (float64) at depths `z_m`."""
@@ -262,3 +337,131 @@ def fit_depth_model(sweeps: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]]
         z_offset_std_m=(float(std[2]) * 1e-3, 0.0, float(std[3]) * 1e-3),
         gain=tuple(float(theta[4 + i]) for i in range(len(colours))),  # type: ignore[arg-type]
         rms_rel=math.sqrt(cost / npix) / y_rms, iterations=it)
+
+
+@dataclass(frozen=True)
+class AberrationFit:
+    """Zernike coefficients (Noll j = FIRST_NOLL...), radians at the reference wavelength, with
+    one-sigma uncertainties (the larger of the Gauss-Newton covariance's, scaled by the residual,
+    and the spread of the colours' separate solutions), the RMS image residual relative to the
+    RMS image before and after, and the terms the data could not determine."""
+
+    zernike_rad: tuple[float, ...]
+    zernike_std_rad: tuple[float, ...]
+    rms_rel_before: float
+    rms_rel: float
+    iterations: int
+    undetermined: tuple[int, ...] = ()
+
+
+def fit_aberration(sweeps: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]],
+                   models: dict[int, BenchModel], depth: ModelDepthFit, *,
+                   n_terms: int = N_ZERNIKE, max_iter: int = 10,
+                   say: Callable[[str], None] = lambda _m: None) -> AberrationFit:
+    """Levenberg-Marquardt on the Zernike coefficients shared by the colours (one optical path:
+    each colour's phase is lambda_ref / lambda times it) and each colour's gain and background,
+    the depth mapping held at `depth`'s. The defocused dots carry the information: astigmatism
+    stretches a dot one way before its focus and the other way after, coma skews it, spherical
+    makes the two sides differ in spread. Derivatives by forward differences (DA_RAD)."""
+    colours = sorted(sweeps)
+    nc = len(colours)
+    ys = {c: sweeps[c][1][:, sweeps[c][2]] for c in colours}
+    masks = {c: sweeps[c][2] for c in colours}
+
+    def z_of(c: int) -> np.ndarray:
+        return ((sweeps[c][0] - depth.stage_at_slm_mm) * depth.stage_scale * STAGE_M_PER_MM
+                + depth.z_offset_m[c])
+
+    zs = {c: z_of(c) for c in colours}
+
+    def images(c: int, a: np.ndarray) -> np.ndarray:
+        models[c].set_aberration(tuple(float(v) for v in a))
+        return models[c].render(zs[c]).numpy()[:, masks[c]]
+
+    def linear(c: int, m: np.ndarray) -> tuple[float, float]:
+        a = np.stack([m.ravel(), np.ones(m.size)], 1)
+        (g, b), *_ = np.linalg.lstsq(a, ys[c].ravel(), rcond=None)
+        return float(g), float(b)
+
+    y_rms = math.sqrt(sum(float((ys[c] ** 2).sum()) for c in colours) /
+                      sum(ys[c].size for c in colours))
+    npar = n_terms + 2 * nc
+    theta = np.zeros(npar)
+    for ci, c in enumerate(colours):
+        theta[n_terms + ci], theta[n_terms + nc + ci] = linear(c, images(c, theta[:n_terms]))
+
+    def evaluate(th: np.ndarray, with_jac: bool
+                 ) -> tuple[float, np.ndarray, np.ndarray, dict[int, np.ndarray]]:
+        cost = 0.0
+        jtj = np.zeros((npar, npar))
+        jtr = np.zeros(npar)
+        per_colour: dict[int, np.ndarray] = {}
+        for ci, c in enumerate(colours):
+            m = images(c, th[:n_terms])
+            g, b = th[n_terms + ci], th[n_terms + nc + ci]
+            r = (g * m + b - ys[c]).ravel()
+            cost += float(r @ r)
+            if not with_jac:
+                continue
+            cols = np.zeros((r.size, npar))
+            for k in range(n_terms):
+                step = th[:n_terms].copy()
+                step[k] += DA_RAD
+                cols[:, k] = g * (images(c, step) - m).ravel() / DA_RAD
+            cols[:, n_terms + ci] = m.ravel()
+            cols[:, n_terms + nc + ci] = 1.0
+            a = cols.T @ cols
+            jtj += a
+            jtr += cols.T @ r
+            # This colour's own Gauss-Newton solution for the coefficients (its own gain and
+            # background free): the colours' spread is an honest error bar.
+            idx = [*range(n_terms), n_terms + ci, n_terms + nc + ci]
+            sub = a[np.ix_(idx, idx)]
+            try:
+                per_colour[c] = th[:n_terms] + np.linalg.solve(sub, -(cols.T @ r)[idx])[:n_terms]
+            except np.linalg.LinAlgError:
+                pass
+        return cost, jtj, jtr, per_colour
+
+    lam = 1e-3
+    cost, jtj, jtr, per_colour = evaluate(theta, True)
+    npix = sum(ys[c].size for c in colours)
+    rms_before = math.sqrt(cost / npix) / y_rms
+    it = 0
+    for it in range(1, max_iter + 1):
+        step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj)), -jtr)
+        trial = theta + step
+        new_cost = evaluate(trial, False)[0]
+        say(f"  aberration LM {it}: cost {cost:.6g} -> {new_cost:.6g}, Zernike "
+            f"{np.round(trial[:n_terms], 3).tolist()} rad")
+        if new_cost < cost:
+            moved = float(np.abs(step[:n_terms]).max())
+            theta = trial
+            cost, jtj, jtr, per_colour = evaluate(theta, True)
+            lam = max(lam / 10, 1e-7)
+            if moved < 2e-3:
+                break
+        elif lam > 1e6:
+            break
+        else:
+            lam *= 10
+    sigma2 = cost / max(1, npix - npar)
+    cond = np.linalg.cond(jtj)
+    diag = np.sqrt(np.clip(np.diag(sigma2 * np.linalg.pinv(jtj)), 0, None))[:n_terms] \
+        if math.isfinite(cond) else np.full(n_terms, math.inf)
+    std = diag.copy()
+    if len(per_colour) >= 2:
+        spread = np.std(np.stack(list(per_colour.values())), axis=0, ddof=1) / \
+            math.sqrt(len(per_colour))
+        std = np.maximum(std, spread)
+    # A term whose derivative is (nearly) a mix of the others' cannot be told apart from them.
+    jn = jtj[:n_terms, :n_terms]
+    d = np.sqrt(np.clip(np.diag(jn), 1e-300, None))
+    corr_cond = np.linalg.cond(jn / d[:, None] / d[None, :])
+    undetermined = tuple(FIRST_NOLL + k for k in range(n_terms)
+                         if not math.isfinite(std[k]) or d[k] < 1e-12 or corr_cond > 1e10)
+    for c in colours:
+        models[c].set_aberration(tuple(float(v) for v in theta[:n_terms]))
+    return AberrationFit(tuple(float(v) for v in theta[:n_terms]),
+                         tuple(float(v) for v in std), rms_before,
+                         math.sqrt(cost / npix) / y_rms, it, undetermined)

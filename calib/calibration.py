@@ -2,8 +2,11 @@
 
 What the daemon takes from it: per-colour `PhaseCurve`s and the phase sign (coding), the
 per-colour focus offsets (digital refocus), the depth -> stage mapping (focus), the per-colour
-intensity (amplitude compensation). Aberrations are not fitted yet: the file says so
-(`[aberration] fitted = false`) rather than pretend.
+intensity (amplitude compensation), the source's amplitude profile (`[source]`: a Gaussian per
+colour, the daemon divides the target amplitude by it) and the relay's aberrations
+(`[aberration]`: Zernike coefficients, the daemon pre-compensates them). `[zero_order]` records the
+coherent unmodulated light. A part the data could not determine is written `fitted = false` with
+the reason, never a guess.
 
 Units follow the keys: `_m`, `_mm`, `_rad`, `_deg`, `_px`. Colours are R, G, B.
 """
@@ -53,6 +56,25 @@ class Calibration:
     intensity_std: tuple[float, ...]
     residuals: dict[str, Any] = field(default_factory=dict)
     fitted_on: dict[str, Any] = field(default_factory=dict)
+    # The illumination per colour (nhfd.calib.response.fit_source): 1/e^2 intensity radius and
+    # centre (x, y) on the SLM plane, metres; () = not fitted.
+    source_waist_m: tuple[float, ...] = ()
+    source_waist_std_m: tuple[float, ...] = ()
+    source_centre_m: tuple[tuple[float, float], ...] = ()
+    source_centre_std_m: tuple[tuple[float, float], ...] = ()
+    # Coherent unmodulated light per colour (zero-order leakage and gap light): intensity fraction
+    # of the light leaving the panel, and its phase against grey 0's; () = not fitted.
+    unmodulated_fraction: tuple[float, ...] = ()
+    unmodulated_fraction_std: tuple[float, ...] = ()
+    unmodulated_phase_rad: tuple[float, ...] = ()
+    # Relay aberrations: Zernike coefficients for Noll j = 5, 6, ... (radians at
+    # zernike_wavelength_m; pupil radius = the aperture's cutoff, see
+    # nhfd.calib.bench_model.pupil_phase); () = not fitted.
+    zernike_rad: tuple[float, ...] = ()
+    zernike_std_rad: tuple[float, ...] = ()
+    zernike_wavelength_m: float = 0.0
+    # What the fit refused to determine, and why.
+    refused: tuple[str, ...] = ()
     created: str = ""
     source: str = ""  # the file it was loaded from ("" when fitted in this process)
 
@@ -95,6 +117,19 @@ class Calibration:
         k_min = min(self.intensity)
         return tuple(math.sqrt(k_min / k) for k in self.intensity)  # type: ignore[return-value]
 
+    def source_amplitude(self, panel_hw: tuple[int, int], colour: int) -> np.ndarray:
+        """The fitted illumination's amplitude [H, W] on a panel of `panel_hw` pixels, scaled so
+        the mean intensity over the panel is 1 (so it never trades against the per-colour
+        intensity and exposure); all ones where the source was not fitted."""
+        h, w = panel_hw
+        if not self.source_waist_m:
+            return np.ones((h, w))
+        x = (np.arange(w) - (w - 1) / 2) * self.pitch_m - self.source_centre_m[colour][0]
+        y = (np.arange(h) - (h - 1) / 2) * self.pitch_m - self.source_centre_m[colour][1]
+        intensity = np.exp(-2 * (x[None, :] ** 2 + y[:, None] ** 2)
+                           / self.source_waist_m[colour] ** 2)
+        return np.sqrt(intensity / intensity.mean())
+
     def stage_mm_for(self, z_m: float, colour: int = 1) -> float:
         """The stage reading at which colour `colour` images distance `z_m` from the SLM."""
         if not math.isfinite(z_m):
@@ -136,7 +171,23 @@ class Calibration:
                          "mirror_x": self.mirror_x, "shift_px": list(self.shift_px)},
             "intensity": {"per_second": list(self.intensity),
                           "per_second_std": list(self.intensity_std)},
-            "aberration": {"fitted": False},
+            "source": ({"fitted": True, "waist_m": list(self.source_waist_m),
+                        "waist_std_m": list(self.source_waist_std_m),
+                        "centre_m": [list(v) for v in self.source_centre_m],
+                        "centre_std_m": [list(v) for v in self.source_centre_std_m],
+                        "profile": "Gaussian intensity exp(-2 r^2 / waist^2) per colour, "
+                                   "normalised to mean 1 over the panel"}
+                       if self.source_waist_m else {"fitted": False}),
+            "zero_order": ({"fitted": True, "unmodulated_fraction": list(self.unmodulated_fraction),
+                            "unmodulated_fraction_std": list(self.unmodulated_fraction_std),
+                            "phase_rad": list(self.unmodulated_phase_rad)}
+                           if self.unmodulated_fraction else {"fitted": False}),
+            "aberration": ({"fitted": True, "first_noll": 5, "zernike_rad": list(self.zernike_rad),
+                            "zernike_std_rad": list(self.zernike_std_rad),
+                            "wavelength_m": self.zernike_wavelength_m,
+                            "pupil": "rho = |f| / aperture cutoff (cycles per SLM pixel)"}
+                           if self.zernike_rad else {"fitted": False}),
+            "refused": {"reasons": list(self.refused)},
             "residuals": dict(self.residuals),
             "fitted_on": dict(self.fitted_on),
         }
@@ -183,6 +234,7 @@ class Calibration:
                 mirror_x=ge["mirror_x"], shift_px=tuple(ge["shift_px"]),
                 intensity=tuple(it["per_second"]), intensity_std=tuple(it["per_second_std"]),
                 residuals=doc.get("residuals", {}), fitted_on=doc.get("fitted_on", {}),
+                **_optional(doc),
                 created=str(doc.get("created", "")), source=str(path),
             )
         except (KeyError, TypeError) as exc:
@@ -190,6 +242,31 @@ class Calibration:
                                        f"{exc}") from None
         except ValueError as exc:
             raise CalibrationFileError(f"calibration file {path}: {exc}") from None
+
+
+def _optional(doc: dict[str, Any]) -> dict[str, Any]:
+    """The sections a fit may leave out (`fitted = false`), as constructor arguments."""
+    out: dict[str, Any] = {}
+    src = doc.get("source", {})
+    if src.get("fitted"):
+        out.update(source_waist_m=tuple(src["waist_m"]),
+                   source_waist_std_m=tuple(src["waist_std_m"]),
+                   source_centre_m=tuple(tuple(v) for v in src["centre_m"]),
+                   source_centre_std_m=tuple(tuple(v) for v in src["centre_std_m"]))
+    zo = doc.get("zero_order", {})
+    if zo.get("fitted"):
+        out.update(unmodulated_fraction=tuple(zo["unmodulated_fraction"]),
+                   unmodulated_fraction_std=tuple(zo["unmodulated_fraction_std"]),
+                   unmodulated_phase_rad=tuple(zo["phase_rad"]))
+    ab = doc.get("aberration", {})
+    if ab.get("fitted"):
+        if ab.get("first_noll", 5) != 5:
+            raise ValueError(f"aberration first_noll = {ab.get('first_noll')!r}: need 5")
+        out.update(zernike_rad=tuple(ab["zernike_rad"]),
+                   zernike_std_rad=tuple(ab["zernike_std_rad"]),
+                   zernike_wavelength_m=float(ab["wavelength_m"]))
+    out["refused"] = tuple(doc.get("refused", {}).get("reasons", ()))
+    return out
 
 
 # -- a minimal TOML writer (tomllib reads; the standard library has no writer) ------------------

@@ -2,7 +2,8 @@
 
 The capture talks to the bench through `BenchIO` (show a frame, move the stage, set the lasers,
 capture a linear dark-subtracted image). `SimBenchIO` drives the twins directly (a `TrueBench`
-and a `SimulatedCamera`); `nhfd.calib.daemon_io.DaemonBenchIO` drives a running daemon.
+and a `SimulatedCamera`); `DaemonBenchIO` drives a running daemon (`nhfd serve`, which owns the
+devices) through its JSON-RPC methods show_pattern, stage_move, laser and capture.
 
 Layout of a capture directory:
 
@@ -11,6 +12,8 @@ Layout of a capture directory:
     frames/NAME.npy        every SLM frame shown, uint8 [H, W, 3]
     images/KEY.npz         `image` float32 (linear, dark subtracted), `saturated` bool
     dark.npz               the dark frame (lasers off)
+    daemon/                through a daemon only: the frame being shown and the last capture,
+                           exchanged as .npy files (scratch)
 
 Procedure: dark frame; a coarse green sweep over the user's stage range to locate the SLM plane
 and the magnification (from the in-focus dots); a fine sweep per colour around it covering every
@@ -30,11 +33,12 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from .patterns import PatternSpec, dots_frame, grating_frames
+from .patterns import PatternSpec, dots_frame, flat_frames, grating_frames
 
 MANIFEST = "manifest.json"
 MANIFEST_VERSION = 1
 COLOURS = ("R", "G", "B")
+SWEEPS = ("coarse", "grating", "fine")
 
 
 class CaptureError(RuntimeError):
@@ -107,6 +111,136 @@ class SimBenchIO:
         return self.camera.exposure_s
 
 
+class DaemonBenchIO:
+    """The bench through a running daemon (`nhfd.daemon.client.Client`, standard library only).
+
+    Frames are written as .npy into `work_dir` (which must lie inside the daemon's
+    `daemon.pattern_dirs`) and shown with `show_pattern`; the stage moves with `stage_move`
+    (raw positions, no calibration mapping); the lasers through `laser` power / enable /
+    disable (arming is a person's act: done here only when `arm_s` is given, and only over the
+    Unix socket); images come back from `capture` as linear .npy files. Each job is waited for.
+    A mono camera is expected."""
+
+    def __init__(self, client: Any, work_dir: Path | str, *, exposure_s: float = 0.005,
+                 arm_s: float | None = None, home: bool = False, poll_s: float = 0.01,
+                 job_timeout_s: float = 300.0) -> None:
+        self.client = client
+        self.work_dir = Path(work_dir).resolve()
+        self.exposure_s = float(exposure_s)
+        self.arm_s = arm_s
+        self._home = home
+        self.poll_s = poll_s
+        self.job_timeout_s = job_timeout_s
+        self._shown: bytes | None = None
+        self._powers: tuple[float, ...] | None = None
+        self.powers_applied = [0.0, 0.0, 0.0]  # as the daemon applied them (caps), relative
+        self.calls: list[str] = []  # the daemon methods called, in order (for the curious)
+
+    def _call(self, method: str, **params: Any) -> Any:
+        from nhfd.daemon.protocol import RpcError
+
+        self.calls.append(method)
+        try:
+            return self.client.call(method, **params)
+        except RpcError as exc:
+            raise CaptureError(f"daemon refused {method}: {exc.message}"
+                               + (f" ({exc.data})" if exc.data else "")) from None
+
+    def _wait(self, method: str, **params: Any) -> dict[str, Any]:
+        import time
+
+        job_id = self._call(method, **params)["job"]
+        end = time.monotonic() + self.job_timeout_s
+        while True:
+            job = self._call("job", id=job_id)
+            if job["state"] == "done":
+                return job["result"]
+            if job["state"] in ("failed", "cancelled"):
+                raise CaptureError(f"daemon {method} job {job_id} {job['state']}: "
+                                   f"{job.get('error')}")
+            if time.monotonic() > end:
+                raise CaptureError(f"daemon {method} job {job_id} still {job['state']} after "
+                                   f"{self.job_timeout_s:g} s")
+            time.sleep(self.poll_s)
+
+    def show(self, frame: np.ndarray) -> None:
+        frame = np.ascontiguousarray(frame, dtype=np.uint8)
+        key = hashlib.blake2b(frame.tobytes(), digest_size=16).digest() + \
+            str(frame.shape).encode()
+        if key == self._shown:
+            return
+        self.work_dir.mkdir(parents=True, exist_ok=True)
+        path = self.work_dir / "shown.npy"
+        tmp = self.work_dir / ".shown.tmp.npy"
+        np.save(tmp, frame)
+        os.replace(tmp, path)
+        self._call("show_pattern", path=str(path))
+        self._shown = key
+
+    def move_stage(self, position_mm: float) -> float:
+        result = self._wait("stage_move", position_mm=float(position_mm), home=self._home)
+        self._home = False
+        return float(result["stage_mm"])
+
+    def set_lasers(self, powers: tuple[float, float, float]) -> None:
+        powers = tuple(float(p) for p in powers)
+        if powers == self._powers:
+            return
+        names = ("red", "green", "blue")
+        for c, (name, pw) in enumerate(zip(names, powers, strict=True)):  # off first
+            if pw <= 0:
+                self._call("laser", action="disable", channel=name)
+                self.powers_applied[c] = 0.0
+        if any(pw > 0 for pw in powers):
+            laser = self._call("status")["laser"]
+            if not laser.get("armed") or laser.get("armed_remaining_s", 0.0) < 5.0:
+                if self.arm_s is None:
+                    raise CaptureError("the lasers are not armed: arm them (nhfctl laser arm) "
+                                       "or pass --arm SECONDS")
+                self._call("laser", action="arm", duration_s=float(self.arm_s))
+        for c, (name, pw) in enumerate(zip(names, powers, strict=True)):
+            if pw > 0:
+                reply = self._call("laser", action="power", channel=name, power_pct=100.0 * pw)
+                self._call("laser", action="enable", channel=name)
+                self.powers_applied[c] = float(reply.get("power_pct", 100.0 * pw)) / 100.0
+        self._powers = powers
+
+    def _image(self, name: str, frames: int, dark: bool) -> tuple[np.ndarray, np.ndarray]:
+        self.work_dir.mkdir(parents=True, exist_ok=True)
+        path = self.work_dir / name
+        result = self._wait("capture", path=str(path), frames=int(frames),
+                            exposure_s=self.exposure_s, dark=dark)
+        self.exposure_s = float(result["exposure_s"])
+        image = np.load(result["path"], allow_pickle=False)
+        saturated = np.load(result["saturated_path"], allow_pickle=False)
+        if image.ndim != 2:
+            raise CaptureError(f"the daemon's camera gives {list(image.shape)} images: "
+                               "calibration needs a mono camera")
+        return image.astype(np.float32), saturated.astype(bool)
+
+    def lasers_off(self) -> None:
+        """Every diode disabled (best effort: for a capture that stopped half-way)."""
+        import contextlib
+
+        for name in ("red", "green", "blue"):
+            with contextlib.suppress(Exception):
+                self.client.call("laser", action="disable", channel=name)
+        self._powers = None
+
+    def capture_dark(self, frames: int) -> np.ndarray:
+        return self._image("dark.npy", frames, True)[0]
+
+    def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        return self._image("capture.npy", frames, False)
+
+
+def daemon_spec(status: dict[str, Any], **kw: Any) -> PatternSpec:
+    """The patterns for the daemon's whole panel (its `status`: panel size, pitch, wavelengths)."""
+    panel = status["panel"]
+    return PatternSpec((int(panel["height_px"]), int(panel["width_px"])), float(panel["pitch_m"]),
+                       tuple(float(x) for x in panel["wavelengths_m"]), **kw)  # type: ignore[arg-type]
+
+
 @dataclass
 class CapturePlan:
     """User choices. Stage positions in mm; `depth_margin_m` widens the fine sweep beyond the
@@ -122,6 +256,9 @@ class CapturePlan:
     exposure_s: float = 0.005
     # The camera's pixel pitch (sensor metres): turns pixels per SLM metre into magnification.
     camera_pitch_m: float = 3.45e-6
+    # The last sweep captured: "coarse" (dark + coarse sweep + locate), "grating" (also the
+    # grating and flat frames) or "fine" (everything). Shorter captures are for checks only.
+    stop_after: str = "fine"
 
     def __post_init__(self) -> None:
         for name in ("stage_range_mm", "coarse_step_mm", "depth_margin_m", "exposure_s",
@@ -135,6 +272,8 @@ class CapturePlan:
             raise ValueError(f"power = {self.power}: must be in (0, 1]")
         if self.burst < 1:
             raise ValueError(f"burst = {self.burst}: must be >= 1")
+        if self.stop_after not in SWEEPS:
+            raise ValueError(f"stop_after = {self.stop_after!r}: one of {', '.join(SWEEPS)}")
 
 
 def _write_json(path: Path, data: dict[str, Any]) -> None:
@@ -204,17 +343,31 @@ class Capture:
         powers = [0.0, 0.0, 0.0]
         powers[colour] = self.plan.power
         self.io.set_lasers(tuple(powers))  # type: ignore[arg-type]
+        # What the bench applied (a daemon's laser caps power): relative, per colour.
+        applied = [float(x) for x in getattr(self.io, "powers_applied", powers)]
         image, saturated = self.io.capture(self.plan.burst)
         self.io.set_lasers((0.0, 0.0, 0.0))
         _save_npz(self.out / "images" / f"{key}.npz", image=image.astype(np.float32),
                   saturated=saturated.astype(bool))
         self.manifest["records"].append({
             "key": key, "file": f"images/{key}.npz", "frame": frame_name, "colour": colour,
-            "stage_mm": float(actual), "exposure_s": self.plan.exposure_s,
+            "stage_mm": float(actual),
+            "exposure_s": float(getattr(self.io, "exposure_s", self.plan.exposure_s)),
             "powers": powers, "burst": self.plan.burst,
+            "powers_applied": applied,
             "saturated_fraction": float(saturated.mean()), **extra})
         self._done.add(key)
         self._save()
+
+    def _flats(self, stage_mm: float) -> None:
+        """Flat frames per colour at the SLM plane (nhfd.calib.patterns.flat_frames): the
+        source's amplitude profile and the zero-order leakage are fitted from them."""
+        for grey, frame in flat_frames(self.spec):
+            name = f"flat_{grey:03d}"
+            self._frame(name, frame)
+            for c in range(3):
+                self._shoot(f"{name}_{COLOURS[c]}", name, frame, c, stage_mm, sweep="flat",
+                            grey=grey)
 
     # -- the procedure -------------------------------------------------------------------------
 
@@ -243,6 +396,8 @@ class Capture:
             recs = [r for r in self.manifest["records"] if r.get("sweep") == "coarse"]
             self.manifest["located"] = locate(self.out, self.spec, recs, p.camera_pitch_m)
             self._save()
+        if p.stop_after == "coarse":
+            return self._complete()
         loc = self.manifest["located"]
         s0, scale = loc["stage_at_slm_mm"], loc["stage_scale"]
         # Gratings first: their response curves code the dots of the fine sweep, so the dots
@@ -253,6 +408,9 @@ class Capture:
             for c in range(3):
                 self._shoot(f"{name}_{COLOURS[c]}", name, frame, c, float(s0),
                             sweep="grating", grating_frame=f)
+        self._flats(float(s0))
+        if p.stop_after == "grating":
+            return self._complete()
         recs = [r for r in self.manifest["records"] if r.get("sweep") == "grating"]
         curves = [PhaseCurve(tuple(t)) for t in
                   measure_response(self.out, self.spec, recs, geometry_from(loc)).tables_rad]
@@ -270,6 +428,9 @@ class Capture:
                     self._shoot(f"fine_{COLOURS[c]}_{k:03d}{name[9:]}", name, frame, c,
                                 float(s), sweep="fine", step=k)
             self.progress(f"fine sweep {COLOURS[c]}: {len(fine)} positions x 2 frames")
+        return self._complete()
+
+    def _complete(self) -> dict[str, Any]:
         self.manifest["complete"] = True
         self._save()
         self.progress(f"capture complete: {len(self.manifest['records'])} images in {self.out}")

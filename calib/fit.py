@@ -21,13 +21,20 @@ import numpy as np
 
 from nhfd.optics import PhaseCurve
 
-from .bench_model import BenchModel, ModelDepthFit, fit_depth_model, to_slm_grid
+from .bench_model import (
+    AberrationFit,
+    BenchModel,
+    ModelDepthFit,
+    fit_aberration,
+    fit_depth_model,
+    to_slm_grid,
+)
 from .calibration import Calibration
 from .data import CaptureData, load_capture, load_frame, load_image
 from .focus import FocusError, dot_metric, fit_depth, peak_position
 from .geometry import Geometry, fit_geometry
 from .patterns import PatternSpec, dot_layout, grating_tiles
-from .response import ResponseError, ResponseFit, fit_curve, tile_harmonic
+from .response import ResponseError, ResponseFit, SourceFit, fit_curve, fit_source, tile_harmonic
 
 COLOURS = ("R", "G", "B")
 
@@ -108,9 +115,12 @@ def _fine_stack(data: CaptureData, colour: int) -> tuple[np.ndarray, np.ndarray]
 def _fit_depth_model(data: CaptureData, stacks: dict[int, tuple[np.ndarray, np.ndarray]],
                      geo: Geometry, sign: int, resp: ResponseFit,
                      init: tuple[float, float, tuple[float, ...]], scale_std: float,
-                     say: Callable[[str], None]) -> ModelDepthFit:
+                     say: Callable[[str], None], source: SourceFit | None = None
+                     ) -> tuple[ModelDepthFit, dict[int, Any], dict[int, BenchModel]]:
     """The fine sweeps (pair means, per unit exposure and power) resampled on the SLM grid,
-    fitted through the bench model of the frames they showed."""
+    fitted through the bench model of the frames they showed (with the fitted source profile
+    and unmodulated light where `source` determined them). Returns the fit, the sweeps and the
+    models (the aberration fit reuses them)."""
     spec = data.spec
     names = sorted({r["frame"] for r in data.records("fine")})
     frames = [load_frame(data.root, data.manifest, n) for n in names]
@@ -124,9 +134,51 @@ def _fit_depth_model(data: CaptureData, stacks: dict[int, tuple[np.ndarray, np.n
             raise FocusError(f"colour {COLOURS[c]}: only {int(valid.sum())} panel pixels in "
                              "view of the camera: the depth mapping is undetermined")
         sweeps[c] = (stages, np.stack([v for v, _ in resampled]), valid)
+        amp, unmod = _source_terms(source, spec.panel_hw, spec.pitch_m, c)
         models[c] = BenchModel(frames, c, PhaseCurve(resp.tables_rad[c]), sign, spec.pitch_m,
-                               spec.wavelengths_m[c], spec.cutoff_per_px[c], spec.aperture_shape)
-    return fit_depth_model(sweeps, models, init, scale_std=scale_std, say=say)
+                               spec.wavelengths_m[c], spec.cutoff_per_px[c], spec.aperture_shape,
+                               source_amplitude=amp, unmodulated=unmod,
+                               zernike_scale=spec.wavelengths_m[1] / spec.wavelengths_m[c])
+    return fit_depth_model(sweeps, models, init, scale_std=scale_std, say=say), sweeps, models
+
+
+def _source_terms(source: SourceFit | None, panel_hw: tuple[int, int], pitch_m: float,
+                  c: int) -> tuple[np.ndarray | None, complex]:
+    """The bench model's source amplitude [H, W] (peak 1) and unmodulated amplitude for a
+    colour, from the flat-field fit (None / 0 where it did not determine them)."""
+    amp = None
+    if source is not None and source.waist_m is not None and source.centre_m is not None:
+        h, w = panel_hw
+        x = (np.arange(w) - (w - 1) / 2) * pitch_m - source.centre_m[c][0]
+        y = (np.arange(h) - (h - 1) / 2) * pitch_m - source.centre_m[c][1]
+        amp = np.exp(-(x[None, :] ** 2 + y[:, None] ** 2) / source.waist_m[c] ** 2)
+    unmod = 0j
+    if source is not None and source.unmodulated_fraction is not None and \
+            source.unmodulated_phase_rad is not None:
+        f0 = source.unmodulated_fraction[c]
+        unmod = complex(np.sqrt(f0 / (1 - f0)) * np.exp(-1j * source.unmodulated_phase_rad[c]))
+    return amp, unmod
+
+
+def measure_source(data: CaptureData, geo: Geometry, sign: int, resp: ResponseFit
+                   ) -> SourceFit | None:
+    """The source profile and unmodulated light from the flat frames (None: none captured)."""
+    spec = data.spec
+    flats: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+    greys: dict[int, list[int]] = {}
+    for c in range(3):
+        for rec in sorted(data.records("flat", c), key=lambda r: r["grey"]):
+            image, sat = data.image(rec)
+            rate = rec["exposure_s"] * max(rec["powers"])
+            vals, ok = to_slm_grid(image / rate, geo, spec.panel_hw, spec.pitch_m)
+            if sat.any():
+                hit, _ = to_slm_grid(sat.astype(np.float64), geo, spec.panel_hw, spec.pitch_m)
+                ok &= hit == 0
+            flats.setdefault(c, []).append((vals, ok))
+            greys.setdefault(c, []).append(int(rec["grey"]))
+    if len(flats) < 3:
+        return None
+    return fit_source(flats, greys, resp.tables_rad, sign, spec.pitch_m)
 
 
 def _rate(recs: list[dict[str, Any]], sweep: str, colour: str) -> float:
@@ -234,8 +286,38 @@ def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
     # trades against model mismatch near the SLM plane.
     scale = 1.0 / mag**2
     scale_std = 2 * scale * geo.px_per_m_std / geo.px_per_m
-    model = _fit_depth_model(data, stacks, geo, depth.phase_sign, resp,
-                             (depth.stage_at_slm_mm, scale, depth.z_offset_m), scale_std, say)
+    # 3b. The source profile and the unmodulated light from the flat frames (older captures
+    # have none: then neither is fitted, and the file says so).
+    source = measure_source(data, geo, depth.phase_sign, resp)
+    refused: list[str] = []
+    if source is None:
+        refused.append("source and zero order: the capture has no flat frames")
+    else:
+        refused.extend(source.refused)
+        for m in source.refused:
+            say(f"refused: {m}")
+        if source.waist_m is not None:
+            say(f"source: waist {[round(w * 1e3, 3) for w in source.waist_m]} mm, centre "
+                f"{[tuple(round(v * 1e6, 1) for v in xy) for xy in source.centre_m or ()]} um")
+        if source.unmodulated_fraction is not None:
+            say(f"unmodulated light: {[round(f, 4) for f in source.unmodulated_fraction]} +- "
+                f"{[round(f, 4) for f in source.unmodulated_fraction_std or ()]}")
+    model, sweeps, models = _fit_depth_model(
+        data, stacks, geo, depth.phase_sign, resp,
+        (depth.stage_at_slm_mm, scale, depth.z_offset_m), scale_std, say, source)
+    # 5. Aberrations through the same models, the depth mapping held; then the depth mapping
+    # again through the aberrated model when the aberration is significant (spherical and the
+    # square iris's corners trade a little with defocus).
+    aber: AberrationFit = fit_aberration(sweeps, models, model, say=say)
+    say(f"aberration: Zernike j=5.. {np.round(aber.zernike_rad, 3).tolist()} +- "
+        f"{np.round(aber.zernike_std_rad, 3).tolist()} rad, image residual "
+        f"{aber.rms_rel_before:.1%} -> {aber.rms_rel:.1%}")
+    if aber.undetermined:
+        refused.append(f"aberration: Noll terms {list(aber.undetermined)} are not separated "
+                       "by the fine sweeps")
+    if max(abs(a) for a in aber.zernike_rad) > 0.05:
+        model = fit_depth_model(sweeps, models, (model.stage_at_slm_mm, scale, model.z_offset_m),
+                                scale_std=scale_std, say=say)
     say(f"depth (model): stage at SLM {model.stage_at_slm_mm:.4f} +- "
         f"{model.stage_at_slm_std_mm * 1e3:.1f} um, offsets "
         f"{[round(z * 1e6, 1) for z in model.z_offset_m]} +- "
@@ -275,12 +357,31 @@ def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
                    # The focus peaks' own scale against 1 / M^2: a check of the tie.
                    "longitudinal_vs_lateral": depth.stage_scale * mag**2 - 1.0,
                    "depth_model_rms_rel": model.rms_rel,
-                   "sign_margin_sigma": depth.sign_margin},
+                   "sign_margin_sigma": depth.sign_margin,
+                   "source_rms_log": source.rms_log_residual if source else float("nan"),
+                   "aberration_rms_rel": [aber.rms_rel_before, aber.rms_rel]},
         fitted_on={"capture": str(Path(root).resolve()), "manifest_sha256_16": digest,
                    "images": len(data.manifest["records"]), "dots": geo.n_dots,
                    "focus_peaks": depth.n_peaks, "grating_tiles": counts,
                    "camera_pitch_m": camera_pitch_m, "panel_hw": list(spec.panel_hw)},
+        **_source_fields(source),
+        zernike_rad=() if aber.undetermined else aber.zernike_rad,
+        zernike_std_rad=() if aber.undetermined else aber.zernike_std_rad,
+        zernike_wavelength_m=spec.wavelengths_m[1],
+        refused=tuple(refused),
     )
+
+
+def _source_fields(source: SourceFit | None) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    if source is not None and source.waist_m is not None:
+        out.update(source_waist_m=source.waist_m, source_waist_std_m=source.waist_std_m,
+                   source_centre_m=source.centre_m, source_centre_std_m=source.centre_std_m)
+    if source is not None and source.unmodulated_fraction is not None:
+        out.update(unmodulated_fraction=source.unmodulated_fraction,
+                   unmodulated_fraction_std=source.unmodulated_fraction_std,
+                   unmodulated_phase_rad=source.unmodulated_phase_rad)
+    return out
 
 
 __all__ = ["fit_capture", "locate"]

@@ -33,6 +33,10 @@ GRATING_PERIOD_PX = 8
 # about a quarter-wave away somewhere (sin^2 is flat near its extremes).
 GRATING_REFS = (0, 64, 128, 192)
 GRATING_TESTS = tuple(range(8, 256, 16))
+# Grey levels of the flat frames (the whole panel at one level): the light leaving a flat panel
+# is all zero order, so at the SLM plane the camera sees the illumination itself, and its
+# brightness against the level shows the unmodulated light's interference with the modulated.
+FLAT_GREYS = tuple(range(0, 256, 32))
 
 
 @dataclass(frozen=True)
@@ -198,3 +202,9 @@ def grating_frames(spec: PatternSpec) -> list[np.ndarray]:
         block = np.where(stripe == 0, t.ref, t.test).astype(np.uint8)
         frames[t.frame][t.row : t.row + t.size, t.col : t.col + t.size] = block[None, :]
     return [np.ascontiguousarray(np.repeat(f[:, :, None], 3, axis=2)) for f in frames]
+
+
+def flat_frames(spec: PatternSpec, greys: tuple[int, ...] = FLAT_GREYS
+                ) -> list[tuple[int, np.ndarray]]:
+    """(grey, frame) per level: the whole panel at that grey in every colour, uint8 [H, W, 3]."""
+    return [(g, np.full((*spec.panel_hw, 3), g, np.uint8)) for g in greys]

@@ -115,6 +115,13 @@ class TrueBench:
     # Gaussian illumination: 1/e^2 intensity radius and the beam centre on the panel.
     source_waist_m: float = 9e-3
     source_offset_m: tuple[float, float] = (0.35e-3, -0.2e-3)
+    # Aberrations of the relay: a pupil phase in its Fourier plane, Zernike coefficients for
+    # Noll j = 5, 6, ... in order (piston, tilt and defocus are the placement and z offsets),
+    # radians at `wavelengths_m[1]` (green). The pupil coordinate is rho = |f| / cutoff (f in
+    # cycles per SLM pixel, the colour's aperture cutoff), so the square iris's corners reach
+    # rho = sqrt(2); another colour sees the same optical path, lambda_G / lambda radians.
+    # () = an aberration-free relay.
+    zernike_rad: tuple[float, ...] = ()
 
     # --- relay (4f with an iris in its Fourier plane) and camera placement
     aperture_shape: str = "square"
@@ -473,10 +480,33 @@ class SimulatedCamera(Camera):
                 continue
             # The aperture's cutoff is per SLM pixel; on the oversampled grid it is s times less.
             ap = Aperture(b.aperture_shape, (b.aperture_cutoff_per_px[c] / s,))
-            u = propagate(panel[c : c + 1], b.z_m(stage_mm, c), pitch, [b.wavelengths_m[c]],
+            field = panel[c : c + 1]
+            if any(b.zernike_rad):
+                field = self._aberrate(field, c)
+            u = propagate(field, b.z_m(stage_mm, c), pitch, [b.wavelengths_m[c]],
                           aperture=ap, padding="auto", cache=self._cache)
             out.append(u.abs().square()[0])
         return self.project_to_camera(torch.stack(out), pitch)
+
+    def _aberrate(self, field: torch.Tensor, colour: int) -> torch.Tensor:
+        """The relay's pupil phase applied to a colour's panel field [1, sH, sW] (a spectral
+        product, so it commutes with the propagation and the aperture); zero-padded 2x so the
+        aberrated spread does not wrap around the panel."""
+        b = self.bench
+        s = b.oversample
+        h, w = field.shape[-2:]
+        fy = torch.fft.fftfreq(2 * h, dtype=torch.float64)[:, None] * s  # cycles per SLM px
+        fx = torch.fft.fftfreq(2 * w, dtype=torch.float64)[None, :] * s
+        cutoff = b.aperture_cutoff_per_px[colour]
+        rho = torch.sqrt(fx**2 + fy**2) / cutoff
+        theta = torch.atan2(fy.expand_as(rho), fx.expand_as(rho))
+        phase = torch.zeros_like(rho)
+        for k, a in enumerate(b.zernike_rad):
+            phase += a * _zernike_noll(5 + k, rho, theta)
+        phase *= b.wavelengths_m[1] / b.wavelengths_m[colour]
+        spec = torch.fft.fft2(field.to(torch.complex128), s=(2 * h, 2 * w))
+        out = torch.fft.ifft2(spec * torch.polar(torch.ones_like(phase), phase))
+        return out[..., :h, :w].to(field.dtype)
 
     def project_to_camera(self, image: torch.Tensor | np.ndarray, pitch_m: float) -> np.ndarray:
         """Map an SLM-plane image [C, H, W] (sample pitch `pitch_m`, centred on the panel) onto
@@ -517,6 +547,26 @@ class SimulatedCamera(Camera):
             prnu[:, i] = 1 + b.prnu * draw[0]
             dsnu[:, i] = b.dsnu * draw[1]
         return prnu, dsnu
+
+
+def _zernike_noll(j: int, rho: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """Zernike polynomial of Noll index j (RMS 1 over the unit disk), for the twin's pupil."""
+    n = 0
+    while (n + 1) * (n + 2) // 2 < j:
+        n += 1
+    # Noll: within order n, |m| increases with j; even j -> cos, odd j -> sin (m != 0).
+    k = j - n * (n + 1) // 2 - 1  # 0 .. n
+    ms = sorted({abs(n - 2 * i) for i in range(n + 1)})
+    m = [mm for mm in ms for _ in ((0,) if mm == 0 else (0, 1))][k]
+    radial = torch.zeros_like(rho)
+    for t in range((n - m) // 2 + 1):
+        radial += ((-1) ** t * math.factorial(n - t)
+                   / (math.factorial(t) * math.factorial((n + m) // 2 - t)
+                      * math.factorial((n - m) // 2 - t))) * rho ** (n - 2 * t)
+    if m == 0:
+        return math.sqrt(n + 1) * radial
+    ang = torch.cos(m * theta) if j % 2 == 0 else torch.sin(m * theta)
+    return math.sqrt(2 * (n + 1)) * radial * ang
 
 
 def _gaussian_blur(image: torch.Tensor, sigma_px: float) -> torch.Tensor:

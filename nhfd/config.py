@@ -227,6 +227,9 @@ class DaemonSettings(_Section):
     # Directories load_model may read from; directory snapshots are written into.
     model_dirs: list[str] = ["models"]
     snapshot_dir: str = "out/snapshots"
+    # Directories show_pattern may read calibration frames (.npy) from and capture may write
+    # images (.npy) into (`nhfd calib capture` through the daemon: its --out lies inside one).
+    pattern_dirs: list[str] = ["calib"]
     # Audit log, JSON lines ("" = $LOGS_DIRECTORY/audit.jsonl under systemd, else
     # <runtime_dir>/audit.jsonl).
     audit_log: str = ""

@@ -1,8 +1,11 @@
 """`nhfd calib capture|fit|report`: calibrate the bench against the simulation (issue 8).
 
-`capture` drives the simulated twins directly (a `TrueBench`, optionally randomised with
-`--sim-seed`) through `nhfd.calib.capture.SimBenchIO`; driving a running daemon is not wired
-yet. `fit` writes calibration.toml; `report` writes PNGs next to the capture.
+`capture` runs through the daemon (`nhfd serve` owns the devices; simulated by default): the
+daemon's panel size and wavelengths from `status`, frames shown with `show_pattern` (so --out must
+lie inside its daemon.pattern_dirs), raw stage moves, laser power/enable (arm first, or --arm),
+linear .npy captures. `--direct` drives the simulated twins in this process instead (a
+`TrueBench`, optionally randomised with `--sim-seed`). `fit` writes calibration.toml; `report`
+writes PNGs next to the capture.
 """
 
 from __future__ import annotations
@@ -20,11 +23,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     cmds = p.add_subparsers(dest="calib_command", metavar="COMMAND", required=True)
     c = cmds.add_parser("capture", help="capture (or resume) a calibration data set")
     c.add_argument("--out", required=True, help="capture directory")
-    c.add_argument("--panel", default="128x128", help="SLM window WxH shown (default 128x128)")
+    c.add_argument("--direct", action="store_true",
+                   help="drive the simulated twins in this process, not the daemon")
+    c.add_argument("--socket", help="daemon control socket (default: from the configuration)")
+    c.add_argument("--config", help="configuration file whose daemon.runtime_dir to use")
+    c.add_argument("--arm", type=float, default=None, metavar="SECONDS",
+                   help="arm the lasers for this long when they are not armed (Unix socket; "
+                        "default: they must be armed already)")
+    c.add_argument("--home", action="store_true", help="home the stage before the first move")
+    c.add_argument("--camera-pitch-um", type=float, default=3.45,
+                   help="camera pixel pitch in um (daemon path; default 3.45)")
+    c.add_argument("--exposure", type=float, default=0.005, help="exposure s (default 0.005)")
+    c.add_argument("--stop-after", choices=("coarse", "grating", "fine"), default="fine",
+                   help="last sweep to capture (shorter captures are for checks)")
+    c.add_argument("--panel", default="128x128",
+                   help="--direct: SLM window WxH shown (default 128x128)")
     c.add_argument("--sim-seed", type=int, default=None,
-                   help="randomise the simulated bench with this seed (default: TrueBench())")
+                   help="--direct: randomise the simulated bench with this seed")
     c.add_argument("--stage-center", type=float, default=10.0, help="stage mm (default 10)")
     c.add_argument("--stage-range", type=float, default=2.5, help="+- mm coarse sweep")
+    c.add_argument("--coarse-step", type=float, default=0.25, help="coarse step mm")
     c.add_argument("--fine-steps", type=int, default=13, help="fine sweep positions")
     c.add_argument("--force", action="store_true", help="overwrite an existing capture")
     c.set_defaults(handler=run_capture)
@@ -44,20 +62,58 @@ def _say(msg: str) -> None:
 
 
 def run_capture(args: argparse.Namespace) -> int:
-    from nhfd.calib.capture import CaptureError, CapturePlan, SimBenchIO, capture
+    from nhfd.calib.capture import CaptureError
+
+    try:
+        return _capture_direct(args) if args.direct else _capture_daemon(args)
+    except CaptureError as exc:
+        raise ValueError(str(exc)) from None
+
+
+def _plan(args: argparse.Namespace, camera_pitch_m: float) -> object:
+    from nhfd.calib.capture import CapturePlan
+
+    return CapturePlan(stage_center_mm=args.stage_center, stage_range_mm=args.stage_range,
+                       coarse_step_mm=args.coarse_step, fine_steps=args.fine_steps,
+                       camera_pitch_m=camera_pitch_m,
+                       exposure_s=args.exposure, stop_after=args.stop_after)
+
+
+def _capture_direct(args: argparse.Namespace) -> int:
+    from nhfd.calib.capture import SimBenchIO, capture
     from nhfd.calib.patterns import PatternSpec
     from nhfd.drivers.simcamera import TrueBench
 
     w, h = parse_wxh(args.panel)
     bench = TrueBench.randomised(args.sim_seed) if args.sim_seed is not None else TrueBench()
     spec = PatternSpec((h, w), bench.pitch_m, bench.wavelengths_m)
-    plan = CapturePlan(stage_center_mm=args.stage_center, stage_range_mm=args.stage_range,
-                       fine_steps=args.fine_steps, camera_pitch_m=bench.camera_pitch_m)
-    try:
-        capture(args.out, SimBenchIO(bench, (h, w)), spec, plan, force=args.force,
-                progress=_say)
-    except CaptureError as exc:
-        raise ValueError(str(exc)) from None
+    capture(args.out, SimBenchIO(bench, (h, w), exposure_s=args.exposure), spec,
+            _plan(args, bench.camera_pitch_m), force=args.force,  # type: ignore[arg-type]
+            progress=_say)
+    return 0
+
+
+def _capture_daemon(args: argparse.Namespace) -> int:
+    from nhfd.calib.capture import DaemonBenchIO, capture, daemon_spec
+    from nhfd.daemon.client import Client
+
+    if args.socket:
+        sock = args.socket
+    else:
+        from nhfd.config import load_config
+        from nhfd.daemon.paths import control_socket
+
+        sock = str(control_socket(load_config(args.config).config.daemon.runtime_dir))
+    out = Path(args.out)
+    with Client(sock, timeout_s=30.0) as client:
+        io = DaemonBenchIO(client, out / "daemon", exposure_s=args.exposure, arm_s=args.arm,
+                           home=args.home)
+        try:
+            capture(out, io, daemon_spec(client.status()),
+                    _plan(args, args.camera_pitch_um * 1e-6),  # type: ignore[arg-type]
+                    force=args.force, progress=_say)
+        finally:
+            io.lasers_off()
     return 0
 
 

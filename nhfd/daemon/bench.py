@@ -87,7 +87,10 @@ class Bench:
         self.faults: queue.SimpleQueue[tuple[str, bool, str]] = queue.SimpleQueue()
         self.slm_lost: str | None = None  # why the SLM's output is lost, while it is
         # Set while a capture-mode sequence owns the panel: new view frames wait (colour.py).
-        self.held = False
+        self._held = False
+        # The calibration pattern shown (`show_pattern`), until the next set_view or blank:
+        # meanwhile view frames wait too (`held`).
+        self.pattern: str | None = None
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
         self._reconnect: threading.Thread | None = None
@@ -152,11 +155,31 @@ class Bench:
             self._blank = zero_amplitude_frame(self.config)
         return self._blank
 
+    @property
+    def held(self) -> bool:
+        """View frames from the worker are not shown: a capture-mode sequence or a calibration
+        pattern owns the panel."""
+        return self._held or self.pattern is not None
+
+    @held.setter
+    def held(self, value: bool) -> None:
+        self._held = bool(value)
+
     def show_blank(self) -> None:
         if self.slm is None:
             raise RuntimeError(self.errors["slm"] or "no SLM configured")
         self.slm.show(self.blank_frame())
         self.showing = "blank"
+        self.pattern = None
+
+    def show_pattern(self, frame: np.ndarray, name: str) -> None:
+        """A calibration frame ([3, H, W] uint8, the panel's size) instead of the view, until
+        the next view or blank."""
+        if self.slm is None:
+            raise RuntimeError(self.errors["slm"] or "no SLM configured")
+        self.slm.show(frame)
+        self.showing = f"pattern {name}"
+        self.pattern = name
 
     def capture(self, frames: int | None = None) -> Any:
         """One camera capture; a failure (a timeout) is the camera's error in `status` until a

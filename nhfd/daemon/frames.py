@@ -61,6 +61,18 @@ class FrameSettings:
     # placed at z0 + refocus_m + colour_offset_m[c], where the relay's chromatic focal shift
     # makes the camera (or eye) see it at the same place as green's.
     colour_offset_m: tuple[float, ...] = ()
+    # The illumination per colour (a calibration file; () = uniform): (1/e^2 intensity radius,
+    # centre x, centre y) on the SLM plane, metres. The SLM-plane amplitude is divided by the
+    # source's amplitude, relative to its value at the window's centre and at most
+    # max_amplitude_gain (the dim edges of the beam cannot be lifted without limit: double-phase
+    # coding clips amplitudes beyond amplitude_scale).
+    source_profile: tuple[tuple[float, float, float], ...] = ()
+    max_amplitude_gain: float = 2.0
+    # Relay aberrations (a calibration file; () = none): Zernike coefficients for Noll
+    # j = 5, 6, ... in radians at zernike_wavelength_m, pupil radius = the aperture's cutoff
+    # (nhfd.calib.bench_model.pupil_phase). Each colour's kernel carries the conjugate phase.
+    zernike_rad: tuple[float, ...] = ()
+    zernike_wavelength_m: float = 0.0
 
     @property
     def aperture(self) -> Aperture:
@@ -157,6 +169,7 @@ class Encoder:
         self.cache = KernelCache(cache_bytes)
         self.curves = settings.curves()
         self._zero: np.ndarray | None = None
+        self._gain_map: torch.Tensor | None = None
 
     @property
     def zero(self) -> np.ndarray:
@@ -171,6 +184,8 @@ class Encoder:
         buf = torch.zeros((reference.shape[0], r.height, r.width), dtype=torch.complex64)
         buf[:, r.window_top : r.window_top + h, r.window_left : r.window_left + w] = reference
         zs = s.colour_propagation_z_m
+        if any(s.zernike_rad):
+            return self._to_slm_precompensated(buf, zs)
         if len(set(zs)) == 1:
             return propagate(buf, zs[0], s.pitch_m, s.wavelengths_m,
                              padding=s.padding, aperture=s.aperture, cache=self.cache)  # type: ignore[arg-type]
@@ -181,11 +196,70 @@ class Encoder:
                       aperture=Aperture(s.aperture.shape, (cutoffs[c],)), cache=self.cache)
             for c, z in enumerate(zs)])
 
+    def _to_slm_precompensated(self, buf: torch.Tensor, zs: tuple[float, ...]) -> torch.Tensor:
+        """Per colour: the ASM kernel (nhfd.optics) times the conjugate of the relay's pupil
+        phase, cached under a key that names the aberration (a kernel for other coefficients
+        is never reused)."""
+        from nhfd.calib.bench_model import pupil_phase
+        from nhfd.optics.asm import transfer_function
+        from nhfd.optics.padding import plan_padding
+
+        s = self.settings
+        h, w = buf.shape[-2:]
+        cutoffs = s.aperture.cutoffs(len(zs))
+        lam_ref = s.zernike_wavelength_m or s.wavelengths_m[len(s.wavelengths_m) // 2]
+        out = []
+        for c, z in enumerate(zs):
+            lam = s.wavelengths_m[c]
+            ap = Aperture(s.aperture.shape, (cutoffs[c],))
+            plan = plan_padding((h, w), s.pitch_m, (lam,), abs(z), ap, s.padding)  # type: ignore[arg-type]
+
+            def kernel(plan: object = plan, z: float = z, lam: float = lam, ap: Aperture = ap,
+                       c: int = c) -> torch.Tensor:
+                hw = plan.padded_hw  # type: ignore[attr-defined]
+                k = transfer_function(hw, s.pitch_m, [lam], [z], aperture=ap)[0, 0]
+                ph = pupil_phase(hw, cutoffs[c], tuple(s.zernike_rad), lam_ref / lam)
+                return k * torch.polar(torch.ones_like(ph), -ph).to(k.dtype)
+
+            key = ("asm-pupil", plan.padded_hw, s.pitch_m, lam, z, ap, tuple(s.zernike_rad),
+                   lam_ref)
+            k = self.cache.get(key, kernel)
+            spec = torch.fft.fft2(buf[c], s=plan.padded_hw)
+            out.append(torch.fft.ifft2(spec * k)[:h, :w])
+        return torch.stack(out)
+
+    def amplitude_gain_map(self) -> torch.Tensor | None:
+        """[3, h, w] factors on the region's SLM-plane field that undo the source's profile
+        (None without one): A(window centre) / A(x), at most max_amplitude_gain."""
+        s, r = self.settings, self.region
+        if not s.source_profile:
+            return None
+        if self._gain_map is None:
+            ph, pw = s.panel_hw
+            rows = torch.arange(r.top, r.top + r.height, dtype=torch.float64)
+            cols = torch.arange(r.left, r.left + r.width, dtype=torch.float64)
+            y = (rows - (ph - 1) / 2) * s.pitch_m
+            x = (cols - (pw - 1) / 2) * s.pitch_m
+            yc = (r.top + r.window_top + (s.window_hw[0] - 1) / 2 - (ph - 1) / 2) * s.pitch_m
+            xc = (r.left + r.window_left + (s.window_hw[1] - 1) / 2 - (pw - 1) / 2) * s.pitch_m
+            maps = []
+            for waist, x0, y0 in s.source_profile:
+                # Amplitude exp(-r^2 / w^2): its inverse relative to the window's centre.
+                r2 = (x[None, :] - x0) ** 2 + (y[:, None] - y0) ** 2
+                rc2 = (xc - x0) ** 2 + (yc - y0) ** 2
+                maps.append(torch.clamp(torch.exp((r2 - rc2) / waist**2),
+                                        max=s.max_amplitude_gain))
+            self._gain_map = torch.stack(maps).float()
+        return self._gain_map
+
     def code(self, slm_field: torch.Tensor) -> tuple[np.ndarray, tuple[float, ...]]:
         """SLM-plane region field -> grey `[3, h, w]` uint8 and the clipped fraction per colour.
 
         No antialias pass: the propagation kernel already applied the aperture."""
         s = self.settings
+        gain = self.amplitude_gain_map()
+        if gain is not None:
+            slm_field = slm_field * gain
         coded = double_phase(slm_field, s.amplitude_scale, zero_below=s.zero_below)
         grey = phase_to_grey(coded.phase_rad, self.curves, sign=s.phase_sign,
                              invert=s.grey_invert)
@@ -350,4 +424,8 @@ def frame_settings(config: Any, metadata: dict[str, Any], *, refocus_m: float = 
         padding=config.optics.padding,
         phase_tables_rad=cal.phase_tables_rad if cal else (),
         colour_offset_m=tuple(cal.refocus_m(c) for c in range(3)) if cal else (),
+        source_profile=tuple((cal.source_waist_m[c], *cal.source_centre_m[c])  # type: ignore[misc]
+                             for c in range(3)) if cal and cal.source_waist_m else (),
+        zernike_rad=cal.zernike_rad if cal else (),
+        zernike_wavelength_m=cal.zernike_wavelength_m if cal else 0.0,
     )

@@ -9,6 +9,19 @@ so a bad request changes nothing.
   blank        {}                                     -> the zero-amplitude pattern is shown
   snapshot     {path?, frames?}                       -> {job, path} (colour_mode "capture":
                                                          one capture per colour, see colour.py)
+  show_pattern {path}                                 -> {showing, shape} a calibration frame
+                                                         (.npy uint8 [3, H, W], [H, W, 3] or
+                                                         [H, W], the panel's size, inside
+                                                         daemon.pattern_dirs) instead of the
+                                                         view until the next set_view / blank
+  stage_move   {position_mm, home?}                   -> {job, stage_mm} raw stage move (no
+                                                         calibration mapping), soft limits
+  capture      {path, frames?, exposure_s?, dark?}    -> {job, path}: a linear float32 image
+                                                         (.npy, dark subtracted; dark: true
+                                                         captures and stores the dark frame,
+                                                         lasers off) and its saturation mask
+                                                         (<stem>.saturated.npy), inside
+                                                         daemon.pattern_dirs or snapshot_dir
   load_scene   {path}                                 -> {job}
   load_model   {path}                                 -> {job} (old model kept on failure)
   job          {id}                                   -> one job's state
@@ -28,9 +41,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from nhfd.drivers.settings import COLOURS
 
-from .colour import capture_colours, check_laser_command
+from .colour import capture_colours, check_laser_command, panel_for_mode
 from .jobs import Job
 from .paths import inside
 from .protocol import (
@@ -55,6 +70,7 @@ if TYPE_CHECKING:
 SCENE_SUFFIXES = (".ply", ".splat")
 REFOCUS_MM = (-10.0, 10.0)
 MODEL_SUFFIXES = (".onnx",)
+PATTERN_SUFFIXES = (".npy",)
 
 
 @dataclass(frozen=True)
@@ -77,6 +93,8 @@ def _set_view(d: Daemon, conn: Connection, p: Params) -> Any:
     view = parse_view(p, current)
     view["refocus_mm"] = refocus if refocus is not None else (
         current.get("refocus_mm", 0.0) if current else 0.0)
+    if d.bench.pattern is not None:  # a calibration pattern gives the panel back to the view
+        _end_pattern(d)
     seq = d.views.submit(view)
     d.audit.view(conn.who, seq, view)
     return {"seq": seq, "view": view}
@@ -196,6 +214,149 @@ def _snapshot(d: Daemon, conn: Connection, p: Params) -> Any:
     return {"job": job.id, "path": str(path)}
 
 
+def _end_pattern(d: Daemon) -> None:
+    """The last view frame (or the blank pattern) in place of a calibration pattern."""
+    d.bench.pattern = None
+    last = d.frames.last_frame
+    try:
+        if last is not None and d.bench.slm is not None:
+            d.bench.slm.show(last)
+            d.bench.showing = f"view {d.frames.shown_seq}"
+            d.display = f"view {d.frames.shown_seq}"
+        else:
+            d.bench.show_blank()
+            d.display = "blank"
+    except Exception as exc:
+        raise RpcError(DEVICE_ERROR, f"ending the calibration pattern failed: {exc}",
+                       {"device": "slm"}) from None
+
+
+def _pattern_frame(path: Any, hw: tuple[int, int]) -> np.ndarray:
+    """The .npy at `path` as a panel frame uint8 [3, H, W], or RpcError naming what is wrong."""
+    h, w = hw
+    allowed = f"uint8 [3, {h}, {w}], [{h}, {w}, 3] or [{h}, {w}] (.npy, no pickles)"
+    fmt = np.lib.format
+    try:  # the header first: the dtype and shape are checked before any data is read
+        with path.open("rb") as f:
+            version = fmt.read_magic(f)
+            shape, _, dtype = (fmt.read_array_header_1_0(f) if version == (1, 0)
+                               else fmt.read_array_header_2_0(f))
+    except Exception as exc:
+        raise RpcError(INVALID_FILE, f"path: {path} is not a readable .npy array: {exc}",
+                       {"field": "path", "allowed": allowed}) from None
+    if dtype != np.uint8:
+        raise RpcError(INVALID_FILE, f"path: {path} holds {dtype}, not uint8 grey levels",
+                       {"field": "path", "allowed": allowed})
+    if tuple(shape) not in ((3, h, w), (h, w, 3), (h, w)):
+        raise RpcError(INVALID_FILE, f"path: {path} has shape {list(shape)}, not the panel's "
+                       f"{h} x {w}", {"field": "path", "allowed": allowed})
+    try:
+        a = np.load(path, allow_pickle=False)
+    except Exception as exc:
+        raise RpcError(INVALID_FILE, f"path: {path} is not a readable .npy array: {exc}",
+                       {"field": "path", "allowed": allowed}) from None
+    if a.shape == (3, h, w):
+        return np.ascontiguousarray(a)
+    if a.shape == (h, w, 3):
+        return np.ascontiguousarray(a.transpose(2, 0, 1))
+    return np.ascontiguousarray(np.broadcast_to(a, (3, h, w)))
+
+
+def _show_pattern(d: Daemon, conn: Connection, p: Params) -> Any:
+    raw = p.string("path")
+    p.done()
+    path = _checked_file("path", raw, d.pattern_dirs, d.base_dir, PATTERN_SUFFIXES)
+    s = d.config.slm
+    frame = _pattern_frame(path, (s.height_px, s.width_px))
+    if d.bench.slm is None:
+        raise RpcError(NOT_AVAILABLE, f"no SLM: {d.bench.errors['slm'] or 'none configured'}",
+                       {"device": "slm"})
+    if d.bench.slm_lost is not None:
+        raise RpcError(DEVICE_ERROR, f"SLM output lost ({d.bench.slm_lost})", {"device": "slm"})
+    c = d.config.daemon
+    try:
+        d.bench.show_pattern(panel_for_mode(frame, c.colour_mode, c.single_colour), str(path))
+    except Exception as exc:
+        raise RpcError(DEVICE_ERROR, f"show_pattern failed: {exc}", {"device": "slm"}) from None
+    d.display = f"calibration pattern {path}"
+    return {"showing": str(path), "shape": list(frame.shape)}
+
+
+def _stage_move(d: Daemon, conn: Connection, p: Params) -> Any:
+    stage = d.bench.stage
+    low, high = (stage.settings.soft_limits_mm if stage is not None else (-1e6, 1e6))
+    position = p.number("position_mm", low, high)
+    home = p.boolean("home", False)
+    p.done()
+    if stage is None:
+        raise RpcError(NOT_AVAILABLE, f"no stage: {d.bench.errors['stage'] or 'none configured'}",
+                       {"device": "stage"})
+
+    def run(job: Job) -> dict[str, Any]:
+        if home:
+            stage.home()
+            job.check()
+        state = stage.move_to(position)
+        return {"stage_mm": state.position_mm if state else position}
+
+    job = d.submit_bench_job(Job("stage_move", {"position_mm": position, "home": home}, run))
+    return {"job": job.id, "stage_mm": position}
+
+
+def _capture(d: Daemon, conn: Connection, p: Params) -> Any:
+    raw = p.string("path")
+    frames = p.integer("frames", 1, 1000, None)
+    exposure_s = p.number("exposure_s", 1e-6, 60.0, None, low_open=False)
+    dark = p.boolean("dark", False)
+    p.done()
+    path = inside("path", raw, [*d.pattern_dirs, *d.snapshot_dirs], d.base_dir)
+    if path.suffix.lower() != ".npy":
+        raise bad_param("path", f"{raw!r} does not end in .npy", "a .npy file name")
+    camera = d.bench.camera
+    if camera is None:
+        raise RpcError(NOT_AVAILABLE,
+                       f"no camera: {d.bench.errors['camera'] or 'none configured'}",
+                       {"device": "camera"})
+    mask_path = path.with_name(f"{path.stem}.saturated.npy")
+
+    def run(job: Job) -> dict[str, Any]:
+        if exposure_s is not None:
+            camera.set_exposure(exposure_s)  # the same value keeps the stored dark frame
+        if dark:
+            d.laser.refresh()
+            lit = [ch for ch, c in (d.laser.status().get("channels") or {}).items()
+                   if c.get("enabled") and c.get("power_pct", 0) > 0]
+            if lit:
+                raise RuntimeError(f"a dark frame needs every laser off; on: {', '.join(lit)}")
+        if d.bench.slm is not None:
+            d.bench.slm.wait_settled()
+        job.check()
+        if dark:
+            image = d.bench.camera.capture_dark(frames)
+            saturated = np.zeros(image.shape, bool)
+            n, exposure = frames or camera.settings.burst_frames, camera.exposure_s
+        else:
+            cap = d.bench.capture(frames)
+            image, saturated, n, exposure = cap.image, cap.saturated, cap.frames, cap.exposure_s
+        job.check()
+        path.parent.mkdir(parents=True, exist_ok=True)
+        for target, array in ((path, image.astype(np.float32)), (mask_path, saturated)):
+            tmp = target.with_name(f".{target.name}.tmp.npy")
+            np.save(tmp, array)
+            tmp.replace(target)
+        stage = d.bench.status()["stage"].get("position_mm")
+        return {"path": str(path), "saturated_path": str(mask_path), "dark": dark,
+                "frames": n, "exposure_s": exposure, "gain_db": camera.gain_db,
+                "shape": list(image.shape),
+                "saturated_fraction": float(saturated.mean()) if saturated.size else 0.0,
+                "max_linear": float(image.max()) if image.size else 0.0,
+                "stage_mm": stage, "showing": d.bench.showing}
+
+    job = d.submit_bench_job(Job("capture", {"path": str(path), "frames": frames,
+                                             "exposure_s": exposure_s, "dark": dark}, run))
+    return {"job": job.id, "path": str(path)}
+
+
 def _checked_file(field: str, raw: str, dirs: list[Any], base: Any,
                   suffixes: tuple[str, ...]) -> Any:
     path = inside(field, raw, dirs, base)
@@ -283,6 +444,9 @@ METHODS: dict[str, Method] = {
     "stop": Method(_stop, audited=True, while_stopping=True),
     "blank": Method(_blank, audited=True, while_stopping=True),
     "snapshot": Method(_snapshot, audited=True),
+    "show_pattern": Method(_show_pattern, audited=True),
+    "stage_move": Method(_stage_move, audited=True),
+    "capture": Method(_capture, audited=True),
     "load_scene": Method(_load_scene, audited=True),
     "load_model": Method(_load_model, audited=True),
     "job": Method(_job, audited=False, while_stopping=True),

@@ -108,6 +108,7 @@ class Daemon:
         self.scene_dirs = resolve_dirs(c.scene_dirs, self.base_dir)
         self.model_dirs = resolve_dirs(c.model_dirs, self.base_dir)
         self.snapshot_dirs = resolve_dirs([c.snapshot_dir], self.base_dir)
+        self.pattern_dirs = resolve_dirs(c.pattern_dirs, self.base_dir)
         self.handle_signals = handle_signals
         self.notifier = Notifier(self.env)
         self.audit = AuditLog(None)
@@ -496,7 +497,13 @@ class Daemon:
                        "clients": len(self.server.connections) if self.server else 0},
             "laser": laser,
             "devices": devices,
-            "display": self.display,
+            # A calibration pattern (show_pattern) holds the panel until set_view or blank.
+            "display": (f"calibration pattern {self.bench.pattern}"
+                        if self.bench.pattern is not None else self.display),
+            "panel": {"width_px": self.config.slm.width_px,
+                      "height_px": self.config.slm.height_px,
+                      "pitch_m": self.config.slm.pitch_m,
+                      "wavelengths_m": list(self.config.optics.wavelengths_m)},
             "colour": {"mode": c.colour_mode, "single_colour": c.single_colour},
             "scene": self.scene,
             "model": self.frames.model_info or "none loaded",
