@@ -70,6 +70,9 @@ N_ZERNIKE = 7
 # Forward-difference step of the images' derivative in a Zernike coefficient (radians): small
 # against the 0.1 rad the fit must reach, large against float32 noise.
 DA_RAD = 0.02
+# Starting points of the aberration fit's astigmatism (j = 5, 6; radians at the reference
+# wavelength): a relay's astigmatism reaches the better part of a radian.
+ASTIG_GRID_RAD = (-0.6, -0.3, 0.0, 0.3, 0.6)
 
 
 def zernike(j: int, rho: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
@@ -357,6 +360,7 @@ class AberrationFit:
 def fit_aberration(sweeps: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]],
                    models: dict[int, BenchModel], depth: ModelDepthFit, *,
                    n_terms: int = N_ZERNIKE, max_iter: int = 10,
+                   astig_grid_rad: tuple[float, ...] = ASTIG_GRID_RAD,
                    say: Callable[[str], None] = lambda _m: None) -> AberrationFit:
     """Levenberg-Marquardt on the Zernike coefficients shared by the colours (one optical path:
     each colour's phase is lambda_ref / lambda times it) and each colour's gain and background,
@@ -423,10 +427,32 @@ def fit_aberration(sweeps: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]],
                 pass
         return cost, jtj, jtr, per_colour
 
+    npix = sum(ys[c].size for c in colours)
+    rms_before = math.sqrt(evaluate(theta, False)[0] / npix) / y_rms
+    # The images are far from linear in astigmatism of half a radian and more: started from
+    # zero, the descent can stop in a local minimum that trades astigmatism for the higher
+    # terms. So the astigmatism starts from the best point of a coarse grid, scored on one
+    # colour (green where swept) with its gain and background fitted.
+    # Then coma (j = 7, 8) the same way, on a grid half as wide, the astigmatism held.
+    if n_terms >= 2 and astig_grid_rad:
+        ref = 1 if 1 in colours else colours[0]
+        for k0, scale in ((0, 1.0), (2, 0.5)):
+            if k0 + 2 > n_terms:
+                continue
+            best = (math.inf, theta[k0], theta[k0 + 1])
+            for a in astig_grid_rad:
+                for b_ in astig_grid_rad:
+                    trial = theta[:n_terms].copy()
+                    trial[k0 : k0 + 2] = scale * a, scale * b_
+                    m = images(ref, trial)
+                    g, b = linear(ref, m)
+                    r = g * m + b - ys[ref]
+                    best = min(best, (float((r * r).sum()), scale * a, scale * b_))
+            theta[k0 : k0 + 2] = best[1:]
+        for ci, c in enumerate(colours):
+            theta[n_terms + ci], theta[n_terms + nc + ci] = linear(c, images(c, theta[:n_terms]))
     lam = 1e-3
     cost, jtj, jtr, per_colour = evaluate(theta, True)
-    npix = sum(ys[c].size for c in colours)
-    rms_before = math.sqrt(cost / npix) / y_rms
     it = 0
     for it in range(1, max_iter + 1):
         step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj)), -jtr)

@@ -411,7 +411,7 @@ class Capture:
         self._flats(float(s0))
         if p.stop_after == "grating":
             return self._complete()
-        recs = [r for r in self.manifest["records"] if r.get("sweep") == "grating"]
+        recs = [r for r in self.manifest["records"] if r.get("sweep") in ("grating", "flat")]
         curves = [PhaseCurve(tuple(t)) for t in
                   measure_response(self.out, self.spec, recs, geometry_from(loc)).tables_rad]
         pair = {"dots_fine": dots_frame(self.spec, curves),

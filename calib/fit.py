@@ -211,11 +211,44 @@ def _saturated(data: CaptureData, colour: int, geo: Geometry) -> np.ndarray:
     return out
 
 
+def illumination_maps(root: Path | str, spec: PatternSpec, records: list[dict[str, Any]],
+                      geo: Geometry) -> dict[int, np.ndarray]:
+    """Per colour with flat frames among `records`: the illumination on the SLM grid [H, W],
+    relative (mean 1 over the pixels in view; NaN where none is), non-parametric: each flat
+    image (at the SLM plane a flat panel shows the source itself) divided by its own mean over
+    the common view, then averaged over the levels (their brightness differs by the zero
+    order's interference, not their shape)."""
+    data = CaptureData(Path(root), {"records": records}, spec)
+    out = {}
+    for c in range(3):
+        vals, oks = [], []
+        for rec in data.records("flat", c):
+            image, sat = data.image(rec)
+            v, ok = to_slm_grid(image, geo, spec.panel_hw, spec.pitch_m)
+            if sat.any():
+                hit, _ = to_slm_grid(sat.astype(np.float64), geo, spec.panel_hw, spec.pitch_m)
+                ok &= hit == 0
+            vals.append(v)
+            oks.append(ok)
+        if not vals:
+            continue
+        ok = np.logical_and.reduce(oks)
+        if ok.sum() < 100:
+            continue
+        m = np.mean([v / v[ok].mean() for v in vals], axis=0)
+        out[c] = np.where(ok, m / m[ok].mean(), np.nan)
+    return out
+
+
 def measure_response(root: Path | str, spec: PatternSpec, records: list[dict[str, Any]],
                      geo: Geometry) -> ResponseFit:
-    """Phase tables and intensities per colour from the grating captures."""
+    """Phase tables and intensities per colour from the grating captures. Where `records`
+    also hold flat frames, each tile's harmonic is divided by the illumination over the tile
+    (`illumination_maps`): a beam that is not flat over the panel would otherwise make the
+    tiles' brightness, not only their phase differences, differ (K is then the panel mean)."""
     data = CaptureData(Path(root), {"records": records}, spec)
     tiles = grating_tiles(spec)
+    illum = illumination_maps(root, spec, records, geo)
     tables, stds, ks, k_stds, rms, counts = [], [], [], [], [], []
     for c in range(3):
         ref, test, meas = [], [], []
@@ -226,6 +259,9 @@ def measure_response(root: Path | str, spec: PatternSpec, records: list[dict[str
                 if t.frame != rec.get("grating_frame"):
                     continue
                 v = tile_harmonic(image, t, geo, spec.pitch_m, spec.panel_hw)
+                if v is not None and c in illum:
+                    patch = illum[c][t.row : t.row + t.size, t.col : t.col + t.size]
+                    v = v / float(np.nanmean(patch)) if np.isfinite(patch).any() else None
                 if v is not None:
                     ref.append(t.ref)
                     test.append(t.test)
@@ -277,7 +313,8 @@ def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
         f"{[round(z * 1e6, 1) for z in depth.z_offset_m]} um, rms {depth.rms_mm * 1e3:.1f} um")
 
     # 3. Phase response and intensity from the gratings.
-    resp = measure_response(data.root, spec, data.records("grating"), geo)
+    resp = measure_response(data.root, spec, data.records("grating") + data.records("flat"),
+                            geo)
 
     # 4. The depth mapping refined through the bench model (the peaks above are biased by about
     # a tenth of the depth of field: see nhfd.calib.bench_model). The stage scale is tied to

@@ -41,28 +41,43 @@ def smooth(image: np.ndarray, sigma_px: float) -> np.ndarray:
     return np.apply_along_axis(lambda v: np.convolve(v, k, mode="valid"), 1, a)
 
 
+# Illumination envelope (camera px): a Gaussian blur over several dot spacings' worth of
+# light; and its floor, relative to its brightest, below which nothing counts as lit.
+ENVELOPE_SIGMA_PX = 15.0
+ENVELOPE_FLOOR = 0.03
+
+
 def detect_dots(image: np.ndarray, *, threshold: float = 0.4, radius_px: int = 4
                 ) -> np.ndarray:
-    """Bright compact spots -> centroids [N, 2] (col, row), camera pixels.
+    """Bright compact spots -> centroids [N, 2] (col, row), camera pixels, strongest first.
 
     The image is band-passed (difference of Gaussians, 1.2 and 5 px) so the coding haze and the
-    zero order's smooth background drop out; a local maximum (within `radius_px`) counts when it
-    reaches `threshold` of the median of the ten strongest maxima (a robust "dot height" that a
-    few hot or saturated pixels cannot set). Centroids are intensity means over a
-    (2 radius + 1)^2 window of the band-passed image, clipped at zero."""
+    zero order's smooth background drop out, then divided by the local illumination (the image
+    blurred by ENVELOPE_SIGMA_PX, floored at ENVELOPE_FLOOR of its peak), so that dots at the
+    dim edge of a beam smaller than the panel count as much as those at its centre. A local
+    maximum (none higher within 2 `radius_px`: an aberrated spot's side lobes are not dots)
+    counts when it reaches `threshold` of the median of the ten strongest maxima (a robust
+    "dot height" that a few hot or saturated pixels cannot set). Centroids are intensity means
+    over a (2 radius + 1)^2 window of the band-passed image, clipped at zero."""
     img = np.nan_to_num(np.asarray(image, np.float64))
     if img.ndim != 2:
         raise GeometryError(f"dot image must be 2-D, got shape {img.shape}")
     s = smooth(img, 1.2) - smooth(img, 5.0)
+    env = smooth(np.clip(img, 0, None), ENVELOPE_SIGMA_PX)
+    s = s / np.maximum(env, ENVELOPE_FLOOR * max(float(env.max()), 1e-300))
     r = radius_px
-    padded = np.pad(s, r, mode="constant", constant_values=-np.inf)
-    local_max = sliding_window_view(padded, (2 * r + 1, 2 * r + 1)).max(axis=(-2, -1))
-    cand = np.argwhere((s >= local_max) & (s > 0))
+    q = 2 * r
+    padded = np.pad(s, q, mode="constant", constant_values=-np.inf)
+    local_max = sliding_window_view(padded, (2 * q + 1, 2 * q + 1)).max(axis=(-2, -1))
+    lit = env >= ENVELOPE_FLOOR * max(float(env.max()), 1e-300)
+    cand = np.argwhere((s >= local_max) & (s > 0) & lit)
     if len(cand) == 0:
         return np.zeros((0, 2))
-    values = np.sort(s[cand[:, 0], cand[:, 1]])[::-1]
+    # Strongest first (identify_dots takes the lattice from the strongest).
+    cand = cand[np.argsort(-s[cand[:, 0], cand[:, 1]], kind="stable")]
+    values = s[cand[:, 0], cand[:, 1]]
     height = float(np.median(values[:10]))
-    peaks = cand[s[cand[:, 0], cand[:, 1]] >= threshold * height]
+    peaks = cand[values >= threshold * height]
     h, w = img.shape
     out = []
     for row, col in peaks:
@@ -91,10 +106,14 @@ def identify_dots(points: np.ndarray, layout: DotLayout) -> np.ndarray:
     if n < MIN_DOTS:
         raise GeometryError(f"found {n} dots, need at least {MIN_DOTS}: is the dot hologram "
                             "in view and lit?")
-    d = np.linalg.norm(points[:, None] - points[None], axis=-1)
+    # The lattice's spacing and orientation from the stronger half of the points (detect_dots
+    # lists them strongest first): stray detections (haze, an aberrated spot's side lobes, the
+    # panel's edge) are weaker than the dots and would pull the nearest-neighbour spacing.
+    strong = points[: max(MIN_DOTS, (n + 1) // 2)]
+    d = np.linalg.norm(strong[:, None] - strong[None], axis=-1)
     np.fill_diagonal(d, np.inf)
     nn = d.argmin(axis=1)
-    vec = points[nn] - points
+    vec = strong[nn] - strong
     length = np.linalg.norm(vec, axis=1)
     spacing = float(np.median(length))
     # Orientation modulo 90 degrees: the mean of exp(4 i phi) over the lattice steps.
@@ -104,8 +123,26 @@ def identify_dots(points: np.ndarray, layout: DotLayout) -> np.ndarray:
     basis = spacing * np.array([[math.cos(theta), -math.sin(theta)],
                                 [math.sin(theta), math.cos(theta)]])
     lat = np.linalg.solve(basis, (points - points[0]).T).T
+    # The lattice's origin by consensus of the strong points with a lattice neighbour (a
+    # single point may be a stray detection): the circular mean of their fractional lattice
+    # coordinates.
+    frac = lat[: len(strong)][steps] if steps.sum() >= MIN_DOTS else lat
+    lat -= np.angle(np.exp(2j * math.pi * frac).mean(axis=0)) / (2 * math.pi)
     ab = np.rint(lat).astype(int)
     on_lattice = np.linalg.norm(lat - ab, axis=1) < 0.3
+    # Refine the lattice (origin and both steps) on the points that sit on it: stray points
+    # bias the nearest-neighbour spacing, and a spacing a few percent off puts the far dots
+    # between sites.
+    for _ in range(3):
+        if on_lattice.sum() < MIN_DOTS:
+            break
+        design = np.concatenate([np.ones((int(on_lattice.sum()), 1)), ab[on_lattice]], 1)
+        sol, *_ = np.linalg.lstsq(design, points[on_lattice], rcond=None)
+        if np.linalg.matrix_rank(design) < 3:
+            break
+        lat = np.linalg.solve(sol[1:].T, (points - sol[0]).T).T
+        ab = np.rint(lat).astype(int)
+        on_lattice = np.linalg.norm(lat - ab, axis=1) < 0.3
     nx, ny = layout.shape_ij
     present = np.zeros((nx, ny), bool)
     present[layout.ij[:, 0], layout.ij[:, 1]] = True
