@@ -7,7 +7,8 @@ threads in the same run (their ratio reported, not assumed), and held-out focal-
 (`nhfd eval`'s measure). --int8 adds onnxruntime's static int8 quantisation of each variant (QDQ,
 per channel, the last layer kept in float32, calibrated on training views). Writes a table, a
 JSON file and a PNG of PSNR against latency with the Pareto front marked. Runs are kept under
-OUT/runs and resume, so a second call only measures.
+OUT/runs and resume; exports and evaluations are kept under OUT/models next to the step they were
+made at, so a second call (on a quieter machine, say) only measures latency.
 """
 
 from __future__ import annotations
@@ -78,6 +79,16 @@ def variants(config, profiles: str, widths: list[int], depths: list[int],
     if not out:
         raise ValueError("no variants: give --profiles and/or --widths/--depths/--unshuffles")
     return out
+
+
+def _kept(path: Path, stamp: dict) -> dict | None:
+    """The export and evaluations recorded for a variant, if made at the same step and views."""
+    try:
+        kept = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    same = all(kept.get(k) == v for k, v in stamp.items())
+    return kept if same and "evals" in kept else None
 
 
 def _median_s(fn, repeats: int) -> float:
@@ -183,12 +194,18 @@ def run(args: argparse.Namespace) -> int:
         run_dir = out / "runs" / name
         result = train(args.data, run_dir, opts, data=data)
         net, _ = load_run(run_dir)
-        onnx_path = export_onnx(run_dir, out / "models" / f"{name}.onnx")
-        models = [(name, onnx_path.path, onnx_path.max_abs_diff)]
-        if args.int8:
-            q = quantise_int8(onnx_path.path, out / "models" / f"{name}-int8.onnx", data,
+        stamp = {"step": result.step, "eval_views": args.eval_views}
+        kept = _kept(out / "models" / f"{name}.json", stamp)
+        files = [out / "models" / f"{name}{tag}.onnx" for tag in ("", "-int8")[: 1 + args.int8]]
+        if kept is None or not all(f.is_file() for f in files):
+            exported = export_onnx(run_dir, out / "models" / f"{name}.onnx")
+            kept = {**stamp, "max_abs_diff": exported.max_abs_diff, "evals": {}}
+            if args.int8:
+                quantise_int8(exported.path, out / "models" / f"{name}-int8.onnx", data,
                               net.spec.multiple)  # fmt: skip
-            models.append((f"{name}-int8", q, float("nan")))
+        models = [(name, out / "models" / f"{name}.onnx", kept["max_abs_diff"])]
+        if args.int8:
+            models.append((f"{name}-int8", out / "models" / f"{name}-int8.onnx", float("nan")))
         m = net.spec.multiple
         x = np.random.default_rng(0).random((1, 3, h + (-h) % m, w + (-w) % m), np.float32)
         torch.set_num_threads(args.threads)
@@ -198,8 +215,11 @@ def run(args: argparse.Namespace) -> int:
         for label, path, diff in models:
             ort_model = OnnxModel(path, threads=args.threads)
             ort_s = _median_s(lambda om=ort_model, xx=x: om.run_raw(xx), args.repeats)
-            ev = evaluate(path, args.data, data=data, log=lambda _m: None)
-            s = ev["summary"]["all"]
+            if label not in kept["evals"]:
+                ev = evaluate(path, args.data, data=data, log=lambda _m: None)
+                kept["evals"][label] = ev["summary"]["all"]
+                (out / "models" / f"{name}.json").write_text(json.dumps(kept, indent=1))
+            s = kept["evals"][label]
             row = {
                 "name": label, "profile": profile, "width": width, "depth": depth,
                 "unshuffle": unshuffle, "int8": label.endswith("-int8"),
