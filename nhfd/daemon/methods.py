@@ -184,6 +184,15 @@ def _blank(d: Daemon, conn: Connection, p: Params) -> Any:
     return {"showing": "blank"}
 
 
+def _camera(d: Daemon) -> Any:
+    """The open camera, or NOT_AVAILABLE with why there is none."""
+    if d.bench.camera is None:
+        raise RpcError(NOT_AVAILABLE,
+                       f"no camera: {d.bench.errors['camera'] or 'none configured'}",
+                       {"device": "camera"})
+    return d.bench.camera
+
+
 def _snapshot(d: Daemon, conn: Connection, p: Params) -> Any:
     raw = p.string("path", None)
     frames = p.integer("frames", 1, 1000, None)
@@ -192,11 +201,7 @@ def _snapshot(d: Daemon, conn: Connection, p: Params) -> Any:
     path = inside("path", name, d.snapshot_dirs, d.base_dir)
     if path.suffix.lower() != ".png":
         raise bad_param("path", f"{raw!r} does not end in .png", "a .png file name")
-    camera = d.bench.camera
-    if camera is None:
-        raise RpcError(NOT_AVAILABLE,
-                       f"no camera: {d.bench.errors['camera'] or 'none configured'}",
-                       {"device": "camera"})
+    _camera(d)  # refuse now, not in the job
 
     def run(job: Job) -> dict[str, Any]:
         from .bench import write_png16
@@ -312,11 +317,7 @@ def _capture(d: Daemon, conn: Connection, p: Params) -> Any:
     path = inside("path", raw, [*d.pattern_dirs, *d.snapshot_dirs], d.base_dir)
     if path.suffix.lower() != ".npy":
         raise bad_param("path", f"{raw!r} does not end in .npy", "a .npy file name")
-    camera = d.bench.camera
-    if camera is None:
-        raise RpcError(NOT_AVAILABLE,
-                       f"no camera: {d.bench.errors['camera'] or 'none configured'}",
-                       {"device": "camera"})
+    camera = _camera(d)
     mask_path = path.with_name(f"{path.stem}.saturated.npy")
 
     def run(job: Job) -> dict[str, Any]:
