@@ -45,7 +45,7 @@ class _Host:
         self.config = config
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
-        self.bench = type("B", (), {"slm": self.slm, "showing": ""})()
+        self.bench = type("B", (), {"slm": self.slm, "showing": "", "held": False})()
         self.display = ""
         self.errors: list[str] = []
 
