@@ -3,7 +3,8 @@
 - `geometry.png`: the in-focus dots (max over green's fine sweep), detected centroids and where
   the fitted geometry puts every dot of the layout.
 - `response.png`: the fitted grey -> phase curves per colour.
-- `slices.png`: captured vs simulated green slices at three stage positions and the residual;
+- `slices_R.png`, `slices_G.png`, `slices_B.png`: captured vs simulated slices of each colour's
+  fine sweep at three stage positions (near, at and beyond its focus) and the residual;
   the simulation is the twin camera (`nhfd.drivers.simcamera`) configured with the *fitted*
   parameters only (no zero order, gap, noise or crosstalk: what the fit does not model shows up
   in the residual), scaled to the capture by least squares.
@@ -61,7 +62,7 @@ def write_report(root: Path | str, cal: Calibration | None = None,
     written = []
     spec = data.spec
     lay = dot_layout(spec)
-    stages, stack = _fine_stack(data, 1)
+    _, stack = _fine_stack(data, 1)
     pitch = float(cal.fitted_on.get("camera_pitch_m", 3.45e-6))
 
     # Geometry.
@@ -94,21 +95,31 @@ def write_report(root: Path | str, cal: Calibration | None = None,
     plt.close(fig)
     written.append(out / "response.png")
 
-    # Captured vs simulated green slices.
+    # Captured vs simulated slices, per colour.
     frames = data.manifest["frames"]
     frame = np.load(data.root / frames.get("dots_fine", frames["dots"]))
-    picks = [0, len(stages) // 2, len(stages) - 1]
-    fig, axes = plt.subplots(3, 3, figsize=(10, 10))
-    for row, k in enumerate(picks):
-        sim = simulate(cal, frame, float(stages[k]), 1, stack[k].shape)
-        scale = float((sim * stack[k]).sum() / max((sim * sim).sum(), 1e-30))
-        sim = sim * scale
-        for col, (img, title) in enumerate(((stack[k], "captured"), (sim, "simulated"),
-                                            (stack[k] - sim, "residual"))):
-            axes[row, col].imshow(img, cmap="gray" if col < 2 else "RdBu")
-            axes[row, col].set_title(f"{title}, stage {stages[k]:.3f} mm", fontsize=8)
-            axes[row, col].axis("off")
-    fig.savefig(out / "slices.png", dpi=100)
-    plt.close(fig)
-    written.append(out / "slices.png")
+    for colour, name in enumerate("RGB"):
+        stages, stack = _fine_stack(data, colour)
+        picks = [0, len(stages) // 2, len(stages) - 1]
+        fig, axes = plt.subplots(3, 3, figsize=(10, 10))
+        for row, k in enumerate(picks):
+            sim = simulate(cal, frame, float(stages[k]), colour, stack[k].shape)
+            scale = float((sim * stack[k]).sum() / max((sim * sim).sum(), 1e-30))
+            sim = sim * scale
+            residual = stack[k] - sim
+            worst = float(np.abs(residual).max()) or 1.0
+            for col, (img, title) in enumerate(((stack[k], "captured"), (sim, "simulated"),
+                                                (residual, "residual"))):
+                ax = axes[row, col]
+                if col < 2:
+                    ax.imshow(img, cmap="gray")
+                else:  # symmetric, so that zero is white and the sign reads at a glance
+                    shown = ax.imshow(img, cmap="RdBu", vmin=-worst, vmax=worst)
+                    fig.colorbar(shown, ax=ax, fraction=0.046)
+                ax.set_title(f"{name} {title}, stage {stages[k]:.3f} mm", fontsize=8)
+                ax.axis("off")
+        path = out / f"slices_{name}.png"
+        fig.savefig(path, dpi=100)
+        plt.close(fig)
+        written.append(path)
     return written
