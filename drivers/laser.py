@@ -100,9 +100,12 @@ def _raise_system_exit(signum: int, frame: FrameType | None) -> None:
 def install_signal_handlers() -> None:
     """Make SIGTERM unwind like SIGINT does (SystemExit instead of an instant death), so `with`
     blocks, `finally` and atexit turn lasers off. Call from the main thread of a process that
-    drives lasers; SIGINT keeps Python's KeyboardInterrupt."""
+    drives lasers; SIGINT raises Python's KeyboardInterrupt. That holds even where SIGINT was
+    inherited as ignored (a shell without job control starts `cmd &` so, and Python then leaves
+    it ignored): a laser process must not shrug off an interrupt. A handler the program
+    installed itself is kept."""
     signal.signal(signal.SIGTERM, _raise_system_exit)
-    if signal.getsignal(signal.SIGINT) is signal.SIG_DFL:
+    if signal.getsignal(signal.SIGINT) in (signal.SIG_DFL, signal.SIG_IGN):
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
