@@ -283,3 +283,18 @@ def test_a_worker_crash_is_an_error_in_status_and_turns_the_lasers_off(short_dir
         assert c.status()["frames"]["crashes"] == 1
     finally:
         r.stop()
+
+
+def test_bench_pipeline_accounts_for_every_stage(tiny):
+    """`nhfd bench pipeline`'s measurement through the real frame worker: every view counted
+    once, each stage present, and no stage counted twice (their sum fits inside the measured
+    view-to-SLM time, the rest being IPC and waiting)."""
+    from nhfd.bench.pipeline import STAGES, measure
+
+    r = measure(small_config(), tiny["model"], tiny["scene"], views=2, warmup=1)
+    assert r["views"] == 2 and len(r["rows"]) == 2
+    assert r["size_wh"] == [96, 64]  # the model's training size: frame_size_px is empty
+    for row in r["rows"]:
+        assert all(row[k] >= 0 for k in STAGES)
+        assert sum(row[k] for k in STAGES) <= row["total"] + 0.5  # ms: rounding of the stages
+    assert r["ipc_and_wait_median_ms"] >= -0.5
