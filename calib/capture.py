@@ -27,7 +27,7 @@ import json
 import math
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -241,6 +241,13 @@ def daemon_spec(status: dict[str, Any], **kw: Any) -> PatternSpec:
                        tuple(float(x) for x in panel["wavelengths_m"]), **kw)  # type: ignore[arg-type]
 
 
+def default_camera_pitch_m() -> float:
+    """The configured camera's pixel pitch (m): `devices.camera_settings.pixel_pitch_um`."""
+    from nhfd.config import Config
+
+    return Config().devices.camera_settings.pixel_pitch_um * 1e-6
+
+
 @dataclass
 class CapturePlan:
     """User choices. Stage positions in mm; `depth_margin_m` widens the fine sweep beyond the
@@ -255,7 +262,7 @@ class CapturePlan:
     power: float = 1.0
     exposure_s: float = 0.005
     # The camera's pixel pitch (sensor metres): turns pixels per SLM metre into magnification.
-    camera_pitch_m: float = 3.45e-6
+    camera_pitch_m: float = field(default_factory=default_camera_pitch_m)
     # The last sweep captured: "coarse" (dark + coarse sweep + locate), "grating" (also the
     # grating and flat frames) or "fine" (everything). Shorter captures are for checks only.
     stop_after: str = "fine"

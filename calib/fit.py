@@ -30,6 +30,7 @@ from .bench_model import (
     to_slm_grid,
 )
 from .calibration import Calibration
+from .capture import default_camera_pitch_m
 from .data import CaptureData, load_capture, load_frame, load_image
 from .focus import FocusError, dot_metric, fit_depth, peak_position
 from .geometry import Geometry, fit_geometry
@@ -286,7 +287,7 @@ def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
     data = load_capture(root)
     spec = data.spec
     plan = data.manifest.get("plan", {})
-    camera_pitch_m = float(plan.get("camera_pitch_m", 3.45e-6))
+    camera_pitch_m = float(plan.get("camera_pitch_m") or default_camera_pitch_m())
     if data.manifest.get("dark"):
         load_image(data.root / data.manifest["dark"], "dark")  # present and readable
     lay = dot_layout(spec)

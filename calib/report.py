@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from .calibration import Calibration
+from .capture import default_camera_pitch_m
 from .data import load_capture
 from .fit import _fine_stack, fit_capture
 from .geometry import detect_dots
@@ -29,7 +30,7 @@ def simulate(cal: Calibration, frame: np.ndarray, stage_mm: float, colour: int,
     from nhfd.drivers.settings import CameraSettings
     from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 
-    pitch = float(cal.fitted_on.get("camera_pitch_m", 3.45e-6))
+    pitch = float(cal.fitted_on.get("camera_pitch_m") or default_camera_pitch_m())
     h, w = image_hw
     tx, ty = cal.shift_px
     bench = TrueBench(
@@ -63,7 +64,7 @@ def write_report(root: Path | str, cal: Calibration | None = None,
     spec = data.spec
     lay = dot_layout(spec)
     _, stack = _fine_stack(data, 1)
-    pitch = float(cal.fitted_on.get("camera_pitch_m", 3.45e-6))
+    pitch = float(cal.fitted_on.get("camera_pitch_m") or default_camera_pitch_m())
 
     # Geometry.
     from .geometry import Geometry

@@ -23,10 +23,12 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from nhfd.optics.dpac import GREY_LEVELS
+
 from .geometry import Geometry
 from .patterns import GRATING_PERIOD_PX, GratingTile
 
-LEVELS = 256
+LEVELS = GREY_LEVELS
 
 
 class ResponseError(ValueError):

@@ -248,6 +248,8 @@ class CameraSettings(_Settings):
     channels: Literal["mono", "rgb"] = "mono"
     # ADC bits of the raw frames (8 for most V4L2 cameras; 10/12/16 for Mono12-style formats).
     bit_depth: Annotated[int, Field(ge=1, le=16)] = 8
+    # Sensor pixel pitch (um): calibration turns pixels per SLM metre into magnification with it.
+    pixel_pitch_um: Annotated[float, Field(gt=0, le=100)] = 3.45
     # Response curve: raw/full = linear ** (1 / response_gamma); 1.0 = linear (raw machine-vision
     # formats). Consumer webcams apply ~2.2. A measured table can be given to the class instead.
     response_gamma: Annotated[float, Field(ge=0.1, le=5)] = 1.0

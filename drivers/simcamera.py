@@ -38,8 +38,8 @@ from nhfd.optics import Aperture, KernelCache, PhaseCurve, propagate
 
 from .camera import Camera, CameraSettings, CameraTimeout, ResponseCurve
 from .errors import DeviceError
+from .slm import GREY_LEVELS
 
-GREY_LEVELS = 256
 # HOLOEYE ships PLUTO-VIS panels with a 2 pi table at 532 nm; at other wavelengths the stroke
 # scales roughly as 532 / lambda (optics.md, "Phase to grey").
 PANEL_CALIBRATION_WAVELENGTH_M = 532e-9
@@ -140,7 +140,7 @@ class TrueBench:
     z_offset_m: tuple[float, float, float] = (70e-6, 0.0, -50e-6)
 
     # --- sensor (a 5 MP machine-vision colour camera, 3.45 um pixels)
-    camera_pitch_m: float = 3.45e-6
+    camera_pitch_m: float = _CONFIG.devices.camera_settings.pixel_pitch_um * 1e-6
     sensor_hw_px: tuple[int, int] = (2048, 2448)
     # Electrons per second per pixel where the SLM-plane relative intensity is 1 (a flat mirror
     # with the beam's peak amplitude), at full laser power, 0 dB.

@@ -29,6 +29,8 @@ from .settings import SLMOutputSettings
 
 log = logging.getLogger(__name__)
 
+# 8-bit panels. The same fact is nhfd.optics.dpac.GREY_LEVELS; it is not imported from there
+# because that would pull torch into every SLM backend (framebuffer, window).
 GREY_LEVELS = 256
 
 

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -50,3 +51,14 @@ def shared_scenes() -> Path:
     if not scenes.is_dir():
         pytest.skip(f"shared scenes not found at {scenes} (a user checkout has no ../shared)")
     return scenes
+
+
+@pytest.fixture
+def mecom_twin() -> Iterator[MecomTwin]:
+    """The READYBeam twin on a pseudo-terminal (driver, daemon and calibration tests)."""
+    twin = MecomTwin()
+    twin.start()
+    try:
+        yield twin
+    finally:
+        twin.close()

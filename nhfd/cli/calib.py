@@ -31,8 +31,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="arm the lasers for this long when they are not armed (Unix socket; "
                         "default: they must be armed already)")
     c.add_argument("--home", action="store_true", help="home the stage before the first move")
-    c.add_argument("--camera-pitch-um", type=float, default=3.45,
-                   help="camera pixel pitch in um (daemon path; default 3.45)")
+    c.add_argument("--camera-pitch-um", type=float, default=None,
+                   help="camera pixel pitch in um (daemon path; default: the configuration's "
+                        "devices.camera_settings.pixel_pitch_um)")
     c.add_argument("--exposure", type=float, default=0.005, help="exposure s (default 0.005)")
     c.add_argument("--stop-after", choices=("coarse", "grating", "fine"), default="fine",
                    help="last sweep to capture (shorter captures are for checks)")
@@ -95,22 +96,20 @@ def _capture_direct(args: argparse.Namespace) -> int:
 
 def _capture_daemon(args: argparse.Namespace) -> int:
     from nhfd.calib.capture import DaemonBenchIO, capture, daemon_spec
+    from nhfd.config import load_config
     from nhfd.daemon.client import Client
+    from nhfd.daemon.paths import control_socket
 
-    if args.socket:
-        sock = args.socket
-    else:
-        from nhfd.config import load_config
-        from nhfd.daemon.paths import control_socket
-
-        sock = str(control_socket(load_config(args.config).config.daemon.runtime_dir))
+    config = load_config(args.config).config
+    sock = args.socket or str(control_socket(config.daemon.runtime_dir))
+    pitch_um = args.camera_pitch_um or config.devices.camera_settings.pixel_pitch_um
     out = Path(args.out)
     with Client(sock, timeout_s=30.0) as client:
         io = DaemonBenchIO(client, out / "daemon", exposure_s=args.exposure, arm_s=args.arm,
                            home=args.home)
         try:
             capture(out, io, daemon_spec(client.status()),
-                    _plan(args, args.camera_pitch_um * 1e-6),  # type: ignore[arg-type]
+                    _plan(args, pitch_um * 1e-6),  # type: ignore[arg-type]
                     force=args.force, progress=_say)
         finally:
             io.lasers_off()

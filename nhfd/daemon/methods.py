@@ -386,8 +386,13 @@ def _load_scene(d: Daemon, conn: Connection, p: Params) -> Any:
         d.scene = info  # replaced only now: on failure the old scene keeps running
         return info
 
+    return _submit_load(d, "load_scene", path, run)
+
+
+def _submit_load(d: Daemon, kind: str, path: Any, run: Any) -> dict[str, Any]:
+    """Queue a scene or model load; a full queue is BUSY, not a wait."""
     try:
-        job = d.load_jobs.submit(Job("load_scene", {"path": str(path)}, run))
+        job = d.load_jobs.submit(Job(kind, {"path": str(path)}, run))
     except queue.Full:
         raise RpcError(BUSY, "too many loads queued", {"field": "path"}) from None
     return {"job": job.id, "path": str(path)}
@@ -403,11 +408,7 @@ def _load_model(d: Daemon, conn: Connection, p: Params) -> Any:
         # field) and swaps models only on success: on failure the old one keeps running.
         return d.frames.load_model(str(path))
 
-    try:
-        job = d.load_jobs.submit(Job("load_model", {"path": str(path)}, run))
-    except queue.Full:
-        raise RpcError(BUSY, "too many loads queued", {"field": "path"}) from None
-    return {"job": job.id, "path": str(path)}
+    return _submit_load(d, "load_model", path, run)
 
 
 def _job(d: Daemon, conn: Connection, p: Params) -> Any:

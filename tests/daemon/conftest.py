@@ -31,16 +31,6 @@ def short_dir() -> Iterator[Path]:
         shutil.rmtree(path, ignore_errors=True)
 
 
-@pytest.fixture
-def mecom_twin() -> Iterator[MecomTwin]:
-    twin = MecomTwin()
-    twin.start()
-    try:
-        yield twin
-    finally:
-        twin.close()
-
-
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

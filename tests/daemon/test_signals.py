@@ -71,6 +71,13 @@ def light_red(client: Client, twin) -> None:
     assert twin.emitting()["red"] == 5.0
 
 
+def _close(proc: subprocess.Popen, client: Client) -> None:
+    """Close the client, and kill the daemon if a failed test left it running."""
+    client.close()
+    if proc.poll() is None:
+        proc.kill()
+
+
 @pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
 def test_sigterm_and_sigint_shut_down_with_lasers_off(short_dir, mecom_twin, sig):
     proc, client = start_daemon(short_dir, mecom_twin)
@@ -89,9 +96,7 @@ def test_sigterm_and_sigint_shut_down_with_lasers_off(short_dir, mecom_twin, sig
             os.kill(guardian_pid, 0)
         assert "lasers: read back off through the guardian" in proc.stderr.read()
     finally:
-        client.close()
-        if proc.poll() is None:
-            proc.kill()
+        _close(proc, client)
 
 
 def _gone(pid: int) -> bool:
@@ -123,13 +128,9 @@ def test_sigkill_of_the_daemon_leaves_the_guardian_to_switch_lasers_off(short_di
             client2.call("shutdown")
             assert proc2.wait(timeout=10) == 0
         finally:
-            client2.close()
-            if proc2.poll() is None:
-                proc2.kill()
+            _close(proc2, client2)
     finally:
-        client.close()
-        if proc.poll() is None:
-            proc.kill()
+        _close(proc, client)
         if guardian_pid and not _gone(guardian_pid):
             os.kill(guardian_pid, signal.SIGTERM)
     assert mecom_twin.max_emitted_pct() == 5.0
@@ -147,6 +148,4 @@ def test_a_second_daemon_is_refused_by_the_lock(short_dir, mecom_twin):
         client.call("shutdown")
         assert proc.wait(timeout=10) == 0
     finally:
-        client.close()
-        if proc.poll() is None:
-            proc.kill()
+        _close(proc, client)

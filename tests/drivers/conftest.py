@@ -17,23 +17,12 @@ import pytest
 from nhfd.drivers.settings import LaserSettings, StageSettings
 from nhfd.drivers.twins.apt_twin import AptTwin
 from nhfd.drivers.twins.clock import ManualClock
-from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 
 @pytest.fixture
 def laser_settings() -> LaserSettings:
     return LaserSettings(reply_timeout_s=0.1, retries=2, reconnect_backoff_s=0.05,
                          reconnect_attempts=4, latency_timer_ms=1)
-
-
-@pytest.fixture
-def mecom_twin() -> Iterator[MecomTwin]:
-    twin = MecomTwin()
-    twin.start()
-    try:
-        yield twin
-    finally:
-        twin.close()
 
 
 @pytest.fixture

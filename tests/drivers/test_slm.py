@@ -148,3 +148,12 @@ def test_framebuffer_notices_an_unplugged_output(tmp_path):
     missing = settings.model_copy(update={"drm_connector": "card9-VGA-1"})
     with pytest.raises(FramebufferError, match="card9-VGA-1"):
         FramebufferSLM(W, H, missing).open()
+
+
+def test_the_driver_and_the_coder_agree_on_the_panel_depth():
+    """drivers.slm keeps its own copy (no torch in SLM backends); it must equal the coder's."""
+    from nhfd.drivers.slm import GREY_LEVELS as driver_levels
+
+    from nhfd.optics.dpac import GREY_LEVELS as coder_levels
+
+    assert driver_levels == coder_levels == 256
