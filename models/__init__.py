@@ -1,6 +1,8 @@
 """nhfd.models: the NHF network, training, evaluation and ONNX export.
 
 Modules (import what you need; nothing heavy is imported here):
+- `inputs`: what the network sees (sRGB, or sRGB + the mapped depth), built the same way by
+  training and by the daemon (NumPy only);
 - `net`: `NetSpec`, `NHFNet`, `build_net`, `predict` (any size: pad outside the graph, crop back),
   `to_field`;
 - `loss`: `Optics`, `FocalStackLoss` (aperture + ASM focal stack, L2 + box SSIM / VGG),

@@ -13,27 +13,33 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from nhfd.models.inputs import depth_channel, input_channels, mapped_depth
 
 from nhfd.dataset.build import load_manifest, shard_name
 from nhfd.dataset.shard import read_shard
-
-# Pixels with less coverage than this are background (no mapped depth).
-ALPHA_CONTENT = 0.5
 
 
 @dataclass
 class Split:
     """One split's views: `rgb` [N,3,H,W] sRGB, `field` [N,3,H,W] complex64 (amplitude-scale
-    units), `zh` [N,H,W] mapped depth (m, NaN off the content), `alpha` [N,H,W]."""
+    units), `zh` [N,H,W] mapped depth (m, NaN off the content), `alpha` [N,H,W], `depth_in`
+    [N,1,H,W] the network's depth channel (`nhfd.models.inputs.depth_channel`)."""
 
     indices: list[int]
     rgb: torch.Tensor
     field: torch.Tensor
     zh: torch.Tensor
     alpha: torch.Tensor
+    depth_in: torch.Tensor
 
     def __len__(self) -> int:
         return len(self.indices)
+
+    def inputs(self, inputs: str) -> torch.Tensor:
+        """The network inputs `[N, C, H, W]` of every view ("rgb" or "rgbd")."""
+        if input_channels(inputs) == 3:
+            return self.rgb
+        return torch.cat([self.rgb, self.depth_in], dim=1)
 
 
 class HoloData:
@@ -83,17 +89,20 @@ class HoloData:
                 raise ValueError(f"{path}: written for another manifest (stale shard)")
             rgbs.append(torch.from_numpy(np.ascontiguousarray(s["rgb"], np.float32)))
             fields.append(torch.from_numpy(s["field"].astype(np.complex64)) / self.amplitude_scale)
-            depth = s["depth"].astype(np.float64)
-            content = (s["alpha"] >= ALPHA_CONTENT) & (depth > 0)
-            zh = np.full(depth.shape, np.nan, np.float32)
-            zh[content] = self.a_m + self.b_m / depth[content]
-            zhs.append(torch.from_numpy(zh))
+            zhs.append(torch.from_numpy(mapped_depth(s["depth"], s["alpha"], self.a_m, self.b_m)))
             alphas.append(torch.from_numpy(s["alpha"].astype(np.float32)))
         shapes = {tuple(r.shape) for r in rgbs}
         if len(shapes) != 1:
             raise ValueError(f"{self.dir}: views of different sizes {sorted(shapes)}")
-        return Split(indices, torch.stack(rgbs), torch.stack(fields), torch.stack(zhs),
-                     torch.stack(alphas))  # fmt: skip
+        zh = torch.stack(zhs)
+        depth_in = torch.from_numpy(depth_channel(zh.numpy(), self.volume_m))[:, None]
+        return Split(indices, torch.stack(rgbs), torch.stack(fields), zh, torch.stack(alphas),
+                     depth_in)  # fmt: skip
+
+    @property
+    def volume_m(self) -> tuple[float, float]:
+        v = self.manifest["settings"]["volume_m"]
+        return float(v[0]), float(v[1])
 
     @property
     def size_hw(self) -> tuple[int, int]:
@@ -132,10 +141,12 @@ def interior_edges(top: int, left: int, crop_hw: tuple[int, int], view_hw: tuple
 
 
 def random_crop(
-    split: Split, views: list[int], crop_hw: tuple[int, int], rng: np.random.Generator
-) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, Edges]:
-    """rgb `[B,3,h,w]`, field `[B,3,h,w]` and zh `[B,h,w]` (numpy) of random crops, and which
-    crop edges lie inside the view for any of them (`interior_edges`)."""
+    split: Split, views: list[int], crop_hw: tuple[int, int], rng: np.random.Generator,
+    inputs: str = "rgb",
+) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, Edges]:  # fmt: skip
+    """Network input `[B,C,h,w]` (`inputs`), field `[B,3,h,w]` and zh `[B,h,w]` (numpy) of
+    random crops, and which crop edges lie inside the view for any of them (`interior_edges`)."""
+    x = split.inputs(inputs)
     h, w = split.rgb.shape[-2:]
     ch, cw = min(crop_hw[0], h), min(crop_hw[1], w)
     rgbs, fields, zhs = [], [], []
@@ -146,7 +157,7 @@ def random_crop(
         edges = [a or b for a, b in zip(edges, interior_edges(top, left, (ch, cw), (h, w)),
                                         strict=True)]  # fmt: skip
         sl = (v, slice(None), slice(top, top + ch), slice(left, left + cw))
-        rgbs.append(split.rgb[sl])
+        rgbs.append(x[sl])
         fields.append(split.field[sl])
         zhs.append(split.zh[v, top : top + ch, left : left + cw])
     top_e, bottom_e, left_e, right_e = edges

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from nhfd.models.data import ALPHA_CONTENT, HoloData
+from nhfd.models.data import HoloData
+from nhfd.models.inputs import ALPHA_CONTENT
 from nhfd.models.loss import Optics
 
 from nhfd.optics import (
@@ -35,7 +36,8 @@ from nhfd.optics import (
 FOCUS_BINS = 5
 FOCUS_SWEEP = 31
 FOCUS_MIN_PIXELS = 64
-Predictor = Callable[[torch.Tensor], torch.Tensor]  # sRGB [3,H,W] -> field [3,H,W] (scale units)
+# Network input [C,H,W] (nhfd.models.inputs) -> field [3,H,W] (amplitude-scale units)
+Predictor = Callable[[torch.Tensor], torch.Tensor]
 
 
 def torch_predictor(run_dir: str | Path) -> tuple[Predictor, dict]:
@@ -44,13 +46,14 @@ def torch_predictor(run_dir: str | Path) -> tuple[Predictor, dict]:
 
     net, info = load_run(run_dir)
 
-    def run(rgb: torch.Tensor) -> torch.Tensor:
+    def run(x: torch.Tensor) -> torch.Tensor:
         with torch.no_grad():
-            amp, phase = predict(net, rgb)
+            amp, phase = predict(net, x)
         return to_field(amp, phase, 1.0)
 
     return run, {"source": str(run_dir), "kind": "torch run", "profile":
-                 info["options"].get("profile"), "net": info["net"]}  # fmt: skip
+                 info["options"].get("profile"), "net": info["net"],
+                 "inputs": net.spec.inputs}  # fmt: skip
 
 
 def onnx_predictor(path: str | Path, manifest: dict) -> tuple[Predictor, dict]:
@@ -59,12 +62,12 @@ def onnx_predictor(path: str | Path, manifest: dict) -> tuple[Predictor, dict]:
 
     model = OnnxModel(path, expected=expected_from_manifest(manifest))
 
-    def run(rgb: torch.Tensor) -> torch.Tensor:
-        amp, phase = model(rgb.numpy())
+    def run(x: torch.Tensor) -> torch.Tensor:
+        amp, phase = model(x.numpy())
         return torch.polar(torch.from_numpy(amp), torch.from_numpy(phase))
 
     return run, {"source": str(path), "kind": "onnx", "profile": model.metadata.get("profile"),
-                 "net": model.metadata.get("net")}  # fmt: skip
+                 "net": model.metadata.get("net"), "inputs": model.inputs}  # fmt: skip
 
 
 def _camera_dirs(manifest: dict) -> np.ndarray:
@@ -157,7 +160,7 @@ def evaluate(
             rgb, target = s.rgb[j], s.field[j]
             mask = s.alpha[j] >= ALPHA_CONTENT
             mask = mask if mask.any() else None
-            pred = predictor(rgb)
+            pred = predictor(s.inputs(about["inputs"])[j])
             # Energy-matched to the target: a baseline in other units would be judged on its
             # brightness, not on its (missing) depth.
             flat = hologram_2d(rgb, like=target, mask=mask)

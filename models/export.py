@@ -1,6 +1,7 @@
 """ONNX export of a trained run, its check against torch, and the runtime loader.
 
-The exported graph takes `rgb` `[B, 3, H, W]` with H and W dynamic multiples of the network's
+The exported graph takes `rgb` `[B, 3, H, W]` (or `rgbd` `[B, 4, H, W]` for a network that also
+sees the mapped depth, `nhfd.models.inputs`) with H and W dynamic multiples of the network's
 stride (`input_multiple` in the metadata) and returns `amplitude` and `phase`. `OnnxModel` pads
 any input to that multiple outside the graph and crops back, and refuses a model trained for
 optics other than the configured ones.
@@ -50,16 +51,17 @@ def export_onnx(
     m = net.spec.multiple
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    example = torch.rand(1, 3, 2 * m, 3 * m)
+    name = net.spec.inputs
+    example = torch.rand(1, net.spec.channels, 2 * m, 3 * m)
     hd, wd = torch.export.Dim("h_strides", min=1, max=8192 // m), torch.export.Dim(
         "w_strides", min=1, max=8192 // m
     )
-    dynamic = {"rgb": {0: torch.export.Dim("batch", min=1, max=64), 2: m * hd, 3: m * wd}}
+    dynamic = ({0: torch.export.Dim("batch", min=1, max=64), 2: m * hd, 3: m * wd},)
     tmp = out_path.with_name(out_path.name + ".tmp")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exporter's deprecation chatter, not ours
         torch.onnx.export(
-            net, (example,), str(tmp), input_names=["rgb"],
+            net, (example,), str(tmp), input_names=[name],
             output_names=["amplitude", "phase"], opset_version=opset, dynamo=True,
             dynamic_shapes=dynamic, external_data=False, verbose=False,
         )  # fmt: skip
@@ -89,7 +91,7 @@ def compare_with_torch(net, onnx_path: str | Path) -> tuple[float, list[tuple[in
     rng = np.random.default_rng(0)
     worst, sizes = 0.0, []
     for hs, ws in CHECK_SIZES_STRIDES:
-        x = rng.random((1, 3, hs * m, ws * m), dtype=np.float32)
+        x = rng.random((1, net.spec.channels, hs * m, ws * m), dtype=np.float32)
         with torch.no_grad():
             ta, tp = net(torch.from_numpy(x))
         oa, op = model.run_raw(x)
@@ -130,28 +132,36 @@ class OnnxModel:
         self.metadata = parse_metadata(props, name)
         inputs = [i.name for i in self.session.get_inputs()]
         outputs = [o.name for o in self.session.get_outputs()]
-        if inputs != ["rgb"] or outputs != ["amplitude", "phase"]:
-            raise NotAModel(f"{name}: inputs {inputs} / outputs {outputs} are not rgb -> "
+        if inputs not in (["rgb"], ["rgbd"]) or outputs != ["amplitude", "phase"]:
+            raise NotAModel(f"{name}: inputs {inputs} / outputs {outputs} are not rgb or rgbd -> "
                             "amplitude, phase")  # fmt: skip
         if expected is not None:
             check_metadata(self.metadata, expected, name)
+        # "rgb" (sRGB) or "rgbd" (sRGB + mapped depth): build inputs with
+        # nhfd.models.inputs.network_input(..., self.inputs, ...).
+        self.inputs: str = inputs[0]
+        self.channels = 3 + (self.inputs == "rgbd")
         self.multiple = int(self.metadata["input_multiple"])
         self.amplitude_scale = float(self.metadata["amplitude_scale"])
 
-    def run_raw(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The graph as is: `[B, 3, H, W]` float32 with H, W multiples of `multiple`."""
-        amp, phase = self.session.run(["amplitude", "phase"], {"rgb": rgb})
+    def run_raw(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The graph as is: `[B, C, H, W]` float32 with H, W multiples of `multiple`."""
+        amp, phase = self.session.run(["amplitude", "phase"], {self.inputs: x})
         return amp, phase
 
-    def __call__(self, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Amplitude (amplitude-scale units) and phase for sRGB `[3, H, W]` or `[B, 3, H, W]` of
-        any size: padded with black to the multiple outside the graph and cropped back."""
-        x = np.asarray(rgb, dtype=np.float32)
+    def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Amplitude (amplitude-scale units) and phase for inputs `[C, H, W]` or `[B, C, H, W]`
+        of any size (`nhfd.models.inputs.network_input`): padded with black (and the reference
+        plane's depth) to the multiple outside the graph and cropped back."""
+        x = np.asarray(x, dtype=np.float32)
+        given = x.shape
         single = x.ndim == 3
         if single:
             x = x[None]
-        if x.ndim != 4 or x.shape[1] != 3:
-            raise ValueError(f"rgb {x.shape}: expected [3, H, W] or [B, 3, H, W] (R, G, B)")
+        c = self.channels
+        if x.ndim != 4 or x.shape[1] != c:
+            raise ValueError(f"{self.inputs} input {given}: expected [{c}, H, W] or "
+                             f"[B, {c}, H, W]")  # fmt: skip
         h, w = x.shape[-2:]
         ph, pw = (-h) % self.multiple, (-w) % self.multiple
         if ph or pw:

@@ -73,7 +73,11 @@ def build_metadata(run_info: dict, *, opset: int) -> dict[str, Any]:
         "train_steps": run_info.get("step"),
         "dataset_manifest_key": ds.get("manifest_key"),
         "dataset_manifest_sha256": ds.get("manifest_sha256"),
-        "inputs": {"rgb": "[B, 3, H, W] float32, H and W multiples of input_multiple"},
+        "inputs": ({"rgbd": "[B, 4, H, W] float32: sRGB, then the mapped depth scaled so the "
+                             "volume spans [-1, 1] (nhfd.models.inputs); H and W multiples of "
+                             "input_multiple"}
+                   if net.get("inputs") == "rgbd" else
+                   {"rgb": "[B, 3, H, W] float32, H and W multiples of input_multiple"}),
         "outputs": {
             "amplitude": "[B, 3, H, W] softplus, amplitude-scale units",
             "phase": "[B, 3, H, W] radians, unwrapped",

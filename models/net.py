@@ -1,8 +1,9 @@
 """The NHF network: a small U-Net from one sRGB view to the complex reference-plane hologram.
 
 Conventions (the exported ONNX graph has the same ones):
-- input `rgb` `[B, 3, H, W]`, the renderer's sRGB in [0, 1] composited on black; normalisation
-  happens inside the graph, so callers feed what the renderer gives them;
+- input `[B, C, H, W]`: the renderer's sRGB in [0, 1] composited on black, and for `inputs =
+  "rgbd"` a fourth channel, the mapped depth (`nhfd.models.inputs`); sRGB normalisation happens
+  inside the graph, so callers feed what the renderer gives them;
 - outputs `amplitude` and `phase`, each `[B, 3, H, W]` (R, G, B): amplitude through softplus, in
   units of the dataset's amplitude scale; phase unconstrained (used only through cos/sin, so no
   wrapping in the graph: double-phase coding wraps);
@@ -17,6 +18,7 @@ from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F
+from nhfd.models.inputs import input_channels
 from torch import nn
 
 # sRGB renders of splat scenes on black are dark on average; centring them is enough.
@@ -31,14 +33,21 @@ class NetSpec:
     width: int = 16
     depth: int = 3
     unshuffle: int = 2
+    inputs: str = "rgb"
 
     def __post_init__(self) -> None:
+        input_channels(self.inputs)  # validates
         if not 1 <= self.width <= 512:
             raise ValueError(f"width = {self.width}: must be in 1..512 channels")
         if not 0 <= self.depth <= 6:
             raise ValueError(f"depth = {self.depth}: must be in 0..6 levels")
         if self.unshuffle not in (1, 2, 4, 8):
             raise ValueError(f"unshuffle = {self.unshuffle}: must be 1, 2, 4 or 8")
+
+    @property
+    def channels(self) -> int:
+        """Input channels: 3 (sRGB) or 4 (sRGB + mapped depth)."""
+        return input_channels(self.inputs)
 
     @property
     def multiple(self) -> int:
@@ -66,7 +75,7 @@ class NHFNet(nn.Module):
         self.spec = spec
         f, w = spec.unshuffle, spec.width
         widths = [w * 2**i for i in range(spec.depth + 1)]
-        self.inc = _block(3 * f * f, widths[0])
+        self.inc = _block(spec.channels * f * f, widths[0])
         # Strided convolutions downsample: cheaper than pooling + conv, and export cleanly.
         self.down = nn.ModuleList(
             nn.Sequential(nn.Conv2d(widths[i], widths[i + 1], 3, stride=2, padding=1),
@@ -79,10 +88,13 @@ class NHFNet(nn.Module):
         self.dec = nn.ModuleList(_block(2 * widths[i], widths[i]) for i in range(spec.depth))
         self.head = nn.Conv2d(widths[0], 6 * f * f, 1)
 
-    def forward(self, rgb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """`rgb` `[B, 3, H, W]` sRGB (H, W multiples of `spec.multiple`) -> (amplitude, phase)."""
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`x` `[B, C, H, W]` (sRGB, then depth for rgbd; H, W multiples of `spec.multiple`) ->
+        (amplitude, phase)."""
         # float16 (or float64) input is computed in float32: the weights are float32.
-        x = (rgb.float() - INPUT_MEAN) / INPUT_STD
+        x = x.float()
+        rgb = (x[:, :3] - INPUT_MEAN) / INPUT_STD
+        x = torch.cat([rgb, x[:, 3:]], dim=1) if x.shape[1] > 3 else rgb
         f = self.spec.unshuffle
         if f > 1:
             x = F.pixel_unshuffle(x, f)
@@ -132,12 +144,15 @@ def pad_to_multiple(rgb: torch.Tensor, multiple: int) -> tuple[torch.Tensor, tup
     return rgb, (h, w)
 
 
-def predict(net: NHFNet, rgb: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Amplitude and phase for sRGB views of any size (`[3, H, W]` or `[B, 3, H, W]`)."""
-    if rgb.dim() not in (3, 4) or rgb.shape[-3] != 3:
-        raise ValueError(f"rgb {tuple(rgb.shape)}: expected [3, H, W] or [B, 3, H, W] (R, G, B)")
-    single = rgb.dim() == 3
-    x = rgb[None] if single else rgb
+def predict(net: NHFNet, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Amplitude and phase for network inputs of any size (`[C, H, W]` or `[B, C, H, W]`,
+    `nhfd.models.inputs`)."""
+    c = net.spec.channels
+    if x.dim() not in (3, 4) or x.shape[-3] != c:
+        raise ValueError(f"input {tuple(x.shape)}: expected [{c}, H, W] or [B, {c}, H, W] "
+                         f"({net.spec.inputs})")  # fmt: skip
+    single = x.dim() == 3
+    x = x[None] if single else x
     x, (h, w) = pad_to_multiple(x.float(), net.spec.multiple)
     amp, phase = net(x)
     amp, phase = amp[..., :h, :w], phase[..., :h, :w]

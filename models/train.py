@@ -58,6 +58,7 @@ class TrainOptions:
     width: int = 16
     depth: int = 3
     unshuffle: int = 2
+    inputs: str = "rgb"
     profile: str = "balanced"
     steps: int = 10_000
     batch: int = 1
@@ -80,7 +81,7 @@ class TrainOptions:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        NetSpec(self.width, self.depth, self.unshuffle)  # validates the shape
+        NetSpec(self.width, self.depth, self.unshuffle, self.inputs)  # validates
         checks = {
             "steps": self.steps >= 1,
             "batch": self.batch >= 1,
@@ -105,7 +106,7 @@ class TrainOptions:
 
     @property
     def spec(self) -> NetSpec:
-        return NetSpec(self.width, self.depth, self.unshuffle)
+        return NetSpec(self.width, self.depth, self.unshuffle, self.inputs)
 
     @property
     def crop_hw(self) -> tuple[int, int]:
@@ -124,7 +125,8 @@ class TrainOptions:
         p = m.profiles[name]
         base = {f.name: getattr(m.train, f.name) for f in fields(TrainOptions)
                 if hasattr(m.train, f.name)}  # fmt: skip
-        base.update(width=p.width, depth=p.depth, unshuffle=p.unshuffle, profile=name)
+        base.update(width=p.width, depth=p.depth, unshuffle=p.unshuffle, inputs=p.inputs,
+                    profile=name)
         base.update({k: v for k, v in overrides.items() if v is not None})
         return TrainOptions(**base)
 
@@ -268,10 +270,10 @@ def validate_views(
     net.eval()
     with torch.no_grad():
         for v in range(n):
-            rgb = centre_crop(s.rgb[v : v + 1], options.crop_hw)
+            x = centre_crop(s.inputs(options.inputs)[v : v + 1], options.crop_hw)
             target = centre_crop(s.field[v : v + 1], options.crop_hw)
             edges = centre_crop_edges(tuple(s.rgb.shape[-2:]), options.crop_hw)
-            amp, phase = predict(net, rgb)
+            amp, phase = predict(net, x)
             out = loss_fn(to_field(amp, phase, 1.0), target, planes, k, edges)
             peak = float(loss_fn.stack(target, planes, edges).max())
             losses.append(float(out["loss"]))
@@ -378,7 +380,8 @@ def train(
             t0 = time.perf_counter()
             rng = step_rng(options.seed, step)
             views = batch_views(options.seed, step, options.batch, n_train)
-            rgb, target, zh, edges = random_crop(train_split, views, options.crop_hw, rng)
+            x, target, zh, edges = random_crop(train_split, views, options.crop_hw, rng,
+                                               options.inputs)
             if options.plane_mode == "uniform":
                 planes = fixed
             else:
@@ -389,7 +392,7 @@ def train(
             lr = lr_at(step, options)
             for g in opt.param_groups:
                 g["lr"] = lr
-            amp, phase = predict(net, rgb)
+            amp, phase = predict(net, x)
             out = loss_fn(to_field(amp, phase, 1.0), target, planes, perc, edges)
             opt.zero_grad(set_to_none=True)
             out["loss"].backward()

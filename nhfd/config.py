@@ -145,13 +145,15 @@ class ModelProfile(_Section):
     width: Annotated[int, Field(ge=1, le=512)]
     depth: Annotated[int, Field(ge=0, le=6)]
     unshuffle: Literal[1, 2, 4, 8]
+    # "rgbd" adds the render's mapped depth as a fourth input channel (nhfd.models.inputs).
+    inputs: Literal["rgb", "rgbd"] = "rgb"
 
 
 def _default_profiles() -> dict[str, ModelProfile]:
     return {
-        "fast": ModelProfile(width=16, depth=3, unshuffle=4),
-        "balanced": ModelProfile(width=16, depth=3, unshuffle=2),
-        "accurate": ModelProfile(width=32, depth=3, unshuffle=2),
+        "fast": ModelProfile(width=16, depth=3, unshuffle=4, inputs="rgbd"),
+        "balanced": ModelProfile(width=16, depth=3, unshuffle=2, inputs="rgbd"),
+        "accurate": ModelProfile(width=32, depth=3, unshuffle=2, inputs="rgbd"),
     }
 
 

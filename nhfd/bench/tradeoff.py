@@ -101,7 +101,8 @@ def _median_s(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def quantise_int8(src: Path, dst: Path, data, multiple: int, n_calib: int = 8) -> Path:
+def quantise_int8(src: Path, dst: Path, data, multiple: int, inputs: str = "rgb",
+                  n_calib: int = 8) -> Path:
     """Static int8 (QDQ, per channel), the last Conv kept in float32, calibrated on training
     views; the nhfd metadata is carried over."""
     import numpy as np
@@ -121,10 +122,10 @@ def quantise_int8(src: Path, dst: Path, data, multiple: int, n_calib: int = 8) -
         def __init__(self) -> None:
             self.items = []
             for j in range(min(n_calib, len(split))):
-                x = split.rgb[j : j + 1].numpy()
+                x = split.inputs(inputs)[j : j + 1].numpy()
                 h, w = x.shape[-2:]
                 x = np.pad(x, ((0, 0), (0, 0), (0, (-h) % multiple), (0, (-w) % multiple)))
-                self.items.append({"rgb": np.ascontiguousarray(x, np.float32)})
+                self.items.append({inputs: np.ascontiguousarray(x, np.float32)})
             self.it = iter(self.items)
 
         def get_next(self):
@@ -202,12 +203,13 @@ def run(args: argparse.Namespace) -> int:
             kept = {**stamp, "max_abs_diff": exported.max_abs_diff, "evals": {}}
             if args.int8:
                 quantise_int8(exported.path, out / "models" / f"{name}-int8.onnx", data,
-                              net.spec.multiple)  # fmt: skip
+                              net.spec.multiple, net.spec.inputs)  # fmt: skip
         models = [(name, out / "models" / f"{name}.onnx", kept["max_abs_diff"])]
         if args.int8:
             models.append((f"{name}-int8", out / "models" / f"{name}-int8.onnx", float("nan")))
         m = net.spec.multiple
-        x = np.random.default_rng(0).random((1, 3, h + (-h) % m, w + (-w) % m), np.float32)
+        x = np.random.default_rng(0).random((1, net.spec.channels, h + (-h) % m, w + (-w) % m),
+                                            np.float32)  # fmt: skip
         torch.set_num_threads(args.threads)
         with torch.no_grad():
             xt = torch.from_numpy(x)

@@ -35,6 +35,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--width", type=int, help="override the profile's base width")
     t.add_argument("--depth", type=int, help="override the profile's depth")
     t.add_argument("--unshuffle", type=int, help="override the profile's unshuffle factor")
+    t.add_argument("--inputs", choices=("rgb", "rgbd"),
+                   help="override the profile's inputs: sRGB, or sRGB plus the mapped depth")
     t.add_argument("--steps", type=int, help="budget in optimiser steps")
     t.add_argument("--batch", type=int, help="views per step")
     t.add_argument("--crop", help="training crop WxH (e.g. 512x288)")
@@ -89,6 +91,7 @@ def run_train(args: argparse.Namespace) -> int:
 
     options = TrainOptions.from_config(
         config, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
+        inputs=args.inputs,
         steps=args.steps, batch=args.batch, crop_width_px=crop[0], crop_height_px=crop[1],
         learning_rate=args.lr, seed=args.seed, plane_mode=args.planes,
         perceptual=args.perceptual, vgg_weights=args.vgg_weights,

@@ -49,21 +49,22 @@ def small_config(**sections: Any) -> Config:
     return Config.model_validate(_overlay(tomllib.loads(default_text()), user))
 
 
-def make_tiny_model(root: Path) -> Path:
+def make_tiny_model(root: Path, inputs: str = "rgb") -> Path:
     """Train a 2-step network on the synthetic 64 x 96 dataset and export it (~10 s)."""
     from nhfd.models.export import export_onnx
     from nhfd.models.synthetic import synthetic_dataset
     from nhfd.models.train import TrainOptions, train
 
-    out = root / "tiny.onnx"
+    out = root / ("tiny.onnx" if inputs == "rgb" else f"tiny-{inputs}.onnx")
     if out.exists():
         return out
-    synthetic_dataset(root / "data", size_hw=(64, 96), splits=(2, 1, 1))
+    if not (root / "data" / "manifest.json").exists():
+        synthetic_dataset(root / "data", size_hw=(64, 96), splits=(2, 1, 1))
     opts = TrainOptions(width=4, depth=1, unshuffle=1, steps=2, crop_width_px=64,
                         crop_height_px=64, checkpoint_every=100, val_views=1, progress=False,
-                        threads=1)  # fmt: skip
-    train(root / "data", root / "run", opts, log=lambda _m: None)
-    export_onnx(root / "run", out, check=False)
+                        threads=1, inputs=inputs)  # fmt: skip
+    train(root / "data", root / f"run-{inputs}", opts, log=lambda _m: None)
+    export_onnx(root / f"run-{inputs}", out, check=False)
     return out
 
 

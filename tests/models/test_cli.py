@@ -17,7 +17,7 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     assert main(args) == 0
     assert "step 2" in capsys.readouterr().out
     info = json.loads((run / "run.json").read_text())
-    assert info["net"] == {"width": 8, "depth": 1, "unshuffle": 4}
+    assert info["net"] == {"width": 8, "depth": 1, "unshuffle": 4, "inputs": "rgbd"}
     assert "box-window SSIM" in info["loss"]  # the log says which perceptual term ran
     onnx_path = tmp_path / "m.onnx"
     assert main(["export", str(run), "-o", str(onnx_path)]) == 0

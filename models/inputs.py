@@ -1,0 +1,70 @@
+"""What the network sees: sRGB alone (`rgb`) or sRGB plus the view's mapped depth (`rgbd`).
+
+NumPy only, so the daemon's worker builds exactly the input training used without torch.
+
+Why a depth channel: from sRGB alone a small U-Net has to guess each pixel's depth from local
+appearance, and the depth decides the phase curvature the hologram needs. Measured on the donut
+scene (README, "RGB or RGB-D"), sRGB-only networks kept drifting their focus toward the reference
+plane. The renderer computes the depth anyway, at no extra cost per frame.
+
+The depth channel is the hologram depth `z_h = a + b / d` (the scene's mapping, optics.md) scaled
+so the volume spans [-1, 1]: `(z_h - centre) / half_depth`, clipped to [-DEPTH_CLIP, DEPTH_CLIP];
+background (coverage below ALPHA_CONTENT) is 0, the reference plane's depth.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+INPUTS = ("rgb", "rgbd")
+# Pixels with less coverage than this are background (no mapped depth).
+ALPHA_CONTENT = 0.5
+# Scene content mapped outside the volume (views beyond the pose envelope) stays bounded.
+DEPTH_CLIP = 2.0
+
+
+def input_channels(inputs: str) -> int:
+    """Channels of the network input for `inputs` ("rgb": 3, "rgbd": 4)."""
+    if inputs not in INPUTS:
+        raise ValueError(f"inputs = {inputs!r}: must be one of {', '.join(INPUTS)}")
+    return 3 + (inputs == "rgbd")
+
+
+def mapped_depth(depth: np.ndarray, alpha: np.ndarray, a_m: float, b_m: float) -> np.ndarray:
+    """Hologram depth `z_h` (m, float32) of a render's depth `[H, W]` (scene units, > 0 on
+    content); NaN where coverage is below ALPHA_CONTENT or the depth is not positive."""
+    d = np.asarray(depth, np.float64)
+    content = (np.asarray(alpha) >= ALPHA_CONTENT) & (d > 0) & np.isfinite(d)
+    zh = np.full(d.shape, np.nan, np.float32)
+    zh[content] = a_m + b_m / d[content]
+    return zh
+
+
+def depth_channel(zh_m: np.ndarray, volume_m: Sequence[float]) -> np.ndarray:
+    """The network's depth channel `[..., H, W]` float32 from mapped depth (NaN = background)."""
+    lo, hi = float(volume_m[0]), float(volume_m[1])
+    if not hi > lo:
+        raise ValueError(f"volume_m = {list(volume_m)}: the far end must lie beyond the near end")
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    x = (np.asarray(zh_m, np.float64) - centre) / half
+    return np.clip(np.nan_to_num(x, nan=0.0), -DEPTH_CLIP, DEPTH_CLIP).astype(np.float32)
+
+
+def network_input(
+    rgb: np.ndarray, inputs: str, *, depth: np.ndarray | None = None,
+    alpha: np.ndarray | None = None, mapping: dict | None = None,
+    volume_m: Sequence[float] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """The network input `[C, H, W]` float32 for one render: `rgb` `[3, H, W]` sRGB, and for
+    "rgbd" the render's `depth` and `alpha` `[H, W]`, the scene `mapping` ({"a_m", "b_m"}, from
+    the model's metadata) and the model's `volume_m`."""
+    rgb = np.asarray(rgb, np.float32)
+    if input_channels(inputs) == 3:
+        return rgb
+    if depth is None or alpha is None or mapping is None or volume_m is None:
+        raise ValueError("an rgbd model needs the render's depth and alpha, the scene mapping "
+                         "and the volume")  # fmt: skip
+    zh = mapped_depth(depth, alpha, float(mapping["a_m"]), float(mapping["b_m"]))
+    return np.concatenate([rgb, depth_channel(zh, volume_m)[None]], axis=0)
