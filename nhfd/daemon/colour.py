@@ -42,7 +42,12 @@ def panel_for_mode(frame: np.ndarray, mode: str, colour: str) -> np.ndarray:
     if mode != "single":
         return frame
     c = COLOURS.index(colour)
-    return np.ascontiguousarray(np.broadcast_to(frame[c], frame.shape))
+    # Built in the SLM's [H, W, 3] layout and returned as its [3, H, W] view: the SLM takes it
+    # without a transposing copy of the whole panel (see nhfd.daemon.frames.PanelBuffer).
+    out = np.empty((*frame.shape[1:], frame.shape[0]), frame.dtype)
+    for k in range(frame.shape[0]):
+        out[..., k] = frame[c]
+    return out.transpose(2, 0, 1)
 
 
 def single_colour_pattern(frame: np.ndarray, colour: str) -> np.ndarray:

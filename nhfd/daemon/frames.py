@@ -23,7 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from nhfd.optics import Aperture, KernelCache, PhaseCurve, double_phase, phase_to_grey, propagate
+from nhfd.models.inputs import network_input
+from nhfd.optics import Aperture, KernelCache, PhaseCurve, double_phase_grey, phase_to_grey
 from nhfd.optics.refplane import margin_px, window_offset
 
 # Stage names, in order, as status and the benchmark report them.
@@ -160,8 +161,112 @@ class Frame:
     clipped_fraction: tuple[float, ...] = ()
 
 
+class _Group:
+    """Colours propagated together (one padded grid, one stacked kernel), and the kernel reduced
+    to what the propagation needs: the Fourier aperture (folded into the kernel) passes about a
+    quarter of the padded spectrum, so only the rows and columns of frequencies it keeps are
+    transformed, multiplied and transformed back.
+
+    The padded field is zero outside the window, so the forward transform runs along rows over
+    the window's rows only, then along columns over the kept columns only; the inverse runs along
+    columns over the kept columns, then along rows over the region's rows only. The same sums as
+    `propagate`'s 2D transforms, less those that multiply exact zeros, with the same kernel
+    values: equal to it to float32 rounding (tests/daemon/test_encoder.py).
+
+    The column transforms run on a transposed copy (`[n, kept columns, Hp]`: along the last
+    axis, all colours in one call; along dim -2 torch makes two transposing copies of its own).
+    The zero-padded inputs of the four transforms are kept between calls (~50 MB at 1024 x 576)
+    and written only where they are not zero: fresh ones cost page faults and zero fills that
+    measured more than the column transforms themselves."""
+
+    def __init__(self, colours: slice, padded_hw: tuple[int, int], kernel: torch.Tensor,
+                 offset: tuple[int, int], region_hw: tuple[int, int]) -> None:
+        self.colours = colours
+        self.padded_hw = padded_hw
+        self.region_hw = region_hw
+        self.offset = offset
+        kept = kernel != 0
+        self.row_runs = _runs(kept.any(-1).any(0))
+        self.col_runs = _runs(kept.any(-2).any(0))
+        cols = torch.tensor([i for a, b in self.col_runs for i in range(a, b)], dtype=torch.long)
+        reduced = kernel.index_select(-1, cols)
+        # Per run of kept rows: the kernel there, kept columns only, transposed: [n, nc, run].
+        self.kernels = [reduced[:, a:b].transpose(-1, -2).contiguous() for a, b in self.row_runs]
+        self.n_cols = len(cols)
+        self._buffers: tuple[torch.Tensor, ...] = ()
+        self._window_hw = (0, 0)
+
+    def _scratch(self, n: int, h: int, w: int) -> tuple[torch.Tensor, ...]:
+        if not self._buffers or self._window_hw != (h, w) or self._buffers[0].shape[0] != n:
+            (hp, wp), (hr, _wr), nc = self.padded_hw, self.region_hw, self.n_cols
+            z = torch.complex64
+            self._buffers = (torch.zeros((n, h, wp), dtype=z), torch.zeros((n, nc, hp), dtype=z),
+                             torch.zeros((n, nc, hp), dtype=z), torch.zeros((n, hr, wp), dtype=z))
+            self._window_hw = (h, w)
+        return self._buffers
+
+    def propagate(self, window: torch.Tensor) -> torch.Tensor:
+        """Window field `[n, h, w]` -> region field `[n, Hr, Wr]` (a crop of a fresh tensor)."""
+        hr, wr = self.region_hw
+        r0, c0 = self.offset
+        n, h, w = window.shape
+        if not self.col_runs or not self.row_runs:  # the kernel passes nothing
+            return torch.zeros((n, hr, wr), dtype=torch.complex64)
+        padded, columns, spectrum, back_rows = self._scratch(n, h, w)
+        # Forward along rows: the window's rows, zero-padded to Wp.
+        padded[..., c0 : c0 + w] = window
+        rows = torch.fft.fft(padded, dim=-1)
+        # Along columns: the kept columns, transposed, at the window's rows of Hp.
+        _gather_t(columns[..., r0 : r0 + h], rows, self.col_runs)
+        del rows
+        forward = torch.fft.fft(columns, dim=-1)
+        # Times the kernel on its kept rows (zero elsewhere), back along columns.
+        for (a, b), k in zip(self.row_runs, self.kernels, strict=True):
+            torch.mul(forward[..., a:b], k, out=spectrum[..., a:b])
+        del forward
+        back = torch.fft.ifft(spectrum, dim=-1)
+        # Back along rows: the region's rows, the kept columns (zero elsewhere).
+        _scatter_t(back_rows, back[..., :hr], self.col_runs)
+        del back
+        return torch.fft.ifft(back_rows, dim=-1)[..., :wr]
+
+
+def _runs(mask: torch.Tensor) -> list[tuple[int, int]]:
+    """The [start, stop) runs of True in a 1-D bool tensor."""
+    m = [bool(v) for v in mask.tolist()]
+    out, i = [], 0
+    while i < len(m):
+        if m[i]:
+            j = i
+            while j < len(m) and m[j]:
+                j += 1
+            out.append((i, j))
+            i = j
+        else:
+            i += 1
+    return out
+
+
+def _gather_t(dst: torch.Tensor, src: torch.Tensor, runs: list[tuple[int, int]]) -> None:
+    """dst[..., k, i] = src[..., i, the k-th index of the runs]: the runs of src's columns,
+    transposed into dst's rows."""
+    k = 0
+    for a, b in runs:
+        dst[..., k : k + b - a, :] = src[..., a:b].transpose(-1, -2)
+        k += b - a
+
+
+def _scatter_t(dst: torch.Tensor, src: torch.Tensor, runs: list[tuple[int, int]]) -> None:
+    """The inverse of `_gather_t`: dst[..., i, the k-th index of the runs] = src[..., k, i]."""
+    k = 0
+    for a, b in runs:
+        dst[..., a:b] = src[..., k : k + b - a, :].transpose(-1, -2)
+        k += b - a
+
+
 class Encoder:
-    """Reference-plane field -> coded grey region; owns the kernel cache and the zero pattern."""
+    """Reference-plane field -> coded grey region; owns the kernel cache, the zero pattern and
+    the propagation's scratch buffers (so not thread-safe, like `Pipeline`)."""
 
     def __init__(self, settings: FrameSettings, cache_bytes: int = 256 * 2**20) -> None:
         self.settings = settings
@@ -169,7 +274,9 @@ class Encoder:
         self.cache = KernelCache(cache_bytes)
         self.curves = settings.curves()
         self._zero: np.ndarray | None = None
+        self._panel: PanelBuffer | None = None
         self._gain_map: torch.Tensor | None = None
+        self._groups: list[_Group] | None = None
 
     @property
     def zero(self) -> np.ndarray:
@@ -178,25 +285,66 @@ class Encoder:
         return self._zero
 
     def to_slm(self, reference: torch.Tensor) -> torch.Tensor:
-        """Window field `[3, h, w]` on the reference plane -> region field on the SLM plane."""
+        """Window field `[3, h, w]` on the reference plane -> region field on the SLM plane.
+
+        The same field as `propagate` of the zero-padded region by each colour's depth with the
+        aperture (and the relay's conjugate pupil when calibrated), to float32 rounding; the
+        result may be a crop of a larger fresh tensor (not contiguous), and carries no autograd
+        history."""
+        r = self.region
+        ref = reference.detach().to(torch.complex64)
+        h, w = ref.shape[-2:]
+        if (ref.dim() != 3 or h + r.window_top > r.height or w + r.window_left > r.width):
+            raise ValueError(f"reference of shape {tuple(reference.shape)}: expected [C, h, w] "
+                             f"inside the {r.height} x {r.width} region")
+        groups = self.groups()
+        if len(groups) == 1:
+            return groups[0].propagate(ref)
+        out = torch.empty((ref.shape[0], r.height, r.width), dtype=torch.complex64)
+        for g in groups:
+            out[g.colours] = g.propagate(ref[g.colours])
+        return out
+
+    def groups(self) -> list[_Group]:
+        """The propagation per group of colours sharing a depth (built once: the kernels come
+        through the cache, under the keys `propagate` uses)."""
+        if self._groups is None:
+            r = self.region
+            self._groups = [
+                _Group(colours, hw, kernel, (r.window_top, r.window_left), (r.height, r.width))
+                for colours, hw, kernel in self._kernels()]
+        return self._groups
+
+    def _kernels(self) -> list[tuple[slice, tuple[int, int], torch.Tensor]]:
+        """(colours, padded shape, kernels [n, Hp, Wp]) per group of colours."""
+        from nhfd.optics.asm import _kernels
+        from nhfd.optics.padding import plan_padding
+
         s, r = self.settings, self.region
-        h, w = reference.shape[-2:]
-        buf = torch.zeros((reference.shape[0], r.height, r.width), dtype=torch.complex64)
-        buf[:, r.window_top : r.window_top + h, r.window_left : r.window_left + w] = reference
         zs = s.colour_propagation_z_m
+        hw = (r.height, r.width)
+        cpu = torch.device("cpu")
         if any(s.zernike_rad):
-            return self._to_slm_precompensated(buf, zs)
+            return self._kernels_precompensated(zs)
         if len(set(zs)) == 1:
-            return propagate(buf, zs[0], s.pitch_m, s.wavelengths_m,
-                             padding=s.padding, aperture=s.aperture, cache=self.cache)  # type: ignore[arg-type]
+            plan = plan_padding(hw, s.pitch_m, s.wavelengths_m, abs(zs[0]), s.aperture,
+                                s.padding)  # type: ignore[arg-type]
+            k = _kernels(plan, s.pitch_m, s.wavelengths_m, (zs[0],), s.aperture, True,
+                         torch.complex64, cpu, self.cache)
+            return [(slice(0, len(zs)), plan.padded_hw, k[0])]
         # Per-colour depths (calibrated focus offsets): one kernel per colour, each cached.
         cutoffs = s.aperture.cutoffs(len(zs))
-        return torch.cat([
-            propagate(buf[c : c + 1], z, s.pitch_m, [s.wavelengths_m[c]], padding=s.padding,  # type: ignore[arg-type]
-                      aperture=Aperture(s.aperture.shape, (cutoffs[c],)), cache=self.cache)
-            for c, z in enumerate(zs)])
+        out = []
+        for c, z in enumerate(zs):
+            lam = (s.wavelengths_m[c],)
+            ap = Aperture(s.aperture.shape, (cutoffs[c],))
+            plan = plan_padding(hw, s.pitch_m, lam, abs(z), ap, s.padding)  # type: ignore[arg-type]
+            k = _kernels(plan, s.pitch_m, lam, (z,), ap, True, torch.complex64, cpu, self.cache)
+            out.append((slice(c, c + 1), plan.padded_hw, k[0]))
+        return out
 
-    def _to_slm_precompensated(self, buf: torch.Tensor, zs: tuple[float, ...]) -> torch.Tensor:
+    def _kernels_precompensated(self, zs: tuple[float, ...]
+                                ) -> list[tuple[slice, tuple[int, int], torch.Tensor]]:
         """Per colour: the ASM kernel (nhfd.optics) times the conjugate of the relay's pupil
         phase, cached under a key that names the aberration (a kernel for other coefficients
         is never reused)."""
@@ -204,15 +352,15 @@ class Encoder:
         from nhfd.optics.asm import transfer_function
         from nhfd.optics.padding import plan_padding
 
-        s = self.settings
-        h, w = buf.shape[-2:]
+        s, r = self.settings, self.region
         cutoffs = s.aperture.cutoffs(len(zs))
         lam_ref = s.zernike_wavelength_m or s.wavelengths_m[len(s.wavelengths_m) // 2]
         out = []
         for c, z in enumerate(zs):
             lam = s.wavelengths_m[c]
             ap = Aperture(s.aperture.shape, (cutoffs[c],))
-            plan = plan_padding((h, w), s.pitch_m, (lam,), abs(z), ap, s.padding)  # type: ignore[arg-type]
+            plan = plan_padding((r.height, r.width), s.pitch_m, (lam,), abs(z), ap,
+                                s.padding)  # type: ignore[arg-type]
 
             def kernel(plan: object = plan, z: float = z, lam: float = lam, ap: Aperture = ap,
                        c: int = c) -> torch.Tensor:
@@ -223,10 +371,8 @@ class Encoder:
 
             key = ("asm-pupil", plan.padded_hw, s.pitch_m, lam, z, ap, tuple(s.zernike_rad),
                    lam_ref)
-            k = self.cache.get(key, kernel)
-            spec = torch.fft.fft2(buf[c], s=plan.padded_hw)
-            out.append(torch.fft.ifft2(spec * k)[:h, :w])
-        return torch.stack(out)
+            out.append((slice(c, c + 1), plan.padded_hw, self.cache.get(key, kernel)[None]))
+        return out
 
     def amplitude_gain_map(self) -> torch.Tensor | None:
         """[3, h, w] factors on the region's SLM-plane field that undo the source's profile
@@ -255,21 +401,40 @@ class Encoder:
     def code(self, slm_field: torch.Tensor) -> tuple[np.ndarray, tuple[float, ...]]:
         """SLM-plane region field -> grey `[3, h, w]` uint8 and the clipped fraction per colour.
 
-        No antialias pass: the propagation kernel already applied the aperture."""
+        One fused pass (`double_phase_grey`): the gain map, double-phase coding with the
+        model's amplitude scale and zero_below, and the phase curves. No antialias pass: the
+        propagation kernel already applied the aperture."""
         s = self.settings
-        gain = self.amplitude_gain_map()
-        if gain is not None:
-            slm_field = slm_field * gain
-        coded = double_phase(slm_field, s.amplitude_scale, zero_below=s.zero_below)
-        grey = phase_to_grey(coded.phase_rad, self.curves, sign=s.phase_sign,
-                             invert=s.grey_invert)
-        return grey.numpy(), tuple(float(c) for c in coded.clipped_fraction)
+        return double_phase_grey(slm_field, s.amplitude_scale, self.curves, sign=s.phase_sign,
+                                 invert=s.grey_invert, zero_below=s.zero_below,
+                                 gain=self.amplitude_gain_map())
 
     def panel(self, grey: np.ndarray) -> np.ndarray:
-        """The full panel frame: the zero pattern with the coded region pasted in."""
-        out = self.zero.copy()
-        out[:, self.region.rows, self.region.cols] = grey
-        return out
+        """The full panel frame `[3, H, W]`: the zero pattern with the coded region pasted in
+        (a view of an `[H, W, 3]` array: the layout the SLM takes, so showing it copies
+        nothing)."""
+        if self._panel is None:
+            self._panel = PanelBuffer(self.zero)
+        return self._panel.frame(self.region.top, self.region.left, grey)
+
+
+class PanelBuffer:
+    """Full panel frames from the zero pattern and a coded region, built in the SLM's `[H, W, 3]`
+    layout: a frame is a fresh copy of the interleaved zero pattern with the region interleaved
+    in, returned as its `[3, H, W]` view. `nhfd.drivers.slm.to_rgb` takes that view as it is,
+    where a channel-first frame costs a transposing copy of the whole panel (~10 ms at
+    1920 x 1080)."""
+
+    def __init__(self, zero: np.ndarray) -> None:
+        self.zero_hwc = np.ascontiguousarray(np.asarray(zero, np.uint8).transpose(1, 2, 0))
+
+    def frame(self, top: int, left: int, grey: np.ndarray) -> np.ndarray:
+        out = self.zero_hwc.copy()
+        _, h, w = grey.shape
+        dst = out[top : top + h, left : left + w]
+        for c in range(grey.shape[0]):
+            dst[..., c] = grey[c]
+        return out.transpose(2, 0, 1)
 
 
 def reference_field(amplitude: np.ndarray, phase: np.ndarray, amplitude_scale: float
@@ -380,10 +545,15 @@ class Pipeline:
         t: dict[str, float] = {}
         t0 = time.perf_counter()
         cam = render_camera(view, self.frame, self.model.metadata, s.window_hw)
-        rgb = render(self.scene, cam).rgb
+        view_render = render(self.scene, cam)
+        rgb = view_render.rgb
         t1 = time.perf_counter()
         t["render"] = t1 - t0
-        amp, phase = self.model(rgb)
+        meta = self.model.metadata
+        x = network_input(rgb, getattr(self.model, "inputs", "rgb"), depth=view_render.depth,
+                          alpha=view_render.alpha, mapping=meta.get("mapping"),
+                          volume_m=meta.get("volume_m"))  # fmt: skip
+        amp, phase = self.model(x)
         t2 = time.perf_counter()
         t["inference"] = t2 - t1
         with torch.no_grad():

@@ -323,7 +323,7 @@ class FrameLink:
         self.crashes = 0
         self.state = "idle"
         self._start_lock = threading.Lock()
-        self._zero: np.ndarray | None = None
+        self._zero: Any = None  # a PanelBuffer of the zero pattern, built on first use
         self._restart_at = 0.0
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -466,14 +466,12 @@ class FrameLink:
     def _panel(self, payload: dict[str, Any]) -> np.ndarray:
         """The full panel: the precomputed zero pattern outside the coded region."""
         if self._zero is None:
-            from nhfd.daemon.frames import zero_pattern
+            from nhfd.daemon.frames import PanelBuffer, zero_pattern
 
             settings = _panel_settings(self.d.config)
-            self._zero = zero_pattern(settings)
-        top, left, h, w = payload["region"][:4]
-        out = self._zero.copy()
-        out[:, top : top + h, left : left + w] = payload["grey"]
-        return out
+            self._zero = PanelBuffer(zero_pattern(settings))
+        top, left = payload["region"][:2]
+        return self._zero.frame(top, left, payload["grey"])
 
     def _crashed(self) -> None:
         code = self.worker.process.exitcode if self.worker.process is not None else None

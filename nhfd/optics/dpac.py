@@ -8,11 +8,14 @@ be band-limited (the aperture's own band) for the coding to be accurate.
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from nhfd.optics import _validate
@@ -194,3 +197,149 @@ def grey_to_phase(
             raise ValueError(f"grey levels outside the curve's 0..{len(table) - 1}")
         out[..., c, :, :] = (table[g] * sign).float()
     return out
+
+
+def _rows_base(field: torch.Tensor | np.ndarray) -> tuple[np.ndarray, int, int]:
+    """A C-contiguous complex64 array whose `[:, :h, :w]` is the field `[C, h, w]`: the field
+    itself, the contiguous tensor it is the top-left crop of (a propagation's padded output,
+    read in place), or a contiguous copy."""
+    if isinstance(field, torch.Tensor):
+        t = field.detach()
+        if t.dim() != 3:
+            raise ValueError(f"field has shape {tuple(t.shape)}: expected [C, H, W]")
+        base = t._base
+        if (not t.is_contiguous() and t.dtype == torch.complex64 and base is not None
+                and base.dim() == 3 and base.is_contiguous() and base.device == t.device
+                and t.data_ptr() == base.data_ptr() and t.stride() == base.stride()
+                and t.shape[0] == base.shape[0]):
+            return base.numpy(), t.shape[1], t.shape[2]
+        field = t.numpy() if t.dtype == torch.complex64 else t.to(torch.complex64).numpy()
+    u = np.ascontiguousarray(field, np.complex64)
+    if u.ndim != 3 or min(u.shape) < 1:
+        raise ValueError(f"field has shape {u.shape}: expected [C, H, W] with C, H, W >= 1")
+    return u, u.shape[1], u.shape[2]
+
+
+class LevelTables(NamedTuple):
+    """Per colour channel, how the fused coder (`nhfd.optics._coding`) turns a phase in
+    [0, 2 pi] into a grey level: `default` (the default curve: rounding), else the curve's wrapped
+    phases sorted (`values`, padded with +inf; `levels` their grey levels; `counts` how many) and,
+    per bin of [0, 2 pi), the decision the bin needs: none (`glo` == `ghi`), the one comparison
+    `_nearest_level` makes between its neighbours `vlo` and `vhi` (`glo` / `ghi` their levels), or
+    (`scan`) a search of `values` from `starts` (the first index >= the bin's start)."""
+
+    default: np.ndarray
+    values: np.ndarray
+    levels: np.ndarray
+    counts: np.ndarray
+    starts: np.ndarray
+    vlo: np.ndarray
+    vhi: np.ndarray
+    glo: np.ndarray
+    ghi: np.ndarray
+    scan: np.ndarray
+
+
+@functools.lru_cache(maxsize=16)
+def level_tables(curves: tuple[PhaseCurve, ...]) -> LevelTables:
+    """The fused coder's tables for one curve per channel. Exact: every bin holds at most one
+    of `_nearest_level`'s decision boundaries (the midpoints of neighbouring levels on the
+    circle) and decides it with `_nearest_level`'s own comparison, or is searched."""
+    from nhfd.optics._coding import LUT_BINS
+
+    n_c, n = len(curves), max(len(c.phase_rad) for c in curves)
+    values = np.full((n_c, n), np.inf)
+    levels = np.zeros((n_c, n), np.int64)
+    starts = np.zeros((n_c, LUT_BINS), np.int64)
+    vlo, vhi = np.zeros((n_c, LUT_BINS)), np.zeros((n_c, LUT_BINS))
+    glo, ghi = np.zeros((n_c, LUT_BINS), np.int64), np.zeros((n_c, LUT_BINS), np.int64)
+    scan = np.zeros((n_c, LUT_BINS), np.bool_)
+    width = TWO_PI / LUT_BINS
+    # Bins a hair wider than they are: a phase that rounds into bin b lies inside it.
+    margin = 1e-9
+    lo_edge = np.arange(LUT_BINS) * width - margin
+    hi_edge = (np.arange(LUT_BINS) + 1) * width + margin
+    for c, curve in enumerate(curves):
+        if curve.is_default:
+            continue
+        # The same float64 values and order as _nearest_level.
+        wrapped = torch.remainder(torch.tensor(curve.phase_rad, dtype=torch.float64), TWO_PI)
+        order = torch.argsort(wrapped)
+        v = wrapped[order].numpy()
+        k = len(v)
+        values[c, :k], levels[c, :k] = v, order.numpy()
+        starts[c] = np.searchsorted(v, lo_edge, side="left")
+        # Decision boundaries: between neighbours, and across 2 pi.
+        wrap = (v[-1] + v[0] + TWO_PI) / 2
+        bounds = np.sort(np.concatenate([(v[:-1] + v[1:]) / 2,
+                                         [wrap - TWO_PI if wrap >= TWO_PI else wrap]]))
+        first = np.searchsorted(bounds, lo_edge, side="left")
+        count = np.searchsorted(bounds, hi_edge, side="right") - first
+        # A boundary on a level (two levels 2 pi apart): searched.
+        count += np.array([np.isin(bounds[f : f + n_b], v).any()
+                           for f, n_b in zip(first, count, strict=True)]) * 2
+        centre = torch.from_numpy((np.arange(LUT_BINS) + 0.5) * width)
+        flat = _nearest_level(centre, curve).numpy()
+        glo[c], ghi[c] = flat, flat
+        one = np.flatnonzero(count == 1)
+        m = bounds[first[one]]
+        hi = np.searchsorted(v, m, side="left")
+        vhi[c, one] = np.where(hi < k, v[np.minimum(hi, k - 1)], v[0] + TWO_PI)
+        vlo[c, one] = np.where(hi >= 1, v[np.maximum(hi - 1, 0)], v[-1] - TWO_PI)
+        ghi[c, one] = levels[c, hi % k]
+        glo[c, one] = levels[c, (hi - 1) % k]
+        scan[c] = count >= 2
+    default = np.array([c.is_default for c in curves])
+    counts = np.array([len(c.phase_rad) for c in curves], np.int64)
+    return LevelTables(default, values, levels, counts, starts, vlo, vhi, glo, ghi, scan)
+
+
+def double_phase_grey(
+    field: torch.Tensor | np.ndarray,
+    amplitude_scale: float,
+    curves: Sequence[PhaseCurve],
+    *,
+    sign: int = 1,
+    invert: bool = False,
+    zero_below: float = ZERO_BELOW,
+    gain: torch.Tensor | np.ndarray | None = None,
+) -> tuple[np.ndarray, tuple[float, ...]]:
+    """`double_phase` then `phase_to_grey` in one pass: a field `[C, H, W]` (complex64; any
+    strides) -> grey levels `[C, H, W]` uint8 and the clipped fraction per channel.
+
+    `gain` (`[C, H, W]` float32, or None) multiplies the field first. The grey levels are the
+    torch path's except within ~1e-6 rad of a decision boundary, where they differ by one step
+    of the curve; the clipped fractions and the zero_below decisions are the same. A field with
+    NaN or Inf is a ValueError. A top-left crop of a contiguous complex64 tensor (a padded
+    propagation's output) is read in place; numba's threads (`numba.set_num_threads`) share the
+    rows.
+    """
+    from nhfd.optics import _coding
+
+    scale = _validate.positive("amplitude_scale", amplitude_scale)
+    u, h, w = _rows_base(field)
+    n_c = u.shape[0]
+    per_channel = _curves_per_channel(curves, n_c, sign)
+    tables = level_tables(tuple(per_channel))
+    if gain is None:
+        g = np.ones((1, 1, 1), np.float32)
+    else:
+        g = gain.detach().numpy() if isinstance(gain, torch.Tensor) else np.asarray(gain)
+        g = np.ascontiguousarray(g, np.float32)
+        if g.shape != (n_c, h, w):
+            raise ValueError(f"gain has shape {g.shape}: expected the field's {(n_c, h, w)}")
+    sums = np.empty((n_c, h), np.complex128)
+    _coding.channel_sums(u, h, w, g, gain is not None, sums)
+    # The circular mean phase per channel, rounded to float32 as double_phase's is.
+    mean = np.angle(sums.sum(axis=1)).astype(np.float32).astype(np.float64)
+    rot = np.exp(-1j * mean)
+    out = np.empty((n_c, h, w), np.uint8)
+    clipped = np.empty(n_c * h, np.int64)
+    bad = np.empty(n_c * h, np.int64)
+    _coding.code_rows(u, h, w, g, gain is not None, np.float32(scale), np.float32(zero_below),
+                      np.float32(AMPLITUDE_CEILING), rot, float(sign), tables, bool(invert), out,
+                      clipped, bad)
+    if bad.any():
+        raise ValueError("field contains NaN or Inf")
+    fraction = clipped.reshape(n_c, h).sum(axis=1) / (h * w)
+    return out, tuple(float(f) for f in fraction)
