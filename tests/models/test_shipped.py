@@ -29,11 +29,13 @@ def test_shipped_model_matches_the_default_configuration(shipped):
     model = load_model(shipped[0], Config())  # raises ModelMismatch naming any difference
     md = model.metadata
     assert md["profile"] == "balanced" and md["train_size_hw"] == [288, 512]
+    assert model.inputs == Config().model.profiles["balanced"].inputs
     assert shipped[0].stat().st_size < 5 * 2**20  # "a few MB at most"
 
 
 def test_shipped_model_beats_the_2d_hologram_on_new_views(shipped, tmp_path):
     from nhfd.models.export import OnnxModel
+    from nhfd.models.inputs import network_input
 
     from nhfd.dataset.build import build, shard_name
     from nhfd.dataset.poses import PoseSampler
@@ -64,7 +66,9 @@ def test_shipped_model_beats_the_2d_hologram_on_new_views(shipped, tmp_path):
         shard = read_shard(tmp_path / "ds" / shard_name(i))
         rgb = torch.from_numpy(shard["rgb"])
         target = torch.from_numpy(shard["field"])
-        amp, phase = model(shard["rgb"][None])
+        x = network_input(shard["rgb"], model.inputs, depth=shard["depth"], alpha=shard["alpha"],
+                          mapping=md["mapping"], volume_m=md["volume_m"])  # fmt: skip
+        amp, phase = model(x[None])
         pred = torch.polar(torch.from_numpy(amp[0]) * md["amplitude_scale"],
                            torch.from_numpy(phase[0]))  # fmt: skip
         mask = torch.from_numpy(shard["alpha"] > 0.5)
