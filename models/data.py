@@ -35,11 +35,12 @@ class Split:
     def __len__(self) -> int:
         return len(self.indices)
 
-    def inputs(self, inputs: str) -> torch.Tensor:
-        """The network inputs `[N, C, H, W]` of every view ("rgb" or "rgbd")."""
+    def inputs(self, inputs: str, views: int | slice = slice(None)) -> torch.Tensor:
+        """The network inputs ("rgb" or "rgbd") of `views`: `[C, H, W]` for one index,
+        `[n, C, H, W]` for a slice. Selects before concatenating: never a copy of the split."""
         if input_channels(inputs) == 3:
-            return self.rgb
-        return torch.cat([self.rgb, self.depth_in], dim=1)
+            return self.rgb[views]
+        return torch.cat([self.rgb[views], self.depth_in[views]], dim=-3)
 
 
 class HoloData:
@@ -146,22 +147,21 @@ def random_crop(
 ) -> tuple[torch.Tensor, torch.Tensor, np.ndarray, Edges]:  # fmt: skip
     """Network input `[B,C,h,w]` (`inputs`), field `[B,3,h,w]` and zh `[B,h,w]` (numpy) of
     random crops, and which crop edges lie inside the view for any of them (`interior_edges`)."""
-    x = split.inputs(inputs)
     h, w = split.rgb.shape[-2:]
     ch, cw = min(crop_hw[0], h), min(crop_hw[1], w)
-    rgbs, fields, zhs = [], [], []
+    xs, fields, zhs = [], [], []
     edges = [False] * 4
     for v in views:
         top = int(rng.integers(0, h - ch + 1))
         left = int(rng.integers(0, w - cw + 1))
         edges = [a or b for a, b in zip(edges, interior_edges(top, left, (ch, cw), (h, w)),
                                         strict=True)]  # fmt: skip
-        sl = (v, slice(None), slice(top, top + ch), slice(left, left + cw))
-        rgbs.append(x[sl])
-        fields.append(split.field[sl])
-        zhs.append(split.zh[v, top : top + ch, left : left + cw])
+        rows, cols = slice(top, top + ch), slice(left, left + cw)
+        xs.append(split.inputs(inputs, v)[:, rows, cols])
+        fields.append(split.field[v, :, rows, cols])
+        zhs.append(split.zh[v, rows, cols])
     top_e, bottom_e, left_e, right_e = edges
-    return (torch.stack(rgbs), torch.stack(fields), torch.stack(zhs).numpy(),
+    return (torch.stack(xs), torch.stack(fields), torch.stack(zhs).numpy(),
             (top_e, bottom_e, left_e, right_e))  # fmt: skip
 
 

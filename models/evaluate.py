@@ -160,7 +160,7 @@ def evaluate(
             rgb, target = s.rgb[j], s.field[j]
             mask = s.alpha[j] >= ALPHA_CONTENT
             mask = mask if mask.any() else None
-            pred = predictor(s.inputs(about["inputs"])[j])
+            pred = predictor(s.inputs(about["inputs"], j))
             # Energy-matched to the target: a baseline in other units would be judged on its
             # brightness, not on its (missing) depth.
             flat = hologram_2d(rgb, like=target, mask=mask)

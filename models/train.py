@@ -270,7 +270,7 @@ def validate_views(
     net.eval()
     with torch.no_grad():
         for v in range(n):
-            x = centre_crop(s.inputs(options.inputs)[v : v + 1], options.crop_hw)
+            x = centre_crop(s.inputs(options.inputs, slice(v, v + 1)), options.crop_hw)
             target = centre_crop(s.field[v : v + 1], options.crop_hw)
             edges = centre_crop_edges(tuple(s.rgb.shape[-2:]), options.crop_hw)
             amp, phase = predict(net, x)

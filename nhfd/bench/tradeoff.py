@@ -122,7 +122,7 @@ def quantise_int8(src: Path, dst: Path, data, multiple: int, inputs: str = "rgb"
         def __init__(self) -> None:
             self.items = []
             for j in range(min(n_calib, len(split))):
-                x = split.inputs(inputs)[j : j + 1].numpy()
+                x = split.inputs(inputs, slice(j, j + 1)).numpy()
                 h, w = x.shape[-2:]
                 x = np.pad(x, ((0, 0), (0, 0), (0, (-h) % multiple), (0, (-w) % multiple)))
                 self.items.append({inputs: np.ascontiguousarray(x, np.float32)})

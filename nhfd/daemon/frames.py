@@ -317,7 +317,7 @@ class Encoder:
 
     def _kernels(self) -> list[tuple[slice, tuple[int, int], torch.Tensor]]:
         """(colours, padded shape, kernels [n, Hp, Wp]) per group of colours."""
-        from nhfd.optics.asm import _kernels
+        from nhfd.optics.asm import propagation_kernels
         from nhfd.optics.padding import plan_padding
 
         s, r = self.settings, self.region
@@ -329,7 +329,7 @@ class Encoder:
         if len(set(zs)) == 1:
             plan = plan_padding(hw, s.pitch_m, s.wavelengths_m, abs(zs[0]), s.aperture,
                                 s.padding)  # type: ignore[arg-type]
-            k = _kernels(plan, s.pitch_m, s.wavelengths_m, (zs[0],), s.aperture, True,
+            k = propagation_kernels(plan, s.pitch_m, s.wavelengths_m, (zs[0],), s.aperture, True,
                          torch.complex64, cpu, self.cache)
             return [(slice(0, len(zs)), plan.padded_hw, k[0])]
         # Per-colour depths (calibrated focus offsets): one kernel per colour, each cached.
@@ -339,7 +339,8 @@ class Encoder:
             lam = (s.wavelengths_m[c],)
             ap = Aperture(s.aperture.shape, (cutoffs[c],))
             plan = plan_padding(hw, s.pitch_m, lam, abs(z), ap, s.padding)  # type: ignore[arg-type]
-            k = _kernels(plan, s.pitch_m, lam, (z,), ap, True, torch.complex64, cpu, self.cache)
+            k = propagation_kernels(plan, s.pitch_m, lam, (z,), ap, True, torch.complex64, cpu,
+                                    self.cache)
             out.append((slice(c, c + 1), plan.padded_hw, k[0]))
         return out
 
@@ -550,7 +551,7 @@ class Pipeline:
         t1 = time.perf_counter()
         t["render"] = t1 - t0
         meta = self.model.metadata
-        x = network_input(rgb, getattr(self.model, "inputs", "rgb"), depth=view_render.depth,
+        x = network_input(rgb, self.model.inputs, depth=view_render.depth,
                           alpha=view_render.alpha, mapping=meta.get("mapping"),
                           volume_m=meta.get("volume_m"))  # fmt: skip
         amp, phase = self.model(x)

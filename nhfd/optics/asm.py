@@ -209,7 +209,8 @@ def propagate(
         else max(abs(z) for z in depths)
     )
     plan = plan_padding((h, w), pitch, lams, max_z, aperture, padding)
-    kernels = _kernels(plan, pitch, lams, depths, aperture, band_limit, u.dtype, u.device, cache)
+    kernels = propagation_kernels(plan, pitch, lams, depths, aperture, band_limit, u.dtype,
+                                  u.device, cache)
     spectrum = torch.fft.fft2(u, s=plan.padded_hw)
     # One depth at a time bounds memory at one padded stack per colour, not one per depth.
     n_depths = len(kernels)
@@ -230,7 +231,7 @@ def propagate(
     return out.squeeze(-4) if scalar else out
 
 
-def _kernels(
+def propagation_kernels(
     plan: PaddingPlan,
     pitch: float,
     lams: tuple[float, ...],
@@ -241,8 +242,9 @@ def _kernels(
     device: torch.device,
     cache: KernelCache | None,
 ) -> torch.Tensor | list[torch.Tensor]:
-    """Kernels indexable by depth: a `[D, C, Hpad, Wpad]` tensor, or a list of `[C, Hpad, Wpad]`
-    tensors when several fixed depths come from the cache."""
+    """The transfer functions `propagate` multiplies by (the daemon's encoder uses the same, under
+    the same cache keys), indexable by depth: a `[D, C, Hpad, Wpad]` tensor, or a list of
+    `[C, Hpad, Wpad]` tensors when several fixed depths come from the cache."""
     if isinstance(depths, torch.Tensor):
         return transfer_function_z(
             plan.padded_hw, pitch, lams, depths.to(device),

@@ -56,8 +56,9 @@ def test_training_and_the_daemon_build_the_same_rgbd_input(tiny_data):
     daemon = network_input(shard["rgb"], "rgbd", depth=shard["depth"], alpha=shard["alpha"],
                            mapping=manifest["mapping"],
                            volume_m=manifest["settings"]["volume_m"])  # fmt: skip
-    training = split.inputs("rgbd")[1].numpy()
+    training = split.inputs("rgbd", 1).numpy()
     assert daemon.shape == training.shape == (4, 64, 64)
+    assert split.inputs("rgbd", slice(1, 3)).shape == (2, 4, 64, 64)
     np.testing.assert_allclose(daemon, training, atol=1e-6)
     # The synthetic views hold layers at +1.5 and -1.5 mm of a +-3 mm volume: +-0.5.
     levels = np.round(training[3], 4)
