@@ -105,4 +105,23 @@ def tiny(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     from .test_frames import make_tiny_model, make_tiny_scene
 
     root = tmp_path_factory.mktemp("tiny_model")
-    return {"model": make_tiny_model(root), "scene": make_tiny_scene(root / "cloud.ply")}
+    paths = {"model": make_tiny_model(root), "scene": make_tiny_scene(root / "cloud.ply")}
+    _compile_frame_kernels(paths)
+    return paths
+
+
+def _compile_frame_kernels(tiny: dict[str, Path]) -> None:
+    """One frame in this process, outside every test's deadline: numba compiles the renderer and
+    the coder once and caches them, so a daemon's spawned worker loads them instead of spending
+    20 s or more compiling on its first frame (a fresh checkout has no cache)."""
+    from nhfd.models.export import load_model
+
+    from nhfd.daemon.frames import Pipeline, SceneFrame, frame_settings
+    from nhfd.scene.io import load_scene
+
+    from .test_frames import FRONT_VIEW, small_config
+
+    config = small_config()
+    model = load_model(tiny["model"], config)
+    Pipeline(model, frame_settings(config, model.metadata), load_scene(tiny["scene"]),
+             SceneFrame((0.0, 0.0, 0.0), "-y")).compute(FRONT_VIEW)
