@@ -1,10 +1,11 @@
 """ONNX export of a trained run, its check against torch, and the runtime loader.
 
-The exported graph takes `rgb` `[B, 3, H, W]` (or `rgbd` `[B, 4, H, W]` for a network that also
-sees the mapped depth, `nhfd.models.inputs`) with H and W dynamic multiples of the network's
-stride (`input_multiple` in the metadata) and returns `amplitude` and `phase`. `OnnxModel` pads
-any input to that multiple outside the graph and crops back, and refuses a model trained for
-optics other than the configured ones.
+The exported graph is `nhfd.models.serving.ServingNet`: the network's function written with
+operators onnxruntime runs fast, checked against `NHFNet.forward`. It takes `rgb` `[B, 3, H, W]`
+(or `rgbd` `[B, 4, H, W]` for a network that also sees the mapped depth, `nhfd.models.inputs`)
+with H and W dynamic multiples of the network's stride (`input_multiple` in the metadata) and
+returns `amplitude` and `phase`. `OnnxModel` pads any input to that multiple outside the graph
+and crops back, and refuses a model trained for optics other than the configured ones.
 """
 
 from __future__ import annotations
@@ -24,6 +25,8 @@ from nhfd.models.metadata import (
 )
 
 MIN_OPSET = 18
+# What the exported graph is written as (`nhfd.models.serving`); caches of exports compare it.
+GRAPH_FORM = "serving-1"
 # Sizes (in strides) the export is checked at, besides the example it was traced with.
 CHECK_SIZES_STRIDES = ((3, 5), (5, 4))
 
@@ -43,6 +46,7 @@ def export_onnx(
     (max abs difference over amplitude and phase, at sizes other than the traced one)."""
     import onnx
     import torch
+    from nhfd.models.serving import ServingNet
     from nhfd.models.train import load_run
 
     if opset < MIN_OPSET:
@@ -61,7 +65,7 @@ def export_onnx(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the exporter's deprecation chatter, not ours
         torch.onnx.export(
-            net, (example,), str(tmp), input_names=[name],
+            ServingNet(net).eval(), (example,), str(tmp), input_names=[name],
             output_names=["amplitude", "phase"], opset_version=opset, dynamo=True,
             dynamic_shapes=dynamic, external_data=False, verbose=False,
         )  # fmt: skip

@@ -48,7 +48,25 @@ VAL_COLUMNS = ("step", "epoch", "split", "views", "loss", "l2", "psnr_db")
 # The learning rate decays along a cosine to this fraction of its start over the budget.
 LR_FLOOR = 0.05
 # Options that may change when a run is resumed (they do not change what a step computes).
-RESUMABLE_CHANGES = ("steps", "checkpoint_every", "val_views", "threads", "progress")
+# The device changes float rounding, not the computation, so a run may move between them.
+RESUMABLE_CHANGES = ("steps", "checkpoint_every", "val_views", "threads", "device", "progress")
+
+
+def training_device(name: str, *, check_available: bool = False) -> torch.device:
+    """`cpu`, `cuda` or `cuda:N` as a torch device; with `check_available`, refuse a CUDA
+    device this machine does not have."""
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError):
+        dev = None
+    if dev is None or dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device = {name!r}: must be cpu, cuda or cuda:N")
+    if check_available and dev.type == "cuda":
+        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if (dev.index or 0) >= n:
+            raise ValueError(f"device = {name!r}: this machine's torch sees {n} CUDA device(s)"
+                             f" (torch {torch.__version__})")  # fmt: skip
+    return dev
 
 
 @dataclass(frozen=True)
@@ -78,10 +96,12 @@ class TrainOptions:
     checkpoint_every: int = 250
     val_views: int = 8
     threads: int = 0
+    device: str = "cpu"
     progress: bool = True
 
     def __post_init__(self) -> None:
         NetSpec(self.width, self.depth, self.unshuffle, self.inputs)  # validates
+        training_device(self.device)  # validates the name; availability is checked at start
         checks = {
             "steps": self.steps >= 1,
             "batch": self.batch >= 1,
@@ -268,10 +288,12 @@ def validate_views(
     k = list(range(min(options.perceptual_planes, len(planes))))
     losses, l2s, psnrs = [], [], []
     net.eval()
+    device = next(net.parameters()).device
     with torch.no_grad():
         for v in range(n):
             x = centre_crop(s.inputs(options.inputs, slice(v, v + 1)), options.crop_hw)
             target = centre_crop(s.field[v : v + 1], options.crop_hw)
+            x, target = x.to(device), target.to(device)
             edges = centre_crop_edges(tuple(s.rgb.shape[-2:]), options.crop_hw)
             amp, phase = predict(net, x)
             out = loss_fn(to_field(amp, phase, 1.0), target, planes, k, edges)
@@ -318,7 +340,10 @@ def train(
         optics, perceptual=options.perceptual, perceptual_weight=options.perceptual_weight,
         ssim_window_px=options.ssim_window_px, vgg_weights=options.vgg_weights or None,
     )  # fmt: skip
-    net = build_net(options.spec, seed=options.seed)
+    device = training_device(options.device, check_available=True)
+    net = build_net(options.spec, seed=options.seed).to(device)
+    if loss_fn.vgg is not None:
+        loss_fn.vgg.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=options.learning_rate)
     ckpt_path = run_dir / CHECKPOINT
     step = 0
@@ -382,6 +407,7 @@ def train(
             views = batch_views(options.seed, step, options.batch, n_train)
             x, target, zh, edges = random_crop(train_split, views, options.crop_hw, rng,
                                                options.inputs)
+            x, target = x.to(device), target.to(device)
             if options.plane_mode == "uniform":
                 planes = fixed
             else:
@@ -440,7 +466,8 @@ def train(
 
 
 def _check_resumable(ckpt: dict, options: TrainOptions, data: HoloData, path: Path) -> None:
-    saved = ckpt.get("options", {})
+    # A run saved before an option existed was trained with that option's default.
+    saved = {f.name: f.default for f in fields(TrainOptions)} | ckpt.get("options", {})
     now = asdict(options)
     diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
     if diff:

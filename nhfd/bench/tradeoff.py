@@ -37,6 +37,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--repeats", type=int, default=5, help="timed repeats; the median is kept")
     p.add_argument("--eval-views", type=int, default=4, help="held-out views per split")
     p.add_argument("--int8", action="store_true", help="also measure static int8 models")
+    p.add_argument("--inputs", choices=("rgb", "rgbd"), default=None,
+                   help="network inputs for every variant (default: each profile's)")
     p.add_argument("--out", default="out/bench/tradeoff", help="output folder")
     p.add_argument("--config", help="nhfd.toml to take [model] from")
     p.set_defaults(handler=run)
@@ -103,8 +105,8 @@ def _median_s(fn, repeats: int) -> float:
 
 def quantise_int8(src: Path, dst: Path, data, multiple: int, inputs: str = "rgb",
                   n_calib: int = 8) -> Path:
-    """Static int8 (QDQ, per channel), the last Conv kept in float32, calibrated on training
-    views; the nhfd metadata is carried over."""
+    """Static int8 (QDQ, per channel), the head (the last layer) kept in float32, calibrated on
+    training views; the nhfd metadata is carried over."""
     import numpy as np
     import onnx
     from onnxruntime.quantization import (
@@ -115,7 +117,6 @@ def quantise_int8(src: Path, dst: Path, data, multiple: int, inputs: str = "rgb"
     )
 
     model = onnx.load(str(src))
-    convs = [n.name for n in model.graph.node if n.op_type == "Conv"]
     split = data.splits["train"]
 
     class Reader(CalibrationDataReader):
@@ -133,13 +134,30 @@ def quantise_int8(src: Path, dst: Path, data, multiple: int, inputs: str = "rgb"
 
     quantize_static(str(src), str(dst), Reader(), quant_format=QuantFormat.QDQ,
                     per_channel=True, activation_type=QuantType.QUInt8,
-                    weight_type=QuantType.QInt8, nodes_to_exclude=convs[-1:])  # fmt: skip
+                    weight_type=QuantType.QInt8, nodes_to_exclude=head_nodes(model))  # fmt: skip
     q = onnx.load(str(dst))
     del q.metadata_props[:]
     for prop in model.metadata_props:
         q.metadata_props.add().CopyFrom(prop)
     onnx.save(q, str(dst))
     return dst
+
+
+def head_nodes(model) -> list[str]:
+    """Names of the convolutions that produce the graph's outputs (the network's last layer):
+    walk back from each output through non-convolution nodes."""
+    producer = {out: node for node in model.graph.node for out in node.output}
+    found, todo, seen = [], [o.name for o in model.graph.output], set()
+    while todo:
+        node = producer.get(todo.pop())
+        if node is None or node.name in seen:
+            continue
+        seen.add(node.name)
+        if node.op_type in ("Conv", "ConvTranspose"):
+            found.append(node.name)
+        else:
+            todo.extend(node.input)
+    return found
 
 
 def pareto(points: list[tuple[float, float]]) -> list[int]:
@@ -176,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
     from nhfd.bench.machine import describe
     from nhfd.models.data import HoloData
     from nhfd.models.evaluate import evaluate
-    from nhfd.models.export import OnnxModel, export_onnx
+    from nhfd.models.export import GRAPH_FORM, OnnxModel, export_onnx
     from nhfd.models.net import parameter_count
     from nhfd.models.train import TrainOptions, load_run, train
 
@@ -191,11 +209,13 @@ def run(args: argparse.Namespace) -> int:
         crop_kw = {"crop_width_px": crop[0], "crop_height_px": crop[1]} if crop else {}
         opts = TrainOptions.from_config(config, profile, width=width, depth=depth,
                                         unshuffle=unshuffle, steps=args.steps,
-                                        val_views=args.eval_views, **crop_kw)  # fmt: skip
+                                        val_views=args.eval_views, inputs=args.inputs,
+                                        **crop_kw)  # fmt: skip
         run_dir = out / "runs" / name
         result = train(args.data, run_dir, opts, data=data)
         net, _ = load_run(run_dir)
-        stamp = {"step": result.step, "eval_views": args.eval_views}
+        # an export made by another graph form is made again (its latency would be stale)
+        stamp = {"step": result.step, "eval_views": args.eval_views, "graph": GRAPH_FORM}
         kept = _kept(out / "models" / f"{name}.json", stamp)
         files = [out / "models" / f"{name}{tag}.onnx" for tag in ("", "-int8")[: 1 + args.int8]]
         if kept is None or not all(f.is_file() for f in files):
@@ -224,7 +244,7 @@ def run(args: argparse.Namespace) -> int:
             s = kept["evals"][label]
             row = {
                 "name": label, "profile": profile, "width": width, "depth": depth,
-                "unshuffle": unshuffle, "int8": label.endswith("-int8"),
+                "unshuffle": unshuffle, "inputs": net.spec.inputs, "int8": label.endswith("-int8"),
                 "parameters": parameter_count(net), "steps": result.step,
                 "train_ms_per_step": result.seconds_per_step * 1e3,
                 "onnxruntime_ms": ort_s * 1e3, "torch_ms": torch_s * 1e3,

@@ -48,6 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     t.add_argument("--val-views", type=int, help="held-out views per split validated per epoch")
     t.add_argument("--threads", type=int, help="torch threads (0: torch's default)")
+    t.add_argument("--device", help="torch device to train on: cpu (default), cuda or cuda:N")
     t.add_argument("--force", action="store_true", help="start over in an existing run folder")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.add_argument("--config", help="nhfd.toml to read [model] from")
@@ -96,7 +97,7 @@ def run_train(args: argparse.Namespace) -> int:
         learning_rate=args.lr, seed=args.seed, plane_mode=args.planes,
         perceptual=args.perceptual, vgg_weights=args.vgg_weights,
         checkpoint_every=args.checkpoint_every, val_views=args.val_views, threads=args.threads,
-        progress=not args.no_progress,
+        device=args.device, progress=not args.no_progress,
     )  # fmt: skip
     result = train(args.data, args.out, options, force=args.force)
     print(f"{result.run_dir}: step {result.step}, loss {result.last_loss:.4g}, "

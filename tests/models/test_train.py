@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 
+import pytest
 import torch
 from nhfd.models.data import HoloData, batch_views
 from nhfd.models.loss import FocalStackLoss, Optics, uniform_planes
@@ -66,10 +67,35 @@ def test_each_epoch_visits_every_training_view_once():
 
 
 def test_resume_with_other_options_is_refused(tiny_data, tmp_path):
-    import pytest
-
     data = HoloData(tiny_data)
     train(tiny_data, tmp_path / "r", tiny_options(steps=1), log=lambda _m: None, data=data)
     with pytest.raises(ValueError, match="learning_rate"):
         train(tiny_data, tmp_path / "r", tiny_options(steps=2, learning_rate=0.5),
               log=lambda _m: None, data=data)  # fmt: skip
+
+
+def test_device_names_are_checked_before_training(tiny_data, tmp_path):
+    for bad in ("tpu", "cuda:x", ""):
+        with pytest.raises(ValueError, match=f"device = {bad!r}: must be cpu, cuda or cuda:N"):
+            tiny_options(device=bad)
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="sees 0 CUDA device"):
+            train(tiny_data, tmp_path / "r", tiny_options(device="cuda"), log=lambda _m: None)
+        assert not (tmp_path / "r" / CHECKPOINT).exists()
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_a_cuda_run_resumes_on_the_cpu_from_the_same_step(tiny_data, tmp_path):
+    data = HoloData(tiny_data)
+    quiet = {"log": lambda _m: None, "data": data}
+    gpu = train(tiny_data, tmp_path / "r", tiny_options(steps=6, device="cuda"), stop_at=3,
+                **quiet)  # fmt: skip
+    assert gpu.step == 3
+    cpu = train(tiny_data, tmp_path / "r", tiny_options(steps=6), **quiet)
+    assert cpu.resumed_from == 3 and cpu.step == 6
+    train(tiny_data, tmp_path / "ref", tiny_options(steps=6), **quiet)
+    rows, ref_rows = _log(tmp_path / "r"), _log(tmp_path / "ref")
+    assert [r[2] for r in rows] == [r[2] for r in ref_rows]  # same planes: same data order
+    # same losses to float rounding (the GPU sums in another order)
+    for (_, a, _), (_, b, _) in zip(rows, ref_rows, strict=True):
+        assert abs(float(a) - float(b)) <= 1e-3 * abs(float(b))
