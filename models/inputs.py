@@ -66,5 +66,22 @@ def network_input(
     if depth is None or alpha is None or mapping is None or volume_m is None:
         raise ValueError("an rgbd model needs the render's depth and alpha, the scene mapping "
                          "and the volume")  # fmt: skip
-    zh = mapped_depth(depth, alpha, float(mapping["a_m"]), float(mapping["b_m"]))
-    return np.concatenate([rgb, depth_channel(zh, volume_m)[None]], axis=0)
+    lo, hi = float(volume_m[0]), float(volume_m[1])
+    if not hi > lo:
+        raise ValueError(f"volume_m = {list(volume_m)}: the far end must lie beyond the near end")
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    a_m, b_m = float(mapping["a_m"]), float(mapping["b_m"])
+    out = np.empty((4, *rgb.shape[-2:]), np.float32)
+    out[:3] = rgb
+    # depth_channel(mapped_depth(...)) in float32 and in place: (a + b / d - centre) / half. It
+    # agrees with the float64 path to about 1e-6 and takes a few ms per 1024 x 576 frame instead
+    # of about 20 (the daemon builds one per frame).
+    d = np.asarray(depth, np.float32)
+    ch = out[3]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        np.divide(np.float32(b_m / half), d, out=ch)
+    ch += np.float32((a_m - centre) / half)
+    np.clip(ch, -DEPTH_CLIP, DEPTH_CLIP, out=ch)
+    content = (np.asarray(alpha) >= ALPHA_CONTENT) & (d > 0) & np.isfinite(d)
+    np.copyto(ch, 0.0, where=~content)
+    return out

@@ -103,61 +103,35 @@ def _median_s(fn, repeats: int) -> float:
     return statistics.median(times)
 
 
-def quantise_int8(src: Path, dst: Path, data, multiple: int, inputs: str = "rgb",
-                  n_calib: int = 8) -> Path:
-    """Static int8 (QDQ, per channel), the head (the last layer) kept in float32, calibrated on
-    training views; the nhfd metadata is carried over."""
-    import numpy as np
-    import onnx
-    from onnxruntime.quantization import (
-        CalibrationDataReader,
-        QuantFormat,
-        QuantType,
-        quantize_static,
-    )
+def finished_run(run_dir: Path, opts, manifest_key: str | None
+                 ) -> tuple[int, float, str] | None:
+    """(step, median ms per training step, note) of a run already trained to `opts.steps`,
+    or None. A finished run is measured as it is, also when it was trained on another build of
+    the dataset (another machine's build differs in the last bits of its poses, which changes
+    the manifest key): the note says so. Its network must be the variant's."""
+    import csv
 
-    model = onnx.load(str(src))
-    split = data.splits["train"]
+    import torch
 
-    class Reader(CalibrationDataReader):
-        def __init__(self) -> None:
-            self.items = []
-            for j in range(min(n_calib, len(split))):
-                x = split.inputs(inputs, slice(j, j + 1)).numpy()
-                h, w = x.shape[-2:]
-                x = np.pad(x, ((0, 0), (0, 0), (0, (-h) % multiple), (0, (-w) % multiple)))
-                self.items.append({inputs: np.ascontiguousarray(x, np.float32)})
-            self.it = iter(self.items)
+    path = run_dir / "checkpoint.pt"
+    if not path.is_file():
+        return None
+    ckpt = torch.load(path, map_location="cpu", weights_only=False)
+    if int(ckpt["step"]) < opts.steps:
+        return None
+    from nhfd.models.net import NetSpec
 
-        def get_next(self):
-            return next(self.it, None)
-
-    quantize_static(str(src), str(dst), Reader(), quant_format=QuantFormat.QDQ,
-                    per_channel=True, activation_type=QuantType.QUInt8,
-                    weight_type=QuantType.QInt8, nodes_to_exclude=head_nodes(model))  # fmt: skip
-    q = onnx.load(str(dst))
-    del q.metadata_props[:]
-    for prop in model.metadata_props:
-        q.metadata_props.add().CopyFrom(prop)
-    onnx.save(q, str(dst))
-    return dst
-
-
-def head_nodes(model) -> list[str]:
-    """Names of the convolutions that produce the graph's outputs (the network's last layer):
-    walk back from each output through non-convolution nodes."""
-    producer = {out: node for node in model.graph.node for out in node.output}
-    found, todo, seen = [], [o.name for o in model.graph.output], set()
-    while todo:
-        node = producer.get(todo.pop())
-        if node is None or node.name in seen:
-            continue
-        seen.add(node.name)
-        if node.op_type in ("Conv", "ConvTranspose"):
-            found.append(node.name)
-        else:
-            todo.extend(node.input)
-    return found
+    if NetSpec(**ckpt["net"]) != opts.spec:
+        raise ValueError(f"{run_dir}: its network {ckpt['net']} is not this variant's "
+                         f"{opts.spec.to_json()}; use another --out")  # fmt: skip
+    with open(run_dir / "train_log.csv", newline="") as f:
+        seconds = [float(r["seconds"]) for r in csv.DictReader(f)]
+    note = ""
+    if ckpt.get("manifest_key") != manifest_key:
+        note = (f"trained on another build of the dataset (manifest key "
+                f"{str(ckpt.get('manifest_key'))[:12]}, this one {str(manifest_key)[:12]}); "
+                "measured and evaluated on this one")  # fmt: skip
+    return int(ckpt["step"]), 1e3 * statistics.median(seconds) if seconds else 0.0, note
 
 
 def pareto(points: list[tuple[float, float]]) -> list[int]:
@@ -196,6 +170,7 @@ def run(args: argparse.Namespace) -> int:
     from nhfd.models.evaluate import evaluate
     from nhfd.models.export import GRAPH_FORM, OnnxModel, export_onnx
     from nhfd.models.net import parameter_count
+    from nhfd.models.quantise import quantise_int8
     from nhfd.models.train import TrainOptions, load_run, train
 
     out = Path(args.out)
@@ -212,10 +187,17 @@ def run(args: argparse.Namespace) -> int:
                                         val_views=args.eval_views, inputs=args.inputs,
                                         **crop_kw)  # fmt: skip
         run_dir = out / "runs" / name
-        result = train(args.data, run_dir, opts, data=data)
-        net, _ = load_run(run_dir)
+        finished = finished_run(run_dir, opts, data.manifest.get("key"))
+        if finished is None:
+            train(args.data, run_dir, opts, data=data)
+            finished = finished_run(run_dir, opts, data.manifest.get("key"))
+        assert finished is not None
+        step, ms_per_step, note = finished
+        if note:
+            print(f"  {name}: {note}", flush=True)
+        net, info = load_run(run_dir)
         # an export made by another graph form is made again (its latency would be stale)
-        stamp = {"step": result.step, "eval_views": args.eval_views, "graph": GRAPH_FORM}
+        stamp = {"step": step, "eval_views": args.eval_views, "graph": GRAPH_FORM}
         kept = _kept(out / "models" / f"{name}.json", stamp)
         files = [out / "models" / f"{name}{tag}.onnx" for tag in ("", "-int8")[: 1 + args.int8]]
         if kept is None or not all(f.is_file() for f in files):
@@ -245,8 +227,9 @@ def run(args: argparse.Namespace) -> int:
             row = {
                 "name": label, "profile": profile, "width": width, "depth": depth,
                 "unshuffle": unshuffle, "inputs": net.spec.inputs, "int8": label.endswith("-int8"),
-                "parameters": parameter_count(net), "steps": result.step,
-                "train_ms_per_step": result.seconds_per_step * 1e3,
+                "parameters": parameter_count(net), "steps": step,
+                "train_ms_per_step": ms_per_step,
+                "trained_on": info["options"].get("device", "cpu"),
                 "onnxruntime_ms": ort_s * 1e3, "torch_ms": torch_s * 1e3,
                 "torch_over_onnxruntime": torch_s / ort_s,
                 "psnr_db": s["model_psnr_db"], "ssim": s["model_ssim"],

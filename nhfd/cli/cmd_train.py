@@ -69,6 +69,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     x.add_argument("-o", "--out", required=True, help="the .onnx file to write")
     x.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or newer (default 18)")
     x.add_argument("--no-check", action="store_true", help="skip the onnxruntime check")
+    x.add_argument("--int8", metavar="OUT_INT8",
+                   help="also write a static int8 model here (QDQ, per channel, the output "
+                        "layers in float32), calibrated on --data's training views")
+    x.add_argument("--data", help="dataset folder for --int8's calibration")
     x.set_defaults(handler=run_export)
 
 
@@ -132,6 +136,9 @@ def run_export(args: argparse.Namespace) -> int:
         raise ValueError(f"--opset {args.opset}: must be 18 or newer")
     if not Path(args.run).is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
+    if args.int8 and not (args.data and Path(args.data).is_dir()):
+        raise ValueError(f"--int8 needs --data: a dataset folder to calibrate on (got "
+                         f"{args.data!r})")  # fmt: skip
 
     from nhfd.models.export import export_onnx
 
@@ -142,6 +149,17 @@ def run_export(args: argparse.Namespace) -> int:
     if not args.no_check:
         sizes = ", ".join(f"{w}x{h}" for h, w in res.checked_sizes)
         print(f"onnxruntime vs torch: max abs difference {res.max_abs_diff:.3g} ({sizes})")
-    json.dump({"path": str(res.path), "max_abs_diff": res.max_abs_diff}, sys.stdout)
+    report = {"path": str(res.path), "max_abs_diff": res.max_abs_diff}
+    if args.int8:
+        from nhfd.models.data import HoloData
+        from nhfd.models.export import OnnxModel
+        from nhfd.models.quantise import quantise_int8
+
+        data = HoloData(args.data, max_views={"interp": 1, "extrap": 1})
+        q = quantise_int8(res.path, Path(args.int8), data, int(m["input_multiple"]),
+                          OnnxModel(res.path).inputs)  # fmt: skip
+        print(f"{q}: static int8, calibrated on {args.data}")
+        report["int8_path"] = str(q)
+    json.dump(report, sys.stdout)
     print()
     return 0

@@ -54,6 +54,10 @@ def _set_threads(threads: int, layer: str) -> None:
     for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
         os.environ[var] = str(threads)
     os.environ["NUMBA_THREADING_LAYER"] = layer
+    # OpenMP threads sleep when idle instead of spinning: each stage hands the cores to another
+    # library (render and coding in numba, propagation in torch, inference in onnxruntime), and a
+    # spinning pool takes them from the next stage. Set before torch or numba load libgomp.
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
     import torch
 
     torch.set_num_threads(threads)

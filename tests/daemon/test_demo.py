@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from nhfd.cli.main import main
 from nhfd.daemon.bench import write_png16
@@ -35,25 +36,33 @@ def test_focus_commands_follow_the_simulated_relay():
     assert abs(focus_command_mm(1e-3, truth) - 0.5625) < 1e-12
 
 
-def test_region_sharpness_follows_which_third_is_in_focus():
-    """Two textured bands on a grey frame with a thin bright border (like a window's edge):
-    the capture with the bottom band sharp scores the near third higher, and vice versa."""
-    from nhfd.daemon.demo import region_sharpness
+def test_focus_correlation_picks_the_capture_where_each_region_is_sharp():
+    """A textured view; in one capture the bottom band is sharp and the top blurred, in the
+    other the reverse: the match with the view inside each band peaks at its own capture."""
+    from nhfd.daemon.demo import focus_correlation
 
     rng = np.random.default_rng(1)
-    texture = rng.random((30, 80))
-    blurred = (texture + np.roll(texture, 1, 0) + np.roll(texture, 1, 1)
-               + np.roll(texture, -1, 0) + np.roll(texture, -1, 1)) / 5  # fmt: skip
+    view = np.zeros((120, 160))
+    view[20:100, 30:130] = 1 + rng.random((80, 100))
+    blur = (view + np.roll(view, 2, 0) + np.roll(view, -2, 0) + np.roll(view, 2, 1)
+            + np.roll(view, -2, 1)) / 5  # fmt: skip
+    top, bottom = np.zeros(view.shape, bool), np.zeros(view.shape, bool)
+    top[20:60, 30:130], bottom[60:100, 30:130] = True, True
+    bottom_sharp = np.where(bottom, view, blur) * 3 + 0.2  # gain and offset do not matter
+    top_sharp = np.where(top, view, blur)
+    near = focus_correlation([bottom_sharp, top_sharp], view, bottom)
+    far = focus_correlation([bottom_sharp, top_sharp], view, top)
+    assert near[0] > 0.99 > near[1] and far[1] > 0.99 > far[0]
 
-    def frame(top: np.ndarray, bottom: np.ndarray) -> np.ndarray:
-        img = np.full((160, 200), 0.1)
-        img[2, :] = img[-3, :] = img[:, 2] = img[:, -3] = 2.0  # thin lines: not content
-        img[40:70, 60:140] = 1 + top
-        img[70:100, 60:140] = 1 + bottom
-        return img
 
-    near_focus, far_focus = frame(blurred, texture), frame(texture, blurred)
-    near_s, far_s, (near, far) = region_sharpness([near_focus, far_focus])
-    assert near[0].start >= 70 and far[0].stop <= 70  # the content box, not the border
-    assert near_s[0] > 1.5 * near_s[1]
-    assert far_s[1] > 1.5 * far_s[0]
+def test_depth_regions_are_the_nearest_and_farthest_quarter_of_the_content():
+    from nhfd.daemon.demo import depth_regions
+
+    zh = np.full((10, 10), np.nan)
+    zh[2:8, 2:8] = np.linspace(-2e-3, 2e-3, 36).reshape(6, 6)
+    near, far = depth_regions(zh)
+    assert near.sum() == far.sum() == 9  # a quarter of 36
+    assert zh[near].min() > zh[far].max()
+    assert not (near | far)[np.isnan(zh)].any()
+    with pytest.raises(ValueError, match="no content"):
+        depth_regions(np.full((4, 4), np.nan))

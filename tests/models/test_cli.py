@@ -20,8 +20,11 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     assert info["net"] == {"width": 8, "depth": 1, "unshuffle": 4, "inputs": "rgbd"}
     assert "box-window SSIM" in info["loss"]  # the log says which perceptual term ran
     onnx_path = tmp_path / "m.onnx"
-    assert main(["export", str(run), "-o", str(onnx_path)]) == 0
+    int8_path = tmp_path / "m-int8.onnx"
+    assert main(["export", str(run), "-o", str(onnx_path), "--int8", str(int8_path),
+                 "--data", str(tiny_data)]) == 0  # fmt: skip
     assert "max abs difference" in capsys.readouterr().out
+    _int8_is_quantised_and_close(onnx_path, int8_path)
     assert main(["eval", str(onnx_path), "--data", str(tiny_data), "--out",
                  str(tmp_path / "ev")]) == 0  # fmt: skip
     out = capsys.readouterr().out
@@ -29,6 +32,26 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     result = json.loads((tmp_path / "ev" / "eval.json").read_text())
     assert {"interp", "extrap", "all"} <= set(result["summary"])
     assert result["views"][0]["focus"] and (tmp_path / "ev" / "eval.png").exists()
+
+
+def _int8_is_quantised_and_close(float_path, int8_path):
+    import numpy as np
+    import onnx
+    from nhfd.models.export import OnnxModel
+    from nhfd.models.quantise import head_nodes
+
+    graph = onnx.load(str(int8_path)).graph
+    ops = [n.op_type for n in graph.node]
+    assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
+    floats = {i.name for i in graph.initializer if i.data_type == onnx.TensorProto.FLOAT}
+    for name in head_nodes(onnx.load(str(int8_path))):  # the output layers keep float weights
+        node = next(n for n in graph.node if n.name == name)
+        assert node.input[1] in floats
+    f, q = OnnxModel(float_path), OnnxModel(int8_path)
+    assert q.metadata == f.metadata and q.inputs == f.inputs == "rgbd"
+    x = np.random.default_rng(0).random((4, 48, 48), dtype=np.float32)
+    for a, b in zip(f(x), q(x), strict=True):  # amplitude, phase
+        assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.9
 
 
 @pytest.mark.parametrize("argv,message", [
@@ -43,6 +66,9 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     (["train", "--data", "{tmp}/nowhere", "--out", "{tmp}/r"], "--data {tmp}/nowhere: no such"),
     (["export", "{tmp}", "-o", "{tmp}/m.onnx", "--opset", "17"], "--opset 17: must be 18"),
     (["export", "{tmp}", "-o", "{tmp}/m.onnx"], "not a training run"),
+    (["export", "{tmp}", "-o", "{tmp}/m.onnx", "--int8", "{tmp}/q.onnx"], "--int8 needs --data"),
+    (["train", "--data", "{data}", "--out", "{tmp}/r", "--device", "tpu"],
+     "device = 'tpu': must be cpu, cuda or cuda:N"),
     (["eval", "{tmp}/none.onnx", "--data", "{data}"], "no such run folder or .onnx"),
     (["eval", "{tmp}", "--data", "{data}", "--splits", "test"], "--splits 'test'"),
 ])  # fmt: skip

@@ -1,0 +1,48 @@
+"""`nhfd bench tradeoff`'s pieces: which layer int8 keeps in float, reuse of finished runs, and
+the Pareto front."""
+
+from __future__ import annotations
+
+import json
+
+import onnx
+import pytest
+import torch
+from nhfd.models.export import export_onnx
+from nhfd.models.quantise import head_nodes
+from nhfd.models.train import CHECKPOINT, train
+
+from nhfd.bench.tradeoff import finished_run, pareto
+from tests.models.conftest import tiny_options
+
+
+def test_int8_keeps_the_layers_that_write_the_outputs_in_float(tiny_run, tmp_path):
+    model = onnx.load(str(export_onnx(tiny_run, tmp_path / "m.onnx").path))
+    heads = head_nodes(model)
+    by_name = {n.name: n for n in model.graph.node}
+    assert len(heads) == 2 and {by_name[h].op_type for h in heads} == {"ConvTranspose"}
+    # they are the last convolutions: nothing but elementwise ops between them and the outputs
+    convs = [n.name for n in model.graph.node if n.op_type in ("Conv", "ConvTranspose")]
+    assert set(convs[-2:]) == set(heads)
+
+
+def test_a_finished_run_is_reused_and_a_different_network_is_refused(tiny_data, tmp_path):
+    run = tmp_path / "run"
+    opts = tiny_options(steps=3)
+    assert finished_run(run, opts, "k") is None
+    train(tiny_data, run, tiny_options(steps=2), log=lambda _m: None)
+    assert finished_run(run, opts, "k") is None  # short of the budget: train on
+    train(tiny_data, run, opts, log=lambda _m: None)
+    key = torch.load(run / CHECKPOINT, weights_only=False)["manifest_key"]
+    step, ms, note = finished_run(run, opts, key)
+    assert step == 3 and ms > 0 and note == ""
+    _, _, note = finished_run(run, opts, "another-build")
+    assert "another build of the dataset" in note and key[:12] in note
+    with pytest.raises(ValueError, match="not this variant's"):
+        finished_run(run, tiny_options(steps=3, width=4), key)
+    assert json.loads((run / "run.json").read_text())["options"]["device"] == "cpu"
+
+
+def test_pareto_front_keeps_only_undominated_points():
+    points = [(10.0, 20.0), (20.0, 25.0), (15.0, 19.0), (30.0, 25.0), (5.0, 18.0)]
+    assert pareto(points) == [4, 0, 1]  # in order of latency
