@@ -320,7 +320,7 @@ def contact_sheet(sweep: list[tuple[float, np.ndarray]], regions: dict[str, dict
     for name, r in regions.items():
         ax.contour(r["mask_window"].astype(float), levels=[0.5], colors=colours[name],
                    linewidths=0.8)
-    ax.set_title("rendered view: near (orange) and far (blue) content", fontsize=9)
+    ax.set_title("view: near (orange), far (blue) content", fontsize=9)
     ax = fig.add_subplot(gs[0, 1])
     im = ax.imshow(zh_m * 1e3, cmap="viridis")
     fig.colorbar(im, ax=ax, fraction=0.03, label="z_h (mm)")

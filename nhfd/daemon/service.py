@@ -62,6 +62,11 @@ from .worker import FrameLink, apply_camera_roi
 
 log = logging.getLogger("nhfd.daemon")
 
+# While a frame is being computed the loop wakes this often to collect it: the worker's pipe is
+# not one of the server's sockets, so without it a finished frame could wait a whole tick
+# (`daemon.tick_s`, 50 ms) before it reaches the SLM.
+FRAME_POLL_S = 0.002
+
 
 class AlreadyRunning(RuntimeError):
     """Another `nhfd serve` holds the lock in this runtime directory."""
@@ -244,7 +249,7 @@ class Daemon:
         tick = self.config.daemon.tick_s
         try:
             while not self._shutdown.is_set():
-                self.step(tick)
+                self.step(min(tick, FRAME_POLL_S) if self.frames.inflight else tick)
         except BaseException:
             log.exception("control loop failed; shutting down with lasers off")
             self.close()
