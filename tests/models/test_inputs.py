@@ -48,6 +48,24 @@ def test_network_input_checks_what_it_needs():
         depth_channel(np.zeros(2), (3e-3, -3e-3))
 
 
+def test_the_daemons_float32_depth_channel_matches_trainings_and_handles_bad_depths():
+    """network_input builds the channel in float32 in place; training uses the float64
+    path. Non-finite or non-positive depths are background (0); depths beyond the volume clip
+    at +-2."""
+    rng = np.random.default_rng(3)
+    depth = (0.5 + 0.3 * rng.random((6, 7))).astype(np.float32)
+    depth[0, :6] = [np.nan, np.inf, -np.inf, 0.0, -1.0, 1e-30]  # 1e-30: far in front, clips
+    alpha = np.ones((6, 7), np.float32)
+    alpha[1, 0] = 0.2  # too faint: background
+    mapping = {"a_m": -0.016656, "b_m": 0.010565}
+    x = network_input(np.zeros((3, 6, 7), np.float32), "rgbd", depth=depth, alpha=alpha,
+                      mapping=mapping, volume_m=VOLUME_M)  # fmt: skip
+    want = depth_channel(mapped_depth(depth, alpha, mapping["a_m"], mapping["b_m"]), VOLUME_M)
+    assert x.dtype == np.float32 and np.isfinite(x).all()
+    np.testing.assert_allclose(x[3], want, atol=1e-6)
+    assert (x[3, 0, :5] == 0).all() and x[3, 1, 0] == 0 and x[3, 0, 5] == 2.0
+
+
 def test_training_and_the_daemon_build_the_same_rgbd_input(tiny_data):
     data = HoloData(tiny_data)
     manifest = json.loads((tiny_data / "manifest.json").read_text())
