@@ -168,9 +168,8 @@ def _textured_layer(z_h_m: float, n: int = 400) -> Gaussians:
 def test_a_textured_layer_focuses_at_its_depth_by_the_whole_scene_measure(z_h_m: float) -> None:
     """`nhfd eval`'s per-depth-bin focus check (correlation with the view), on the inverted
     hologram of extended content at one depth: the plane found is the layer's, to one sweep
-    step. (On the donut, the target's far bin focuses 0.5 mm short of its content. With one
-    depth, the inversion and the measure agree, so the shortfall comes with the donut's mixed
-    depths.)"""
+    step. (On the donut, the target's far bin focuses 0.5 mm short of its content; with one
+    depth, the inversion and the measure agree.)"""
     from nhfd.models.evaluate import FOCUS_SWEEP, focus_check
     from nhfd.models.loss import Optics
 
