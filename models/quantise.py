@@ -33,7 +33,6 @@ def head_nodes(model) -> list[str]:
     return found
 
 
-
 def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: str = "rgb",
                   n_calib: int = 8) -> Path:
     """Static int8 (QDQ, per channel), the head (the last layer) kept in float32, calibrated on

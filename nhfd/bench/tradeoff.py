@@ -113,18 +113,19 @@ def finished_run(run_dir: Path, opts, manifest_key: str | None
 
     import torch
 
-    path = run_dir / "checkpoint.pt"
+    from nhfd.models.net import NetSpec
+    from nhfd.models.train import CHECKPOINT, TRAIN_LOG
+
+    path = run_dir / CHECKPOINT
     if not path.is_file():
         return None
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
     if int(ckpt["step"]) < opts.steps:
         return None
-    from nhfd.models.net import NetSpec
-
     if NetSpec(**ckpt["net"]) != opts.spec:
         raise ValueError(f"{run_dir}: its network {ckpt['net']} is not this variant's "
                          f"{opts.spec.to_json()}; use another --out")  # fmt: skip
-    with open(run_dir / "train_log.csv", newline="") as f:
+    with open(run_dir / TRAIN_LOG, newline="") as f:
         seconds = [float(r["seconds"]) for r in csv.DictReader(f)]
     note = ""
     if ckpt.get("manifest_key") != manifest_key:

@@ -3,9 +3,9 @@
 Starts `nhfd serve`'s daemon (in this process, its control loop on a thread; the frame worker is
 its own spawned process) with the shipped model and the donut scene, then over the Unix socket:
 moves the view along a short orbit inside the model's pose envelope, arms the green laser at its
-power cap, sweeps the camera's focus from the near to the far end of the hologram volume and
-captures the simulated camera, and shuts the daemon down (lasers off). The sweep spans the middle
-view's content depth, and the contact sheet judges focus by region: the nearest and the farthest
+power cap, sweeps the camera's focus from the near to the far end of the middle view's content
+and captures the simulated camera, and shuts the daemon down (lasers off). The contact sheet
+judges focus by region: the nearest and the farthest
 quarter of the content (by mapped depth, projected onto the camera with the simulated bench's
 geometry), each enlarged at both focuses, with each capture's match to the view there. Writes to
 the output folder: the rendered views, the SLM's green phase frames, the captures, the contact
