@@ -5,11 +5,11 @@ its own spawned process) with the shipped model and the donut scene, then over t
 moves the view along a short orbit inside the model's pose envelope, arms the green laser at its
 power cap, sweeps the camera's focus from the near to the far end of the middle view's content
 and captures the simulated camera, and shuts the daemon down (lasers off). The contact sheet
-judges focus by region: the nearest and the farthest
-quarter of the content (by mapped depth, projected onto the camera with the simulated bench's
-geometry), each enlarged at both focuses, with each capture's match to the view there. Writes to
-the output folder: the rendered views, the SLM's green phase frames, the captures, the contact
-sheet, and summary.json with per-stage timings and the regions' best focus.
+judges focus by region: the nearest and the farthest quarter of the content (by mapped depth,
+projected onto the camera with the simulated bench's geometry), each enlarged at both focuses,
+with each capture's match to the view there. Writes to the output folder: the rendered views,
+the SLM's green phase frames, the captures, the contact sheet, and summary.json with per-stage
+timings and the regions' best focus.
 
 Without a calibration file the daemon's focus is `stage = stage_at_reference_mm + z_mm` (1 mm of
 stage per mm of hologram depth). The simulated relay magnifies by M = 0.75, so a hologram depth of
