@@ -98,6 +98,14 @@ class NHFNet(nn.Module):
         f = self.spec.unshuffle
         if f > 1:
             x = F.pixel_unshuffle(x, f)
+        x = self.head(self.trunk(x))
+        if f > 1:
+            x = F.pixel_shuffle(x, f)
+        return F.softplus(x[:, :3]), x[:, 3:]
+
+    def trunk(self, x: torch.Tensor) -> torch.Tensor:
+        """The U-Net between the unshuffled, normalised input `[B, C f f, H/f, W/f]` and the
+        head: features `[B, width, H/f, W/f]` (shared with `nhfd.models.serving.ServingNet`)."""
         x = self.inc(x)
         skips = [x]
         for down in self.down:
@@ -106,10 +114,7 @@ class NHFNet(nn.Module):
         skips.pop()
         for i in reversed(range(self.spec.depth)):
             x = self.dec[i](torch.cat([self.up[i](x), skips[i]], dim=1))
-        x = self.head(x)
-        if f > 1:
-            x = F.pixel_shuffle(x, f)
-        return F.softplus(x[:, :3]), x[:, 3:]
+        return x
 
 
 def build_net(spec: NetSpec, seed: int | None = None) -> NHFNet:

@@ -39,6 +39,7 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
     training views; the nhfd metadata is carried over."""
     import numpy as np
     import onnx
+    from nhfd.models.net import pad_amounts
     from onnxruntime.quantization import (
         CalibrationDataReader,
         QuantFormat,
@@ -48,14 +49,15 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
 
     model = onnx.load(str(src))
     split = data.splits["train"]
+    Path(dst).parent.mkdir(parents=True, exist_ok=True)
 
     class Reader(CalibrationDataReader):
         def __init__(self) -> None:
             self.items = []
             for j in range(min(n_calib, len(split))):
                 x = split.inputs(inputs, slice(j, j + 1)).numpy()
-                h, w = x.shape[-2:]
-                x = np.pad(x, ((0, 0), (0, 0), (0, (-h) % multiple), (0, (-w) % multiple)))
+                ph, pw = pad_amounts(*x.shape[-2:], multiple)
+                x = np.pad(x, ((0, 0), (0, 0), (0, ph), (0, pw)))
                 self.items.append({inputs: np.ascontiguousarray(x, np.float32)})
             self.it = iter(self.items)
 

@@ -45,7 +45,7 @@ def softplus_exportable(a: torch.Tensor) -> torch.Tensor:
 
 
 class ServingNet(nn.Module):
-    """`net`'s function with export-friendly ends; shares `net`'s trunk (inc, down, up, dec)."""
+    """`net`'s function with export-friendly ends around `net.trunk`."""
 
     def __init__(self, net: NHFNet) -> None:
         super().__init__()
@@ -70,14 +70,6 @@ class ServingNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Same contract as `NHFNet.forward`."""
-        n = self.net
-        x = n.inc(self.unshuffle(x.float()))
-        skips = [x]
-        for down in n.down:
-            x = down(x)
-            skips.append(x)
-        skips.pop()
-        for i in reversed(range(n.spec.depth)):
-            x = n.dec[i](torch.cat([n.up[i](x), skips[i]], dim=1))
+        x = self.net.trunk(self.unshuffle(x.float()))
         x = torch.cat([x, torch.ones_like(x[:, :1])], dim=1)
         return softplus_exportable(self.amplitude(x)), self.phase(x)
