@@ -5,8 +5,8 @@ Measures (optics.md, "Measuring hologram quality"): focal-stack PSNR and SSIM fr
 `quality_planes`, inside the scene's pixels, one robust percentile of the target), per plane and
 overall, for the model, an all-black prediction and the 2D hologram; the per-depth-bin focus
 check (pixels binned by their mapped depth; the plane whose image best correlates with the view
-must lie within tolerance of the bin's depth); quality against the angular distance to the
-nearest training pose; and a PNG of predicted vs target focal slices.
+must lie within half the filtered depth of field of the target's); quality against the angular
+distance to the nearest training pose; and a PNG of predicted vs target focal slices.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ from nhfd.optics import (
 )
 
 FOCUS_BINS = 5
-FOCUS_SWEEP = 31
+FOCUS_SWEEP = 61  # 0.1 mm steps over the default +-3 mm volume
 FOCUS_MIN_PIXELS = 64
 # Network input [C,H,W] (nhfd.models.inputs) -> field [3,H,W] (amplitude-scale units)
 Predictor = Callable[[torch.Tensor], torch.Tensor]
@@ -89,23 +89,39 @@ def nearest_train_angle_deg(manifest: dict, index: int) -> float:
     return float(np.degrees(np.arccos(cos.max())))
 
 
+def half_depth_of_field_m(wavelength_m: float, cutoff_per_px: float, pitch_m: float) -> float:
+    """Half the depth of field of the aperture-filtered system, `1 / (4 lambda f_cut^2)` with
+    `f_cut = cutoff_per_px / pitch` (optics.md: `lambda / (2 NA^2)` with `NA = lambda f_cut`;
+    `4 p^2 / lambda` at the default half-band cutoff): the focus test's tolerance."""
+    f_cut = cutoff_per_px / pitch_m
+    return 1.0 / (4.0 * wavelength_m * f_cut * f_cut)
+
+
 def focus_check(
     field: torch.Tensor, target: torch.Tensor, rgb: torch.Tensor, zh: torch.Tensor,
     optics: Optics, cache: KernelCache,
 ) -> list[dict]:  # fmt: skip
     """Per depth bin (green channel): the sweep plane whose intensity best correlates with the
-    view's linear intensity, for the prediction and the target. Tolerance: half a bin plus half
-    the filtered depth of field (`4 p^2 / lambda`)."""
+    view's linear intensity, for the prediction and for the target. A bin passes when the
+    prediction focuses within half the filtered depth of field of where the target does.
+
+    The reference is the target's focus, not the bin's mapped depth: the targets are the light
+    field's holograms, occlusion included. Where a surface is rough at the pixel scale, nearer
+    splats hide farther ones in the off-axis views, so the content focuses in front of the
+    central view's alpha-weighted depth (`tests/holo/test_focus.py` reproduces it; 0.1-0.45 mm
+    on the donut, most in the far bin). That offset is reported per bin (`target_offset_mm`)
+    as a check on the chain; isolated points and flat or sloped layers show none."""
     lo, hi = optics.volume_m
     g = 1 if len(optics.wavelengths_m) > 1 else 0
     lam = optics.wavelengths_m[g]
-    ap = Aperture(optics.aperture.shape, (optics.aperture.cutoffs(len(optics.wavelengths_m))[g],))
+    cutoff = optics.aperture.cutoffs(len(optics.wavelengths_m))[g]
+    ap = Aperture(optics.aperture.shape, (cutoff,))
     sweep = np.linspace(lo, hi, FOCUS_SWEEP).tolist()
     fields = torch.stack([field[g : g + 1], target[g : g + 1]]).to(torch.complex64)
     stacks = focal_stack(fields, sweep, optics.pitch_m, [lam], ap, cache=cache)[:, :, 0]
     view = srgb_to_linear(rgb[g])
     edges = np.linspace(lo, hi, FOCUS_BINS + 1)
-    tol = 0.5 * (hi - lo) / FOCUS_BINS + 2 * optics.pitch_m**2 / lam
+    tol = half_depth_of_field_m(lam, cutoff, optics.pitch_m)
     out = []
     z = zh.numpy()
     for b in range(FOCUS_BINS):
@@ -123,8 +139,9 @@ def focus_check(
         centre = float(z[sel].mean())
         out.append({"bin_mm": [edges[b] * 1e3, edges[b + 1] * 1e3], "pixels": int(sel.sum()),
                     "content_mm": centre * 1e3, "predicted_focus_mm": best[0] * 1e3,
-                    "target_focus_mm": best[1] * 1e3, "tolerance_mm": tol * 1e3,
-                    "pass": abs(best[0] - centre) <= tol})  # fmt: skip
+                    "target_focus_mm": best[1] * 1e3,
+                    "target_offset_mm": (best[1] - centre) * 1e3, "tolerance_mm": tol * 1e3,
+                    "pass": abs(best[0] - best[1]) <= tol + 1e-12})  # fmt: skip
     return out
 
 
@@ -211,11 +228,15 @@ def summarise(views: list[dict], planes) -> dict:
                 [v["hologram_2d_psnr_per_plane_db"] for v in vs], axis=0).tolist(),
             "focus_bins_passed": int(sum(focus)),
             "focus_bins": len(focus),
+            "focus_target_offset_mm": float(np.mean([b["target_offset_mm"] for v in vs
+                                                     for b in v["focus"]] or [np.nan])),
             "margin_over_2d_db": float(np.mean([v["model_psnr_db"] - v["hologram_2d_psnr_db"]
                                                 for v in vs])),
         }  # fmt: skip
     angles = [(v["nearest_train_deg"], v["model_psnr_db"]) for v in views]
     out["psnr_vs_angle"] = sorted(angles)
+    out["focus_tolerance_mm"] = next((b["tolerance_mm"] for v in views for b in v["focus"]),
+                                     float("nan"))
     return out
 
 
@@ -223,7 +244,7 @@ def format_summary(summary: dict, planes) -> list[str]:
     lines = [f"{'split':<8}{'views':>6}{'model dB':>10}{'2D dB':>8}{'black dB':>10}"
              f"{'model SSIM':>12}{'2D SSIM':>9}{'focus':>8}"]  # fmt: skip
     for split, s in summary.items():
-        if split == "psnr_vs_angle":
+        if not isinstance(s, dict):
             continue
         lines.append(
             f"{split:<8}{s['views']:>6}{s['model_psnr_db']:>10.2f}{s['hologram_2d_psnr_db']:>8.2f}"
@@ -231,6 +252,10 @@ def format_summary(summary: dict, planes) -> list[str]:
             f"{s['focus_bins_passed']:>4}/{s['focus_bins']:<3}"
         )
     a = summary["all"]
+    lines.append(f"focus: the model within {summary['focus_tolerance_mm']:.2f} mm of the "
+                 f"target's focus in {a['focus_bins_passed']}/{a['focus_bins']} depth bins; the "
+                 f"targets focus {a['focus_target_offset_mm']:+.2f} mm from the bins' mapped "
+                 "depth on average")
     lines.append("per plane (mm): " + ", ".join(
         f"{z * 1e3:+.1f}: {p:.1f} (2D {q:.1f})" for z, p, q in
         zip(planes, a["model_psnr_per_plane_db"], a["hologram_2d_psnr_per_plane_db"], strict=True)

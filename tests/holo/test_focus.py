@@ -152,37 +152,98 @@ def test_shared_views_focus_too() -> None:
     assert (np.abs(best - 2e-3) <= np.array(TOL_M)).all(), best
 
 
-def _textured_layer(z_h_m: float, n: int = 400) -> Gaussians:
-    """Tiny Gaussians of random brightness scattered over the middle 60 % of the view, all at
-    hologram depth z_h: extended content at one depth."""
-    rng = np.random.default_rng(0)
-    d = depth_for(z_h_m)
-    u, v = rng.uniform(0.2 * N, 0.8 * N, (2, n))
-    means = np.stack([(u - N / 2) * d / FX, (v - N / 2) * d / FX, np.full(n, d)], 1)
+def _dots(z_h_m: np.ndarray, u: np.ndarray, v: np.ndarray, sigma_px: float,
+          seed: int = 0) -> Gaussians:
+    """Opaque Gaussians of random brightness at hologram depths z_h and image positions (u, v),
+    `sigma_px` across as projected."""
+    rng = np.random.default_rng(seed)
+    d = np.array([depth_for(z) for z in z_h_m])
+    means = np.stack([(u - N / 2) * d / FX, (v - N / 2) * d / FX, d], 1)
+    n = len(d)
     colour = rng.uniform(0.2, 1.0, (n, 1, 1)) * np.full((n, 1, 3), 0.5 / SH_C0)
-    return make_gaussians(means, np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), 1e-6),
+    return make_gaussians(means, np.tile([1.0, 0, 0, 0], (n, 1)),
+                          np.repeat((max(sigma_px, 1e-4) * d / FX)[:, None], 3, 1),
                           np.full(n, 0.99), colour)  # fmt: skip
 
 
-@pytest.mark.parametrize("z_h_m", [-2.5e-3, 2.5e-3], ids=["far", "near"])
-def test_a_textured_layer_focuses_at_its_depth_by_the_whole_scene_measure(z_h_m: float) -> None:
-    """`nhfd eval`'s per-depth-bin focus check (correlation with the view), on the inverted
-    hologram of extended content at one depth: the plane found is the layer's, to one sweep
-    step. (On the donut, the target's far bin focuses 0.5 mm short of its content; with one
-    depth, the inversion and the measure agree.)"""
-    from nhfd.models.evaluate import FOCUS_SWEEP, focus_check
+def _textured_layer(z_h_m: float, n: int = 400) -> Gaussians:
+    """Tiny Gaussians scattered over the middle 60 % of the view, all at hologram depth z_h:
+    extended content at one depth."""
+    u, v = np.random.default_rng(0).uniform(0.2 * N, 0.8 * N, (2, n))
+    return _dots(np.full(n, z_h_m), u, v, 0.0)
+
+
+def _eval_focus(g: Gaussians, field: torch.Tensor | None = None) -> dict:
+    """`nhfd eval`'s per-depth-bin focus check on the inverted hologram of `g` (the target), with
+    `field` (default: the target itself) as the prediction: the bin holding most of `g`."""
+    from nhfd.models.evaluate import focus_check
     from nhfd.models.loss import Optics
 
     from nhfd.optics.cache import KernelCache
     from nhfd.scene.raster import render
 
-    g = _textured_layer(z_h_m)
-    field = scene_hologram(g, CAM, MAPPING, P, SAMPLING, phase="depth", seed=7).field
+    target = scene_hologram(g, CAM, MAPPING, P, SAMPLING, phase="depth", seed=7).field
     view = render(g, CAM)
-    zh = np.where(view.alpha >= 0.5, z_h_m, np.nan)
+    zh = np.full(view.depth.shape, np.nan)
+    content = view.alpha >= 0.5
+    zh[content] = MAPPING.z_h(view.depth[content])
     optics = Optics(P, LAMS, APERTURE, VOLUME)
-    bins = focus_check(field, field, torch.from_numpy(np.ascontiguousarray(view.rgb)),
-                       torch.from_numpy(zh), optics, KernelCache())  # fmt: skip
-    step_mm = (VOLUME[1] - VOLUME[0]) / (FOCUS_SWEEP - 1) * 1e3
-    assert len(bins) == 1 and bins[0]["pass"]
-    assert abs(bins[0]["target_focus_mm"] - z_h_m * 1e3) <= step_mm + 1e-9, bins[0]
+    bins = focus_check(target if field is None else field(target), target,
+                       torch.from_numpy(np.ascontiguousarray(view.rgb)), torch.from_numpy(zh),
+                       optics, KernelCache())  # fmt: skip
+    main = max(bins, key=lambda b: b["pixels"])
+    assert main["pixels"] >= 0.95 * sum(b["pixels"] for b in bins), bins
+    return main
+
+
+@pytest.mark.parametrize("z_h_m", [-2.5e-3, 2.5e-3], ids=["far", "near"])
+def test_a_textured_layer_focuses_at_its_depth_by_the_whole_scene_measure(z_h_m: float) -> None:
+    """`nhfd eval`'s per-depth-bin measure (correlation with the view) on the inverted hologram
+    of extended content at one depth finds the layer's plane within half the filtered depth of
+    field. (Its peak is broad: over layers at -2.5 ... +2.5 mm it lands within 0.3 mm, either
+    side; so the focus test's tolerance, not the sweep step.)"""
+    found = _eval_focus(_textured_layer(z_h_m))
+    assert abs(found["target_focus_mm"] - z_h_m * 1e3) <= found["tolerance_mm"], found
+
+
+def test_a_rough_surface_focuses_in_front_of_its_mapped_depth_through_occlusion() -> None:
+    """Why eval's focus check compares the model with the target and not with the mapped depth.
+    Dots around -2.5 mm with 0.3 mm of depth noise: spaced 3 px apart they do not overlap, and
+    the hologram focuses at their mean mapped depth. Packed 1 px apart and overlapping, like a
+    splat surface, nearer dots hide farther ones in the off-axis views, so the light field and
+    the hologram focus in front of the central view's alpha-weighted depth. The same packed dots
+    without depth noise show no offset. Measured over 4 seeds: sparse -0.11 ... -0.02 mm, packed
+    +0.32 ... +0.33 mm, packed and flat 0.00 mm."""
+    rng = np.random.default_rng(3)
+    found = {}
+    for name, step, sigma, noise_m in (("sparse", 3, 0.5, 0.3e-3), ("packed", 1, 1.0, 0.3e-3),
+                                       ("packed_flat", 1, 1.0, 0.0)):  # fmt: skip
+        ys, xs = np.mgrid[int(0.2 * N) : int(0.8 * N) : step, int(0.2 * N) : int(0.8 * N) : step]
+        u, v = xs.ravel() + 0.5, ys.ravel() + 0.5
+        z = -2.5e-3 + noise_m * rng.standard_normal(u.size)
+        found[name] = _eval_focus(_dots(z, u, v, sigma))
+    assert abs(found["sparse"]["target_offset_mm"]) <= 0.15, found
+    assert abs(found["packed_flat"]["target_offset_mm"]) <= 0.05, found
+    assert found["packed"]["target_offset_mm"] >= 0.25, found
+
+
+def test_the_focus_check_passes_within_half_the_depth_of_field_of_the_target() -> None:
+    """A prediction refocused by dz focuses at z_h - dz: it passes for |dz| under half the
+    filtered depth of field (4 p^2 / lambda at the default aperture: 0.49 mm at 520 nm) and
+    fails beyond it, on either side."""
+    from nhfd.models.evaluate import half_depth_of_field_m
+
+    half_dof = half_depth_of_field_m(LAMS[1], 0.25, P)
+    assert half_dof == pytest.approx(4 * P * P / LAMS[1])
+    g = _textured_layer(0.0)
+
+    def refocused(dz_m: float):
+        return lambda t: propagate(t, [dz_m], P, LAMS, aperture=APERTURE)[0]
+
+    for dz_m, passes in ((0.0, True), (0.3e-3, True), (-0.3e-3, True), (0.8e-3, False),
+                         (-0.8e-3, False)):  # fmt: skip
+        found = _eval_focus(g, refocused(dz_m))
+        assert found["tolerance_mm"] == pytest.approx(half_dof * 1e3)
+        assert found["pass"] is passes, (dz_m, found)
+        assert found["predicted_focus_mm"] - found["target_focus_mm"] == pytest.approx(
+            -dz_m * 1e3, abs=0.1 + 1e-9), (dz_m, found)
