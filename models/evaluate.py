@@ -27,6 +27,7 @@ from nhfd.optics import (
     KernelCache,
     focal_stack,
     focal_stack_quality,
+    half_depth_of_field_m,
     hologram_2d,
     linear_to_srgb,
     quality_planes,
@@ -87,14 +88,6 @@ def nearest_train_angle_deg(manifest: dict, index: int) -> float:
         return float("nan")
     cos = np.clip(dirs[train] @ dirs[index], -1, 1)
     return float(np.degrees(np.arccos(cos.max())))
-
-
-def half_depth_of_field_m(wavelength_m: float, cutoff_per_px: float, pitch_m: float) -> float:
-    """Half the depth of field of the aperture-filtered system, `1 / (4 lambda f_cut^2)` with
-    `f_cut = cutoff_per_px / pitch` (optics.md: `lambda / (2 NA^2)` with `NA = lambda f_cut`;
-    `4 p^2 / lambda` at the default half-band cutoff): the focus test's tolerance."""
-    f_cut = cutoff_per_px / pitch_m
-    return 1.0 / (4.0 * wavelength_m * f_cut * f_cut)
 
 
 def focus_check(
