@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from nhfd.optics import Aperture, KernelCache, plan_padding, propagate
+from nhfd.optics import Aperture, KernelCache, aperture_mask, plan_padding, propagate
 from nhfd.optics.refplane import margin_px
 
 SSIM_C1 = 0.01**2
@@ -100,12 +100,36 @@ def choose_planes(
     return [min(hi, max(lo, z)) for z in grid] or [0.5 * (lo + hi)]
 
 
+def spectral_field_error(
+    pred: torch.Tensor, target: torch.Tensor, aperture: Aperture
+) -> torch.Tensor:
+    """Relative error of complex fields `[B, C, H, W]` on their own plane, inside the aperture,
+    each spatial frequency weighted by `|f|^2` (0 at DC, 1 at 0.25 cycles per pixel, the default
+    cutoff):
+    `sum w |P - T|^2 / sum w |T|^2`, a scalar.
+
+    Why weighted: a depth error `dz` of content multiplies its spectrum by
+    `exp(i pi lambda dz |f|^2)`, so it lives in the high frequencies, which carry little of the
+    field's energy. A plain field L2 barely sees it (measured: relative error 0.03, yet far
+    content focused 1.8 mm short); the focal-stack L2 of intensities sees it only through
+    defocus blur."""
+    h, w = pred.shape[-2:]
+    fy = torch.fft.fftfreq(h, device=pred.device)[:, None]
+    fx = torch.fft.fftfreq(w, device=pred.device)[None, :]
+    weight = (fx * fx + fy * fy) / 0.25**2 * aperture_mask((h, w), aperture, pred.shape[-3],
+                                                             pred.device)  # fmt: skip
+    err = torch.fft.fft2(pred - target).abs().square()
+    ref = torch.fft.fft2(target).abs().square()
+    return (weight * err).sum() / (weight * ref).sum().clamp(min=1e-30)
+
+
 class FocalStackLoss:
     """L2 of focal-stack intensities plus a perceptual term, between complex fields.
 
     Call with `pred` and `target` `[B, C, H, W]` complex (amplitude-scale units), the planes (m)
     and the indices of the planes the perceptual term runs on. Returns a dict of scalar tensors:
-    `loss` (what to minimise), `l2`, `perceptual`.
+    `loss` (what to minimise), `l2`, `perceptual`. With `field_weight` > 0 the loss adds
+    `spectral_field_error` of the fields themselves (optional, off by default).
     """
 
     def __init__(
@@ -118,9 +142,13 @@ class FocalStackLoss:
         vgg_weights: str | None = None,
         cache: KernelCache | None = None,
         mask_margin: bool = True,
+        field_weight: float = 0.0,
     ) -> None:
         if perceptual not in ("ssim", "vgg", "none"):
             raise ValueError(f"perceptual = {perceptual!r}: must be ssim, vgg or none")
+        if not (math.isfinite(field_weight) and field_weight >= 0):
+            raise ValueError(f"field_weight = {field_weight!r}: must be a finite number >= 0")
+        self.field_weight = float(field_weight)
         self.optics = optics
         self.perceptual = perceptual
         self.weight = float(perceptual_weight)
@@ -141,7 +169,9 @@ class FocalStackLoss:
             "vgg": f"VGG-16 features at half resolution x {self.weight:g}",
             "none": "none",
         }[self.perceptual]
-        return (f"L2 of intensities + perceptual term: {term}; "
+        field = (f" + frequency-weighted field error x {self.field_weight:g}"
+                 if self.field_weight else "")
+        return (f"L2 of intensities + perceptual term: {term}{field}; "
                 f"margin masked {self.margin} px on crop edges inside the view")
 
     def stack(
@@ -201,7 +231,11 @@ class FocalStackLoss:
             else:
                 assert self.vgg is not None
                 perc = self.vgg.distance(p.flatten(0, 1), t.flatten(0, 1))
-        return {"loss": l2 + self.weight * perc, "l2": l2, "perceptual": perc}
+        loss = l2 + self.weight * perc
+        if self.field_weight:
+            loss = loss + self.field_weight * spectral_field_error(pred, target,
+                                                                   self.optics.aperture)
+        return {"loss": loss, "l2": l2, "perceptual": perc}
 
 
 def psnr_from_l2(l2: float, peak: float) -> float:

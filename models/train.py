@@ -91,6 +91,7 @@ class TrainOptions:
     perceptual: str = "ssim"
     perceptual_weight: float = 0.1
     perceptual_planes: int = 2
+    field_weight: float = 0.0
     ssim_window_px: int = 7
     vgg_weights: str = ""
     checkpoint_every: int = 250
@@ -111,6 +112,7 @@ class TrainOptions:
             "planes_from_depth": self.planes_from_depth >= 0,
             "planes_random": self.planes_random >= 0,
             "plane_step_mm": self.plane_step_mm > 0,
+            "field_weight": math.isfinite(self.field_weight) and self.field_weight >= 0,
             "checkpoint_every": self.checkpoint_every >= 1,
             "val_views": self.val_views >= 1,
         }
@@ -339,6 +341,7 @@ def train(
     loss_fn = FocalStackLoss(
         optics, perceptual=options.perceptual, perceptual_weight=options.perceptual_weight,
         ssim_window_px=options.ssim_window_px, vgg_weights=options.vgg_weights or None,
+        field_weight=options.field_weight,
     )  # fmt: skip
     device = training_device(options.device, check_available=True)
     net = build_net(options.spec, seed=options.seed).to(device)

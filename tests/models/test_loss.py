@@ -5,9 +5,17 @@ from __future__ import annotations
 import itertools
 
 import numpy as np
+import pytest
 import torch
 from nhfd.models.data import HoloData, centre_crop_edges, random_crop
-from nhfd.models.loss import FocalStackLoss, Optics, box_ssim, choose_planes, uniform_planes
+from nhfd.models.loss import (
+    FocalStackLoss,
+    Optics,
+    box_ssim,
+    choose_planes,
+    spectral_field_error,
+    uniform_planes,
+)
 
 from nhfd.optics import propagate
 
@@ -28,6 +36,41 @@ def test_loss_is_zero_for_identical_fields_and_grows_with_defocus(tiny_data):
         values.append(float(loss(moved, target, planes, [0, 2])["loss"]))
     assert values[0] > 0
     assert all(b > a for a, b in itertools.pairwise(values)), values
+
+
+def test_spectral_field_error_sees_defocus_that_a_plain_field_l2_barely_sees(tiny_data):
+    """Zero for identical fields; grows with defocus; and relative to a plain field L2 it weighs
+    a depth error (phase growing with |f|^2) more than a same-energy error at low frequency."""
+    data = HoloData(tiny_data, splits=("train",))
+    optics = Optics.from_manifest(data.manifest)
+    target = data.splits["train"].field[:1]
+    assert float(spectral_field_error(target.clone(), target, optics.aperture)) == 0.0
+    errors, plain = [], []
+    for dz_mm in (0.25, 0.5, 1.0, 2.0):
+        moved = propagate(target, dz_mm * 1e-3, optics.pitch_m, optics.wavelengths_m,
+                          aperture=optics.aperture)  # fmt: skip
+        errors.append(float(spectral_field_error(moved, target, optics.aperture)))
+        plain.append(float((moved - target).abs().square().sum() / target.abs().square().sum()))
+    assert errors[0] > 0
+    assert all(b > a for a, b in itertools.pairwise(errors)), errors
+    # The same relative energy as a uniform offset (DC, weight 0) costs nothing.
+    offset = target + (plain[0] * target.abs().square().mean()).sqrt()
+    assert float(spectral_field_error(offset, target, optics.aperture)) < 1e-6
+    assert errors[0] > 2 * plain[0], (errors[0], plain[0])
+
+
+def test_the_field_term_is_off_by_default_and_checked(tiny_data):
+    data = HoloData(tiny_data, splits=("train",))
+    optics = Optics.from_manifest(data.manifest)
+    target = data.splits["train"].field[:1]
+    moved = propagate(target, 1e-3, optics.pitch_m, optics.wavelengths_m, aperture=optics.aperture)
+    planes = uniform_planes(optics.volume_m, 3)
+    base = float(FocalStackLoss(optics)(moved, target, planes)["loss"])
+    with_field = float(FocalStackLoss(optics, field_weight=0.5)(moved, target, planes)["loss"])
+    expected = 0.5 * float(spectral_field_error(moved, target, optics.aperture))
+    assert with_field - base == pytest.approx(expected, rel=1e-4)
+    with pytest.raises(ValueError, match="field_weight"):
+        FocalStackLoss(optics, field_weight=-1.0)
 
 
 def test_margin_masks_the_band_that_propagation_contaminates(tiny_data):
