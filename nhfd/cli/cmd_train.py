@@ -46,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--perceptual", choices=("ssim", "vgg", "none"), help="perceptual term")
     t.add_argument("--field-weight", type=float,
                    help="weight of the frequency-weighted error of the complex field itself "
-                        "(0: off, the default; 0.05 measured better at 1200 steps, see README)")
+                        "(0: off, the default; experimental, see the README before using it)")
     t.add_argument("--vgg-weights", help="local torchvision VGG-16 weights (for --perceptual vgg)")
     t.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     t.add_argument("--val-views", type=int, help="held-out views per split validated per epoch")
