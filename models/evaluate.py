@@ -27,7 +27,6 @@ from nhfd.optics import (
     KernelCache,
     focal_stack,
     focal_stack_quality,
-    half_depth_of_field_m,
     hologram_2d,
     linear_to_srgb,
     quality_planes,
@@ -107,14 +106,13 @@ def focus_check(
     lo, hi = optics.volume_m
     g = 1 if len(optics.wavelengths_m) > 1 else 0
     lam = optics.wavelengths_m[g]
-    cutoff = optics.aperture.cutoffs(len(optics.wavelengths_m))[g]
-    ap = Aperture(optics.aperture.shape, (cutoff,))
+    ap = Aperture(optics.aperture.shape, (optics.aperture.cutoffs(len(optics.wavelengths_m))[g],))
     sweep = np.linspace(lo, hi, FOCUS_SWEEP).tolist()
     fields = torch.stack([field[g : g + 1], target[g : g + 1]]).to(torch.complex64)
     stacks = focal_stack(fields, sweep, optics.pitch_m, [lam], ap, cache=cache)[:, :, 0]
     view = srgb_to_linear(rgb[g])
     edges = np.linspace(lo, hi, FOCUS_BINS + 1)
-    tol = half_depth_of_field_m(lam, cutoff, optics.pitch_m)
+    tol = ap.half_depth_of_field_m(0, 1, lam, optics.pitch_m)
     out = []
     z = zh.numpy()
     for b in range(FOCUS_BINS):

@@ -104,9 +104,8 @@ def spectral_field_error(
     pred: torch.Tensor, target: torch.Tensor, aperture: Aperture
 ) -> torch.Tensor:
     """Relative error of complex fields `[B, C, H, W]` on their own plane, inside the aperture,
-    each spatial frequency weighted by `|f|^2` (0 at DC, 1 at 0.25 cycles per pixel, the default
-    cutoff):
-    `sum w |P - T|^2 / sum w |T|^2`, a scalar.
+    each spatial frequency weighted by `w = |f|^2` (0 at DC): `sum w |P - T|^2 / sum w |T|^2`,
+    a scalar.
 
     Why weighted: a depth error `dz` of content multiplies its spectrum by
     `exp(i pi lambda dz |f|^2)`, so it lives in the high frequencies, which carry little of the
@@ -116,8 +115,7 @@ def spectral_field_error(
     h, w = pred.shape[-2:]
     fy = torch.fft.fftfreq(h, device=pred.device)[:, None]
     fx = torch.fft.fftfreq(w, device=pred.device)[None, :]
-    weight = (fx * fx + fy * fy) / 0.25**2 * aperture_mask((h, w), aperture, pred.shape[-3],
-                                                             pred.device)  # fmt: skip
+    weight = (fx * fx + fy * fy) * aperture_mask((h, w), aperture, pred.shape[-3], pred.device)
     err = torch.fft.fft2(pred - target).abs().square()
     ref = torch.fft.fft2(target).abs().square()
     return (weight * err).sum() / (weight * ref).sum().clamp(min=1e-30)

@@ -4,7 +4,7 @@ Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength e
 (metres, radians). Everything else in nhfd calls these; nothing re-implements them.
 """
 
-from nhfd.optics.aperture import Aperture, aperture_mask, apply_aperture, half_depth_of_field_m
+from nhfd.optics.aperture import Aperture, aperture_mask, apply_aperture
 from nhfd.optics.asm import propagate, transfer_function, transfer_function_z
 from nhfd.optics.cache import KernelCache
 from nhfd.optics.color import linear_to_srgb, srgb_to_amplitude, srgb_to_linear
@@ -50,7 +50,6 @@ __all__ = [
     "focal_stack",
     "focal_stack_quality",
     "grey_to_phase",
-    "half_depth_of_field_m",
     "hologram_2d",
     "linear_to_srgb",
     "next_fast_len",

@@ -55,6 +55,17 @@ class Aperture:
             )
         return self.cutoff_per_px
 
+    def half_depth_of_field_m(
+        self, colour: int, n_colours: int, wavelength_m: float, pitch_m: float
+    ) -> float:
+        """Half the depth of field of the filtered system for one colour, `1 / (4 lambda
+        f_cut^2)` with `f_cut = cutoff / pitch` (optics.md: `lambda / (2 NA^2)` with
+        `NA = lambda f_cut`; `4 p^2 / lambda` at the default half-band cutoff): the focus
+        test's tolerance."""
+        _validate.positive("wavelength_m", wavelength_m)
+        f_cut = self.cutoffs(n_colours)[colour] / _validate.positive("pitch_m", pitch_m)
+        return 1.0 / (4.0 * wavelength_m * f_cut * f_cut)
+
     def widest_frequency_per_px(self, colour: int, n_colours: int) -> tuple[float, float]:
         """The passband point (fx, fy), in cycles per pixel, with the largest x tilt: the one that
         spreads a point furthest along x (used to size padding and window margins)."""
@@ -102,15 +113,3 @@ def apply_aperture(field: torch.Tensor, aperture: Aperture) -> torch.Tensor:
     u = _validate.field("field", field)
     mask = aperture_mask(tuple(u.shape[-2:]), aperture, u.shape[-3], u.device)
     return torch.fft.ifft2(torch.fft.fft2(u) * mask)
-
-
-def half_depth_of_field_m(wavelength_m: float, cutoff_per_px: float, pitch_m: float) -> float:
-    """Half the depth of field of the aperture-filtered system, `1 / (4 lambda f_cut^2)` with
-    `f_cut = cutoff_per_px / pitch` (optics.md: `lambda / (2 NA^2)` with `NA = lambda f_cut`;
-    `4 p^2 / lambda` at the default half-band cutoff): the focus test's tolerance."""
-    _validate.positive("wavelength_m", wavelength_m)
-    _validate.positive("pitch_m", pitch_m)
-    if not 0 < cutoff_per_px <= 0.5:
-        raise ValueError(f"cutoff_per_px = {cutoff_per_px}: must be in (0, 0.5] cycles per pixel")
-    f_cut = cutoff_per_px / pitch_m
-    return 1.0 / (4.0 * wavelength_m * f_cut * f_cut)

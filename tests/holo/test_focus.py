@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from nhfd.holo import ColourInverter, band_limit, colour_sampling, scene_hologram
-from nhfd.optics import Aperture, half_depth_of_field_m, propagate
+from nhfd.optics import Aperture, propagate
 from nhfd.scene.cameras import Camera
 from nhfd.scene.gaussians import SH_C0, Gaussians, make_gaussians
 from nhfd.scene.lightfield import DepthMapping
@@ -23,7 +23,7 @@ MAPPING = DepthMapping.from_range(1.0, 2.0, *VOLUME)
 SAMPLING = colour_sampling(LAMS, P, VOLUME)
 APERTURE = Aperture()
 SWEEP_M = np.round(np.arange(-4.5e-3, 4.5e-3 + 1e-9, 0.05e-3), 9)
-TOL_M = [half_depth_of_field_m(lam, 0.25, P) for lam in LAMS]  # per colour
+TOL_M = [APERTURE.half_depth_of_field_m(c, 3, lam, P) for c, lam in enumerate(LAMS)]
 
 
 def depth_for(z_h_m: float) -> float:
@@ -231,10 +231,10 @@ def test_the_focus_check_passes_within_half_the_depth_of_field_of_the_target() -
     """A prediction refocused by dz focuses at z_h - dz: it passes for |dz| under half the
     filtered depth of field (4 p^2 / lambda at the default aperture: 0.49 mm at 520 nm) and
     fails beyond it, on either side."""
-    half_dof = half_depth_of_field_m(LAMS[1], 0.25, P)
-    assert half_dof == pytest.approx(4 * P * P / LAMS[1])
-    with pytest.raises(ValueError, match=r"cutoff_per_px = 0\.7"):
-        half_depth_of_field_m(LAMS[1], 0.7, P)
+    half_dof = TOL_M[1]
+    assert half_dof == pytest.approx(4 * P * P / LAMS[1])  # the default half-band cutoff
+    with pytest.raises(ValueError, match="wavelength_m"):
+        APERTURE.half_depth_of_field_m(1, 3, -LAMS[1], P)
     g = _textured_layer(0.0)
 
     def refocused(dz_m: float):
