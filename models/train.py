@@ -104,21 +104,22 @@ class TrainOptions:
         NetSpec(self.width, self.depth, self.unshuffle, self.inputs)  # validates
         training_device(self.device)  # validates the name; availability is checked at start
         checks = {
-            "steps": self.steps >= 1,
-            "batch": self.batch >= 1,
-            "crop_width_px": self.crop_width_px >= 1,
-            "crop_height_px": self.crop_height_px >= 1,
-            "learning_rate": 0 < self.learning_rate <= 1,
-            "planes_from_depth": self.planes_from_depth >= 0,
-            "planes_random": self.planes_random >= 0,
-            "plane_step_mm": self.plane_step_mm > 0,
-            "field_weight": math.isfinite(self.field_weight) and self.field_weight >= 0,
-            "checkpoint_every": self.checkpoint_every >= 1,
-            "val_views": self.val_views >= 1,
+            "steps": (self.steps >= 1, "must be at least 1"),
+            "batch": (self.batch >= 1, "must be at least 1"),
+            "crop_width_px": (self.crop_width_px >= 1, "must be at least 1"),
+            "crop_height_px": (self.crop_height_px >= 1, "must be at least 1"),
+            "learning_rate": (0 < self.learning_rate <= 1, "must be in (0, 1]"),
+            "planes_from_depth": (self.planes_from_depth >= 0, "must be 0 or more"),
+            "planes_random": (self.planes_random >= 0, "must be 0 or more"),
+            "plane_step_mm": (self.plane_step_mm > 0, "must be > 0"),
+            "field_weight": (math.isfinite(self.field_weight) and self.field_weight >= 0,
+                             "must be a finite number >= 0"),
+            "checkpoint_every": (self.checkpoint_every >= 1, "must be at least 1"),
+            "val_views": (self.val_views >= 1, "must be at least 1"),
         }
-        for name, ok in checks.items():
+        for name, (ok, allowed) in checks.items():
             if not ok:
-                raise ValueError(f"{name} = {getattr(self, name)!r}: out of range")
+                raise ValueError(f"{name} = {getattr(self, name)!r}: {allowed}")
         if self.planes_from_depth + self.planes_random < 1:
             raise ValueError("planes_from_depth + planes_random must be at least 1")
         if self.plane_mode not in ("depth", "uniform"):

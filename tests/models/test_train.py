@@ -84,6 +84,13 @@ def test_device_names_are_checked_before_training(tiny_data, tmp_path):
         assert not (tmp_path / "r" / CHECKPOINT).exists()
 
 
+def test_bad_options_name_the_allowed_range():
+    with pytest.raises(ValueError, match=r"field_weight = -1\.0: must be a finite number >= 0"):
+        tiny_options(field_weight=-1.0)
+    with pytest.raises(ValueError, match=r"learning_rate = 2\.0: must be in \(0, 1\]"):
+        tiny_options(learning_rate=2.0)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_a_cuda_run_resumes_on_the_cpu_from_the_same_step(tiny_data, tmp_path):
     data = HoloData(tiny_data)
