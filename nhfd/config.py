@@ -162,8 +162,8 @@ class TrainSettings(_Section):
 
     steps: Annotated[int, Field(ge=1, le=10_000_000)] = 10_000
     batch: Annotated[int, Field(ge=1, le=256)] = 1
-    crop_width_px: Pixels = 512
-    crop_height_px: Pixels = 288
+    crop_width_px: Pixels = 384
+    crop_height_px: Pixels = 224
     learning_rate: Annotated[float, Field(gt=0, le=1)] = 1e-3
     seed: Annotated[int, Field(ge=0)] = 0
     plane_mode: Literal["depth", "uniform"] = "depth"
@@ -173,7 +173,7 @@ class TrainSettings(_Section):
     perceptual: Literal["ssim", "vgg", "none"] = "ssim"
     perceptual_weight: Annotated[float, Field(ge=0, le=1000)] = 0.1
     perceptual_planes: Annotated[int, Field(ge=0, le=64)] = 2
-    field_weight: Annotated[float, Field(ge=0, le=1000)] = 0.0
+    field_weight: Annotated[float, Field(ge=0, le=1000)] = 0.05
     ssim_window_px: Annotated[int, Field(ge=3, le=63)] = 7
     vgg_weights: str = ""
     checkpoint_every: Annotated[int, Field(ge=1)] = 250

@@ -53,10 +53,42 @@ def test_spectral_field_error_sees_defocus_that_a_plain_field_l2_barely_sees(tin
         plain.append(float((moved - target).abs().square().sum() / target.abs().square().sum()))
     assert errors[0] > 0
     assert all(b > a for a, b in itertools.pairwise(errors)), errors
-    # The same relative energy as a uniform offset (DC, weight 0) costs nothing.
-    offset = target + (plain[0] * target.abs().square().mean()).sqrt()
-    assert float(spectral_field_error(offset, target, optics.aperture)) < 1e-6
     assert errors[0] > 2 * plain[0], (errors[0], plain[0])
+    # The same relative energy as a broad smooth bump (low frequencies) costs far less.
+    h, w = target.shape[-2:]
+    yy, xx = torch.meshgrid(torch.arange(h) - h / 2, torch.arange(w) - w / 2, indexing="ij")
+    bump = torch.exp(-(xx**2 + yy**2) / (2 * (h / 8) ** 2))
+    bump = bump * (plain[0] * target.abs().square().sum() / (3 * bump.square().sum())).sqrt()
+    assert float(spectral_field_error(target + bump, target, optics.aperture)) < 0.1 * errors[0]
+
+
+def test_spectral_field_error_pads_like_propagation_and_leaves_out_the_margin(tiny_data):
+    """Zero-padded, an error on one edge is not tied to the opposite edge (the FFT's wrap); and
+    an error inside the left-out margin costs next to nothing."""
+    data = HoloData(tiny_data, splits=("train",))
+    optics = Optics.from_manifest(data.manifest)
+    loss = FocalStackLoss(optics)
+    target = data.splits["train"].field[:1]
+    h, w = target.shape[-2:]
+    padded, m = loss.padded_hw(target), loss.margin
+    # A field that is the same on the left and right edges: periodic, the wrap hides its jump
+    # to zero beyond the window; padded, that jump is an error the SLM would show.
+    edge = torch.zeros_like(target)
+    edge[..., :, : m // 2] = 1.0
+    edge[..., :, -(m // 2) :] = 1.0
+    wrapped = float(spectral_field_error(target + edge, target, optics.aperture))
+    zero_padded = float(spectral_field_error(target + edge, target, optics.aperture, padded))
+    assert zero_padded > 1.5 * wrapped, (zero_padded, wrapped)
+    # Noise confined to the left margin band: counted in full, then left out.
+    noise = torch.zeros_like(target)
+    noise[..., :, : m // 2] = torch.randn((*target.shape[:-1], m // 2),
+                                          generator=torch.Generator().manual_seed(0))  # fmt: skip
+    full = float(spectral_field_error(target + noise, target, optics.aperture, padded))
+    cut = float(spectral_field_error(target + noise, target, optics.aperture, padded,
+                                     (0, 0, m, 0)))  # fmt: skip
+    assert cut < 0.05 * full, (cut, full)
+    with pytest.raises(ValueError, match="padded_hw"):
+        spectral_field_error(target, target, optics.aperture, (h - 1, w))
 
 
 def test_the_field_term_is_off_by_default_and_checked(tiny_data):
@@ -67,7 +99,10 @@ def test_the_field_term_is_off_by_default_and_checked(tiny_data):
     planes = uniform_planes(optics.volume_m, 3)
     base = float(FocalStackLoss(optics)(moved, target, planes)["loss"])
     with_field = float(FocalStackLoss(optics, field_weight=0.5)(moved, target, planes)["loss"])
-    expected = 0.5 * float(spectral_field_error(moved, target, optics.aperture))
+    loss = FocalStackLoss(optics)
+    expected = 0.5 * float(spectral_field_error(moved, target, optics.aperture,
+                                                loss.padded_hw(moved),
+                                                loss.margin_crop(moved, (True,) * 4)))  # fmt: skip
     assert with_field - base == pytest.approx(expected, rel=1e-4)
     with pytest.raises(ValueError, match="field_weight"):
         FocalStackLoss(optics, field_weight=-1.0)
