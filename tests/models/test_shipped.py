@@ -77,7 +77,9 @@ def test_shipped_model_beats_the_2d_hologram_on_new_views(shipped, tmp_path):
                                    **kw)  # fmt: skip
         black = focal_stack_quality(torch.zeros_like(target), target, mask=mask, **kw)
         assert np.isfinite(amp).all() and np.isfinite(phase).all()
-        # Measured with the first shipped model (6000 steps, edge-masked loss): model 25.1 dB,
-        # energy-matched 2D hologram 22.0 / 22.2 dB, black 5.9 dB.
-        assert ours.psnr_db > flat.psnr_db + 1.0, (ours, flat)
+        # Content crosses this window's left edge, which the 512 x 288 training views never
+        # showed. Measured: the shipped model 32.6 / 32.7 dB, the energy-matched 2D hologram
+        # 22.0 / 22.2 dB, black 5.9 dB; models trained on whole views only fell to 22.1 or
+        # even 10.8 dB here while scoring 30 dB on 512 x 288 windows.
+        assert ours.psnr_db > flat.psnr_db + 3.0, (ours, flat)
         assert ours.psnr_db > black.psnr_db + 3.0
