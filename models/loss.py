@@ -147,7 +147,7 @@ class FocalStackLoss:
     Call with `pred` and `target` `[B, C, H, W]` complex (amplitude-scale units), the planes (m)
     and the indices of the planes the perceptual term runs on. Returns a dict of scalar tensors:
     `loss` (what to minimise), `l2`, `perceptual`. With `field_weight` > 0 the loss adds
-    `spectral_field_error` of the fields themselves (optional, off by default).
+    `spectral_field_error` of the fields themselves.
     """
 
     def __init__(
