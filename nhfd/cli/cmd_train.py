@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--steps", type=int, help="budget in optimiser steps")
     t.add_argument("--batch", type=int, help="views per step")
     t.add_argument("--crop", help="training crop WxH (nhfd.toml: 384x224; smaller than the "
-                   "view, so the network learns content cut by the window's edge)")
+                   "view, so the network learns content near and across the window's edge)")
     t.add_argument("--lr", type=float, help="Adam learning rate")
     t.add_argument("--seed", type=int, help="seed of everything random")
     t.add_argument("--planes", choices=("depth", "uniform"), help="how the loss picks planes")
