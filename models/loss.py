@@ -119,8 +119,7 @@ def spectral_field_error(
 
     `padded_hw`: the fields are zero-padded to it before filtering, as propagation pads them
     (the SLM shows nothing beyond its window). Without it the FFT would wrap the window, tying
-    each edge to the opposite one, which a network cannot see across; measured, a model trained
-    that way broke down where content is cut by the window's edge. `crop` (top, bottom, left,
+    each edge to the opposite one, which a network cannot see across. `crop` (top, bottom, left,
     right): pixels left out after filtering (the margin at a crop's cut edges)."""
     h, w = pred.shape[-2:]
     ph, pw = padded_hw if padded_hw is not None else (h, w)
