@@ -104,7 +104,7 @@ def spectral_field_error(
     pred: torch.Tensor,
     target: torch.Tensor,
     aperture: Aperture,
-    padded_hw: tuple[int, int] | None = None,
+    padded_hw: tuple[int, int],
     crop: tuple[int, int, int, int] = (0, 0, 0, 0),
 ) -> torch.Tensor:
     """Relative error of complex fields `[B, C, H, W]` on their own plane, inside the aperture,
@@ -118,11 +118,12 @@ def spectral_field_error(
     defocus blur.
 
     `padded_hw`: the fields are zero-padded to it before filtering, as propagation pads them
-    (the SLM shows nothing beyond its window). Without it the FFT would wrap the window, tying
-    each edge to the opposite one, which a network cannot see across. `crop` (top, bottom, left,
+    (the SLM shows nothing beyond its window; `FocalStackLoss.padded_hw`). The field's own size
+    would wrap the window, tying each edge to the opposite one, which a network cannot see
+    across. `crop` (top, bottom, left,
     right): pixels left out after filtering (the margin at a crop's cut edges)."""
     h, w = pred.shape[-2:]
-    ph, pw = padded_hw if padded_hw is not None else (h, w)
+    ph, pw = padded_hw
     if ph < h or pw < w:
         raise ValueError(f"padded_hw = {padded_hw}: must be at least the field's {(h, w)}")
     fy = torch.fft.fftfreq(ph, device=pred.device)[:, None]

@@ -37,6 +37,7 @@ from nhfd.models.metadata import manifest_sha256
 from nhfd.models.net import NetSpec, build_net, parameter_count, predict, to_field
 
 from nhfd import __version__
+from nhfd.config import ModelSettings
 
 CHECKPOINT = "checkpoint.pt"
 RUN_JSON = "run.json"
@@ -69,34 +70,41 @@ def training_device(name: str, *, check_available: bool = False) -> torch.device
     return dev
 
 
+# The defaults of nhfd.toml's [model] section, held once in nhfd.config.
+_MODEL = ModelSettings()
+_NET = _MODEL.profiles[_MODEL.profile]
+_TRAIN = _MODEL.train
+
+
 @dataclass(frozen=True)
 class TrainOptions:
-    """Everything a training run depends on besides the dataset (see nhfd.toml [model.train])."""
+    """Everything a training run depends on besides the dataset (see nhfd.toml [model.train]).
+    The defaults are the configuration's: the default profile's network and training recipe."""
 
-    width: int = 16
-    depth: int = 3
-    unshuffle: int = 2
-    inputs: str = "rgb"
-    profile: str = "balanced"
-    steps: int = 10_000
-    batch: int = 1
-    crop_width_px: int = 512
-    crop_height_px: int = 288
-    learning_rate: float = 1e-3
-    seed: int = 0
-    plane_mode: str = "depth"
-    planes_from_depth: int = 4
-    planes_random: int = 2
-    plane_step_mm: float = 0.1
-    perceptual: str = "ssim"
-    perceptual_weight: float = 0.1
-    perceptual_planes: int = 2
-    field_weight: float = 0.0
-    ssim_window_px: int = 7
-    vgg_weights: str = ""
-    checkpoint_every: int = 250
-    val_views: int = 8
-    threads: int = 0
+    width: int = _NET.width
+    depth: int = _NET.depth
+    unshuffle: int = _NET.unshuffle
+    inputs: str = _NET.inputs
+    profile: str = _MODEL.profile
+    steps: int = _TRAIN.steps
+    batch: int = _TRAIN.batch
+    crop_width_px: int = _TRAIN.crop_width_px
+    crop_height_px: int = _TRAIN.crop_height_px
+    learning_rate: float = _TRAIN.learning_rate
+    seed: int = _TRAIN.seed
+    plane_mode: str = _TRAIN.plane_mode
+    planes_from_depth: int = _TRAIN.planes_from_depth
+    planes_random: int = _TRAIN.planes_random
+    plane_step_mm: float = _TRAIN.plane_step_mm
+    perceptual: str = _TRAIN.perceptual
+    perceptual_weight: float = _TRAIN.perceptual_weight
+    perceptual_planes: int = _TRAIN.perceptual_planes
+    field_weight: float = _TRAIN.field_weight
+    ssim_window_px: int = _TRAIN.ssim_window_px
+    vgg_weights: str = _TRAIN.vgg_weights
+    checkpoint_every: int = _TRAIN.checkpoint_every
+    val_views: int = _TRAIN.val_views
+    threads: int = _TRAIN.threads
     device: str = "cpu"
     progress: bool = True
 

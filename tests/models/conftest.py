@@ -10,8 +10,9 @@ from nhfd.models.train import TrainOptions, train
 
 
 def tiny_options(**kw) -> TrainOptions:
-    base = dict(width=8, depth=2, unshuffle=1, steps=4, crop_width_px=64, crop_height_px=64,
-                checkpoint_every=100, val_views=1, progress=False, threads=1)  # fmt: skip
+    base = dict(width=8, depth=2, unshuffle=1, inputs="rgb", steps=4, crop_width_px=64,
+                crop_height_px=64, checkpoint_every=100, val_views=1, progress=False,
+                threads=1)  # fmt: skip
     base.update(kw)
     return TrainOptions(**base)
 

@@ -44,12 +44,13 @@ def test_spectral_field_error_sees_defocus_that_a_plain_field_l2_barely_sees(tin
     data = HoloData(tiny_data, splits=("train",))
     optics = Optics.from_manifest(data.manifest)
     target = data.splits["train"].field[:1]
-    assert float(spectral_field_error(target.clone(), target, optics.aperture)) == 0.0
+    padded = FocalStackLoss(optics).padded_hw(target)
+    assert float(spectral_field_error(target.clone(), target, optics.aperture, padded)) == 0.0
     errors, plain = [], []
     for dz_mm in (0.25, 0.5, 1.0, 2.0):
         moved = propagate(target, dz_mm * 1e-3, optics.pitch_m, optics.wavelengths_m,
                           aperture=optics.aperture)  # fmt: skip
-        errors.append(float(spectral_field_error(moved, target, optics.aperture)))
+        errors.append(float(spectral_field_error(moved, target, optics.aperture, padded)))
         plain.append(float((moved - target).abs().square().sum() / target.abs().square().sum()))
     assert errors[0] > 0
     assert all(b > a for a, b in itertools.pairwise(errors)), errors
@@ -59,7 +60,8 @@ def test_spectral_field_error_sees_defocus_that_a_plain_field_l2_barely_sees(tin
     yy, xx = torch.meshgrid(torch.arange(h) - h / 2, torch.arange(w) - w / 2, indexing="ij")
     bump = torch.exp(-(xx**2 + yy**2) / (2 * (h / 8) ** 2))
     bump = bump * (plain[0] * target.abs().square().sum() / (3 * bump.square().sum())).sqrt()
-    assert float(spectral_field_error(target + bump, target, optics.aperture)) < 0.1 * errors[0]
+    assert float(spectral_field_error(target + bump, target, optics.aperture,
+                                      padded)) < 0.1 * errors[0]  # fmt: skip
 
 
 def test_spectral_field_error_pads_like_propagation_and_leaves_out_the_margin(tiny_data):
@@ -76,7 +78,7 @@ def test_spectral_field_error_pads_like_propagation_and_leaves_out_the_margin(ti
     edge = torch.zeros_like(target)
     edge[..., :, : m // 2] = 1.0
     edge[..., :, -(m // 2) :] = 1.0
-    wrapped = float(spectral_field_error(target + edge, target, optics.aperture))
+    wrapped = float(spectral_field_error(target + edge, target, optics.aperture, (h, w)))
     zero_padded = float(spectral_field_error(target + edge, target, optics.aperture, padded))
     assert zero_padded > 1.5 * wrapped, (zero_padded, wrapped)
     # Noise confined to the left margin band: counted in full, then left out.

@@ -9,7 +9,7 @@ import torch
 from nhfd.models.data import HoloData, batch_views
 from nhfd.models.loss import FocalStackLoss, Optics, uniform_planes
 from nhfd.models.net import predict, to_field
-from nhfd.models.train import CHECKPOINT, TRAIN_LOG, load_run, train
+from nhfd.models.train import CHECKPOINT, TRAIN_LOG, TrainOptions, load_run, train
 
 from .conftest import tiny_options
 
@@ -106,3 +106,10 @@ def test_a_cuda_run_resumes_on_the_cpu_from_the_same_step(tiny_data, tmp_path):
     # same losses to float rounding (the GPU sums in another order)
     for (_, a, _), (_, b, _) in zip(rows, ref_rows, strict=True):
         assert abs(float(a) - float(b)) <= 1e-3 * abs(float(b))
+
+
+def test_the_options_defaults_are_the_configurations():
+    """One place for the recipe: a bare TrainOptions is what `nhfd train` runs by default."""
+    from nhfd.config import Config
+
+    assert TrainOptions() == TrainOptions.from_config(Config())
