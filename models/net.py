@@ -28,12 +28,15 @@ INPUT_STD = 0.25
 
 @dataclass(frozen=True)
 class NetSpec:
-    """The network's shape: base width, depth (levels below the first) and unshuffle factor."""
+    """The network's shape: base width, depth (levels below the first), unshuffle factor,
+    inputs, and the width's growth per level (2: each level doubles the channels, the classic
+    U-Net; 1: every level keeps the base width)."""
 
     width: int = 16
     depth: int = 3
     unshuffle: int = 2
     inputs: str = "rgb"
+    growth: float = 2.0
 
     def __post_init__(self) -> None:
         input_channels(self.inputs)  # validates
@@ -43,11 +46,18 @@ class NetSpec:
             raise ValueError(f"depth = {self.depth}: must be in 0..6 levels")
         if self.unshuffle not in (1, 2, 4, 8):
             raise ValueError(f"unshuffle = {self.unshuffle}: must be 1, 2, 4 or 8")
+        if not 1 <= self.growth <= 2:
+            raise ValueError(f"growth = {self.growth}: must be in [1, 2] (width factor per level)")
 
     @property
     def channels(self) -> int:
         """Input channels: 3 (sRGB) or 4 (sRGB + mapped depth)."""
         return input_channels(self.inputs)
+
+    @property
+    def widths(self) -> list[int]:
+        """Channels at each level, the first (after unshuffle) to the deepest."""
+        return [max(1, round(self.width * self.growth**i)) for i in range(self.depth + 1)]
 
     @property
     def multiple(self) -> int:
@@ -73,8 +83,7 @@ class NHFNet(nn.Module):
     def __init__(self, spec: NetSpec) -> None:
         super().__init__()
         self.spec = spec
-        f, w = spec.unshuffle, spec.width
-        widths = [w * 2**i for i in range(spec.depth + 1)]
+        f, widths = spec.unshuffle, spec.widths
         self.inc = _block(spec.channels * f * f, widths[0])
         # Strided convolutions downsample: cheaper than pooling + conv, and export cleanly.
         self.down = nn.ModuleList(

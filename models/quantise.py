@@ -2,9 +2,9 @@
 
 The layers that write the outputs stay in float32: amplitude and phase feed a propagation and
 double-phase coding that amplify their errors. Calibrated on the first training views of a
-dataset. On 2 cores at 1024 x 576 it took the fast profile from 35.5 to 26.3 ms for 0.16 dB of
-held-out PSNR (`nhfd bench tradeoff --int8`); it helps less, or not at all, where convolutions
-are a smaller share of the time.
+dataset. On 2 cores at 1024 x 576 it took the earlier fast profile (16/3/4) from 35.5 to 26.3 ms
+for 0.16 dB of held-out PSNR (`nhfd bench tradeoff --int8`); it helps less, or not at all, where
+convolutions are a smaller share of the time.
 """
 
 from __future__ import annotations

@@ -3,7 +3,8 @@
 `nhfd export` exports `ServingNet(net)`, not `net`: the same function (to float32 rounding; the
 export check measures it against `NHFNet.forward`) with the same inputs and outputs. What
 changes is how the full-resolution ends of the graph are written. Measured with onnxruntime 1.32
-on 2 cores at 1024 x 576 for the fast profile's tensors, one operator per graph:
+on 2 cores at 1024 x 576 for the tensors of the earlier fast profile (16/3/4, unshuffle 4), one
+operator per graph:
 
 - sRGB normalisation plus pixel-unshuffle exported as Sub, Div, Split, Concat and a 6-D
   Transpose: about 13 ms. Here it is one stride-`f` convolution with one-hot weights that also

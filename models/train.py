@@ -85,6 +85,7 @@ class TrainOptions:
     depth: int = _NET.depth
     unshuffle: int = _NET.unshuffle
     inputs: str = _NET.inputs
+    growth: float = _NET.growth
     profile: str = _MODEL.profile
     steps: int = _TRAIN.steps
     batch: int = _TRAIN.batch
@@ -109,7 +110,7 @@ class TrainOptions:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        NetSpec(self.width, self.depth, self.unshuffle, self.inputs)  # validates
+        NetSpec(self.width, self.depth, self.unshuffle, self.inputs, self.growth)  # validates
         training_device(self.device)  # validates the name; availability is checked at start
         checks = {
             "steps": (self.steps >= 1, "must be at least 1"),
@@ -137,7 +138,7 @@ class TrainOptions:
 
     @property
     def spec(self) -> NetSpec:
-        return NetSpec(self.width, self.depth, self.unshuffle, self.inputs)
+        return NetSpec(self.width, self.depth, self.unshuffle, self.inputs, self.growth)
 
     @property
     def crop_hw(self) -> tuple[int, int]:
@@ -157,7 +158,7 @@ class TrainOptions:
         base = {f.name: getattr(m.train, f.name) for f in fields(TrainOptions)
                 if hasattr(m.train, f.name)}  # fmt: skip
         base.update(width=p.width, depth=p.depth, unshuffle=p.unshuffle, inputs=p.inputs,
-                    profile=name)
+                    growth=p.growth, profile=name)
         base.update({k: v for k, v in overrides.items() if v is not None})
         return TrainOptions(**base)
 

@@ -140,18 +140,20 @@ class DeviceSettings(_Section):
 
 class ModelProfile(_Section):
     """One network size: U-Net base width (channels at the first level), depth (levels below the
-    first, each halving the size) and the input pixel-unshuffle factor (the first downsampling)."""
+    first, each halving the size), the input pixel-unshuffle factor (the first downsampling) and
+    the width's growth per level (2 doubles the channels at each level, 1 keeps them)."""
 
     width: Annotated[int, Field(ge=1, le=512)]
     depth: Annotated[int, Field(ge=0, le=6)]
     unshuffle: Literal[1, 2, 4, 8]
     # "rgbd" adds the render's mapped depth as a fourth input channel (nhfd.models.inputs).
     inputs: Literal["rgb", "rgbd"] = "rgb"
+    growth: Annotated[float, Field(ge=1, le=2)] = 2.0
 
 
 def _default_profiles() -> dict[str, ModelProfile]:
     return {
-        "fast": ModelProfile(width=16, depth=3, unshuffle=4, inputs="rgbd"),
+        "fast": ModelProfile(width=16, depth=3, unshuffle=2, growth=1, inputs="rgbd"),
         "balanced": ModelProfile(width=16, depth=3, unshuffle=2, inputs="rgbd"),
         "accurate": ModelProfile(width=32, depth=3, unshuffle=2, inputs="rgbd"),
     }

@@ -34,6 +34,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--profile", help="network profile from nhfd.toml [model.profiles]")
     t.add_argument("--width", type=int, help="override the profile's base width")
     t.add_argument("--depth", type=int, help="override the profile's depth")
+    t.add_argument("--growth", type=float,
+                   help="override the profile's width growth per level (1 keeps the width, "
+                        "2 doubles it at each level)")
     t.add_argument("--unshuffle", type=int, help="override the profile's unshuffle factor")
     t.add_argument("--inputs", choices=("rgb", "rgbd"),
                    help="override the profile's inputs: sRGB, or sRGB plus the mapped depth")
@@ -92,6 +95,8 @@ def run_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--depth {args.depth}: must be in 0..6")
     if args.unshuffle is not None and args.unshuffle not in (1, 2, 4, 8):
         raise ValueError(f"--unshuffle {args.unshuffle}: must be 1, 2, 4 or 8")
+    if args.growth is not None and not 1 <= args.growth <= 2:
+        raise ValueError(f"--growth {args.growth}: must be in [1, 2]")
     if not Path(args.data).is_dir():
         raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
     crop = parse_wxh(args.crop, "--crop", 8192) if args.crop else (None, None)
@@ -100,7 +105,7 @@ def run_train(args: argparse.Namespace) -> int:
 
     options = TrainOptions.from_config(
         config, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
-        inputs=args.inputs,
+        inputs=args.inputs, growth=args.growth,
         steps=args.steps, batch=args.batch, crop_width_px=crop[0], crop_height_px=crop[1],
         learning_rate=args.lr, seed=args.seed, plane_mode=args.planes,
         perceptual=args.perceptual, vgg_weights=args.vgg_weights, field_weight=args.field_weight,

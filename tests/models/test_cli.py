@@ -17,7 +17,8 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     assert main(args) == 0
     assert "step 2" in capsys.readouterr().out
     info = json.loads((run / "run.json").read_text())
-    assert info["net"] == {"width": 8, "depth": 1, "unshuffle": 4, "inputs": "rgbd"}
+    assert info["net"] == {"width": 8, "depth": 1, "unshuffle": 2, "inputs": "rgbd",
+                           "growth": 1.0}  # the fast profile's, but for the overrides
     assert "box-window SSIM" in info["loss"]  # the log says which perceptual term ran
     onnx_path = tmp_path / "m.onnx"
     int8_path = tmp_path / "m-int8.onnx"
@@ -63,6 +64,8 @@ def _int8_is_quantised_and_close(float_path, int8_path):
      "--steps 0: must be positive"),
     (["train", "--data", "{data}", "--out", "{tmp}/r", "--unshuffle", "3"],
      "--unshuffle 3: must be 1, 2, 4 or 8"),
+    (["train", "--data", "{data}", "--out", "{tmp}/r", "--growth", "0.5"],
+     "--growth 0.5: must be in [1, 2]"),
     (["train", "--data", "{tmp}/nowhere", "--out", "{tmp}/r"], "--data {tmp}/nowhere: no such"),
     (["export", "{tmp}", "-o", "{tmp}/m.onnx", "--opset", "17"], "--opset 17: must be 18"),
     (["export", "{tmp}", "-o", "{tmp}/m.onnx"], "not a training run"),

@@ -58,3 +58,19 @@ def test_bad_specs_are_refused_by_name():
         NetSpec(8, 2, 3)
     with pytest.raises(ValueError, match="depth = 9"):
         NetSpec(8, 9, 1)
+    with pytest.raises(ValueError, match=r"growth = 3: must be in \[1, 2\]"):
+        NetSpec(8, 2, 1, growth=3)
+    with pytest.raises(ValueError, match="growth = nan"):
+        NetSpec(8, 2, 1, growth=float("nan"))
+
+
+def test_growth_sets_the_channels_of_each_level():
+    assert NetSpec(16, 3, 2).widths == [16, 32, 64, 128]  # the classic U-Net doubles
+    assert NetSpec(16, 3, 2, growth=1).widths == [16, 16, 16, 16]
+    assert NetSpec(16, 3, 2, growth=1.5).widths == [16, 24, 36, 54]
+    net = build_net(NetSpec(16, 3, 2, growth=1))
+    assert [m[0].out_channels for m in net.down] == [16, 16, 16]
+    assert net.head.in_channels == 16 and net.head.out_channels == 6 * 2 * 2
+    # a run saved before growth existed was a doubling U-Net, and loads as one
+    old = {"width": 16, "depth": 3, "unshuffle": 2, "inputs": "rgbd"}
+    assert NetSpec(**old).widths == [16, 32, 64, 128]

@@ -12,7 +12,7 @@ from nhfd.models.export import export_onnx
 from nhfd.models.quantise import head_nodes
 from nhfd.models.train import CHECKPOINT, train
 
-from nhfd.bench.tradeoff import finished_run, pareto
+from nhfd.bench.tradeoff import fastest_within, finished_run, pareto, run, variants
 from tests.models.conftest import tiny_options
 
 
@@ -46,3 +46,38 @@ def test_a_finished_run_is_reused_and_a_different_network_is_refused(tiny_data, 
 def test_pareto_front_keeps_only_undominated_points():
     points = [(10.0, 20.0), (20.0, 25.0), (15.0, 19.0), (30.0, 25.0), (5.0, 18.0)]
     assert pareto(points) == [4, 0, 1]  # in order of latency
+
+
+def test_the_fastest_variant_within_the_gap_of_the_best():
+    rows = [{"name": n, "onnxruntime_ms": ms, "psnr_db": db}
+            for n, ms, db in [("a", 300, 28.6), ("b", 88, 26.9), ("c", 40, 26.5), ("d", 35, 23.5)]]
+    assert fastest_within(rows, 2.0)["name"] == "b"  # c is 2.1 dB short of a: not within
+    assert fastest_within(rows, 1.0)["name"] == "a"
+    assert fastest_within([], 2.0) is None
+
+
+def test_the_grid_adds_variants_named_by_shape_and_growth():
+    from nhfd.config import Config
+
+    todo = variants(Config(), "balanced", [8, 16], [], [], [1, 2])
+    names = [t[0] for t in todo]
+    # balanced (16/3/2, doubling) is not repeated by the grid; constant width gets "-g1"
+    assert names == ["balanced", "w8-d3-u2-g1", "w8-d3-u2", "w16-d3-u2-g1"]
+    assert todo[1][2:] == (8, 3, 2, 1.0)
+
+
+@pytest.mark.parametrize("flag,value,message", [
+    ("growths", "0.5", "--growths '0.5': each must be in [1, 2]"),
+    ("growths", "x", "--growths 'x': give comma-separated numbers"),
+    ("widths", "0", "--widths '0': values must be positive"),
+])  # fmt: skip
+def test_bad_grids_are_named(flag, value, message, tmp_path):
+    import argparse
+
+    args = argparse.Namespace(size="1024x576", crop=None, widths="", depths="", unshuffles="",
+                              growths="", steps=1, threads=1, repeats=1, eval_views=1,
+                              data=str(tmp_path), config=None)  # fmt: skip
+    setattr(args, flag, value)
+    with pytest.raises(ValueError) as err:
+        run(args)
+    assert message in str(err.value)
