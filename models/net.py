@@ -21,6 +21,8 @@ import torch.nn.functional as F
 from nhfd.models.inputs import input_channels
 from torch import nn
 
+from nhfd.config import GROWTH_RANGE
+
 # sRGB renders of splat scenes on black are dark on average; centring them is enough.
 INPUT_MEAN = 0.5
 INPUT_STD = 0.25
@@ -36,7 +38,7 @@ class NetSpec:
     depth: int = 3
     unshuffle: int = 2
     inputs: str = "rgb"
-    growth: float = 2.0
+    growth: float = GROWTH_RANGE[1]
 
     def __post_init__(self) -> None:
         input_channels(self.inputs)  # validates
@@ -46,8 +48,10 @@ class NetSpec:
             raise ValueError(f"depth = {self.depth}: must be in 0..6 levels")
         if self.unshuffle not in (1, 2, 4, 8):
             raise ValueError(f"unshuffle = {self.unshuffle}: must be 1, 2, 4 or 8")
-        if not 1 <= self.growth <= 2:
-            raise ValueError(f"growth = {self.growth}: must be in [1, 2] (width factor per level)")
+        lo, hi = GROWTH_RANGE
+        if not lo <= self.growth <= hi:
+            raise ValueError(f"growth = {self.growth}: must be in [{lo:g}, {hi:g}] (width factor "
+                             "per level)")  # fmt: skip
 
     @property
     def channels(self) -> int:

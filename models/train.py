@@ -479,8 +479,11 @@ def train(
 
 
 def _check_resumable(ckpt: dict, options: TrainOptions, data: HoloData, path: Path) -> None:
-    # A run saved before an option existed was trained with that option's default.
-    saved = {f.name: f.default for f in fields(TrainOptions)} | ckpt.get("options", {})
+    # A run saved before an option existed was trained with that option's default then; for
+    # growth that is the doubling U-Net its checkpoint's network loads as, whatever the default
+    # profile's growth is now.
+    saved = ({f.name: f.default for f in fields(TrainOptions)} | {"growth": NetSpec().growth}
+             | ckpt.get("options", {}))
     now = asdict(options)
     diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
     if diff:

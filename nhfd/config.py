@@ -138,6 +138,11 @@ class DeviceSettings(_Section):
     camera_settings: CameraSettings = CameraSettings()
 
 
+# A profile's width growth per level: 1 keeps the base width, 2 doubles it (the classic U-Net,
+# and what every network saved before the key existed was).
+GROWTH_RANGE = (1.0, 2.0)
+
+
 class ModelProfile(_Section):
     """One network size: U-Net base width (channels at the first level), depth (levels below the
     first, each halving the size), the input pixel-unshuffle factor (the first downsampling) and
@@ -148,7 +153,7 @@ class ModelProfile(_Section):
     unshuffle: Literal[1, 2, 4, 8]
     # "rgbd" adds the render's mapped depth as a fourth input channel (nhfd.models.inputs).
     inputs: Literal["rgb", "rgbd"] = "rgb"
-    growth: Annotated[float, Field(ge=1, le=2)] = 2.0
+    growth: Annotated[float, Field(ge=GROWTH_RANGE[0], le=GROWTH_RANGE[1])] = GROWTH_RANGE[1]
 
 
 def _default_profiles() -> dict[str, ModelProfile]:

@@ -84,7 +84,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from nhfd.config import load_config
+    from nhfd.config import GROWTH_RANGE, load_config
 
     config = load_config(args.config).config
     for name in ("steps", "batch", "lr", "checkpoint_every", "val_views", "width"):
@@ -95,8 +95,9 @@ def run_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--depth {args.depth}: must be in 0..6")
     if args.unshuffle is not None and args.unshuffle not in (1, 2, 4, 8):
         raise ValueError(f"--unshuffle {args.unshuffle}: must be 1, 2, 4 or 8")
-    if args.growth is not None and not 1 <= args.growth <= 2:
-        raise ValueError(f"--growth {args.growth}: must be in [1, 2]")
+    lo, hi = GROWTH_RANGE
+    if args.growth is not None and not lo <= args.growth <= hi:
+        raise ValueError(f"--growth {args.growth:g}: must be in [{lo:g}, {hi:g}]")
     if not Path(args.data).is_dir():
         raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
     crop = parse_wxh(args.crop, "--crop", 8192) if args.crop else (None, None)
