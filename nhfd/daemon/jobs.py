@@ -56,7 +56,7 @@ class Job:
 
 class JobRunner:
     def __init__(self, name: str, *, max_queued: int = 16, kept: int = 32,
-                 on_finish: Callable[[Job], None] | None = None) -> None:
+                 on_finish: Callable[[Job, str, str | None], None] | None = None) -> None:
         self.name = name
         self._queue: queue.Queue[Job | None] = queue.Queue(maxsize=max_queued)
         self._lock = threading.Lock()
@@ -108,30 +108,34 @@ class JobRunner:
     def _execute(self, job: Job) -> None:
         self.current = job
         job.started_s = time.time()
+        # The end state is published last: a client that sees "failed" must also find what the
+        # finish hook records (the daemon's error list, the audit log).
+        state, error = "failed", None
         try:
             job.check()
             job.state = "running"
             job.result = job.run(job)
             job.check()
-            job.state = "done"
+            state = "done"
         except Cancelled as exc:
-            job.state, job.error = "cancelled", str(exc)
+            state, error = "cancelled", str(exc)
         except Exception as exc:
             # A cancel that surfaces as a device error (a stopped move) is still a cancel.
-            job.state = "cancelled" if job.cancel.is_set() else "failed"
-            job.error = f"{type(exc).__name__}: {exc}"
-            if job.state == "failed":
-                log.error("job %s %d failed: %s", job.kind, job.id, job.error)
+            state = "cancelled" if job.cancel.is_set() else "failed"
+            error = f"{type(exc).__name__}: {exc}"
+            if state == "failed":
+                log.error("job %s %d failed: %s", job.kind, job.id, error)
                 log.debug("%s", traceback.format_exc())
         finally:
             job.ended_s = time.time()
+            if self._on_finish is not None:
+                try:
+                    self._on_finish(job, state, error)
+                except Exception:
+                    log.exception("job finish hook")
+            job.state, job.error = state, error
             self.current = None
             with self._lock:
                 self._active.pop(job.id, None)
                 self._finished.append(job)
             job.done.set()
-            if self._on_finish is not None:
-                try:
-                    self._on_finish(job)
-                except Exception:
-                    log.exception("job finish hook")

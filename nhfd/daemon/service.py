@@ -454,11 +454,11 @@ class Daemon:
         self._snapshots += 1
         return self._snapshots
 
-    def _job_finished(self, job: Job) -> None:
-        if job.state == "failed":
-            self._error(f"job {job.id} ({job.kind})", job.error or "failed")
-        self.audit.write({"who": "daemon"}, f"job {job.kind} {job.state}", job=job.id,
-                         error=job.error)
+    def _job_finished(self, job: Job, state: str, error: str | None) -> None:
+        """Called before the job's end state is published (`JobRunner`)."""
+        if state == "failed":
+            self._error(f"job {job.id} ({job.kind})", error or "failed")
+        self.audit.write({"who": "daemon"}, f"job {job.kind} {state}", job=job.id, error=error)
 
     def _error(self, source: str, message: str) -> None:
         self.errors.append({"time_s": time.time(), "source": source, "message": message})
