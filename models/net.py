@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from nhfd.models.inputs import input_channels
 from torch import nn
 
-from nhfd.config import GROWTH_RANGE
+from nhfd.config import GROWTH_RANGE, SKIPS
 
 # sRGB renders of splat scenes on black are dark on average; centring them is enough.
 INPUT_MEAN = 0.5
@@ -31,14 +31,17 @@ INPUT_STD = 0.25
 @dataclass(frozen=True)
 class NetSpec:
     """The network's shape: base width, depth (levels below the first), unshuffle factor,
-    inputs, and the width's growth per level (2: each level doubles the channels, the classic
-    U-Net; 1: every level keeps the base width)."""
+    inputs, the width's growth per level (2: each level doubles the channels, the classic
+    U-Net; 1: every level keeps the base width), and how the decoder joins each skip ("concat":
+    side by side, the classic U-Net; "add": summed, half the arithmetic of the decoder's first
+    convolution at each level)."""
 
     width: int = 16
     depth: int = 3
     unshuffle: int = 2
     inputs: str = "rgb"
     growth: float = GROWTH_RANGE[1]
+    skip: str = SKIPS[0]
 
     def __post_init__(self) -> None:
         input_channels(self.inputs)  # validates
@@ -52,6 +55,8 @@ class NetSpec:
         if not lo <= self.growth <= hi:
             raise ValueError(f"growth = {self.growth}: must be in [{lo:g}, {hi:g}] (width factor "
                              "per level)")  # fmt: skip
+        if self.skip not in SKIPS:
+            raise ValueError(f"skip = {self.skip!r}: must be one of {', '.join(SKIPS)}")
 
     @property
     def channels(self) -> int:
@@ -98,7 +103,8 @@ class NHFNet(nn.Module):
         self.up = nn.ModuleList(
             nn.ConvTranspose2d(widths[i + 1], widths[i], 2, stride=2) for i in range(spec.depth)
         )
-        self.dec = nn.ModuleList(_block(2 * widths[i], widths[i]) for i in range(spec.depth))
+        joined = 2 if spec.skip == "concat" else 1  # channels into each decoder, per width
+        self.dec = nn.ModuleList(_block(joined * widths[i], widths[i]) for i in range(spec.depth))
         self.head = nn.Conv2d(widths[0], 6 * f * f, 1)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -126,7 +132,9 @@ class NHFNet(nn.Module):
             skips.append(x)
         skips.pop()
         for i in reversed(range(self.spec.depth)):
-            x = self.dec[i](torch.cat([self.up[i](x), skips[i]], dim=1))
+            up = self.up[i](x)
+            x = self.dec[i](torch.cat([up, skips[i]], dim=1) if self.spec.skip == "concat"
+                            else up + skips[i])  # fmt: skip
         return x
 
 

@@ -86,6 +86,7 @@ class TrainOptions:
     unshuffle: int = _NET.unshuffle
     inputs: str = _NET.inputs
     growth: float = _NET.growth
+    skip: str = _NET.skip
     profile: str = _MODEL.profile
     steps: int = _TRAIN.steps
     batch: int = _TRAIN.batch
@@ -110,7 +111,7 @@ class TrainOptions:
     progress: bool = True
 
     def __post_init__(self) -> None:
-        NetSpec(self.width, self.depth, self.unshuffle, self.inputs, self.growth)  # validates
+        _ = self.spec  # NetSpec validates the network's shape
         training_device(self.device)  # validates the name; availability is checked at start
         checks = {
             "steps": (self.steps >= 1, "must be at least 1"),
@@ -138,7 +139,8 @@ class TrainOptions:
 
     @property
     def spec(self) -> NetSpec:
-        return NetSpec(self.width, self.depth, self.unshuffle, self.inputs, self.growth)
+        return NetSpec(self.width, self.depth, self.unshuffle, self.inputs, self.growth,
+                       self.skip)  # fmt: skip
 
     @property
     def crop_hw(self) -> tuple[int, int]:
@@ -158,7 +160,7 @@ class TrainOptions:
         base = {f.name: getattr(m.train, f.name) for f in fields(TrainOptions)
                 if hasattr(m.train, f.name)}  # fmt: skip
         base.update(width=p.width, depth=p.depth, unshuffle=p.unshuffle, inputs=p.inputs,
-                    growth=p.growth, profile=name)
+                    growth=p.growth, skip=p.skip, profile=name)
         base.update({k: v for k, v in overrides.items() if v is not None})
         return TrainOptions(**base)
 
@@ -478,16 +480,22 @@ def train(
     return TrainResult(run_dir, step, last_loss, elapsed / max(1, steps_done), resumed_from)
 
 
-def _check_resumable(ckpt: dict, options: TrainOptions, data: HoloData, path: Path) -> None:
+def changed_options(ckpt: dict, options: TrainOptions) -> str:
+    """The options (other than `RESUMABLE_CHANGES`) a checkpoint was trained with that differ
+    from `options`, as "name: saved -> now, ..." ("" when none)."""
     # A run saved before an option existed was trained with that option's default then; for
-    # growth that is the doubling U-Net its checkpoint's network loads as, whatever the default
-    # profile's growth is now.
-    saved = ({f.name: f.default for f in fields(TrainOptions)} | {"growth": NetSpec().growth}
-             | ckpt.get("options", {}))
+    # growth and skip that is the classic U-Net its checkpoint's network loads as (doubling,
+    # concatenating), whatever the default profile's are now.
+    classic = {"growth": NetSpec().growth, "skip": NetSpec().skip}
+    saved = {f.name: f.default for f in fields(TrainOptions)} | classic | ckpt.get("options", {})
     now = asdict(options)
     diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
-    if diff:
-        pairs = ", ".join(f"{k}: {saved.get(k)!r} -> {now[k]!r}" for k in diff)
+    return ", ".join(f"{k}: {saved.get(k)!r} -> {now[k]!r}" for k in diff)
+
+
+def _check_resumable(ckpt: dict, options: TrainOptions, data: HoloData, path: Path) -> None:
+    pairs = changed_options(ckpt, options)
+    if pairs:
         raise ValueError(
             f"{path} was trained with other options ({pairs}); use another --out, or --force "
             "to start over"

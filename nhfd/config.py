@@ -142,11 +142,18 @@ class DeviceSettings(_Section):
 # and what every network saved before the key existed was).
 GROWTH_RANGE = (1.0, 2.0)
 
+# How a U-Net level's decoder takes its skip: "concat" (the classic U-Net: upsampled features and
+# the skip side by side, twice the channels into the first convolution) or "add" (summed: half
+# the first convolution's arithmetic). The first is what every network saved before the key
+# existed was.
+SKIPS = ("concat", "add")
+
 
 class ModelProfile(_Section):
     """One network size: U-Net base width (channels at the first level), depth (levels below the
     first, each halving the size), the input pixel-unshuffle factor (the first downsampling) and
-    the width's growth per level (2 doubles the channels at each level, 1 keeps them)."""
+    the width's growth per level (2 doubles the channels at each level, 1 keeps them) and how
+    the decoder joins each skip (`SKIPS`)."""
 
     width: Annotated[int, Field(ge=1, le=512)]
     depth: Annotated[int, Field(ge=0, le=6)]
@@ -154,11 +161,12 @@ class ModelProfile(_Section):
     # "rgbd" adds the render's mapped depth as a fourth input channel (nhfd.models.inputs).
     inputs: Literal["rgb", "rgbd"] = "rgb"
     growth: Annotated[float, Field(ge=GROWTH_RANGE[0], le=GROWTH_RANGE[1])] = GROWTH_RANGE[1]
+    skip: Literal[SKIPS] = SKIPS[0]
 
 
 def _default_profiles() -> dict[str, ModelProfile]:
     return {
-        "fast": ModelProfile(width=16, depth=3, unshuffle=2, growth=1, inputs="rgbd"),
+        "fast": ModelProfile(width=16, depth=3, unshuffle=2, growth=1, skip="add", inputs="rgbd"),
         "balanced": ModelProfile(width=16, depth=3, unshuffle=2, inputs="rgbd"),
         "accurate": ModelProfile(width=32, depth=3, unshuffle=2, inputs="rgbd"),
     }

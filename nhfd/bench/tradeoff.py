@@ -1,9 +1,10 @@
 """`nhfd bench tradeoff`: network size against speed and held-out quality (the paper's Fig. 3).
 
 Every variant (the configured profiles, plus any --widths x --depths x --unshuffles x --growths
-grid) is trained on the same reduced budget (--steps, said in the output), exported to ONNX, and
-measured: parameter count, onnxruntime and torch latency per frame at --size on --threads
-threads in the same run (their ratio reported, not assumed), and held-out focal-stack PSNR/SSIM
+x --skips grid) is trained on the same reduced budget (--steps, said in the output), exported
+to ONNX, and measured: parameter count, onnxruntime and torch latency per frame at --size on
+--threads threads in the same run (their ratio reported, not assumed; every model is timed at
+the end, the models taking turns in each of --repeats rounds), and held-out focal-stack PSNR/SSIM
 (`nhfd eval`'s measure). --int8 adds onnxruntime's static int8 quantisation of each variant (QDQ,
 per channel, the last layer kept in float32, calibrated on training views). Writes a table, a
 JSON file and a PNG of PSNR against latency with the Pareto front marked. Runs are kept under
@@ -18,10 +19,11 @@ import itertools
 import json
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from nhfd.cli.args import parse_wxh
-from nhfd.config import GROWTH_RANGE
+from nhfd.config import GROWTH_RANGE, SKIPS
 
 # The quality gap issue 5 allows a fast variant against the best one.
 WITHIN_DB = 2.0
@@ -37,8 +39,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--unshuffles", default="", help="grid: comma-separated unshuffle factors")
     p.add_argument("--growths", default="",
                    help="grid: comma-separated width growths per level (1 to 2)")
+    p.add_argument("--skips", default="",
+                   help=f"grid: comma-separated skip joins ({', '.join(SKIPS)})")
     p.add_argument("--steps", type=int, default=1000, help="training budget per variant")
     p.add_argument("--crop", default=None, help="training crop WxH (default: nhfd.toml)")
+    p.add_argument("--lr", type=float, default=None,
+                   help="Adam learning rate of every variant (default: nhfd.toml's, chosen for "
+                        "the full budget; a reduced budget may want a higher one)")
     p.add_argument("--size", default="1024x576", help="latency frame WxH (default 1024x576)")
     p.add_argument("--threads", type=int, default=2, help="threads for latency (default 2)")
     p.add_argument("--repeats", type=int, default=5, help="timed repeats; the median is kept")
@@ -72,15 +79,27 @@ def _growths(text: str) -> list[float]:
     return values
 
 
-def variant_name(width: int, depth: int, unshuffle: int, growth: float) -> str:
-    """`w16-d3-u2`, with `-g1` appended where the width does not double per level."""
+def _skips(text: str) -> list[str]:
+    values = [v.strip() for v in text.split(",") if v.strip()]
+    if any(v not in SKIPS for v in values):
+        raise ValueError(f"--skips {text!r}: each must be one of {', '.join(SKIPS)}")
+    return values
+
+
+def variant_name(width: int, depth: int, unshuffle: int, growth: float,
+                 skip: str = SKIPS[0]) -> str:  # fmt: skip
+    """`w16-d3-u2`, with `-g1` appended where the width does not double per level and `-add`
+    where the skips are summed."""
     doubling = growth == GROWTH_RANGE[1]
-    return f"w{width}-d{depth}-u{unshuffle}" + ("" if doubling else f"-g{growth:g}")
+    return (f"w{width}-d{depth}-u{unshuffle}" + ("" if doubling else f"-g{growth:g}")
+            + ("" if skip == SKIPS[0] else f"-{skip}"))  # fmt: skip
 
 
 def variants(config, profiles: str, widths: list[int], depths: list[int], unshuffles: list[int],
-             growths: list[float] = ()) -> list[tuple[str, str, int, int, int, float]]:  # fmt: skip
-    """(name, profile, width, depth, unshuffle, growth) of every variant, without duplicates."""
+             growths: list[float] = (), skips: list[str] = ()
+             ) -> list[tuple[str, str, int, int, int, float, str]]:  # fmt: skip
+    """(name, profile, width, depth, unshuffle, growth, skip) of every variant, without
+    duplicates."""
     m = config.model
     names = [] if profiles == "none" else (
         sorted(m.profiles) if profiles == "all" else [p.strip() for p in profiles.split(",")]
@@ -90,21 +109,22 @@ def variants(config, profiles: str, widths: list[int], depths: list[int], unshuf
         if n not in m.profiles:
             raise ValueError(f"--profiles: {n!r} is not one of {', '.join(sorted(m.profiles))}")
         p = m.profiles[n]
-        key = (p.width, p.depth, p.unshuffle, p.growth)
+        key = (p.width, p.depth, p.unshuffle, p.growth, p.skip)
         if key not in seen:
             seen.add(key)
             out.append((n, n, *key))
     base = m.profiles[m.profile]
-    if widths or depths or unshuffles or growths:
+    if widths or depths or unshuffles or growths or skips:
         grid = itertools.product(widths or [base.width], depths or [base.depth],
-                                 unshuffles or [base.unshuffle], growths or [base.growth])
+                                 unshuffles or [base.unshuffle], growths or [base.growth],
+                                 skips or [base.skip])  # fmt: skip
         for key in grid:
             if key not in seen:
                 seen.add(key)
                 out.append((variant_name(*key), m.profile, *key))
     if not out:
         raise ValueError("no variants: give --profiles and/or --widths/--depths/--unshuffles/"
-                         "--growths")
+                         "--growths/--skips")
     return out
 
 
@@ -118,14 +138,19 @@ def _kept(path: Path, stamp: dict) -> dict | None:
     return kept if same and "evals" in kept else None
 
 
-def _median_s(fn, repeats: int) -> float:
-    fn()  # warm-up
-    times = []
+def interleaved_ms(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+    """Median milliseconds of each call over `repeats` rounds in which the calls take turns, so
+    that a busy spell of a shared machine slows every variant alike and their ratios hold (timed
+    one after another, two variants' figures could come from a quiet and a busy minute)."""
+    for fn in fns.values():
+        fn()  # warm-up
+    times: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+        for key, fn in fns.items():
+            t0 = time.perf_counter()
+            fn()
+            times[key].append(time.perf_counter() - t0)
+    return {k: 1e3 * statistics.median(v) for k, v in times.items()}
 
 
 def finished_run(run_dir: Path, opts, manifest_key: str | None
@@ -133,13 +158,12 @@ def finished_run(run_dir: Path, opts, manifest_key: str | None
     """(step, median ms per training step, note) of a run already trained to `opts.steps`,
     or None. A finished run is measured as it is, also when it was trained on another build of
     the dataset (another machine's build differs in the last bits of its poses, which changes
-    the manifest key): the note says so. Its network must be the variant's."""
+    the manifest key): the note says so. Its network and recipe must be the variant's."""
     import csv
 
     import torch
 
-    from nhfd.models.net import NetSpec
-    from nhfd.models.train import CHECKPOINT, TRAIN_LOG
+    from nhfd.models.train import CHECKPOINT, TRAIN_LOG, changed_options
 
     path = run_dir / CHECKPOINT
     if not path.is_file():
@@ -147,9 +171,10 @@ def finished_run(run_dir: Path, opts, manifest_key: str | None
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
     if int(ckpt["step"]) < opts.steps:
         return None
-    if NetSpec(**ckpt["net"]) != opts.spec:
-        raise ValueError(f"{run_dir}: its network {ckpt['net']} is not this variant's "
-                         f"{opts.spec.to_json()}; use another --out")  # fmt: skip
+    changed = changed_options(ckpt, opts)
+    if changed:
+        raise ValueError(f"{run_dir} was trained otherwise than this variant ({changed}); use "
+                         "another --out")  # fmt: skip
     with open(run_dir / TRAIN_LOG, newline="") as f:
         seconds = [float(r["seconds"]) for r in csv.DictReader(f)]
     note = ""
@@ -184,6 +209,9 @@ def run(args: argparse.Namespace) -> int:
     depths = _ints(args.depths, "--depths")
     unshuffles = _ints(args.unshuffles, "--unshuffles")
     growths = _growths(args.growths)
+    skips = _skips(args.skips)
+    if args.lr is not None and not 0 < args.lr <= 1:
+        raise ValueError(f"--lr {args.lr:g}: must be in (0, 1]")
     for name in ("steps", "threads", "repeats", "eval_views"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} {getattr(args, name)}: must be positive")
@@ -195,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
     from nhfd.config import load_config
 
     config = load_config(args.config).config
-    todo = variants(config, args.profiles, widths, depths, unshuffles, growths)
+    todo = variants(config, args.profiles, widths, depths, unshuffles, growths, skips)
 
     import numpy as np
     import torch
@@ -212,15 +240,18 @@ def run(args: argparse.Namespace) -> int:
     out.mkdir(parents=True, exist_ok=True)
     data = HoloData(args.data, max_views={"interp": args.eval_views, "extrap": args.eval_views})
     machine = describe()
-    print(f"{len(todo)} variants, each trained for {args.steps} steps (a reduced budget); "
+    lr = args.lr if args.lr is not None else config.model.train.learning_rate
+    print(f"{len(todo)} variants, each trained for {args.steps} steps (a reduced budget) at "
+          f"learning rate {lr:g}; "
           f"latency at {w}x{h} on {args.threads} threads; {machine}", flush=True)
-    rows = []
-    for name, profile, width, depth, unshuffle, growth in todo:
+    rows, timed = [], {}
+    for name, profile, width, depth, unshuffle, growth, skip in todo:
         crop_kw = {"crop_width_px": crop[0], "crop_height_px": crop[1]} if crop else {}
         opts = TrainOptions.from_config(config, profile, width=width, depth=depth,
-                                        unshuffle=unshuffle, growth=growth, steps=args.steps,
-                                        val_views=args.eval_views, inputs=args.inputs,
-                                        **crop_kw)  # fmt: skip
+                                        unshuffle=unshuffle, growth=growth, skip=skip,
+                                        steps=args.steps, learning_rate=args.lr,
+                                        val_views=args.eval_views,
+                                        inputs=args.inputs, **crop_kw)  # fmt: skip
         run_dir = out / "runs" / name
         finished = finished_run(run_dir, opts, data.manifest.get("key"))
         if finished is None:
@@ -247,35 +278,38 @@ def run(args: argparse.Namespace) -> int:
         m = net.spec.multiple
         x = np.random.default_rng(0).random((1, net.spec.channels, h + (-h) % m, w + (-w) % m),
                                             np.float32)  # fmt: skip
-        torch.set_num_threads(args.threads)
-        with torch.no_grad():
-            xt = torch.from_numpy(x)
-            torch_s = _median_s(lambda n=net, t=xt: n(t), args.repeats)
+        xt = torch.from_numpy(x)
+        timed[f"torch:{name}"] = lambda n=net, t=xt: n(t)
         for label, path, diff in models:
-            ort_model = OnnxModel(path, threads=args.threads)
-            ort_s = _median_s(lambda om=ort_model, xx=x: om.run_raw(xx), args.repeats)
             if label not in kept["evals"]:
                 ev = evaluate(path, args.data, data=data, log=lambda _m: None)
                 kept["evals"][label] = ev["summary"]["all"]
                 (out / "models" / f"{name}.json").write_text(json.dumps(kept, indent=1))
+            ort_model = OnnxModel(path, threads=args.threads)
+            timed[label] = lambda om=ort_model, xx=x: om.run_raw(xx)
             s = kept["evals"][label]
-            row = {
+            rows.append({
                 "name": label, "profile": profile, "width": width, "depth": depth,
-                "unshuffle": unshuffle, "growth": growth, "inputs": net.spec.inputs,
-                "int8": label.endswith("-int8"),
+                "unshuffle": unshuffle, "growth": growth, "skip": skip,
+                "inputs": net.spec.inputs, "int8": label.endswith("-int8"),
                 "parameters": parameter_count(net), "steps": step,
                 "train_ms_per_step": ms_per_step,
                 "trained_on": info["options"].get("device", "cpu"),
-                "onnxruntime_ms": ort_s * 1e3, "torch_ms": torch_s * 1e3,
-                "torch_over_onnxruntime": torch_s / ort_s,
                 "psnr_db": s["model_psnr_db"], "ssim": s["model_ssim"],
                 "psnr_2d_db": s["hologram_2d_psnr_db"], "focus_bins_passed":
                 f"{s['focus_bins_passed']}/{s['focus_bins']}", "onnx_vs_torch_max_abs": diff,
-            }  # fmt: skip
-            rows.append(row)
-            print(f"  {label:<18} {row['parameters']:>8} params  ort {row['onnxruntime_ms']:7.1f} "
-                  f"ms  torch {row['torch_ms']:7.1f} ms  PSNR {row['psnr_db']:6.2f} dB  SSIM "
-                  f"{row['ssim']:.3f}", flush=True)  # fmt: skip
+                "torch_key": f"torch:{name}",
+            })  # fmt: skip
+    print(f"timing {len(timed)} models in {args.repeats} interleaved rounds", flush=True)
+    torch.set_num_threads(args.threads)
+    with torch.no_grad():
+        ms = interleaved_ms(timed, args.repeats)
+    for r in rows:
+        r["onnxruntime_ms"], r["torch_ms"] = ms[r["name"]], ms[r.pop("torch_key")]
+        r["torch_over_onnxruntime"] = r["torch_ms"] / r["onnxruntime_ms"]
+        print(f"  {r['name']:<18} {r['parameters']:>8} params  ort {r['onnxruntime_ms']:7.1f} "
+              f"ms  torch {r['torch_ms']:7.1f} ms  PSNR {r['psnr_db']:6.2f} dB  SSIM "
+              f"{r['ssim']:.3f}", flush=True)  # fmt: skip
     front = pareto([(r["onnxruntime_ms"], r["psnr_db"]) for r in rows])
     for i, r in enumerate(rows):
         r["pareto"] = i in front
@@ -283,7 +317,8 @@ def run(args: argparse.Namespace) -> int:
     best, near = fastest_within(rows, WITHIN_DB)
     print(f"best: {best['name']} {best['psnr_db']:.2f} dB; fastest within {WITHIN_DB:g} dB of "
           f"it: {near['name']} {near['psnr_db']:.2f} dB at {near['onnxruntime_ms']:.1f} ms")
-    report = {"machine": machine, "budget_steps": args.steps, "size_wh": [w, h],
+    report = {"machine": machine, "budget_steps": args.steps, "learning_rate": lr,
+              "size_wh": [w, h],
               "threads": args.threads, "data": str(Path(args.data).resolve()), "rows": rows,
               "fastest_within_db": {"db": WITHIN_DB, "name": near["name"]}}
     (out / "tradeoff.json").write_text(json.dumps(report, indent=1))

@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 from nhfd.cli.args import parse_wxh
+from nhfd.config import SKIPS
 
 TRAIN_HELP = """\
 Train the U-Net that maps a view to its reference-plane hologram, with the focal-stack loss, on a
@@ -37,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--growth", type=float,
                    help="override the profile's width growth per level (1 keeps the width, "
                         "2 doubles it at each level)")
+    t.add_argument("--skip", choices=SKIPS,
+                   help="override how the profile's decoder joins each skip: side by side "
+                        "(concat, the classic U-Net) or summed (add: cheaper)")
     t.add_argument("--unshuffle", type=int, help="override the profile's unshuffle factor")
     t.add_argument("--inputs", choices=("rgb", "rgbd"),
                    help="override the profile's inputs: sRGB, or sRGB plus the mapped depth")
@@ -106,7 +110,7 @@ def run_train(args: argparse.Namespace) -> int:
 
     options = TrainOptions.from_config(
         config, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
-        inputs=args.inputs, growth=args.growth,
+        inputs=args.inputs, growth=args.growth, skip=args.skip,
         steps=args.steps, batch=args.batch, crop_width_px=crop[0], crop_height_px=crop[1],
         learning_rate=args.lr, seed=args.seed, plane_mode=args.planes,
         perceptual=args.perceptual, vgg_weights=args.vgg_weights, field_weight=args.field_weight,

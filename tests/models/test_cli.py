@@ -18,7 +18,7 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     assert "step 2" in capsys.readouterr().out
     info = json.loads((run / "run.json").read_text())
     assert info["net"] == {"width": 8, "depth": 1, "unshuffle": 2, "inputs": "rgbd",
-                           "growth": 1.0}  # the fast profile's, but for the overrides
+                           "growth": 1.0, "skip": "add"}  # fast's, but for the overrides
     assert "box-window SSIM" in info["loss"]  # the log says which perceptual term ran
     onnx_path = tmp_path / "m.onnx"
     int8_path = tmp_path / "m-int8.onnx"

@@ -7,7 +7,8 @@ import torch
 from nhfd.models.net import NetSpec, build_net, pad_to_multiple, predict
 
 
-@pytest.mark.parametrize("spec", [NetSpec(8, 2, 1), NetSpec(8, 1, 2), NetSpec(4, 3, 4)])
+@pytest.mark.parametrize("spec", [NetSpec(8, 2, 1), NetSpec(8, 1, 2), NetSpec(4, 3, 4),
+                                  NetSpec(8, 2, 2, growth=1, skip="add")])  # fmt: skip
 def test_any_size_in_gives_the_same_size_out(spec):
     net = build_net(spec, seed=0).eval()
     rgb = torch.rand(3, 37, 53)
@@ -62,6 +63,8 @@ def test_bad_specs_are_refused_by_name():
         NetSpec(8, 2, 1, growth=3)
     with pytest.raises(ValueError, match="growth = nan"):
         NetSpec(8, 2, 1, growth=float("nan"))
+    with pytest.raises(ValueError, match="skip = 'sum': must be one of concat, add"):
+        NetSpec(8, 2, 1, skip="sum")
 
 
 def test_growth_sets_the_channels_of_each_level():
@@ -71,6 +74,23 @@ def test_growth_sets_the_channels_of_each_level():
     net = build_net(NetSpec(16, 3, 2, growth=1))
     assert [m[0].out_channels for m in net.down] == [16, 16, 16]
     assert net.head.in_channels == 16 and net.head.out_channels == 6 * 2 * 2
-    # a run saved before growth existed was a doubling U-Net, and loads as one
+    # a run saved before growth and skip existed was a doubling, concatenating U-Net
     old = {"width": 16, "depth": 3, "unshuffle": 2, "inputs": "rgbd"}
-    assert NetSpec(**old).widths == [16, 32, 64, 128]
+    assert NetSpec(**old).widths == [16, 32, 64, 128] and NetSpec(**old).skip == "concat"
+
+
+def test_summed_skips_halve_the_decoders_first_convolution():
+    cat = build_net(NetSpec(16, 2, 2, growth=1), seed=0)
+    add = build_net(NetSpec(16, 2, 2, growth=1, skip="add"), seed=0)
+    assert [d[0].in_channels for d in cat.dec] == [32, 32]
+    assert [d[0].in_channels for d in add.dec] == [16, 16]
+    # the sum is what the decoder sees: the upsampled features plus the skip, not either alone
+    x = torch.rand(1, 3 * 2 * 2, 8, 8)  # unshuffled sRGB
+    seen = {}
+    add.dec[0].register_forward_pre_hook(lambda _m, a: seen.setdefault("in", a[0]))
+    with torch.no_grad():
+        add.trunk(x)
+        skip0 = add.inc(x)
+        skip1 = add.down[0](skip0)
+        up0 = add.up[0](add.dec[1](add.up[1](add.down[1](skip1)) + skip1))
+    assert torch.allclose(seen["in"], up0 + skip0, atol=1e-6)

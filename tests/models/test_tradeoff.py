@@ -12,7 +12,14 @@ from nhfd.models.export import export_onnx
 from nhfd.models.quantise import head_nodes
 from nhfd.models.train import CHECKPOINT, train
 
-from nhfd.bench.tradeoff import fastest_within, finished_run, pareto, run, variants
+from nhfd.bench.tradeoff import (
+    fastest_within,
+    finished_run,
+    interleaved_ms,
+    pareto,
+    run,
+    variants,
+)
 from tests.models.conftest import tiny_options
 
 
@@ -26,7 +33,7 @@ def test_int8_keeps_the_layers_that_write_the_outputs_in_float(tiny_run, tmp_pat
     assert set(convs[-2:]) == set(heads)
 
 
-def test_a_finished_run_is_reused_and_a_different_network_is_refused(tiny_data, tmp_path):
+def test_a_finished_run_is_reused_and_another_network_or_recipe_is_refused(tiny_data, tmp_path):
     run = tmp_path / "run"
     opts = tiny_options(steps=3)
     assert finished_run(run, opts, "k") is None
@@ -38,8 +45,11 @@ def test_a_finished_run_is_reused_and_a_different_network_is_refused(tiny_data, 
     assert step == 3 and ms > 0 and note == ""
     _, _, note = finished_run(run, opts, "another-build")
     assert "another build of the dataset" in note and key[:12] in note
-    with pytest.raises(ValueError, match="not this variant's"):
+    with pytest.raises(ValueError, match=r"trained otherwise than this variant \(width: 8 -> 4\)"):
         finished_run(run, tiny_options(steps=3, width=4), key)
+    # another recipe is another variant too: a run at another learning rate is not reused
+    with pytest.raises(ValueError, match=r"learning_rate: 0\.001 -> 0\.002"):
+        finished_run(run, tiny_options(steps=3, learning_rate=0.002), key)
     assert json.loads((run / "run.json").read_text())["options"]["device"] == "cpu"
 
 
@@ -56,6 +66,16 @@ def test_the_fastest_variant_within_the_gap_of_the_best():
     assert fastest_within(rows, 1.0)[1]["name"] == "a"
 
 
+def test_models_are_timed_taking_turns_so_a_busy_spell_hits_all_alike():
+    import time
+
+    calls = []
+    ms = interleaved_ms({"slow": lambda: (calls.append("slow"), time.sleep(0.02)),
+                         "quick": lambda: calls.append("quick")}, 3)  # fmt: skip
+    assert calls == ["slow", "quick"] * 4  # a warm-up, then three rounds
+    assert ms["slow"] >= 20 > ms["quick"]
+
+
 def test_the_grid_adds_variants_named_by_shape_and_growth():
     from nhfd.config import Config
 
@@ -63,21 +83,52 @@ def test_the_grid_adds_variants_named_by_shape_and_growth():
     names = [t[0] for t in todo]
     # balanced (16/3/2, doubling) is not repeated by the grid; constant width gets "-g1"
     assert names == ["balanced", "w8-d3-u2-g1", "w8-d3-u2", "w16-d3-u2-g1"]
-    assert todo[1][2:] == (8, 3, 2, 1.0)
+    assert todo[1][2:] == (8, 3, 2, 1.0, "concat")
+
+
+def test_summed_skips_are_a_grid_axis_named_add():
+    from nhfd.config import Config
+
+    todo = variants(Config(), "none", [16], [], [], [1], ["concat", "add"])
+    assert [t[0] for t in todo] == ["w16-d3-u2-g1", "w16-d3-u2-g1-add"]
+    assert todo[1][2:] == (16, 3, 2, 1.0, "add")
 
 
 @pytest.mark.parametrize("flag,value,message", [
     ("growths", "0.5", "--growths '0.5': each must be in [1, 2]"),
     ("growths", "x", "--growths 'x': give comma-separated numbers"),
     ("widths", "0", "--widths '0': values must be positive"),
+    ("skips", "add,sum", "--skips 'add,sum': each must be one of concat, add"),
+    ("lr", 0.0, "--lr 0: must be in (0, 1]"),
 ])  # fmt: skip
 def test_bad_grids_are_named(flag, value, message, tmp_path):
     import argparse
 
     args = argparse.Namespace(size="1024x576", crop=None, widths="", depths="", unshuffles="",
-                              growths="", steps=1, threads=1, repeats=1, eval_views=1,
-                              data=str(tmp_path), config=None)  # fmt: skip
+                              growths="", skips="", lr=None, steps=1, threads=1, repeats=1,
+                              eval_views=1, data=str(tmp_path), config=None)  # fmt: skip
     setattr(args, flag, value)
     with pytest.raises(ValueError) as err:
         run(args)
     assert message in str(err.value)
+
+
+def test_the_bench_end_to_end_on_a_tiny_dataset(tiny_data, tmp_path, capsys):
+    from nhfd.cli.main import main
+
+    out = tmp_path / "bench"
+    argv = ["bench", "tradeoff", "--data", str(tiny_data), "--profiles", "none", "--widths", "4",
+            "--depths", "1", "--skips", "concat,add", "--steps", "2", "--crop", "32x32",
+            "--size", "64x48", "--threads", "1", "--repeats", "2", "--eval-views", "1",
+            "--out", str(out)]  # fmt: skip
+    assert main(argv) == 0
+    report = json.loads((out / "tradeoff.json").read_text())
+    rows = {r["name"]: r for r in report["rows"]}
+    assert set(rows) == {"w4-d1-u2", "w4-d1-u2-add"}  # on the default profile, balanced
+    assert rows["w4-d1-u2-add"]["skip"] == "add" and report["budget_steps"] == 2
+    assert rows["w4-d1-u2-add"]["parameters"] < rows["w4-d1-u2"]["parameters"]
+    for r in rows.values():
+        assert r["steps"] == 2 and r["onnxruntime_ms"] > 0 and r["torch_ms"] > 0
+        assert r["torch_over_onnxruntime"] == pytest.approx(r["torch_ms"] / r["onnxruntime_ms"])
+    assert report["fastest_within_db"]["name"] in rows
+    assert (out / "tradeoff.png").is_file()
