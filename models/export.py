@@ -14,6 +14,7 @@ import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from nhfd.models.metadata import (
@@ -105,6 +106,25 @@ def compare_with_torch(net, onnx_path: str | Path) -> tuple[float, list[tuple[in
     return worst, sizes
 
 
+def session_options(threads: int = 0) -> Any:
+    """onnxruntime session options. `threads` > 0 (serving, latency benches): that many intra-op
+    threads, one inter-op thread, and pools that sleep instead of spinning between runs. A
+    spinning pool keeps the cores busy for a while after each run: it slowed the daemon's
+    following torch FFT from 20 to 31 ms on 2 cores (issue 7), and a second model timed right
+    after the first from about 55 to 105 ms (two 2-thread models taking turns). `threads` = 0:
+    onnxruntime's defaults (offline evaluation)."""
+    import onnxruntime as ort
+
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 3
+    if threads:
+        opts.intra_op_num_threads = threads
+        opts.inter_op_num_threads = 1
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    return opts
+
+
 class OnnxModel:
     """An exported NHF network under onnxruntime, with its metadata.
 
@@ -113,21 +133,17 @@ class OnnxModel:
     """
 
     def __init__(self, path: str | Path, *, expected: dict | None = None, threads: int = 0,
-                 source: str | None = None) -> None:  # fmt: skip
+                 source: str | None = None,
+                 providers: tuple[str, ...] = ("CPUExecutionProvider",)) -> None:  # fmt: skip
         import onnxruntime as ort
 
         self.path = Path(path)
         name = source or str(self.path)
         if not self.path.is_file():
             raise FileNotFoundError(f"{name}: no such model file")
-        opts = ort.SessionOptions()
-        if threads:
-            opts.intra_op_num_threads = threads
-            opts.inter_op_num_threads = 1
-        opts.log_severity_level = 3
         try:
             self.session = ort.InferenceSession(
-                str(self.path), sess_options=opts, providers=["CPUExecutionProvider"]
+                str(self.path), sess_options=session_options(threads), providers=list(providers)
             )
         except Exception as exc:  # onnxruntime raises its own exception types for bad files
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -175,9 +191,10 @@ class OnnxModel:
         return (amp[0], phase[0]) if single else (amp, phase)
 
 
-def load_model(path: str | Path, config=None, *, threads: int = 0) -> OnnxModel:
+def load_model(path: str | Path, config=None, *, threads: int = 0,
+               providers: tuple[str, ...] = ("CPUExecutionProvider",)) -> OnnxModel:
     """Load an exported model; with a `nhfd.config.Config`, refuse one trained for other optics."""
     from nhfd.models.metadata import expected_from_config
 
     expected = expected_from_config(config) if config is not None else None
-    return OnnxModel(path, expected=expected, threads=threads)
+    return OnnxModel(path, expected=expected, threads=threads, providers=providers)

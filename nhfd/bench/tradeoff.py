@@ -138,15 +138,19 @@ def _kept(path: Path, stamp: dict) -> dict | None:
     return kept if same and "evals" in kept else None
 
 
-def interleaved_ms(fns: dict[str, Callable[[], object]], repeats: int) -> dict[str, float]:
+def interleaved_ms(fns: dict[str, Callable[[], object]], repeats: int,
+                   settle_s: float = 0.05) -> dict[str, float]:
     """Median milliseconds of each call over `repeats` rounds in which the calls take turns, so
     that a busy spell of a shared machine slows every variant alike and their ratios hold (timed
-    one after another, two variants' figures could come from a quiet and a busy minute)."""
+    one after another, two variants' figures could come from a quiet and a busy minute). Each
+    call starts `settle_s` after the previous one ended, untimed: thread pools that spin after a
+    call (torch's OpenMP workers) would otherwise take the next call's cores."""
     for fn in fns.values():
         fn()  # warm-up
     times: dict[str, list[float]] = {k: [] for k in fns}
     for _ in range(repeats):
         for key, fn in fns.items():
+            time.sleep(settle_s)
             t0 = time.perf_counter()
             fn()
             times[key].append(time.perf_counter() - t0)

@@ -65,26 +65,16 @@ def _set_threads(threads: int, layer: str) -> None:
 
 
 def open_model(path: str, config: Any, threads: int) -> Any:
-    """An `OnnxModel` checked against the configured optics, with a session whose thread pools
-    are set explicitly and do not spin: a spinning onnxruntime pool slowed the following torch
-    FFT from 20 to 31 ms on 2 cores (issue 7)."""
+    """An `OnnxModel` checked against the configured optics, on the configured providers, with
+    `threads` intra-op threads in pools that do not spin (`nhfd.models.export.session_options`)."""
     import onnxruntime as ort
 
     from nhfd.models.export import load_model
 
     providers = check_providers(list(config.daemon.onnx_providers),
                                 ort.get_available_providers())
-    model = load_model(path, config, threads=threads)  # validates; raises ModelMismatch etc.
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    opts.inter_op_num_threads = 1
-    opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
-    opts.log_severity_level = 3
-    # OnnxModel has no hook for session options: replace its session (a second parse of a
-    # file of a few MB, once per load).
-    model.session = ort.InferenceSession(path, sess_options=opts, providers=providers)
-    return model
+    # validates; raises ModelMismatch etc.
+    return load_model(path, config, threads=threads, providers=tuple(providers))
 
 
 def check_providers(wanted: list[str], available: list[str]) -> list[str]:

@@ -181,3 +181,8 @@ def test_an_unavailable_execution_provider_is_refused_listing_the_available_ones
     assert "available: " + ", ".join(available) in message
     model = open_model(str(tiny["model"]), small_config(), threads=1)
     assert model.session.get_providers() == ["CPUExecutionProvider"]
+    # the serving session: the given threads, and pools that sleep between frames (a spinning
+    # pool takes the cores from the propagation that follows inference)
+    opts = model.session.get_session_options()
+    assert opts.intra_op_num_threads == 1 and opts.inter_op_num_threads == 1
+    assert opts.get_session_config_entry("session.intra_op.allow_spinning") == "0"

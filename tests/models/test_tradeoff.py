@@ -76,6 +76,18 @@ def test_models_are_timed_taking_turns_so_a_busy_spell_hits_all_alike():
     assert ms["slow"] >= 20 > ms["quick"]
 
 
+def test_the_pause_before_each_timed_call_is_not_counted():
+    import time
+
+    ends, starts = [], []
+    ms = interleaved_ms({"a": lambda: (starts.append(time.perf_counter()), time.sleep(0.01),
+                                       ends.append(time.perf_counter())),
+                         "b": lambda: None}, 3, settle_s=0.05)  # fmt: skip
+    assert 10 <= ms["a"] < 40  # a 10 ms call; the 50 ms pause before it is not in the figure
+    # every timed call of "a" began at least the pause after the previous "a" ended
+    assert all(s - e >= 0.05 for e, s in zip(ends[:-1], starts[1:], strict=True))
+
+
 def test_the_grid_adds_variants_named_by_shape_and_growth():
     from nhfd.config import Config
 
