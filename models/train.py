@@ -37,7 +37,7 @@ from nhfd.models.metadata import manifest_sha256
 from nhfd.models.net import NetSpec, build_net, parameter_count, predict, to_field
 
 from nhfd import __version__
-from nhfd.config import ModelSettings
+from nhfd.config import LEARNING_RATE_RULE, ModelSettings, learning_rate_ok
 
 CHECKPOINT = "checkpoint.pt"
 RUN_JSON = "run.json"
@@ -118,7 +118,7 @@ class TrainOptions:
             "batch": (self.batch >= 1, "must be at least 1"),
             "crop_width_px": (self.crop_width_px >= 1, "must be at least 1"),
             "crop_height_px": (self.crop_height_px >= 1, "must be at least 1"),
-            "learning_rate": (0 < self.learning_rate <= 1, "must be in (0, 1]"),
+            "learning_rate": (learning_rate_ok(self.learning_rate), LEARNING_RATE_RULE),
             "planes_from_depth": (self.planes_from_depth >= 0, "must be 0 or more"),
             "planes_random": (self.planes_random >= 0, "must be 0 or more"),
             "plane_step_mm": (self.plane_step_mm > 0, "must be > 0"),

@@ -148,6 +148,16 @@ GROWTH_RANGE = (1.0, 2.0)
 # existed was.
 SKIPS = ("concat", "add")
 
+# Adam's learning rate: above the first bound, at most the second (nhfd.toml, `nhfd train --lr`,
+# `nhfd bench tradeoff --lr`).
+LEARNING_RATE_RANGE = (0.0, 1.0)
+LEARNING_RATE_RULE = "must be in ({:g}, {:g}]".format(*LEARNING_RATE_RANGE)
+
+
+def learning_rate_ok(lr: float) -> bool:
+    """Whether `lr` is in `LEARNING_RATE_RANGE` (NaN is not)."""
+    return LEARNING_RATE_RANGE[0] < lr <= LEARNING_RATE_RANGE[1]
+
 
 class ModelProfile(_Section):
     """One network size: U-Net base width (channels at the first level), depth (levels below the
@@ -179,7 +189,8 @@ class TrainSettings(_Section):
     batch: Annotated[int, Field(ge=1, le=256)] = 1
     crop_width_px: Pixels = 384
     crop_height_px: Pixels = 224
-    learning_rate: Annotated[float, Field(gt=0, le=1)] = 1e-3
+    learning_rate: Annotated[float, Field(gt=LEARNING_RATE_RANGE[0],
+                                          le=LEARNING_RATE_RANGE[1])] = 1e-3
     seed: Annotated[int, Field(ge=0)] = 0
     plane_mode: Literal["depth", "uniform"] = "depth"
     planes_from_depth: Annotated[int, Field(ge=0, le=64)] = 4

@@ -23,7 +23,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from nhfd.cli.args import parse_wxh
-from nhfd.config import GROWTH_RANGE, SKIPS
+from nhfd.config import GROWTH_RANGE, LEARNING_RATE_RULE, SKIPS, learning_rate_ok
 
 # The quality gap issue 5 allows a fast variant against the best one.
 WITHIN_DB = 2.0
@@ -214,8 +214,8 @@ def run(args: argparse.Namespace) -> int:
     unshuffles = _ints(args.unshuffles, "--unshuffles")
     growths = _growths(args.growths)
     skips = _skips(args.skips)
-    if args.lr is not None and not 0 < args.lr <= 1:
-        raise ValueError(f"--lr {args.lr:g}: must be in (0, 1]")
+    if args.lr is not None and not learning_rate_ok(args.lr):
+        raise ValueError(f"--lr {args.lr:g}: {LEARNING_RATE_RULE}")
     for name in ("steps", "threads", "repeats", "eval_views"):
         if getattr(args, name) < 1:
             raise ValueError(f"--{name.replace('_', '-')} {getattr(args, name)}: must be positive")

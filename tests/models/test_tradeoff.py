@@ -112,6 +112,7 @@ def test_summed_skips_are_a_grid_axis_named_add():
     ("widths", "0", "--widths '0': values must be positive"),
     ("skips", "add,sum", "--skips 'add,sum': each must be one of concat, add"),
     ("lr", 0.0, "--lr 0: must be in (0, 1]"),
+    ("lr", float("nan"), "--lr nan: must be in (0, 1]"),
 ])  # fmt: skip
 def test_bad_grids_are_named(flag, value, message, tmp_path):
     import argparse
