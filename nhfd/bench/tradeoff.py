@@ -358,6 +358,9 @@ def plot(rows: list[dict], path: Path, steps: int, size: tuple[int, int], thread
             label="Pareto front")  # fmt: skip
     if rows:
         ax.axhline(rows[0]["psnr_2d_db"], color="grey", lw=0.8, label="2D hologram")
+        best = max(r["psnr_db"] for r in rows)
+        ax.axhline(best - WITHIN_DB, color="C2", lw=0.8, ls=":",
+                   label=f"{WITHIN_DB:g} dB below the best")  # fmt: skip
     ax.set_xlabel(f"onnxruntime ms per {size[0]}x{size[1]} frame ({threads} threads)")
     ax.set_ylabel("held-out focal-stack PSNR (dB)")
     ax.set_title(f"speed vs quality, {steps} training steps each", fontsize=9)
