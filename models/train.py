@@ -480,16 +480,18 @@ def train(
     return TrainResult(run_dir, step, last_loss, elapsed / max(1, steps_done), resumed_from)
 
 
-def changed_options(ckpt: dict, options: TrainOptions) -> str:
-    """The options (other than `RESUMABLE_CHANGES`) a checkpoint was trained with that differ
-    from `options`, as "name: saved -> now, ..." ("" when none)."""
+def changed_options(ckpt: dict, options: TrainOptions, ignore: frozenset[str] = frozenset()
+                    ) -> str:  # fmt: skip
+    """The options (other than `RESUMABLE_CHANGES` and `ignore`) a checkpoint was trained with
+    that differ from `options`, as "name: saved -> now, ..." ("" when none)."""
     # A run saved before an option existed was trained with that option's default then; for
     # growth and skip that is the classic U-Net its checkpoint's network loads as (doubling,
     # concatenating), whatever the default profile's are now.
     classic = {"growth": NetSpec().growth, "skip": NetSpec().skip}
     saved = {f.name: f.default for f in fields(TrainOptions)} | classic | ckpt.get("options", {})
     now = asdict(options)
-    diff = [k for k in now if k not in RESUMABLE_CHANGES and saved.get(k) != now[k]]
+    diff = [k for k in now
+            if k not in RESUMABLE_CHANGES and k not in ignore and saved.get(k) != now[k]]
     return ", ".join(f"{k}: {saved.get(k)!r} -> {now[k]!r}" for k in diff)
 
 

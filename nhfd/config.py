@@ -208,7 +208,7 @@ class TrainSettings(_Section):
 
 
 class ModelSettings(_Section):
-    profile: str = "balanced"
+    profile: str = "fast"
     profiles: dict[str, ModelProfile] = Field(default_factory=_default_profiles)
     train: TrainSettings = TrainSettings()
 

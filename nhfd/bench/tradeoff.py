@@ -175,7 +175,9 @@ def finished_run(run_dir: Path, opts, manifest_key: str | None
     ckpt = torch.load(path, map_location="cpu", weights_only=False)
     if int(ckpt["step"]) < opts.steps:
         return None
-    changed = changed_options(ckpt, opts)
+    # The profile is only a name here: a variant's network, inputs and recipe are compared in
+    # full, and a grid variant carries whichever profile was the default when it was trained.
+    changed = changed_options(ckpt, opts, ignore=frozenset({"profile"}))
     if changed:
         raise ValueError(f"{run_dir} was trained otherwise than this variant ({changed}); use "
                          "another --out")  # fmt: skip

@@ -44,14 +44,13 @@ SWEEP_PERCENTILES = (97.0, 3.0)
 EXPOSURE_S = 0.05
 HOW_TO_BUILD = """\
 The demo needs the trained default model {model}, which is not there.
-Build it (about 8 min + 100 min on 2 cores, or a few minutes with --device cuda on a GPU; see
-README "The network"):
+Build it (about 8 min + 45 min on 2 cores, or a few minutes with --device cuda on a GPU; see
+README "The shipped model"):
   .venv/bin/nhfd dataset build --scene models/scenes/donut.ply --out datasets/donut-512 \\
       --views 130 --size 512x288 --workers 2
-  .venv/bin/nhfd train --data datasets/donut-512 --out runs/donut-512-rgbd \\
-      --profile balanced --steps 6000 --checkpoint-every 250 --threads 1
+  .venv/bin/nhfd train --data datasets/donut-512 --out runs/donut-512
   (an interrupted run continues when the same command runs again)
-  .venv/bin/nhfd export runs/donut-512-rgbd -o {model}
+  .venv/bin/nhfd export runs/donut-512 -o {model}
 or copy a released nhf-donut-512.onnx there, or pass --model PATH."""
 
 

@@ -50,6 +50,9 @@ def test_a_finished_run_is_reused_and_another_network_or_recipe_is_refused(tiny_
     # another recipe is another variant too: a run at another learning rate is not reused
     with pytest.raises(ValueError, match=r"learning_rate: 0\.001 -> 0\.002"):
         finished_run(run, tiny_options(steps=3, learning_rate=0.002), key)
+    # the profile is only a name: the same network and recipe under another default profile
+    # (a grid variant carries the default's name) is the same variant
+    assert finished_run(run, tiny_options(steps=3, profile="accurate"), key)[0] == 3
     assert json.loads((run / "run.json").read_text())["options"]["device"] == "cpu"
 
 
@@ -91,7 +94,7 @@ def test_the_pause_before_each_timed_call_is_not_counted():
 def test_the_grid_adds_variants_named_by_shape_and_growth():
     from nhfd.config import Config
 
-    todo = variants(Config(), "balanced", [8, 16], [], [], [1, 2])
+    todo = variants(Config(), "balanced", [8, 16], [], [], [1, 2], ["concat"])
     names = [t[0] for t in todo]
     # balanced (16/3/2, doubling) is not repeated by the grid; constant width gets "-g1"
     assert names == ["balanced", "w8-d3-u2-g1", "w8-d3-u2", "w16-d3-u2-g1"]
@@ -131,13 +134,14 @@ def test_the_bench_end_to_end_on_a_tiny_dataset(tiny_data, tmp_path, capsys):
 
     out = tmp_path / "bench"
     argv = ["bench", "tradeoff", "--data", str(tiny_data), "--profiles", "none", "--widths", "4",
-            "--depths", "1", "--skips", "concat,add", "--steps", "2", "--crop", "32x32",
+            "--depths", "1", "--growths", "2", "--skips", "concat,add", "--steps", "2",
+            "--crop", "32x32",
             "--size", "64x48", "--threads", "1", "--repeats", "2", "--eval-views", "1",
             "--out", str(out)]  # fmt: skip
     assert main(argv) == 0
     report = json.loads((out / "tradeoff.json").read_text())
     rows = {r["name"]: r for r in report["rows"]}
-    assert set(rows) == {"w4-d1-u2", "w4-d1-u2-add"}  # on the default profile, balanced
+    assert set(rows) == {"w4-d1-u2", "w4-d1-u2-add"}
     assert rows["w4-d1-u2-add"]["skip"] == "add" and report["budget_steps"] == 2
     assert rows["w4-d1-u2-add"]["parameters"] < rows["w4-d1-u2"]["parameters"]
     for r in rows.values():
