@@ -106,6 +106,21 @@ def compare_with_torch(net, onnx_path: str | Path) -> tuple[float, list[tuple[in
     return worst, sizes
 
 
+# Where a model runs unless told otherwise (the daemon takes `daemon.onnx_providers`).
+CPU_ONLY = ("CPUExecutionProvider",)
+
+
+def check_providers(wanted: list[str], available: list[str], setting: str = "providers"
+                    ) -> list[str]:  # fmt: skip
+    """`wanted` execution providers, in order, or a ValueError naming `setting`, the missing
+    ones, and what this onnxruntime has."""
+    missing = [p for p in wanted if p not in available]
+    if missing:
+        raise ValueError(f"{setting}: {', '.join(missing)} not available in this onnxruntime; "
+                         f"available: {', '.join(available)}")
+    return wanted
+
+
 def session_options(threads: int = 0) -> Any:
     """onnxruntime session options. `threads` > 0 (serving, latency benches): that many intra-op
     threads, one inter-op thread, and pools that sleep instead of spinning between runs. A
@@ -133,14 +148,16 @@ class OnnxModel:
     """
 
     def __init__(self, path: str | Path, *, expected: dict | None = None, threads: int = 0,
-                 source: str | None = None,
-                 providers: tuple[str, ...] = ("CPUExecutionProvider",)) -> None:  # fmt: skip
+                 source: str | None = None, providers: tuple[str, ...] = CPU_ONLY
+                 ) -> None:  # fmt: skip
         import onnxruntime as ort
 
         self.path = Path(path)
         name = source or str(self.path)
         if not self.path.is_file():
             raise FileNotFoundError(f"{name}: no such model file")
+        # before the session: its errors below are reported as an unreadable file
+        check_providers(list(providers), ort.get_available_providers())
         try:
             self.session = ort.InferenceSession(
                 str(self.path), sess_options=session_options(threads), providers=list(providers)
@@ -192,7 +209,7 @@ class OnnxModel:
 
 
 def load_model(path: str | Path, config=None, *, threads: int = 0,
-               providers: tuple[str, ...] = ("CPUExecutionProvider",)) -> OnnxModel:
+               providers: tuple[str, ...] = CPU_ONLY) -> OnnxModel:
     """Load an exported model; with a `nhfd.config.Config`, refuse one trained for other optics."""
     from nhfd.models.metadata import expected_from_config
 

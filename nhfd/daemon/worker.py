@@ -69,24 +69,15 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     `threads` intra-op threads in pools that do not spin (`nhfd.models.export.session_options`)."""
     import onnxruntime as ort
 
-    from nhfd.models.export import load_model
+    from nhfd.models.export import check_providers, load_model
 
+    # Checked here too, so the error names the setting to change. No silent fallback: a bench
+    # configured for CUDA that quietly ran on the CPU would be 10x slower with nothing but a
+    # warning to say why; the load fails instead and the previous model keeps running.
     providers = check_providers(list(config.daemon.onnx_providers),
-                                ort.get_available_providers())
+                                ort.get_available_providers(), "daemon.onnx_providers")
     # validates; raises ModelMismatch etc.
     return load_model(path, config, threads=threads, providers=tuple(providers))
-
-
-def check_providers(wanted: list[str], available: list[str]) -> list[str]:
-    """The configured execution providers, in order, or a ValueError naming the missing ones and
-    listing what this onnxruntime has. No silent fallback: a bench configured for CUDA that
-    quietly runs on the CPU would be 10x slower with nothing but a warning to say why; the load
-    fails instead and the previous model keeps running."""
-    missing = [p for p in wanted if p not in available]
-    if missing:
-        raise ValueError(f"daemon.onnx_providers: {', '.join(missing)} not available in this "
-                         f"onnxruntime; available: {', '.join(available)}")
-    return wanted
 
 
 def model_info(model: Any, path: str) -> dict[str, Any]:

@@ -163,8 +163,9 @@ def test_garbage_model_file_is_refused_and_the_old_model_keeps_running(short_dir
 
 def test_an_unavailable_execution_provider_is_refused_listing_the_available_ones(tiny):
     import onnxruntime as ort
+    from nhfd.models.export import OnnxModel, check_providers
 
-    from nhfd.daemon.worker import check_providers, open_model
+    from nhfd.daemon.worker import open_model
 
     from .test_frames import small_config
 
@@ -179,6 +180,9 @@ def test_an_unavailable_execution_provider_is_refused_listing_the_available_ones
     message = str(info.value)
     assert "daemon.onnx_providers: TensorrtExecutionProvider not available" in message
     assert "available: " + ", ".join(available) in message
+    # a model opened outside the daemon refuses one too, by name, not as an unreadable file
+    with pytest.raises(ValueError, match="providers: TensorrtExecutionProvider not available"):
+        OnnxModel(tiny["model"], providers=("TensorrtExecutionProvider",))
     model = open_model(str(tiny["model"]), small_config(), threads=1)
     assert model.session.get_providers() == ["CPUExecutionProvider"]
     # the serving session: the given threads, and pools that sleep between frames (a spinning
