@@ -34,7 +34,9 @@ class NetSpec:
     inputs, the width's growth per level (2: each level doubles the channels, the classic
     U-Net; 1: every level keeps the base width), and how the decoder joins each skip ("concat":
     side by side, the classic U-Net; "add": summed, half the arithmetic of the decoder's first
-    convolution at each level)."""
+    convolution at each level), how many levels, from the first, have one 3 x 3 convolution
+    per block instead of two (0, the classic U-Net), and the channels of the second level when
+    they are not `width * growth` (`deep_width`; 0: they are; the growth applies below it)."""
 
     width: int = 16
     depth: int = 3
@@ -42,6 +44,8 @@ class NetSpec:
     inputs: str = "rgb"
     growth: float = GROWTH_RANGE[1]
     skip: str = SKIPS[0]
+    single_conv_levels: int = 0
+    deep_width: int = 0
 
     def __post_init__(self) -> None:
         input_channels(self.inputs)  # validates
@@ -57,6 +61,12 @@ class NetSpec:
                              "per level)")  # fmt: skip
         if self.skip not in SKIPS:
             raise ValueError(f"skip = {self.skip!r}: must be one of {', '.join(SKIPS)}")
+        if not 0 <= self.single_conv_levels <= self.depth + 1:
+            raise ValueError(f"single_conv_levels = {self.single_conv_levels}: must be in "
+                             f"0..{self.depth + 1} (depth + 1 levels)")  # fmt: skip
+        if not 0 <= self.deep_width <= 512:
+            raise ValueError(f"deep_width = {self.deep_width}: must be in 0..512 channels (0: "
+                             "width * growth)")  # fmt: skip
 
     @property
     def channels(self) -> int:
@@ -66,7 +76,10 @@ class NetSpec:
     @property
     def widths(self) -> list[int]:
         """Channels at each level, the first (after unshuffle) to the deepest."""
-        return [max(1, round(self.width * self.growth**i)) for i in range(self.depth + 1)]
+        if not self.deep_width:
+            return [max(1, round(self.width * self.growth**i)) for i in range(self.depth + 1)]
+        return [self.width] + [max(1, round(self.deep_width * self.growth**i))
+                               for i in range(self.depth)]  # fmt: skip
 
     @property
     def multiple(self) -> int:
@@ -77,13 +90,13 @@ class NetSpec:
         return asdict(self)
 
 
-def _block(c_in: int, c_out: int) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv2d(c_in, c_out, 3, padding=1),
-        nn.ReLU(inplace=True),
-        nn.Conv2d(c_out, c_out, 3, padding=1),
-        nn.ReLU(inplace=True),
-    )
+def _block(c_in: int, c_out: int, convs: int = 2) -> nn.Sequential:
+    """`convs` 3 x 3 convolutions, each followed by a ReLU (module indices 0, 2, ... as the
+    two-convolution block always had, so saved networks load)."""
+    layers: list[nn.Module] = []
+    for i in range(convs):
+        layers += [nn.Conv2d(c_in if i == 0 else c_out, c_out, 3, padding=1), nn.ReLU(inplace=True)]
+    return nn.Sequential(*layers)
 
 
 class NHFNet(nn.Module):
@@ -93,18 +106,25 @@ class NHFNet(nn.Module):
         super().__init__()
         self.spec = spec
         f, widths = spec.unshuffle, spec.widths
-        self.inc = _block(spec.channels * f * f, widths[0])
+
+        def convs(level: int) -> int:
+            return 1 if level < spec.single_conv_levels else 2
+
+        self.inc = _block(spec.channels * f * f, widths[0], convs(0))
         # Strided convolutions downsample: cheaper than pooling + conv, and export cleanly.
         self.down = nn.ModuleList(
             nn.Sequential(nn.Conv2d(widths[i], widths[i + 1], 3, stride=2, padding=1),
-                          nn.ReLU(inplace=True), _block(widths[i + 1], widths[i + 1]))
+                          nn.ReLU(inplace=True),
+                          _block(widths[i + 1], widths[i + 1], convs(i + 1)))
             for i in range(spec.depth)
         )  # fmt: skip
         self.up = nn.ModuleList(
             nn.ConvTranspose2d(widths[i + 1], widths[i], 2, stride=2) for i in range(spec.depth)
         )
         joined = 2 if spec.skip == "concat" else 1  # channels into each decoder, per width
-        self.dec = nn.ModuleList(_block(joined * widths[i], widths[i]) for i in range(spec.depth))
+        self.dec = nn.ModuleList(
+            _block(joined * widths[i], widths[i], convs(i)) for i in range(spec.depth)
+        )
         self.head = nn.Conv2d(widths[0], 6 * f * f, 1)
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

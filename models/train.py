@@ -87,6 +87,8 @@ class TrainOptions:
     inputs: str = _NET.inputs
     growth: float = _NET.growth
     skip: str = _NET.skip
+    single_conv_levels: int = _NET.single_conv_levels
+    deep_width: int = _NET.deep_width
     profile: str = _MODEL.profile
     steps: int = _TRAIN.steps
     batch: int = _TRAIN.batch
@@ -140,7 +142,7 @@ class TrainOptions:
     @property
     def spec(self) -> NetSpec:
         return NetSpec(self.width, self.depth, self.unshuffle, self.inputs, self.growth,
-                       self.skip)  # fmt: skip
+                       self.skip, self.single_conv_levels, self.deep_width)  # fmt: skip
 
     @property
     def crop_hw(self) -> tuple[int, int]:
@@ -160,7 +162,8 @@ class TrainOptions:
         base = {f.name: getattr(m.train, f.name) for f in fields(TrainOptions)
                 if hasattr(m.train, f.name)}  # fmt: skip
         base.update(width=p.width, depth=p.depth, unshuffle=p.unshuffle, inputs=p.inputs,
-                    growth=p.growth, skip=p.skip, profile=name)
+                    growth=p.growth, skip=p.skip, single_conv_levels=p.single_conv_levels,
+                    deep_width=p.deep_width, profile=name)
         base.update({k: v for k, v in overrides.items() if v is not None})
         return TrainOptions(**base)
 
@@ -485,9 +488,10 @@ def changed_options(ckpt: dict, options: TrainOptions, ignore: frozenset[str] = 
     """The options (other than `RESUMABLE_CHANGES` and `ignore`) a checkpoint was trained with
     that differ from `options`, as "name: saved -> now, ..." ("" when none)."""
     # A run saved before an option existed was trained with that option's default then; for
-    # growth and skip that is the classic U-Net its checkpoint's network loads as (doubling,
-    # concatenating), whatever the default profile's are now.
-    classic = {"growth": NetSpec().growth, "skip": NetSpec().skip}
+    # the network's shape that is the classic U-Net its checkpoint's network loads as (doubling,
+    # concatenating, two convolutions per block), whatever the default profile's are now.
+    classic = {k: getattr(NetSpec(), k)
+               for k in ("growth", "skip", "single_conv_levels", "deep_width")}  # fmt: skip
     saved = {f.name: f.default for f in fields(TrainOptions)} | classic | ckpt.get("options", {})
     now = asdict(options)
     diff = [k for k in now

@@ -148,6 +148,11 @@ GROWTH_RANGE = (1.0, 2.0)
 # existed was.
 SKIPS = ("concat", "add")
 
+# Levels, counted from the first, whose encoder and decoder blocks have one 3 x 3 convolution
+# instead of the classic U-Net's two (0, what every network saved before the key existed had).
+# A thin network spends most of its time at its first levels, the largest.
+SINGLE_CONV_LEVELS_MAX = 7
+
 # Adam's learning rate: above the first bound, at most the second (nhfd.toml, `nhfd train --lr`,
 # `nhfd bench tradeoff --lr`).
 LEARNING_RATE_RANGE = (0.0, 1.0)
@@ -162,8 +167,9 @@ def learning_rate_ok(lr: float) -> bool:
 class ModelProfile(_Section):
     """One network size: U-Net base width (channels at the first level), depth (levels below the
     first, each halving the size), the input pixel-unshuffle factor (the first downsampling) and
-    the width's growth per level (2 doubles the channels at each level, 1 keeps them) and how
-    the decoder joins each skip (`SKIPS`)."""
+    the width's growth per level (2 doubles the channels at each level, 1 keeps them), how
+    the decoder joins each skip (`SKIPS`), and how many levels, from the first, have one
+    convolution per block instead of two."""
 
     width: Annotated[int, Field(ge=1, le=512)]
     depth: Annotated[int, Field(ge=0, le=6)]
@@ -172,11 +178,23 @@ class ModelProfile(_Section):
     inputs: Literal["rgb", "rgbd"] = "rgb"
     growth: Annotated[float, Field(ge=GROWTH_RANGE[0], le=GROWTH_RANGE[1])] = GROWTH_RANGE[1]
     skip: Literal[SKIPS] = SKIPS[0]
+    single_conv_levels: Annotated[int, Field(ge=0, le=SINGLE_CONV_LEVELS_MAX)] = 0
+    # channels of the second level when not width * growth (0); the growth applies below it
+    deep_width: Annotated[int, Field(ge=0, le=512)] = 0
+
+    @model_validator(mode="after")
+    def _levels_exist(self) -> ModelProfile:
+        if self.single_conv_levels > self.depth + 1:
+            raise ValueError(f"single_conv_levels = {self.single_conv_levels}: the network has "
+                             f"{self.depth + 1} levels (depth + 1)")  # fmt: skip
+        return self
 
 
 def _default_profiles() -> dict[str, ModelProfile]:
     return {
         "fast": ModelProfile(width=16, depth=3, unshuffle=2, growth=1, skip="add", inputs="rgbd"),
+        "fastest": ModelProfile(width=16, depth=3, unshuffle=2, growth=1, skip="add",
+                                single_conv_levels=1, deep_width=8, inputs="rgbd"),
         "balanced": ModelProfile(width=16, depth=3, unshuffle=2, inputs="rgbd"),
         "accurate": ModelProfile(width=32, depth=3, unshuffle=2, inputs="rgbd"),
     }

@@ -108,6 +108,11 @@ def test_named_file_must_exist(tmp_path):
         ("[optics]\nhologram_width_px = 4096\n", r"4096 x 576 does not fit the panel 1920 x 1080"),
         ("[devices]\nlaser = 'fisba'\n", r"devices\.laser = 'fisba': Input should be 'simulated'"),
         ("[optics\n", r"not valid TOML"),
+        (
+            "[model.profiles.thin]\nwidth = 8\ndepth = 1\nunshuffle = 2\n"
+            "single_conv_levels = 3\n",
+            r"single_conv_levels = 3: the network has 2 levels \(depth \+ 1\)",
+        ),
     ],
 )
 def test_validation_errors_name_key_value_and_allowed(tmp_path, text, message):

@@ -110,8 +110,10 @@ def variants(config, profiles: str, widths: list[int], depths: list[int], unshuf
             raise ValueError(f"--profiles: {n!r} is not one of {', '.join(sorted(m.profiles))}")
         p = m.profiles[n]
         key = (p.width, p.depth, p.unshuffle, p.growth, p.skip)
-        if key not in seen:
-            seen.add(key)
+        # the network's whole shape: two profiles may differ only in settings the grid keeps
+        shape = (*key, p.single_conv_levels, p.deep_width)
+        if shape not in seen:
+            seen.add(shape)
             out.append((n, n, *key))
     base = m.profiles[m.profile]
     if widths or depths or unshuffles or growths or skips:
@@ -119,8 +121,10 @@ def variants(config, profiles: str, widths: list[int], depths: list[int], unshuf
                                  unshuffles or [base.unshuffle], growths or [base.growth],
                                  skips or [base.skip])  # fmt: skip
         for key in grid:
-            if key not in seen:
-                seen.add(key)
+            # grid variants keep the default profile's other settings (nhfd.models.train)
+            shape = (*key, base.single_conv_levels, base.deep_width)
+            if shape not in seen:
+                seen.add(shape)
                 out.append((variant_name(*key), m.profile, *key))
     if not out:
         raise ValueError("no variants: give --profiles and/or --widths/--depths/--unshuffles/"

@@ -41,6 +41,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--skip", choices=SKIPS,
                    help="override how the profile's decoder joins each skip: side by side "
                         "(concat, the classic U-Net) or summed (add: cheaper)")
+    t.add_argument("--single-conv-levels", type=int,
+                   help="override how many levels, from the first, have one 3x3 convolution "
+                        "per block instead of two (0: the classic U-Net)")
+    t.add_argument("--deep-width", type=int,
+                   help="override the channels of the second level (0: width x growth; the "
+                        "growth applies below it)")
     t.add_argument("--unshuffle", type=int, help="override the profile's unshuffle factor")
     t.add_argument("--inputs", choices=("rgb", "rgbd"),
                    help="override the profile's inputs: sRGB, or sRGB plus the mapped depth")
@@ -111,7 +117,9 @@ def run_train(args: argparse.Namespace) -> int:
     options = TrainOptions.from_config(
         config, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
         inputs=args.inputs, growth=args.growth, skip=args.skip,
-        steps=args.steps, batch=args.batch, crop_width_px=crop[0], crop_height_px=crop[1],
+        single_conv_levels=args.single_conv_levels, deep_width=args.deep_width,
+        steps=args.steps, batch=args.batch,
+        crop_width_px=crop[0], crop_height_px=crop[1],
         learning_rate=args.lr, seed=args.seed, plane_mode=args.planes,
         perceptual=args.perceptual, vgg_weights=args.vgg_weights, field_weight=args.field_weight,
         checkpoint_every=args.checkpoint_every, val_views=args.val_views, threads=args.threads,

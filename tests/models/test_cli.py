@@ -12,13 +12,15 @@ from nhfd.cli.main import main
 def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     run = tmp_path / "run"
     args = ["train", "--data", str(tiny_data), "--out", str(run), "--profile", "fast",
-            "--width", "8", "--depth", "1", "--steps", "2", "--crop", "48x48", "--no-progress",
+            "--width", "8", "--depth", "1", "--single-conv-levels", "2", "--steps", "2",
+            "--crop", "48x48", "--no-progress",
             "--val-views", "1", "--threads", "1"]  # fmt: skip
     assert main(args) == 0
     assert "step 2" in capsys.readouterr().out
     info = json.loads((run / "run.json").read_text())
     assert info["net"] == {"width": 8, "depth": 1, "unshuffle": 2, "inputs": "rgbd",
-                           "growth": 1.0, "skip": "add"}  # fast's, but for the overrides
+                           "growth": 1.0, "skip": "add",
+                           "single_conv_levels": 2, "deep_width": 0}  # fast's, but overridden
     assert "box-window SSIM" in info["loss"]  # the log says which perceptual term ran
     onnx_path = tmp_path / "m.onnx"
     int8_path = tmp_path / "m-int8.onnx"
@@ -57,7 +59,7 @@ def _int8_is_quantised_and_close(float_path, int8_path):
 
 @pytest.mark.parametrize("argv,message", [
     (["train", "--data", "{data}", "--out", "{tmp}/r", "--profile", "huge"],
-     "--profile 'huge': not one of the configured profiles accurate, balanced, fast"),
+     "--profile 'huge': not one of the configured profiles accurate, balanced, fast, fastest"),
     (["train", "--data", "{data}", "--out", "{tmp}/r", "--crop", "512"],
      "--crop '512' is not of the form WxH"),
     (["train", "--data", "{data}", "--out", "{tmp}/r", "--steps", "0"],

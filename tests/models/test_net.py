@@ -8,7 +8,8 @@ from nhfd.models.net import NetSpec, build_net, pad_to_multiple, predict
 
 
 @pytest.mark.parametrize("spec", [NetSpec(8, 2, 1), NetSpec(8, 1, 2), NetSpec(4, 3, 4),
-                                  NetSpec(8, 2, 2, growth=1, skip="add")])  # fmt: skip
+                                  NetSpec(8, 2, 2, growth=1, skip="add"),
+                                  NetSpec(8, 2, 2, single_conv_levels=2)])  # fmt: skip
 def test_any_size_in_gives_the_same_size_out(spec):
     net = build_net(spec, seed=0).eval()
     rgb = torch.rand(3, 37, 53)
@@ -65,12 +66,19 @@ def test_bad_specs_are_refused_by_name():
         NetSpec(8, 2, 1, growth=float("nan"))
     with pytest.raises(ValueError, match="skip = 'sum': must be one of concat, add"):
         NetSpec(8, 2, 1, skip="sum")
+    with pytest.raises(ValueError, match=r"single_conv_levels = 4: must be in 0\.\.3 \(depth "):
+        NetSpec(8, 2, 1, single_conv_levels=4)
+    with pytest.raises(ValueError, match=r"deep_width = -8: must be in 0\.\.512 channels"):
+        NetSpec(8, 2, 1, deep_width=-8)
 
 
 def test_growth_sets_the_channels_of_each_level():
     assert NetSpec(16, 3, 2).widths == [16, 32, 64, 128]  # the classic U-Net doubles
     assert NetSpec(16, 3, 2, growth=1).widths == [16, 16, 16, 16]
     assert NetSpec(16, 3, 2, growth=1.5).widths == [16, 24, 36, 54]
+    # deep_width sets the second level; the growth applies from there
+    assert NetSpec(16, 3, 2, growth=1, deep_width=8).widths == [16, 8, 8, 8]
+    assert NetSpec(16, 3, 2, deep_width=8).widths == [16, 8, 16, 32]
     net = build_net(NetSpec(16, 3, 2, growth=1))
     assert [m[0].out_channels for m in net.down] == [16, 16, 16]
     assert net.head.in_channels == 16 and net.head.out_channels == 6 * 2 * 2
@@ -94,3 +102,26 @@ def test_summed_skips_halve_the_decoders_first_convolution():
         skip1 = add.down[0](skip0)
         up0 = add.up[0](add.dec[1](add.up[1](add.down[1](skip1)) + skip1))
     assert torch.allclose(seen["in"], up0 + skip0, atol=1e-6)
+
+
+def test_single_conv_levels_thin_the_first_levels_blocks():
+    def convs(block):
+        return sum(isinstance(m, torch.nn.Conv2d) for m in block)
+
+    def per_level(net):
+        """(encoder, decoder) 3 x 3 convolutions per block at each level, first to deepest."""
+        enc = [convs(net.inc)] + [convs(d[2]) for d in net.down]
+        return enc, [convs(d) for d in net.dec]
+
+    def spec(n):
+        return NetSpec(16, 3, 2, growth=1, skip="add", single_conv_levels=n)
+
+    assert per_level(build_net(spec(0))) == ([2, 2, 2, 2], [2, 2, 2])  # the classic U-Net
+    assert per_level(build_net(spec(1))) == ([1, 2, 2, 2], [1, 2, 2])
+    assert per_level(build_net(spec(2))) == ([1, 1, 2, 2], [1, 1, 2])
+    assert per_level(build_net(spec(4))) == ([1, 1, 1, 1], [1, 1, 1])
+    # the stride-2 convolutions and the widths are untouched
+    assert [d[0].stride for d in build_net(spec(2)).down] == [(2, 2)] * 3
+    # a run saved before the key existed had two convolutions everywhere
+    old = {"width": 16, "depth": 3, "unshuffle": 2, "inputs": "rgbd"}
+    assert NetSpec(**old).single_conv_levels == 0 and NetSpec(**old).deep_width == 0

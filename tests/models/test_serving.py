@@ -27,7 +27,9 @@ def _perturbed(spec: NetSpec) -> torch.nn.Module:
 
 @pytest.mark.parametrize("spec", [NetSpec(8, 2, 1), NetSpec(8, 1, 2, "rgbd"),
                                   NetSpec(4, 2, 4), NetSpec(4, 1, 4, "rgbd"),
-                                  NetSpec(8, 2, 2, "rgbd", growth=1, skip="add")])  # fmt: skip
+                                  NetSpec(8, 2, 2, "rgbd", growth=1, skip="add"),
+                                  NetSpec(8, 2, 2, "rgbd", growth=1, skip="add",
+                                          single_conv_levels=2, deep_width=4)])  # fmt: skip
 def test_serving_form_computes_the_networks_function(spec):
     net = _perturbed(spec)
     m = spec.multiple

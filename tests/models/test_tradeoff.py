@@ -109,6 +109,34 @@ def test_summed_skips_are_a_grid_axis_named_add():
     assert todo[1][2:] == (16, 3, 2, 1.0, "add")
 
 
+def test_profiles_that_differ_in_single_conv_levels_or_deep_width_are_distinct_variants():
+    from nhfd.config import Config, ModelProfile
+
+    config = Config()
+    fast = config.model.profiles["fast"]
+    config.model.profiles["lean"] = ModelProfile(**{**fast.model_dump(), "single_conv_levels": 2})
+    config.model.profiles["thin"] = ModelProfile(**{**fast.model_dump(), "deep_width": 8})
+    todo = variants(config, "fast,lean,thin", [16], [], [], [1], ["add"])
+    # the grid point has fast's shape (the grid keeps the default profile's blocks), so it is
+    # fast and is not repeated; lean and thin have the same grid key but other networks
+    assert [t[0] for t in todo] == ["fast", "lean", "thin"]
+
+
+def test_a_run_saved_before_single_conv_levels_and_deep_width_read_as_the_classic_u_net():
+    from dataclasses import asdict, replace
+
+    from nhfd.models.train import changed_options
+
+    opts = tiny_options(steps=3)
+    saved = {k: v for k, v in asdict(opts).items()
+             if k not in ("single_conv_levels", "deep_width")}  # fmt: skip
+    assert opts.single_conv_levels == 0 and opts.deep_width == 0
+    assert changed_options({"options": saved}, opts) == ""
+    assert changed_options({"options": saved}, replace(opts, single_conv_levels=1)) == (
+        "single_conv_levels: 0 -> 1")
+    assert changed_options({"options": saved}, replace(opts, deep_width=4)) == "deep_width: 0 -> 4"
+
+
 @pytest.mark.parametrize("flag,value,message", [
     ("growths", "0.5", "--growths '0.5': each must be in [1, 2]"),
     ("growths", "x", "--growths 'x': give comma-separated numbers"),
