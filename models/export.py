@@ -27,7 +27,7 @@ from nhfd.models.metadata import (
 
 MIN_OPSET = 18
 # What the exported graph is written as (`nhfd.models.serving`); caches of exports compare it.
-GRAPH_FORM = "serving-1"
+GRAPH_FORM = "serving-2"
 # Sizes (in strides) the export is checked at, besides the example it was traced with.
 CHECK_SIZES_STRIDES = ((3, 5), (5, 4))
 

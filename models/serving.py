@@ -14,8 +14,11 @@ operator per graph:
   ConvTranspose with kernel and stride `f` per output (amplitude, phase), which is the same
   linear map; the head's per-position bias rides on a constant-one input channel.
 - Softplus exported as Softplus, Greater and Where: about 18 ms (onnxruntime's Softplus kernel
-  is not vectorised). Here it is `relu(a) + log(1 + exp(-|a|))`: about 5 ms. Amplitudes below
-  about 1e-7 (in amplitude-scale units) come out as 0 instead of their tiny positive value.
+  is not vectorised). Here it is `max(a, log(1 + exp(min(a, 80))))`: five elementwise passes
+  over the full-resolution amplitude. The earlier `relu(a) + log(1 + exp(-|a|))` took seven:
+  the fastest profile's whole graph ran 1.9 ms faster with five (43.0 against 45.0 ms, 25
+  rounds in turns). Amplitudes below about 1e-7 (in amplitude-scale units) come out as 0
+  instead of their tiny positive value.
 """
 
 from __future__ import annotations
@@ -39,10 +42,14 @@ def _unshuffle_weights(channels: int, f: int) -> tuple[torch.Tensor, torch.Tenso
     return weight, bias
 
 
+# exp(80) is finite in float32 (its limit is about exp(88.7)); above 17, softplus(a) = a anyway.
+_EXP_LIMIT = 80.0
+
+
 def softplus_exportable(a: torch.Tensor) -> torch.Tensor:
-    """softplus without the threshold branch: exact to float32 rounding for |a| < 17 and
-    equal to `a` above; exp(-|a|) never overflows."""
-    return torch.relu(a) + torch.log(1 + torch.exp(-a.abs()))
+    """softplus without the threshold branch: exact to float32 rounding (`log(1 + e^a)` rounds
+    to `a` above about 17, and the max returns `a` above `_EXP_LIMIT`); exp never overflows."""
+    return torch.maximum(a, torch.log(1 + torch.exp(torch.clamp(a, max=_EXP_LIMIT))))
 
 
 class ServingNet(nn.Module):
