@@ -16,27 +16,35 @@ if TYPE_CHECKING:
     from nhfd.models.data import HoloData
 
 
-def head_nodes(model) -> list[str]:
-    """Names of the convolutions that produce the graph's outputs (the network's last layer):
-    walk back from each output through non-convolution nodes."""
+def output_nodes(model) -> tuple[list[str], list[str]]:
+    """Names of the convolutions that produce the graph's outputs (the network's last layer),
+    and of every node between them and the outputs (softplus's elementwise passes): walk back
+    from each output through non-convolution nodes."""
     producer = {out: node for node in model.graph.node for out in node.output}
-    found, todo, seen = [], [o.name for o in model.graph.output], set()
+    heads, tail, todo, seen = [], [], [o.name for o in model.graph.output], set()
     while todo:
         node = producer.get(todo.pop())
         if node is None or node.name in seen:
             continue
         seen.add(node.name)
         if node.op_type in ("Conv", "ConvTranspose"):
-            found.append(node.name)
+            heads.append(node.name)
         else:
+            tail.append(node.name)
             todo.extend(node.input)
-    return found
+    return heads, tail
+
+
+def head_nodes(model) -> list[str]:
+    """Names of the convolutions that produce the graph's outputs (`output_nodes`)."""
+    return output_nodes(model)[0]
 
 
 def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: str = "rgb",
                   n_calib: int = 8) -> Path:
-    """Static int8 (QDQ, per channel), the head (the last layer) kept in float32, calibrated on
-    training views; the nhfd metadata is carried over."""
+    """Static int8 (QDQ, per channel), the head (the last layer) and the elementwise passes
+    after it kept in float32, calibrated on training views; the nhfd metadata is carried
+    over."""
     import numpy as np
     import onnx
     from nhfd.models.net import pad_amounts
@@ -64,9 +72,12 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
         def get_next(self):
             return next(self.it, None)
 
+    # The head and everything after it stay float: quantising the softplus's Min and Max (which
+    # onnxruntime's QDQ quantiser takes) cost fastest 4.3 dB of held-out PSNR.
+    heads, tail = output_nodes(model)
     quantize_static(str(src), str(dst), Reader(), quant_format=QuantFormat.QDQ,
                     per_channel=True, activation_type=QuantType.QUInt8,
-                    weight_type=QuantType.QInt8, nodes_to_exclude=head_nodes(model))  # fmt: skip
+                    weight_type=QuantType.QInt8, nodes_to_exclude=heads + tail)  # fmt: skip
     q = onnx.load(str(dst))
     del q.metadata_props[:]
     for prop in model.metadata_props:

@@ -9,7 +9,7 @@ import onnx
 import pytest
 import torch
 from nhfd.models.export import export_onnx
-from nhfd.models.quantise import head_nodes
+from nhfd.models.quantise import head_nodes, output_nodes
 from nhfd.models.train import CHECKPOINT, train
 
 from nhfd.bench.tradeoff import (
@@ -31,6 +31,32 @@ def test_int8_keeps_the_layers_that_write_the_outputs_in_float(tiny_run, tmp_pat
     # they are the last convolutions: nothing but elementwise ops between them and the outputs
     convs = [n.name for n in model.graph.node if n.op_type in ("Conv", "ConvTranspose")]
     assert set(convs[-2:]) == set(heads)
+    _, tail = output_nodes(model)
+    assert {by_name[t].op_type for t in tail} >= {"Exp", "Log", "Max"}  # softplus's passes
+
+
+def test_int8_leaves_the_head_and_the_softplus_in_float(tiny_data, tiny_run, tmp_path):
+    from nhfd.models.data import HoloData
+    from nhfd.models.quantise import quantise_int8
+
+    src = export_onnx(tiny_run, tmp_path / "m.onnx").path
+    net_spec = json.loads((tiny_run / "run.json").read_text())["net"]
+    multiple = net_spec["unshuffle"] * 2 ** net_spec["depth"]
+    dst = quantise_int8(src, tmp_path / "m-int8.onnx", HoloData(tiny_data), multiple,
+                        net_spec["inputs"])  # fmt: skip
+    q = onnx.load(str(dst))
+    producer = {out: n for n in q.graph.node for out in n.output}
+    # every path from the outputs back to the head: float nodes only, no (de)quantisation
+    todo, seen = [o.name for o in q.graph.output], set()
+    while todo:
+        node = producer.get(todo.pop())
+        if node is None or node.name in seen or node.op_type in ("Conv", "ConvTranspose"):
+            continue
+        seen.add(node.name)
+        assert node.op_type not in ("QuantizeLinear", "DequantizeLinear"), node.name
+        todo.extend(node.input)
+    assert len(seen) >= 5  # softplus's passes were walked
+    assert any(n.op_type == "QuantizeLinear" for n in q.graph.node)  # the trunk is int8
 
 
 def test_a_finished_run_is_reused_and_another_network_or_recipe_is_refused(tiny_data, tmp_path):
