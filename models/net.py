@@ -21,7 +21,7 @@ import torch.nn.functional as F
 from nhfd.models.inputs import input_channels
 from torch import nn
 
-from nhfd.config import GROWTH_RANGE, SKIPS
+from nhfd.config import DEPTH_MAX, GROWTH_RANGE, SKIPS, WIDTH_MAX
 
 # sRGB renders of splat scenes on black are dark on average; centring them is enough.
 INPUT_MEAN = 0.5
@@ -49,10 +49,10 @@ class NetSpec:
 
     def __post_init__(self) -> None:
         input_channels(self.inputs)  # validates
-        if not 1 <= self.width <= 512:
-            raise ValueError(f"width = {self.width}: must be in 1..512 channels")
-        if not 0 <= self.depth <= 6:
-            raise ValueError(f"depth = {self.depth}: must be in 0..6 levels")
+        if not 1 <= self.width <= WIDTH_MAX:
+            raise ValueError(f"width = {self.width}: must be in 1..{WIDTH_MAX} channels")
+        if not 0 <= self.depth <= DEPTH_MAX:
+            raise ValueError(f"depth = {self.depth}: must be in 0..{DEPTH_MAX} levels")
         if self.unshuffle not in (1, 2, 4, 8):
             raise ValueError(f"unshuffle = {self.unshuffle}: must be 1, 2, 4 or 8")
         lo, hi = GROWTH_RANGE
@@ -64,9 +64,9 @@ class NetSpec:
         if not 0 <= self.single_conv_levels <= self.depth + 1:
             raise ValueError(f"single_conv_levels = {self.single_conv_levels}: must be in "
                              f"0..{self.depth + 1} (depth + 1 levels)")  # fmt: skip
-        if not 0 <= self.deep_width <= 512:
-            raise ValueError(f"deep_width = {self.deep_width}: must be in 0..512 channels (0: "
-                             "width * growth)")  # fmt: skip
+        if not 0 <= self.deep_width <= WIDTH_MAX:
+            raise ValueError(f"deep_width = {self.deep_width}: must be in 0..{WIDTH_MAX} channels "
+                             "(0: width * growth)")  # fmt: skip
 
     @property
     def channels(self) -> int:

@@ -35,11 +35,6 @@ def output_nodes(model) -> tuple[list[str], list[str]]:
     return heads, tail
 
 
-def head_nodes(model) -> list[str]:
-    """Names of the convolutions that produce the graph's outputs (`output_nodes`)."""
-    return output_nodes(model)[0]
-
-
 def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: str = "rgb",
                   n_calib: int = 8) -> Path:
     """Static int8 (QDQ, per channel), the head (the last layer) and the elementwise passes

@@ -148,10 +148,15 @@ GROWTH_RANGE = (1.0, 2.0)
 # existed was.
 SKIPS = ("concat", "add")
 
-# Levels, counted from the first, whose encoder and decoder blocks have one 3 x 3 convolution
-# instead of the classic U-Net's two (0, what every network saved before the key existed had).
-# A thin network spends most of its time at its first levels, the largest.
-SINGLE_CONV_LEVELS_MAX = 7
+# A profile's largest channel count per level and depth (levels below the first); the network
+# (nhfd.models.net.NetSpec) checks the same bounds.
+WIDTH_MAX = 512
+DEPTH_MAX = 6
+
+# `single_conv_levels`: levels, counted from the first, whose encoder and decoder blocks have one
+# 3 x 3 convolution instead of the classic U-Net's two (0, what every network saved before the
+# key existed had), at most the network's depth + 1. A thin network spends most of its time at
+# its first levels, the largest.
 
 # Adam's learning rate: above the first bound, at most the second (nhfd.toml, `nhfd train --lr`,
 # `nhfd bench tradeoff --lr`).
@@ -171,16 +176,16 @@ class ModelProfile(_Section):
     the decoder joins each skip (`SKIPS`), and how many levels, from the first, have one
     convolution per block instead of two."""
 
-    width: Annotated[int, Field(ge=1, le=512)]
-    depth: Annotated[int, Field(ge=0, le=6)]
+    width: Annotated[int, Field(ge=1, le=WIDTH_MAX)]
+    depth: Annotated[int, Field(ge=0, le=DEPTH_MAX)]
     unshuffle: Literal[1, 2, 4, 8]
     # "rgbd" adds the render's mapped depth as a fourth input channel (nhfd.models.inputs).
     inputs: Literal["rgb", "rgbd"] = "rgb"
     growth: Annotated[float, Field(ge=GROWTH_RANGE[0], le=GROWTH_RANGE[1])] = GROWTH_RANGE[1]
     skip: Literal[SKIPS] = SKIPS[0]
-    single_conv_levels: Annotated[int, Field(ge=0, le=SINGLE_CONV_LEVELS_MAX)] = 0
+    single_conv_levels: Annotated[int, Field(ge=0, le=DEPTH_MAX + 1)] = 0
     # channels of the second level when not width * growth (0); the growth applies below it
-    deep_width: Annotated[int, Field(ge=0, le=512)] = 0
+    deep_width: Annotated[int, Field(ge=0, le=WIDTH_MAX)] = 0
 
     @model_validator(mode="after")
     def _levels_exist(self) -> ModelProfile:

@@ -41,13 +41,13 @@ def _int8_is_quantised_and_close(float_path, int8_path):
     import numpy as np
     import onnx
     from nhfd.models.export import OnnxModel
-    from nhfd.models.quantise import head_nodes
+    from nhfd.models.quantise import output_nodes
 
     graph = onnx.load(str(int8_path)).graph
     ops = [n.op_type for n in graph.node]
     assert "QuantizeLinear" in ops and "DequantizeLinear" in ops
     floats = {i.name for i in graph.initializer if i.data_type == onnx.TensorProto.FLOAT}
-    for name in head_nodes(onnx.load(str(int8_path))):  # the output layers keep float weights
+    for name in output_nodes(onnx.load(str(int8_path)))[0]:  # the output layers keep float weights
         node = next(n for n in graph.node if n.name == name)
         assert node.input[1] in floats
     f, q = OnnxModel(float_path), OnnxModel(int8_path)

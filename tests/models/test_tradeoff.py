@@ -9,7 +9,7 @@ import onnx
 import pytest
 import torch
 from nhfd.models.export import export_onnx
-from nhfd.models.quantise import head_nodes, output_nodes
+from nhfd.models.quantise import output_nodes
 from nhfd.models.train import CHECKPOINT, train
 
 from nhfd.bench.tradeoff import (
@@ -25,25 +25,24 @@ from tests.models.conftest import tiny_options
 
 def test_int8_keeps_the_layers_that_write_the_outputs_in_float(tiny_run, tmp_path):
     model = onnx.load(str(export_onnx(tiny_run, tmp_path / "m.onnx").path))
-    heads = head_nodes(model)
+    heads, tail = output_nodes(model)
     by_name = {n.name: n for n in model.graph.node}
     assert len(heads) == 2 and {by_name[h].op_type for h in heads} == {"ConvTranspose"}
     # they are the last convolutions: nothing but elementwise ops between them and the outputs
     convs = [n.name for n in model.graph.node if n.op_type in ("Conv", "ConvTranspose")]
     assert set(convs[-2:]) == set(heads)
-    _, tail = output_nodes(model)
     assert {by_name[t].op_type for t in tail} >= {"Exp", "Log", "Max"}  # softplus's passes
 
 
 def test_int8_leaves_the_head_and_the_softplus_in_float(tiny_data, tiny_run, tmp_path):
     from nhfd.models.data import HoloData
+    from nhfd.models.net import NetSpec
     from nhfd.models.quantise import quantise_int8
 
     src = export_onnx(tiny_run, tmp_path / "m.onnx").path
-    net_spec = json.loads((tiny_run / "run.json").read_text())["net"]
-    multiple = net_spec["unshuffle"] * 2 ** net_spec["depth"]
-    dst = quantise_int8(src, tmp_path / "m-int8.onnx", HoloData(tiny_data), multiple,
-                        net_spec["inputs"])  # fmt: skip
+    spec = NetSpec(**json.loads((tiny_run / "run.json").read_text())["net"])
+    dst = quantise_int8(src, tmp_path / "m-int8.onnx", HoloData(tiny_data), spec.multiple,
+                        spec.inputs)  # fmt: skip
     q = onnx.load(str(dst))
     producer = {out: n for n in q.graph.node for out in n.output}
     # every path from the outputs back to the head: float nodes only, no (de)quantisation
