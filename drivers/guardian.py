@@ -12,9 +12,17 @@ reads back that they are off. Emission needs a live heartbeat and a person's arm
 The daemon should send heartbeats from its main loop, not from a helper thread: a thread would
 keep beating while the loop that drives the bench is stuck.
 
+Only its controller commands it. At start the guardian writes a random token into
+`<socket>.token` (mode 0600, in its own directory, never on a command line) and its pid into
+`<socket>.pid`; a client that sends `auth {token}` may then use every request. Without it only
+`hello`, `status` and `off` are open: switching off is always allowed. It refuses a directory
+that another user owns or may write to (`nhfd.drivers.rundir`), and `hello` says which port and
+which unit (serial number) it drives, so a client can refuse a guardian of another laser.
+
 Requests (replies are {"ok": true, ...} or {"ok": false, "error": "...", "type": "..."}):
-  hello | heartbeat | arm {duration_s} | disarm | power {channel, power_pct} |
-  enable {channel, on} | off | status | clear_fault
+  open:  hello | status | off | auth {token}
+  token: heartbeat | arm {duration_s} | disarm | power {channel, power_pct} |
+         enable {channel, on} | clear_fault | shutdown (all off, then the guardian exits)
 
 `nhfd laser-off` sends `off` here, or opens the port itself when no guardian answers.
 Run: `python -m nhfd.drivers.guardian --settings-json '{...}' [--port PATH] [--socket PATH]`.
@@ -24,12 +32,16 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hmac
 import json
 import logging
 import os
+import secrets
 import selectors
+import signal
 import socket
 import stat
+import struct
 import subprocess
 import sys
 import time
@@ -40,24 +52,41 @@ from typing import Any
 
 from .errors import DeviceError, TransportError
 from .laser import Laser, MecomLaser, install_signal_handlers
+from .rundir import GUARDIAN_SOCKET_NAME, UnsafeDirectory, make_private_dir, runtime_dir
 from .settings import LaserSettings
 
 log = logging.getLogger(__name__)
 
 READY = "ready"
 _MAX_LINE = 65536
+# Requests anyone who can reach the socket may send: switching off is always allowed.
+OPEN_OPS = frozenset({"hello", "status", "off", "auth"})
+# A process whose command line holds one of these is an nhfd laser guardian.
+GUARDIAN_COMMANDS = (("nhfd.drivers.guardian",), ("nhfd", "laser-guardian"))
 
 
-def default_socket_path() -> Path:
-    runtime = os.environ.get("XDG_RUNTIME_DIR")
-    base = Path(runtime) / "nhfd" if runtime else Path(f"/tmp/nhfd-{os.getuid()}")
-    return base / "laser.sock"
+def default_socket_path(runtime: str | os.PathLike[str] | None = None) -> Path:
+    """laser.sock in `runtime`, else in the default runtime directory (`rundir.runtime_dir`)."""
+    return Path(runtime or runtime_dir()) / GUARDIAN_SOCKET_NAME
 
 
-def socket_path_for(settings: LaserSettings) -> Path:
+def socket_path_for(settings: LaserSettings,
+                    runtime: str | os.PathLike[str] | None = None) -> Path:
+    """The configured socket, else laser.sock in the daemon's runtime directory: two daemons
+    with two runtime directories get two guardians."""
     return Path(settings.guardian.socket_path) if settings.guardian.socket_path else (
-        default_socket_path()
+        default_socket_path(runtime)
     )
+
+
+def pid_path_for(socket_path: str | os.PathLike[str]) -> Path:
+    p = Path(socket_path)
+    return p.with_name(p.name + ".pid")
+
+
+def token_path_for(socket_path: str | os.PathLike[str]) -> Path:
+    p = Path(socket_path)
+    return p.with_name(p.name + ".token")
 
 
 class GuardianError(DeviceError):
@@ -68,6 +97,15 @@ class GuardianUnavailable(GuardianError):
     """No guardian answers on the socket."""
 
 
+class GuardianUnresponsive(GuardianUnavailable):
+    """A guardian accepted the connection but did not answer in time (hung or stopped)."""
+
+
+class GuardianRefused(GuardianError):
+    """The process on the socket is not a guardian this client may trust: another user, another
+    process than the one started, another port, or an unsafe directory."""
+
+
 # ---------------------------------------------------------------------------------------- server
 
 
@@ -76,6 +114,7 @@ class _Client:
     sock: socket.socket
     buffer: bytearray = field(default_factory=bytearray)
     controller: bool = False
+    authed: bool = False
 
 
 class Guardian:
@@ -88,11 +127,15 @@ class Guardian:
         *,
         heartbeat_timeout_s: float,
         tick_s: float,
+        group_writable_ok: bool = False,
     ) -> None:
         self.laser = laser
         self.socket_path = Path(socket_path)
         self.heartbeat_timeout_s = heartbeat_timeout_s
         self.tick_s = tick_s
+        self.group_writable_ok = group_writable_ok
+        self.token = secrets.token_urlsafe(32)
+        self.stopped = False
         self._last_heartbeat: float | None = None
         self._sel = selectors.DefaultSelector()
         self._server: socket.socket | None = None
@@ -104,7 +147,10 @@ class Guardian:
 
     def listen(self) -> None:
         path = self.socket_path
-        path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+        try:
+            make_private_dir(path.parent, group_writable_ok=self.group_writable_ok)
+        except UnsafeDirectory as exc:
+            raise GuardianError(str(exc)) from None
         if path.exists() or path.is_symlink():
             if not stat.S_ISSOCK(path.lstat().st_mode):
                 raise GuardianError(f"{path} exists and is not a socket")
@@ -122,6 +168,8 @@ class Guardian:
         server.setblocking(False)
         self._server = server
         self._sel.register(server, selectors.EVENT_READ)
+        _write_private(token_path_for(path), self.token + "\n", 0o600)
+        _write_private(pid_path_for(path), f"{os.getpid()}\n", 0o644)
 
     def close(self) -> None:
         for client in list(self._clients.values()):
@@ -130,8 +178,10 @@ class Guardian:
             self._sel.unregister(self._server)
             self._server.close()
             self._server = None
-            with contextlib.suppress(OSError):
-                self.socket_path.unlink()
+            for p in (self.socket_path, token_path_for(self.socket_path),
+                      pid_path_for(self.socket_path)):
+                with contextlib.suppress(OSError):
+                    p.unlink()
         self._sel.close()
 
     # -- loop ----------------------------------------------------------------------------------
@@ -139,7 +189,7 @@ class Guardian:
     def serve(self, stop_after_s: float | None = None) -> None:
         """Run until interrupted (SIGTERM/SIGINT raise) or stop_after_s has passed."""
         end = None if stop_after_s is None else time.monotonic() + stop_after_s
-        while end is None or time.monotonic() < end:
+        while not self.stopped and (end is None or time.monotonic() < end):
             self.step()
 
     def step(self) -> None:
@@ -249,7 +299,22 @@ class Guardian:
         if op == "hello":
             s = laser.settings
             return {"channels": list(laser.channels), "max_power_pct": s.max_power_pct,
-                    "heartbeat_timeout_s": self.heartbeat_timeout_s, "pid": os.getpid()}
+                    "heartbeat_timeout_s": self.heartbeat_timeout_s, "pid": os.getpid(),
+                    "uid": os.getuid(), "port": _port_name(laser),
+                    "usb_serial": s.usb_serial, "device_type": laser.device_type,
+                    "serial_number": laser.serial_number}
+        if op == "auth":
+            client.authed = hmac.compare_digest(str(msg.get("token", "")), self.token)
+            if not client.authed:
+                raise GuardianError("wrong token")
+            return {}
+        if op not in OPEN_OPS and not client.authed:
+            raise GuardianError(f"{op!r} needs the controller's token (auth first); only "
+                                f"{', '.join(sorted(OPEN_OPS - {'auth'}))} are open")
+        if op == "shutdown":
+            laser.disarm()  # all off with read-back, or this raises and the guardian stays
+            self.stopped = True
+            return {"off": True, "pid": os.getpid()}
         if op == "heartbeat":
             client.controller = True
             self._last_heartbeat = time.monotonic()
@@ -295,23 +360,49 @@ class Guardian:
 
 
 class GuardianClient:
-    """The daemon's (and `nhfd laser-off`'s) side of the socket. Every call is bounded."""
+    """The daemon's (and `nhfd laser-off`'s) side of the socket. Every call is bounded.
+
+    The peer's credentials (SO_PEERCRED) are checked on connect: it must run as this user and,
+    where `expected_pid` is given (a guardian this process started), be that process. With a
+    `token` the client authenticates as the controller at once."""
 
     def __init__(self, socket_path: str | os.PathLike[str] | None = None, *,
-                 timeout_s: float = 2.0) -> None:
+                 timeout_s: float = 2.0, expected_pid: int | None = None,
+                 token: str | None = None) -> None:
         self.socket_path = Path(socket_path) if socket_path else default_socket_path()
+        self.timeout_s = timeout_s
         self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         self._sock.settimeout(timeout_s)
         self._buffer = bytearray()
         try:
             self._sock.connect(str(self.socket_path))
+        except TimeoutError:  # a full backlog: the guardian accepts nothing
+            self._sock.close()
+            raise GuardianUnresponsive(f"guardian at {self.socket_path} accepts no connection "
+                                       f"within {timeout_s:g} s") from None
         except OSError as exc:
             self._sock.close()
             raise GuardianUnavailable(
                 f"no laser guardian at {self.socket_path} ({exc.strerror or exc})"
             ) from None
+        try:
+            self.peer_pid, self.peer_uid = peer_credentials(self._sock)
+            if self.peer_uid != os.getuid():
+                raise GuardianRefused(
+                    f"the process on {self.socket_path} (pid {self.peer_pid}) runs as uid "
+                    f"{self.peer_uid}, not {os.getuid()}; refusing it")
+            if expected_pid is not None and self.peer_pid != expected_pid:
+                raise GuardianRefused(
+                    f"the process on {self.socket_path} is pid {self.peer_pid}, not the "
+                    f"guardian started (pid {expected_pid}); refusing it")
+            if token is not None:
+                self.call("auth", token=token)
+        except BaseException:
+            self._sock.close()
+            raise
 
-    def call(self, op: str, **params: Any) -> dict[str, Any]:
+    def call(self, op: str, *, timeout_s: float | None = None, **params: Any) -> dict[str, Any]:
+        self._sock.settimeout(self.timeout_s if timeout_s is None else timeout_s)
         try:
             self._sock.sendall(json.dumps({"op": op, **params}).encode() + b"\n")
             while (end := self._buffer.find(b"\n")) < 0:
@@ -320,11 +411,18 @@ class GuardianClient:
                     raise GuardianUnavailable(f"guardian at {self.socket_path} hung up")
                 self._buffer += chunk
         except TimeoutError:
-            raise GuardianUnavailable(f"guardian at {self.socket_path} did not answer") from None
+            raise GuardianUnresponsive(
+                f"guardian at {self.socket_path} did not answer {op!r} within "
+                f"{self._sock.gettimeout():g} s") from None
         except OSError as exc:
             raise GuardianUnavailable(f"guardian at {self.socket_path}: {exc}") from None
-        reply = json.loads(bytes(self._buffer[:end]))
+        try:
+            reply = json.loads(bytes(self._buffer[:end]))
+        except ValueError:
+            raise GuardianRefused(f"guardian at {self.socket_path}: not a JSON reply") from None
         del self._buffer[: end + 1]
+        if not isinstance(reply, dict):
+            raise GuardianRefused(f"guardian at {self.socket_path}: not a JSON object")
         if not reply.pop("ok", False):
             raise GuardianError(f"guardian: {reply.get('type', 'error')}: {reply.get('error')}")
         return reply
@@ -332,8 +430,8 @@ class GuardianClient:
     def hello(self) -> dict[str, Any]:
         return self.call("hello")
 
-    def heartbeat(self) -> dict[str, Any]:
-        return self.call("heartbeat")
+    def heartbeat(self, timeout_s: float | None = None) -> dict[str, Any]:
+        return self.call("heartbeat", timeout_s=timeout_s)
 
     def arm(self, duration_s: float) -> None:
         self.call("arm", duration_s=duration_s)
@@ -352,6 +450,10 @@ class GuardianClient:
 
     def status(self) -> dict[str, Any]:
         return self.call("status")
+
+    def shutdown(self) -> int:
+        """All off with read-back, then the guardian exits; returns its pid (token needed)."""
+        return int(self.call("shutdown")["pid"])
 
     def close(self) -> None:
         self._sock.close()
@@ -373,6 +475,7 @@ def spawn_guardian(
     socket_path: str | os.PathLike[str] | None = None,
     stderr: Any = None,
     python: str = sys.executable,
+    group_writable_ok: bool = False,
 ) -> subprocess.Popen[str]:
     """Start a guardian process and wait (bounded by guardian.start_timeout_s) until it has
     identified the laser, switched it off and listens. The caller owns the process."""
@@ -382,6 +485,8 @@ def spawn_guardian(
         args += ["--port", port]
     if socket_path:
         args += ["--socket", str(socket_path)]
+    if group_writable_ok:
+        args += ["--group-writable-dir"]
     proc = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=stderr, text=True)
     assert proc.stdout is not None
     timeout_s = settings.guardian.start_timeout_s
@@ -402,16 +507,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--settings-json", default="{}", help="LaserSettings as JSON")
     parser.add_argument("--port", help="laser port path (overrides the settings)")
     parser.add_argument("--socket", help="socket path (overrides the settings)")
+    parser.add_argument("--group-writable-dir", action="store_true",
+                        help="accept a group-writable socket directory (daemon.socket_group)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s laser-guardian %(levelname)s %(message)s")
     settings = LaserSettings.model_validate_json(args.settings_json)
     if args.port:
         settings = settings.model_copy(update={"port": args.port})
-    return run(settings, args.socket)
+    return run(settings, args.socket, group_writable_ok=args.group_writable_dir)
 
 
-def run(settings: LaserSettings, socket_path: str | None = None) -> int:
+def run(settings: LaserSettings, socket_path: str | None = None, *,
+        group_writable_ok: bool = False) -> int:
     install_signal_handlers()
     path = Path(socket_path) if socket_path else socket_path_for(settings)
     laser = MecomLaser(settings)
@@ -419,7 +527,7 @@ def run(settings: LaserSettings, socket_path: str | None = None) -> int:
         with laser:
             g = settings.guardian
             guardian = Guardian(laser, path, heartbeat_timeout_s=g.heartbeat_timeout_s,
-                                tick_s=g.tick_s)
+                                tick_s=g.tick_s, group_writable_ok=group_writable_ok)
             guardian.listen()
             try:
                 print(f"{READY} {path}", flush=True)
@@ -433,6 +541,146 @@ def run(settings: LaserSettings, socket_path: str | None = None) -> int:
         log.error("%s", exc)
         return 1
     return 0
+
+
+# --------------------------------------------------------------------------------- verification
+
+
+def _port_name(laser: Laser) -> str:
+    return str(getattr(laser, "port_name", "") or laser.settings.port)
+
+
+def _write_private(path: Path, text: str, mode: int) -> None:
+    """Replace `path` with a new file of `mode` (never through a symlink someone left there)."""
+    with contextlib.suppress(FileNotFoundError):
+        path.unlink()
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_NOFOLLOW, mode)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+
+
+def peer_credentials(sock: socket.socket) -> tuple[int, int]:
+    """(pid, uid) of the process at the other end of a Unix socket (SO_PEERCRED)."""
+    raw = sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, struct.calcsize("3i"))
+    pid, uid, _gid = struct.unpack("3i", raw)
+    return pid, uid
+
+
+def read_private(path: Path) -> str:
+    """The text of a file this user owns that nobody else may read or write (a token)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW)
+    with os.fdopen(fd) as f:
+        st = os.fstat(f.fileno())
+        if st.st_uid != os.getuid() or stat.S_IMODE(st.st_mode) & 0o077:
+            raise GuardianRefused(f"{path}: owner uid {st.st_uid}, mode "
+                                  f"{stat.S_IMODE(st.st_mode):04o}; a token file must be this "
+                                  "user's and mode 0600")
+        return f.read().strip()
+
+
+def read_token(socket_path: str | os.PathLike[str]) -> str:
+    try:
+        return read_private(token_path_for(socket_path))
+    except FileNotFoundError:
+        raise GuardianRefused(f"no token file {token_path_for(socket_path)}: the guardian there "
+                              "did not start as this nhfd's guardian") from None
+
+
+def is_our_guardian(pid: int) -> bool:
+    """True when `pid` is a live nhfd laser guardian of this user (read from /proc)."""
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
+    except OSError:
+        return False
+    uids = next((ln.split()[1:] for ln in status.splitlines() if ln.startswith("Uid:")), [])
+    state = next((ln.split()[1] for ln in status.splitlines() if ln.startswith("State:")), "")
+    if not uids or int(uids[0]) != os.getuid() or state == "Z":
+        return False
+    return any(all(any(word in arg for arg in argv) for word in words)
+               for words in GUARDIAN_COMMANDS)
+
+
+def alive(pid: int) -> bool:
+    try:
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return False
+    return "\nState:\tZ" not in status
+
+
+def guardian_pid(socket_path: str | os.PathLike[str], port: str = "") -> int | None:
+    """The pid of the nhfd guardian of this user serving `socket_path` (its pid file) or holding
+    `port` (from /proc), verified by `is_our_guardian`; None when there is none."""
+    candidates: list[int] = []
+    with contextlib.suppress(OSError, ValueError):
+        pid_file = pid_path_for(socket_path)
+        if pid_file.stat().st_uid == os.getuid():
+            candidates.append(int(pid_file.read_text().strip()))
+    if port:
+        candidates += port_holders(port)
+    return next((pid for pid in candidates if is_our_guardian(pid)), None)
+
+
+def holds_port(pid: int, port: str) -> bool:
+    """True when process `pid` (of this user: others' fds are not readable) has `port` open."""
+    target = os.path.realpath(port)
+    with contextlib.suppress(OSError):
+        return any(os.path.realpath(fd) == target for fd in Path(f"/proc/{pid}/fd").iterdir())
+    return False
+
+
+def port_holders(port: str) -> list[int]:
+    """Processes of this user with `port` open (from /proc/<pid>/fd)."""
+    return [int(e.name) for e in Path("/proc").iterdir()
+            if e.name.isdigit() and holds_port(int(e.name), port)]
+
+
+def verify_guardian(pid: int, port: str, where: str) -> None:
+    """GuardianRefused unless `pid` is an nhfd guardian of this user that holds `port` open: a
+    process can claim any port in its hello, but not hold one another process holds."""
+    if not is_our_guardian(pid):
+        raise GuardianRefused(f"{where}: pid {pid} is not an nhfd laser guardian of this user "
+                              "(/proc); refusing it")
+    if not holds_port(pid, port):
+        raise GuardianRefused(f"{where}: pid {pid} says it drives {port!r} but does not hold it "
+                              "open; refusing it")
+
+
+def guardian_port(pid: int) -> str:
+    """The port a guardian process was started on (its --port or --settings-json), or ""."""
+    try:
+        argv = Path(f"/proc/{pid}/cmdline").read_bytes().decode(errors="replace").split("\0")
+    except OSError:
+        return ""
+    if "--port" in argv[:-1]:
+        return argv[argv.index("--port") + 1]
+    if "--settings-json" in argv[:-1]:
+        with contextlib.suppress(ValueError, TypeError, AttributeError):
+            return str(json.loads(argv[argv.index("--settings-json") + 1]).get("port", ""))
+    return ""
+
+
+def kill_guardian(pid: int, timeout_s: float = 3.0) -> bool:
+    """SIGKILL a verified guardian of ours and wait until it is gone (its port is free then);
+    False when `pid` is not one (nothing is sent)."""
+    if not is_our_guardian(pid):
+        return False
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + timeout_s
+    while alive(pid):
+        with contextlib.suppress(ChildProcessError):
+            if os.waitpid(pid, os.WNOHANG)[0] == pid:
+                break
+        if time.monotonic() > deadline:
+            raise GuardianError(f"guardian pid {pid} still alive {timeout_s:g} s after SIGKILL")
+        time.sleep(0.005)
+    return True
+
+
+def same_port(reported: str, expected: str) -> bool:
+    return bool(reported) and os.path.realpath(reported) == os.path.realpath(expected)
 
 
 if __name__ == "__main__":

@@ -123,6 +123,8 @@ class Laser(ABC):
         self._armed_until: float | None = None
         self._fault: str | None = None
         self.device_type: int | None = None
+        # The unit's serial number where the device reports one (the guardian's identity).
+        self.serial_number: int | None = None
 
     # -- lifecycle -----------------------------------------------------------------------------
 
@@ -464,8 +466,12 @@ class MecomLaser(Laser):
 
     @property
     def name(self) -> str:
-        where = self._transport.name if self._transport else (self.settings.port or "laser")
-        return f"laser {where}"
+        return f"laser {self.port_name or 'laser'}"
+
+    @property
+    def port_name(self) -> str:
+        """The port actually open (found by USB serial where no path is configured)."""
+        return self._transport.name if self._transport else self.settings.port
 
     # -- link ----------------------------------------------------------------------------------
 
@@ -554,6 +560,7 @@ class MecomLaser(Laser):
         return self.read_parameter(ids.device_type, self.settings.channel_instances[0]).as_int
 
     def _prepare(self) -> None:
+        self.serial_number = self._read_serial_number()
         if not self.settings.take_control:
             return
         param = self.settings.parameter_ids.digital_control
@@ -564,6 +571,15 @@ class MecomLaser(Laser):
                 raise ReadbackMismatch(
                     f"{self.name}: digital control on instance {instance} reads {got}, wrote 1"
                 )
+
+    def _read_serial_number(self) -> int | None:
+        """Common parameter 102; None on a unit that answers "parameter not available"."""
+        param = self.settings.parameter_ids.serial_number
+        try:
+            return self.read_parameter(param, self.settings.channel_instances[0]).as_int
+        except mecom.MecomDeviceError as exc:
+            log.warning("%s: no serial number (parameter %d): %s", self.name, param, exc)
+            return None
 
     def _write_enable(self, channel: str, on: bool) -> None:
         ids = self.settings.parameter_ids

@@ -43,6 +43,10 @@ class MecomParameterIds(_Settings):
 
     device_type: ParamId = 100
     status: ParamId = 104
+    # Meerstetter's common parameter "serial number" (ids 100-109 are common to its devices, as
+    # in Meerstetter's MeCom C API: 100 device type, 101 hardware version, 102 serial number,
+    # 103 firmware version, 104 status). Read-only; a unit that lacks it reports no serial.
+    serial_number: ParamId = 102
     digital_control: ParamId = 7000
     channel_enable: ParamId = 7006
     channel_power: ParamId = 7013
@@ -51,8 +55,8 @@ class MecomParameterIds(_Settings):
 
 
 class GuardianSettings(_Settings):
-    # Unix socket the daemon and `nhfd laser-off` talk to. "" = $XDG_RUNTIME_DIR/nhfd/laser.sock,
-    # or /tmp/nhfd-<uid>/laser.sock without a runtime directory.
+    # Unix socket the daemon and `nhfd laser-off` talk to. "" = laser.sock in the daemon's runtime
+    # directory (so two daemons with two runtime directories have two guardians).
     socket_path: str = ""
     # All channels off when no heartbeat arrives for this long (the daemon sends one per loop).
     heartbeat_timeout_s: Annotated[float, Field(ge=0.05, le=10)] = 0.5
@@ -60,6 +64,9 @@ class GuardianSettings(_Settings):
     tick_s: Annotated[float, Field(ge=0.005, le=0.5)] = 0.05
     # How long a spawner waits for the guardian to identify the laser and listen.
     start_timeout_s: Seconds = 15.0
+    # The daemon's bound on a heartbeat's answer; a guardian it started that misses it is hung:
+    # SIGKILLed and replaced by one that switches every channel off (well inside 1 s in all).
+    heartbeat_reply_timeout_s: Annotated[float, Field(ge=0.01, le=5)] = 0.25
 
 
 class LaserSettings(_Settings):

@@ -84,6 +84,7 @@ class MecomTwin(PtyPeer):
         channel_instances: Iterable[int] = (1, 2, 3),
         parameter_ids: MecomParameterIds | None = None,
         device_status: int = 1,
+        serial_number: int = 23051,
         initial_pct: Mapping[str, float] | None = None,
         clock: Clock = real_clock,
     ) -> None:
@@ -92,6 +93,7 @@ class MecomTwin(PtyPeer):
         self.address = address
         self.ids = parameter_ids or MecomParameterIds()
         self.device_status = device_status
+        self.serial_number = serial_number  # common parameter 102, read-only
         self.names = dict(zip(channel_instances, COLOURS, strict=True))
         self._channels = {inst: _Channel() for inst in self.names}
         self.requests: list[RequestRecord] = []
@@ -242,8 +244,8 @@ class MecomTwin(PtyPeer):
         except ValueError:
             return mecom.error_frame(a, s, "04")
         ids = self.ids
-        known = {ids.device_type, ids.status, ids.digital_control, ids.channel_enable,
-                 ids.channel_power, ids.any_laser_on}
+        known = {ids.device_type, ids.status, ids.serial_number, ids.digital_control,
+                 ids.channel_enable, ids.channel_power, ids.any_laser_on}
         if param not in known:
             return mecom.error_frame(a, s, "05")
         per_channel = param in (ids.digital_control, ids.channel_enable, ids.channel_power)
@@ -278,6 +280,8 @@ class MecomTwin(PtyPeer):
             return mecom.int_bits(self.device_type)
         if param == ids.status:
             return mecom.int_bits(self.device_status)
+        if param == ids.serial_number:
+            return mecom.int_bits(self.serial_number)
         if param == ids.any_laser_on:
             return int(any(c.emitted_pct > 0 for c in self._channels.values()))
         ch = self._channels[inst]

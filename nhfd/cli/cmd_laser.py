@@ -2,7 +2,10 @@
 
 `laser-off` asks the guardian to switch every channel off and read it back; when no guardian
 answers it opens the laser port itself (identify first, then all off, read back). Exit code 0
-only when the channels were read back off. It is what the service manager's stop hook runs.
+only when the channels were read back off by something it trusts: a guardian in a safe
+directory, running as this user, driving the configured port; or its own port read-back. A hung
+nhfd guardian of this user (verified in /proc) is killed first, which frees the port. It is what
+the service manager's stop hook runs.
 
 Drivers are imported inside the handlers so `nhfd --help` stays instant.
 """
@@ -44,17 +47,19 @@ def _common(p: argparse.ArgumentParser) -> None:
     where.add_argument("--usb-serial", help="USB serial number of the laser's port")
 
 
-def _settings(args: argparse.Namespace) -> Any:
+def _settings(args: argparse.Namespace) -> tuple[Any, Any]:
     """LaserSettings from the configuration's [devices.readybeam], with the command line's port
-    and socket on top. A broken configuration file must not stop an emergency off, so it is
-    reported and the defaults are used."""
+    and socket on top, and the [daemon] section (runtime directory, socket group; None when
+    the configuration could not be read). A broken configuration file must not stop an emergency
+    off, so it is reported and the defaults are used."""
     from nhfd.drivers.settings import LaserSettings
 
-    settings = LaserSettings()
+    settings, daemon = LaserSettings(), None
     try:
         from nhfd.config import load_config
 
-        settings = load_config(args.config).config.devices.readybeam
+        config = load_config(args.config).config
+        settings, daemon = config.devices.readybeam, config.daemon
     except Exception as exc:
         print(f"nhfd {args.command}: warning: configuration not used: {exc}", file=sys.stderr)
     update: dict[str, Any] = {}
@@ -64,28 +69,87 @@ def _settings(args: argparse.Namespace) -> Any:
         update.update(usb_serial=args.usb_serial, port="")
     if args.socket:
         update["guardian"] = settings.guardian.model_copy(update={"socket_path": args.socket})
-    return settings.model_copy(update=update) if update else settings
+    return (settings.model_copy(update=update) if update else settings), daemon
+
+
+def _off_through_guardian(settings: Any, path: Any, group_ok: bool, timeout_s: float) -> str:
+    """All off through a guardian this command can trust; returns what it did. Raises
+    GuardianUnavailable (none answers; a hung one of ours is killed first) or GuardianRefused."""
+    from nhfd.drivers.guardian import (
+        GuardianClient,
+        GuardianRefused,
+        GuardianUnresponsive,
+        guardian_pid,
+        guardian_port,
+        kill_guardian,
+        same_port,
+        verify_guardian,
+    )
+    from nhfd.drivers.rundir import UnsafeDirectory, check_private_dir
+
+    try:
+        check_private_dir(path.parent, group_writable_ok=group_ok)
+    except UnsafeDirectory as exc:
+        raise GuardianRefused(f"laser guardian directory: {exc}") from None
+    try:
+        with GuardianClient(path, timeout_s=timeout_s) as client:
+            hello = client.hello()
+            port = str(hello.get("port") or "")
+            if not port or (settings.port and not same_port(port, settings.port)):
+                raise GuardianRefused(f"the laser guardian at {path} (pid {client.peer_pid}) "
+                                      f"drives port {port!r}, not {settings.port!r}")
+            verify_guardian(client.peer_pid, port, f"the laser guardian at {path}")
+            client.all_off()
+            st = client.status()
+            on = [ch for ch, c in st["channels"].items()
+                  if c["enabled"] or abs(c["power_pct"]) > settings.readback_tolerance_pct]
+            if on or st["armed"]:
+                raise GuardianRefused(f"guardian at {path} says off but reads back {on}")
+            return f"read back by the guardian at {path}, pid {client.peer_pid}, port {port}"
+    except GuardianUnresponsive as exc:
+        pid = guardian_pid(path, settings.port)
+        port = guardian_port(pid) if pid is not None else ""
+        if pid is None or not kill_guardian(pid):
+            raise GuardianRefused(f"{exc}, and no nhfd guardian of this user to end") from None
+        print(f"nhfd laser-off: {exc}: killed the hung guardian, pid {pid}", file=sys.stderr)
+        raise _HungGuardianKilled(f"{exc}; hung guardian pid {pid} killed", port) from None
+
+
+class _HungGuardianKilled(Exception):
+    """The port is free now; `port` is the one the killed guardian drove ("" if unknown)."""
+
+    def __init__(self, message: str, port: str) -> None:
+        super().__init__(message)
+        self.port = port
 
 
 def _laser_off(args: argparse.Namespace) -> int:
     from nhfd.drivers.errors import DeviceError, PortBusy
     from nhfd.drivers.guardian import (
-        GuardianClient,
         GuardianError,
+        GuardianRefused,
         GuardianUnavailable,
         socket_path_for,
     )
     from nhfd.drivers.laser import MecomLaser
+    from nhfd.drivers.rundir import runtime_dir
 
-    settings = _settings(args)
-    path = socket_path_for(settings)
+    settings, daemon = _settings(args)
+    path = socket_path_for(settings, runtime_dir(daemon.runtime_dir if daemon else ""))
+    group_ok = bool(daemon and daemon.socket_group)
     try:
-        with GuardianClient(path, timeout_s=args.timeout_s) as client:
-            client.all_off()
-        print(f"all laser channels off (read back by the guardian at {path})")
+        how = _off_through_guardian(settings, path, group_ok, args.timeout_s)
+        print(f"all laser channels off ({how})")
         return 0
+    except _HungGuardianKilled as exc:
+        reason = str(exc)
+        if not (settings.port or settings.usb_serial) and exc.port:
+            settings = settings.model_copy(update={"port": exc.port})
     except GuardianUnavailable as exc:
         reason = str(exc)
+    except GuardianRefused as exc:
+        reason = f"refused: {exc}"
+        print(f"nhfd laser-off: {reason}", file=sys.stderr)
     except GuardianError as exc:
         print(f"nhfd laser-off: error: {exc}", file=sys.stderr)
         return 1
@@ -98,22 +162,26 @@ def _laser_off(args: argparse.Namespace) -> int:
         laser.open()  # identifies, then switches every channel off and reads it back
         laser.close()
     except PortBusy as exc:
-        print(f"nhfd laser-off: error: {reason}; {exc} (a hung guardian? stop it, then retry)",
-              file=sys.stderr)
+        print(f"nhfd laser-off: error: {reason}; {exc} (not an nhfd guardian of this user: "
+              "stop it, then retry)", file=sys.stderr)
         return 1
     except DeviceError as exc:
         print(f"nhfd laser-off: error: {exc}", file=sys.stderr)
         return 1
     print(f"all laser channels off (read back on {settings.port or settings.usb_serial}; "
-          f"no guardian: {reason})")
+          f"no guardian used: {reason})")
     return 0
 
 
 def _guardian(args: argparse.Namespace) -> int:
     import logging
 
-    from nhfd.drivers.guardian import run
+    from nhfd.drivers.guardian import run, socket_path_for
+    from nhfd.drivers.rundir import runtime_dir
 
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s laser-guardian %(levelname)s %(message)s")
-    return run(_settings(args), args.socket)
+    settings, daemon = _settings(args)
+    # The same socket the daemon of this configuration looks for (its runtime directory).
+    path = socket_path_for(settings, runtime_dir(daemon.runtime_dir if daemon else ""))
+    return run(settings, str(path), group_writable_ok=bool(daemon and daemon.socket_group))

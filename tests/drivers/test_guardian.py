@@ -7,15 +7,26 @@ how long light kept coming after the daemon stopped.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
-from nhfd.drivers.guardian import GuardianClient, GuardianError, GuardianUnavailable, spawn_guardian
+from nhfd.drivers.guardian import (
+    GuardianClient,
+    GuardianError,
+    GuardianRefused,
+    GuardianUnavailable,
+    pid_path_for,
+    read_token,
+    spawn_guardian,
+    token_path_for,
+)
 from nhfd.drivers.settings import GuardianSettings, LaserSettings
 from nhfd.drivers.twins.mecom_twin import MecomTwin
 
@@ -27,8 +38,8 @@ HEAVY = ("torch", "numba", "onnxruntime")
 
 DAEMON = """
 import sys, time
-from nhfd.drivers.guardian import GuardianClient
-c = GuardianClient({sock!r})
+from nhfd.drivers.guardian import GuardianClient, read_token
+c = GuardianClient({sock!r}, token=read_token({sock!r}))
 c.heartbeat()
 c.arm(60)
 c.set_power("red", 80.0)
@@ -48,6 +59,11 @@ def guardian_settings(sock, heartbeat_timeout_s: float = 0.5) -> LaserSettings:
         guardian=GuardianSettings(socket_path=str(sock), heartbeat_timeout_s=heartbeat_timeout_s,
                                   start_timeout_s=15.0),
     )
+
+
+def controller(sock) -> GuardianClient:
+    """The guardian's controller: a client with the token from its 0600 file."""
+    return GuardianClient(sock, token=read_token(sock))
 
 
 def wait_dark(twin, timeout_s: float = 3.0) -> float:
@@ -88,7 +104,7 @@ def test_emission_needs_a_live_heartbeat(mecom_twin, short_dir):
     sock = short_dir / "laser.sock"
     guardian = spawn_guardian(guardian_settings(sock), port=mecom_twin.port_path,
                               stderr=subprocess.DEVNULL)
-    with reaped(guardian), GuardianClient(sock) as client:
+    with reaped(guardian), controller(sock) as client:
         with pytest.raises(GuardianError, match="heartbeat"):
             client.arm(10)
         client.heartbeat()
@@ -110,7 +126,7 @@ def test_nhfd_laser_off_through_the_guardian(mecom_twin, short_dir, capsys):
     sock = short_dir / "laser.sock"
     guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
                               port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
-    with reaped(guardian), GuardianClient(sock) as client:
+    with reaped(guardian), controller(sock) as client:
         client.heartbeat()
         client.arm(30)
         client.set_power("green", 2.0)
@@ -127,7 +143,7 @@ def test_the_guardian_switches_off_and_exits_on_sigterm(mecom_twin, short_dir):
     guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
                               port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
     with reaped(guardian):
-        with GuardianClient(sock) as client:
+        with controller(sock) as client:
             client.heartbeat()
             client.arm(30)
             client.set_power("red", 1.0)
@@ -169,7 +185,7 @@ def test_a_second_guardian_can_take_neither_the_port_nor_the_socket(mecom_twin, 
         # Another laser, same socket: refused, and the socket is left to the first one.
         with pytest.raises(GuardianError, match="did not become ready"):
             spawn_guardian(settings, port=other_twin.port_path, stderr=subprocess.DEVNULL)
-        with GuardianClient(sock) as client:
+        with controller(sock) as client:
             assert client.hello()["pid"] == guardian.pid
 
 
@@ -195,3 +211,129 @@ def test_the_guardian_and_drivers_import_no_heavy_libraries():
     # hidapi, pyusb and pyglet are optional and imported only where used
     assert not loaded & {"hid", "usb", "pyglet"}
     assert not any(m.startswith(("nhfd.models", "nhfd.optics")) for m in loaded)
+
+
+# ------------------------------------------------------------- issue 21: token, hung, impostor
+
+
+def test_only_the_token_holder_commands_the_guardian_but_anyone_may_switch_off(mecom_twin,
+                                                                               short_dir):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
+                              port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
+    token_file = token_path_for(sock)
+    with reaped(guardian), GuardianClient(sock) as stranger:
+        assert token_file.stat().st_mode & 0o777 == 0o600
+        token = read_token(sock)
+        cmdline = Path(f"/proc/{guardian.pid}/cmdline").read_bytes()
+        assert token.encode() not in cmdline  # never on a command line
+        for op, params in [("heartbeat", {}), ("arm", {"duration_s": 10}),
+                           ("power", {"channel": "red", "power_pct": 5.0}),
+                           ("enable", {"channel": "red"}), ("disarm", {}), ("clear_fault", {}),
+                           ("shutdown", {})]:
+            with pytest.raises(GuardianError, match=f"'{op}' needs the controller's token"):
+                stranger.call(op, **params)
+        with pytest.raises(GuardianError, match="wrong token"):
+            stranger.call("auth", token="x" * len(token))
+        with pytest.raises(GuardianError, match="needs the controller's token"):
+            stranger.heartbeat()  # a failed auth grants nothing
+        assert mecom_twin.max_emitted_pct() == 0.0
+        with controller(sock) as owner:
+            owner.heartbeat()
+            owner.arm(30)
+            owner.set_power("green", 2.0)
+            owner.enable("green")
+            assert mecom_twin.emitting()["green"] == 2.0
+            stranger.all_off()  # switching off is always allowed
+            assert mecom_twin.emitting() == {"red": 0.0, "green": 0.0, "blue": 0.0}
+            assert stranger.status()["armed"] is False
+            assert owner.shutdown() == guardian.pid  # the controller may end it
+        assert guardian.wait(timeout=5) == 0
+    assert not sock.exists() and not token_file.exists() and not pid_path_for(sock).exists()
+
+
+def test_hello_names_the_port_and_the_units_serial_number(mecom_twin, short_dir):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock), port=mecom_twin.port_path,
+                              stderr=subprocess.DEVNULL)
+    with reaped(guardian), GuardianClient(sock, expected_pid=guardian.pid) as client:
+        hello = client.hello()
+        assert hello["port"] == mecom_twin.port_path
+        assert hello["serial_number"] == mecom_twin.serial_number == 23051
+        assert hello["pid"] == client.peer_pid == guardian.pid
+        assert int(pid_path_for(sock).read_text()) == guardian.pid
+        assert "?VR006601" in [r.payload for r in mecom_twin.requests]  # parameter 102 read
+    with pytest.raises(GuardianRefused, match=r"is pid \d+, not the guardian started"):
+        other = spawn_guardian(guardian_settings(sock), port=mecom_twin.port_path,
+                               stderr=subprocess.DEVNULL)
+        with reaped(other):
+            GuardianClient(sock, expected_pid=other.pid + 1)
+
+
+def test_nhfd_laser_off_ends_a_hung_guardian_and_switches_off_itself(mecom_twin, short_dir,
+                                                                     capsys):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
+                              port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
+    with reaped(guardian), controller(sock) as client:
+        client.heartbeat()
+        client.arm(30)
+        client.set_power("red", 3.0)
+        client.enable("red")
+        guardian.send_signal(signal.SIGSTOP)  # hung: the socket accepts, nothing answers
+        try:
+            # No --port: the port comes from the verified guardian's own command line.
+            code = main(["laser-off", "--socket", str(sock), "--timeout-s", "0.3"])
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                guardian.send_signal(signal.SIGCONT)
+        out = capsys.readouterr()
+        assert code == 0, out.err
+        assert f"killed the hung guardian, pid {guardian.pid}" in out.err
+        assert f"read back on {mecom_twin.port_path}" in out.out
+        assert guardian.wait(timeout=5) == -signal.SIGKILL
+    assert mecom_twin.emitting() == {"red": 0.0, "green": 0.0, "blue": 0.0}
+
+
+FAKE = """
+import json, os, socket, sys
+s = socket.socket(socket.AF_UNIX); s.bind(sys.argv[1]); s.listen(4)
+print("ready", flush=True)
+while True:
+    c, _ = s.accept()
+    f = c.makefile("rwb")
+    for line in f:
+        f.write(json.dumps({"ok": True, "off": True, "port": sys.argv[2], "pid": os.getpid(),
+            "armed": False, "fault": None, "channels": {k: {"enabled": False, "power_pct": 0.0}
+            for k in ("red", "green", "blue")}}).encode() + b"\\n"); f.flush()
+"""
+
+
+@pytest.mark.parametrize("unsafe_mode", [None, 0o777, 0o757])
+def test_nhfd_laser_off_does_not_trust_a_fake_that_answers_all_off(mecom_twin, short_dir, capsys,
+                                                                   unsafe_mode):
+    where = short_dir
+    if unsafe_mode is not None:
+        where = short_dir / "shared"
+        where.mkdir()
+        where.chmod(unsafe_mode)
+    sock = where / "laser.sock"
+    fake = subprocess.Popen([sys.executable, "-c", FAKE, str(sock), mecom_twin.port_path],
+                            stdout=subprocess.PIPE, text=True)
+    mecom_twin.set_state("green", enabled=1, power_pct=6.0)
+    with reaped(fake):
+        assert read_line(fake, 10).strip() == "ready"
+        code = main(["laser-off", "--socket", str(sock), "--timeout-s", "1"])
+        err = capsys.readouterr().err
+        assert code == 1
+        if unsafe_mode is None:
+            assert f"pid {fake.pid} is not an nhfd laser guardian of this user" in err
+        else:
+            assert (f"{where} is writable by other users (owner uid {os.getuid()}, mode "
+                    f"{unsafe_mode:04o})") in err
+        assert "no laser port is configured" in err
+        assert mecom_twin.emitting()["green"] == 6.0  # nobody claimed otherwise
+        # With the port named, laser-off trusts only its own read-back on it.
+        assert main(["laser-off", "--socket", str(sock), "--port", mecom_twin.port_path]) == 0
+        assert "read back on" in capsys.readouterr().out
+        assert mecom_twin.emitting()["green"] == 0.0
