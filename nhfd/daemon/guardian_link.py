@@ -5,6 +5,17 @@ control loop (never a helper thread: a stuck loop must stop them, so the guardia
 lasers off). With `devices.laser = "simulated"` the daemon hosts the READYBeam twin on a pty and
 the guardian drives it through the same MeCom code as the real unit.
 
+Trust: the guardian's directory must be this user's and writable by no one else; the process on
+the socket must run as this user (SO_PEERCRED) and, when the daemon started it, be that child;
+its `hello` must name the configured port; the daemon commands it with the token from the
+guardian's 0600 token file. Anything else is refused by name, and start fails.
+
+A heartbeat that gets no answer within `guardian.heartbeat_reply_timeout_s` means a hung
+guardian: one the daemon started (or adopted from a killed daemon, verified as ours in /proc) is
+SIGKILLed and replaced by a new one, which opens the port and switches everything off (read
+back). With `daemon.guardian = "connect"` the guardian belongs to someone else: the daemon says
+"laser state unknown: guardian unresponsive" and never claims the lasers are off.
+
 Laser state changes the guardian makes by itself (arming expiry, a tripped heartbeat) are seen in
 the heartbeat replies and written to the audit log.
 """
@@ -13,6 +24,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import os
 import subprocess
 import threading
 import time
@@ -21,10 +33,20 @@ from typing import Any
 from nhfd.drivers.guardian import (
     GuardianClient,
     GuardianError,
+    GuardianRefused,
     GuardianUnavailable,
+    GuardianUnresponsive,
+    alive,
+    guardian_pid,
+    is_our_guardian,
+    kill_guardian,
+    read_token,
+    same_port,
     socket_path_for,
     spawn_guardian,
+    verify_guardian,
 )
+from nhfd.drivers.rundir import UnsafeDirectory, make_private_dir
 from nhfd.drivers.settings import LaserSettings
 
 from .audit import AuditLog
@@ -33,6 +55,7 @@ from .protocol import LASER_REFUSED, NOT_AVAILABLE, RpcError
 log = logging.getLogger("nhfd.daemon.laser")
 
 SYSTEM = {"who": "daemon"}
+UNKNOWN = "laser state unknown: guardian unresponsive"
 
 
 class LasersNotOff(RuntimeError):
@@ -41,17 +64,23 @@ class LasersNotOff(RuntimeError):
 
 class LaserLink:
     def __init__(self, settings: LaserSettings, backend: str, mode: str, audit: AuditLog, *,
+                 runtime_dir: str | os.PathLike[str] | None = None, socket_group: str = "",
                  call_timeout_s: float = 1.0, refresh_s: float = 1.0) -> None:
         self.settings = settings
         self.backend = backend  # "simulated", "readybeam" or "none"
         self.mode = mode  # "auto", "spawn" or "connect"
         self.audit = audit
         self.call_timeout_s = call_timeout_s
+        self.heartbeat_timeout_s = settings.guardian.heartbeat_reply_timeout_s
         self.refresh_s = refresh_s
-        self.socket_path = socket_path_for(settings)
+        self.socket_path = socket_path_for(settings, runtime_dir)
+        self.group_writable_ok = bool(socket_group)
         self.twin: Any = None  # the simulated laser's MecomTwin (the simulated camera reads it)
         self.proc: subprocess.Popen[str] | None = None
         self.client: GuardianClient | None = None
+        self.pid: int | None = None  # the guardian's pid (started or adopted)
+        self.identity: dict[str, Any] = {}  # the guardian's hello: port, serial number, pid
+        self.replaced = 0  # hung guardians killed and replaced
         self.error: str | None = None
         self._beat: dict[str, Any] = {}
         self._channels: dict[str, Any] = {}
@@ -65,16 +94,22 @@ class LaserLink:
     def present(self) -> bool:
         return self.backend != "none"
 
+    @property
+    def spawned(self) -> bool:
+        return self.proc is not None
+
     # -- start / stop --------------------------------------------------------------------------
 
     def start(self) -> None:
         """Connect to (or start) the guardian, switch every channel off and read it back."""
         if not self.present:
             return
+        try:
+            make_private_dir(self.socket_path.parent, group_writable_ok=self.group_writable_ok)
+        except UnsafeDirectory as exc:
+            raise GuardianRefused(f"laser guardian directory: {exc}") from None
         if self.mode in ("auto", "connect"):
-            with contextlib.suppress(GuardianUnavailable):
-                self.client = GuardianClient(self.socket_path, timeout_s=self.call_timeout_s)
-                log.info("laser guardian found at %s", self.socket_path)
+            self._adopt()
         if self.client is None:
             if self.mode == "connect":
                 raise GuardianUnavailable(f"no laser guardian at {self.socket_path} and "
@@ -82,20 +117,99 @@ class LaserLink:
             self._spawn()
         self.all_off_confirmed("start")
 
+    def _adopt(self) -> None:
+        """Use a guardian already listening (a killed daemon's, or a service's) if it is ours and
+        drives the configured port. In auto mode a hung one of ours, or one left driving a killed
+        simulated daemon's twin, is ended (verified in /proc) and a new one started."""
+        if not self.socket_path.exists():
+            if self.mode == "connect":
+                raise GuardianUnavailable(f"no laser guardian at {self.socket_path} and "
+                                          "daemon.guardian = 'connect'")
+            return
+        try:
+            self._open_client()
+            log.info("laser guardian found at %s (pid %s, port %s)", self.socket_path, self.pid,
+                     self.identity.get("port"))
+            return
+        except GuardianUnresponsive as exc:
+            if self.mode == "connect":
+                raise GuardianUnavailable(f"{UNKNOWN}: {exc}") from None
+            reason: GuardianError = exc
+        except GuardianRefused as exc:
+            if self.mode == "connect" or self.backend != "simulated":
+                raise
+            reason = exc
+        except GuardianUnavailable:  # a stale socket file: nobody listens
+            if self.mode == "connect":
+                raise
+            return
+        pid = guardian_pid(self.socket_path)
+        if pid is None:
+            raise GuardianRefused(f"{reason}; and it is not an nhfd laser guardian of this "
+                                  "user, so it is left alone") from None
+        log.warning("%s: ending laser guardian pid %d", reason, pid)
+        kill_guardian(pid)
+
+    def _expected_port(self) -> str:
+        if self.backend == "simulated":
+            return self.twin.port_path if self.twin is not None else ""
+        return self.settings.port
+
+    def _open_client(self, expected_pid: int | None = None) -> None:
+        """Connect, check the peer, its hello (port) and authenticate with its token."""
+        client = GuardianClient(self.socket_path, timeout_s=self.call_timeout_s,
+                                expected_pid=expected_pid)
+        try:
+            hello = client.hello()
+            self._check_identity(hello)
+            if expected_pid is None:  # found, not started: it must be a guardian on that port
+                verify_guardian(client.peer_pid, str(hello.get("port") or ""),
+                                f"the laser guardian at {self.socket_path}")
+            client.call("auth", token=read_token(self.socket_path))
+        except BaseException:
+            client.close()
+            raise
+        self.client, self.identity, self.pid = client, hello, client.peer_pid
+
+    def _check_identity(self, hello: dict[str, Any]) -> None:
+        port, s = hello.get("port"), self.settings
+        expected = self._expected_port()
+        where = f"the laser guardian at {self.socket_path} (pid {hello.get('pid')})"
+        if expected:
+            if not same_port(str(port or ""), expected):
+                raise GuardianRefused(f"{where} drives port {port!r}, not {expected!r}; "
+                                      "refusing it")
+        elif s.usb_serial and hello.get("usb_serial") != s.usb_serial:
+            raise GuardianRefused(f"{where} drives the laser with USB serial "
+                                  f"{hello.get('usb_serial')!r}, not {s.usb_serial!r}; refusing it")
+        elif self.backend == "simulated":
+            raise GuardianRefused(f"{where} drives {port!r}, not this daemon's simulated laser; "
+                                  "refusing it")
+
     def _spawn(self) -> None:
         port = None
         if self.backend == "simulated":
-            from nhfd.drivers.twins.mecom_twin import MecomTwin
+            if self.twin is None:
+                from nhfd.drivers.twins.mecom_twin import MecomTwin
 
-            s = self.settings
-            self.twin = MecomTwin(device_type=s.device_type, address=s.address,
-                                  channel_instances=s.channel_instances,
-                                  parameter_ids=s.parameter_ids)
-            self.twin.start()
+                s = self.settings
+                self.twin = MecomTwin(device_type=s.device_type, address=s.address,
+                                      channel_instances=s.channel_instances,
+                                      parameter_ids=s.parameter_ids)
+                self.twin.start()
             port = self.twin.port_path
-        self.proc = spawn_guardian(self.settings, port=port, socket_path=self.socket_path)
-        log.info("laser guardian started, pid %d, socket %s", self.proc.pid, self.socket_path)
-        self.client = GuardianClient(self.socket_path, timeout_s=self.call_timeout_s)
+        self.proc = spawn_guardian(self.settings, port=port, socket_path=self.socket_path,
+                                   group_writable_ok=self.group_writable_ok)
+        try:
+            self._open_client(expected_pid=self.proc.pid)
+        except BaseException:
+            self.proc.kill()
+            self.proc.wait()
+            self.proc = None
+            raise
+        log.info("laser guardian started, pid %d, socket %s, port %s, serial number %s",
+                 self.proc.pid, self.socket_path, self.identity.get("port"),
+                 self.identity.get("serial_number"))
 
     def all_off_confirmed(self, why: str) -> None:
         """Disarm, all channels off, then read every channel back; LasersNotOff otherwise."""
@@ -110,10 +224,12 @@ class LaserLink:
             raise LasersNotOff(f"lasers not read back off ({why}): {on or 'still armed'}")
         self._channels, self._read_at = status["channels"], time.monotonic()
         self._beat = {"armed": False, "armed_remaining_s": 0.0, "fault": status["fault"]}
-        self.audit.write(SYSTEM, "laser all off (read back)", reason=why)
+        self.audit.write(SYSTEM, "laser all off (read back)", reason=why, guardian_pid=self.pid)
 
     def close(self) -> str:
-        """All off with read-back, then leave; returns how the lasers were confirmed off."""
+        """All off with read-back, then leave; returns how the lasers were confirmed off. A
+        guardian adopted from a killed daemon is ended too (it would hold the port for ever);
+        one that belongs to a service (`connect`) is left running."""
         if not self.present:
             return "no laser"
         how = "not confirmed"
@@ -121,6 +237,8 @@ class LaserLink:
             if self.client is not None:
                 self.all_off_confirmed("shutdown")
                 how = "read back off through the guardian"
+                if self.proc is None and self.mode != "connect" and self.pid is not None:
+                    self._end_adopted()
         except (GuardianError, LasersNotOff, OSError) as exc:
             log.error("laser all-off at shutdown: %s", exc)
         finally:
@@ -141,6 +259,16 @@ class LaserLink:
                 self.twin.close()
         return how
 
+    def _end_adopted(self) -> None:
+        assert self.client is not None and self.pid is not None
+        pid = self.client.shutdown()
+        deadline = time.monotonic() + 5.0
+        while alive(pid) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        if alive(pid):
+            kill_guardian(pid)
+        log.info("adopted laser guardian pid %d ended (all off, read back); port free", pid)
+
     # -- loop ----------------------------------------------------------------------------------
 
     def heartbeat(self, now: float) -> None:
@@ -155,9 +283,10 @@ class LaserLink:
             self._reconnect(now)
             return
         try:
-            beat = self.client.heartbeat()
+            beat = self.client.heartbeat(timeout_s=self.heartbeat_timeout_s)
         except GuardianError as exc:
             self._lost(f"guardian heartbeat failed: {exc}")
+            self._reconnect(now)  # at once: a hung guardian may be holding the lasers on
             return
         if self._beat.get("armed") and not beat["armed"]:
             self.audit.write(SYSTEM, "laser disarmed by the guardian (expiry or fault)",
@@ -180,8 +309,10 @@ class LaserLink:
         self._read_at = time.monotonic() if now is None else now
 
     def _lost(self, why: str) -> None:
-        log.error("%s; lasers are off by the guardian's rule (no heartbeat)", why)
-        self.error = why
+        """The guardian stopped answering: nothing is known about the lasers until a guardian
+        reads them back off again."""
+        log.error("%s (%s)", UNKNOWN, why)
+        self.error = f"{UNKNOWN} ({why})"
         if self.client is not None:
             self.client.close()
             self.client = None
@@ -192,20 +323,40 @@ class LaserLink:
         if now < self._next_reconnect:
             return
         self._next_reconnect = now + 1.0
+        old = self.pid
         try:
-            if self.proc is not None and self.proc.poll() is not None and self.mode != "connect":
-                self.proc = None
-                self._spawn()
+            if self.mode == "connect":
+                self._open_client()
             else:
-                self.client = GuardianClient(self.socket_path, timeout_s=self.call_timeout_s)
+                self._replace()
             self.all_off_confirmed("guardian reconnected")  # arming is never restored
             self.error = None
-            log.warning("laser guardian link back; all channels off, not armed")
+            log.warning("laser guardian pid %s (was %s): all channels off (read back), not "
+                        "armed", self.pid, old)
         except (GuardianError, LasersNotOff, OSError) as exc:
-            self.error = f"laser guardian unreachable: {exc}"
+            self.error = f"{UNKNOWN} ({exc})"
+            log.error("%s", self.error)
             if self.client is not None:
                 self.client.close()
                 self.client = None
+
+    def _replace(self) -> None:
+        """End the guardian we started or adopted (SIGKILL: it may be stopped and deaf to
+        anything else; the kernel frees the port), then start a new one, which opens the port
+        and switches everything off."""
+        pid = self.proc.pid if self.proc is not None else self.pid
+        if pid is not None and (self.proc is not None or is_our_guardian(pid)):
+            if self.proc is not None:
+                self.proc.kill()
+                self.proc.wait()
+            else:
+                kill_guardian(pid)
+            self.replaced += 1
+            log.error("laser guardian pid %d did not answer: killed (SIGKILL); starting a new "
+                      "one to switch every channel off", pid)
+            self.audit.write(SYSTEM, "laser guardian unresponsive: killed", guardian_pid=pid)
+        self.proc, self.pid = None, None
+        self._spawn()
 
     # -- commands ------------------------------------------------------------------------------
 
@@ -259,7 +410,12 @@ class LaserLink:
         return {
             "backend": self.backend,
             "guardian": {"socket": str(self.socket_path), "connected": self.client is not None,
-                         "spawned_pid": self.proc.pid if self.proc else None},
+                         "pid": self.pid, "spawned": self.spawned,
+                         "spawned_pid": self.proc.pid if self.proc else None,
+                         "port": self.identity.get("port"),
+                         "serial_number": self.identity.get("serial_number"),
+                         "replaced": self.replaced},
+            "state": "read back through the guardian" if self.client is not None else UNKNOWN,
             "armed": bool(self._beat.get("armed", False)),
             "armed_remaining_s": self._beat.get("armed_remaining_s", 0.0),
             "fault": self._beat.get("fault"),

@@ -1,33 +1,23 @@
 """Where the daemon lives (runtime directory, socket, lock) and which files it may touch.
 
-Standard library only: the client resolves the socket path with the same rules.
+Standard library only: the client resolves the socket path with the same rules, which live in
+`nhfd.drivers.rundir` (shared with the laser guardian and `nhfd laser-off`).
 """
 
 from __future__ import annotations
 
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+from nhfd.drivers.rundir import UnsafeDirectory, check_private_dir, make_private_dir, runtime_dir
+
 from .protocol import PATH_NOT_ALLOWED, RpcError
+
+__all__ = ["UnsafeDirectory", "check_private_dir", "make_private_dir", "runtime_dir"]
 
 SOCKET_NAME = "control.sock"
 LOCK_NAME = "nhfd.lock"
 TOKEN_NAME = "tcp.token"
-
-
-def runtime_dir(configured: str = "", env: Mapping[str, str] | None = None) -> Path:
-    """The configured directory, else systemd's $RUNTIME_DIRECTORY, else $XDG_RUNTIME_DIR/nhfd,
-    else /tmp/nhfd-<uid> (the guardian's default socket sits in the same place)."""
-    env = os.environ if env is None else env
-    if configured:
-        return Path(configured).expanduser()
-    if env.get("RUNTIME_DIRECTORY"):
-        # systemd may list several, separated by ':'; the first is ours.
-        return Path(env["RUNTIME_DIRECTORY"].split(":")[0])
-    if env.get("XDG_RUNTIME_DIR"):
-        return Path(env["XDG_RUNTIME_DIR"]) / "nhfd"
-    return Path(f"/tmp/nhfd-{os.getuid()}")
 
 
 def control_socket(configured_runtime_dir: str = "",

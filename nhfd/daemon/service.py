@@ -43,7 +43,7 @@ from .jobs import Job, JobRunner
 from .methods import METHODS
 from .navigation import NavigatorInput
 from .notify import Notifier
-from .paths import LOCK_NAME, SOCKET_NAME, TOKEN_NAME, resolve_dirs, runtime_dir
+from .paths import LOCK_NAME, SOCKET_NAME, TOKEN_NAME, make_private_dir, resolve_dirs, runtime_dir
 from .protocol import (
     BUSY,
     INTERNAL_ERROR,
@@ -118,7 +118,9 @@ class Daemon:
         self.notifier = Notifier(self.env)
         self.audit = AuditLog(None)
         self.laser: LaserLink = LaserLink(config.devices.readybeam, config.devices.laser,
-                                          c.guardian, self.audit, refresh_s=c.laser_refresh_s)
+                                          c.guardian, self.audit, refresh_s=c.laser_refresh_s,
+                                          runtime_dir=self.runtime_dir,
+                                          socket_group=c.socket_group)
         self.bench = Bench(config)
         self.views = ViewSlot()
         self.frames = FrameLink(self)  # the spawned render/inference worker, started on demand
@@ -131,6 +133,7 @@ class Daemon:
         self.load_jobs: JobRunner = None  # type: ignore[assignment]
         self.server: LineServer | None = None
         self.tcp_token: str | None = None
+        self._token_written: Path | None = None  # the tcp.token this daemon made (removed at stop)
         self.state = "starting"
         self.started_s = time.time()
         self._lock_file: Any = None
@@ -160,7 +163,8 @@ class Daemon:
         from nhfd.calib.active import active_calibration
 
         active_calibration(self.config)  # a configured but unreadable file stops the start here
-        self.runtime_dir.mkdir(mode=0o750, parents=True, exist_ok=True)
+        # Another user could have made /tmp/nhfd-<uid> first, with a fake guardian in it.
+        make_private_dir(self.runtime_dir, group_writable_ok=bool(c.socket_group), mode=0o750)
         self._take_lock()
         self.audit = AuditLog(self._audit_path())
         self.laser.audit = self.audit
@@ -236,6 +240,7 @@ class Daemon:
         fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
         with os.fdopen(fd, "w") as f:
             f.write(token + "\n")
+        self._token_written = path
         return token
 
     def _on_signal(self, signum: int, frame: Any) -> None:
@@ -338,6 +343,10 @@ class Daemon:
         self.bench.close()
         if self.server is not None:
             self.server.close()  # removes the socket
+        if self._token_written is not None:  # a token outlives nothing it guarded
+            with contextlib.suppress(OSError):
+                self._token_written.unlink()
+            self._token_written = None
         self.audit.write({"who": "daemon", "pid": os.getpid()}, "stop",
                          reason=self._shutdown_reason or "start failed or loop error",
                          lasers=how)

@@ -11,6 +11,7 @@ import sys
 import time
 
 import pytest
+from nhfd.drivers.guardian import port_holders
 
 from nhfd.daemon.client import Client, DaemonUnavailable
 
@@ -124,9 +125,14 @@ def test_sigkill_of_the_daemon_leaves_the_guardian_to_switch_lasers_off(short_di
         try:
             st = client2.status()["laser"]
             assert st["guardian"]["connected"] and st["guardian"]["spawned_pid"] is None
+            assert st["guardian"]["pid"] == guardian_pid and st["guardian"]["spawned"] is False
             assert st["armed"] is False  # arming is never restored
             client2.call("shutdown")
             assert proc2.wait(timeout=10) == 0
+            # The adopted orphan ended with the clean shutdown, and the port is free again.
+            wait_until(lambda: _gone(guardian_pid), 5, "the adopted guardian to exit")
+            assert port_holders(mecom_twin.port_path) == [os.getpid()]  # the twin's own end
+            assert not (short_dir / "laser.sock").exists()
         finally:
             _close(proc2, client2)
     finally:
