@@ -114,17 +114,25 @@ def run(out: Path, *, config: Any, model: Path, scene: Path, log: Any = print) -
     import matplotlib
 
     matplotlib.use("Agg")
+
+    t_start = time.perf_counter()
+    out.mkdir(parents=True, exist_ok=True)
+    for sub in ("views", "slm", "captures"):
+        (out / sub).mkdir(exist_ok=True)
+    # The daemon's runtime directory (sockets, lock, guardian token): removed when the demo ends.
+    with tempfile.TemporaryDirectory(prefix="nhfd-demo-", dir="/tmp") as runtime:
+        return _run(out, Path(runtime), config=config, model=model, scene=scene, log=log,
+                    t_start=t_start)
+
+
+def _run(out: Path, runtime: Path, *, config: Any, model: Path, scene: Path, log: Any,
+         t_start: float) -> dict[str, Any]:
     import matplotlib.pyplot as plt
 
     from nhfd.daemon.client import Client
     from nhfd.daemon.frames import frame_settings
     from nhfd.daemon.service import Daemon
 
-    t_start = time.perf_counter()
-    out.mkdir(parents=True, exist_ok=True)
-    for sub in ("views", "slm", "captures"):
-        (out / sub).mkdir(exist_ok=True)
-    runtime = Path(tempfile.mkdtemp(prefix="nhfd-demo-", dir="/tmp"))
     cfg, truth, meta = demo_config(config, model=model, scene=scene, runtime=runtime,
                                    captures=out / "captures")
     daemon = Daemon(cfg, base_dir=Path.cwd(), env={}, handle_signals=False)
