@@ -13,6 +13,7 @@ Drivers are imported inside the handlers so `nhfd --help` stays instant.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from typing import Any
 
@@ -123,6 +124,21 @@ class _HungGuardianKilled(Exception):
         self.port = port
 
 
+def _end_guardian_holding(port: str) -> bool:
+    """An nhfd guardian of this user holds `port` but did not answer on the socket asked (hung,
+    or serving another socket): SIGKILL it (verified in /proc), which frees the port."""
+    from nhfd.drivers.guardian import is_our_guardian, kill_guardian, port_holders
+
+    if not port:
+        return False
+    pids = [pid for pid in port_holders(port) if pid != os.getpid() and is_our_guardian(pid)]
+    for pid in pids:
+        kill_guardian(pid)
+        print(f"nhfd laser-off: killed nhfd guardian pid {pid}, which held {port}",
+              file=sys.stderr)
+    return bool(pids)
+
+
 def _laser_off(args: argparse.Namespace) -> int:
     from nhfd.drivers.errors import DeviceError, PortBusy
     from nhfd.drivers.guardian import (
@@ -159,7 +175,12 @@ def _laser_off(args: argparse.Namespace) -> int:
         return 1
     laser = MecomLaser(settings)
     try:
-        laser.open()  # identifies, then switches every channel off and reads it back
+        try:
+            laser.open()  # identifies, then switches every channel off and reads it back
+        except PortBusy:
+            if not _end_guardian_holding(settings.port):
+                raise
+            laser.open()
         laser.close()
     except PortBusy as exc:
         print(f"nhfd laser-off: error: {reason}; {exc} (not an nhfd guardian of this user: "

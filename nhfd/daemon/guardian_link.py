@@ -160,7 +160,9 @@ class LaserLink:
         client = GuardianClient(self.socket_path, timeout_s=self.call_timeout_s,
                                 expected_pid=expected_pid)
         try:
-            hello = client.hello()
+            # A live guardian answers hello at once: a short bound keeps a hung one from
+            # stalling the control loop for long.
+            hello = client.call("hello", timeout_s=self.heartbeat_timeout_s)
             self._check_identity(hello)
             if expected_pid is None:  # found, not started: it must be a guardian on that port
                 verify_guardian(client.peer_pid, str(hello.get("port") or ""),
@@ -396,7 +398,18 @@ class LaserLink:
         self._call("disarm")
 
     def off(self) -> None:
-        self._call("off")
+        """All off. A guardian that fails to answer is replaced at once (one we started or
+        adopted), and the new one's read-back counts; otherwise the refusal stands."""
+        try:
+            self._call("off")
+        except RpcError:
+            with self._lock:
+                if self.client is not None or self.mode == "connect" or not self.present:
+                    raise
+                self._next_reconnect = 0.0
+                self._reconnect(time.monotonic())
+                if self.client is None:
+                    raise
 
     def power(self, channel: str, power_pct: float) -> float:
         return float(self._call("power", channel=channel, power_pct=power_pct)["power_pct"])

@@ -48,8 +48,9 @@ def stopped(pid: int) -> Iterator[None]:
 # ---------------------------------------------------------------------------- 1. hung guardian
 
 
+@pytest.mark.parametrize("how", ["heartbeat", "nhfctl laser off"])
 def test_a_hung_guardian_the_daemon_started_is_killed_and_replaced_lasers_off(short_dir,
-                                                                              mecom_twin):
+                                                                              mecom_twin, how):
     r = Running(bench_config(short_dir, mecom_twin), short_dir)
     try:
         with r.client() as c:
@@ -59,6 +60,9 @@ def test_a_hung_guardian_the_daemon_started_is_killed_and_replaced_lasers_off(sh
             assert st["guardian"]["spawned"] and old == st["guardian"]["spawned_pid"]
             with stopped(old):
                 frozen = time.monotonic()
+                if how != "heartbeat":  # answered only once a new guardian read it back off
+                    assert c.call("laser", action="off") == {"armed": False, "all_off": True}
+                    assert mecom_twin.emitting() == OFF
                 wait_until(lambda: mecom_twin.dark_since() is not None, 5, "lasers off")
                 dark = mecom_twin.dark_since()
             # Off well inside the issue's second on an idle machine (`nhfd bench safety`

@@ -295,6 +295,30 @@ def test_nhfd_laser_off_ends_a_hung_guardian_and_switches_off_itself(mecom_twin,
     assert mecom_twin.emitting() == {"red": 0.0, "green": 0.0, "blue": 0.0}
 
 
+def test_nhfd_laser_off_frees_a_port_held_by_a_hung_guardian_on_another_socket(mecom_twin,
+                                                                              short_dir, capsys):
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
+                              port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
+    with reaped(guardian), controller(sock) as client:
+        client.heartbeat()
+        client.arm(30)
+        client.set_power("blue", 4.0)
+        client.enable("blue")
+        guardian.send_signal(signal.SIGSTOP)
+        try:
+            code = main(["laser-off", "--socket", str(short_dir / "other.sock"),
+                         "--port", mecom_twin.port_path])
+        finally:
+            with contextlib.suppress(ProcessLookupError):
+                guardian.send_signal(signal.SIGCONT)
+        out = capsys.readouterr()
+        assert code == 0, out.err
+        assert f"killed nhfd guardian pid {guardian.pid}, which held" in out.err
+        assert guardian.wait(timeout=5) == -signal.SIGKILL
+    assert mecom_twin.emitting() == {"red": 0.0, "green": 0.0, "blue": 0.0}
+
+
 FAKE = """
 import json, os, socket, sys
 s = socket.socket(socket.AF_UNIX); s.bind(sys.argv[1]); s.listen(4)
