@@ -285,6 +285,13 @@ class DaemonSettings(_Section):
     # Audit log, JSON lines ("" = $LOGS_DIRECTORY/audit.jsonl under systemd, else
     # <runtime_dir>/audit.jsonl).
     audit_log: str = ""
+    # The audit log is rotated when it would pass audit_max_bytes (audit.jsonl -> .1 -> ...,
+    # audit_backups kept), so it never holds more than audit_max_bytes * (audit_backups + 1).
+    audit_max_bytes: Annotated[int, Field(ge=4096, le=2**40)] = 10_485_760
+    audit_backups: Annotated[int, Field(ge=1, le=100)] = 5
+    # Repeated set_view from one caller, and repeated refusals of one method with one error
+    # code from anyone, are written once per window of this length (s) plus "N more like this".
+    audit_summary_s: Annotated[float, Field(ge=0.1, le=3600)] = 1.0
     # Log lines on stderr: "logfmt" (key=value) or "json".
     log_format: Literal["logfmt", "json"] = "logfmt"
     # Focus without a calibration file: stage_mm = stage_at_reference_mm + z_mm, with z_mm (the

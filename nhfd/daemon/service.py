@@ -162,7 +162,8 @@ class Daemon:
         active_calibration(self.config)  # a configured but unreadable file stops the start here
         self.runtime_dir.mkdir(mode=0o750, parents=True, exist_ok=True)
         self._take_lock()
-        self.audit = AuditLog(self._audit_path())
+        self.audit = AuditLog(self._audit_path(), summary_s=c.audit_summary_s,
+                              max_bytes=c.audit_max_bytes, backups=c.audit_backups)
         self.laser.audit = self.audit
         self.audit.write({"who": "daemon", "pid": os.getpid()}, "start",
                          version=__version__, runtime_dir=str(self.runtime_dir))
@@ -405,9 +406,9 @@ class Daemon:
         try:
             result = method.func(self, conn, Params(req.params))
         except RpcError as exc:
-            if method.audited:
-                self.audit.write(conn.who, req.method, params=req.params,
-                                 outcome=f"refused: {exc.name}: {exc.message}")
+            if method.audited:  # compact and summarised: any client can send refusals
+                self.audit.refused(conn.who, req.method, exc.code, exc.name, exc.message,
+                                   req.params)
             raise
         except Exception as exc:
             log.exception("%s failed", req.method)
