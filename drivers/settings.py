@@ -20,7 +20,7 @@ COLOURS: tuple[str, str, str] = ("red", "green", "blue")
 
 
 class _Settings(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
 
 Seconds = Annotated[float, Field(gt=0, le=3600)]

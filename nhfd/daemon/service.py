@@ -34,6 +34,7 @@ from pathlib import Path
 from typing import Any
 
 from nhfd import __version__
+from nhfd.config import ConfigError, cross_field_problems
 
 from . import protocol
 from .audit import AuditLog
@@ -151,12 +152,9 @@ class Daemon:
 
     def _start(self) -> None:
         c = self.config.daemon
-        if c.tick_s * 4 > self.config.devices.readybeam.guardian.heartbeat_timeout_s:
-            raise ValueError(
-                f"daemon.tick_s = {c.tick_s:g} s: must be at most a quarter of "
-                "devices.readybeam.guardian.heartbeat_timeout_s = "
-                f"{self.config.devices.readybeam.guardian.heartbeat_timeout_s:g} s"
-            )
+        problems = cross_field_problems(self.config)  # a copied config skips validation
+        if problems:
+            raise ConfigError("; ".join(problems))
         from nhfd.calib.active import active_calibration
 
         active_calibration(self.config)  # a configured but unreadable file stops the start here
