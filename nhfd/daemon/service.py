@@ -37,7 +37,7 @@ from nhfd import __version__
 from nhfd.config import ConfigError, cross_field_problems
 
 from . import protocol
-from .audit import AuditLog
+from .audit import AuditLog, compact_params
 from .bench import Bench, focus_stage_mm
 from .guardian_link import LaserLink
 from .jobs import Job, JobRunner
@@ -412,7 +412,7 @@ class Daemon:
             log.exception("%s failed", req.method)
             self._error("daemon", f"{req.method}: {type(exc).__name__}: {exc}")
             if method.audited:
-                self.audit.write(conn.who, req.method, params=req.params,
+                self.audit.write(conn.who, req.method, params=compact_params(req.params),
                                  outcome=f"internal error: {exc}")
             raise RpcError(INTERNAL_ERROR, f"{req.method} failed: {type(exc).__name__}: "
                            f"{exc}") from None

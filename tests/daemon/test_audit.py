@@ -92,3 +92,21 @@ def test_a_short_refusal_keeps_its_params_and_repeats_count_after_the_window(tmp
                                 "socket")
     assert summary["what"] == "laser (refusals summary)" and summary["count"] == 4
     assert summary["outcome"] == "4 more like this" and summary["code"] == 1003
+
+
+def test_an_internal_error_is_audited_with_its_params_cut_short(running, monkeypatch):
+    from nhfd.daemon.methods import METHODS, Method
+
+    def boom(d, conn, p):
+        raise RuntimeError("bug")
+
+    monkeypatch.setitem(METHODS, "focus", Method(boom, audited=True))
+    conn = Connection(None, "unix", {"uid": 1000, "pid": 7})  # type: ignore[arg-type]
+    reply = running.daemon.handle_message(conn, {"jsonrpc": "2.0", "id": 1, "method": "focus",
+                                                 "params": {"pad": "y" * 100_000}})
+    assert reply["error"]["code"] == -32603
+    running.stop()
+    lines = _lines(running.daemon.runtime_dir)
+    (line,) = [a for a in lines if a["what"] == "focus"]
+    assert line["outcome"] == "internal error: bug"
+    assert line["params"].startswith('{"pad": "yyy') and line["params"].endswith("(100011 chars)")
