@@ -20,7 +20,7 @@ COLOURS: tuple[str, str, str] = ("red", "green", "blue")
 
 
 class _Settings(BaseModel):
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
 
 Seconds = Annotated[float, Field(gt=0, le=3600)]
@@ -127,6 +127,9 @@ class StageSettings(_Settings):
     usb_serial: str = ""
     baud: Annotated[int, Field(ge=1200, le=3_000_000)] = 115200
     rtscts: bool = True
+    # Pulse RTS and purge the buffers after open (Thorlabs' APT initialisation). An adapter
+    # without modem-control lines refuses it ("Inappropriate ioctl for device"): false skips it.
+    rts_reset: bool = True
     # APT channel ident of the motor (1 on single-channel controllers).
     channel: Annotated[int, Field(ge=1, le=16)] = 1
     # HW_GET_INFO's model must start with one of these; anything else is refused.
@@ -141,6 +144,9 @@ class StageSettings(_Settings):
     acceleration_mm_s2: Annotated[float, Field(gt=0, le=100)] = 1.5
     # Targets outside [min, max] are refused before any byte is sent.
     soft_limits_mm: Annotated[list[float], Field(min_length=2, max_length=2)] = [0.0, 25.0]
+    # A move that ends within this distance of its target has arrived, even with a limit switch
+    # pressed there (a target at either end of the travel); short of it, a switch is an error.
+    arrival_tolerance_mm: Annotated[float, Field(ge=0, le=0.1)] = 0.001
     # Refuse moves until the stage has been homed (position means nothing before).
     require_homed: bool = True
     home_timeout_s: Seconds = 60.0

@@ -31,7 +31,7 @@ from typing import Literal
 from . import apt
 from .errors import DeviceError, LinkDown, PortVanished, ReplyTimeout, TransportError, WrongDevice
 from .settings import StageSettings
-from .transport import LineControl, Opener, Transport, serial_opener
+from .transport import LineControl, LineControlError, Opener, Transport, serial_opener
 
 log = logging.getLogger(__name__)
 
@@ -110,6 +110,7 @@ class Stage(ABC):
         self.info: StageInfo | None = None
         self._pending: str | None = None  # "home" / "move" while a motion is outstanding
         self._pending_timeout_s = 0.0
+        self._pending_target_mm: float | None = None  # a move's target
         self._state_lock = threading.Lock()
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -186,7 +187,7 @@ class Stage(ABC):
                 timeout_s: float | None = None) -> StageState | None:
         self._check_target(position_mm)
         self._require_homed()
-        self._begin("move", timeout_s or self.settings.move_timeout_s)
+        self._begin("move", timeout_s or self.settings.move_timeout_s, position_mm)
         try:
             self._begin_move_absolute(position_mm)
         except BaseException:
@@ -199,8 +200,9 @@ class Stage(ABC):
         if not math.isfinite(distance_mm):
             raise ValueError(f"distance_mm = {distance_mm}: must be finite")
         self._require_homed()
-        self._check_target(self.state().position_mm + distance_mm)
-        self._begin("move", timeout_s or self.settings.move_timeout_s)
+        target_mm = self.state().position_mm + distance_mm
+        self._check_target(target_mm)
+        self._begin("move", timeout_s or self.settings.move_timeout_s, target_mm)
         try:
             self._begin_move_relative(distance_mm)
         except BaseException:
@@ -234,8 +236,14 @@ class Stage(ABC):
             raise MotionError(f"{self.name}: motion error during {kind} at "
                               f"{state.position_mm:.4f} mm")
         if kind == "move" and state.at_limit:
-            raise LimitSwitchHit(f"{self.name}: move ended on a limit switch at "
-                                 f"{state.position_mm:.4f} mm")
+            if not self._arrived(state):
+                raise LimitSwitchHit(f"{self.name}: move ended on a limit switch at "
+                                     f"{state.position_mm:.4f} mm")
+            # The target was the end of the travel: the switch says where the stage is, not
+            # that the move was cut short.
+            log.info("%s: at the target %.4f mm with a limit switch pressed", self.name,
+                     state.position_mm)
+            return state
         if outcome == "stopped":
             raise MoveStopped(f"{self.name}: {kind} stopped at {state.position_mm:.4f} mm")
         if kind == "home" and not state.homed:
@@ -258,7 +266,7 @@ class Stage(ABC):
     def name(self) -> str:
         return type(self).__name__
 
-    def _begin(self, kind: str, timeout_s: float) -> None:
+    def _begin(self, kind: str, timeout_s: float, target_mm: float | None = None) -> None:
         if self.info is None:
             raise LinkDown(f"{self.name}: not open (a stage moves only after identification)")
         with self._state_lock:
@@ -266,6 +274,12 @@ class Stage(ABC):
                 raise StageError(f"{self.name}: a {self._pending} is in progress; wait or stop")
             self._pending = kind
             self._pending_timeout_s = timeout_s
+            self._pending_target_mm = target_mm
+
+    def _arrived(self, state: StageState) -> bool:
+        target = self._pending_target_mm
+        return target is not None and (
+            abs(state.position_mm - target) <= self.settings.arrival_tolerance_mm)
 
     def _check_target(self, position_mm: float) -> None:
         low, high = self.settings.soft_limits_mm
@@ -368,7 +382,12 @@ class AptStage(Stage):
         transport = self._opener()
         try:
             transport.line_control(LineControl(
-                rts_pulse=True, latency_timer_ms=self.settings.latency_timer_ms or None))
+                rts_pulse=self.settings.rts_reset,
+                latency_timer_ms=self.settings.latency_timer_ms or None))
+        except LineControlError as exc:
+            transport.close()
+            raise LineControlError(f"stage {exc}; for an adapter without modem-control lines "
+                                   "set rts_reset = false in [devices.apt]") from None
         except BaseException:
             transport.close()
             raise

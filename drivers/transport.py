@@ -160,6 +160,10 @@ class Transport(ABC):
 Opener = Callable[[], Transport]
 
 
+class LineControlError(TransportError):
+    """The port is open but its modem-control lines cannot be driven (no RTS on the adapter)."""
+
+
 # ----------------------------------------------------------------------------- pseudo-terminal
 
 
@@ -325,13 +329,19 @@ class SerialTransport(Transport):
         if control.latency_timer_ms is not None:
             set_ftdi_latency_timer(self.name, control.latency_timer_ms, self._sysfs_root)
         if control.rts_pulse:
-            # Raises OSError (ENOTTY) on a pty: that is why twins use PtyTransport.
-            self._ser.rts = True
-            time.sleep(0.05)
-            self._ser.reset_input_buffer()
-            self._ser.reset_output_buffer()
-            time.sleep(0.05)
-            self._ser.rts = False
+            # An adapter without modem-control lines (or a pty) answers the RTS ioctl with
+            # ENOTTY: say which port and which step, not a bare "Inappropriate ioctl".
+            try:
+                self._ser.rts = True
+                time.sleep(0.05)
+                self._ser.reset_input_buffer()
+                self._ser.reset_output_buffer()
+                time.sleep(0.05)
+                self._ser.rts = False
+            except OSError as exc:
+                raise LineControlError(
+                    f"{self.name}: the line reset (RTS pulse and buffer purge after open) "
+                    f"failed: {exc.strerror or exc}; the adapter has no RTS line?") from None
 
     def _write(self, data: bytes) -> None:
         import serial

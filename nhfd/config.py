@@ -36,15 +36,16 @@ class ConfigError(ValueError):
     """A configuration file is missing, unreadable or invalid; the message says where and why."""
 
 
-def _finite(value: float) -> float:
-    if not math.isfinite(value):
-        raise ValueError("must be finite")
-    return value
+def _finite(name: str, values: list[float]) -> list[float]:
+    if not all(math.isfinite(v) for v in values):
+        raise ValueError(f"{name} = {values}: not finite")
+    return values
 
 
 class _Section(BaseModel):
     # strict: TOML is typed, so "8" where 8.0 is expected is a mistake worth reporting.
-    model_config = ConfigDict(extra="forbid", strict=True, frozen=True)
+    # TOML also has nan and inf: no setting means either.
+    model_config = ConfigDict(extra="forbid", strict=True, frozen=True, allow_inf_nan=False)
 
 
 PositiveMicrons = Annotated[float, Field(gt=0, lt=1000)]
@@ -91,7 +92,7 @@ class OpticsSettings(_Section):
 
     @model_validator(mode="after")
     def _volume_in_front_of_slm(self) -> OpticsSettings:
-        z_min, z_max = (_finite(v) for v in self.volume_mm)
+        z_min, z_max = _finite("volume_mm", self.volume_mm)
         if not z_min < z_max:
             raise ValueError(f"volume_mm = {self.volume_mm}: needs z_min < z_max")
         if self.z0_mm + z_min <= 0:
@@ -239,7 +240,7 @@ class ModelSettings(_Section):
     def _profile_exists(self) -> ModelSettings:
         if self.profile not in self.profiles:
             raise ValueError(
-                f"model.profile = {self.profile!r}: not one of the profiles "
+                f"profile = {self.profile!r}: not one of the profiles "
                 f"{', '.join(sorted(self.profiles))}"
             )
         return self
@@ -285,6 +286,13 @@ class DaemonSettings(_Section):
     # Audit log, JSON lines ("" = $LOGS_DIRECTORY/audit.jsonl under systemd, else
     # <runtime_dir>/audit.jsonl).
     audit_log: str = ""
+    # The audit log is rotated when it would pass audit_max_bytes (audit.jsonl -> .1 -> ...,
+    # audit_backups kept), so it never holds more than audit_max_bytes * (audit_backups + 1).
+    audit_max_bytes: Annotated[int, Field(ge=4096, le=2**40)] = 10_485_760
+    audit_backups: Annotated[int, Field(ge=1, le=100)] = 5
+    # Repeated set_view from one caller, and repeated refusals of one method with one error
+    # code from anyone, are written once per window of this length (s) plus "N more like this".
+    audit_summary_s: Annotated[float, Field(ge=0.1, le=3600)] = 1.0
     # Log lines on stderr: "logfmt" (key=value) or "json".
     log_format: Literal["logfmt", "json"] = "logfmt"
     # Focus without a calibration file: stage_mm = stage_at_reference_mm + z_mm, with z_mm (the
@@ -327,7 +335,7 @@ class DaemonSettings(_Section):
 
     @model_validator(mode="after")
     def _focus_range_ordered(self) -> DaemonSettings:
-        low, high = (_finite(v) for v in self.focus_range_mm)
+        low, high = _finite("focus_range_mm", self.focus_range_mm)
         if not low < high:
             raise ValueError(f"focus_range_mm = {self.focus_range_mm}: needs min < max")
         if len(self.frame_size_px) not in (0, 2):
@@ -353,18 +361,40 @@ class Config(_Section):
     devices: DeviceSettings = DeviceSettings()
     model: ModelSettings = ModelSettings()
 
-    @model_validator(mode="after")
-    def _window_fits_panel(self) -> Config:
-        o, s = self.optics, self.slm
-        if o.hologram_width_px > s.width_px or o.hologram_height_px > s.height_px:
-            raise ValueError(
-                f"optics.hologram_width_px x hologram_height_px = {o.hologram_width_px} x "
-                f"{o.hologram_height_px} does not fit the panel {s.width_px} x {s.height_px}"
-            )
-        return self
-
     daemon: DaemonSettings = DaemonSettings()
     calibration: CalibrationSettings = CalibrationSettings()
+
+    @model_validator(mode="after")
+    def _cross_field(self) -> Config:
+        problems = cross_field_problems(self)
+        if problems:
+            raise ValueError("; ".join(problems))
+        return self
+
+
+def cross_field_problems(config: Config) -> list[str]:
+    """The rules that join sections, each problem naming its keys (`Config` validation applies
+    them; `nhfd serve` and `nhfd config check` both see them there)."""
+    o, s, d = config.optics, config.slm, config.daemon
+    panel = f"the panel {s.width_px} x {s.height_px} (slm.width_px x height_px)"
+    problems = []
+    if o.hologram_width_px > s.width_px or o.hologram_height_px > s.height_px:
+        problems.append(f"optics.hologram_width_px x hologram_height_px = {o.hologram_width_px} "
+                        f"x {o.hologram_height_px} does not fit {panel}")
+    if d.frame_size_px and (d.frame_size_px[0] > s.width_px or d.frame_size_px[1] > s.height_px):
+        problems.append(f"daemon.frame_size_px = {d.frame_size_px} does not fit {panel}")
+    # The control loop sends the guardian's heartbeat once per tick: a late tick or two must not
+    # let the guardian switch the lasers off under a healthy daemon.
+    timeout_s = config.devices.readybeam.guardian.heartbeat_timeout_s
+    if d.tick_s * HEARTBEATS_PER_TIMEOUT > timeout_s:
+        problems.append(f"daemon.tick_s = {d.tick_s:g} s: must be at most 1/"
+                        f"{HEARTBEATS_PER_TIMEOUT} of devices.readybeam.guardian."
+                        f"heartbeat_timeout_s = {timeout_s:g} s")
+    return problems
+
+
+# Heartbeats the control loop sends within one guardian heartbeat timeout, at least.
+HEARTBEATS_PER_TIMEOUT = 4
 
 
 @dataclass(frozen=True)
@@ -444,12 +474,16 @@ def _describe(error: Mapping[str, Any], model: type[BaseModel]) -> str:
     loc = [str(p) for p in error["loc"]]
     key = ".".join(loc)
     value = error.get("input")
+    message = str(error["msg"]).removeprefix("Value error, ")
     if error["type"] == "extra_forbidden":
         allowed = _allowed_keys(model, loc[:-1])
         return f"{key}: unknown key; allowed here: {', '.join(allowed)}"
-    if error["type"] == "value_error" and not loc:
-        return str(error["msg"]).removeprefix("Value error, ")
-    return f"{key} = {value!r}: {str(error['msg']).removeprefix('Value error, ')}"
+    if error["type"] == "value_error" and (not loc or isinstance(value, Mapping)):
+        # a section's own rule: its message starts with the key inside the section
+        return f"{key}.{message}" if loc else message
+    if error["type"] == "finite_number" or (isinstance(value, float) and not math.isfinite(value)):
+        return f"{key} = {value!r}: not finite"
+    return f"{key} = {value!r}: {message}"
 
 
 def _allowed_keys(model: type[BaseModel], path: list[str]) -> list[str]:
@@ -494,5 +528,23 @@ def load_config(
 
 
 def check_file(path: str | os.PathLike[str]) -> Config:
-    """Validate one file as a lab would use it (overlaid on the packaged default)."""
-    return load_config(explicit=path, env={}).config
+    """Validate one file as a lab would use it (overlaid on the packaged default), and open the
+    files it names as `nhfd serve` will."""
+    config = load_config(explicit=path, env={}).config
+    check_files(config, str(path))
+    return config
+
+
+def check_files(config: Config, origin: str) -> None:
+    """Open the files a configuration names that `nhfd serve` reads at start (the calibration),
+    raising `ConfigError` with the loader's reason."""
+    if not config.calibration.file:
+        return
+    from nhfd.calib.active import active_calibration  # numpy: only when a file is named
+
+    try:
+        active_calibration(config)
+    except ValueError as exc:
+        reason = " ".join(str(exc).split())  # one line, whatever the parser said
+        raise ConfigError(f"{origin}: calibration.file = {config.calibration.file!r}: "
+                          f"{reason}") from None

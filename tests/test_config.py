@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import json
+import re
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from nhfd.cli.main import main
@@ -140,3 +142,121 @@ def test_cli_show_and_check(tmp_path, capsys, monkeypatch):
     assert main(["config", "check", str(bad)]) == 2
     err = capsys.readouterr().err
     assert "optics.z0_mm = -1.0: Input should be greater than 0" in err
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        (
+            "[daemon]\nframe_size_px = [4096, 2160]\n",
+            r": daemon\.frame_size_px = \[4096, 2160\] does not fit the panel 1920 x 1080 "
+            r"\(slm\.width_px x height_px\)$",
+        ),
+        (
+            "[slm]\nwidth_px = 1000\n[optics]\nhologram_width_px = 1000\n[daemon]\n"
+            "frame_size_px = [1024, 576]\n",
+            r": daemon\.frame_size_px = \[1024, 576\] does not fit the panel 1000 x 1080",
+        ),
+        (
+            "[daemon]\ntick_s = 0.2\n",
+            r": daemon\.tick_s = 0\.2 s: must be at most 1/4 of "
+            r"devices\.readybeam\.guardian\.heartbeat_timeout_s = 0\.5 s$",
+        ),
+        (
+            "[devices.readybeam.guardian]\nheartbeat_timeout_s = 0.1\n",
+            r": daemon\.tick_s = 0\.05 s: must be at most 1/4 of .*= 0\.1 s$",
+        ),
+        ("[optics]\nvolume_mm = [3.0, -3.0]\n", r": optics\.volume_mm = \[3\.0, -3\.0\]: needs"),
+        ("[daemon]\nfocus_range_mm = [2.0, 1.0]\n", r": daemon\.focus_range_mm = \[2\.0, 1\.0\]"),
+        ("[model]\nprofile = 'huge'\n", r": model\.profile = 'huge': not one of the profiles"),
+        ("[devices.apt]\nsoft_limits_mm = [5.0, 1.0]\n", r": devices\.apt\.soft_limits_mm = "),
+    ],
+)
+def test_cross_field_errors_name_the_key_not_a_section_dict(tmp_path, text, message):
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError, match=message) as info:
+        check_file(path)
+    assert "{" not in str(info.value)
+
+
+@pytest.mark.parametrize(
+    ("text", "key"),
+    [
+        ("[optics]\nwavelengths_nm = [660.0, nan, 450.0]\n", "optics.wavelengths_nm.1 = nan"),
+        ("[optics]\nz0_mm = inf\n", "optics.z0_mm = inf"),
+        ("[optics]\nvolume_mm = [nan, 3.0]\n", "optics.volume_mm.0 = nan"),
+        ("[daemon]\nfocus_range_mm = [-5.0, inf]\n", "daemon.focus_range_mm.1 = inf"),
+        ("[devices.apt]\nsoft_limits_mm = [nan, 25.0]\n", "devices.apt.soft_limits_mm.0 = nan"),
+    ],
+)
+def test_nan_and_inf_are_reported_as_not_finite(tmp_path, text, key):
+    path = write(tmp_path, text)
+    with pytest.raises(ConfigError) as info:
+        check_file(path)
+    assert str(info.value) == f"{path}: {key}: not finite"
+
+
+class _NoDaemon:
+    """Stands in for `nhfd serve`'s daemon: these configurations must be refused before one
+    starts (a real one would open the shared runtime directory and the laser guardian)."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        raise AssertionError("nhfd serve started a daemon for a configuration it must refuse")
+
+
+def _calibration_text() -> str:
+    import math
+
+    from nhfd.calib.calibration import Calibration
+
+    table = tuple(2 * math.pi * i / 255 for i in range(256))
+    return Calibration((6.6e-7, 5.2e-7, 4.5e-7), 8e-6, 1, (table,) * 3, (0.01,) * 3, 1.0, 0.0,
+                       10.0, 0.0, (0.0,) * 3, (0.0,) * 3, 1.0, 0.0, 180.0, 0.0, False,
+                       (0.0, 0.0), (1.0,) * 3, (0.0,) * 3).to_toml()
+
+
+def _without_section(text: str, name: str) -> str:
+    head, _, rest = text.partition(f"\n[{name}]\n")
+    return head + "\n" + rest[rest.index("\n[") :]
+
+
+CORRUPT_CALIBRATIONS = {
+    "truncated": (lambda t: t[: len(t) // 2].encode(), r"corrupt \(|missing or malformed key"),
+    "empty": (lambda t: b"", r"not an nhfd calibration \(format = None\)"),
+    "random": (lambda t: np.random.default_rng(21).bytes(4096), r"corrupt \("),
+    "nan": (lambda t: t.replace("stage_scale = 1.0\n", "stage_scale = nan\n", 1).encode(),
+            r"stage_scale = nan"),
+    "missing_section": (lambda t: _without_section(t, "geometry").encode(),
+                        r"missing or malformed key 'geometry'"),
+}
+
+
+@pytest.mark.parametrize("kind", sorted(CORRUPT_CALIBRATIONS))
+def test_config_check_and_serve_refuse_a_corrupt_calibration(tmp_path, capsys, monkeypatch, kind):
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr("nhfd.daemon.service.Daemon", _NoDaemon)
+    make, reason = CORRUPT_CALIBRATIONS[kind]
+    text = _calibration_text()
+    good = tmp_path / "good.toml"
+    good.write_text(text)
+    ok = write(tmp_path, "[calibration]\nfile = 'good.toml'\n", "ok.toml")
+    assert main(["config", "check", str(ok)]) == 0
+    assert capsys.readouterr().out == f"{ok}: ok\n"
+    (tmp_path / "cal.toml").write_bytes(make(text))
+    lab = write(tmp_path, "[calibration]\nfile = 'cal.toml'\n", "lab.toml")
+    for argv in (["config", "check", str(lab)], ["serve", "--config", str(lab)]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1, err  # one line
+        assert err.startswith(f"nhfd {argv[0]}: error: {lab}: calibration.file = 'cal.toml': "
+                              "calibration file cal.toml: ")
+        assert re.search(reason, err), err
+
+
+def test_serve_exits_2_on_a_cross_field_error(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr("nhfd.daemon.service.Daemon", _NoDaemon)
+    lab = write(tmp_path, "[daemon]\nframe_size_px = [4096, 2160]\n", "lab.toml")
+    assert main(["serve", "--config", str(lab)]) == 2
+    err = capsys.readouterr().err
+    assert err == (f"nhfd serve: error: {lab}: daemon.frame_size_px = [4096, 2160] does not fit "
+                   "the panel 1920 x 1080 (slm.width_px x height_px)\n")

@@ -275,7 +275,10 @@ class AptTwin(PtyPeer):
             elif pos == m.target:
                 self.position, self._motion = pos, None
                 self.send(self._reply(apt.MsgId.MOT_MOVE_COMPLETED, self._status().encode()))
-            elif pos in self.limits:
+            elif (pos >= self.limits[1] and m.target > pos) or (
+                    pos <= self.limits[0] and m.target < pos):
+                # A switch stops only a motion heading into it: a move away from a pressed
+                # switch (after homing onto it, or a move to the end of the travel) goes on.
                 self.position, self._motion = pos, None
                 self.send(self._reply(apt.MsgId.MOT_MOVE_STOPPED, self._status().encode()))
         if (self.updates_on and self.unacked < self.unacked_updates_max

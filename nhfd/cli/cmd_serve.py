@@ -29,10 +29,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from nhfd.config import load_config
+    from nhfd.config import check_files, load_config
     from nhfd.daemon.service import AlreadyRunning, Daemon, setup_logging
 
-    config = load_config(args.config).config
+    loaded = load_config(args.config)  # a ConfigError: one line, exit 2 (nhfd.cli.main)
+    config = loaded.config
+    check_files(config, str(loaded.path or "packaged default"))
     update = {}
     if args.scene:
         update["scene"] = args.scene

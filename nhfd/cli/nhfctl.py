@@ -74,11 +74,17 @@ def build_parser() -> argparse.ArgumentParser:
     sub.add_parser("blank", help="show the blank (zero-amplitude) pattern")
     sub.add_parser("stop", help="stop the stage and running jobs")
     sub.add_parser("shutdown", help="shut the daemon down cleanly with lasers off")
-    ls = sub.add_parser("load-scene", help="load a scene (inside daemon.scene_dirs)")
+    ls = sub.add_parser("load-scene", help="load a scene (inside daemon.scene_dirs); waits for "
+                        "the load and exits 1 with its error when it fails")
     ls.add_argument("path")
     lm = sub.add_parser("load-model", help="load an exported model (inside daemon.model_dirs; "
-                        "validated, the old one keeps running on failure)")
+                        "validated, the old one keeps running on failure); waits for the load "
+                        "and exits 1 with its error when it fails")
     lm.add_argument("path")
+    for load in (ls, lm):
+        # A load is a job; without waiting, a refused file would exit 0 and look loaded.
+        load.add_argument("--no-wait", dest="wait", action="store_false",
+                          help="return once the load is queued (prints the job id)")
     jb = sub.add_parser("job", help="one job's state")
     jb.add_argument("id", type=int)
     wa = sub.add_parser("watch", help="live status")
@@ -177,7 +183,7 @@ def human_status(s: dict[str, Any]) -> str:
     scene = s.get("scene")
     shown = f"{scene['path']} ({scene['gaussians']} Gaussians)" if scene else "none"
     lines.append(f"scene    {shown}")
-    lines.append(f"model    {s['model']}")
+    lines.append(f"model    {human_model(s['model'])}")
     if "colour" in s:
         col = s["colour"]
         lines.append(f"colour   {col['mode']}"
@@ -201,9 +207,33 @@ def human_status(s: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _size(hw: Any) -> str:
+    return f"{hw[1]} x {hw[0]} px" if isinstance(hw, list | tuple) and len(hw) == 2 else "?"
+
+
+def human_model(model: Any) -> str:
+    """The loaded model as one line: file, profile, training size, providers, checked sizes."""
+    if not isinstance(model, dict):
+        return str(model)  # "none loaded"
+    name = Path(str(model.get("path", "?"))).name
+    parts = [f"profile {model['profile']}" if model.get("profile") else None,
+             f"trained {_size(model.get('train_size_hw'))}",
+             ", ".join(model.get("providers") or []) or None]
+    checked = model.get("checked_sizes_hw") or (
+        [model["checked_size_hw"]] if model.get("checked_size_hw") else [])
+    if checked:
+        parts.append("checked at " + ", ".join(_size(hw) for hw in checked))
+    return f"{name} ({'; '.join(p for p in parts if p)})"
+
+
 def _human(cmd: str, result: Any) -> str:
     if cmd == "status":
         return human_status(result)
+    if cmd in ("load-model", "load-scene") and isinstance(result, dict) and "state" in result:
+        loaded = result.get("result") or {}
+        what = (human_model(loaded) if cmd == "load-model" else
+                f"{loaded.get('path')} ({loaded.get('gaussians')} Gaussians)")
+        return f"loaded {what} (job {result['id']})"
     if isinstance(result, dict) and "job" in result and len(result) <= 3:
         rest = ", ".join(f"{k} {v}" for k, v in result.items() if k != "job")
         return f"job {result['job']} queued" + (f" ({rest})" if rest else "")
@@ -242,8 +272,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             if getattr(args, "wait", False) and isinstance(result, dict) and "job" in result:
                 result = _wait_job(client, int(result["job"]))
                 if result["state"] != "done":
-                    print(f"nhfctl {cmd}: error: job {result['id']} {result['state']}: "
-                          f"{result['error']}", file=sys.stderr)
+                    why = result["error"] or "still running after the wait"
+                    print(f"nhfctl {cmd}: error: job {result['id']} {result['state']}: {why}",
+                          file=sys.stderr)
                     return 1
         print(json.dumps(result) if args.json else _human(cmd, result))
         return 0

@@ -34,9 +34,10 @@ from pathlib import Path
 from typing import Any
 
 from nhfd import __version__
+from nhfd.config import ConfigError, cross_field_problems
 
 from . import protocol
-from .audit import AuditLog
+from .audit import AuditLog, compact_params
 from .bench import Bench, focus_stage_mm
 from .guardian_link import LaserLink
 from .jobs import Job, JobRunner
@@ -154,19 +155,17 @@ class Daemon:
 
     def _start(self) -> None:
         c = self.config.daemon
-        if c.tick_s * 4 > self.config.devices.readybeam.guardian.heartbeat_timeout_s:
-            raise ValueError(
-                f"daemon.tick_s = {c.tick_s:g} s: must be at most a quarter of "
-                "devices.readybeam.guardian.heartbeat_timeout_s = "
-                f"{self.config.devices.readybeam.guardian.heartbeat_timeout_s:g} s"
-            )
+        problems = cross_field_problems(self.config)  # a copied config skips validation
+        if problems:
+            raise ConfigError("; ".join(problems))
         from nhfd.calib.active import active_calibration
 
         active_calibration(self.config)  # a configured but unreadable file stops the start here
         # Another user could have made /tmp/nhfd-<uid> first, with a fake guardian in it.
         make_private_dir(self.runtime_dir, group_writable_ok=bool(c.socket_group), mode=0o750)
         self._take_lock()
-        self.audit = AuditLog(self._audit_path())
+        self.audit = AuditLog(self._audit_path(), summary_s=c.audit_summary_s,
+                              max_bytes=c.audit_max_bytes, backups=c.audit_backups)
         self.laser.audit = self.audit
         self.audit.write({"who": "daemon", "pid": os.getpid()}, "start",
                          version=__version__, runtime_dir=str(self.runtime_dir))
@@ -414,15 +413,15 @@ class Daemon:
         try:
             result = method.func(self, conn, Params(req.params))
         except RpcError as exc:
-            if method.audited:
-                self.audit.write(conn.who, req.method, params=req.params,
-                                 outcome=f"refused: {exc.name}: {exc.message}")
+            if method.audited:  # compact and summarised: any client can send refusals
+                self.audit.refused(conn.who, req.method, exc.code, exc.name, exc.message,
+                                   req.params)
             raise
         except Exception as exc:
             log.exception("%s failed", req.method)
             self._error("daemon", f"{req.method}: {type(exc).__name__}: {exc}")
             if method.audited:
-                self.audit.write(conn.who, req.method, params=req.params,
+                self.audit.write(conn.who, req.method, params=compact_params(req.params),
                                  outcome=f"internal error: {exc}")
             raise RpcError(INTERNAL_ERROR, f"{req.method} failed: {type(exc).__name__}: "
                            f"{exc}") from None

@@ -65,3 +65,41 @@ def test_nhfctl_commands(running: Running, capsys):
     assert main([*sock, "shutdown"]) == 0
     running.thread.join(10)
     assert not running.socket.exists()
+
+
+def test_load_commands_wait_for_their_job_and_fail_with_its_error(running: Running, capsys):
+    root = running.daemon.base_dir
+    sock = ["--socket", str(running.socket)]
+    (root / "models" / "m.onnx").write_bytes(b"x")  # garbage: the worker refuses it
+    (root / "scenes" / "garbage.ply").write_bytes(b"ply\nformat nonsense\n")
+    assert main([*sock, "load-model", "m.onnx"]) == 1
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.startswith("nhfctl load-model: error: job ")
+    assert " failed: " in captured.err and "not a readable ONNX model" in captured.err
+    assert captured.err.count("\n") == 1
+    assert main([*sock, "load-scene", "garbage.ply"]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("nhfctl load-scene: error: job ") and " failed: " in err
+    assert main([*sock, "load-model", "--no-wait", "m.onnx"]) == 0  # queued, not judged
+    out = capsys.readouterr().out
+    assert out.startswith("job ") and out.endswith(f" queued (path {root}/models/m.onnx)\n")
+
+
+def test_status_prints_the_model_as_one_line(running: Running, capsys, monkeypatch):
+    info = {"path": "/lab/models/fast-v3.onnx", "profile": "fast", "train_size_hw": [576, 1024],
+            "fx": 900.0, "amplitude_scale": 1.3, "z0_m": 0.006, "volume_m": [-0.003, 0.003],
+            "mapping": {"kind": "linear"}, "pose_envelope": {"azimuth_deg": [-20, 20]},
+            "parameters": 123456, "train_steps": 10000, "scene_sha256": "ab" * 32,
+            "providers": ["CUDAExecutionProvider", "CPUExecutionProvider"], "loaded_s": 1.0}
+    monkeypatch.setattr(running.daemon.frames, "model_info", info)
+    assert main(["--socket", str(running.socket), "status"]) == 0
+    lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("model ")]
+    assert lines == ["model    fast-v3.onnx (profile fast; trained 1024 x 576 px; "
+                     "CUDAExecutionProvider, CPUExecutionProvider)"]
+    checked = dict(info, checked_sizes_hw=[[576, 1024], [1080, 1920]])
+    monkeypatch.setattr(running.daemon.frames, "model_info", checked)
+    assert main(["--socket", str(running.socket), "status"]) == 0
+    assert ("model    fast-v3.onnx (profile fast; trained 1024 x 576 px; CUDAExecutionProvider, "
+            "CPUExecutionProvider; checked at 1024 x 576 px, 1920 x 1080 px)\n"
+            in capsys.readouterr().out)

@@ -149,6 +149,40 @@ def test_a_hardware_limit_switch_ends_a_move_with_an_error(apt_twin, clock, stag
         assert stage.state().limit_cw
 
 
+@pytest.mark.parametrize("target_mm", [25.0, 0.0])
+def test_a_move_to_either_end_of_the_travel_arrives(clock, stage_settings, target_mm):
+    # home_offset_mm = 0: homing leaves the reverse switch pressed at 0 mm, as a unit whose home
+    # offset is zero does; the forward switch sits at the default soft limit, 25 mm.
+    with AptTwin(clock=clock, home_offset_mm=0.0) as twin:
+        with homed_stage(twin, clock, stage_settings) as stage:
+            assert stage.settings.soft_limits_mm == [0.0, 25.0]
+            stage.move_to(12.0, wait=False)
+            twin.wait_moving()
+            clock.advance(10.0)
+            stage.wait()
+            stage.move_to(target_mm, wait=False)
+            twin.wait_moving()
+            clock.advance(10.0)
+            state = stage.wait()  # no LimitSwitchHit: the switch is pressed at the target
+            assert state.position_mm == target_mm and state.at_limit
+            assert (state.limit_cw, state.limit_ccw) == (target_mm == 25.0, target_mm == 0.0)
+            assert twin.position_mm == pytest.approx(target_mm)
+            stage.move_by(1.0 if target_mm == 0.0 else -1.0, wait=False)  # and moves on
+            twin.wait_moving()
+            clock.advance(10.0)
+            assert not stage.wait().at_limit
+
+
+def test_a_switch_short_of_a_relative_target_is_still_a_limit_hit(clock, stage_settings):
+    with AptTwin(clock=clock, travel_mm=24.0) as twin:
+        with homed_stage(twin, clock, stage_settings) as stage:
+            stage.move_by(25.0, wait=False)  # inside the soft limits, past the switch
+            twin.wait_moving()
+            clock.advance(30.0)
+            with pytest.raises(LimitSwitchHit, match=r"24\.0000 mm"):
+                stage.wait()
+
+
 def test_wait_is_bounded_and_stops_the_stage(apt_twin, clock, stage_settings):
     with homed_stage(apt_twin, clock, stage_settings) as stage:
         start = time.monotonic()
@@ -249,3 +283,23 @@ def test_closing_during_a_move_stops_it(apt_twin, clock, stage_settings):
     apt_twin.wait_for(lambda: not apt_twin._motion)
     clock.advance(20.0)
     assert apt_twin.position_mm == pytest.approx(2.0)
+
+
+def test_an_adapter_without_modem_lines_is_named_and_the_reset_can_be_skipped(apt_twin,
+                                                                           stage_settings):
+    from nhfd.drivers.transport import LineControlError, SerialTransport
+
+    # pyserial on the twin's pty: the real serial backend, on a line without RTS.
+    def opener():
+        return SerialTransport(apt_twin.port_path, stage_settings.baud)
+
+    with pytest.raises(LineControlError) as info:
+        AptStage(stage_settings, opener).open()
+    assert str(info.value) == (
+        f"stage {apt_twin.port_path}: the line reset (RTS pulse and buffer purge after open) "
+        "failed: Inappropriate ioctl for device; the adapter has no RTS line?; for an adapter "
+        "without modem-control lines set rts_reset = false in [devices.apt]")
+    assert apt_twin.received_ids() == []  # nothing was sent
+    skip = stage_settings.model_copy(update={"rts_reset": False})
+    with AptStage(skip, opener) as stage:
+        assert stage.info.serial_number == "27000001" and stage.state().enabled

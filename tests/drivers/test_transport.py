@@ -79,10 +79,15 @@ def test_serial_transport_over_a_pty_and_why_line_control_is_a_hook(pty_pair):
         t.write(b"#x\r")
         t.flush()
         assert os.read(master, 10) == b"#x\r"
-        # A pty has no RTS line: the real backend's line control fails here, which is why twins
-        # use PtyTransport, whose hook records the request instead.
-        with pytest.raises(OSError):
+        # A pty has no RTS line, like an adapter without modem-control lines: the real backend's
+        # line control fails, naming the port and the step (not a bare "Inappropriate ioctl").
+        # Twins use PtyTransport, whose hook records the request instead.
+        with pytest.raises(tr.LineControlError) as info:
             t.line_control(tr.LineControl(rts_pulse=True))
+        assert str(info.value) == (f"{path}: the line reset (RTS pulse and buffer purge after "
+                                   "open) failed: Inappropriate ioctl for device; the adapter "
+                                   "has no RTS line?")
+        t.line_control(tr.LineControl(rts_pulse=False))  # nothing asked of the lines: no error
         os.close(master)
         with pytest.raises(PortVanished):
             t.read_until(b"\r", 1.0)
