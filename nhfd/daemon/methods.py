@@ -110,7 +110,7 @@ def _focus(d: Daemon, conn: Connection, p: Params) -> Any:
     if stage is None:
         raise RpcError(NOT_AVAILABLE, f"no stage: {d.bench.errors['stage'] or 'none configured'}",
                        {"device": "stage"})
-    target = d.focus_stage_mm(z_mm)
+    target = _focus_target(d, z_mm)
     s_low, s_high = stage.settings.soft_limits_mm
     if not s_low <= target <= s_high:
         z_lo = max(low, s_low - cfg.stage_at_reference_mm)
@@ -127,6 +127,17 @@ def _focus(d: Daemon, conn: Connection, p: Params) -> Any:
 
     job = d.submit_bench_job(Job("focus", {"z_mm": z_mm, "home": home}, run))
     return {"job": job.id, "stage_mm": target}
+
+
+def _focus_target(d: Daemon, z_mm: float) -> float:
+    """The stage position for `z_mm`; a configured calibration that cannot be applied (no
+    accepted version to keep) is the file's error, not the daemon's."""
+    from nhfd.calib.calibration import CalibrationFileError
+
+    try:
+        return d.focus_stage_mm(z_mm)
+    except CalibrationFileError as exc:
+        raise RpcError(INVALID_FILE, str(exc), {"field": "calibration.file"}) from None
 
 
 def _laser(d: Daemon, conn: Connection, p: Params) -> Any:

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
+import numpy as np
 import pytest
 
 from .conftest import Running, wait_until
@@ -151,3 +153,95 @@ def test_bench_pipeline_refuses_a_frame_size_larger_than_the_panel(tiny, tmp_pat
                                          r"the 1920 x 1080 panel"):
         check_frame_size(panel(4096, 2160))
     check_frame_size(panel(1920, 1080))
+
+
+def write_calibration(path: Path, *, stage_at_slm_mm: float = 5.0,
+                      wavelengths_m: tuple[float, float, float] = (6.6e-7, 5.2e-7, 4.5e-7),
+                      pitch_m: float = 8e-6) -> Path:
+    """A calibration file with nominal curves whose focus mapping is stage_mm =
+    stage_at_slm_mm + z (mm from the SLM), written atomically as a lab's fit would be."""
+    from nhfd.calib.calibration import Calibration
+
+    table = tuple(float(v) for v in 2 * np.pi * np.arange(256) / 256)
+    cal = Calibration(
+        wavelengths_m=wavelengths_m, pitch_m=pitch_m, phase_sign=1,
+        phase_tables_rad=(table,) * 3, phase_table_std_rad=(0.0,) * 3, stage_scale=1.0,
+        stage_scale_std=0.0, stage_at_slm_mm=stage_at_slm_mm, stage_at_slm_std_mm=0.0,
+        z_offset_m=(0.0, 0.0, 0.0), z_offset_std_m=(0.0, 0.0, 0.0), magnification=1.0,
+        magnification_std=0.0, rotation_deg=0.0, rotation_std_deg=0.0, mirror_x=False,
+        shift_px=(0.0, 0.0), intensity=(1.0, 1.0, 1.0), intensity_std=(0.0, 0.0, 0.0))
+    return cal.save(path)
+
+
+def _with_calibration(config: Any, path: Path) -> Any:
+    from nhfd.config import Config, _overlay
+
+    user = {"calibration": {"file": str(path)}}
+    return Config.model_validate(_overlay(config.model_dump(), user))
+
+
+def test_a_hot_swapped_calibration_for_another_bench_is_refused_and_the_old_one_kept(
+        short_dir, mecom_twin):
+    from nhfd.calib import active
+
+    from nhfd.daemon.protocol import INVALID_FILE, RpcError
+
+    from .conftest import bench_config
+
+    path = write_calibration(short_dir / "calibration.toml", stage_at_slm_mm=5.0)
+    r = Running(_with_calibration(bench_config(short_dir, mecom_twin), path), short_dir)
+    try:
+        c = r.client()
+        # z0 = 6 mm plus 1 mm from the SLM: the stage at 5 + 7 = 12 mm
+        assert c.call("focus", z_mm=1.0)["stage_mm"] == pytest.approx(12.0)
+        write_calibration(short_dir / "infrared.tmp", stage_at_slm_mm=2.0,
+                          wavelengths_m=(1.064e-6, 5.2e-7, 4.5e-7)).replace(path)
+        assert c.call("focus", z_mm=1.0)["stage_mm"] == pytest.approx(12.0)  # the old one
+        refusal = (f"calibration file {path}: bench.wavelengths_m[0] = 1.064e-06 m, expected "
+                   "6.6e-07 m (from optics.wavelengths_nm[0]) within 0.5%: fitted for another "
+                   "bench; keeping " + str(path))
+        status = c.status()
+        assert status["calibration"]["loaded"] is True
+        assert status["calibration"]["refused"].startswith(refusal)
+        assert status["calibration"]["stage_at_slm_mm"] == 5.0
+        c.status()  # asked again: still one error for that file version
+        errors = [e["message"] for e in c.status()["errors"] if e["source"] == "calibration"]
+        assert len(errors) == 1 and errors[0].startswith(refusal)
+
+        (short_dir / "corrupt.tmp").write_bytes(b"\x00\xff garbage")
+        (short_dir / "corrupt.tmp").replace(path)
+        assert c.call("focus", z_mm=1.0)["stage_mm"] == pytest.approx(12.0)
+        assert "corrupt" in c.status()["calibration"]["refused"]
+
+        write_calibration(short_dir / "good.tmp", stage_at_slm_mm=3.0).replace(path)
+        assert c.call("focus", z_mm=1.0)["stage_mm"] == pytest.approx(10.0)  # a good swap applies
+        assert c.status()["calibration"]["refused"] is None
+
+        # No accepted version to keep (a process that never loaded the file): the file's code
+        (short_dir / "corrupt.tmp").write_bytes(b"\x00\xff garbage")
+        (short_dir / "corrupt.tmp").replace(path)
+        active._states.clear()
+        with pytest.raises(RpcError) as info:
+            c.call("focus", z_mm=1.0)
+        assert info.value.code == INVALID_FILE.code
+        assert info.value.message.startswith(f"calibration file {path}: corrupt")
+        assert info.value.data == {"field": "calibration.file"}
+    finally:
+        r.stop()
+
+
+def test_the_daemon_refuses_to_start_on_a_calibration_for_another_pitch(short_dir, mecom_twin):
+    from nhfd.calib.calibration import CalibrationFileError
+
+    from nhfd.daemon.service import Daemon
+
+    from .conftest import bench_config
+
+    path = write_calibration(short_dir / "other-panel.toml", pitch_m=3.74e-6)
+    config = _with_calibration(bench_config(short_dir, mecom_twin), path)
+    with pytest.raises(CalibrationFileError) as info:
+        Daemon(config, base_dir=short_dir, env={}, handle_signals=False).start()
+    assert str(info.value) == (f"calibration file {path}: bench.pitch_m = 3.74e-06 m, expected "
+                               "8e-06 m (from slm.pitch_um) within 0.1%: fitted for another bench")
+    assert mecom_twin.emitting() == {"red": 0.0, "green": 0.0, "blue": 0.0}
+
