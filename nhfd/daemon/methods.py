@@ -386,12 +386,13 @@ def _load_scene(d: Daemon, conn: Connection, p: Params) -> Any:
     path = _checked_file("path", raw, d.scene_dirs, d.base_dir, SCENE_SUFFIXES)
 
     def run(job: Job) -> dict[str, Any]:
-        from nhfd.scene.io import load_scene
+        from nhfd.scene.io import read_scene
 
-        scene = load_scene(path)
+        # Refuses a file that is not a plausible scene (SceneFileError names the rule) before
+        # the worker is asked: the old scene keeps rendering.
+        load = read_scene(path)
         job.check()
-        info = {"path": str(path), "gaussians": len(scene.means),
-                "loaded_s": time.time()}
+        info = {"path": str(path), **load.counts(), "loaded_s": time.time()}
         # The frame worker loads its own copy (it renders in another process).
         info.update(d.frames.load_scene(str(path)), loaded_s=time.time())
         d.scene = info  # replaced only now: on failure the old scene keeps running

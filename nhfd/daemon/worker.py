@@ -162,13 +162,14 @@ class _WorkerState:
 
     def load_scene(self, path: str) -> dict[str, Any]:
         from nhfd.daemon.frames import scene_frame
-        from nhfd.scene.io import load_scene
+        from nhfd.scene.io import read_scene
 
-        scene = load_scene(path)
+        load = read_scene(path)
+        scene = load.gaussians
         self.scene, self.scene_frame = scene, scene_frame(scene, path)
         self.scene_id += 1
         self.pipelines.clear()
-        return {"path": path, "gaussians": len(scene), "center": self.scene_frame.center,
+        return {"path": path, **load.counts(), "center": self.scene_frame.center,
                 "up": self.scene_frame.up}
 
     def pipeline(self, refocus_m: float) -> Any:

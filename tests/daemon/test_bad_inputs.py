@@ -245,3 +245,41 @@ def test_the_daemon_refuses_to_start_on_a_calibration_for_another_pitch(short_di
                                "8e-06 m (from slm.pitch_um) within 0.1%: fitted for another bench")
     assert mecom_twin.emitting() == {"red": 0.0, "green": 0.0, "blue": 0.0}
 
+
+def test_a_scene_of_random_data_is_refused_and_dropped_counts_reach_status(
+        short_dir, mecom_twin, tiny):
+    from nhfd.scene.io import load_scene, save_ply
+    from tests.scene.test_io import random_data_ply
+
+    from .test_frames import daemon_config, wait_for_frames
+
+    scenes = short_dir / "scenes"
+    config = daemon_config(short_dir, mecom_twin, tiny, scene=str(scenes / "cloud.ply"),
+                           model=str(short_dir / "models" / "tiny.onnx"))
+    r = Running(config, short_dir)
+    try:
+        c = r.client()
+        before = wait_for_frames(c)["scene"]
+        assert (before["gaussians"], before["declared"], before["dropped"]) == (300, 300, 0)
+        path = random_data_ply(scenes / "random.ply")
+        job = c.call("load_scene", path=str(path))["job"]
+        wait_until(lambda: c.call("job", id=job)["state"] in ("failed", "done"), 20, "the load")
+        state = c.call("job", id=job)
+        assert state["state"] == "failed", state
+        assert state["error"].startswith(f"SceneFileError: {path}: not a plausible scene: ")
+        assert c.status()["scene"] == before  # the old scene keeps rendering
+
+        g = load_scene(tiny["scene"])  # the cloud with 3 splats made non-finite
+        means = g.means.copy()
+        means[[5, 50, 150]] = np.nan
+        save_ply(scenes / "holes.ply", type(g)(means, g.quats, g.scales, g.opacities, g.sh))
+        job = c.call("load_scene", path=str(scenes / "holes.ply"))["job"]
+        wait_until(lambda: c.call("job", id=job)["state"] in ("failed", "done"), 20, "the load")
+        state = c.call("job", id=job)
+        assert state["state"] == "done", state
+        counts = {"gaussians": 297, "declared": 300, "dropped": 3}
+        assert {k: state["result"][k] for k in counts} == counts
+        assert {k: c.status()["scene"][k] for k in counts} == counts
+        assert "dropped 3 of 300 Gaussians" in c.status()["scene"]["dropped_reason"]
+    finally:
+        r.stop()
