@@ -52,16 +52,37 @@ def _expected(config: Any) -> tuple[tuple[float, ...], float]:
     return tuple(config.optics.wavelengths_m), float(config.slm.pitch_m)
 
 
+def _path(config: Any) -> Path | None:
+    section = getattr(config, "calibration", None)
+    name = getattr(section, "file", "") if section is not None else ""
+    return Path(name) if name else None
+
+
+def _key(path: Path, config: Any) -> tuple[str, tuple[float, ...]]:
+    wavelengths_m, pitch_m = _expected(config)
+    return str(path.resolve()), (*wavelengths_m, pitch_m)
+
+
+def keep(config: Any, cal: Calibration) -> None:
+    """Take `cal` as the accepted calibration of `config`'s file in this process, unless one
+    already is: the frame worker gets the daemon's at its start, so a version refused on disk
+    before the worker first reads the file keeps the daemon's there too."""
+    path = _path(config)
+    if path is None:
+        return
+    with _lock:
+        # a version no file has: the file on disk is still read, and refused or accepted
+        _states.setdefault(_key(path, config), _State((-2, -2, -2), cal))
+
+
 def _state(config: Any) -> _State | None:
     """The state of the configured file (loading a new version), or None when none is
     configured; raises `CalibrationFileError` when no version was ever accepted."""
-    section = getattr(config, "calibration", None)
-    name = getattr(section, "file", "") if section is not None else ""
-    if not name:
+    path = _path(config)
+    if path is None:
         return None
-    path = Path(name)
     wavelengths_m, pitch_m = _expected(config)
-    key = (str(path.resolve()), (*wavelengths_m, pitch_m))
+    key = _key(path, config)
     version = _version(path)
     with _lock:
         state = _states.get(key)

@@ -219,11 +219,16 @@ class _WorkerState:
         return payload
 
 
-def worker_main(conn: Any, config_data: dict[str, Any]) -> None:
-    """Entry point of the spawned process."""
+def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None) -> None:
+    """Entry point of the spawned process. `calibration`: the daemon's accepted one (kept when
+    the file on disk is refused, as in the daemon)."""
     from nhfd.config import Config
 
     config = Config.model_validate(config_data)
+    if calibration is not None:
+        from nhfd.calib.active import keep
+
+        keep(config, calibration)
     _set_threads(int(config.daemon.worker_threads), config.daemon.worker_threading_layer)
     import numba
 
@@ -294,7 +299,9 @@ class FrameWorker:
     def start(self) -> None:
         ctx = mp.get_context("spawn")
         here, there = ctx.Pipe(duplex=True)
-        self.process = ctx.Process(target=worker_main, args=(there, self.config.model_dump()),
+        self.process = ctx.Process(target=worker_main,
+                                   args=(there, self.config.model_dump(),
+                                         _accepted_calibration(self.config)),
                                    name="nhfd-frame-worker", daemon=True)
         self.process.start()
         there.close()
@@ -537,6 +544,17 @@ class FrameLink:
                 "sent_seq": self.sent_seq, "shown_seq": self.shown_seq,
                 "frames_shown": self.frames_shown, "crashes": self.crashes,
                 "pose_warnings": self.warnings}
+
+
+def _accepted_calibration(config: Any) -> Any:
+    """The calibration this process applies, for the worker; None when there is none to keep
+    (the worker's own load then says why, with each frame)."""
+    from nhfd.calib.active import active_calibration
+
+    try:
+        return active_calibration(config)
+    except ValueError:
+        return None
 
 
 def _panel_settings(config: Any) -> Any:

@@ -283,3 +283,31 @@ def test_a_scene_of_random_data_is_refused_and_dropped_counts_reach_status(
         assert "dropped 3 of 300 Gaussians" in c.status()["scene"]["dropped_reason"]
     finally:
         r.stop()
+
+
+def test_the_frame_worker_keeps_the_daemons_calibration_when_the_file_is_swapped_first(
+        short_dir, mecom_twin, tiny):
+    """The worker reads the calibration at its first frame: a file refused by then keeps the
+    calibration the daemon accepted at start there too, and frames are shown."""
+    from .test_frames import daemon_config, wait_for_frames
+
+    path = write_calibration(short_dir / "calibration.toml")
+    config = _with_calibration(daemon_config(short_dir, mecom_twin, tiny,
+                                             scene=str(short_dir / "scenes" / "cloud.ply"),
+                                             model=str(short_dir / "models" / "tiny.onnx")), path)
+    r = Running(config, short_dir)
+    try:
+        c = r.client()
+        wait_for_frames(c)  # worker, model and scene ready; no view yet, so no frame computed
+        write_calibration(short_dir / "other.tmp", pitch_m=3.74e-6).replace(path)
+        seq = c.call("set_view", pose={"position": [0.0, 0.05, -2.0],
+                                       "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]})["seq"]
+        wait_until(lambda: c.status()["view"]["applied_seq"] == seq
+                   or any(e["source"] == "frame worker" for e in c.status()["errors"]),
+                   30, "the frame or its error")
+        status = c.status()
+        assert [e["message"] for e in status["errors"] if e["source"] == "frame worker"] == []
+        assert status["view"]["applied_seq"] == seq
+        assert "bench.pitch_m = 3.74e-06 m" in status["calibration"]["refused"]
+    finally:
+        r.stop()
