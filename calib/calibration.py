@@ -29,8 +29,19 @@ FORMAT = "nhfd-calibration"
 FORMAT_VERSION = 1
 
 
+# How far a calibration's bench (`[bench]`) may differ from the configured one and still be
+# applied, relative. Wavelength 0.5 %: about 3 nm at 660 nm, the spread between diodes of one
+# type and over their temperature range; it moves the fitted phase tables by 0.5 % of their
+# stroke, below the fit's own table error (1.4 to 2.2 % RMS). A calibration for another laser
+# (1064 nm against 660 nm: 61 %) is far outside. Pitch 0.1 %: a panel's pitch is a design
+# constant, so anything beyond rounding is another panel (3.74 um against 8 um: 53 %).
+WAVELENGTH_REL_TOL = 5e-3
+PITCH_REL_TOL = 1e-3
+
+
 class CalibrationFileError(ValueError):
-    """A calibration file is missing, corrupt, foreign or from an unknown version."""
+    """A calibration file is missing, corrupt, foreign, from an unknown version, or fitted for
+    another bench (other wavelengths or pitch than the configured ones)."""
 
 
 @dataclass(frozen=True)
@@ -242,6 +253,27 @@ class Calibration:
                                        f"{exc}") from None
         except ValueError as exc:
             raise CalibrationFileError(f"calibration file {path}: {exc}") from None
+
+
+def check_bench(cal: Calibration, wavelengths_m: tuple[float, ...], pitch_m: float) -> None:
+    """Refuse, with `CalibrationFileError` naming the file's field, the expected (configured)
+    and the found value, a calibration fitted for other wavelengths or another pixel pitch than
+    the bench's: its phase tables, focus offsets and depth mapping belong to other optics.
+    Tolerances: `WAVELENGTH_REL_TOL`, `PITCH_REL_TOL`."""
+    name = cal.source or "(unsaved)"
+    if len(cal.wavelengths_m) != len(wavelengths_m):
+        raise CalibrationFileError(f"calibration file {name}: bench.wavelengths_m has "
+                                   f"{len(cal.wavelengths_m)} values, expected "
+                                   f"{len(wavelengths_m)} (R, G, B)")
+    checks = [(f"bench.wavelengths_m[{c}]", want, got, WAVELENGTH_REL_TOL,
+               f"optics.wavelengths_nm[{c}]")
+              for c, (want, got) in enumerate(zip(wavelengths_m, cal.wavelengths_m, strict=True))]
+    checks.append(("bench.pitch_m", pitch_m, cal.pitch_m, PITCH_REL_TOL, "slm.pitch_um"))
+    for field_name, want, got, tol, key in checks:
+        if not abs(got - want) <= tol * abs(want):  # NaN fails too
+            raise CalibrationFileError(
+                f"calibration file {name}: {field_name} = {got:.6g} m, expected {want:.6g} m "
+                f"(from {key}) within {tol:.1%}: fitted for another bench")
 
 
 def _optional(doc: dict[str, Any]) -> dict[str, Any]:

@@ -53,26 +53,56 @@ class _Host:
         self.errors.append(f"{source}: {message}")
 
 
+def check_frame_size(config: Any) -> None:
+    """`daemon.frame_size_px` must fit the panel: a larger window fails every frame ("window
+    does not fit the panel"), so the bench refuses it before starting a worker."""
+    size = list(config.daemon.frame_size_px)
+    s = config.slm
+    if size and (size[0] > s.width_px or size[1] > s.height_px):
+        raise ValueError(f"daemon.frame_size_px = {size}: does not fit the {s.width_px} x "
+                         f"{s.height_px} panel (slm.width_px x slm.height_px); allowed: at most "
+                         f"[{s.width_px}, {s.height_px}]")
+
+
+def _load(link: Any, scene: Path, model: Path) -> None:
+    """Load the scene and the model through the worker, as the daemon does; a refused file is a
+    ValueError with the worker's message (the one a daemon's load job fails with)."""
+    failed: list[BaseException] = []
+
+    def loads() -> None:
+        try:
+            link.load_scene(str(scene.resolve()))
+            link.load_model(str(model.resolve()))
+        except Exception as exc:  # re-raised on the stepping thread, not printed here
+            failed.append(exc)
+
+    thread = threading.Thread(target=loads)
+    thread.start()
+    while thread.is_alive():  # loads wait for the control loop (here: this thread) to answer
+        link.step()
+        time.sleep(0.01)
+    if failed:
+        raise ValueError(str(failed[0])) from None
+
+
 def measure(config: Any, model: Path, scene: Path, views: int, warmup: int) -> dict[str, Any]:
     from nhfd.config import Config, _overlay
+    from nhfd.daemon.frames import frame_window_hw
     from nhfd.daemon.worker import FrameLink
     from nhfd.models.export import OnnxModel
 
     meta = OnnxModel(model).metadata
     no_cache = {"daemon": {"frame_cache_frames": 0}}
     cfg = Config.model_validate(_overlay(config.model_dump(), no_cache))
+    wh, ww = frame_window_hw(cfg, meta)
+    if wh > cfg.slm.height_px or ww > cfg.slm.width_px:
+        raise ValueError(f"{model}: trained at {ww} x {wh}, larger than the {cfg.slm.width_px} x "
+                         f"{cfg.slm.height_px} panel; set daemon.frame_size_px to at most "
+                         f"[{cfg.slm.width_px}, {cfg.slm.height_px}]")
     host = _Host(cfg)
     link = FrameLink(host)
     try:
-        # Loads wait for the control loop (here: this thread stepping the link) to answer.
-        loads = threading.Thread(target=lambda: (link.load_scene(str(scene.resolve())),
-                                                 link.load_model(str(model.resolve()))))
-        loads.start()
-        while loads.is_alive():
-            link.step()
-            time.sleep(0.01)
-        if link.model_info is None or link.scene_path is None:
-            raise RuntimeError(f"loading failed: {host.errors or 'see the log'}")
+        _load(link, scene, model)
         env = meta.get("pose_envelope") or {}
         az = env.get("azimuth_deg") or [-20.0, 20.0]
         el = env.get("elevation_deg") or [20.0, 20.0]
@@ -114,6 +144,7 @@ def run(args: argparse.Namespace) -> int:
     from nhfd.config import load_config
 
     config = load_config(args.config).config
+    check_frame_size(config)
     models = [Path(m) for m in (args.model or ["models/nhf-donut-512.onnx"])]
     missing = [m for m in models if not m.is_file()]
     if missing:

@@ -168,6 +168,8 @@ class Loaded:
     up: str
     up_reason: str
     seconds: float
+    declared: int = 0  # Gaussians in the file
+    dropped: int = 0  # of them, dropped for non-finite or degenerate values
 
 
 FORMAT_NAMES = {"ply": "INRIA float .ply", "compressed": "PlayCanvas compressed .ply",
@@ -175,7 +177,9 @@ FORMAT_NAMES = {"ply": "INRIA float .ply", "compressed": "PlayCanvas compressed 
 
 
 def _load(file: str, up: str | None) -> Loaded:
-    from nhfd.scene.io import load_scene
+    import warnings
+
+    from nhfd.scene.io import read_scene
     from nhfd.scene.suggest import detect_up_axis, format_hint
 
     path = Path(file)
@@ -184,14 +188,17 @@ def _load(file: str, up: str | None) -> Loaded:
     if not path.is_file():
         raise ValueError(f"scene file {file!r} is not a file")
     t0 = time.perf_counter()
-    g = load_scene(path)  # SceneFileError is a ValueError naming the file
+    load = read_scene(path)  # SceneFileError is a ValueError naming the file
     seconds = time.perf_counter() - t0
+    if load.dropped:
+        warnings.warn(load.dropped_reason, UserWarning, stacklevel=2)
+    g = load.gaussians
     hint = format_hint(path)
     if up is None:
         up, reason = detect_up_axis(g, hint)
     else:
         reason = "given with --up"
-    return Loaded(g, path, hint, up, reason, seconds)
+    return Loaded(g, path, hint, up, reason, seconds, load.declared, load.dropped)
 
 
 def _fmt(values: Any) -> str:
@@ -287,6 +294,7 @@ def _info(args: argparse.Namespace) -> int:
     scene = _load(args.file, args.up)
     summary = scene_summary(scene.g)
     out: dict[str, Any] = {"file": str(scene.path), "format": scene.hint, **summary,
+                           "declared": scene.declared, "dropped": scene.dropped,
                            "up_axis": scene.up, "up_reason": scene.up_reason}
     out["suggested_camera"] = _suggested(scene, size, args.fov) if len(scene.g) else None
     if args.json:
@@ -302,7 +310,9 @@ def _vec(v: list[float] | None) -> str:
 
 def _print_info(d: dict[str, Any]) -> None:
     print(f"file          {d['file']} ({FORMAT_NAMES.get(d['format'], d['format'])})")
-    print(f"gaussians     {d['count']}")
+    dropped = (f" (dropped {d['dropped']} of {d['declared']}: non-finite or degenerate)"
+               if d.get("dropped") else "")
+    print(f"gaussians     {d['count']}{dropped}")
     print(f"sh degree     {d['sh_degree']}")
     if d["count"] == 0:
         print("empty scene: no bounds, no suggested camera")

@@ -566,6 +566,16 @@ class Pipeline:
         return Frame(self.encoder.region, grey, t, rgb, clipped)
 
 
+def frame_window_hw(config: Any, metadata: dict[str, Any]) -> tuple[int, int]:
+    """The frames' window (height, width): `daemon.frame_size_px` [W, H], or the model's
+    training size when that is empty."""
+    size = list(config.daemon.frame_size_px)
+    if size:
+        return int(size[1]), int(size[0])
+    h, w = (int(v) for v in metadata["train_size_hw"])
+    return h, w
+
+
 def frame_settings(config: Any, metadata: dict[str, Any], *, refocus_m: float = 0.0
                    ) -> FrameSettings:
     """The settings of frames for a model under a configuration. The optics (z0, aperture,
@@ -574,8 +584,7 @@ def frame_settings(config: Any, metadata: dict[str, Any], *, refocus_m: float = 
     otherwise (the trained fx is kept either way)."""
     from nhfd.calib.active import active_calibration
 
-    size = list(config.daemon.frame_size_px)
-    window_hw = (size[1], size[0]) if size else tuple(int(v) for v in metadata["train_size_hw"])
+    window_hw = frame_window_hw(config, metadata)
     s = config.slm
     cal = active_calibration(config)  # measured curves and sign replace the configured ones
     return FrameSettings(

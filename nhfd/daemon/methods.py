@@ -110,7 +110,7 @@ def _focus(d: Daemon, conn: Connection, p: Params) -> Any:
     if stage is None:
         raise RpcError(NOT_AVAILABLE, f"no stage: {d.bench.errors['stage'] or 'none configured'}",
                        {"device": "stage"})
-    target = d.focus_stage_mm(z_mm)
+    target = _focus_target(d, z_mm)
     s_low, s_high = stage.settings.soft_limits_mm
     if not s_low <= target <= s_high:
         z_lo = max(low, s_low - cfg.stage_at_reference_mm)
@@ -127,6 +127,17 @@ def _focus(d: Daemon, conn: Connection, p: Params) -> Any:
 
     job = d.submit_bench_job(Job("focus", {"z_mm": z_mm, "home": home}, run))
     return {"job": job.id, "stage_mm": target}
+
+
+def _focus_target(d: Daemon, z_mm: float) -> float:
+    """The stage position for `z_mm`; a configured calibration that cannot be applied (no
+    accepted version to keep) is the file's error, not the daemon's."""
+    from nhfd.calib.calibration import CalibrationFileError
+
+    try:
+        return d.focus_stage_mm(z_mm)
+    except CalibrationFileError as exc:
+        raise RpcError(INVALID_FILE, str(exc), {"field": "calibration.file"}) from None
 
 
 def _laser(d: Daemon, conn: Connection, p: Params) -> Any:
@@ -375,12 +386,13 @@ def _load_scene(d: Daemon, conn: Connection, p: Params) -> Any:
     path = _checked_file("path", raw, d.scene_dirs, d.base_dir, SCENE_SUFFIXES)
 
     def run(job: Job) -> dict[str, Any]:
-        from nhfd.scene.io import load_scene
+        from nhfd.scene.io import read_scene
 
-        scene = load_scene(path)
+        # Refuses a file that is not a plausible scene (SceneFileError names the rule) before
+        # the worker is asked: the old scene keeps rendering.
+        load = read_scene(path)
         job.check()
-        info = {"path": str(path), "gaussians": len(scene.means),
-                "loaded_s": time.time()}
+        info = {"path": str(path), **load.counts(), "loaded_s": time.time()}
         # The frame worker loads its own copy (it renders in another process).
         info.update(d.frames.load_scene(str(path)), loaded_s=time.time())
         d.scene = info  # replaced only now: on failure the old scene keeps running

@@ -472,13 +472,16 @@ class Daemon:
         self.errors.append({"time_s": time.time(), "source": source, "message": message})
 
     def _calibration_status(self) -> dict[str, Any]:
-        from nhfd.calib.active import active_calibration
+        from nhfd.calib.active import active_calibration, calibration_refusal, new_refusal
 
         c = self.config.daemon
         try:
             cal = active_calibration(self.config)
-        except ValueError as exc:  # the file changed on disk into something unreadable
+        except ValueError as exc:  # unreadable, with no accepted version to keep
             return {"loaded": False, "error": str(exc), "focus_range_mm": list(c.focus_range_mm)}
+        refused = new_refusal(self.config)  # a refused hot swap: the accepted version is kept
+        if refused:
+            self._error("calibration", refused)
         if cal is None:
             return {"loaded": False,
                     "focus_mapping": "stage_mm = stage_at_reference_mm + z_mm",
@@ -489,7 +492,8 @@ class Daemon:
                 "focus_mapping": "stage_mm = stage_at_slm_mm + (z0 + z_mm - z_offset_G) / "
                                  "stage_scale",
                 "stage_at_slm_mm": cal.stage_at_slm_mm, "stage_scale": cal.stage_scale,
-                "phase_sign": cal.phase_sign, "focus_range_mm": list(c.focus_range_mm)}
+                "phase_sign": cal.phase_sign, "focus_range_mm": list(c.focus_range_mm),
+                "refused": calibration_refusal(self.config)}
 
     def status(self) -> dict[str, Any]:
         c = self.config.daemon

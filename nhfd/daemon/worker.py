@@ -80,6 +80,54 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     return load_model(path, config, threads=threads, providers=tuple(providers))
 
 
+class ModelUnfit(ValueError):
+    """A model whose graph cannot take the daemon's frames, or whose test inference gives
+    outputs of another shape or non-finite values; the message names the file and what differs."""
+
+
+# The test inference's input: mid-grey sRGB everywhere and, for an rgbd model, the reference
+# plane's depth (0): a frame the daemon could send, so a model that fails it fails real frames.
+TEST_GREY = 0.5
+
+
+def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
+    """Run `model` once on a frame of `window_hw` (padded to its input multiple, as frames are)
+    and refuse it, with `ModelUnfit`, unless it takes that input and returns finite amplitude
+    and phase of [1, colours, H, W]. Before the swap: a model that passes the metadata check
+    but cannot serve frames must not replace a working one."""
+    h, w = window_hw
+    c, m = model.channels, model.multiple
+    ph, pw = h + (-h) % m, w + (-w) % m
+    inp = model.session.get_inputs()[0]
+    declared = list(inp.shape)
+    want = f"[B, {c}, {ph}, {pw}] ({inp.name}, a {h} x {w} frame window padded to multiples " \
+           f"of {m})"
+    if len(declared) != 4:
+        raise ModelUnfit(f"{path}: input shape: expected {want}, found {declared}")
+    for what, expected, found in zip(("channels", "height", "width"), (c, ph, pw),
+                                     declared[1:], strict=True):
+        if isinstance(found, int) and found != expected:
+            raise ModelUnfit(f"{path}: input {what}: expected {expected}, found {found} "
+                             f"(input shape: expected {want}, found {declared})")
+    x = np.full((1, c, ph, pw), TEST_GREY, np.float32)
+    if c == 4:
+        x[:, 3] = 0.0
+    try:
+        outputs = model.run_raw(x)
+    except Exception as exc:  # onnxruntime's own types: the first line says what
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:300]
+        raise ModelUnfit(f"{path}: a test inference on a {want} input failed: {first}") from None
+    colours = len(model.metadata["wavelengths_m"])
+    for name, out in zip(("amplitude", "phase"), outputs, strict=True):
+        if list(out.shape) != [1, colours, ph, pw]:
+            raise ModelUnfit(f"{path}: output {name} shape: expected [1, {colours}, {ph}, {pw}], "
+                             f"found {list(out.shape)}")
+        bad = int(out.size - np.count_nonzero(np.isfinite(out)))
+        if bad:
+            raise ModelUnfit(f"{path}: output {name}: expected finite values, found {bad} of "
+                             f"{out.size} not finite (test inference on a mid-grey frame)")
+
+
 def model_info(model: Any, path: str) -> dict[str, Any]:
     m = model.metadata
     return {"path": path, "profile": m.get("profile"), "train_size_hw": m.get("train_size_hw"),
@@ -104,20 +152,24 @@ class _WorkerState:
         self.cache_size = int(config.daemon.frame_cache_frames)
 
     def load_model(self, path: str) -> dict[str, Any]:
+        from nhfd.daemon.frames import frame_window_hw
+
         model = open_model(path, self.config, self.threads)
+        check_inference(model, frame_window_hw(self.config, model.metadata), path)
         self.model, self.model_id = model, self.model_id + 1
         self.pipelines.clear()
         return model_info(model, path)
 
     def load_scene(self, path: str) -> dict[str, Any]:
         from nhfd.daemon.frames import scene_frame
-        from nhfd.scene.io import load_scene
+        from nhfd.scene.io import read_scene
 
-        scene = load_scene(path)
+        load = read_scene(path)
+        scene = load.gaussians
         self.scene, self.scene_frame = scene, scene_frame(scene, path)
         self.scene_id += 1
         self.pipelines.clear()
-        return {"path": path, "gaussians": len(scene), "center": self.scene_frame.center,
+        return {"path": path, **load.counts(), "center": self.scene_frame.center,
                 "up": self.scene_frame.up}
 
     def pipeline(self, refocus_m: float) -> Any:
@@ -167,11 +219,16 @@ class _WorkerState:
         return payload
 
 
-def worker_main(conn: Any, config_data: dict[str, Any]) -> None:
-    """Entry point of the spawned process."""
+def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None) -> None:
+    """Entry point of the spawned process. `calibration`: the daemon's accepted one (kept when
+    the file on disk is refused, as in the daemon)."""
     from nhfd.config import Config
 
     config = Config.model_validate(config_data)
+    if calibration is not None:
+        from nhfd.calib.active import keep
+
+        keep(config, calibration)
     _set_threads(int(config.daemon.worker_threads), config.daemon.worker_threading_layer)
     import numba
 
@@ -242,7 +299,9 @@ class FrameWorker:
     def start(self) -> None:
         ctx = mp.get_context("spawn")
         here, there = ctx.Pipe(duplex=True)
-        self.process = ctx.Process(target=worker_main, args=(there, self.config.model_dump()),
+        self.process = ctx.Process(target=worker_main,
+                                   args=(there, self.config.model_dump(),
+                                         _accepted_calibration(self.config)),
                                    name="nhfd-frame-worker", daemon=True)
         self.process.start()
         there.close()
@@ -485,6 +544,17 @@ class FrameLink:
                 "sent_seq": self.sent_seq, "shown_seq": self.shown_seq,
                 "frames_shown": self.frames_shown, "crashes": self.crashes,
                 "pose_warnings": self.warnings}
+
+
+def _accepted_calibration(config: Any) -> Any:
+    """The calibration this process applies, for the worker; None when there is none to keep
+    (the worker's own load then says why, with each frame)."""
+    from nhfd.calib.active import active_calibration
+
+    try:
+        return active_calibration(config)
+    except ValueError:
+        return None
 
 
 def _panel_settings(config: Any) -> Any:

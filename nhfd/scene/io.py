@@ -12,7 +12,8 @@ Formats read (`load_scene` picks by content first, extension second):
 Writers: `save_ply` (INRIA float, the exact inverse of the loader), `save_splat` and
 `save_compressed_ply` (both lossy; see their docstrings for the quantisation).
 
-Every problem with a file is a `SceneFileError` whose message starts with the path.
+Every problem with a file is a `SceneFileError` whose message starts with the path; a file that
+decodes but is not a plausible scene (`check_plausible`) is one too.
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import math
 import os
 import re
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +38,10 @@ from nhfd.scene.gaussians import (
 )
 
 __all__ = [
+    "SceneLoad",
+    "check_plausible",
     "load_scene",
+    "read_scene",
     "save_compressed_ply",
     "save_ply",
     "save_splat",
@@ -74,30 +79,105 @@ _OPACITY_EPS = 1e-7
 # Loading
 
 
-def load_scene(path: PathLike) -> Gaussians:
-    """Load a splat scene (INRIA .ply, compressed .ply or .splat) as activated float32 Gaussians.
+# What a file must look like to be taken for a scene (`check_plausible`). A file with a valid
+# header and random data decodes to Gaussians too: random float32 bit patterns give 87 % of them
+# non-finite or degenerate, and the rest at coordinates near 1e37.
+# More than this fraction dropped (non-finite or degenerate values): not a scene with a few bad
+# splats but a file that is not a scene.
+MAX_DROPPED_FRACTION = 0.5
+# The robust box (1st to 99th percentile of the means, per axis) within +-this, in scene units: a
+# kilometre in millimetres; float32 positions keep 0.06 units there.
+MAX_COORDINATE = 1e6
+# The median Gaussian's largest scale at most this fraction of the robust extent (the shared
+# scenes: 0.005 to 0.14), checked from MIN_FOR_EXTENT Gaussians on (fewer define no extent).
+MAX_SCALE_TO_EXTENT = 0.5
+MIN_FOR_EXTENT = 10
 
-    Raises `SceneFileError` naming the file and the problem for anything unreadable; Gaussians
-    with non-finite or degenerate values are dropped with one warning giving the count.
+
+@dataclass(frozen=True)
+class SceneLoad:
+    """A loaded scene and what loading it dropped."""
+
+    gaussians: Gaussians
+    declared: int  # Gaussians in the file
+    dropped: int  # of them, dropped for non-finite or degenerate values
+    dropped_reason: str = ""  # the drop's one-line account ("" when none were dropped)
+
+    def counts(self) -> dict[str, Any]:
+        """For a job result and `status`."""
+        return {"gaussians": len(self.gaussians), "declared": self.declared,
+                "dropped": self.dropped, "dropped_reason": self.dropped_reason}
+
+
+def read_scene(path: PathLike) -> SceneLoad:
+    """Load a splat scene (INRIA .ply, compressed .ply or .splat) as activated float32 Gaussians,
+    with the count of those dropped for non-finite or degenerate values.
+
+    Raises `SceneFileError` naming the file and the problem for anything unreadable, and for a
+    file whose content is not a plausible scene (`check_plausible`).
     """
     path = Path(path)
     arrays = _read_arrays(path)
     n = arrays["means"].shape[0]
     if n == 0:  # a file that declares no Gaussians is a valid, empty scene
-        return Gaussians.empty(SH_DEGREE_FOR_K[arrays["sh"].shape[1]])
-    # Catch make_gaussians' drop warning to turn "all dropped" into an error, and otherwise to
-    # re-issue it at our caller's line.
-    with warnings.catch_warnings(record=True) as caught:
+        return SceneLoad(Gaussians.empty(SH_DEGREE_FOR_K[arrays["sh"].shape[1]]), 0, 0)
+    # Catch make_gaussians' drop warning: its count is part of the result.
+    with warnings.catch_warnings(record=True) as caught, np.errstate(over="ignore"):
         warnings.simplefilter("always")
         g = make_gaussians(**arrays, source=str(path))
+    reason = "; ".join(str(w.message) for w in caught if issubclass(w.category, UserWarning))
     if len(g) == 0:
-        reason = "; ".join(str(w.message) for w in caught)
         raise SceneFileError(
             f"{path}: no usable Gaussians, all {n} have non-finite or degenerate values ({reason})"
         )
-    for w in caught:
-        warnings.warn(w.message, w.category, stacklevel=2)
-    return g
+    load = SceneLoad(g, n, n - len(g), reason)
+    check_plausible(path, load)
+    return load
+
+
+def load_scene(path: PathLike) -> Gaussians:
+    """`read_scene`'s Gaussians; the dropped ones are reported with one warning giving the count,
+    at the caller's line."""
+    load = read_scene(path)
+    if load.dropped:
+        warnings.warn(load.dropped_reason, UserWarning, stacklevel=2)
+    return load.gaussians
+
+
+def _robust_box(means: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """1st and 99th percentile of the means per axis (float64): stray floaters do not set it."""
+    lo, hi = np.percentile(means.astype(np.float64), [1.0, 99.0], axis=0)
+    return lo, hi
+
+
+def check_plausible(path: PathLike, load: SceneLoad) -> None:
+    """Refuse, with `SceneFileError` naming the file, the rule and the found value, content that
+    is not a plausible scene: most Gaussians dropped, a robust box not finite or beyond
+    +-MAX_COORDINATE, or splats large against the scene. Serves every loader (the daemon's
+    load_scene and `nhfd scene info|render`): a file one refuses, the other does too."""
+    g, n = load.gaussians, load.declared
+    if load.dropped > MAX_DROPPED_FRACTION * n:
+        raise SceneFileError(
+            f"{path}: not a plausible scene: {load.dropped} of {n} Gaussians "
+            f"({load.dropped / n:.0%}) have non-finite or degenerate values, more than "
+            f"{MAX_DROPPED_FRACTION:.0%} (random or corrupt data?)"
+        )
+    lo, hi = _robust_box(g.means)
+    reach = float(np.max(np.abs(np.concatenate([lo, hi]))))
+    if not reach <= MAX_COORDINATE:  # NaN fails too
+        raise SceneFileError(
+            f"{path}: not a plausible scene: its robust bounds (1st-99th percentile of the "
+            f"means) reach {reach:.3g} scene units, beyond +-{MAX_COORDINATE:g}"
+        )
+    extent = float(np.linalg.norm(hi - lo))
+    if len(g) >= MIN_FOR_EXTENT:
+        median_scale = float(np.median(g.scales.max(1)))
+        if not median_scale <= MAX_SCALE_TO_EXTENT * extent:
+            raise SceneFileError(
+                f"{path}: not a plausible scene: the median Gaussian's largest scale "
+                f"{median_scale:.3g} is more than {MAX_SCALE_TO_EXTENT:g} x the robust extent "
+                f"{extent:.3g}"
+            )
 
 
 # Activated arrays, any float dtype, keyed as make_gaussians takes them (means, quats, ...).
@@ -493,7 +573,7 @@ def scene_summary(g: Gaussians) -> dict[str, Any]:
                 "mean_opacity", "median_scale")
         return out | dict.fromkeys(keys)
     m = g.means.astype(np.float64)
-    lo, hi = np.percentile(m, [1.0, 99.0], axis=0)
+    lo, hi = _robust_box(m)
     out |= {
         "bounds_min": m.min(0).tolist(),
         "bounds_max": m.max(0).tolist(),

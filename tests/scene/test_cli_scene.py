@@ -123,3 +123,23 @@ def test_missing_and_unreadable_scene_files_exit_2_naming_the_file(tmp_path, cap
     bad.write_text("hello")
     code, _, err = run(capsys, "render", bad, "-o", tmp_path / "v.png")
     assert code == 2 and "bad.ply" in err and "not a PLY file" in err
+
+
+def test_info_refuses_random_data_as_the_daemon_does(tmp_path, capsys):
+    from tests.scene.test_io import random_data_ply
+
+    path = random_data_ply(tmp_path / "random.ply")
+    code, out, err = run(capsys, "info", path)
+    assert code == 2 and out == ""
+    assert err.startswith(f"nhfd scene: error: {path}: not a plausible scene: ")
+
+
+def test_info_reports_the_dropped_gaussians(tmp_path, capsys):
+    from tests.scene.test_io import nan_scene
+
+    save_ply(tmp_path / "some.ply", nan_scene(10, np.array([1, 4, 7])))
+    with pytest.warns(UserWarning, match="dropped 3 of 10"):
+        code, out, _ = run(capsys, "info", tmp_path / "some.ply", "--json")
+    assert code == 0
+    assert {k: json.loads(out)[k] for k in ("count", "declared", "dropped")} == {
+        "count": 7, "declared": 10, "dropped": 3}

@@ -403,3 +403,70 @@ def test_file_with_no_gaussians_is_an_empty_scene(tmp_path: Path, save) -> None:
     save(tmp_path / "empty.ply", Gaussians.empty(1))
     g = load_scene(tmp_path / "empty.ply")
     assert len(g) == 0 and g.sh_degree == 1
+
+
+# --- plausibility: one check for the daemon and `nhfd scene info` ------------------------------
+
+
+def random_data_ply(path: Path, n: int = 20_000, seed: int = 0) -> Path:
+    """A valid INRIA .ply header over random float32 data (random bit patterns)."""
+    from nhfd.scene.io import INRIA_REQUIRED
+
+    rng = np.random.default_rng(seed)
+    dtype = np.dtype([(name, "<f4") for name in INRIA_REQUIRED])
+    return write_ply(path, vertex=np.frombuffer(rng.bytes(n * dtype.itemsize), dtype).copy())
+
+
+def test_random_data_with_a_valid_header_is_not_a_scene(tmp_path: Path) -> None:
+    path = random_data_ply(tmp_path / "random.ply")
+    with pytest.raises(SceneFileError) as info:
+        load_scene(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: not a plausible scene: ")
+    dropped = int(message.split(": ")[2].split(" of ")[0])
+    assert 0.5 * 20_000 < dropped < 20_000 and "of 20000 Gaussians" in message
+
+
+def _finite_scene(n: int, means: np.ndarray, scale: float) -> Gaussians:
+    rng = np.random.default_rng(1)
+    return make_gaussians(means=means, quats=np.tile([1.0, 0, 0, 0], (n, 1)),
+                          scales=np.full((n, 3), scale), opacities=np.full(n, 0.5),
+                          sh=rng.uniform(-1, 1, (n, 1, 3)))
+
+
+def test_finite_gaussians_far_out_or_larger_than_the_scene_are_refused(tmp_path: Path) -> None:
+    from nhfd.scene.io import MAX_COORDINATE
+
+    rng = np.random.default_rng(2)
+    far = _finite_scene(100, rng.uniform(-1e36, 1e36, (100, 3)), 0.01)
+    save_ply(tmp_path / "far.ply", far)  # nothing dropped: every value is a finite float32
+    with pytest.raises(SceneFileError, match=r"far\.ply: not a plausible scene: its robust bounds "
+                                             r".* reach 9\.\d+e\+35 scene units, beyond \+-1e\+06"):
+        load_scene(tmp_path / "far.ply")
+    edge = _finite_scene(100, rng.uniform(-0.5, 0.5, (100, 3)) * MAX_COORDINATE, 1.0)
+    save_ply(tmp_path / "edge.ply", edge)  # within the bound: a kilometre-sized scene in mm
+    assert len(load_scene(tmp_path / "edge.ply")) == 100
+    blobs = _finite_scene(100, rng.uniform(-0.5, 0.5, (100, 3)), 2.0)
+    save_ply(tmp_path / "blobs.ply", blobs)
+    with pytest.raises(SceneFileError, match=r"blobs\.ply: not a plausible scene: the median "
+                                             r"Gaussian's largest scale 2 is more than 0\.5 x the "
+                                             r"robust extent 1\.6"):
+        load_scene(tmp_path / "blobs.ply")
+
+
+def test_read_scene_counts_what_it_dropped(tmp_path: Path, shared_scenes: Path) -> None:
+    from nhfd.scene.io import read_scene
+
+    save_ply(tmp_path / "some.ply", nan_scene(10, np.array([1, 4, 7])))
+    load = read_scene(tmp_path / "some.ply")
+    assert (len(load.gaussians), load.declared, load.dropped) == (7, 10, 3)
+    assert load.counts()["dropped_reason"].startswith(f"{tmp_path / 'some.ply'}: dropped 3 of 10")
+    # half dropped is still a scene with bad splats; more is not
+    save_ply(tmp_path / "half.ply", nan_scene(10, np.arange(5)))
+    assert read_scene(tmp_path / "half.ply").dropped == 5
+    save_ply(tmp_path / "most.ply", nan_scene(10, np.arange(6)))
+    with pytest.raises(SceneFileError, match=r"most\.ply: not a plausible scene: 6 of 10 "
+                                             r"Gaussians \(60%\)"):
+        read_scene(tmp_path / "most.ply")
+    donut = read_scene(shared_scenes / "donut.ply")  # a real scene: all of it, nothing dropped
+    assert (len(donut.gaussians), donut.declared, donut.dropped) == (45_624, 45_624, 0)
