@@ -53,17 +53,6 @@ class _Host:
         self.errors.append(f"{source}: {message}")
 
 
-def check_frame_size(config: Any) -> None:
-    """`daemon.frame_size_px` must fit the panel: a larger window fails every frame ("window
-    does not fit the panel"), so the bench refuses it before starting a worker."""
-    size = list(config.daemon.frame_size_px)
-    s = config.slm
-    if size and (size[0] > s.width_px or size[1] > s.height_px):
-        raise ValueError(f"daemon.frame_size_px = {size}: does not fit the {s.width_px} x "
-                         f"{s.height_px} panel (slm.width_px x slm.height_px); allowed: at most "
-                         f"[{s.width_px}, {s.height_px}]")
-
-
 def _load(link: Any, scene: Path, model: Path) -> None:
     """Load the scene and the model through the worker, as the daemon does; a refused file is a
     ValueError with the worker's message (the one a daemon's load job fails with)."""
@@ -143,8 +132,9 @@ def run(args: argparse.Namespace) -> int:
     from nhfd import __version__
     from nhfd.config import load_config
 
+    # load_config applies the cross-field rules: a frame larger than the panel is a
+    # ConfigError (exit 2) before any worker starts.
     config = load_config(args.config).config
-    check_frame_size(config)
     models = [Path(m) for m in (args.model or ["models/nhf-donut-512.onnx"])]
     missing = [m for m in models if not m.is_file()]
     if missing:
