@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 import plyfile
 
+from nhfd.scene import spz
 from nhfd.scene.gaussians import (
     SH_C0,
     SH_DEGREE_FOR_K,
@@ -109,11 +110,8 @@ def _read_arrays(path: Path) -> Arrays:
         magic = f.read(4)
     if magic[:3] == b"ply":
         return _load_ply(path)
-    if magic[:2] == b"\x1f\x8b":
-        raise SceneFileError(
-            f"{path}: gzip data (probably a Niantic .spz scene), which is not supported yet; "
-            "convert it to .ply first"
-        )
+    if magic[:2] == b"\x1f\x8b" or magic == spz.SPZ_MAGIC:  # .spz v2/v3 gzip, v4 NGSP
+        return spz.read_spz(path)
     if path.suffix.lower() == ".splat":
         return _load_splat(path)
     if path.suffix.lower() == ".ply":
