@@ -40,9 +40,11 @@ def signs_from_letters(name: str) -> tuple[float, float, float] | None:
 def flip_axes(arrays: dict[str, np.ndarray], signs: tuple[float, float, float]) -> None:
     """Negate axes in place on activated arrays (means [N,3], quats [N,4] wxyz, sh [N,K,3]).
 
-    A diagonal sign matrix F maps a Gaussian's rotation R to F R F, which is again a rotation
-    (det F^2 = 1): its quaternion keeps w and scales each vector part by the product of the
-    *other* two signs. Scales and opacity do not change; each SH basis picks up its parity sign.
+    A diagonal sign matrix F maps a covariance R S^2 R^T to F R S^2 R^T F = (F R F) S^2
+    (F R F)^T, as F S^2 F = S^2. F R F is a rotation (det F^2 = 1) whose quaternion keeps w and
+    scales each vector part by the product of the *other* two signs (the reference .spz
+    converter's choice; for a proper F, F R would give the same covariance with the local axes
+    named differently). Scales and opacity do not change; each SH basis takes its parity sign.
     """
     s = np.asarray(signs, np.float64)
     if (s == 1.0).all():

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import plyfile
 
-from nhfd.scene import spz
+from nhfd.scene import gltf_splat, spz
 from nhfd.scene.gaussians import (
     SH_C0,
     SH_DEGREE_FOR_K,
@@ -112,12 +112,17 @@ def _read_arrays(path: Path) -> Arrays:
         return _load_ply(path)
     if magic[:2] == b"\x1f\x8b" or magic == spz.SPZ_MAGIC:  # .spz v2/v3 gzip, v4 NGSP
         return spz.read_spz(path)
+    if magic == gltf_splat.GLB_MAGIC or path.suffix.lower() == ".gltf":
+        return gltf_splat.read_gltf(path)
     if path.suffix.lower() == ".splat":
         return _load_splat(path)
     if path.suffix.lower() == ".ply":
         raise SceneFileError(f"{path}: not a PLY file (does not start with 'ply')")
+    if path.suffix.lower() in (".spz", ".glb"):
+        expected = {".spz": "gzip data or 'NGSP'", ".glb": "'glTF'"}[path.suffix.lower()]
+        raise SceneFileError(f"{path}: not a {path.suffix} file (does not start with {expected})")
     raise SceneFileError(
-        f"{path}: unknown scene format (expected a .ply starting with 'ply' or a .splat file)"
+        f"{path}: unknown scene format (expected .ply, .splat, .spz, .glb, .gltf or SOG)"
     )
 
 

@@ -7,8 +7,10 @@ where the format says, and a bad file must get a `SceneFileError` naming the fil
 
 from __future__ import annotations
 
+import base64
 import functools
 import gzip
+import json
 import math
 import struct
 from pathlib import Path
@@ -173,3 +175,139 @@ def test_spz_bad_files_name_file_and_problem(tmp_path: Path) -> None:
     v4 = (FIXTURES / "donut-crop.v4.spz").read_bytes()
     fails("cut4.spz", v4[:-100], r"cut4\.spz: truncated \.spz data \(stream 4 is cut off\)")
     fails("head4.spz", v4[:20], r"head4\.spz: truncated \.spz header \(20 of 32 bytes\)")
+
+
+# --- glTF KHR_gaussian_splatting -----------------------------------------------------------
+
+
+def covariances(g: Gaussians) -> np.ndarray:
+    """[N, 3, 3] R diag(s^2) R^T: what a renderer sees (a quaternion is one of several names)."""
+    w, x, y, z = g.quats.astype(np.float64).T
+    r = np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+    ], axis=1)  # fmt: skip
+    return r @ (g.scales.astype(np.float64)[:, :, None] ** 2 * r.transpose(0, 2, 1))
+
+
+def split_glb(data: bytes) -> tuple[dict, bytes]:
+    """The JSON document and BIN chunk of a .glb (12-byte header, then length/type chunks)."""
+    n_json = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20 : 20 + n_json])
+    n_bin = struct.unpack_from("<I", data, 20 + n_json)[0]
+    return doc, data[28 + n_json : 28 + n_json + n_bin]
+
+
+def make_glb(doc: dict, blob: bytes, version: int = 2) -> bytes:
+    js = json.dumps(doc).encode()
+    js += b" " * (-len(js) % 4)
+    blob += bytes(-len(blob) % 4)
+    total = 12 + 8 + len(js) + 8 + len(blob)
+    return (struct.pack("<4sII", b"glTF", version, total) + struct.pack("<II", len(js), 0x4E4F534A)
+            + js + struct.pack("<II", len(blob), 0x004E4942) + blob)
+
+
+@pytest.mark.parametrize("name", sorted(SOURCES))
+def test_glb_fixture_renders_like_its_source(name: str) -> None:
+    g = load_scene(FIXTURES / f"{name}.glb")
+    src = load_scene(FIXTURES / f"{name}.ply")
+    assert len(g) == len(src) and g.sh_degree == src.sh_degree
+    # float32 throughout: positions and SH (signs flipped twice) come back bit for bit.
+    np.testing.assert_array_equal(g.means, src.means)
+    np.testing.assert_array_equal(g.sh, src.sh)
+    # float32 quaternions and scales: each covariance within 1e-5 of its largest variance.
+    err = np.abs(covariances(g) - covariances(src)).max(axis=(1, 2))
+    assert (err <= 1e-5 * src.scales.astype(np.float64).max(1) ** 2).all()
+    assert psnr_db(g, name) >= MIN_PSNR_DB
+
+
+@pytest.mark.parametrize("variant", ["external", "data-uri"])
+def test_gltf_json_with_separate_buffer_reads_like_the_glb(tmp_path: Path, variant: str) -> None:
+    doc, blob = split_glb((FIXTURES / "tiny-sh.glb").read_bytes())
+    if variant == "external":
+        (tmp_path / "my buffer.bin").write_bytes(blob)
+        doc["buffers"][0]["uri"] = "my%20buffer.bin"
+    else:
+        doc["buffers"][0]["uri"] = "data:application/octet-stream;base64," + base64.b64encode(
+            blob
+        ).decode()
+    (tmp_path / "scene.gltf").write_text(json.dumps(doc))
+    g, h = load_scene(tmp_path / "scene.gltf"), load_scene(FIXTURES / "tiny-sh.glb")
+    np.testing.assert_array_equal(g.means, h.means)
+    np.testing.assert_array_equal(g.sh, h.sh)
+
+
+def one_splat_glb(scale: float = 0.5) -> bytes:
+    """One Gaussian at glTF (1, 2, 3), turned 90 degrees about +z, red y-basis SH = +0.5."""
+    s = math.sqrt(0.5)
+    columns = {
+        "POSITION": ("VEC3", [1.0, 2.0, 3.0]),
+        "KHR_gaussian_splatting:ROTATION": ("VEC4", [0.0, 0.0, s, s]),  # x y z w
+        "KHR_gaussian_splatting:SCALE": ("VEC3", [scale, 0.25, 0.125]),
+        "KHR_gaussian_splatting:OPACITY": ("SCALAR", [0.75]),
+        "KHR_gaussian_splatting:SH_DEGREE_0_COEF_0": ("VEC3", [0.0, 0.0, 0.0]),
+        "KHR_gaussian_splatting:SH_DEGREE_1_COEF_0": ("VEC3", [0.5, 0.0, 0.0]),
+        "KHR_gaussian_splatting:SH_DEGREE_1_COEF_1": ("VEC3", [0.0, 0.0, 0.0]),
+        "KHR_gaussian_splatting:SH_DEGREE_1_COEF_2": ("VEC3", [0.0, 0.0, 0.0]),
+    }
+    blob, views, accessors = b"", [], []
+    for kind, values in columns.values():
+        views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": 4 * len(values)})
+        accessors.append({"bufferView": len(views) - 1, "componentType": 5126, "count": 1,
+                          "type": kind})
+        blob += struct.pack(f"<{len(values)}f", *values)
+    doc = {
+        "asset": {"version": "2.0"}, "extensionsUsed": ["KHR_gaussian_splatting"],
+        "buffers": [{"byteLength": len(blob)}], "bufferViews": views, "accessors": accessors,
+        "meshes": [{"primitives": [{
+            "attributes": {name: i for i, name in enumerate(columns)}, "mode": 0,
+            "extensions": {"KHR_gaussian_splatting": {"kernel": "ellipse"}},
+        }]}],
+        "nodes": [{"mesh": 0}],
+    }  # fmt: skip
+    return make_glb(doc, blob)
+
+
+def test_gltf_y_up_axes_land_in_opencv_axes(tmp_path: Path) -> None:
+    (tmp_path / "one.glb").write_bytes(one_splat_glb())
+    g = load_scene(tmp_path / "one.glb")
+    # glTF: +y up, +z forward, -x right (LUF) -> OpenCV RDF: x and y negated, z kept.
+    np.testing.assert_allclose(g.means[0], [-1.0, -2.0, 3.0])
+    # A turn about z stays a turn about z (F R F with F = diag(-1, -1, 1)): x' = -y', y' = x'.
+    s = math.sqrt(0.5)
+    assert quat_distance(g.quats, np.array([[s, 0.0, 0.0, s]]))[0] < 1e-7
+    np.testing.assert_allclose(g.scales[0], [0.5, 0.25, 0.125])  # linear, as stored
+    np.testing.assert_allclose(g.sh[0, 1], [-0.5, 0.0, 0.0])  # odd in y
+    assert g.opacities[0] == 0.75
+
+
+def test_gltf_bad_files_name_file_and_problem(tmp_path: Path) -> None:
+    def fails(name: str, data: bytes, match: str) -> None:
+        (tmp_path / name).write_bytes(data)
+        with pytest.raises(SceneFileError, match=match):
+            load_scene(tmp_path / name)
+
+    good = one_splat_glb()
+    fails("cut.glb", good[:-10],
+          rf"cut\.glb: truncated \.glb data: the header declares {len(good)} bytes")
+    fails("magic.glb", b"gLTF" + good[4:], r"magic\.glb: not a \.glb file")
+    fails("v1.glb", good[:4] + struct.pack("<I", 1) + good[8:],
+          r"v1\.glb: unsupported \.glb version 1 \(supported: 2\)")
+    fails("bad.gltf", b'{"asset": {"version": "2.0"}, ',
+          r"bad\.gltf: unreadable glTF JSON \(Expecting property name")
+    fails("old.gltf", b'{"asset": {"version": "1.0"}}',
+          r"old\.gltf: not a glTF 2\.0 document")
+    fails("log.glb", one_splat_glb(scale=-2.0),
+          r"log\.glb: KHR_gaussian_splatting:SCALE holds negative values")
+    doc, blob = split_glb(good)
+    doc["meshes"][0]["primitives"][0]["attributes"].pop("KHR_gaussian_splatting:OPACITY")
+    fails("noop.glb", make_glb(doc, blob),
+          r"noop\.glb: splat primitive lacks the required attribute KHR_gaussian_splatting:OPACITY")
+    doc, blob = split_glb(good)
+    doc["nodes"][0]["translation"] = [1.0, 0.0, 0.0]
+    fails("moved.glb", make_glb(doc, blob), r"moved\.glb: a node transforms its splat mesh")
+    doc, blob = split_glb(good)
+    doc["bufferViews"][0]["byteLength"] = 4
+    fails("short.glb", make_glb(doc, blob),
+          r"short\.glb: truncated data: POSITION runs past its buffer")
