@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import plyfile
 
-from nhfd.scene import gltf_splat, spz
+from nhfd.scene import gltf_splat, sog, spz
 from nhfd.scene.gaussians import (
     SH_C0,
     SH_DEGREE_FOR_K,
@@ -106,6 +106,8 @@ Arrays = dict[str, np.ndarray]
 
 
 def _read_arrays(path: Path) -> Arrays:
+    if path.is_dir() or path.name.lower() == "meta.json":  # a SOG folder
+        return sog.read_sog(path)
     with path.open("rb") as f:
         magic = f.read(4)
     if magic[:3] == b"ply":
@@ -114,6 +116,8 @@ def _read_arrays(path: Path) -> Arrays:
         return spz.read_spz(path)
     if magic == gltf_splat.GLB_MAGIC or path.suffix.lower() == ".gltf":
         return gltf_splat.read_gltf(path)
+    if magic == sog.ZIP_MAGIC or path.suffix.lower() == ".sog":  # a SOG zip bundle
+        return sog.read_sog(path)
     if path.suffix.lower() == ".splat":
         return _load_splat(path)
     if path.suffix.lower() == ".ply":

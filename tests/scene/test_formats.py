@@ -311,3 +311,78 @@ def test_gltf_bad_files_name_file_and_problem(tmp_path: Path) -> None:
     doc["bufferViews"][0]["byteLength"] = 4
     fails("short.glb", make_glb(doc, blob),
           r"short\.glb: truncated data: POSITION runs past its buffer")
+
+
+# --- PlayCanvas SOG ---------------------------------------------------------------------------
+
+SOG_TINY = FIXTURES / "tiny-sh.sog.d"
+
+
+def nearest_source(g: Gaussians, src: Gaussians) -> np.ndarray:
+    """For each Gaussian of g, the index of the source Gaussian with the nearest mean (the SOG
+    writer reorders Gaussians along a Morton curve)."""
+    d = np.linalg.norm(g.means[:, None, :].astype(np.float64) - src.means[None], axis=2)
+    return d.argmin(1)
+
+
+@pytest.mark.parametrize(
+    ("name", "member"),
+    [("donut-crop", "donut-crop.sog"), ("tiny-sh", "tiny-sh.sog.d"),
+     ("tiny-sh", "tiny-sh.sog.d/meta.json")],
+)
+def test_sog_fixture_renders_like_its_source(name: str, member: str) -> None:
+    g = load_scene(FIXTURES / member)
+    src = load_scene(FIXTURES / f"{name}.ply")
+    assert len(g) == len(src) and g.sh_degree == src.sh_degree
+    assert psnr_db(g, name) >= MIN_PSNR_DB
+
+
+def test_sog_values_are_the_source_in_its_own_axes() -> None:
+    # SOG declares no axes and splat-transform keeps the .ply's: every Gaussian must sit on its
+    # source (16-bit log-space positions) with no axis negated, one to one.
+    g, src = load_scene(SOG_TINY), load_scene(FIXTURES / "tiny-sh.ply")
+    j = nearest_source(g, src)
+    assert sorted(j) == list(range(len(src)))
+    np.testing.assert_allclose(g.means, src.means[j], atol=1e-5)
+    assert quat_distance(g.quats, src.quats[j]).max() < 1e-4  # 8-bit smallest three
+    # Opacity bytes: these sources sit on k/255 exactly, and a float32 logit round trip lands a
+    # hair either side, which the writer's byte conversion may take one step down.
+    np.testing.assert_allclose(g.opacities, src.opacities[j], atol=1 / 255 + 1e-6)
+    # 64 Gaussians, a 64-entry palette: each SH vector is its own centroid, to codebook steps.
+    np.testing.assert_allclose(g.sh[:, 1:], src.sh[j, 1:], atol=0.02)
+
+
+def test_sog_bad_files_name_file_and_problem(tmp_path: Path) -> None:
+    import shutil
+
+    meta = json.loads((SOG_TINY / "meta.json").read_text())
+
+    def bundle(name: str, doc: dict | str, drop: str = "", garble: str = "") -> Path:
+        folder = tmp_path / name
+        shutil.copytree(SOG_TINY, folder)
+        (folder / "meta.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
+        if drop:
+            (folder / drop).unlink()
+        if garble:
+            (folder / garble).write_bytes(b"RIFF" + bytes(30))
+        return folder
+
+    def fails(path: Path, match: str) -> None:
+        with pytest.raises(SceneFileError, match=match):
+            load_scene(path)
+
+    fails(bundle("json", '{"version": 2, "count": '), r"json: unreadable SOG meta\.json")
+    fails(bundle("v1", {k: v for k, v in meta.items() if k != "version"}),
+          r"v1: unsupported SOG version None \(supported: 2; .*deprecated version 1\)")
+    fails(bundle("v3", meta | {"version": 3}), r"v3: unsupported SOG version 3")
+    fails(bundle("nomeans", {k: v for k, v in meta.items() if k != "means"}),
+          r"nomeans: malformed SOG meta\.json \(bad or missing 'means'\)")
+    fails(bundle("noimg", meta, drop="quats.webp"), r"noimg: SOG bundle has no quats\.webp")
+    fails(bundle("badimg", meta, garble="sh0.webp"), r"badimg: unreadable SOG image sh0\.webp")
+    fails(bundle("many", meta | {"count": 100}), r"many: SOG image means_l\.webp has 64 pixels "
+          r"for 100 Gaussians")
+    book = meta | {"scales": meta["scales"] | {"codebook": [0.0] * 10}}
+    fails(bundle("book", book), r"book: SOG scales\.codebook has 10 entries, expected 256")
+    data = (FIXTURES / "donut-crop.sog").read_bytes()
+    (tmp_path / "cut.sog").write_bytes(data[: len(data) // 2])
+    fails(tmp_path / "cut.sog", r"cut\.sog: unreadable SOG zip bundle")
