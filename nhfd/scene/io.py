@@ -8,6 +8,12 @@ Formats read (`load_scene` picks by content first, extension second):
   position, log-scale and optionally colour), a `vertex` element of four packed uint32 and an
   optional `sh` element of uint8 `f_rest_*`.
 * antimatter15 `.splat`: 32-byte records, no header.
+* Niantic `.spz` versions 2-4 (`nhfd.scene.spz`, which also writes it): RUB axes, converted.
+* PlayCanvas SOG version 2 (`nhfd.scene.sog`): a folder, its `meta.json`, or a `.sog` zip.
+* glTF 2.0 `KHR_gaussian_splatting` `.glb`/`.gltf` (`nhfd.scene.gltf_splat`): +Y up, converted.
+
+Formats that declare axes are converted into the project's OpenCV frame (x right, y down,
+z forward; `nhfd.scene.axes`, whose `declared_up_axis` names the up they imply).
 
 Writers: `save_ply` (INRIA float, the exact inverse of the loader), `save_splat` and
 `save_compressed_ply` (both lossy; see their docstrings for the quantisation).

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from nhfd.scene.axes import declared_up_axis
 from nhfd.scene.cameras import Camera
 from nhfd.scene.gaussians import Gaussians, SceneFileError, make_gaussians
 from nhfd.scene.io import load_scene
@@ -400,3 +401,18 @@ def test_sog_bad_files_name_file_and_problem(tmp_path: Path) -> None:
     data = (FIXTURES / "donut-crop.sog").read_bytes()
     (tmp_path / "cut.sog").write_bytes(data[: len(data) // 2])
     fails(tmp_path / "cut.sog", r"cut\.sog: unreadable SOG zip bundle")
+
+
+# --- declared up axis -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("member", "up"),
+    [("tiny-sh.v2.spz", "-y"), ("tiny-sh.v4.spz", "-y"), ("tiny-sh.glb", "-y"),
+     ("tiny-sh.sog.d", None), ("donut-crop.sog", None), ("tiny-sh.ply", None)],
+)
+def test_declared_up_axis_comes_from_the_format(member: str, up: str | None) -> None:
+    found = declared_up_axis(FIXTURES / member)
+    assert (found[0] if found else None) == up
+    if found:
+        assert found[1].startswith("declared by the format")
