@@ -58,6 +58,15 @@ def read_gltf(path: Path) -> dict[str, np.ndarray]:
     """Activated arrays (means, quats wxyz, scales, opacities, sh) in the project's frame."""
     data = path.read_bytes()
     doc, bin_chunk = _parse_glb(path, data) if data[:4] == GLB_MAGIC else (_json(path, data), None)
+    try:
+        return _read_doc(path, doc, bin_chunk)
+    except SceneFileError:
+        raise
+    except (KeyError, IndexError, TypeError, AttributeError, ValueError) as e:
+        raise SceneFileError(f"{path}: malformed glTF ({type(e).__name__}: {e})") from e
+
+
+def _read_doc(path: Path, doc: dict[str, Any], bin_chunk: bytes | None) -> dict[str, np.ndarray]:
     reader = _Buffers(path, doc, bin_chunk)
     parts = [_primitive(path, doc, reader, p) for p in _splat_primitives(path, doc)]
     k = max(p["sh"].shape[1] for p in parts)
@@ -73,8 +82,9 @@ def _json(path: Path, raw: bytes) -> dict[str, Any]:
         doc = json.loads(raw)
     except (UnicodeDecodeError, json.JSONDecodeError) as e:
         raise SceneFileError(f"{path}: unreadable glTF JSON ({e})") from e
-    if not isinstance(doc, dict) or str(doc.get("asset", {}).get("version", "")) != "2.0":
-        raise SceneFileError(f"{path}: not a glTF 2.0 document (asset.version must be \"2.0\")")
+    asset = doc.get("asset") if isinstance(doc, dict) else None
+    if not isinstance(asset, dict) or not str(asset.get("version", "")).startswith("2."):
+        raise SceneFileError(f"{path}: not a glTF 2.0 document (asset.version must be \"2.x\")")
     return doc
 
 
@@ -107,8 +117,9 @@ def _splat_primitives(path: Path, doc: dict[str, Any]) -> list[dict[str, Any]]:
     unknown = [e for e in doc.get("extensionsRequired", []) if e not in known]
     if unknown:
         raise SceneFileError(f"{path}: glTF requires unsupported extensions: {', '.join(unknown)}")
-    for node in doc.get("nodes", []):
-        if "mesh" in node and any(node.get(k, v) != v for k, v in _IDENTITY.items()):
+    for node in doc.get("nodes", []):  # a transform on a mesh's node or any parent moves it
+        moves = any(node.get(k, v) != v for k, v in _IDENTITY.items())
+        if moves and ("mesh" in node or "children" in node):
             raise SceneFileError(
                 f"{path}: a node transforms its splat mesh; node transforms are not supported"
             )

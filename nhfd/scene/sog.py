@@ -62,7 +62,7 @@ def read_sog(path: Path) -> dict[str, np.ndarray]:
         return _decode(path, files, meta)
     except SceneFileError:
         raise
-    except (KeyError, IndexError, TypeError, ValueError) as e:
+    except (KeyError, IndexError, TypeError, AttributeError, ValueError) as e:
         raise SceneFileError(f"{path}: malformed SOG meta.json (bad or missing {e})") from e
 
 
@@ -121,6 +121,8 @@ def _codebook(path: Path, meta: dict[str, Any], key: str) -> np.ndarray:
 
 def _decode(path: Path, files: _Files, meta: dict[str, Any]) -> dict[str, np.ndarray]:
     n = int(meta["count"])
+    if n < 0:
+        raise SceneFileError(f"{path}: SOG count is {n}; it must be >= 0")
     lo = files.image(meta["means"]["files"][0], n)[:, :3].astype(np.float64)
     hi = files.image(meta["means"]["files"][1], n)[:, :3].astype(np.float64)
     mins, maxs = (np.asarray(meta["means"][k], np.float64).reshape(3) for k in ("mins", "maxs"))

@@ -322,6 +322,8 @@ def test_gltf_bad_files_name_file_and_problem(tmp_path: Path) -> None:
           r"bad\.gltf: unreadable glTF JSON \(Expecting property name")
     fails("old.gltf", b'{"asset": {"version": "1.0"}}',
           r"old\.gltf: not a glTF 2\.0 document")
+    fails("odd.gltf", b'{"asset": {"version": "2.0"}, "meshes": ["x"]}',
+          r"odd\.gltf: malformed glTF \(AttributeError")
     fails("log.glb", one_splat_glb(scale=-2.0),
           r"log\.glb: KHR_gaussian_splatting:SCALE holds negative values")
     doc, blob = split_glb(good)
