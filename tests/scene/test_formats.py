@@ -31,6 +31,7 @@ MIN_PSNR_DB = 40.0
 # (source .ply, an up axis for the test camera): donut is a z-up Blender scene, tiny-sh (SH
 # degree 3) a COLMAP one.
 SOURCES = {"donut-crop": "+z", "tiny-sh": "-y"}
+COVERED_ALPHA = 0.01  # a pixel counts as covered above this render alpha
 
 
 @functools.cache
@@ -41,9 +42,6 @@ def source_view(name: str) -> tuple[Camera, np.ndarray, np.ndarray]:
     cam = suggest_camera(g, 96, 72, SOURCES[name])
     out = render(g, cam)
     return cam, np.clip(out.rgb, 0.0, 1.0), out.alpha > COVERED_ALPHA
-
-
-COVERED_ALPHA = 0.01
 
 
 def psnr_db(g: Gaussians, name: str) -> float:
