@@ -8,6 +8,12 @@ Formats read (`load_scene` picks by content first, extension second):
   position, log-scale and optionally colour), a `vertex` element of four packed uint32 and an
   optional `sh` element of uint8 `f_rest_*`.
 * antimatter15 `.splat`: 32-byte records, no header.
+* Niantic `.spz` versions 2-4 (`nhfd.scene.spz`, which also writes it): RUB axes, converted.
+* PlayCanvas SOG version 2 (`nhfd.scene.sog`): a folder, its `meta.json`, or a `.sog` zip.
+* glTF 2.0 `KHR_gaussian_splatting` `.glb`/`.gltf` (`nhfd.scene.gltf_splat`): +Y up, converted.
+
+Formats that declare axes are converted into the project's OpenCV frame (x right, y down,
+z forward; `nhfd.scene.axes`, whose `declared_up_axis` names the up they imply).
 
 Writers: `save_ply` (INRIA float, the exact inverse of the loader), `save_splat` and
 `save_compressed_ply` (both lossy; see their docstrings for the quantisation).
@@ -29,6 +35,7 @@ from typing import Any
 import numpy as np
 import plyfile
 
+from nhfd.scene import gltf_splat, sog, spz
 from nhfd.scene.gaussians import (
     SH_C0,
     SH_DEGREE_FOR_K,
@@ -185,21 +192,27 @@ Arrays = dict[str, np.ndarray]
 
 
 def _read_arrays(path: Path) -> Arrays:
+    if path.is_dir() or path.name.lower() == "meta.json":  # a SOG folder
+        return sog.read_sog(path)
     with path.open("rb") as f:
         magic = f.read(4)
     if magic[:3] == b"ply":
         return _load_ply(path)
-    if magic[:2] == b"\x1f\x8b":
-        raise SceneFileError(
-            f"{path}: gzip data (probably a Niantic .spz scene), which is not supported yet; "
-            "convert it to .ply first"
-        )
+    if magic[:2] == b"\x1f\x8b" or magic == spz.SPZ_MAGIC:  # .spz v2/v3 gzip, v4 NGSP
+        return spz.read_spz(path)
+    if magic == gltf_splat.GLB_MAGIC or path.suffix.lower() == ".gltf":
+        return gltf_splat.read_gltf(path)
+    if magic == sog.ZIP_MAGIC or path.suffix.lower() == ".sog":  # a SOG zip bundle
+        return sog.read_sog(path)
     if path.suffix.lower() == ".splat":
         return _load_splat(path)
     if path.suffix.lower() == ".ply":
         raise SceneFileError(f"{path}: not a PLY file (does not start with 'ply')")
+    if path.suffix.lower() in (".spz", ".glb"):
+        expected = {".spz": "gzip data or 'NGSP'", ".glb": "'glTF'"}[path.suffix.lower()]
+        raise SceneFileError(f"{path}: not a {path.suffix} file (does not start with {expected})")
     raise SceneFileError(
-        f"{path}: unknown scene format (expected a .ply starting with 'ply' or a .splat file)"
+        f"{path}: unknown scene format (expected .ply, .splat, .spz, .glb, .gltf or SOG)"
     )
 
 
