@@ -173,7 +173,9 @@ class Loaded:
 
 
 FORMAT_NAMES = {"ply": "INRIA float .ply", "compressed": "PlayCanvas compressed .ply",
-                "splat": "antimatter15 .splat", None: "unknown format"}
+                "splat": "antimatter15 .splat", "spz": "Niantic .spz",
+                "gltf": "glTF KHR_gaussian_splatting", "sog": "PlayCanvas SOG",
+                None: "unknown format"}
 
 
 def _load(file: str, up: str | None) -> Loaded:

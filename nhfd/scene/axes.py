@@ -10,11 +10,9 @@ Negating axes is its own inverse, so the same `flip_axes` converts both ways.
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-__all__ = ["RDF", "RUB", "declared_up_axis", "flip_axes", "signs_from_letters"]
+__all__ = ["RDF", "RUB", "flip_axes", "signs_from_letters"]
 
 RDF = (1.0, 1.0, 1.0)
 RUB = (1.0, -1.0, -1.0)
@@ -60,23 +58,3 @@ def flip_axes(arrays: dict[str, np.ndarray], signs: tuple[float, float, float]) 
         arrays["sh"] = arrays["sh"] * np.concatenate([[1.0], sh_sign])[None, :, None]
 
 
-def declared_up_axis(path: str | Path) -> tuple[str, str] | None:
-    """The up axis a scene file's format declares, in the project's frame after `load_scene`'s
-    conversion, with a one-line reason; None when the format declares none (.ply, .splat, SOG).
-
-    .spz (RUB, or any axis-negating frame its coordinate-system extension names) and glTF (+Y
-    up) both put their up axis on -y once converted, whatever the file's content looks like.
-    """
-    path = Path(path)
-    if path.is_dir():
-        return None
-    try:
-        with path.open("rb") as f:
-            magic = f.read(4)
-    except OSError:
-        return None
-    if magic[:2] == b"\x1f\x8b" or magic == b"NGSP":
-        return "-y", "declared by the format: .spz stores y-up (RUB) axes, converted to OpenCV"
-    if magic == b"glTF" or path.suffix.lower() == ".gltf":
-        return "-y", "declared by the format: glTF is +Y up (LUF axes), converted to OpenCV"
-    return None

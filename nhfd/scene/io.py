@@ -13,7 +13,7 @@ Formats read (`load_scene` picks by content first, extension second):
 * glTF 2.0 `KHR_gaussian_splatting` `.glb`/`.gltf` (`nhfd.scene.gltf_splat`): +Y up, converted.
 
 Formats that declare axes are converted into the project's OpenCV frame (x right, y down,
-z forward; `nhfd.scene.axes`, whose `declared_up_axis` names the up they imply).
+z forward; `nhfd.scene.axes`; `nhfd.scene.suggest.detect_up_axis` names the up they imply).
 
 Writers: `save_ply` (INRIA float, the exact inverse of the loader), `save_splat` and
 `save_compressed_ply` (both lossy; see their docstrings for the quantisation).

@@ -56,13 +56,20 @@ _FORMAT_REASON = {
     "compressed": "PlayCanvas compressed .ply files conventionally keep COLMAP/OpenCV axes "
     "(y down)",
     "splat": ".splat files conventionally keep COLMAP/OpenCV axes (y down)",
+    # Declared, not conventional: the loader converts these frames into OpenCV's.
+    "spz": "declared by the format: .spz stores y-up (RUB) axes, converted to OpenCV",
+    "gltf": "declared by the format: glTF is +Y up (LUF axes), converted to OpenCV",
 }
+HINTS = (None, "compressed", "splat", "ply", "spz", "gltf", "sog")
 
 
 def format_hint(path: str | Path) -> str | None:
-    """'compressed', 'ply' or 'splat' from the file's header (as `load_scene` tells them
-    apart), or None if it is none of these or unreadable (the loader will say why)."""
+    """One of `HINTS` from the file's header (as `load_scene` tells them apart), or None if it
+    is none of these or unreadable (the loader will say why). SOG is told by its name (a `.sog`
+    bundle, its `meta.json`, or a folder holding one)."""
     path = Path(path)
+    if path.suffix.lower() == ".sog" or path.name == "meta.json" or (path / "meta.json").is_file():
+        return "sog"
     try:
         with path.open("rb") as f:
             head = f.read(4096)
@@ -71,6 +78,10 @@ def format_hint(path: str | Path) -> str | None:
     if head.startswith(b"ply"):
         header = head.split(b"end_header", 1)[0]
         return "compressed" if b"element chunk" in header else "ply"
+    if head[:2] == b"\x1f\x8b" or head[:4] == b"NGSP":  # gzip stream (v2, v3) or v4 header
+        return "spz"
+    if head[:4] == b"glTF" or path.suffix.lower() == ".gltf":
+        return "gltf"
     if path.suffix.lower() == ".splat":
         return "splat"
     return None
@@ -90,12 +101,15 @@ def robust_frame(g: Gaussians) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 def detect_up_axis(g: Gaussians, hint: str | None = None) -> tuple[str, str]:
     """A guess at the scene's up axis, one of `cameras.AXES`, and a one-line reason.
 
-    `hint` is the file format ('compressed', 'splat', 'ply' or None; see `format_hint`). This is
-    a heuristic (see the module docstring): it is right for the shared scenes and for the common
-    conventions, and wrong for a scene that was re-oriented by hand; pass `--up` then.
+    `hint` is the file format (one of `HINTS`; see `format_hint`). Formats that declare their
+    axes (.spz, glTF) decide; otherwise this is a heuristic (see the module docstring): it is
+    right for the shared scenes and for the common conventions, and wrong for a scene that was
+    re-oriented by hand; pass `--up` then.
     """
-    if hint not in (None, "compressed", "splat", "ply"):
-        raise ValueError(f"format hint must be 'compressed', 'splat', 'ply' or None, got {hint!r}")
+    if hint not in HINTS:
+        raise ValueError(f"format hint must be one of {HINTS}, got {hint!r}")
+    if hint in ("spz", "gltf"):
+        return "-y", _FORMAT_REASON[hint]
     if hint in _FORMAT_REASON:
         return "-y", f"format convention: {_FORMAT_REASON[hint]}"
     shape = _up_from_shape(g)

@@ -99,7 +99,7 @@ def test_tiny_and_empty_scenes_use_the_convention_and_bad_hints_are_refused():
     assert detect_up_axis(scene_from_means(np.zeros((1, 3))))[0] == "-y"
     assert detect_up_axis(Gaussians.empty())[0] == "-y"
     with pytest.raises(ValueError, match="format hint"):
-        detect_up_axis(Gaussians.empty(), "spz")
+        detect_up_axis(Gaussians.empty(), "obj")
 
 
 def test_format_hint_reads_the_header_not_the_name(tmp_path):
