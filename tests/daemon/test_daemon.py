@@ -345,22 +345,3 @@ def test_systemd_notify_socket_mode_and_lock(short_dir, mecom_twin):
             seen.append(notify.recv(4096).decode())
     assert any("STOPPING=1" in m for m in seen)
     notify.close()
-
-
-def test_the_loop_wakes_every_few_ms_while_a_frame_is_computed(running):
-    """The worker's pipe is not one of the server's sockets: while a frame is in flight the
-    loop must not sleep a whole tick, or a finished frame waits up to 50 ms for the SLM."""
-    from nhfd.daemon.service import FRAME_POLL_S
-
-    d = running.daemon
-    tick = d.config.daemon.tick_s
-    assert FRAME_POLL_S <= 0.005 < tick
-    timeouts: list[float] = []
-    real_step = d.step
-    d.step = lambda timeout_s: (timeouts.append(timeout_s), real_step(timeout_s))[1]
-    wait_until(lambda: tick in timeouts, 5, "an idle tick")
-    d.frames.inflight = (10**9, time.perf_counter())  # a frame that is never finished
-    wait_until(lambda: timeouts.count(FRAME_POLL_S) >= 20, 5, "fast polls")
-    d.frames.inflight = None
-    n = len(timeouts)
-    wait_until(lambda: tick in timeouts[n:], 5, "idle ticks again")
