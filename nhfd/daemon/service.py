@@ -29,6 +29,7 @@ import os
 import queue
 import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -64,6 +65,8 @@ from .views import ViewSlot
 from .worker import FrameLink, apply_camera_roi
 
 log = logging.getLogger("nhfd.daemon")
+
+SIGNAL_WAKE = ("signal",)  # the selector's tag of the signal wake-up socket
 
 
 class AlreadyRunning(RuntimeError):
@@ -139,6 +142,7 @@ class Daemon:
         self._next_beat_s = 0.0  # monotonic time the next heartbeat is due (0: at once)
         self._watched_conn: Any = None  # the frame worker's pipe in the loop's selector
         self._watched_fd: int | None = None
+        self._signal_wake: tuple[socket.socket, socket.socket] | None = None
 
     # -- start ---------------------------------------------------------------------------------
 
@@ -198,6 +202,7 @@ class Daemon:
         if self.handle_signals:
             signal.signal(signal.SIGTERM, self._on_signal)
             signal.signal(signal.SIGINT, self._on_signal)
+            self._wake_on_signals()
         self.state = "ready"
         devices = ", ".join(k for k, v in self.bench.status().items() if v["open"])
         log.info("ready: lasers off (read back); devices: %s; socket %s", devices or "none",
@@ -239,6 +244,21 @@ class Daemon:
             f.write(token + "\n")
         return token
 
+    def _wake_on_signals(self) -> None:
+        """A signal wakes the loop's select at once: Python retries a select interrupted by a
+        signal (PEP 475), so without this SIGTERM would wait for the next heartbeat."""
+        assert self.server is not None
+        self._signal_wake = socket.socketpair()
+        for sock in self._signal_wake:
+            sock.setblocking(False)
+        signal.set_wakeup_fd(self._signal_wake[1].fileno(), warn_on_full_buffer=False)
+        self.server.watch(self._signal_wake[0].fileno(), SIGNAL_WAKE)
+
+    def _drain_signal_wake(self) -> None:
+        if self._signal_wake is not None:
+            with contextlib.suppress(OSError):
+                self._signal_wake[0].recv(4096)
+
     def _on_signal(self, signum: int, frame: Any) -> None:
         self.request_shutdown(f"signal {signal.Signals(signum).name}")
 
@@ -269,7 +289,8 @@ class Daemon:
 
     def step(self, timeout_s: float) -> None:
         assert self.server is not None
-        self.server.poll(timeout_s)
+        if SIGNAL_WAKE in self.server.poll(timeout_s):
+            self._drain_signal_wake()
         self._device_faults()
         now = time.monotonic()
         self.navigation.step(now)  # navigator motion -> the same latest-wins view slot
@@ -380,6 +401,14 @@ class Daemon:
         self.bench.close()
         if self.server is not None:
             self.server.close()  # removes the socket
+        if self._signal_wake is not None:
+            with contextlib.suppress(ValueError):  # only the main thread may reset it
+                signal.set_wakeup_fd(-1)
+            if self.server is not None:
+                self.server.unwatch(self._signal_wake[0].fileno())
+            for sock in self._signal_wake:
+                sock.close()
+            self._signal_wake = None
         self.audit.write({"who": "daemon", "pid": os.getpid()}, "stop",
                          reason=self._shutdown_reason or "start failed or loop error",
                          lasers=how)

@@ -5,7 +5,10 @@ at once. Facts about the schedule, not CPU figures (those are `nhfd bench load`'
 from __future__ import annotations
 
 import multiprocessing as mp
+import os
+import signal
 import socket
+import threading
 import time
 from types import SimpleNamespace
 
@@ -107,3 +110,26 @@ def test_the_frame_workers_pipe_wakes_the_loop_and_leaves_the_selector_when_not_
     there.close()
     frames.state, frames.worker.process = "idle", None
     here.close()
+
+
+def test_a_signal_wakes_the_sleeping_loop(short_dir, mecom_twin):
+    """Python retries a select a signal interrupted: without the wake-up socket, SIGTERM would
+    wait for the next heartbeat (or a whole tick before)."""
+    d = Daemon(bench_config(short_dir, mecom_twin), base_dir=short_dir, env={},
+               handle_signals=True)  # this test runs in the main thread, as `nhfd serve` does
+    old = signal.getsignal(signal.SIGTERM), signal.getsignal(signal.SIGINT)
+    try:
+        d.start()
+        d.step(0.0)
+        killer = threading.Timer(0.2, os.kill, (os.getpid(), signal.SIGTERM))
+        killer.start()
+        t0 = time.monotonic()
+        d.step(20.0)
+        assert time.monotonic() - t0 < 10  # not the 20 s it would sleep
+        assert d.stopping and d._shutdown_reason == "signal SIGTERM"
+        killer.join()
+    finally:
+        d.close()
+        signal.signal(signal.SIGTERM, old[0])
+        signal.signal(signal.SIGINT, old[1])
+    assert signal.set_wakeup_fd(-1) == -1  # close() gave the wake-up fd back
