@@ -298,6 +298,7 @@ def run(args: argparse.Namespace) -> int:
         from nhfd.models.export import OnnxModel
 
         envelope = OnnxModel(model).metadata.get("pose_envelope") or {}
+    load_start = [round(x, 2) for x in os.getloadavg()]  # the machine is shared: say how much
     idle_rows = idle(args.idle) if args.idle > 0 else []
     root = Path(tempfile.mkdtemp(prefix="nhfd-load-", dir="/tmp"))
     cfg = root / "nhfd.toml"
@@ -334,7 +335,8 @@ def run(args: argparse.Namespace) -> int:
             proc.terminate()
             proc.wait(30)
     out = {"nhfd_version": __version__, "machine": describe(), "model": str(model or ""),
-           "load_average": [round(x, 2) for x in os.getloadavg()], "idle": idle_rows,
+           "load_average_start": load_start,
+           "load_average_end": [round(x, 2) for x in os.getloadavg()], "idle": idle_rows,
            "pid_daemon": proc.pid, **result}
     text = json.dumps(out, indent=1)
     if args.print_json:
