@@ -266,9 +266,9 @@ class DaemonSettings(_Section):
     max_line_bytes: Annotated[int, Field(ge=1024, le=16_777_216)] = 65536
     max_clients: Annotated[int, Field(ge=1, le=4096)] = 64
     max_batch: Annotated[int, Field(ge=0, le=1024)] = 32
-    # Control loop period (s): it sends the laser guardian's heartbeat, so it must stay well
-    # below devices.readybeam.guardian.heartbeat_timeout_s.
-    tick_s: Annotated[float, Field(ge=0.005, le=0.25)] = 0.05
+    # Heartbeat period (s): the control loop sends the laser guardian's heartbeat this often and
+    # sleeps otherwise until an event; at most a quarter of the guardian's heartbeat timeout.
+    tick_s: Annotated[float, Field(ge=0.005, le=0.25)] = 0.1
     # "auto": use a running laser guardian, else start one; "spawn": always start one; "connect":
     # only use a running one (e.g. a separate service).
     guardian: Literal["auto", "spawn", "connect"] = "auto"

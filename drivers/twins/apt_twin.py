@@ -27,7 +27,7 @@ from dataclasses import dataclass
 
 from .. import apt
 from .clock import Clock, real_clock
-from .pty import PtyPeer
+from .pty import TICK_S, PtyPeer
 
 FAULT_KINDS = ("no_reply", "garbage", "error", "vanish", "short_reply", "motion_error")
 
@@ -258,6 +258,15 @@ class AptTwin(PtyPeer):
                 self.homed = False
             return self._reply(M.MOT_MOVE_STOPPED, self._status().encode())
         return b""
+
+    def tick_period_s(self) -> float | None:
+        """Every few ms while moving, or on a clock a test advances (the thread cannot see it
+        move); otherwise until the next status update, or only bytes when none are due."""
+        if self._motion is not None or self.clock is not real_clock:
+            return TICK_S
+        if self.updates_on and self.unacked < self.unacked_updates_max:
+            return max(TICK_S, self._last_update + self.update_period_s - self.clock())
+        return None
 
     def tick(self) -> None:
         now = self.clock()

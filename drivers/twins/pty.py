@@ -5,6 +5,10 @@ descriptor open so the pair survives the driver closing and reopening. `vanish()
 ends, which is what an unplugged USB adapter looks like to the driver (reads hit end-of-file,
 writes fail with EIO, the path disappears); `replug()` makes a new pair under a new path, and
 `opener()` always opens the current one.
+
+The serving thread sleeps in `select` until the driver writes, a lifecycle call wakes it (a pipe
+of its own), or the peer's next timed event (`tick_period_s`): a twin with nothing timed costs no
+CPU while it waits, where a fixed 2 ms poll cost about 1 % of a core per twin in an idle daemon.
 """
 
 from __future__ import annotations
@@ -22,7 +26,8 @@ from ..errors import PortNotFound
 from ..transport import Opener, pty_opener
 from .clock import Clock, real_clock
 
-_TICK_S = 0.002
+# How often a peer with timed state (motion, a test's manual clock) ticks.
+TICK_S = 0.002
 
 
 class PtyPeer(ABC):
@@ -34,21 +39,38 @@ class PtyPeer(ABC):
         self._path: str | None = None
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._wake_r: int | None = None
+        self._wake_w: int | None = None
 
     # -- lifecycle -----------------------------------------------------------------------------
 
     def start(self) -> PtyPeer:
         self._open_pair()
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
         self._thread = threading.Thread(target=self._serve, name=type(self).__name__, daemon=True)
         self._thread.start()
         return self
 
     def close(self) -> None:
         self._stop.set()
+        self.wake()
         if self._thread is not None:
             self._thread.join(timeout=2.0)
         with self.lock:
             self._close_pair()
+        for fd in (self._wake_r, self._wake_w):
+            if fd is not None:
+                with contextlib.suppress(OSError):
+                    os.close(fd)
+        self._wake_r = self._wake_w = None
+
+    def wake(self) -> None:
+        """Wake the serving thread now (a change it must see before its next timed event)."""
+        if self._wake_w is not None:
+            with contextlib.suppress(OSError):  # full: it is awake already
+                os.write(self._wake_w, b"\0")
 
     def __enter__(self) -> PtyPeer:
         return self.start()
@@ -77,13 +99,16 @@ class PtyPeer(ABC):
         """The port disappears (USB cable pulled)."""
         with self.lock:
             self._close_pair()
+        self.wake()  # a descriptor closed under select() does not wake it
 
     def replug(self) -> str:
         """The port comes back (under a new path, as a re-enumerated USB device may)."""
         with self.lock:
             if self._master is None:
                 self._open_pair()
-            return self.port_path
+            path = self.port_path
+        self.wake()
+        return path
 
     def wait_for(self, condition: Callable[[], bool], timeout_s: float = 2.0) -> None:
         """Until condition() holds (checked under the lock); TimeoutError after timeout_s.
@@ -95,7 +120,7 @@ class PtyPeer(ABC):
                     return
             if time.monotonic() > deadline:
                 raise TimeoutError(f"{type(self).__name__}: condition not met in {timeout_s} s")
-            time.sleep(_TICK_S)
+            time.sleep(TICK_S)
 
     @property
     def present(self) -> bool:
@@ -128,7 +153,9 @@ class PtyPeer(ABC):
 
     def _serve(self) -> None:
         while not self._stop.is_set():
-            self._wait_readable(self._master)
+            with self.lock:
+                period = self.tick_period_s()
+            self._wait_readable(self._master, period, wake=True)
             data = b""
             with self.lock:
                 # Read only under the lock, which vanish() closes the pair under: this never
@@ -143,15 +170,28 @@ class PtyPeer(ABC):
                     self.on_bytes(data)
                 self.tick()
 
-    def _wait_readable(self, fd: int | None, timeout_s: float = _TICK_S) -> bool:
-        if fd is None:
-            self._stop.wait(timeout_s)
-            return False
+    def _wait_readable(self, fd: int | None, timeout_s: float | None = TICK_S,
+                       wake: bool = False) -> bool:
+        """Whether fd is readable within timeout_s (None: no limit); with `wake`, `wake()`
+        ends the wait early."""
+        fds = [f for f in (fd, self._wake_r if wake else None) if f is not None]
         try:
-            return bool(select.select([fd], [], [], timeout_s)[0])
+            ready = select.select(fds, [], [], timeout_s)[0] if fds else []
         except (OSError, ValueError):  # closed under us (vanish)
-            self._stop.wait(timeout_s)
+            ready = None
+        if ready is None or not fds:
+            self._stop.wait(TICK_S if timeout_s is None else timeout_s)
             return False
+        if self._wake_r is not None and self._wake_r in ready:
+            with contextlib.suppress(OSError):
+                os.read(self._wake_r, 4096)
+        return fd is not None and fd in ready
+
+    def tick_period_s(self) -> float | None:
+        """How long the peer may wait for bytes before its next `tick` (None: nothing timed;
+        bytes or `wake()` only). Called with `self.lock` held. A peer that overrides `tick`
+        ticks every few ms unless it says otherwise."""
+        return None if type(self).tick is PtyPeer.tick else TICK_S
 
     @abstractmethod
     def on_bytes(self, data: bytes) -> None:

@@ -1,4 +1,13 @@
-"""`nhfd bench load`: `status` latency and resident memory under the 8-client `set_view` storm.
+"""`nhfd bench load`: idle CPU, then `status` latency and resident memory under the 8-client
+`set_view` storm.
+
+Idle first (`--idle` seconds each, 0 skips it): `nhfd serve` with nothing loaded (no model, no
+scene, so no frame worker), once with the default simulated devices (every twin inside the daemon)
+and once with the lasers on a twin this process hosts (`devices.laser = "readybeam"` on its pty,
+no stage or camera: device peers outside the daemon, as on a real bench). The daemon's and the
+laser guardian's CPU time is read from /proc/<pid>/stat over the window, with no client
+connected. The storm's daemon (model and scene loaded) is measured the same way before its
+storm starts, frame worker included.
 
 Starts a real `nhfd serve` process on the simulated bench (the shipped model and the donut scene
 by default, so the frame worker renders while the storm runs), then for `--duration` seconds:
@@ -17,6 +26,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import os
 import random
 import subprocess
 import sys
@@ -41,6 +51,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     # read before that would count filling caches as growth.
     p.add_argument("--warmup", type=float, default=20.0, help="storm before memory is read (s)")
     p.add_argument("--status-every", type=float, default=0.02, help="status period (s)")
+    p.add_argument("--idle", type=float, default=20.0,
+                   help="idle CPU window per configuration (s; 0 = no idle phase)")
     p.add_argument("--json", default="out/bench/load.json", help="JSON results file")
     p.add_argument("--print-json", action="store_true", help="print the JSON to stdout only")
     p.set_defaults(handler=run)
@@ -59,12 +71,50 @@ def rss_mb(pid: int | None) -> float | None:
     return None
 
 
-def _config_text(root: Path, model: Path | None, scene: Path | None) -> str:
+def cpu_s(pid: int | None) -> float | None:
+    """User plus system CPU time of a process, all its threads (s), from /proc; None when it
+    is gone."""
+    if pid is None:
+        return None
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def cpu_percent(pids: dict[str, int | None], window_s: float) -> dict[str, float | None]:
+    """% of one core each process used over the next window_s (None: no such process)."""
+    before = {name: cpu_s(pid) for name, pid in pids.items()}
+    t0 = time.monotonic()
+    time.sleep(window_s)
+    elapsed = time.monotonic() - t0
+    after = {name: cpu_s(pid) for name, pid in pids.items()}
+    out: dict[str, float | None] = {}
+    for name in pids:
+        a, b = before[name], after[name]
+        out[name] = None if a is None or b is None else round(100 * (b - a) / elapsed, 3)
+    return out
+
+
+# The devices of the idle phases (nothing loaded); {laser_port} is the laser twin's pty.
+IDLE_DEVICES = {
+    "default simulated devices": [],
+    "lasers on an outside peer": ['laser = "readybeam"', 'stage = "none"', 'camera = "none"',
+                                  'slm = "simulated"', 'navigator = "none"'],
+}
+
+
+def _config_text(root: Path, model: Path | None, scene: Path | None,
+                 devices: list[str] | None = None, laser_port: str = "") -> str:
     dirs = {"scene_dirs": [str(scene.parent)] if scene else [str(root)],
             "model_dirs": [str(model.parent)] if model else [str(root)]}
+    if devices is None:
+        devices = ['slm = "simulated"', 'laser = "simulated"', 'stage = "simulated"',
+                   'camera = "none"', 'navigator = "none"']
     lines = [
-        "[devices]", 'slm = "simulated"', 'laser = "simulated"', 'stage = "simulated"',
-        'camera = "none"', 'navigator = "none"',
+        "[devices]", *devices,
+        "[devices.readybeam]", f'port = "{laser_port}"',
         "[devices.readybeam.guardian]", f'socket_path = "{root / "laser.sock"}"',
         "[daemon]", f'runtime_dir = "{root / "run"}"', 'guardian = "spawn"',
         f'audit_log = "{root / "audit.jsonl"}"', f'snapshot_dir = "{root / "snaps"}"',
@@ -95,6 +145,60 @@ def _wait_ready(client_cls: Any, sock: Path, proc: subprocess.Popen[bytes], want
             client = None
         time.sleep(0.2)
     raise TimeoutError("the daemon did not get ready (model and scene loaded) in time")
+
+
+def _serve(cfg: Path) -> subprocess.Popen[bytes]:
+    return subprocess.Popen([sys.executable, "-m", "nhfd.cli.main", "serve", "--config",
+                             str(cfg)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+
+
+def _stop(proc: subprocess.Popen[bytes], client: Any) -> None:
+    with contextlib.suppress(Exception):
+        client.call("shutdown")
+        client.close()
+    with contextlib.suppress(subprocess.TimeoutExpired):
+        proc.wait(30)
+    if proc.poll() is None:
+        proc.terminate()
+        proc.wait(30)
+
+
+def idle_pids(status: dict[str, Any], daemon_pid: int) -> dict[str, int | None]:
+    return {"daemon": daemon_pid, "guardian": status["laser"]["guardian"]["spawned_pid"],
+            "frame worker": status["frames"]["pid"] if status["frames"]["alive"] else None}
+
+
+def idle(window_s: float, settle_s: float = 2.0) -> list[dict[str, Any]]:
+    """Each IDLE_DEVICES configuration with nothing loaded: % of a core per process."""
+    from nhfd.daemon.client import Client
+    from nhfd.drivers.twins.mecom_twin import MecomTwin
+
+    rows = []
+    for name, devices in IDLE_DEVICES.items():
+        root = Path(tempfile.mkdtemp(prefix="nhfd-idle-", dir="/tmp"))
+        twin = MecomTwin().start() if devices else None
+        cfg = root / "nhfd.toml"
+        cfg.write_text(_config_text(root, None, None, devices,
+                                    twin.port_path if twin else ""))
+        proc = _serve(cfg)
+        try:
+            client = _wait_ready(Client, root / "run" / "control.sock", proc, False)
+            st = client.status()
+            client.close()  # no client while it idles
+            time.sleep(settle_s)  # the end of start-up is not idle
+            pids = idle_pids(st, proc.pid)
+            cpu = cpu_percent(pids, window_s)
+            opened = sorted(k for k, v in st["devices"].items() if v["open"])
+            rows.append({"configuration": name, "loaded": "nothing", "window_s": window_s,
+                         "devices_open": opened, "cpu_pct_of_core": cpu})
+            _stop(proc, Client(root / "run" / "control.sock", timeout_s=30))
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(30)
+            if twin is not None:
+                twin.close()
+    return rows
 
 
 def storm(sock: Path, args: argparse.Namespace, envelope: dict[str, Any], pid: int,
@@ -194,15 +298,23 @@ def run(args: argparse.Namespace) -> int:
         from nhfd.models.export import OnnxModel
 
         envelope = OnnxModel(model).metadata.get("pose_envelope") or {}
+    load_start = [round(x, 2) for x in os.getloadavg()]  # the machine is shared: say how much
+    idle_rows = idle(args.idle) if args.idle > 0 else []
     root = Path(tempfile.mkdtemp(prefix="nhfd-load-", dir="/tmp"))
     cfg = root / "nhfd.toml"
     cfg.write_text(_config_text(root, model, scene))
-    proc = subprocess.Popen([sys.executable, "-m", "nhfd.cli.main", "serve", "--config",
-                             str(cfg)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = _serve(cfg)
     try:
         sock = root / "run" / "control.sock"
         client = _wait_ready(Client, sock, proc, model is not None)
-        worker_pid = client.status()["frames"]["pid"] if model is not None else None
+        st = client.status()
+        worker_pid = st["frames"]["pid"] if model is not None else None
+        if args.idle > 0 and model is not None:
+            time.sleep(2.0)  # the end of start-up is not idle
+            idle_rows.append({"configuration": "the storm's bench", "loaded": "model and scene",
+                              "window_s": args.idle,
+                              "cpu_pct_of_core": cpu_percent(idle_pids(st, proc.pid),
+                                                             args.idle)})
         result = storm(sock, args, envelope, proc.pid, worker_pid)
         # The daemon must end on the newest request (latest wins) and still answer.
         end = time.monotonic() + 60
@@ -223,11 +335,18 @@ def run(args: argparse.Namespace) -> int:
             proc.terminate()
             proc.wait(30)
     out = {"nhfd_version": __version__, "machine": describe(), "model": str(model or ""),
+           "load_average_start": load_start,
+           "load_average_end": [round(x, 2) for x in os.getloadavg()], "idle": idle_rows,
            "pid_daemon": proc.pid, **result}
     text = json.dumps(out, indent=1)
     if args.print_json:
         print(text)
         return 0 if result["ended_on_last_view"] and not result["failures"] else 1
+    for row in idle_rows:
+        cpu = ", ".join(f"{k} {v:.2f} %" for k, v in row["cpu_pct_of_core"].items()
+                        if v is not None)
+        print(f"idle, {row['loaded']} loaded, {row['configuration']} ({row['window_s']:g} s): "
+              f"{cpu} of a core")
     s, m = result["status_ms"], result["rss_mb"]
     print(f"{args.clients} clients x set_view for {result['duration_s']} s: "
           f"{result['set_view_requests']} requests ({result['set_view_per_s']}/s), "

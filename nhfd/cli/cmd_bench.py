@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 import importlib
 
-BENCHES: tuple[str, ...] = ("optics", "render", "holo", "tradeoff", "pipeline", "load")
+BENCHES: tuple[str, ...] = ("optics", "render", "holo", "tradeoff", "pipeline", "load",
+                            "safety")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -87,6 +87,11 @@ class NavigatorInput:
                 log.warning("navigator close: %s", exc)
             self.navigator = None
 
+    @property
+    def next_read_s(self) -> float:
+        """Monotonic time of the next read (the control loop sleeps no longer than this)."""
+        return self._next_s
+
     def step(self, now: float) -> None:
         """From the control loop, every tick; reads at most every navigator_period_s."""
         if self.navigator is None or now < self._next_s:

@@ -149,6 +149,16 @@ class LineServer:
                 self._handle_lines(conn)
         return others
 
+    def watch(self, fd: int, data: Any) -> None:
+        """Wake `poll` when another file (the frame worker's pipe) is readable; `poll` returns
+        `data` for it. The caller drains it, or unwatches it first."""
+        self.selector.register(fd, selectors.EVENT_READ, data)
+
+    def unwatch(self, fd: int) -> None:
+        """Stop watching fd (safe after it was closed: epoll dropped it then)."""
+        with contextlib.suppress(KeyError, ValueError):
+            self.selector.unregister(fd)
+
     def flush_all(self) -> None:
         for conn in list(self.connections.values()):
             self._flush(conn)

@@ -5,8 +5,11 @@ laser guardian (connect or start) -> every laser off *and read back* -> SLM (sho
 zero-amplitude pattern), stage (identified, never moved), camera -> sockets -> READY=1.
 
 The loop (main thread): serve requests, heartbeat to the guardian, feed systemd's watchdog,
-write audit summaries. Every tick; so a stuck loop stops both the heartbeat (the guardian switches
-the lasers off) and the watchdog (systemd restarts the unit; its stop hook runs `nhfd laser-off`).
+write audit summaries. It sleeps in `select` until the next thing due (`wait_s`): the heartbeat
+every `daemon.tick_s`, or the navigator's next read; a request or the frame worker's pipe wakes it
+at once. So an idle daemon wakes only for its heartbeats, and a stuck loop stops both the
+heartbeat (the guardian switches the lasers off) and the watchdog (systemd restarts the unit; its
+stop hook runs `nhfd laser-off`).
 
 Exit paths and the lasers:
   shutdown / SIGTERM / SIGINT / an exception in the loop -> `close()`: lasers off via the
@@ -26,6 +29,7 @@ import os
 import queue
 import secrets
 import signal
+import socket
 import sys
 import threading
 import time
@@ -63,10 +67,7 @@ from .worker import FrameLink, apply_camera_roi
 
 log = logging.getLogger("nhfd.daemon")
 
-# While a frame is being computed the loop wakes this often to collect it: the worker's pipe is
-# not one of the server's sockets, so without it a finished frame could wait a whole tick
-# (`daemon.tick_s`, 50 ms) before it reaches the SLM.
-FRAME_POLL_S = 0.002
+SIGNAL_WAKE = ("signal",)  # the selector's tag of the signal wake-up socket
 
 
 class AlreadyRunning(RuntimeError):
@@ -142,6 +143,10 @@ class Daemon:
         self._shutdown_reason = ""
         self._snapshots = 0
         self._closed = False
+        self._next_beat_s = 0.0  # monotonic time the next heartbeat is due (0: at once)
+        self._watched_conn: Any = None  # the frame worker's pipe in the loop's selector
+        self._watched_fd: int | None = None
+        self._signal_wake: tuple[socket.socket, socket.socket] | None = None
 
     # -- start ---------------------------------------------------------------------------------
 
@@ -200,6 +205,7 @@ class Daemon:
         if self.handle_signals:
             signal.signal(signal.SIGTERM, self._on_signal)
             signal.signal(signal.SIGINT, self._on_signal)
+            self._wake_on_signals()
         self.state = "ready"
         devices = ", ".join(k for k, v in self.bench.status().items() if v["open"])
         log.info("ready: lasers off (read back); devices: %s; socket %s", devices or "none",
@@ -242,6 +248,21 @@ class Daemon:
         self._token_written = path
         return token
 
+    def _wake_on_signals(self) -> None:
+        """A signal wakes the loop's select at once: Python retries a select interrupted by a
+        signal (PEP 475), so without this SIGTERM would wait for the next heartbeat."""
+        assert self.server is not None
+        self._signal_wake = socket.socketpair()
+        for sock in self._signal_wake:
+            sock.setblocking(False)
+        signal.set_wakeup_fd(self._signal_wake[1].fileno(), warn_on_full_buffer=False)
+        self.server.watch(self._signal_wake[0].fileno(), SIGNAL_WAKE)
+
+    def _drain_signal_wake(self) -> None:
+        if self._signal_wake is not None:
+            with contextlib.suppress(OSError):
+                self._signal_wake[0].recv(4096)
+
     def _on_signal(self, signum: int, frame: Any) -> None:
         self.request_shutdown(f"signal {signal.Signals(signum).name}")
 
@@ -250,26 +271,65 @@ class Daemon:
     def run(self) -> int:
         """The control loop until shutdown; then close(). Returns the exit code."""
         assert self.server is not None, "start() first"
-        tick = self.config.daemon.tick_s
         try:
             while not self._shutdown.is_set():
-                self.step(min(tick, FRAME_POLL_S) if self.frames.inflight else tick)
+                self.step(self.wait_s(time.monotonic()))
         except BaseException:
             log.exception("control loop failed; shutting down with lasers off")
             self.close()
             return 1
         return 0 if self.close() else 1
 
+    def wait_s(self, now: float) -> float:
+        """How long the loop may sleep in select: until the next heartbeat, or the navigator's
+        next read if sooner. Everything else wakes it: requests (the server's sockets) and
+        frames, loads and crashes (the worker's pipe is in the same selector). What other
+        threads queue for the loop (a lost SLM output, a reloaded model's resend) waits at most
+        until the next heartbeat, `daemon.tick_s`, as it did when the loop woke every tick."""
+        due = self._next_beat_s
+        if self.navigation.navigator is not None:
+            due = min(due, self.navigation.next_read_s)
+        return max(0.0, due - now)
+
     def step(self, timeout_s: float) -> None:
         assert self.server is not None
-        self.server.poll(timeout_s)
+        if SIGNAL_WAKE in self.server.poll(timeout_s):
+            self._drain_signal_wake()
         self._device_faults()
-        self.frames.step()  # never blocks: collects finished frames, sends the newest view
         now = time.monotonic()
         self.navigation.step(now)  # navigator motion -> the same latest-wins view slot
-        self.laser.heartbeat(now)
-        self.notifier.watchdog(now)
-        self.audit.tick()
+        crashes = self.frames.crashes
+        self.frames.step()  # never blocks: collects finished frames, sends the newest view
+        if self.frames.crashes != crashes:  # it switched the lasers off: read that back now
+            self._next_beat_s = 0.0
+        self._watch_worker()
+        if now >= self._next_beat_s:
+            # Once per tick however many requests woke the loop: a storm of set_view must not
+            # turn into a storm of guardian round trips.
+            self._next_beat_s = now + self.config.daemon.tick_s
+            self.laser.heartbeat(now)
+            self.notifier.watchdog(now)
+            self.audit.tick()
+
+    def _watch_worker(self) -> None:
+        """Keep the frame worker's pipe in the loop's selector while `frames.step` drains it
+        (the worker starting or running), so a finished frame, a load's reply or the worker's
+        death wakes the loop at once. Out of it otherwise: a readable pipe nobody drains (a
+        crashed worker's end of file) would wake the loop without end."""
+        assert self.server is not None
+        frames = self.frames
+        conn = frames.worker.conn if frames.state in ("starting", "running") else None
+        if conn is self._watched_conn:
+            return
+        if self._watched_fd is not None:
+            self.server.unwatch(self._watched_fd)
+        self._watched_conn, self._watched_fd = conn, None
+        if conn is not None:
+            try:
+                self._watched_fd = conn.fileno()
+            except OSError:  # closed already: the next frames.step sees the crash
+                return
+            self.server.watch(self._watched_fd, ("frame worker",))
 
     def _device_faults(self) -> None:
         """Act on what the bench monitor noticed. SLM output lost: the panel no longer shows
@@ -281,6 +341,7 @@ class Daemon:
                 device, lost, detail = self.bench.faults.get_nowait()
             except queue.Empty:
                 return
+            self._next_beat_s = 0.0  # the guardian's state as it is now, for the next status
             if lost:
                 message = f"output lost ({detail})"
                 try:
@@ -330,6 +391,8 @@ class Daemon:
         confirmed = how != "not confirmed"
         with contextlib.suppress(Exception):
             self.frames.close()
+        if self.server is not None:
+            self._watch_worker()  # stopped: out of the selector
         self.navigation.close()
         for runner in (self.bench_jobs, self.load_jobs):
             if runner is not None:
@@ -346,6 +409,14 @@ class Daemon:
             with contextlib.suppress(OSError):
                 self._token_written.unlink()
             self._token_written = None
+        if self._signal_wake is not None:
+            with contextlib.suppress(ValueError):  # only the main thread may reset it
+                signal.set_wakeup_fd(-1)
+            if self.server is not None:
+                self.server.unwatch(self._signal_wake[0].fileno())
+            for sock in self._signal_wake:
+                sock.close()
+            self._signal_wake = None
         self.audit.write({"who": "daemon", "pid": os.getpid()}, "stop",
                          reason=self._shutdown_reason or "start failed or loop error",
                          lasers=how)
@@ -428,6 +499,10 @@ class Daemon:
         if method.audited:
             self.audit.write(conn.who, req.method, params=req.params, outcome="ok",
                              result=result)
+            # Arming and the guardian's state reach `status` through the heartbeat's reply:
+            # after a command that changed the bench (or the lasers, as a device fault or a
+            # crashed worker does), the next one goes out in this step.
+            self._next_beat_s = 0.0
         if self.recorder is not None and (method.audited or req.method == "set_view"):
             self.record(req.method, req.params, conn.who, result)
         return result

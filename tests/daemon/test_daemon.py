@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import contextlib
 import json
-import random
 import socket
 import threading
 import time
 
 import pytest
 
+from nhfd.bench.safety import bad_requests
 from nhfd.daemon.protocol import RpcError
 
 from .conftest import Running, bench_config, free_port, wait_until
@@ -72,69 +72,6 @@ def test_batches_can_be_refused_with_a_clear_error(short_dir, mecom_twin):
         assert "batches are not supported" in reply["error"]["message"]
     finally:
         r.stop()
-
-
-def bad_requests(n: int, seed: int, cap: int) -> tuple[list[bytes], int]:
-    """n bad request lines (each must fail); returns them and how many expect a reply."""
-    rng = random.Random(seed)
-    junk = [b"{", b"}", b"[1,", b"nul", b'{"jsonrpc":"2.0"', b"\x00\x01", b'"str"', b"3",
-            b'{"jsonrpc":"2.0","method":"status","id":NaN}', b'{"a":Infinity}', b"[]"]
-    bad_values = [None, True, "x", [], {}, -1e308, 1e308, "NaN", [1, 2], 10**30, -1e7]
-    methods = ["set_view", "focus", "laser", "snapshot", "load_scene", "load_model", "job",
-               "status", "stop", "blank", "shutdown", "frobnicate", "", "Status"]
-    lines, replies = [], 0
-    for i in range(n):
-        kind = rng.random()
-        notify = rng.random() < 0.1
-        rid = {} if notify else {"id": i}
-        if kind < 0.15:
-            lines.append(rng.choice(junk) + b"\n")
-            replies += 1  # parse errors and invalid requests always get an (id null) reply
-            continue
-        if kind < 0.17:
-            lines.append(b'{"pad":"' + b"x" * (cap + rng.randrange(1, 100)) + b'"}\n')
-            replies += 1
-            continue
-        if kind < 0.22:
-            num = rng.choice([b"1e400", b"-1e999", b"NaN", b"Infinity", b"-Infinity"])
-            lines.append(b'{"jsonrpc":"2.0","method":"focus","params":{"z_mm":' + num
-                         + b'},"id":' + str(i).encode() + b"}\n")
-            replies += 1
-            continue
-        method = rng.choice(methods)
-        v = rng.choice(bad_values)
-        params = {
-            "set_view": [{"orbit": {"azimuth_deg": v, "elevation_deg": 0, "radius": 1}},
-                         {"pose": {"position": v, "quaternion_wxyz": [1, 0, 0, 0]}},
-                         {"orbit": {"azimuth_deg": 0, "elevation_deg": 95, "radius": 1}},
-                         {"relative": {"d_azimuth_deg": 1}}, {}],
-            "focus": [{"z_mm": v}, {"z_mm": 50.0}, {"z_mm": 1.0, "speed": 3}],
-            "laser": [{"action": "arm", "duration_s": v}, {"action": "fire"},
-                      {"action": "power", "channel": "uv", "power_pct": 1.0},
-                      {"action": "power", "channel": "red", "power_pct": v},
-                      {"action": "arm", "duration_s": 1e9}],
-            "snapshot": [{"path": "/etc/x.png"}, {"path": "../../x.png"}, {"frames": v},
-                         {"path": v}],
-            "load_scene": [{"path": "/etc/passwd"}, {"path": "../../../etc/hosts.ply"},
-                           {"path": v}, {}],
-            "load_model": [{"path": "/tmp/m.onnx"}, {"path": v}],
-            "job": [{"id": v}, {"id": 0}],
-            "status": [{"verbose": True}], "stop": [{"x": v}], "blank": [{"now": 1}],
-            "shutdown": [{"force": True}],
-        }.get(method, [{}])
-        p = rng.choice(params)
-        msg = {"jsonrpc": "2.0", "method": method, "params": p, **rid}
-        if rng.random() < 0.05:
-            msg["jsonrpc"] = "1.0"
-        try:
-            line = json.dumps(msg).encode() + b"\n"
-        except ValueError:
-            continue
-        lines.append(line)
-        # A notification is a *valid* request without an id: it never gets a reply. One that is
-        # not a valid request (method "" here) is an Invalid Request, answered with id null.
-        replies += 0 if notify and msg["jsonrpc"] == "2.0" and method else 1
-    return lines, replies
 
 
 def test_ten_thousand_bad_requests_leave_the_daemon_serving_and_unchanged(running, mecom_twin):
@@ -345,22 +282,3 @@ def test_systemd_notify_socket_mode_and_lock(short_dir, mecom_twin):
             seen.append(notify.recv(4096).decode())
     assert any("STOPPING=1" in m for m in seen)
     notify.close()
-
-
-def test_the_loop_wakes_every_few_ms_while_a_frame_is_computed(running):
-    """The worker's pipe is not one of the server's sockets: while a frame is in flight the
-    loop must not sleep a whole tick, or a finished frame waits up to 50 ms for the SLM."""
-    from nhfd.daemon.service import FRAME_POLL_S
-
-    d = running.daemon
-    tick = d.config.daemon.tick_s
-    assert FRAME_POLL_S <= 0.005 < tick
-    timeouts: list[float] = []
-    real_step = d.step
-    d.step = lambda timeout_s: (timeouts.append(timeout_s), real_step(timeout_s))[1]
-    wait_until(lambda: tick in timeouts, 5, "an idle tick")
-    d.frames.inflight = (10**9, time.perf_counter())  # a frame that is never finished
-    wait_until(lambda: timeouts.count(FRAME_POLL_S) >= 20, 5, "fast polls")
-    d.frames.inflight = None
-    n = len(timeouts)
-    wait_until(lambda: tick in timeouts[n:], 5, "idle ticks again")
