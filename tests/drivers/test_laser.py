@@ -236,6 +236,7 @@ laser.arm(60)
 laser.set_power("red", 5.0)
 laser.enable("red")
 print("on", flush=True)
+sys.stdin.readline()  # the test reads the twin while this process surely still emits
 {then}
 """
 
@@ -251,14 +252,17 @@ print("on", flush=True)
 )
 def test_a_process_that_ends_any_way_but_sigkill_leaves_the_lasers_off(mecom_twin, how, then):
     code = CHILD.format(path=mecom_twin.port_path, then=dedent(then))
-    child = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+    child = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE,
+                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     with reaped(child):
         assert read_line(child, 10).strip() == "on"
         assert mecom_twin.emitting()["red"] == 5.0
         sent = time.monotonic()
         if how in ("SIGTERM", "SIGINT"):
             child.send_signal(getattr(signal, how))
+        else:
+            child.stdin.write("go\n")
+            child.stdin.flush()
         child.wait(timeout=10)
     dark = mecom_twin.dark_since()
     assert dark is not None and dark - sent < 1.0, (how, child.stderr.read()[-2000:])
