@@ -3,6 +3,8 @@
 The workload of the issue: a 3 x 1080 x 1920 complex64 field with 2x padding propagated to 8
 depths. "Bare FFT pair" is the FFT work such a call cannot avoid (one forward transform of the
 padded field and one inverse per depth); cached propagation should stay within 1.3x of it.
+"finite check" is the refusal of NaN and Inf every field passes through on the way in
+(`nhfd.optics._validate.finite_field`), on the unpadded field.
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ def run(args: argparse.Namespace) -> int:
 
     from nhfd.bench.machine import describe
     from nhfd.optics import Aperture, KernelCache, plan_padding, propagate
+    from nhfd.optics._validate import finite_field
 
     w, h = parse_wxh(args.size, "--size")
     if args.depths < 1 or args.repeats < 1 or w < 1 or h < 1:
@@ -69,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"{plan.describe()}; {args.depths} depths; 3 colours; {describe()}")
     rows = {}
     for name, fn, reps in (
+        ("finite check", lambda: finite_field("field", field), args.repeats),
         ("bare FFT pair", bare, args.repeats),
         ("propagate, cached kernels", cached, args.repeats),
         ("propagate, uncached", uncached, max(1, args.repeats // 2)),
@@ -79,6 +83,8 @@ def run(args: argparse.Namespace) -> int:
     ratios = {k: v / base for k, v in rows.items()}
     print(f"  cached / bare   = {ratios['propagate, cached kernels']:.2f}x  (goal <= 1.3x)")
     print(f"  uncached / bare = {ratios['propagate, uncached']:.2f}x")
+    share = rows["finite check"] / rows["propagate, cached kernels"]
+    print(f"  finite check / cached = {share:.4f}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({

@@ -62,8 +62,8 @@ class Aperture:
         f_cut^2)` with `f_cut = cutoff / pitch` (optics.md: `lambda / (2 NA^2)` with
         `NA = lambda f_cut`; `4 p^2 / lambda` at the default half-band cutoff): the focus
         test's tolerance."""
-        _validate.positive("wavelength_m", wavelength_m)
-        f_cut = self.cutoffs(n_colours)[colour] / _validate.positive("pitch_m", pitch_m)
+        _validate.wavelength("wavelength_m", wavelength_m)
+        f_cut = self.cutoffs(n_colours)[colour] / _validate.pitch("pitch_m", pitch_m)
         return 1.0 / (4.0 * wavelength_m * f_cut * f_cut)
 
     def widest_frequency_per_px(self, colour: int, n_colours: int) -> tuple[float, float]:

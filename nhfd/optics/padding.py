@@ -86,8 +86,8 @@ def plan_padding(
     `policy` is "none", "2x", "auto", or an explicit `(Hpad, Wpad)` (each >= the field's size).
     """
     h, w = _validate.shape_hw("shape_hw", shape_hw)
-    pitch = _validate.positive("pitch_m", pitch_m)
-    z = abs(_validate.finite("z_m", max_abs_z_m))
+    pitch = _validate.pitch("pitch_m", pitch_m)
+    z = abs(_validate.distance("z_m", max_abs_z_m))
     reach = [0, 0]
     n_col = len(wavelengths_m)
     for c, lam in enumerate(wavelengths_m):
