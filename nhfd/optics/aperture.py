@@ -18,7 +18,7 @@ from typing import Literal
 
 import torch
 
-from nhfd.optics import _validate
+from nhfd.optics import _validate, fft
 
 Shape = Literal["square", "circle", "diamond"]
 SHAPES: tuple[str, ...] = ("square", "circle", "diamond")
@@ -112,4 +112,4 @@ def apply_aperture(field: torch.Tensor, aperture: Aperture) -> torch.Tensor:
     """
     u = _validate.field("field", field)
     mask = aperture_mask(tuple(u.shape[-2:]), aperture, u.shape[-3], u.device)
-    return torch.fft.ifft2(torch.fft.fft2(u) * mask)
+    return fft.ifft2(fft.fft2(u) * mask)

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import torch
 
-from nhfd.optics import _validate
+from nhfd.optics import _validate, fft
 from nhfd.optics.aperture import Aperture, aperture_mask, frequency_indices
 from nhfd.optics.cache import KernelCache
 from nhfd.optics.padding import PaddingPlan, Policy, plan_padding
@@ -217,12 +217,12 @@ def propagate(
     plan = plan_padding((h, w), pitch, lams, max_z, aperture, padding)
     kernels = propagation_kernels(plan, pitch, lams, depths, aperture, band_limit, u.dtype,
                                   u.device, cache)
-    spectrum = torch.fft.fft2(u, s=plan.padded_hw)
+    spectrum = fft.fft2(u, s=plan.padded_hw)
     # One depth at a time bounds memory at one padded stack per colour, not one per depth.
     n_depths = len(kernels)
     kernel_grad = any(k.requires_grad for k in kernels)
     if torch.is_grad_enabled() and (spectrum.requires_grad or kernel_grad):
-        slices = [torch.fft.ifft2(spectrum * kernels[d])[..., :h, :w] for d in range(n_depths)]
+        slices = [fft.ifft2(spectrum * kernels[d])[..., :h, :w] for d in range(n_depths)]
         out = torch.stack(slices, dim=-4)
     else:
         # Without autograd, reuse one padded buffer: fresh 100 MB allocations per depth cost
@@ -232,7 +232,7 @@ def propagate(
         buf = torch.empty_like(spectrum)
         for d in range(n_depths):
             torch.mul(spectrum, kernels[d], out=buf)
-            torch.fft.ifft2(buf, out=buf)
+            fft.ifft2(buf, out=buf)
             out[..., d, :, :, :] = buf[..., :h, :w]
     return out.squeeze(-4) if scalar else out
 
