@@ -119,6 +119,7 @@ def transfer_function(
     device = torch.device(device)
     lams = _validate.wavelengths(wavelengths_m)
     pitch = _validate.pitch("pitch_m", pitch_m)
+    z_m = tuple(_validate.distance(f"z_m[{i}]", z) for i, z in enumerate(z_m))
     out = torch.empty((len(z_m), len(lams), *padded_hw), dtype=dtype, device=device)
     ap = aperture_mask(padded_hw, aperture, len(lams), device) if aperture is not None else None
     for c, lam in enumerate(lams):

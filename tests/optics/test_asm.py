@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from nhfd.optics import Aperture, KernelCache, propagate
+from nhfd.optics import Aperture, KernelCache, propagate, transfer_function
 from nhfd.optics.aperture import aperture_mask
 
 from .fields import band_limited, envelope, gaussian_beam
@@ -285,6 +285,13 @@ def test_implausible_units_and_distances_are_refused_with_the_range(kwargs, mess
     args.update(kwargs)
     with pytest.raises(ValueError, match=message):
         propagate(**args)
+
+
+def test_transfer_function_refuses_absurd_depths_and_unit_slips():
+    with pytest.raises(ValueError, match=r"z_m\[1\] = 1e\+300: outside -10..10 m"):
+        transfer_function((8, 8), P, RGB, [1e-3, 1e300])
+    with pytest.raises(ValueError, match=r"wavelengths_m\[0\] = 660.0: .*nanometres"):
+        transfer_function((8, 8), P, [660.0], [1e-3])
 
 
 def test_numpy_scalars_and_0d_arrays_are_depths_like_floats():
