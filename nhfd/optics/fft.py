@@ -172,12 +172,13 @@ def _transform(inverse: bool, x: torch.Tensor, sizes: tuple[int, ...] | None,
                dims: tuple[int, ...], out: torch.Tensor | None) -> torch.Tensor:  # fmt: skip
     if not x.is_complex():
         x = x.to(torch.complex128 if x.dtype == torch.float64 else torch.complex64)
-    if x.dtype not in TOLERANCE or x.numel() == 0:  # complex32, or torch's own error
+    nd = x.dim()
+    if (x.dtype not in TOLERANCE or x.numel() == 0
+            or not all(-nd <= d < nd for d in dims)):  # complex32, or torch's own error
         return _direct(inverse, x, sizes, tuple(dims), out)
     if any(st == 0 and n > 1 for st, n in zip(x.stride(), x.shape, strict=True)):
         x = x.contiguous()  # a broadcast view: no layout of its own to check
-    nd = x.dim()
-    dims = tuple(d % nd for d in dims) if nd else dims
+    dims = tuple(d % nd for d in dims)
     sizes = sizes if sizes is not None else tuple(x.shape[d] for d in dims)
     in_place = out is not None and out is x
     layout = None if x.is_contiguous() else tuple(x.stride())
