@@ -19,7 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from nhfd.optics import Aperture, KernelCache, aperture_mask, plan_padding, propagate
+from nhfd.optics import Aperture, KernelCache, aperture_mask, fft, plan_padding, propagate
 from nhfd.optics.refplane import margin_px
 
 SSIM_C1 = 0.01**2
@@ -133,7 +133,7 @@ def spectral_field_error(
     top, bottom, left, right = crop
 
     def filtered_energy(f: torch.Tensor) -> torch.Tensor:
-        g = torch.fft.ifft2(torch.fft.fft2(f, s=(ph, pw)) * gain)
+        g = fft.ifft2(fft.fft2(f, s=(ph, pw)) * gain)
         return g[..., top : h - bottom, left : w - right].abs().square().sum()
 
     with torch.no_grad():

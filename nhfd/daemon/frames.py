@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from nhfd.models.inputs import network_input
-from nhfd.optics import Aperture, KernelCache, PhaseCurve, double_phase_grey, phase_to_grey
+from nhfd.optics import Aperture, KernelCache, PhaseCurve, double_phase_grey, fft, phase_to_grey
 from nhfd.optics.refplane import margin_px, window_offset
 
 # Stage names, in order, as status and the benchmark report them.
@@ -215,20 +215,20 @@ class _Group:
         padded, columns, spectrum, back_rows = self._scratch(n, h, w)
         # Forward along rows: the window's rows, zero-padded to Wp.
         padded[..., c0 : c0 + w] = window
-        rows = torch.fft.fft(padded, dim=-1)
+        rows = fft.fft(padded, dim=-1)
         # Along columns: the kept columns, transposed, at the window's rows of Hp.
         _gather_t(columns[..., r0 : r0 + h], rows, self.col_runs)
         del rows
-        forward = torch.fft.fft(columns, dim=-1)
+        forward = fft.fft(columns, dim=-1)
         # Times the kernel on its kept rows (zero elsewhere), back along columns.
         for (a, b), k in zip(self.row_runs, self.kernels, strict=True):
             torch.mul(forward[..., a:b], k, out=spectrum[..., a:b])
         del forward
-        back = torch.fft.ifft(spectrum, dim=-1)
+        back = fft.ifft(spectrum, dim=-1)
         # Back along rows: the region's rows, the kept columns (zero elsewhere).
         _scatter_t(back_rows, back[..., :hr], self.col_runs)
         del back
-        return torch.fft.ifft(back_rows, dim=-1)[..., :wr]
+        return fft.ifft(back_rows, dim=-1)[..., :wr]
 
 
 def _runs(mask: torch.Tensor) -> list[tuple[int, int]]:

@@ -4,6 +4,7 @@ Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength e
 (metres, radians). Everything else in nhfd calls these; nothing re-implements them.
 """
 
+from nhfd.optics import fft
 from nhfd.optics.aperture import Aperture, aperture_mask, apply_aperture
 from nhfd.optics.asm import propagate, transfer_function, transfer_function_z
 from nhfd.optics.cache import KernelCache
@@ -47,6 +48,7 @@ __all__ = [
     "crop_window",
     "double_phase",
     "double_phase_grey",
+    "fft",
     "focal_stack",
     "focal_stack_quality",
     "grey_to_phase",

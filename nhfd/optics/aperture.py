@@ -18,7 +18,7 @@ from typing import Literal
 
 import torch
 
-from nhfd.optics import _validate
+from nhfd.optics import _validate, fft
 
 Shape = Literal["square", "circle", "diamond"]
 SHAPES: tuple[str, ...] = ("square", "circle", "diamond")
@@ -62,8 +62,8 @@ class Aperture:
         f_cut^2)` with `f_cut = cutoff / pitch` (optics.md: `lambda / (2 NA^2)` with
         `NA = lambda f_cut`; `4 p^2 / lambda` at the default half-band cutoff): the focus
         test's tolerance."""
-        _validate.positive("wavelength_m", wavelength_m)
-        f_cut = self.cutoffs(n_colours)[colour] / _validate.positive("pitch_m", pitch_m)
+        _validate.wavelength("wavelength_m", wavelength_m)
+        f_cut = self.cutoffs(n_colours)[colour] / _validate.pitch("pitch_m", pitch_m)
         return 1.0 / (4.0 * wavelength_m * f_cut * f_cut)
 
     def widest_frequency_per_px(self, colour: int, n_colours: int) -> tuple[float, float]:
@@ -112,4 +112,4 @@ def apply_aperture(field: torch.Tensor, aperture: Aperture) -> torch.Tensor:
     """
     u = _validate.field("field", field)
     mask = aperture_mask(tuple(u.shape[-2:]), aperture, u.shape[-3], u.device)
-    return torch.fft.ifft2(torch.fft.fft2(u) * mask)
+    return fft.ifft2(fft.fft2(u) * mask)

@@ -23,7 +23,7 @@ from collections.abc import Sequence
 
 import torch
 
-from nhfd.optics import _validate
+from nhfd.optics import _validate, fft
 from nhfd.optics.aperture import Aperture, aperture_mask, frequency_indices
 from nhfd.optics.cache import KernelCache
 from nhfd.optics.padding import PaddingPlan, Policy, plan_padding
@@ -37,18 +37,21 @@ BAND_LIMIT_WARN_FRACTION = 0.05
 
 def _depths(z_m: Depths) -> tuple[torch.Tensor | tuple[float, ...], bool]:
     """Normalise depths to a tuple of floats (or a 1-D tensor needing grad) and whether the
-    caller gave a scalar (then the depth axis is dropped from the result)."""
+    caller gave a scalar (then the depth axis is dropped from the result). NumPy scalars and 0-d
+    arrays are scalars, 1-D arrays sequences."""
     if isinstance(z_m, torch.Tensor):
         scalar = z_m.dim() == 0
         flat = z_m.reshape(-1)
-        if not torch.isfinite(flat.detach()).all():
-            raise ValueError(f"z_m = {z_m.detach().tolist()}: every depth must be finite")
-        if flat.requires_grad:
-            return flat, scalar
-        return tuple(float(v) for v in flat.tolist()), scalar
-    if isinstance(z_m, int | float):
-        return (_validate.finite("z_m", z_m),), True
-    values = tuple(_validate.finite(f"z_m[{i}]", v) for i, v in enumerate(z_m))
+        values = tuple(float(v) for v in flat.detach().tolist())
+        if not values:
+            raise ValueError("z_m is empty: give at least one depth")
+        for i, v in enumerate(values):
+            _validate.distance("z_m" if scalar else f"z_m[{i}]", v)
+        return (flat, scalar) if flat.requires_grad else (values, scalar)
+    z_m, scalar = _validate.scalar_or_sequence("z_m", z_m)
+    if scalar:
+        return (_validate.distance("z_m", z_m),), True
+    values = tuple(_validate.distance(f"z_m[{i}]", v) for i, v in enumerate(z_m))
     if not values:
         raise ValueError("z_m is empty: give at least one depth")
     return values, False
@@ -115,7 +118,8 @@ def transfer_function(
     """
     device = torch.device(device)
     lams = _validate.wavelengths(wavelengths_m)
-    pitch = _validate.positive("pitch_m", pitch_m)
+    pitch = _validate.pitch("pitch_m", pitch_m)
+    z_m = tuple(_validate.distance(f"z_m[{i}]", z) for i, z in enumerate(z_m))
     out = torch.empty((len(z_m), len(lams), *padded_hw), dtype=dtype, device=device)
     ap = aperture_mask(padded_hw, aperture, len(lams), device) if aperture is not None else None
     for c, lam in enumerate(lams):
@@ -148,7 +152,7 @@ def transfer_function_z(
     """
     device = z_m.device
     lams = _validate.wavelengths(wavelengths_m)
-    pitch = _validate.positive("pitch_m", pitch_m)
+    pitch = _validate.pitch("pitch_m", pitch_m)
     real = torch.float64 if dtype == torch.complex128 else torch.float32
     ap = aperture_mask(padded_hw, aperture, len(lams), device) if aperture is not None else None
     zs = z_m.to(real)
@@ -184,12 +188,15 @@ def propagate(
 
     Args:
         field: complex `[..., C, H, W]` on a grid of pitch `pitch_m`; real or half-precision
-            input is upcast (complex64; float64/complex128 stay complex128).
-        z_m: depth in metres (float or 0-d tensor: result `[..., C, H, W]`), or several depths
-            (sequence or 1-D tensor: result `[..., D, C, H, W]`). A tensor that requires grad
+            input is upcast (complex64; float64/complex128 stay complex128). Every sample must
+            be finite.
+        z_m: depth in metres, |z| <= 10 m (float, NumPy scalar, 0-d array or 0-d tensor: result
+            `[..., C, H, W]`), or several depths (sequence, 1-D array or 1-D tensor: result
+            `[..., D, C, H, W]`). A tensor that requires grad
             makes the result differentiable in z (that path is not cached).
-        pitch_m: sample pitch in metres.
-        wavelengths_m: one wavelength per colour channel C (or one for all), metres.
+        pitch_m: sample pitch in metres, 0.1 um to 1 mm.
+        wavelengths_m: one wavelength per colour channel C (or one for all), metres, 100 nm to
+            10 um.
         padding: "none", "2x", "auto" (see `nhfd.optics.padding`) or an explicit (Hpad, Wpad).
         aperture: Fourier aperture applied with the propagation (None: full band).
         band_limit: apply the Matsushima-Shimobaba limit (on by default; off only for tests).
@@ -201,7 +208,7 @@ def propagate(
     """
     u = _validate.field("field", field)
     lams = _validate.wavelengths(wavelengths_m, u.shape[-3])
-    pitch = _validate.positive("pitch_m", pitch_m)
+    pitch = _validate.pitch("pitch_m", pitch_m)
     depths, scalar = _depths(z_m)
     h, w = u.shape[-2:]
     max_z = (
@@ -211,12 +218,12 @@ def propagate(
     plan = plan_padding((h, w), pitch, lams, max_z, aperture, padding)
     kernels = propagation_kernels(plan, pitch, lams, depths, aperture, band_limit, u.dtype,
                                   u.device, cache)
-    spectrum = torch.fft.fft2(u, s=plan.padded_hw)
+    spectrum = fft.fft2(u, s=plan.padded_hw)
     # One depth at a time bounds memory at one padded stack per colour, not one per depth.
     n_depths = len(kernels)
     kernel_grad = any(k.requires_grad for k in kernels)
     if torch.is_grad_enabled() and (spectrum.requires_grad or kernel_grad):
-        slices = [torch.fft.ifft2(spectrum * kernels[d])[..., :h, :w] for d in range(n_depths)]
+        slices = [fft.ifft2(spectrum * kernels[d])[..., :h, :w] for d in range(n_depths)]
         out = torch.stack(slices, dim=-4)
     else:
         # Without autograd, reuse one padded buffer: fresh 100 MB allocations per depth cost
@@ -226,7 +233,7 @@ def propagate(
         buf = torch.empty_like(spectrum)
         for d in range(n_depths):
             torch.mul(spectrum, kernels[d], out=buf)
-            torch.fft.ifft2(buf, out=buf)
+            fft.ifft2(buf, out=buf)
             out[..., d, :, :, :] = buf[..., :h, :w]
     return out.squeeze(-4) if scalar else out
 

@@ -220,6 +220,19 @@ def _rows_base(field: torch.Tensor | np.ndarray) -> tuple[np.ndarray, int, int]:
     return u, u.shape[1], u.shape[2]
 
 
+def _nonfinite(u: np.ndarray, h: int, w: int, gain: np.ndarray, bad: np.ndarray) -> ValueError:
+    """The fused coder's refusal, as `_validate.finite_field`'s: the count of non-finite
+    amplitudes (the coder's per-row counts `bad` [C * H]) and the first one's index, found in
+    the first row that has one."""
+    k = int(np.flatnonzero(bad)[0])
+    c, i = divmod(k, h)
+    g = gain[c, i] if gain.shape[0] > 1 else gain[0, 0]
+    with np.errstate(all="ignore"):
+        amp = np.abs(u[c, i, :w] * g)
+    j = int(np.flatnonzero(~np.isfinite(amp))[0])
+    return _validate.nonfinite_error("field", int(bad.sum()), (c, i, j))
+
+
 class LevelTables(NamedTuple):
     """Per colour channel, how the fused coder (`nhfd.optics._coding`) turns a phase in
     [0, 2 pi] into a grey level: `default` (the default curve: rounding), else the curve's wrapped
@@ -340,6 +353,6 @@ def double_phase_grey(
                       np.float32(AMPLITUDE_CEILING), rot, float(sign), tables, bool(invert), out,
                       clipped, bad)
     if bad.any():
-        raise ValueError("field contains NaN or Inf")
+        raise _nonfinite(u, h, w, g, bad)
     fraction = clipped.reshape(n_c, h).sum(axis=1) / (h * w)
     return out, tuple(float(f) for f in fraction)

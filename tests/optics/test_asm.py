@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 
-from nhfd.optics import Aperture, KernelCache, propagate
+from nhfd.optics import Aperture, KernelCache, propagate, transfer_function
 from nhfd.optics.aperture import aperture_mask
 
 from .fields import band_limited, envelope, gaussian_beam
@@ -220,7 +221,7 @@ def test_wavelength_beyond_twice_the_pitch_zeroes_evanescent_frequencies():
 def test_long_distance_warns_that_band_limit_keeps_only_low_frequencies():
     u = torch.randn(1, 64, 64, dtype=torch.complex64)
     with pytest.warns(UserWarning, match="band limit keeps only"):
-        out = propagate(u, 50.0, P, G, padding="none")
+        out = propagate(u, 5.0, P, G, padding="none")
     assert torch.isfinite(torch.view_as_real(out)).all()
 
 
@@ -242,6 +243,65 @@ def test_invalid_physics_raises_value_error_naming_it(kwargs, name):
     args.update(kwargs)
     with pytest.raises(ValueError, match=name):
         propagate(**args)
+
+
+def test_a_non_finite_sample_is_refused_with_the_count_and_the_first_index():
+    """One NaN would otherwise turn its whole colour channel into NaN through the FFT."""
+    u = torch.randn(2, 3, 8, 8, dtype=torch.complex128)
+    u[1, 2, 0, 0] = complex(float("inf"), 0.0)
+    u[0, 1, 2, 5] = complex(0.0, float("nan"))
+    u[1, 0, 7, 7] = complex(float("nan"), 1.0)
+    expected = (r"field has 3 non-finite value\(s\) \(NaN or Inf\), "
+                r"the first at index \(0, 1, 2, 5\)")
+    with pytest.raises(ValueError, match=expected):
+        propagate(u, 1e-3, P, RGB)
+    real = torch.ones(3, 8, 8)
+    real[2, 4, 1] = float("-inf")
+    with pytest.raises(ValueError, match=r"1 non-finite value\(s\).*\(2, 4, 1\)"):
+        propagate(real, 1e-3, P, RGB)
+    # Finite fields whose float32 sum overflows are still accepted.
+    huge = torch.full((1, 4, 4), 3e38, dtype=torch.complex64)
+    assert propagate(huge, 0.0, P, G, padding="none").shape == (1, 4, 4)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [
+        ({"wavelengths_m": (660e-9, 520.0, 450e-9)},
+         r"wavelengths_m\[1\] = 520.0: outside 1e-07..1e-05 m; did you pass nanometres\?"),
+        ({"wavelengths_m": 0.52}, r"wavelengths_m\[0\] = 0.52: .*did you pass micrometres\?"),
+        ({"wavelengths_m": 0.05}, r"wavelengths_m\[0\] = 0.05: outside 1e-07..1e-05 m$"),
+        ({"pitch_m": 8.0}, r"pitch_m = 8.0: outside 1e-07..0.001 m; did you pass micrometres\?"),
+        ({"pitch_m": 0.008}, r"pitch_m = 0.008: .*did you pass millimetres\?"),
+        ({"pitch_m": 8e-9}, r"pitch_m = 8e-09: outside 1e-07..0.001 m$"),
+        ({"z_m": 1e300}, r"z_m = 1e\+300: outside -10..10 m"),
+        ({"z_m": [1e-3, -20.0]}, r"z_m\[1\] = -20.0: outside -10..10 m"),
+        ({"z_m": torch.tensor([1e-3, 1e300], dtype=torch.float64)}, r"z_m\[1\] = 1e\+300"),
+        ({"z_m": np.zeros((2, 2))}, r"z_m has shape \(2, 2\): give a scalar or a 1-D"),
+    ],
+)
+def test_implausible_units_and_distances_are_refused_with_the_range(kwargs, message):
+    args = {"field": torch.ones(3, 8, 8), "z_m": 1e-3, "pitch_m": P, "wavelengths_m": RGB}
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=message):
+        propagate(**args)
+
+
+def test_transfer_function_refuses_absurd_depths_and_unit_slips():
+    with pytest.raises(ValueError, match=r"z_m\[1\] = 1e\+300: outside -10..10 m"):
+        transfer_function((8, 8), P, RGB, [1e-3, 1e300])
+    with pytest.raises(ValueError, match=r"wavelengths_m\[0\] = 660.0: .*nanometres"):
+        transfer_function((8, 8), P, [660.0], [1e-3])
+
+
+def test_numpy_scalars_and_0d_arrays_are_depths_like_floats():
+    u = band_limited((3, 16, 16), 0.2, dtype=torch.complex64)
+    plain = propagate(u, 2e-3, P, RGB)
+    for z in (np.array(2e-3), np.float64(2e-3), torch.tensor(2e-3, dtype=torch.float64)):
+        assert torch.equal(propagate(u, z, P, RGB), plain)
+    assert propagate(u, np.float32(2e-3), P, RGB).shape == (3, 16, 16)
+    both = propagate(u, np.array([2e-3, -1e-3]), P, RGB)
+    assert both.shape == (2, 3, 16, 16) and torch.equal(both[0], plain)
 
 
 def test_empty_field_is_rejected_with_its_shape():

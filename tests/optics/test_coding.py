@@ -109,7 +109,26 @@ def test_a_cropped_field_is_read_in_place_and_nan_is_refused():
     assert c[0].shape == (3, 20, 50)
     bad = crop.clone()
     bad[1, 3, 4] = complex(float("nan"), 0.0)
-    with pytest.raises(ValueError, match="NaN"):
+    with pytest.raises(ValueError, match=r"1 non-finite value\(s\).*index \(1, 3, 4\)"):
         double_phase_grey(bad, SCALE, [LONG])
     with pytest.raises(ValueError, match="sign"):
         double_phase_grey(crop, SCALE, [LONG], sign=0)
+
+
+def test_both_coders_refuse_a_non_finite_field_with_the_same_count_and_first_index():
+    """The torch coder used to turn the channel into NaN phases and report 0 clipped."""
+    u = field(4)
+    u[2, 50, 7] = complex(float("inf"), 0.0)
+    u[1, 90, 150] = complex(0.0, float("-inf"))
+    u[1, 10, 20] = complex(float("nan"), float("nan"))
+    message = r"field has 3 non-finite value\(s\) \(NaN or Inf\), the first at index \(1, 10, 20\)"
+    with pytest.raises(ValueError, match=message) as torch_path:
+        double_phase(u, SCALE)
+    with pytest.raises(ValueError, match=message) as fused:
+        double_phase_grey(u, SCALE, [LINEAR])
+    assert str(torch_path.value) == str(fused.value)
+    # A gain that makes a finite pixel infinite is the pixel's fault in the fused coder too.
+    gain = np.ones((3, 96, 160), np.float32)
+    gain[0, 5, 6] = np.inf
+    with pytest.raises(ValueError, match=r"1 non-finite value\(s\).*index \(0, 5, 6\)"):
+        double_phase_grey(field(4), SCALE, [LINEAR], gain=gain)
