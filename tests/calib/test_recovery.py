@@ -90,7 +90,7 @@ def _check_response(bench: TrueBench, tables: tuple[tuple[float, ...], ...],
         # green is about as large (its 520 nm stroke is close to 2 pi): comparing the two
         # holds on some benches only. In shape the fit is far better on every bench: a straight
         # line cannot follow the panel's S-shaped, wiggly response, which the fit measures
-        # (0.3-0.5 % against the nominal's 1.4-3.4 % on 13 benches). A fit that returned the
+        # (0.34-0.55 % against the nominal's 1.06-3.36 % on 13 benches). A fit that returned the
         # nominal, or any straight curve, fails this.
         shape = _shape_rms(true, got)
         assert shape < SHAPE_RMS_TOL, f"colour {c}: {shape:.2%} RMS in shape"
