@@ -163,7 +163,7 @@ def test_cli_show_and_check(tmp_path, capsys, monkeypatch):
             r"devices\.readybeam\.guardian\.heartbeat_timeout_s = 0\.5 s$",
         ),
         (
-            "[devices.readybeam.guardian]\nheartbeat_timeout_s = 0.1\n",
+            "[daemon]\ntick_s = 0.05\n[devices.readybeam.guardian]\nheartbeat_timeout_s = 0.1\n",
             r": daemon\.tick_s = 0\.05 s: must be at most 1/4 of .*= 0\.1 s$",
         ),
         ("[optics]\nvolume_mm = [3.0, -3.0]\n", r": optics\.volume_mm = \[3\.0, -3\.0\]: needs"),
