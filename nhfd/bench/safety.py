@@ -200,6 +200,13 @@ def _signal(pid: int, sig: signal.Signals) -> None:
     os.kill(pid, sig)
 
 
+def _resume(pid: int) -> None:
+    """SIGCONT a stopped process, if it is still there: the daemon kills and replaces a hung
+    guardian, so by the time the trial ends the stopped one is usually gone."""
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGCONT)
+
+
 def inject(bench: Bench, fault: str, status: dict[str, Any]) -> Callable[[], None]:
     """Send the fault now; returns what undoes it afterwards (a SIGCONT) or a no-op."""
     daemon = bench.proc.pid
@@ -216,9 +223,9 @@ def inject(bench: Bench, fault: str, status: dict[str, Any]) -> Callable[[], Non
     else:
         raise ValueError(f"fault {fault!r}: one of {', '.join(FAULTS)}")
     if fault == "SIGSTOP daemon":
-        return lambda: _signal(daemon, signal.SIGCONT)
+        return lambda: _resume(daemon)
     if fault == "SIGSTOP guardian":
-        return lambda: _signal(int(guardian), signal.SIGCONT)
+        return lambda: _resume(int(guardian))
     return lambda: None
 
 
