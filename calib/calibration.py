@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from nhfd.optics import PhaseCurve
+from nhfd.spec import PhaseCurve
 
 FORMAT = "nhfd-calibration"
 FORMAT_VERSION = 1

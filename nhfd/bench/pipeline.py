@@ -36,16 +36,19 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 class _Host:
-    """The slice of the daemon a FrameLink needs: views, SLM, error list."""
+    """The slice of the daemon a FrameLink needs: views, SLM and blank frame, error list."""
 
     def __init__(self, config: Any) -> None:
+        from nhfd.daemon.bench import zero_amplitude_frame
         from nhfd.daemon.views import ViewSlot
         from nhfd.drivers.slm import SimulatedSLM
 
         self.config = config
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
-        self.bench = type("B", (), {"slm": self.slm, "showing": "", "held": False})()
+        blank = zero_amplitude_frame(config)  # the daemon's Bench rebuilds it on a swap only
+        self.bench = type("B", (), {"slm": self.slm, "showing": "", "held": False,
+                                    "blank_frame": lambda _self: blank})()
         self.display = ""
         self.errors: list[str] = []
 

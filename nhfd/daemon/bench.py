@@ -27,7 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from nhfd import spec
 from nhfd.drivers import factory
+from nhfd.spec import PhaseCurve
 
 log = logging.getLogger("nhfd.daemon.bench")
 
@@ -38,15 +40,29 @@ def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
     return stage_at_reference_mm + z_mm
 
 
-def zero_amplitude_frame(config: Any) -> np.ndarray:
-    """The blank pattern of the whole panel through the configured phase curves ([3, H, W]
-    uint8); see `nhfd.daemon.frames.zero_amplitude_grey`."""
-    from nhfd.daemon.frames import zero_amplitude_grey
-    from nhfd.optics import PhaseCurve
+def zero_coding(config: Any) -> tuple[tuple[PhaseCurve, ...], int, bool]:
+    """The phase curves, sign and grey inversion frames are coded with: the active
+    calibration's measured curves and sign (as `nhfd.daemon.frames.frame_settings` takes them),
+    else the configured ones. A calibration that cannot be loaded (the daemon refuses to start
+    on one, so this is a file gone bad since) falls back to the configured curves: the panel
+    must still be blanked."""
+    from nhfd.calib.active import active_calibration
 
     s = config.slm
-    curves = [PhaseCurve.linear(stroke) for stroke in s.phase_stroke_rad]
-    return zero_amplitude_grey((s.height_px, s.width_px), curves, s.phase_sign, s.grey_invert)
+    try:
+        cal = active_calibration(config)
+    except ValueError as exc:
+        log.warning("blank pattern from the configured phase curves: %s", exc)
+        cal = None
+    curves = spec.phase_curves(s.phase_stroke_rad, cal.phase_tables_rad if cal else ())
+    return tuple(curves), int(cal.phase_sign if cal else s.phase_sign), bool(s.grey_invert)
+
+
+def zero_amplitude_frame(config: Any) -> np.ndarray:
+    """The blank pattern of the whole panel ([3, H, W] uint8) through the curves frames are
+    coded with (`zero_coding`); see `nhfd.spec.zero_pattern`."""
+    s = config.slm
+    return spec.zero_pattern((s.height_px, s.width_px), *zero_coding(config))
 
 
 def write_png16(path: Path, image: np.ndarray) -> None:
@@ -81,6 +97,7 @@ class Bench:
         self.errors: dict[str, str | None] = {"slm": None, "stage": None, "camera": None}
         self.showing = "nothing"
         self._blank: np.ndarray | None = None
+        self._blank_coding: tuple[tuple[PhaseCurve, ...], int, bool] | None = None
         self._stage_state: dict[str, Any] = {}
         self._slm_health: dict[str, Any] = {}
         # SLM output lost / back, for the control loop: (device, lost, detail).
@@ -151,8 +168,13 @@ class Bench:
     # -- actions -------------------------------------------------------------------------------
 
     def blank_frame(self) -> np.ndarray:
-        if self._blank is None:
-            self._blank = zero_amplitude_frame(self.config)
+        """The zero pattern of the coding in use (rebuilt when a calibration is swapped in):
+        the blank frame and the panel around every view frame."""
+        coding = zero_coding(self.config)
+        if self._blank is None or coding != self._blank_coding:
+            s = self.config.slm
+            self._blank = spec.zero_pattern((s.height_px, s.width_px), *coding)
+            self._blank_coding = coding
         return self._blank
 
     @property

@@ -23,9 +23,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from nhfd import spec
 from nhfd.models.inputs import network_input
-from nhfd.optics import Aperture, KernelCache, PhaseCurve, double_phase_grey, fft, phase_to_grey
+from nhfd.optics import Aperture, KernelCache, double_phase_grey, fft
 from nhfd.optics.refplane import margin_px, window_offset
+from nhfd.spec import PhaseCurve
 
 # Stage names, in order, as status and the benchmark report them.
 STAGES = ("render", "inference", "propagation", "coding", "output")
@@ -90,9 +92,7 @@ class FrameSettings:
         return tuple(self.propagation_z_m - o for o in offsets)
 
     def curves(self) -> list[PhaseCurve]:
-        if self.phase_tables_rad:
-            return [PhaseCurve(table) for table in self.phase_tables_rad]
-        return [PhaseCurve.linear(stroke) for stroke in self.phase_stroke_rad]
+        return spec.phase_curves(self.phase_stroke_rad, self.phase_tables_rad)
 
 
 @dataclass(frozen=True)
@@ -130,23 +130,9 @@ def frame_region(s: FrameSettings) -> Region:
 
 
 def zero_pattern(s: FrameSettings) -> np.ndarray:
-    """The whole panel coding zero amplitude, through the same curves as frames."""
-    return zero_amplitude_grey(s.panel_hw, s.curves(), s.phase_sign, s.grey_invert)
-
-
-def zero_amplitude_grey(panel_hw: tuple[int, int], curves: list[PhaseCurve], sign: int,
-                        invert: bool) -> np.ndarray:
-    """`[C, H, W]` uint8 grey levels that show nothing: double-phase coding of amplitude 0 is
-    +pi/2 / -pi/2 on the pixel checkerboard (+ on even row + col), which the aperture blocks.
-    The one definition of the blank pattern (the daemon's `blank` shows it too)."""
-    pair = torch.tensor([math.pi / 2, -math.pi / 2], dtype=torch.float64).expand(
-        len(curves), 1, 2).contiguous()
-    grey = phase_to_grey(pair, curves, sign=sign, invert=invert).numpy()
-    rows = np.arange(panel_hw[0])[:, None]
-    cols = np.arange(panel_hw[1])[None, :]
-    even = (rows + cols) % 2 == 0
-    return np.stack([np.where(even, grey[c, 0, 0], grey[c, 0, 1])
-                     for c in range(grey.shape[0])]).astype(np.uint8)
+    """The whole panel coding zero amplitude, through the same curves as frames
+    (`nhfd.spec.zero_pattern`: the blank frame's and the coder's zero too)."""
+    return spec.zero_pattern(s.panel_hw, s.curves(), s.phase_sign, s.grey_invert)
 
 
 @dataclass

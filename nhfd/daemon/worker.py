@@ -367,7 +367,8 @@ class FrameLink:
         self.crashes = 0
         self.state = "idle"
         self._start_lock = threading.Lock()
-        self._zero: Any = None  # a PanelBuffer of the zero pattern, built on first use
+        self._zero: Any = None  # a PanelBuffer of the blank frame `_zero_of`, built on use
+        self._zero_of: np.ndarray | None = None
         self._restart_at = 0.0
 
     # -- lifecycle -----------------------------------------------------------------------------
@@ -508,12 +509,13 @@ class FrameLink:
         self.d.views.mark_applied(seq)
 
     def _panel(self, payload: dict[str, Any]) -> np.ndarray:
-        """The full panel: the precomputed zero pattern outside the coded region."""
-        if self._zero is None:
-            from nhfd.daemon.frames import PanelBuffer, zero_pattern
+        """The full panel: the blank frame (the zero pattern of the coding in use) outside the
+        coded region."""
+        blank = self.d.bench.blank_frame()
+        if self._zero is None or self._zero_of is not blank:
+            from nhfd.daemon.frames import PanelBuffer
 
-            settings = _panel_settings(self.d.config)
-            self._zero = PanelBuffer(zero_pattern(settings))
+            self._zero, self._zero_of = PanelBuffer(blank), blank
         top, left = payload["region"][:2]
         return self._zero.frame(top, left, payload["grey"])
 
@@ -555,20 +557,6 @@ def _accepted_calibration(config: Any) -> Any:
         return active_calibration(config)
     except ValueError:
         return None
-
-
-def _panel_settings(config: Any) -> Any:
-    """Settings enough for the zero pattern (the panel and the phase curves only)."""
-    from nhfd.daemon.frames import FrameSettings
-
-    s = config.slm
-    return FrameSettings(
-        panel_hw=(s.height_px, s.width_px), window_hw=(1, 1), pitch_m=s.pitch_m,
-        wavelengths_m=config.optics.wavelengths_m, z0_m=config.optics.z0_m,
-        aperture_shape=config.optics.aperture.shape,
-        cutoff_per_px=tuple(config.optics.aperture.cutoff_per_px), amplitude_scale=1.0,
-        zero_below=config.coding.zero_below, phase_stroke_rad=tuple(s.phase_stroke_rad),
-        phase_sign=s.phase_sign, grey_invert=s.grey_invert)
 
 
 def apply_camera_roi(bench: Any, config: Any) -> None:

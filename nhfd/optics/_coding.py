@@ -3,7 +3,8 @@
 One pass sums each channel's field (its circular mean phase), a second codes every pixel:
 amplitude gain, amplitude / scale with the clipped count, the clamp and zero_below, the phase
 relative to the mean plus or minus acos(a) on the checkerboard, the sign and the grey level, written
-as uint8. Same definitions as `double_phase` + `phase_to_grey` (torch), computed differently:
+as uint8; a pixel below zero_below gets the zero pattern's grey level (`nhfd.spec.zero_grey`, the
+blank frame's). Same definitions as `double_phase` + `phase_to_grey` (torch), computed differently:
 
 - The amplitude is computed exactly as torch does it (hypotf is sqrt((double) re^2 + im^2)
   rounded to float32, divided by the float32 scale), so the clipped count and the zero_below test
@@ -35,6 +36,8 @@ QUARTER_PI = 0.25 * math.pi
 TAN_PI_8 = 0.41421356237309503
 # Bins of [0, 2 pi) in the tables of curves other than the default one (dpac.LevelTables).
 LUT_BINS = 4096
+# The phase `_coded_phase` returns for a pixel coded as zero amplitude (a real phase is >= 0).
+EMPTY = -1.0
 
 # atan(x) = x + x^3 P(x^2) / Q(x^2) on |x| <= tan(pi / 8) (Cephes atan.c), Horner form.
 _P0, _P1, _P2, _P3, _P4 = (-8.750608600031904122785e-1, -1.615753718733365076637e1,
@@ -76,8 +79,8 @@ def _coded_phase(re, im, parity, scale, zero_below, ceiling, rr, ri, sign):
     amp = mag / scale
     a = min(max(amp, np.float32(0.0)), ceiling)
     empty = a < zero_below
-    # arg(u e^{-i mean} (a +- i sqrt(1 - a^2))), + on even rows + cols; an empty pixel codes
-    # phase 0 +- acos(0): the unit vector (0, +-1).
+    # arg(u e^{-i mean} (a +- i sqrt(1 - a^2))), + on even rows + cols; an empty pixel's
+    # (the unit vector (0, +-1)) is not used: `code_rows` writes the zero pattern's grey there.
     a64 = 0.0 if empty else np.float64(a)
     s = math.sqrt(1.0 - a64 * a64)
     s = -s if parity else s
@@ -85,6 +88,8 @@ def _coded_phase(re, im, parity, scale, zero_below, ceiling, rr, ri, sign):
     wi = 0.0 if empty else re * ri + im * rr
     p = _atan2(wi * a64 + wr * s, wr * a64 - wi * s) * sign
     p = p + TWO_PI if p < 0.0 else p
+    # EMPTY marks the pixel for the zero pattern's grey level (nhfd.spec.zero_grey).
+    p = EMPTY if empty else p
     return p, amp > np.float32(1.0), not math.isfinite(amp)
 
 
@@ -113,13 +118,15 @@ def channel_sums(u, h, w, gain, has_gain, out):
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def code_rows(u, h, w, gain, has_gain, scale, zero_below, ceiling, rot, sign, tables, invert,
-              out, clipped, bad):
+              zero, out, clipped, bad):
     """Double-phase code u[:, :h, :w] (complex64; u C-contiguous, so rows load as vectors) into
     grey levels out [C, h, w] (uint8).
 
     scale, zero_below, ceiling: float32. rot [C]: e^{-i mean} (complex128). sign: +-1.0.
-    tables: `nhfd.optics.dpac.LevelTables` (the curves). clipped, bad [C * H]: per row,
-    the count of amplitudes > 1 and of non-finite amplitudes (their grey level is arbitrary)."""
+    tables: `nhfd.optics.dpac.LevelTables` (the curves). zero [C, 2] (uint8): the grey levels
+    of amplitude 0 on even and odd pixels (`nhfd.spec.zero_grey`, sign and inversion applied),
+    written where the amplitude is below zero_below. clipped, bad [C * H]: per row, the count
+    of amplitudes > 1 and of non-finite amplitudes (their grey level is arbitrary)."""
     n_c = u.shape[0]
     for k in prange(n_c * h):
         c = k // h
@@ -152,12 +159,20 @@ def code_rows(u, h, w, gain, has_gain, scale, zero_below, ceiling, rot, sign, ta
         # The grey levels.
         top = 255 if invert else 0
         step = -1 if invert else 1
+        z_even = zero[c, i & 1]
+        z_odd = zero[c, (i + 1) & 1]
         if tables.default[c]:
             for j in range(w):
-                out[c, i, j] = top + step * _default_level(phase[j])
+                p = phase[j]
+                g = top + step * _default_level(max(p, 0.0))
+                out[c, i, j] = (z_odd if j & 1 else z_even) if p < 0.0 else g
         else:
             for j in range(w):
-                out[c, i, j] = top + step * _table_level(phase[j], tables, c)
+                p = phase[j]
+                if p < 0.0:
+                    out[c, i, j] = z_odd if j & 1 else z_even
+                else:
+                    out[c, i, j] = top + step * _table_level(p, tables, c)
 
 
 @njit(cache=True, inline="always", error_model="numpy")

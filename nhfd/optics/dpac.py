@@ -9,7 +9,6 @@ be band-limited (the aperture's own band) for the coding to be accurate.
 from __future__ import annotations
 
 import functools
-import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -20,8 +19,8 @@ import torch
 
 from nhfd.optics import _validate
 from nhfd.optics.aperture import Aperture, apply_aperture
+from nhfd.spec import GREY_LEVELS, TWO_PI, PhaseCurve, zero_grey
 
-GREY_LEVELS = 256
 # acos has an infinite gradient at 1; amplitudes are clamped just below it.
 AMPLITUDE_CEILING = 1.0 - 1e-6
 # Amplitudes below this fraction of the scale are coded as exact zeros. Their phase is noise (FFT
@@ -30,7 +29,6 @@ AMPLITUDE_CEILING = 1.0 - 1e-6
 # target (focal-stack intensity error of the phase-only display vs the complex field): 507% with
 # no threshold, 73% at 1e-3, 26% at 1e-2, 21% at 3e-2, 23% at 1e-1.
 ZERO_BELOW = 0.03
-TWO_PI = 2 * math.pi
 
 
 @dataclass(frozen=True)
@@ -91,35 +89,6 @@ def double_phase(
     offset = torch.acos(amp) * checkerboard(tuple(u.shape[-2:]), u.device)
     real = torch.float64 if u.dtype == torch.complex128 else torch.float32
     return DoublePhase(wrap_phase((phi + offset).to(real)), clipped)
-
-
-@dataclass(frozen=True)
-class PhaseCurve:
-    """The panel's phase response at one wavelength: `phase_rad[g]` for grey level g, increasing.
-
-    The range may be less or more than 2 pi; quantisation picks the grey level whose phase is
-    nearest on the circle.
-    """
-
-    phase_rad: tuple[float, ...]
-
-    def __post_init__(self) -> None:
-        table = tuple(float(v) for v in self.phase_rad)
-        if len(table) < 2 or not all(math.isfinite(v) for v in table):
-            raise ValueError("phase curve needs >= 2 finite phase values")
-        if any(b <= a for a, b in itertools.pairwise(table)):
-            raise ValueError("phase curve must increase strictly with grey level")
-        object.__setattr__(self, "phase_rad", table)
-
-    @classmethod
-    def linear(cls, stroke_rad: float = TWO_PI, levels: int = GREY_LEVELS) -> PhaseCurve:
-        """Grey g shows `stroke * g / levels` (the default quantisation when stroke = 2 pi)."""
-        stroke = _validate.positive("phase stroke_rad", stroke_rad)
-        return cls(tuple(stroke * g / levels for g in range(levels)))
-
-    @property
-    def is_default(self) -> bool:
-        return self == PhaseCurve.linear()
 
 
 def _nearest_level(phase: torch.Tensor, curve: PhaseCurve) -> torch.Tensor:
@@ -350,8 +319,8 @@ def double_phase_grey(
     clipped = np.empty(n_c * h, np.int64)
     bad = np.empty(n_c * h, np.int64)
     _coding.code_rows(u, h, w, g, gain is not None, np.float32(scale), np.float32(zero_below),
-                      np.float32(AMPLITUDE_CEILING), rot, float(sign), tables, bool(invert), out,
-                      clipped, bad)
+                      np.float32(AMPLITUDE_CEILING), rot, float(sign), tables, bool(invert),
+                      zero_grey(per_channel, sign, invert), out, clipped, bad)
     if bad.any():
         raise _nonfinite(u, h, w, g, bad)
     fraction = clipped.reshape(n_c, h).sum(axis=1) / (h * w)
