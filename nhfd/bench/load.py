@@ -97,16 +97,19 @@ def cpu_percent(pids: dict[str, int | None], window_s: float) -> dict[str, float
     return out
 
 
-# The devices of the idle phases (nothing loaded); {laser_port} is the laser twin's pty.
+# The devices of the idle phases (nothing loaded). The second is a real bench's daemon: the real
+# readybeam and apt drivers against twins outside it (their CPU is not the daemon's).
 IDLE_DEVICES = {
     "default simulated devices": [],
-    "lasers on an outside peer": ['laser = "readybeam"', 'stage = "none"', 'camera = "none"',
-                                  'slm = "simulated"', 'navigator = "none"'],
+    "laser and stage on outside peers": ['laser = "readybeam"', 'stage = "apt"',
+                                         'camera = "none"', 'slm = "simulated"',
+                                         'navigator = "none"'],
 }
 
 
 def _config_text(root: Path, model: Path | None, scene: Path | None,
-                 devices: list[str] | None = None, laser_port: str = "") -> str:
+                 devices: list[str] | None = None, laser_port: str = "",
+                 stage_port: str = "") -> str:
     dirs = {"scene_dirs": [str(scene.parent)] if scene else [str(root)],
             "model_dirs": [str(model.parent)] if model else [str(root)]}
     if devices is None:
@@ -115,6 +118,8 @@ def _config_text(root: Path, model: Path | None, scene: Path | None,
     lines = [
         "[devices]", *devices,
         "[devices.readybeam]", f'port = "{laser_port}"',
+        # A pty has no modem lines: the stage's line reset is skipped there.
+        "[devices.apt]", f'port = "{stage_port}"', f"rts_reset = {str(not stage_port).lower()}",
         "[devices.readybeam.guardian]", f'socket_path = "{root / "laser.sock"}"',
         "[daemon]", f'runtime_dir = "{root / "run"}"', 'guardian = "spawn"',
         f'audit_log = "{root / "audit.jsonl"}"', f'snapshot_dir = "{root / "snaps"}"',
@@ -171,15 +176,16 @@ def idle_pids(status: dict[str, Any], daemon_pid: int) -> dict[str, int | None]:
 def idle(window_s: float, settle_s: float = 2.0) -> list[dict[str, Any]]:
     """Each IDLE_DEVICES configuration with nothing loaded: % of a core per process."""
     from nhfd.daemon.client import Client
+    from nhfd.drivers.twins.apt_twin import AptTwin
     from nhfd.drivers.twins.mecom_twin import MecomTwin
 
     rows = []
     for name, devices in IDLE_DEVICES.items():
         root = Path(tempfile.mkdtemp(prefix="nhfd-idle-", dir="/tmp"))
-        twin = MecomTwin().start() if devices else None
+        twins = [MecomTwin().start(), AptTwin().start()] if devices else []
         cfg = root / "nhfd.toml"
         cfg.write_text(_config_text(root, None, None, devices,
-                                    twin.port_path if twin else ""))
+                                    *(twin.port_path for twin in twins)))
         proc = _serve(cfg)
         try:
             client = _wait_ready(Client, root / "run" / "control.sock", proc, False)
@@ -196,7 +202,7 @@ def idle(window_s: float, settle_s: float = 2.0) -> list[dict[str, Any]]:
             if proc.poll() is None:
                 proc.kill()
                 proc.wait(30)
-            if twin is not None:
+            for twin in twins:
                 twin.close()
     return rows
 
