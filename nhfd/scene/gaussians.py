@@ -13,8 +13,11 @@ Values are *activated* (no logits, no log-scales) and float32:
 
 from __future__ import annotations
 
+import contextlib
 import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -25,6 +28,18 @@ SH_DEGREE_FOR_K = {1: 0, 4: 1, 9: 2, 16: 3}
 
 class SceneFileError(ValueError):
     """A scene file that cannot be read; the message names the file and the problem."""
+
+
+@contextlib.contextmanager
+def malformed_as_scene_error(path: Path | str, what: str) -> Iterator[None]:
+    """Turn a decoder's stray lookup or type error on a structurally bad file into a
+    SceneFileError naming the file and `what` was malformed; a SceneFileError passes as is."""
+    try:
+        yield
+    except SceneFileError:
+        raise
+    except (KeyError, IndexError, TypeError, AttributeError, ValueError) as e:
+        raise SceneFileError(f"{path}: malformed {what} ({type(e).__name__}: {e})") from e
 
 
 @dataclass(frozen=True)

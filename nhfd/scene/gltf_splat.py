@@ -35,7 +35,7 @@ from urllib.parse import unquote
 import numpy as np
 
 from nhfd.scene.axes import flip_axes, signs_from_letters
-from nhfd.scene.gaussians import SH_C0, SceneFileError
+from nhfd.scene.gaussians import SH_C0, SceneFileError, malformed_as_scene_error
 
 __all__ = ["GLB_MAGIC", "read_gltf"]
 
@@ -58,12 +58,8 @@ def read_gltf(path: Path) -> dict[str, np.ndarray]:
     """Activated arrays (means, quats wxyz, scales, opacities, sh) in the project's frame."""
     data = path.read_bytes()
     doc, bin_chunk = _parse_glb(path, data) if data[:4] == GLB_MAGIC else (_json(path, data), None)
-    try:
+    with malformed_as_scene_error(path, "glTF"):
         return _read_doc(path, doc, bin_chunk)
-    except SceneFileError:
-        raise
-    except (KeyError, IndexError, TypeError, AttributeError, ValueError) as e:
-        raise SceneFileError(f"{path}: malformed glTF ({type(e).__name__}: {e})") from e
 
 
 def _read_doc(path: Path, doc: dict[str, Any], bin_chunk: bytes | None) -> dict[str, np.ndarray]:

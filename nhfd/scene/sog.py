@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from nhfd.scene.gaussians import SceneFileError
+from nhfd.scene.gaussians import SceneFileError, malformed_as_scene_error
 
 __all__ = ["ZIP_MAGIC", "read_sog"]
 
@@ -58,12 +58,8 @@ def read_sog(path: Path) -> dict[str, np.ndarray]:
             f"{path}: unsupported SOG version {version!r} (supported: 2; a meta.json without "
             "'version' is the deprecated version 1)"
         )
-    try:
+    with malformed_as_scene_error(path, "SOG meta.json"):
         return _decode(path, files, meta)
-    except SceneFileError:
-        raise
-    except (KeyError, IndexError, TypeError, AttributeError, ValueError) as e:
-        raise SceneFileError(f"{path}: malformed SOG meta.json (bad or missing {e})") from e
 
 
 class _Files:

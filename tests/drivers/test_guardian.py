@@ -53,6 +53,14 @@ while True:
 """
 
 
+def light(client: GuardianClient, channel: str, power_pct: float) -> None:
+    """As the daemon does: heartbeat, arm for 30 s, set the power, enable."""
+    client.heartbeat()
+    client.arm(30)
+    client.set_power(channel, power_pct)
+    client.enable(channel)
+
+
 def guardian_settings(sock, heartbeat_timeout_s: float = 0.5) -> LaserSettings:
     return LaserSettings(
         reply_timeout_s=0.2,
@@ -127,10 +135,7 @@ def test_nhfd_laser_off_through_the_guardian(mecom_twin, short_dir, capsys):
     guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
                               port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
     with reaped(guardian), controller(sock) as client:
-        client.heartbeat()
-        client.arm(30)
-        client.set_power("green", 2.0)
-        client.enable("green")
+        light(client, "green", 2.0)
         assert mecom_twin.emitting()["green"] == 2.0
         assert main(["laser-off", "--socket", str(sock)]) == 0
         assert mecom_twin.emitting()["green"] == 0.0
@@ -144,10 +149,7 @@ def test_the_guardian_switches_off_and_exits_on_sigterm(mecom_twin, short_dir):
                               port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
     with reaped(guardian):
         with controller(sock) as client:
-            client.heartbeat()
-            client.arm(30)
-            client.set_power("red", 1.0)
-            client.enable("red")
+            light(client, "red", 1.0)
             sent = time.monotonic()
             guardian.send_signal(signal.SIGTERM)
             assert guardian.wait(timeout=5) == 0
@@ -276,10 +278,7 @@ def test_nhfd_laser_off_ends_a_hung_guardian_and_switches_off_itself(mecom_twin,
     guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
                               port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
     with reaped(guardian), controller(sock) as client:
-        client.heartbeat()
-        client.arm(30)
-        client.set_power("red", 3.0)
-        client.enable("red")
+        light(client, "red", 3.0)
         guardian.send_signal(signal.SIGSTOP)  # hung: the socket accepts, nothing answers
         try:
             # No --port: the port comes from the verified guardian's own command line.
@@ -301,10 +300,7 @@ def test_nhfd_laser_off_frees_a_port_held_by_a_hung_guardian_on_another_socket(m
     guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
                               port=mecom_twin.port_path, stderr=subprocess.DEVNULL)
     with reaped(guardian), controller(sock) as client:
-        client.heartbeat()
-        client.arm(30)
-        client.set_power("blue", 4.0)
-        client.enable("blue")
+        light(client, "blue", 4.0)
         guardian.send_signal(signal.SIGSTOP)
         try:
             code = main(["laser-off", "--socket", str(short_dir / "other.sock"),

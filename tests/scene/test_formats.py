@@ -399,7 +399,7 @@ def test_sog_bad_files_name_file_and_problem(tmp_path: Path) -> None:
           r"v1: unsupported SOG version None \(supported: 2; .*deprecated version 1\)")
     fails(bundle("v3", meta | {"version": 3}), r"v3: unsupported SOG version 3")
     fails(bundle("nomeans", {k: v for k, v in meta.items() if k != "means"}),
-          r"nomeans: malformed SOG meta\.json \(bad or missing 'means'\)")
+          r"nomeans: malformed SOG meta\.json \(KeyError: 'means'\)")
     fails(bundle("noimg", meta, drop="quats.webp"), r"noimg: SOG bundle has no quats\.webp")
     fails(bundle("badimg", meta, garble="sh0.webp"), r"badimg: unreadable SOG image sh0\.webp")
     fails(bundle("many", meta | {"count": 100}), r"many: SOG image means_l\.webp has 64 pixels "
