@@ -37,7 +37,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from nhfd.calib.capture import SimBenchIO, capture
 from nhfd.calib.fit import fit_capture, geometry_from, measure_response
 from nhfd.drivers.simcamera import TrueBench
-
 from tests.calib.conftest import PANEL_HW, small_plan, small_spec
 
 

@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from nhfd.models.inputs import depth_channel, input_channels, mapped_depth
 
 from nhfd.dataset.build import load_manifest, shard_name
 from nhfd.dataset.shard import read_shard
+from nhfd.models.inputs import depth_channel, input_channels, mapped_depth
 
 
 @dataclass

@@ -18,10 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from nhfd.models.data import HoloData
 from nhfd.models.inputs import ALPHA_CONTENT
 from nhfd.models.loss import Optics
-
 from nhfd.optics import (
     Aperture,
     KernelCache,

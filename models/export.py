@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
 from nhfd.models.metadata import (
     METADATA_KEY,
     NotAModel,
@@ -47,6 +48,7 @@ def export_onnx(
     (max abs difference over amplitude and phase, at sizes other than the traced one)."""
     import onnx
     import torch
+
     from nhfd.models.serving import ServingNet
     from nhfd.models.train import load_run
 

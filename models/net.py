@@ -18,10 +18,10 @@ from dataclasses import asdict, dataclass
 
 import torch
 import torch.nn.functional as F
-from nhfd.models.inputs import input_channels
 from torch import nn
 
 from nhfd.config import DEPTH_MAX, GROWTH_RANGE, SKIPS, WIDTH_MAX
+from nhfd.models.inputs import input_channels
 
 # sRGB renders of splat scenes on black are dark on average; centring them is enough.
 INPUT_MEAN = 0.5

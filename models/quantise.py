@@ -42,13 +42,14 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
     over."""
     import numpy as np
     import onnx
-    from nhfd.models.net import pad_amounts
     from onnxruntime.quantization import (
         CalibrationDataReader,
         QuantFormat,
         QuantType,
         quantize_static,
     )
+
+    from nhfd.models.net import pad_amounts
 
     model = onnx.load(str(src))
     split = data.splits["train"]

@@ -24,8 +24,9 @@ operator per graph:
 from __future__ import annotations
 
 import torch
-from nhfd.models.net import INPUT_MEAN, INPUT_STD, NHFNet
 from torch import nn
+
+from nhfd.models.net import INPUT_MEAN, INPUT_STD, NHFNet
 
 
 def _unshuffle_weights(channels: int, f: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -24,6 +24,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
+from nhfd import __version__
+from nhfd.config import LEARNING_RATE_RULE, ModelSettings, learning_rate_ok
 from nhfd.models.data import (
     HoloData,
     batch_views,
@@ -35,9 +38,6 @@ from nhfd.models.data import (
 from nhfd.models.loss import FocalStackLoss, Optics, choose_planes, uniform_planes
 from nhfd.models.metadata import manifest_sha256
 from nhfd.models.net import NetSpec, build_net, parameter_count, predict, to_field
-
-from nhfd import __version__
-from nhfd.config import LEARNING_RATE_RULE, ModelSettings, learning_rate_ok
 
 CHECKPOINT = "checkpoint.pt"
 RUN_JSON = "run.json"

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import torch
+
 from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 REPO = Path(__file__).resolve().parents[1]

@@ -4,6 +4,7 @@ curve, flags saturation, averages bursts and subtracts the dark frame."""
 from __future__ import annotations
 
 import numpy as np
+
 from nhfd.drivers.camera import Camera, CameraSettings, ResponseCurve
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+
 from nhfd.calib.capture import CapturePlan, SimBenchIO, capture
 from nhfd.calib.fit import fit_capture
 from nhfd.calib.patterns import PatternSpec

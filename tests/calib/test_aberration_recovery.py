@@ -14,13 +14,13 @@ import math
 
 import numpy as np
 import pytest
+
 from nhfd.calib.bench_model import BenchModel, ModelDepthFit, fit_aberration, to_slm_grid
 from nhfd.calib.geometry import Geometry
 from nhfd.calib.patterns import PatternSpec, dots_frame, flat_frames
 from nhfd.calib.response import fit_source
 from nhfd.drivers.settings import CameraSettings
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
-
 from nhfd.optics import PhaseCurve
 
 PANEL_HW = (128, 128)

@@ -7,13 +7,13 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+
 from nhfd.calib.active import active_calibration, calibration_refusal
 from nhfd.calib.calibration import (
     PITCH_REL_TOL,
     WAVELENGTH_REL_TOL,
     CalibrationFileError,
 )
-
 from nhfd.config import Config
 from tests.daemon.test_bad_inputs import write_calibration
 

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 from daemon.conftest import Running, bench_config
+
 from nhfd.calib.capture import (
     CaptureError,
     CapturePlan,
@@ -23,9 +24,8 @@ from nhfd.calib.capture import (
     capture,
     daemon_spec,
 )
-from nhfd.drivers.simcamera import TrueBench
-
 from nhfd.daemon.protocol import RpcError
+from nhfd.drivers.simcamera import TrueBench
 
 PANEL_HW = (128, 128)
 

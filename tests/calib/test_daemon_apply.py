@@ -8,12 +8,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from nhfd.calib.active import active_calibration
 from nhfd.calib.calibration import CalibrationFileError
-from nhfd.drivers.simcamera import TrueBench
-
 from nhfd.config import Config
 from nhfd.daemon.frames import frame_settings
+from nhfd.drivers.simcamera import TrueBench
 
 from .twin_stack import (
     amplitude_for,

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from nhfd.calib.calibration import Calibration, CalibrationFileError
 from nhfd.calib.capture import Capture, CaptureError, SimBenchIO
 from nhfd.calib.data import CalibrationDataError

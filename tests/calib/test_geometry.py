@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from nhfd.calib.geometry import GeometryError, fit_geometry
 from nhfd.calib.patterns import PatternSpec, dot_layout
 

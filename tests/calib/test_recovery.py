@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from nhfd.calib.capture import SimBenchIO, capture
 from nhfd.calib.fit import geometry_from, measure_response
 from nhfd.calib.response import ResponseFit

@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from nhfd.calib.bench_model import apply_pupil
-from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 
+from nhfd.calib.bench_model import apply_pupil
 from nhfd.daemon.frames import Encoder, FrameSettings
+from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 
 
 def _zernike(seed: int) -> tuple[float, ...]:

@@ -9,10 +9,10 @@ from collections.abc import Callable
 
 import numpy as np
 import torch
-from nhfd.drivers.settings import CameraSettings
-from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 
 from nhfd.daemon.frames import Encoder, FrameSettings
+from nhfd.drivers.settings import CameraSettings
+from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 from nhfd.optics import propagate
 
 PANEL_HW = (128, 128)

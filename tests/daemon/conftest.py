@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 from nhfd.config import Config, _overlay, default_text
 from nhfd.daemon.client import Client
 from nhfd.daemon.service import Daemon
+from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 
 @pytest.fixture
@@ -114,9 +114,8 @@ def _compile_frame_kernels(tiny: dict[str, Path]) -> None:
     """One frame in this process, outside every test's deadline: numba compiles the renderer and
     the coder once and caches them, so a daemon's spawned worker loads them instead of spending
     20 s or more compiling on its first frame (a fresh checkout has no cache)."""
-    from nhfd.models.export import load_model
-
     from nhfd.daemon.frames import Pipeline, SceneFrame, frame_settings
+    from nhfd.models.export import load_model
     from nhfd.scene.io import load_scene
 
     from .test_frames import FRONT_VIEW, small_config

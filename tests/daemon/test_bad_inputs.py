@@ -91,9 +91,8 @@ def test_a_model_that_cannot_take_the_frames_is_refused_and_the_old_one_keeps_ru
 
 
 def test_check_inference_passes_the_good_model_and_names_each_mismatch(tiny, tmp_path):
-    from nhfd.models.export import load_model
-
     from nhfd.daemon.worker import ModelUnfit, check_inference
+    from nhfd.models.export import load_model
 
     check_inference(load_model(tiny["model"]), WINDOW_HW, "tiny.onnx")  # a working model passes
     for kind, refusal in REFUSALS.items():
@@ -172,7 +171,6 @@ def _with_calibration(config: Any, path: Path) -> Any:
 def test_a_hot_swapped_calibration_for_another_bench_is_refused_and_the_old_one_kept(
         short_dir, mecom_twin):
     from nhfd.calib import active
-
     from nhfd.daemon.protocol import INVALID_FILE, RpcError
 
     from .conftest import bench_config
@@ -221,7 +219,6 @@ def test_a_hot_swapped_calibration_for_another_bench_is_refused_and_the_old_one_
 
 def test_the_daemon_refuses_to_start_on_a_calibration_for_another_pitch(short_dir, mecom_twin):
     from nhfd.calib.calibration import CalibrationFileError
-
     from nhfd.daemon.service import Daemon
 
     from .conftest import bench_config

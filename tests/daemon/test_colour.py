@@ -6,10 +6,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from nhfd.drivers.settings import COLOURS
 
 from nhfd.daemon.colour import panel_for_mode
 from nhfd.daemon.protocol import RpcError
+from nhfd.drivers.settings import COLOURS
 
 from .conftest import Running, bench_config, wait_until
 

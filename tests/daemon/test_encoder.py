@@ -11,10 +11,10 @@ import math
 import numpy as np
 import pytest
 import torch
-from nhfd.drivers.slm import SimulatedSLM, to_rgb
 
 from nhfd.daemon.colour import panel_for_mode
 from nhfd.daemon.frames import Encoder, FrameSettings, PanelBuffer, zero_pattern
+from nhfd.drivers.slm import SimulatedSLM, to_rgb
 from nhfd.optics import Aperture, double_phase, phase_to_grey, propagate, transfer_function
 
 SETTINGS = FrameSettings(
@@ -38,7 +38,6 @@ def slm_field_by_definition(enc: Encoder, reference: torch.Tensor) -> torch.Tens
     the conjugate pupil on each colour's padded grid): what `Encoder.to_slm` computed before it
     was reduced to the kept frequencies."""
     from nhfd.calib.bench_model import pupil_phase
-
     from nhfd.optics.padding import plan_padding
 
     s, r = enc.settings, enc.region

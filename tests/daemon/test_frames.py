@@ -114,7 +114,6 @@ def relative_error_up_to_phase(shown: torch.Tensor, wanted: torch.Tensor) -> lis
 
 def test_frame_reconstructs_the_predicted_field_and_leaves_the_rest_zero(tiny):
     from nhfd.models.export import load_model
-
     from nhfd.scene.io import load_scene
 
     config = small_config()

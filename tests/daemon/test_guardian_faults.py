@@ -16,11 +16,11 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
+from nhfd.daemon.service import Daemon
 from nhfd.drivers.guardian import GuardianRefused, alive, port_holders, spawn_guardian
 from nhfd.drivers.settings import GuardianSettings, LaserSettings
 from nhfd.drivers.twins.mecom_twin import MecomTwin
-
-from nhfd.daemon.service import Daemon
 
 from .conftest import Running, bench_config, free_port, wait_until
 

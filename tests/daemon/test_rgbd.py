@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import numpy as np
-from nhfd.models.export import load_model
-from nhfd.models.inputs import depth_channel, mapped_depth
 
 from nhfd.daemon.frames import Pipeline, SceneFrame, frame_settings, render_camera
+from nhfd.models.export import load_model
+from nhfd.models.inputs import depth_channel, mapped_depth
 from nhfd.scene.io import load_scene
 from nhfd.scene.raster import render
 

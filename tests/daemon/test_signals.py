@@ -11,9 +11,9 @@ import sys
 import time
 
 import pytest
-from nhfd.drivers.guardian import port_holders
 
 from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.drivers.guardian import port_holders
 
 from .conftest import wait_until
 

@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from nhfd.models.export import load_model
 
 from nhfd.config import Config, _overlay
 from nhfd.daemon.frames import Encoder, frame_region, frame_settings
+from nhfd.models.export import load_model
 
 from .test_frames import FRONT_VIEW, daemon_config, wait_for_frames
 

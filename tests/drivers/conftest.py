@@ -14,6 +14,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+
 from nhfd.drivers.settings import LaserSettings, StageSettings
 from nhfd.drivers.twins.apt_twin import AptTwin
 from nhfd.drivers.twins.clock import ManualClock

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from nhfd.drivers import apt
 from nhfd.drivers.settings import StageSettings
 from nhfd.drivers.stage import AptDeviceError

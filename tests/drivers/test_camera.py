@@ -10,6 +10,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 import torch
+from pydantic import ValidationError
+
 from nhfd.drivers.camera import (
     Camera,
     CameraSettings,
@@ -21,8 +23,6 @@ from nhfd.drivers.camera import (
 from nhfd.drivers.errors import DeviceError
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench, slm_frame_source
 from nhfd.drivers.slm import SimulatedSLM
-from pydantic import ValidationError
-
 from nhfd.optics import Aperture, apply_aperture, double_phase, phase_to_grey, propagate
 
 N = 128  # simulated panel (pixels per side): 1 mm at 8 um

@@ -8,10 +8,10 @@ import types
 from types import SimpleNamespace
 
 import pytest
-from nhfd.drivers import discovery
 
 from nhfd.cli.main import main
 from nhfd.config import Config
+from nhfd.drivers import discovery
 
 
 def port(device, vid, pid, serial, product="", manufacturer=""):

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pytest
+
+from nhfd.config import Config, ConfigError, check_file
 from nhfd.drivers import factory
 from nhfd.drivers.framebuffer import FramebufferSLM
 from nhfd.drivers.laser import MecomLaser
@@ -10,8 +12,6 @@ from nhfd.drivers.navigator import SimulatedNavigator, SpaceMouseNavigator, Wayp
 from nhfd.drivers.slm import SimulatedSLM
 from nhfd.drivers.stage import AptStage
 from nhfd.drivers.twins.clock import ManualClock
-
-from nhfd.config import Config, ConfigError, check_file
 
 
 def devices(**update):
@@ -105,6 +105,7 @@ def test_device_settings_are_validated_with_the_key_named(tmp_path, text, messag
 def test_simulated_camera_sees_the_simulated_bench():
     """The factory's camera images what the simulated SLM shows, only while a laser emits."""
     import numpy as np
+
     from nhfd.drivers.simcamera import TrueBench
 
     d = Config().devices

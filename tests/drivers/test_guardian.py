@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 
 import pytest
+
+from nhfd.cli.main import main
 from nhfd.drivers.guardian import (
     GuardianClient,
     GuardianError,
@@ -29,8 +31,6 @@ from nhfd.drivers.guardian import (
 )
 from nhfd.drivers.settings import GuardianSettings, LaserSettings
 from nhfd.drivers.twins.mecom_twin import MecomTwin
-
-from nhfd.cli.main import main
 
 from .conftest import read_line, reaped
 

@@ -15,6 +15,7 @@ import time
 from textwrap import dedent
 
 import pytest
+
 from nhfd.drivers import mecom
 from nhfd.drivers.errors import LinkDown, ReplyTimeout, WrongDevice
 from nhfd.drivers.laser import LaserFault, MecomLaser, NotArmed, ReadbackMismatch

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from nhfd.drivers import mecom
 from nhfd.drivers.errors import ProtocolError
 

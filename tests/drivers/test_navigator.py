@@ -7,6 +7,7 @@ import sys
 import types
 
 import pytest
+
 from nhfd.drivers.errors import DeviceError, PortNotFound, ProtocolError
 from nhfd.drivers.navigator import (
     RawState,

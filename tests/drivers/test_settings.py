@@ -7,8 +7,9 @@ import importlib
 from pathlib import Path
 
 import pytest
-from nhfd.drivers import settings as st
 from pydantic import ValidationError
+
+from nhfd.drivers import settings as st
 
 DRIVERS = Path(__file__).resolve().parents[2] / "drivers"
 

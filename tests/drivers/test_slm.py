@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from nhfd.drivers.framebuffer import FramebufferError, FramebufferSLM
 from nhfd.drivers.settings import SLMOutputSettings
 from nhfd.drivers.slm import SimulatedSLM, SLMOutputLost, to_rgb
@@ -153,7 +154,6 @@ def test_framebuffer_notices_an_unplugged_output(tmp_path):
 def test_the_driver_and_the_coder_agree_on_the_panel_depth():
     """drivers.slm keeps its own copy (no torch in SLM backends); it must equal the coder's."""
     from nhfd.drivers.slm import GREY_LEVELS as driver_levels
-
     from nhfd.optics.dpac import GREY_LEVELS as coder_levels
 
     assert driver_levels == coder_levels == 256

@@ -6,6 +6,7 @@ import threading
 import time
 
 import pytest
+
 from nhfd.drivers import apt
 from nhfd.drivers.errors import LinkDown, ReplyTimeout, WrongDevice
 from nhfd.drivers.stage import (

@@ -8,6 +8,7 @@ import tty
 from types import SimpleNamespace
 
 import pytest
+
 from nhfd.drivers import transport as tr
 from nhfd.drivers.errors import PortBusy, PortNotFound, PortVanished, ReplyTimeout, TransportError
 

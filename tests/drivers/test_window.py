@@ -6,6 +6,7 @@ import sys
 from types import SimpleNamespace
 
 import pytest
+
 from nhfd.drivers.settings import SLMOutputSettings
 from nhfd.drivers.window import WindowError, WindowSLM, pick_screen
 

@@ -178,7 +178,6 @@ def _eval_focus(g: Gaussians, field: torch.Tensor | None = None) -> dict:
     `field` (default: the target itself) as the prediction: the bin holding most of `g`."""
     from nhfd.models.evaluate import focus_check
     from nhfd.models.loss import Optics
-
     from nhfd.optics.cache import KernelCache
     from nhfd.scene.raster import render
 

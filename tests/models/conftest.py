@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+
 from nhfd.models.synthetic import synthetic_dataset
 from nhfd.models.train import TrainOptions, train
 

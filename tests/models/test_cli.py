@@ -40,6 +40,7 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
 def _int8_is_quantised_and_close(float_path, int8_path):
     import numpy as np
     import onnx
+
     from nhfd.models.export import OnnxModel
     from nhfd.models.quantise import output_nodes
 

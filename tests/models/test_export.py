@@ -7,12 +7,12 @@ import json
 import numpy as np
 import pytest
 import torch
+
+from nhfd.config import Config
 from nhfd.models.export import OnnxModel, export_onnx, load_model
 from nhfd.models.metadata import ModelMismatch, NotAModel, expected_from_config
 from nhfd.models.net import predict
 from nhfd.models.train import load_run
-
-from nhfd.config import Config
 
 
 @pytest.fixture(scope="module")

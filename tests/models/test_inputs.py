@@ -8,14 +8,14 @@ import json
 import numpy as np
 import pytest
 import torch
+
+from nhfd.dataset.build import shard_name
+from nhfd.dataset.shard import read_shard
 from nhfd.models.data import HoloData
 from nhfd.models.export import OnnxModel, export_onnx
 from nhfd.models.inputs import depth_channel, input_channels, mapped_depth, network_input
 from nhfd.models.net import NetSpec, build_net, predict
 from nhfd.models.train import load_run, train
-
-from nhfd.dataset.build import shard_name
-from nhfd.dataset.shard import read_shard
 
 from .conftest import tiny_options
 

@@ -7,6 +7,7 @@ import itertools
 import numpy as np
 import pytest
 import torch
+
 from nhfd.models.data import HoloData, centre_crop_edges, random_crop
 from nhfd.models.loss import (
     FocalStackLoss,
@@ -16,7 +17,6 @@ from nhfd.models.loss import (
     spectral_field_error,
     uniform_planes,
 )
-
 from nhfd.optics import propagate
 
 
@@ -175,6 +175,7 @@ def pytest_approx(v):
 
 def test_vgg_term_loads_only_a_local_file(tiny_data, tmp_path):
     import pytest
+
     from nhfd.models.vgg import VGGFeatures
 
     optics = Optics.from_manifest(HoloData(tiny_data, splits=("train",)).manifest)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+
 from nhfd.models.net import NetSpec, build_net, pad_to_multiple, predict
 
 

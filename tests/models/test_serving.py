@@ -7,10 +7,10 @@ import onnx
 import pytest
 import torch
 import torch.nn.functional as F
+
 from nhfd.models.export import export_onnx
 from nhfd.models.net import NetSpec, build_net
 from nhfd.models.serving import ServingNet, softplus_exportable
-
 from tests.models.conftest import tiny_options
 
 

@@ -38,12 +38,11 @@ def test_shipped_model_matches_the_default_configuration(shipped):
 
 
 def test_shipped_model_beats_the_2d_hologram_on_new_views(shipped, tmp_path):
-    from nhfd.models.export import OnnxModel
-    from nhfd.models.inputs import network_input
-
     from nhfd.dataset.build import build, shard_name
     from nhfd.dataset.poses import PoseSampler
     from nhfd.dataset.shard import ExampleSettings, read_shard
+    from nhfd.models.export import OnnxModel
+    from nhfd.models.inputs import network_input
     from nhfd.optics import Aperture, focal_stack_quality, hologram_2d, quality_planes
     from nhfd.scene.io import load_scene
 

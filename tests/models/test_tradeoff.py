@@ -8,9 +8,6 @@ import json
 import onnx
 import pytest
 import torch
-from nhfd.models.export import export_onnx
-from nhfd.models.quantise import output_nodes
-from nhfd.models.train import CHECKPOINT, train
 
 from nhfd.bench.tradeoff import (
     fastest_within,
@@ -20,6 +17,9 @@ from nhfd.bench.tradeoff import (
     run,
     variants,
 )
+from nhfd.models.export import export_onnx
+from nhfd.models.quantise import output_nodes
+from nhfd.models.train import CHECKPOINT, train
 from tests.models.conftest import tiny_options
 
 

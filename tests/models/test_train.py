@@ -6,6 +6,7 @@ import csv
 
 import pytest
 import torch
+
 from nhfd.models.data import HoloData, batch_views
 from nhfd.models.loss import FocalStackLoss, Optics, uniform_planes
 from nhfd.models.net import predict, to_field
