@@ -12,11 +12,11 @@ serial number to put in the config.
 
 from __future__ import annotations
 
-import os
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from .navigator import matches as spacemouse_matches
+from .transport import same_port
 
 THORLABS_VID_PID = (0x0403, 0xFAF0)
 # Which backend value makes each entry the one in use.
@@ -58,10 +58,6 @@ def _entry(devices: Any, entry: str, why: str) -> str:
     return f"devices.{entry} ({why}; {state})"
 
 
-def _same_port(a: str, b: str) -> bool:
-    return bool(a and b) and (a == b or os.path.realpath(a) == os.path.realpath(b))
-
-
 def uses_of(devices: Any, *, port: str = "", serial_number: str = "", vid: int | None = None,
             pid: int | None = None) -> list[str]:
     """Every config entry that would use a device with these properties, in words."""
@@ -70,7 +66,7 @@ def uses_of(devices: Any, *, port: str = "", serial_number: str = "", vid: int |
         settings = getattr(devices, entry)
         if settings.usb_serial and serial_number == settings.usb_serial:
             out.append(_entry(devices, entry, f"usb_serial {serial_number}"))
-        elif port and _same_port(port, settings.port):
+        elif port and same_port(port, settings.port):
             out.append(_entry(devices, entry, f"port {settings.port}"))
     if vid is not None and pid is not None and spacemouse_matches(
             vid, pid, devices.spacemouse.usb_ids):

@@ -661,6 +661,20 @@ def guardian_port(pid: int) -> str:
     return ""
 
 
+def wait_gone(pid: int, timeout_s: float) -> bool:
+    """Wait until `pid` has exited (reaping it if it is our child); False if it still runs after
+    `timeout_s`."""
+    deadline = time.monotonic() + timeout_s
+    while alive(pid):
+        with contextlib.suppress(ChildProcessError):
+            if os.waitpid(pid, os.WNOHANG)[0] == pid:
+                return True
+        if time.monotonic() > deadline:
+            return False
+        time.sleep(0.005)
+    return True
+
+
 def kill_guardian(pid: int, timeout_s: float = 3.0) -> bool:
     """SIGKILL a verified guardian of ours and wait until it is gone (its port is free then);
     False when `pid` is not one (nothing is sent)."""
@@ -668,19 +682,9 @@ def kill_guardian(pid: int, timeout_s: float = 3.0) -> bool:
         return False
     with contextlib.suppress(ProcessLookupError):
         os.kill(pid, signal.SIGKILL)
-    deadline = time.monotonic() + timeout_s
-    while alive(pid):
-        with contextlib.suppress(ChildProcessError):
-            if os.waitpid(pid, os.WNOHANG)[0] == pid:
-                break
-        if time.monotonic() > deadline:
-            raise GuardianError(f"guardian pid {pid} still alive {timeout_s:g} s after SIGKILL")
-        time.sleep(0.005)
+    if not wait_gone(pid, timeout_s):
+        raise GuardianError(f"guardian pid {pid} still alive {timeout_s:g} s after SIGKILL")
     return True
-
-
-def same_port(reported: str, expected: str) -> bool:
-    return bool(reported) and os.path.realpath(reported) == os.path.realpath(expected)
 
 
 if __name__ == "__main__":

@@ -36,6 +36,11 @@ log = logging.getLogger(__name__)
 _POLL_S = 0.05
 
 
+def same_port(a: str, b: str) -> bool:
+    """True when two port paths name the same device (a /dev/serial/by-id link and its tty)."""
+    return bool(a and b) and (a == b or os.path.realpath(a) == os.path.realpath(b))
+
+
 @dataclass(frozen=True)
 class LineControl:
     """What a device needs from the line beyond bytes, applied once after open."""

@@ -171,26 +171,16 @@ class Bench:
         for pid in self.pids:  # a guardian that outlived its daemon (SIGKILL) holds the port
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGTERM)
-        deadline = time.monotonic() + 5
+        from nhfd.drivers.guardian import wait_gone
+
         for pid in self.pids:
-            while _alive(pid) and time.monotonic() < deadline:
-                time.sleep(0.05)
-            with contextlib.suppress(ProcessLookupError):
-                if _alive(pid):
+            if not wait_gone(pid, 5.0):
+                with contextlib.suppress(ProcessLookupError):
                     os.kill(pid, signal.SIGKILL)
         self.twin.close()
         self.log.close()
         shutil.rmtree(self.root, ignore_errors=True)
 
-
-def _alive(pid: int) -> bool:
-    """True while pid runs and is not a zombie (a guardian whose parent was killed is reaped by
-    init; one whose parent lives stays a zombie until waited for)."""
-    try:
-        state = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0]
-    except (OSError, IndexError):
-        return False
-    return state != "Z"
 
 
 # -- faults -------------------------------------------------------------------------------------

@@ -83,10 +83,10 @@ def _off_through_guardian(settings: Any, path: Any, group_ok: bool, timeout_s: f
         guardian_pid,
         guardian_port,
         kill_guardian,
-        same_port,
         verify_guardian,
     )
     from nhfd.drivers.rundir import UnsafeDirectory, check_private_dir
+    from nhfd.drivers.transport import same_port
 
     try:
         check_private_dir(path.parent, group_writable_ok=group_ok)

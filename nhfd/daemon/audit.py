@@ -43,8 +43,10 @@ def compact_params(params: Any) -> Any:
 
 
 class AuditLog:
-    def __init__(self, path: Path | None, *, summary_s: float = 1.0,
-                 max_bytes: int = 10 * 2**20, backups: int = 5) -> None:
+    def __init__(self, path: Path | None, *, summary_s: float, max_bytes: int,
+                 backups: int) -> None:
+        """`path` None: nothing is written (a daemon before start). The limits come from
+        `daemon.audit_summary_s`, `audit_max_bytes` and `audit_backups`."""
         self.path = path
         self._file: IO[str] | None = None
         self._size = 0

@@ -36,18 +36,18 @@ from nhfd.drivers.guardian import (
     GuardianRefused,
     GuardianUnavailable,
     GuardianUnresponsive,
-    alive,
     guardian_pid,
     is_our_guardian,
     kill_guardian,
     read_token,
-    same_port,
     socket_path_for,
     spawn_guardian,
     verify_guardian,
+    wait_gone,
 )
 from nhfd.drivers.rundir import UnsafeDirectory, make_private_dir
 from nhfd.drivers.settings import LaserSettings
+from nhfd.drivers.transport import same_port
 
 from .audit import AuditLog
 from .protocol import LASER_REFUSED, NOT_AVAILABLE, RpcError
@@ -264,10 +264,7 @@ class LaserLink:
     def _end_adopted(self) -> None:
         assert self.client is not None and self.pid is not None
         pid = self.client.shutdown()
-        deadline = time.monotonic() + 5.0
-        while alive(pid) and time.monotonic() < deadline:
-            time.sleep(0.01)
-        if alive(pid):
+        if not wait_gone(pid, 5.0):
             kill_guardian(pid)
         log.info("adopted laser guardian pid %d ended (all off, read back); port free", pid)
 

@@ -118,7 +118,7 @@ class Daemon:
         self.pattern_dirs = resolve_dirs(c.pattern_dirs, self.base_dir)
         self.handle_signals = handle_signals
         self.notifier = Notifier(self.env)
-        self.audit = AuditLog(None)
+        self.audit = self._audit_log(None)
         self.laser: LaserLink = LaserLink(config.devices.readybeam, config.devices.laser,
                                           c.guardian, self.audit, refresh_s=c.laser_refresh_s,
                                           runtime_dir=self.runtime_dir,
@@ -169,8 +169,7 @@ class Daemon:
         # Another user could have made /tmp/nhfd-<uid> first, with a fake guardian in it.
         make_private_dir(self.runtime_dir, group_writable_ok=bool(c.socket_group), mode=0o750)
         self._take_lock()
-        self.audit = AuditLog(self._audit_path(), summary_s=c.audit_summary_s,
-                              max_bytes=c.audit_max_bytes, backups=c.audit_backups)
+        self.audit = self._audit_log(self._audit_path())
         self.laser.audit = self.audit
         self.audit.write({"who": "daemon", "pid": os.getpid()}, "start",
                          version=__version__, runtime_dir=str(self.runtime_dir))
@@ -227,6 +226,11 @@ class Daemon:
         f.write(f"{os.getpid()}\n")
         f.flush()
         self._lock_file = f
+
+    def _audit_log(self, path: Path | None) -> AuditLog:
+        c = self.config.daemon
+        return AuditLog(path, summary_s=c.audit_summary_s, max_bytes=c.audit_max_bytes,
+                        backups=c.audit_backups)
 
     def _audit_path(self) -> Path:
         c = self.config.daemon

@@ -66,7 +66,7 @@ def test_twenty_thousand_refusals_stay_under_the_limit_with_exact_counts(short_d
 
 def test_rotation_by_size_keeps_every_line_whole_and_the_newest(tmp_path):
     path = tmp_path / "audit.jsonl"
-    log = AuditLog(path, max_bytes=4096, backups=2)
+    log = AuditLog(path, summary_s=1.0, max_bytes=4096, backups=2)
     for i in range(300):
         log.write({"who": "test"}, "laser", params={"action": "off", "n": i}, outcome="ok")
     log.close()
@@ -80,7 +80,7 @@ def test_rotation_by_size_keeps_every_line_whole_and_the_newest(tmp_path):
 
 def test_a_short_refusal_keeps_its_params_and_repeats_count_after_the_window(tmp_path):
     path = tmp_path / "audit.jsonl"
-    log = AuditLog(path, summary_s=3600)
+    log = AuditLog(path, summary_s=3600, max_bytes=2**20, backups=1)
     who = {"transport": "tcp", "peer": "127.0.0.1:5"}
     for _ in range(5):
         log.refused(who, "laser", 1003, "forbidden", "arming is accepted only over the Unix "
