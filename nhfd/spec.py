@@ -18,6 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 GREY_LEVELS = 256
+# Plausible optics in SI units (the optics core and the light-field renderer refuse values
+# outside): a value beyond is almost always a unit slip, nanometres or micrometres given as
+# metres, which would otherwise give a silently wrong, finite answer.
+WAVELENGTH_RANGE_M = (100e-9, 10e-6)
+PITCH_RANGE_M = (0.1e-6, 1e-3)
 TWO_PI = 2 * math.pi
 # Double-phase coding of amplitude 0: phase 0 +- acos(0), + on pixels whose row + column is even.
 # The two phases cancel on the checkerboard, whose light the Fourier aperture blocks.

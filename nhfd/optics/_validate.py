@@ -12,10 +12,8 @@ from collections.abc import Iterable, Sequence
 import numpy as np
 import torch
 
-# Plausible ranges in SI units. A value outside is almost always a unit slip (nanometres or
-# micrometres passed as metres), which would otherwise give a silently wrong, finite answer.
-WAVELENGTH_RANGE_M = (100e-9, 10e-6)
-PITCH_RANGE_M = (0.1e-6, 1e-3)
+from nhfd.spec import PITCH_RANGE_M, WAVELENGTH_RANGE_M
+
 # Propagation distances: ten times the largest configured SLM-to-volume distance (1 m). Far
 # beyond, the band limit leaves nothing and the padding plan would try to hold an absurd reach.
 Z_MAX_M = 10.0

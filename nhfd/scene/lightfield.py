@@ -23,6 +23,7 @@ import numpy as np
 from nhfd.scene.cameras import Camera
 from nhfd.scene.gaussians import Gaussians
 from nhfd.scene.raster import RasterSettings, Render, prepare, render_prepared
+from nhfd.spec import PITCH_RANGE_M, WAVELENGTH_RANGE_M
 
 
 @dataclass(frozen=True)
@@ -49,10 +50,13 @@ class DepthMapping:
 
 
 def _check_optics(wavelength_m: float, pitch_m: float, f_cut_per_px: float) -> None:
-    if not (100e-9 < wavelength_m < 2e-6):
-        raise ValueError(f"wavelength must be in (100, 2000) nm, got {wavelength_m * 1e9:.4g} nm")
-    if not (0.1e-6 < pitch_m < 1e-3):
-        raise ValueError(f"pitch must be in (0.1, 1000) um, got {pitch_m * 1e6:.4g} um")
+    (w_lo, w_hi), (p_lo, p_hi) = WAVELENGTH_RANGE_M, PITCH_RANGE_M
+    if not (w_lo <= wavelength_m <= w_hi):
+        raise ValueError(f"wavelength must be in [{w_lo * 1e9:g}, {w_hi * 1e9:g}] nm, got "
+                         f"{wavelength_m * 1e9:.4g} nm")
+    if not (p_lo <= pitch_m <= p_hi):
+        raise ValueError(f"pitch must be in [{p_lo * 1e6:g}, {p_hi * 1e6:g}] um, got "
+                         f"{pitch_m * 1e6:.4g} um")
     if not (0 < f_cut_per_px <= 0.5):
         raise ValueError(f"aperture cutoff must be in (0, 0.5] cycles/px, got {f_cut_per_px}")
 
