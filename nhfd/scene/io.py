@@ -52,6 +52,7 @@ __all__ = [
     "save_compressed_ply",
     "save_ply",
     "save_splat",
+    "scene_format",
     "scene_summary",
 ]
 
@@ -191,26 +192,56 @@ def check_plausible(path: PathLike, load: SceneLoad) -> None:
 Arrays = dict[str, np.ndarray]
 
 
-def _read_arrays(path: Path) -> Arrays:
-    if path.is_dir() or path.name.lower() == "meta.json":  # a SOG folder
-        return sog.read_sog(path)
-    with path.open("rb") as f:
-        magic = f.read(4)
-    if magic[:3] == b"ply":
-        return _load_ply(path)
-    if magic[:2] == b"\x1f\x8b" or magic == spz.SPZ_MAGIC:  # .spz v2/v3 gzip, v4 NGSP
-        return spz.read_spz(path)
-    if magic == gltf_splat.GLB_MAGIC or path.suffix.lower() == ".gltf":
-        return gltf_splat.read_gltf(path)
-    if magic == sog.ZIP_MAGIC or path.suffix.lower() == ".sog":  # a SOG zip bundle
-        return sog.read_sog(path)
+def scene_format(path: PathLike) -> str | None:
+    """The file's format from its header (its name only where the format has no magic):
+    'ply', 'compressed' (PlayCanvas .ply), 'splat', 'spz', 'gltf', 'sog', or None when it is
+    none of these or unreadable (`load_scene` says why)."""
+    path = Path(path)
+    if path.suffix.lower() == ".sog" or path.name.lower() == "meta.json" or (
+            path / "meta.json").is_file():  # fmt: skip
+        return "sog"
+    try:
+        with path.open("rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return None
+    if head.startswith(b"ply"):
+        return "compressed" if b"element chunk" in head.split(b"end_header", 1)[0] else "ply"
+    if head[:2] == b"\x1f\x8b" or head[:4] == spz.SPZ_MAGIC:  # .spz v2/v3 gzip, v4 NGSP
+        return "spz"
+    if head[:4] == gltf_splat.GLB_MAGIC or path.suffix.lower() == ".gltf":
+        return "gltf"
+    if head[:4] == sog.ZIP_MAGIC:  # a SOG zip bundle under another name
+        return "sog"
     if path.suffix.lower() == ".splat":
+        return "splat"
+    return None
+
+
+# Formats a name promises, and how their files start: a file that breaks the promise says so.
+_MAGIC_OF = {".ply": ("PLY", "'ply'"), ".spz": (".spz", "gzip data or 'NGSP'"),
+             ".glb": (".glb", "'glTF'")}
+
+
+def _read_arrays(path: Path) -> Arrays:
+    if not path.is_dir():
+        with path.open("rb"):  # a missing or unreadable file raises here, as open() words it
+            pass
+    fmt = scene_format(path)
+    if fmt in ("ply", "compressed"):
+        return _load_ply(path)
+    if fmt == "splat":
         return _load_splat(path)
-    if path.suffix.lower() == ".ply":
-        raise SceneFileError(f"{path}: not a PLY file (does not start with 'ply')")
-    if path.suffix.lower() in (".spz", ".glb"):
-        expected = {".spz": "gzip data or 'NGSP'", ".glb": "'glTF'"}[path.suffix.lower()]
-        raise SceneFileError(f"{path}: not a {path.suffix} file (does not start with {expected})")
+    if fmt == "spz":
+        return spz.read_spz(path)
+    if fmt == "gltf":
+        return gltf_splat.read_gltf(path)
+    if fmt == "sog":
+        return sog.read_sog(path)
+    suffix = path.suffix.lower()
+    if suffix in _MAGIC_OF:
+        name, magic = _MAGIC_OF[suffix]
+        raise SceneFileError(f"{path}: not a {name} file (does not start with {magic})")
     raise SceneFileError(
         f"{path}: unknown scene format (expected .ply, .splat, .spz, .glb, .gltf or SOG)"
     )

@@ -36,6 +36,7 @@ import numpy as np
 
 from nhfd.scene.cameras import Camera, intrinsics_from_fov, orbit
 from nhfd.scene.gaussians import Gaussians
+from nhfd.scene.io import scene_format
 
 __all__ = ["FILL", "FLAT_RATIO", "detect_up_axis", "format_hint", "robust_frame",
            "suggest_camera"]
@@ -64,27 +65,9 @@ HINTS = (None, "compressed", "splat", "ply", "spz", "gltf", "sog")
 
 
 def format_hint(path: str | Path) -> str | None:
-    """One of `HINTS` from the file's header (as `load_scene` tells them apart), or None if it
-    is none of these or unreadable (the loader will say why). SOG is told by its name (a `.sog`
-    bundle, its `meta.json`, or a folder holding one)."""
-    path = Path(path)
-    if path.suffix.lower() == ".sog" or path.name == "meta.json" or (path / "meta.json").is_file():
-        return "sog"
-    try:
-        with path.open("rb") as f:
-            head = f.read(4096)
-    except OSError:
-        return None
-    if head.startswith(b"ply"):
-        header = head.split(b"end_header", 1)[0]
-        return "compressed" if b"element chunk" in header else "ply"
-    if head[:2] == b"\x1f\x8b" or head[:4] == b"NGSP":  # gzip stream (v2, v3) or v4 header
-        return "spz"
-    if head[:4] == b"glTF" or path.suffix.lower() == ".gltf":
-        return "gltf"
-    if path.suffix.lower() == ".splat":
-        return "splat"
-    return None
+    """The file's format, one of `HINTS` (`nhfd.scene.io.scene_format`: the loader's own
+    reading of the header), or None if it is none of these or unreadable."""
+    return scene_format(path)
 
 
 def robust_frame(g: Gaussians) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
