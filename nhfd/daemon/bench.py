@@ -40,20 +40,24 @@ def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
     return stage_at_reference_mm + z_mm
 
 
-def zero_coding(config: Any) -> tuple[tuple[PhaseCurve, ...], int, bool]:
-    """The phase curves, sign and grey inversion frames are coded with: the active
-    calibration's measured curves and sign (as `nhfd.daemon.frames.frame_settings` takes them),
-    else the configured ones. A calibration that cannot be loaded (the daemon refuses to start
-    on one, so this is a file gone bad since) falls back to the configured curves: the panel
+def _coding_calibration(config: Any) -> Any:
+    """The calibration frames are coded with, or None. One that cannot be loaded (the daemon
+    refuses to start on one, so this is a file gone bad since) counts as none here: the panel
     must still be blanked."""
     from nhfd.calib.active import active_calibration
 
-    s = config.slm
     try:
-        cal = active_calibration(config)
+        return active_calibration(config)
     except ValueError as exc:
         log.warning("blank pattern from the configured phase curves: %s", exc)
-        cal = None
+        return None
+
+
+def zero_coding(config: Any, cal: Any) -> tuple[tuple[PhaseCurve, ...], int, bool]:
+    """The phase curves, sign and grey inversion frames are coded with: the calibration's
+    measured curves and sign (as `nhfd.daemon.frames.frame_settings` takes them), else the
+    configured ones."""
+    s = config.slm
     curves = spec.phase_curves(s.phase_stroke_rad, cal.phase_tables_rad if cal else ())
     return tuple(curves), int(cal.phase_sign if cal else s.phase_sign), bool(s.grey_invert)
 
@@ -62,7 +66,8 @@ def zero_amplitude_frame(config: Any) -> np.ndarray:
     """The blank pattern of the whole panel ([3, H, W] uint8) through the curves frames are
     coded with (`zero_coding`); see `nhfd.spec.zero_pattern`."""
     s = config.slm
-    return spec.zero_pattern((s.height_px, s.width_px), *zero_coding(config))
+    return spec.zero_pattern((s.height_px, s.width_px),
+                             *zero_coding(config, _coding_calibration(config)))
 
 
 def write_png16(path: Path, image: np.ndarray) -> None:
@@ -97,7 +102,7 @@ class Bench:
         self.errors: dict[str, str | None] = {"slm": None, "stage": None, "camera": None}
         self.showing = "nothing"
         self._blank: np.ndarray | None = None
-        self._blank_coding: tuple[tuple[PhaseCurve, ...], int, bool] | None = None
+        self._blank_calibration: Any = None  # the calibration `_blank` was coded with
         self._stage_state: dict[str, Any] = {}
         self._slm_health: dict[str, Any] = {}
         # SLM output lost / back, for the control loop: (device, lost, detail).
@@ -170,11 +175,14 @@ class Bench:
     def blank_frame(self) -> np.ndarray:
         """The zero pattern of the coding in use (rebuilt when a calibration is swapped in):
         the blank frame and the panel around every view frame."""
-        coding = zero_coding(self.config)
-        if self._blank is None or coding != self._blank_coding:
+        # Called for every frame: the active calibration is one object per file version, so
+        # its identity says whether the pattern must be rebuilt (no curves built per frame).
+        cal = _coding_calibration(self.config)
+        if self._blank is None or cal is not self._blank_calibration:
             s = self.config.slm
-            self._blank = spec.zero_pattern((s.height_px, s.width_px), *coding)
-            self._blank_coding = coding
+            self._blank = spec.zero_pattern((s.height_px, s.width_px),
+                                            *zero_coding(self.config, cal))
+            self._blank_calibration = cal
         return self._blank
 
     @property
