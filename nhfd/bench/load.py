@@ -107,9 +107,12 @@ IDLE_DEVICES = {
 }
 
 
-def _config_text(root: Path, model: Path | None, scene: Path | None,
+def config_text(root: Path, model: Path | None, scene: Path | None,
                  devices: list[str] | None = None, laser_port: str = "",
                  stage_port: str = "") -> str:
+    """A daemon's configuration under `root` (runtime directory, audit log, snapshots), the
+    guardian always spawned: `devices` lines (default: the simulated bench), the laser and
+    stage ports of outside twins, and the model and scene to load at start, if any."""
     dirs = {"scene_dirs": [str(scene.parent)] if scene else [str(root)],
             "model_dirs": [str(model.parent)] if model else [str(root)]}
     if devices is None:
@@ -184,7 +187,7 @@ def idle(window_s: float, settle_s: float = 2.0) -> list[dict[str, Any]]:
         root = Path(tempfile.mkdtemp(prefix="nhfd-idle-", dir="/tmp"))
         twins = [MecomTwin().start(), AptTwin().start()] if devices else []
         cfg = root / "nhfd.toml"
-        cfg.write_text(_config_text(root, None, None, devices,
+        cfg.write_text(config_text(root, None, None, devices,
                                     *(twin.port_path for twin in twins)))
         proc = _serve(cfg)
         try:
@@ -308,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
     idle_rows = idle(args.idle) if args.idle > 0 else []
     root = Path(tempfile.mkdtemp(prefix="nhfd-load-", dir="/tmp"))
     cfg = root / "nhfd.toml"
-    cfg.write_text(_config_text(root, model, scene))
+    cfg.write_text(config_text(root, model, scene))
     proc = _serve(cfg)
     try:
         sock = root / "run" / "control.sock"

@@ -37,6 +37,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from .load import config_text
+
 FAULTS: tuple[str, ...] = (
     "SIGTERM daemon", "SIGINT daemon", "SIGKILL daemon", "SIGKILL frame worker",
     "SIGSTOP daemon", "SIGKILL guardian", "SIGSTOP guardian", "shutdown (RPC)",
@@ -63,22 +65,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 # -- one daemon on the bench --------------------------------------------------------------------
 
 
-def config_text(root: Path, port: str, model: Path | None = None,
-                scene: Path | None = None) -> str:
-    dirs = [str(root)]
-    lines = [
-        "[devices]", 'laser = "readybeam"', 'slm = "simulated"', 'stage = "none"',
-        'camera = "none"', 'navigator = "none"',
-        "[devices.readybeam]", f'port = "{port}"',
-        "[devices.readybeam.guardian]", f'socket_path = "{root / "laser.sock"}"',
-        "[daemon]", f'runtime_dir = "{root / "run"}"', 'guardian = "spawn"',
-        f'audit_log = "{root / "audit.jsonl"}"', f'snapshot_dir = "{root / "snaps"}"',
-        f"scene_dirs = {json.dumps([str(scene.parent)] if scene else dirs)}",
-        f"model_dirs = {json.dumps([str(model.parent)] if model else dirs)}",
-    ]
-    if model is not None and scene is not None:
-        lines += [f'model = "{model}"', f'scene = "{scene}"']
-    return "\n".join(lines) + "\n"
+# The daemon of every trial: the real readybeam driver on the twin's pty, no other device to
+# wait for.
+DEVICES = ['laser = "readybeam"', 'slm = "simulated"', 'stage = "none"', 'camera = "none"',
+           'navigator = "none"']
 
 
 class Bench:
@@ -91,7 +81,7 @@ class Bench:
         self.twin = MecomTwin()
         self.twin.start()
         cfg = self.root / "nhfd.toml"
-        cfg.write_text(config_text(self.root, self.twin.port_path, model, scene))
+        cfg.write_text(config_text(self.root, model, scene, DEVICES, self.twin.port_path))
         self.log = (self.root / "serve.log").open("w")
         self.proc = subprocess.Popen([sys.executable, "-m", "nhfd.cli.main", "serve",
                                       "--config", str(cfg)],
