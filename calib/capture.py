@@ -63,7 +63,7 @@ class SimBenchIO:
 
     def __init__(self, bench: Any, panel_hw: tuple[int, int], *, exposure_s: float = 0.005,
                  roi: tuple[int, int, int, int] | None = None, noise_seed: int = 0) -> None:
-        from nhfd.drivers.settings import CameraSettings
+        from nhfd.device_settings import CameraSettings
         from nhfd.drivers.simcamera import SimulatedCamera
 
         self.bench = bench

@@ -5,7 +5,7 @@ double-phase frames, fitted curves, aperture and ASM), with the stage scale tied
 magnification (1 / M^2).
 
 `fit_capture(DIR)` reads a complete capture (see `nhfd.calib.capture`) and returns a
-`Calibration` (see `nhfd.calib.calibration`). Each stage refuses with a clear error when the
+`Calibration` (see `nhfd.calibration`). Each stage refuses with a clear error when the
 data cannot determine what it fits (`GeometryError`, `FocusError`, `ResponseError`,
 `CalibrationDataError` naming the file at fault).
 """
@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from nhfd.calibration import Calibration
 from nhfd.optics import PhaseCurve
 
 from .bench_model import (
@@ -29,7 +30,6 @@ from .bench_model import (
     fit_depth_model,
     to_slm_grid,
 )
-from .calibration import Calibration
 from .capture import default_camera_pitch_m
 from .data import CaptureData, load_capture, load_frame, load_image
 from .focus import FocusError, dot_metric, fit_depth, peak_position

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .calibration import Calibration
+from nhfd.calibration import Calibration
+
 from .capture import default_camera_pitch_m
 from .data import load_capture
 from .fit import _fine_stack, fit_capture
@@ -27,7 +28,7 @@ from .patterns import dot_layout
 def simulate(cal: Calibration, frame: np.ndarray, stage_mm: float, colour: int,
              image_hw: tuple[int, int]) -> np.ndarray:
     """The fitted bench's noise-free image of `frame` ([H, W, 3] uint8) at a stage reading."""
-    from nhfd.drivers.settings import CameraSettings
+    from nhfd.device_settings import CameraSettings
     from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 
     pitch = float(cal.fitted_on.get("camera_pitch_m") or default_camera_pitch_m())

@@ -27,8 +27,9 @@ from typing import Any
 
 import numpy as np
 
+from nhfd.device_settings import CameraSettings
+
 from .errors import DeviceError
-from .settings import CameraSettings
 
 log = logging.getLogger(__name__)
 

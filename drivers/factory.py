@@ -17,10 +17,11 @@ import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
+from nhfd.device_settings import COLOURS, LaserSettings, StageSettings
+
 from .camera import Camera
 from .laser import Laser, MecomLaser
 from .navigator import Navigator, SimulatedNavigator, SpaceMouseNavigator, Waypoint
-from .settings import COLOURS, LaserSettings, StageSettings
 from .slm import SLM, SimulatedSLM
 from .stage import AptStage, Stage
 from .twins.apt_twin import AptTwin

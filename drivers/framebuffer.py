@@ -21,8 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from nhfd.device_settings import SLMOutputSettings
+
 from .errors import DeviceError
-from .settings import SLMOutputSettings
 from .slm import SLM, SLMHealth
 
 

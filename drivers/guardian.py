@@ -50,10 +50,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nhfd.device_settings import LaserSettings
+
 from .errors import DeviceError, TransportError
 from .laser import Laser, MecomLaser, install_signal_handlers
 from .rundir import GUARDIAN_SOCKET_NAME, UnsafeDirectory, make_private_dir, runtime_dir
-from .settings import LaserSettings
 
 log = logging.getLogger(__name__)
 

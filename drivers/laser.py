@@ -32,9 +32,10 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from types import FrameType
 
+from nhfd.device_settings import COLOURS, LaserSettings
+
 from . import mecom
 from .errors import DeviceError, LinkDown, ProtocolError, ReplyTimeout, TransportError, WrongDevice
-from .settings import COLOURS, LaserSettings
 from .transport import LineControl, Opener, Transport, serial_opener
 
 log = logging.getLogger(__name__)

@@ -19,8 +19,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+from nhfd.device_settings import NavigatorSettings
+
 from .errors import DeviceError, PortNotFound, ProtocolError
-from .settings import NavigatorSettings
 
 REPORT_TRANSLATION = 1
 REPORT_ROTATION = 2

@@ -24,8 +24,9 @@ from typing import Any
 
 import numpy as np
 
+from nhfd.device_settings import SLMOutputSettings
+
 from .errors import DeviceError
-from .settings import SLMOutputSettings
 
 log = logging.getLogger(__name__)
 

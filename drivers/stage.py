@@ -28,9 +28,10 @@ from abc import ABC, abstractmethod
 from dataclasses import dataclass
 from typing import Literal
 
+from nhfd.device_settings import StageSettings
+
 from . import apt
 from .errors import DeviceError, LinkDown, PortVanished, ReplyTimeout, TransportError, WrongDevice
-from .settings import StageSettings
 from .transport import LineControl, LineControlError, Opener, Transport, serial_opener
 
 log = logging.getLogger(__name__)

@@ -22,8 +22,9 @@ from typing import Any
 
 import numpy as np
 
+from nhfd.device_settings import SLMOutputSettings
+
 from .errors import DeviceError
-from .settings import SLMOutputSettings
 from .slm import SLM, SLMHealth
 
 

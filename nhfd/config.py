@@ -21,7 +21,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from nhfd.drivers.settings import (
+from nhfd.device_settings import (
     CameraSettings,
     LaserSettings,
     NavigatorSettings,
@@ -123,7 +123,7 @@ class CodingSettings(_Section):
 class DeviceSettings(_Section):
     """Which backend drives each device (simulated twins by default) and each device's settings.
 
-    The device settings models live in `nhfd.drivers.settings` (pydantic only, no nhfd imports),
+    The device settings models live in `nhfd.device_settings` (pydantic only, no nhfd imports),
     so the laser guardian validates them without loading the rest of nhfd.
     """
 
@@ -540,7 +540,7 @@ def check_files(config: Config, origin: str) -> None:
     raising `ConfigError` with the loader's reason."""
     if not config.calibration.file:
         return
-    from nhfd.calib.active import active_calibration  # numpy: only when a file is named
+    from nhfd.calibration import active_calibration  # numpy: only when a file is named
 
     try:
         active_calibration(config)

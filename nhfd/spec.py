@@ -1,7 +1,7 @@
 """The torch-free vocabulary of the panel (layer L0): grey levels, phase curves, the zero pattern.
 
 NumPy and the standard library only, so the daemon's control plane (`nhfd.daemon`) and the
-calibration loader (`nhfd.calib.calibration`, `nhfd.calib.active`) can use these without
+calibration loader (`nhfd.calibration`, `nhfd.calibration`) can use these without
 importing torch; `nhfd.optics` re-exports `PhaseCurve` and codes fields with these definitions.
 
 The zero pattern is the one definition of what the panel shows for zero amplitude: the blank

@@ -207,7 +207,7 @@ class _NoDaemon:
 def _calibration_text() -> str:
     import math
 
-    from nhfd.calib.calibration import Calibration
+    from nhfd.calibration import Calibration
 
     table = tuple(2 * math.pi * i / 255 for i in range(256))
     return Calibration((6.6e-7, 5.2e-7, 4.5e-7), 8e-6, 1, (table,) * 3, (0.01,) * 3, 1.0, 0.0,

@@ -6,7 +6,7 @@ import json
 
 from nhfd.cli.main import main
 from nhfd.config import load_config
-from nhfd.demo import run_demo, sharpness
+from nhfd.demos.optics import run_demo, sharpness
 
 SMALL = """
 [slm]

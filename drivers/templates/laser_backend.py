@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from nhfd.device_settings import LaserSettings
 from nhfd.drivers.laser import Laser
-from nhfd.drivers.settings import LaserSettings
 from nhfd.drivers.transport import Opener, Transport, serial_opener
 
 

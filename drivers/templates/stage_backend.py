@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from nhfd.drivers.settings import StageSettings
+from nhfd.device_settings import StageSettings
 from nhfd.drivers.stage import Outcome, Stage, StageInfo, StageState
 
 

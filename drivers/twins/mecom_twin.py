@@ -24,9 +24,10 @@ import os
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 
+from nhfd.device_settings import COLOURS, MecomParameterIds
+
 from .. import mecom
 from ..errors import ProtocolError
-from ..settings import COLOURS, MecomParameterIds
 from .clock import Clock, real_clock
 from .pty import PtyPeer
 

@@ -126,8 +126,8 @@ def run_fit(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from nhfd.calib.calibration import Calibration
     from nhfd.calib.report import write_report
+    from nhfd.calibration import Calibration
 
     cal = Calibration.load(args.calibration) if args.calibration else None
     for path in write_report(args.dir, cal, args.out):

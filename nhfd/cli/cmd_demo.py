@@ -43,7 +43,7 @@ def run_daemon_demo(args: argparse.Namespace) -> int:
     import sys
 
     from nhfd.config import load_config
-    from nhfd.daemon import demo
+    from nhfd.demos import serve as demo
 
     model, scene = Path(args.model), Path(args.scene)
     if not model.is_file():
@@ -71,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     import matplotlib.pyplot as plt
 
     from nhfd.config import load_config
-    from nhfd.demo import contact_sheet, run_demo, sharpness
+    from nhfd.demos.optics import contact_sheet, run_demo, sharpness
 
     loaded = load_config(args.config)
     out = Path(args.out)

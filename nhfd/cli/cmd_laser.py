@@ -53,7 +53,7 @@ def _settings(args: argparse.Namespace) -> tuple[Any, Any]:
     and socket on top, and the [daemon] section (runtime directory, socket group; None when
     the configuration could not be read). A broken configuration file must not stop an emergency
     off, so it is reported and the defaults are used."""
-    from nhfd.drivers.settings import LaserSettings
+    from nhfd.device_settings import LaserSettings
 
     settings, daemon = LaserSettings(), None
     try:

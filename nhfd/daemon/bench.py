@@ -44,7 +44,7 @@ def _coding_calibration(config: Any) -> Any:
     """The calibration frames are coded with, or None. One that cannot be loaded (the daemon
     refuses to start on one, so this is a file gone bad since) counts as none here: the panel
     must still be blanked."""
-    from nhfd.calib.active import active_calibration
+    from nhfd.calibration import active_calibration
 
     try:
         return active_calibration(config)

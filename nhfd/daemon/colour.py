@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from nhfd.drivers.settings import COLOURS
+from nhfd.device_settings import COLOURS
 
 from .protocol import LASER_REFUSED, RpcError
 

@@ -568,7 +568,7 @@ def frame_settings(config: Any, metadata: dict[str, Any], *, refocus_m: float = 
     wavelengths, pitch) are the model's: `load_model` has already checked they match the
     configuration. The window is the model's training size unless `daemon.frame_size_px` says
     otherwise (the trained fx is kept either way)."""
-    from nhfd.calib.active import active_calibration
+    from nhfd.calibration import active_calibration
 
     window_hw = frame_window_hw(config, metadata)
     s = config.slm

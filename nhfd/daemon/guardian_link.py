@@ -30,6 +30,7 @@ import threading
 import time
 from typing import Any
 
+from nhfd.device_settings import LaserSettings
 from nhfd.drivers.guardian import (
     GuardianClient,
     GuardianError,
@@ -46,7 +47,6 @@ from nhfd.drivers.guardian import (
     wait_gone,
 )
 from nhfd.drivers.rundir import UnsafeDirectory, make_private_dir
-from nhfd.drivers.settings import LaserSettings
 from nhfd.drivers.transport import same_port
 
 from .audit import AuditLog

@@ -43,7 +43,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from nhfd.drivers.settings import COLOURS
+from nhfd.device_settings import COLOURS
 
 from .colour import capture_colours, check_laser_command, panel_for_mode
 from .jobs import Job
@@ -132,7 +132,7 @@ def _focus(d: Daemon, conn: Connection, p: Params) -> Any:
 def _focus_target(d: Daemon, z_mm: float) -> float:
     """The stage position for `z_mm`; a configured calibration that cannot be applied (no
     accepted version to keep) is the file's error, not the daemon's."""
-    from nhfd.calib.calibration import CalibrationFileError
+    from nhfd.calibration import CalibrationFileError
 
     try:
         return d.focus_stage_mm(z_mm)

@@ -163,7 +163,7 @@ class Daemon:
         problems = cross_field_problems(self.config)  # a copied config skips validation
         if problems:
             raise ConfigError("; ".join(problems))
-        from nhfd.calib.active import active_calibration
+        from nhfd.calibration import active_calibration
 
         active_calibration(self.config)  # a configured but unreadable file stops the start here
         # Another user could have made /tmp/nhfd-<uid> first, with a fake guardian in it.
@@ -524,7 +524,7 @@ class Daemon:
     # -- helpers for methods -------------------------------------------------------------------
 
     def focus_stage_mm(self, z_mm: float) -> float:
-        from nhfd.calib.active import active_calibration
+        from nhfd.calibration import active_calibration
 
         cal = active_calibration(self.config)
         if cal is not None:  # the fitted depth -> stage mapping, green's focus
@@ -551,7 +551,7 @@ class Daemon:
         self.errors.append({"time_s": time.time(), "source": source, "message": message})
 
     def _calibration_status(self) -> dict[str, Any]:
-        from nhfd.calib.active import active_calibration, calibration_refusal, new_refusal
+        from nhfd.calibration import active_calibration, calibration_refusal, new_refusal
 
         c = self.config.daemon
         try:

@@ -226,7 +226,7 @@ def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None)
 
     config = Config.model_validate(config_data)
     if calibration is not None:
-        from nhfd.calib.active import keep
+        from nhfd.calibration import keep
 
         keep(config, calibration)
     _set_threads(int(config.daemon.worker_threads), config.daemon.worker_threading_layer)
@@ -551,7 +551,7 @@ class FrameLink:
 def _accepted_calibration(config: Any) -> Any:
     """The calibration this process applies, for the worker; None when there is none to keep
     (the worker's own load then says why, with each frame)."""
-    from nhfd.calib.active import active_calibration
+    from nhfd.calibration import active_calibration
 
     try:
         return active_calibration(config)

@@ -19,7 +19,7 @@ from nhfd.calib.bench_model import BenchModel, ModelDepthFit, fit_aberration, to
 from nhfd.calib.geometry import Geometry
 from nhfd.calib.patterns import PatternSpec, dots_frame, flat_frames
 from nhfd.calib.response import fit_source
-from nhfd.drivers.settings import CameraSettings
+from nhfd.device_settings import CameraSettings
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 from nhfd.optics import PhaseCurve
 

@@ -8,11 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from nhfd.calib.active import active_calibration, calibration_refusal
-from nhfd.calib.calibration import (
+from nhfd.calibration import (
     PITCH_REL_TOL,
     WAVELENGTH_REL_TOL,
     CalibrationFileError,
+    active_calibration,
+    calibration_refusal,
 )
 from nhfd.config import Config
 from tests.daemon.test_bad_inputs import write_calibration

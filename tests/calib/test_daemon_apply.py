@@ -9,8 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nhfd.calib.active import active_calibration
-from nhfd.calib.calibration import CalibrationFileError
+from nhfd.calibration import CalibrationFileError, active_calibration
 from nhfd.config import Config
 from nhfd.daemon.frames import frame_settings
 from nhfd.drivers.simcamera import TrueBench

@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nhfd.calib.calibration import Calibration, CalibrationFileError
 from nhfd.calib.capture import Capture, CaptureError, SimBenchIO
 from nhfd.calib.data import CalibrationDataError
 from nhfd.calib.fit import fit_capture
 from nhfd.calib.focus import FocusError, fit_depth
+from nhfd.calibration import Calibration, CalibrationFileError
 
 from .conftest import PANEL_HW, small_plan, small_spec
 

@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from nhfd.daemon.frames import Encoder, FrameSettings
-from nhfd.drivers.settings import CameraSettings
+from nhfd.device_settings import CameraSettings
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 from nhfd.optics import propagate
 

@@ -148,7 +148,7 @@ def write_calibration(path: Path, *, stage_at_slm_mm: float = 5.0,
                       pitch_m: float = 8e-6) -> Path:
     """A calibration file with nominal curves whose focus mapping is stage_mm =
     stage_at_slm_mm + z (mm from the SLM), written atomically as a lab's fit would be."""
-    from nhfd.calib.calibration import Calibration
+    from nhfd.calibration import Calibration
 
     table = tuple(float(v) for v in 2 * np.pi * np.arange(256) / 256)
     cal = Calibration(
@@ -170,7 +170,7 @@ def _with_calibration(config: Any, path: Path) -> Any:
 
 def test_a_hot_swapped_calibration_for_another_bench_is_refused_and_the_old_one_kept(
         short_dir, mecom_twin):
-    from nhfd.calib import active
+    from nhfd import calibration as active
     from nhfd.daemon.protocol import INVALID_FILE, RpcError
 
     from .conftest import bench_config
@@ -218,7 +218,7 @@ def test_a_hot_swapped_calibration_for_another_bench_is_refused_and_the_old_one_
 
 
 def test_the_daemon_refuses_to_start_on_a_calibration_for_another_pitch(short_dir, mecom_twin):
-    from nhfd.calib.calibration import CalibrationFileError
+    from nhfd.calibration import CalibrationFileError
     from nhfd.daemon.service import Daemon
 
     from .conftest import bench_config

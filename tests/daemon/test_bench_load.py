@@ -7,7 +7,7 @@ import os
 import subprocess
 import sys
 
-from nhfd.bench.load import cpu_percent, cpu_s
+from nhfd.benchmarks.load import cpu_percent, cpu_s
 
 
 def test_cpu_time_is_the_kernels_account_and_a_gone_process_is_none():

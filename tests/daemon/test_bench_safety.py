@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import json
 
-from nhfd.bench import safety
+from nhfd.benchmarks import safety
 from nhfd.cli.main import build_parser
 
 

@@ -9,7 +9,7 @@ import pytest
 
 from nhfd.daemon.colour import panel_for_mode
 from nhfd.daemon.protocol import RpcError
-from nhfd.drivers.settings import COLOURS
+from nhfd.device_settings import COLOURS
 
 from .conftest import Running, bench_config, wait_until
 

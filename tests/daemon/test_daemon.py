@@ -11,7 +11,7 @@ import time
 
 import pytest
 
-from nhfd.bench.safety import bad_requests
+from nhfd.benchmarks.safety import bad_requests
 from nhfd.daemon.protocol import RpcError
 
 from .conftest import Running, bench_config, free_port, wait_until

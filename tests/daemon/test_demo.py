@@ -7,7 +7,7 @@ import pytest
 
 from nhfd.cli.main import main
 from nhfd.daemon.bench import write_png16
-from nhfd.daemon.demo import focus_command_mm, read_png16
+from nhfd.demos.serve import focus_command_mm, read_png16
 
 
 def test_demo_without_the_model_says_how_to_build_it_and_fails(tmp_path, capsys):
@@ -39,7 +39,7 @@ def test_focus_commands_follow_the_simulated_relay():
 def test_focus_correlation_picks_the_capture_where_each_region_is_sharp():
     """A textured view; in one capture the bottom band is sharp and the top blurred, in the
     other the reverse: the match with the view inside each band peaks at its own capture."""
-    from nhfd.daemon.demo import focus_correlation
+    from nhfd.demos.serve import focus_correlation
 
     rng = np.random.default_rng(1)
     view = np.zeros((120, 160))
@@ -56,7 +56,7 @@ def test_focus_correlation_picks_the_capture_where_each_region_is_sharp():
 
 
 def test_depth_regions_are_the_nearest_and_farthest_quarter_of_the_content():
-    from nhfd.daemon.demo import depth_regions
+    from nhfd.demos.serve import depth_regions
 
     zh = np.full((10, 10), np.nan)
     zh[2:8, 2:8] = np.linspace(-2e-3, 2e-3, 36).reshape(6, 6)

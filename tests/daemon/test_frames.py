@@ -289,7 +289,7 @@ def test_bench_pipeline_accounts_for_every_stage(tiny):
     """`nhfd bench pipeline`'s measurement through the real frame worker: every view counted
     once, each stage present, and no stage counted twice (their sum fits inside the measured
     view-to-SLM time, the rest being IPC and waiting)."""
-    from nhfd.bench.pipeline import STAGES, measure
+    from nhfd.benchmarks.pipeline import STAGES, measure
 
     r = measure(small_config(), tiny["model"], tiny["scene"], views=2, warmup=1)
     assert r["views"] == 2 and len(r["rows"]) == 2

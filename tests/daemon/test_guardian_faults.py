@@ -18,8 +18,8 @@ from pathlib import Path
 import pytest
 
 from nhfd.daemon.service import Daemon
+from nhfd.device_settings import GuardianSettings, LaserSettings
 from nhfd.drivers.guardian import GuardianRefused, alive, port_holders, spawn_guardian
-from nhfd.drivers.settings import GuardianSettings, LaserSettings
 from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 from .conftest import Running, bench_config, free_port, wait_until
@@ -280,7 +280,7 @@ def test_the_tcp_token_is_removed_at_shutdown(short_dir, mecom_twin):
 
 
 def test_nhfd_demo_removes_its_temporary_runtime_directory(tmp_path, monkeypatch):
-    from nhfd.daemon import demo
+    from nhfd.demos import serve as demo
 
     seen: list[Path] = []
 

@@ -23,7 +23,7 @@ GAMMAS = (1.15, 0.9, 1.3)
 
 def write_measured_calibration(path: Path, config: Config) -> Path:
     """A calibration for the configured bench with phase sign -1 and non-nominal curves."""
-    from nhfd.calib.calibration import Calibration
+    from nhfd.calibration import Calibration
 
     g = np.arange(256) / 255
     tables = tuple(tuple(float(v) for v in s * g**gamma) for s, gamma in

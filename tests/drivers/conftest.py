@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from nhfd.drivers.settings import LaserSettings, StageSettings
+from nhfd.device_settings import LaserSettings, StageSettings
 from nhfd.drivers.twins.apt_twin import AptTwin
 from nhfd.drivers.twins.clock import ManualClock
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
+from nhfd.device_settings import StageSettings
 from nhfd.drivers import apt
-from nhfd.drivers.settings import StageSettings
 from nhfd.drivers.stage import AptDeviceError
 
 

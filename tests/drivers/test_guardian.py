@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 
 from nhfd.cli.main import main
+from nhfd.device_settings import GuardianSettings, LaserSettings
 from nhfd.drivers.guardian import (
     GuardianClient,
     GuardianError,
@@ -29,7 +30,6 @@ from nhfd.drivers.guardian import (
     spawn_guardian,
     token_path_for,
 )
-from nhfd.drivers.settings import GuardianSettings, LaserSettings
 from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 from .conftest import read_line, reaped

@@ -229,7 +229,7 @@ def test_every_exit_path_in_process_leaves_the_lasers_off(mecom_twin, laser_sett
 CHILD = """
 import sys, time
 from nhfd.drivers.laser import MecomLaser, install_signal_handlers
-from nhfd.drivers.settings import LaserSettings
+from nhfd.device_settings import LaserSettings
 from nhfd.drivers.transport import pty_opener
 install_signal_handlers()
 laser = MecomLaser(LaserSettings(reply_timeout_s=0.2), pty_opener({path!r})).open()

@@ -8,6 +8,7 @@ import types
 
 import pytest
 
+from nhfd.device_settings import SPACEMOUSE_IDS, NavigatorSettings
 from nhfd.drivers.errors import DeviceError, PortNotFound, ProtocolError
 from nhfd.drivers.navigator import (
     RawState,
@@ -17,7 +18,6 @@ from nhfd.drivers.navigator import (
     matches,
     parse_report,
 )
-from nhfd.drivers.settings import SPACEMOUSE_IDS, NavigatorSettings
 from nhfd.drivers.twins.clock import ManualClock
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from nhfd.device_settings import SLMOutputSettings
 from nhfd.drivers.framebuffer import FramebufferError, FramebufferSLM
-from nhfd.drivers.settings import SLMOutputSettings
 from nhfd.drivers.slm import SimulatedSLM, SLMOutputLost, to_rgb
 from nhfd.drivers.twins.clock import ManualClock
 

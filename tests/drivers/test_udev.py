@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-from nhfd.drivers.settings import SPACEMOUSE_IDS
+from nhfd.device_settings import SPACEMOUSE_IDS
 
 RULES = Path(__file__).resolve().parents[2] / "packaging" / "udev" / "99-nhfd.rules"
 

@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from nhfd.drivers.settings import SLMOutputSettings
+from nhfd.device_settings import SLMOutputSettings
 from nhfd.drivers.window import WindowError, WindowSLM, pick_screen
 
 

@@ -16,7 +16,7 @@ MODEL_NAME = "nhf-donut-512.onnx"
 
 @pytest.fixture(scope="module")
 def shipped():
-    from nhfd.daemon.demo import DEFAULT_MODEL, DEFAULT_SCENE
+    from nhfd.demos.serve import DEFAULT_MODEL, DEFAULT_SCENE
 
     if not DEFAULT_MODEL.exists():
         pytest.skip(f"no shipped model at {DEFAULT_MODEL}")

@@ -9,7 +9,7 @@ import onnx
 import pytest
 import torch
 
-from nhfd.bench.tradeoff import (
+from nhfd.benchmarks.tradeoff import (
     fastest_within,
     finished_run,
     interleaved_ms,

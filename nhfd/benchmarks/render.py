@@ -90,7 +90,7 @@ def _scene_paths(args: argparse.Namespace) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nhfd.bench.machine import describe
+    from nhfd.benchmarks.machine import describe
     from nhfd.dataset.shard import ExampleSettings
     from nhfd.scene import _kernels as k
     from nhfd.scene.io import load_scene

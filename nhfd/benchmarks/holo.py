@@ -38,7 +38,7 @@ def _rss_mb() -> float:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-    from nhfd.bench.machine import describe
+    from nhfd.benchmarks.machine import describe
     from nhfd.config import load_config
     from nhfd.dataset.shard import ExampleSettings
     from nhfd.holo import band_limit, colour_sampling, scene_hologram, scene_mapping

@@ -238,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
     import torch
 
-    from nhfd.bench.machine import describe
+    from nhfd.benchmarks.machine import describe
     from nhfd.models.data import HoloData
     from nhfd.models.evaluate import evaluate
     from nhfd.models.export import GRAPH_FORM, OnnxModel, export_onnx

@@ -59,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
         return padding_accuracy(args)
     import torch
 
-    from nhfd.bench.machine import describe
+    from nhfd.benchmarks.machine import describe
     from nhfd.optics import Aperture, KernelCache, fft, plan_padding, propagate
     from nhfd.optics._validate import finite_field
 
@@ -136,7 +136,7 @@ def _accuracy_fields(h: int, w: int, aperture, colours: int) -> dict[str, object
 
 
 def padding_accuracy(args: argparse.Namespace) -> int:
-    from nhfd.bench.machine import describe
+    from nhfd.benchmarks.machine import describe
     from nhfd.config import load_config
     from nhfd.optics import Aperture, plan_padding, propagate
 
