@@ -1,14 +1,18 @@
-"""The calibration file (`calibration.toml`): versioned, self-describing, validated on load.
+"""The calibration (L0 vocabulary, torch-free): the file's value and loader, and the active one.
 
-What the daemon takes from it: per-colour `PhaseCurve`s and the phase sign (coding), the
-per-colour focus offsets (digital refocus), the depth -> stage mapping (focus), the per-colour
-intensity (amplitude compensation), the source's amplitude profile (`[source]`: a Gaussian per
-colour, the daemon divides the target amplitude by it) and the relay's aberrations
-(`[aberration]`: Zernike coefficients, the daemon pre-compensates them). `[zero_order]` records the
-coherent unmodulated light. A part the data could not determine is written `fitted = false` with
-the reason, never a guess.
+The file (`calibration.toml`) is versioned, self-describing and validated on load. What the daemon
+takes from it: per-colour `PhaseCurve`s and the phase sign (coding), the per-colour focus offsets
+(digital refocus), the depth -> stage mapping (focus), the per-colour intensity (amplitude
+compensation), the source's amplitude profile (`[source]`: a Gaussian per colour, the daemon
+divides the target amplitude by it) and the relay's aberrations (`[aberration]`: Zernike
+coefficients, the daemon pre-compensates them). `[zero_order]` records the coherent unmodulated
+light. A part the data could not determine is written `fitted = false` with the reason, never a
+guess. Units follow the keys: `_m`, `_mm`, `_rad`, `_deg`, `_px`. Colours are R, G, B.
 
-Units follow the keys: `_m`, `_mm`, `_rad`, `_deg`, `_px`. Colours are R, G, B.
+The active calibration (`active_calibration`, `keep`, `calibration_refusal`) is the file a
+configuration names, loaded once per file version, for the daemon, the frame pipeline and
+`nhfd config check`. `nhfd.calib` writes these files (capture, fit, report); this module only
+reads them, so everything that applies a calibration stays free of torch.
 """
 
 from __future__ import annotations
@@ -331,15 +335,11 @@ def _dump(doc: dict[str, Any], prefix: str = "") -> str:
     return out
 
 
-# The active calibration: the file a configuration names, loaded once per file version.
-#
-# The calibration a configuration names (`[calibration] file`), loaded once per file version.
-#
-# Used by the daemon (frames, focus, status); imports no torch. A configured file that cannot be
-# loaded, or that was fitted for another bench (`calibration.check_bench`: other wavelengths or
-# pitch than the configuration's), raises `CalibrationFileError` naming it: a bench silently
-# running uncalibrated, or on another bench's tables, is worse than a daemon that says why it will
-# not start.
+# The active calibration: the file a configuration names (`[calibration] file`), loaded once per
+# file version. A configured file that cannot be loaded, or that was fitted for another bench
+# (`check_bench`: other wavelengths or pitch than the configuration's), raises
+# `CalibrationFileError` naming it: a bench silently running uncalibrated, or on another bench's
+# tables, is worse than a daemon that says why it will not start.
 #
 # When the file changes on disk after a version of it was accepted (a hot swap), a new version
 # that is refused does not replace the accepted one: it stays in use, and `calibration_refusal`
