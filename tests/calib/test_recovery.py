@@ -23,7 +23,7 @@ from .conftest import PANEL_HW, small_plan, small_spec
 OTHER_SEEDS = (101, 202, 303)
 # Phase curve error (RMS, fraction of the true range) and intensity ratio error allowed (issue
 # 8). On 13 benches the fit's phase errors were 1.3-2.2 % and its ratio errors up to 3.1 %
-# (red): see the README's calibration section for the known biases.
+# (red): see docs/calibration.md, "Known biases".
 PHASE_RMS_TOL = 0.03
 INTENSITY_TOL = 0.03
 # The fitted curve's error after its best single scale factor (fraction of the true range).
@@ -87,7 +87,7 @@ def _check_response(bench: TrueBench, tables: tuple[tuple[float, ...], ...],
         rms = _phase_rms(true, got)
         assert rms < PHASE_RMS_TOL, f"colour {c}: {rms:.2%} RMS of range"
         # Most of the fit's error is one scale factor (the panel's fringing compresses the
-        # curve: README, calibration's known biases), and the nominal 2 pi curve's error for
+        # curve: docs/calibration.md, "Known biases"), and the nominal 2 pi curve's error for
         # green is about as large (its 520 nm stroke is close to 2 pi): comparing the two
         # holds on some benches only. In shape the fit is far better on every bench: a straight
         # line cannot follow the panel's S-shaped, wiggly response, which the fit measures
