@@ -1,18 +1,28 @@
 """`nhfd serve`: the daemon that drives the bench, and its control protocol.
 
+L5 services: control plane; imports L0-L1 only (nhfd.config, spec, calibration, device_settings;
+nhfd.scene, nhfd.drivers), never torch, numba or onnxruntime at module level. It starts the frame
+pipeline as a separate, spawned process and talks to it over a pipe.
+
+  service   the daemon core: start-up in a safe order, the control loop, shutdown with lasers off,
+            request dispatch, `status`
+  methods   the RPC methods, each against the narrow `Host` Protocol of the daemon it uses
   protocol  JSON-RPC 2.0 framing, parameter validation and THE table of error codes
   server    the Unix-socket (and optional loopback TCP) line server
   client    the reference Python client (standard library only: `nhfctl` uses it)
-  service   the daemon core: lock, guardian, devices, signals, systemd notify, the loop
-  methods   the RPC methods
-  jobs      bench jobs (focus, snapshot) and the scene loader, off the control loop
+  panel     what the SLM shows: view frames, the blank (zero-amplitude) pattern, calibration
+            patterns, the capture hold; every change of the panel goes through it
+  bench     the non-laser devices (SLM, stage, camera), their monitor and faults; the focus
+            mapping without calibration
+  colour    colour modes: the panel per mode, which diodes a client may switch, the capture-mode
+            snapshot sequence
   views     view requests: validation and latest-wins coalescing
-  bench     devices, the zero-amplitude pattern, the focus mapping, snapshots
-  guardian_link  the daemon's side of the laser guardian
-  notify, audit, paths  systemd notify, the audit log, runtime dirs and allowed directories
-  colour    colour modes: single, capture (per-colour snapshot sequence), hw-sync
   navigation  navigator motion -> relative view moves through the set_view path
+  guardian_link  the daemon's side of the laser guardian
+  jobs      job runners: slow bench work and loads off the control loop
   recording session recording (JSON lines) and replay
-
-Nothing here imports torch, numba or onnxruntime at module level.
+  png       16-bit PNGs of camera images
+  notify, audit, paths  systemd notify, the audit log, runtime dirs and allowed directories
+  worker, frames  the frame worker process and its pipeline (moving to nhfd.pipeline, L4: the
+            last modules here that import above L1)
 """

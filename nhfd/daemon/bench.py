@@ -1,4 +1,5 @@
-"""The bench's non-laser devices for the daemon: SLM, stage, camera; blank pattern; focus; PNGs.
+"""The bench's non-laser devices for the daemon: SLM (what it shows: `panel`), stage, camera;
+the focus mapping without calibration.
 
 A device that fails to open is recorded (its error shows in `status`) and left out; the daemon
 still starts, because the lasers are held off by the guardian regardless. A monitor thread
@@ -17,19 +18,16 @@ from __future__ import annotations
 
 import logging
 import queue
-import struct
 import threading
 import time
-import zlib
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
-from nhfd import spec
 from nhfd.drivers import factory
-from nhfd.spec import PhaseCurve
+
+from .panel import Panel, blank_pattern, coding_calibration
 
 log = logging.getLogger("nhfd.daemon.bench")
 
@@ -40,56 +38,10 @@ def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
     return stage_at_reference_mm + z_mm
 
 
-def _coding_calibration(config: Any) -> Any:
-    """The calibration frames are coded with, or None. One that cannot be loaded (the daemon
-    refuses to start on one, so this is a file gone bad since) counts as none here: the panel
-    must still be blanked."""
-    from nhfd.calibration import active_calibration
-
-    try:
-        return active_calibration(config)
-    except ValueError as exc:
-        log.warning("blank pattern from the configured phase curves: %s", exc)
-        return None
-
-
-def zero_coding(config: Any, cal: Any) -> tuple[tuple[PhaseCurve, ...], int, bool]:
-    """The phase curves, sign and grey inversion frames are coded with: the calibration's
-    measured curves and sign (as `nhfd.daemon.frames.frame_settings` takes them), else the
-    configured ones."""
-    s = config.slm
-    curves = spec.phase_curves(s.phase_stroke_rad, cal.phase_tables_rad if cal else ())
-    return tuple(curves), int(cal.phase_sign if cal else s.phase_sign), bool(s.grey_invert)
-
-
 def zero_amplitude_frame(config: Any) -> np.ndarray:
-    """The blank pattern of the whole panel ([3, H, W] uint8) through the curves frames are
-    coded with (`zero_coding`); see `nhfd.spec.zero_pattern`."""
-    s = config.slm
-    return spec.zero_pattern((s.height_px, s.width_px),
-                             *zero_coding(config, _coding_calibration(config)))
-
-
-def write_png16(path: Path, image: np.ndarray) -> None:
-    """A 16-bit greyscale PNG (image in [0, 1], clipped), written atomically. Standard library
-    zlib only: no imaging library in the daemon for one file format."""
-    a = np.clip(np.nan_to_num(np.asarray(image, np.float64)), 0.0, 1.0)
-    if a.ndim == 3:  # colour captures: written as the mean over channels
-        a = a.mean(axis=0)
-    h, w = a.shape
-    raw = np.round(a * 65535).astype(">u2")
-    rows = b"".join(b"\x00" + raw[r].tobytes() for r in range(h))
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return (struct.pack(">I", len(data)) + kind + data
-                + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF))
-
-    png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0))
-           + chunk(b"IDAT", zlib.compress(rows, 6)) + chunk(b"IEND", b""))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(png)
-    tmp.replace(path)
+    """The blank of the active calibration's coding, for `nhfd bench pipeline`'s stand-in daemon
+    (nhfd/benchmarks/pipeline.py) until it takes `nhfd.daemon.panel.blank_pattern`."""
+    return blank_pattern(config, coding_calibration(config))
 
 
 class Bench:
@@ -100,19 +52,12 @@ class Bench:
         self.stage: Any = None
         self.camera: Any = None
         self.errors: dict[str, str | None] = {"slm": None, "stage": None, "camera": None}
-        self.showing = "nothing"
-        self._blank: np.ndarray | None = None
-        self._blank_calibration: Any = None  # the calibration `_blank` was coded with
         self._stage_state: dict[str, Any] = {}
         self._slm_health: dict[str, Any] = {}
         # SLM output lost / back, for the control loop: (device, lost, detail).
         self.faults: queue.SimpleQueue[tuple[str, bool, str]] = queue.SimpleQueue()
         self.slm_lost: str | None = None  # why the SLM's output is lost, while it is
-        # Set while a capture-mode sequence owns the panel: new view frames wait (colour.py).
-        self._held = False
-        # The calibration pattern shown (`show_pattern`), until the next set_view or blank:
-        # meanwhile view frames wait too (`held`).
-        self.pattern: str | None = None
+        self.panel = Panel(config, self)  # what the SLM shows: every change goes through it
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
         self._reconnect: threading.Thread | None = None
@@ -125,7 +70,7 @@ class Bench:
             self.slm = factory.make_slm(d, self.config.slm.width_px, self.config.slm.height_px)
             if self.slm is not None:
                 self.slm.open()
-                self.show_blank()
+                self.panel.blank()
         except Exception as exc:
             self._failed("slm", exc)
             self.slm = None
@@ -165,51 +110,12 @@ class Bench:
                 continue
             try:
                 if name == "slm":
-                    self.show_blank()  # leave the panel showing nothing
+                    self.panel.blank()  # leave the panel showing nothing
                 device.close()
             except Exception as exc:
                 log.warning("%s close: %s", name, exc)
 
     # -- actions -------------------------------------------------------------------------------
-
-    def blank_frame(self) -> np.ndarray:
-        """The zero pattern of the coding in use (rebuilt when a calibration is swapped in):
-        the blank frame and the panel around every view frame."""
-        # Called for every frame: the active calibration is one object per file version, so
-        # its identity says whether the pattern must be rebuilt (no curves built per frame).
-        cal = _coding_calibration(self.config)
-        if self._blank is None or cal is not self._blank_calibration:
-            s = self.config.slm
-            self._blank = spec.zero_pattern((s.height_px, s.width_px),
-                                            *zero_coding(self.config, cal))
-            self._blank_calibration = cal
-        return self._blank
-
-    @property
-    def held(self) -> bool:
-        """View frames from the worker are not shown: a capture-mode sequence or a calibration
-        pattern owns the panel."""
-        return self._held or self.pattern is not None
-
-    @held.setter
-    def held(self, value: bool) -> None:
-        self._held = bool(value)
-
-    def show_blank(self) -> None:
-        if self.slm is None:
-            raise RuntimeError(self.errors["slm"] or "no SLM configured")
-        self.slm.show(self.blank_frame())
-        self.showing = "blank"
-        self.pattern = None
-
-    def show_pattern(self, frame: np.ndarray, name: str) -> None:
-        """A calibration frame ([3, H, W] uint8, the panel's size) instead of the view, until
-        the next view or blank."""
-        if self.slm is None:
-            raise RuntimeError(self.errors["slm"] or "no SLM configured")
-        self.slm.show(frame)
-        self.showing = f"pattern {name}"
-        self.pattern = name
 
     def capture(self, frames: int | None = None) -> Any:
         """One camera capture; a failure (a timeout) is the camera's error in `status` until a
@@ -287,10 +193,35 @@ class Bench:
     def status(self) -> dict[str, Any]:
         d = self.config.devices
         return {
-            "slm": {"backend": d.slm, "open": self.slm is not None, "showing": self.showing,
+            "slm": {"backend": d.slm, "open": self.slm is not None, "showing": self.panel.showing,
                     "health": self._slm_health, "error": self.errors["slm"]},
             "stage": {"backend": d.stage, "open": self.stage is not None, **self._stage_state,
                       "error": self.errors["stage"]},
             "camera": {"backend": d.camera, "open": self.camera is not None,
                        "error": self.errors["camera"]},
         }
+
+    # -- the panel's former names here, for FrameLink (nhfd/daemon/worker.py) and tests outside
+    # the control plane's files, until they use `panel` (issue 22): delegations only.
+
+    def blank_frame(self) -> np.ndarray:
+        return self.panel.blank_frame()
+
+    def show_blank(self) -> None:
+        self.panel.blank()
+
+    @property
+    def held(self) -> bool:
+        return self.panel.held
+
+    @property
+    def showing(self) -> str:
+        return self.panel.showing
+
+    @showing.setter
+    def showing(self, what: str) -> None:
+        self.panel.showing = what
+
+    @property
+    def pattern(self) -> str | None:
+        return self.panel.pattern

@@ -18,18 +18,20 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from contextlib import AbstractContextManager
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 import numpy as np
 
+from nhfd.config import Config
 from nhfd.device_settings import COLOURS
 
+from .audit import AuditLog
+from .guardian_link import LaserLink
+from .jobs import Job
+from .png import write_png16
 from .protocol import LASER_REFUSED, RpcError
-
-if TYPE_CHECKING:
-    from .jobs import Job
-    from .service import Daemon
 
 log = logging.getLogger("nhfd.daemon.colour")
 
@@ -50,15 +52,10 @@ def panel_for_mode(frame: np.ndarray, mode: str, colour: str) -> np.ndarray:
     return out.transpose(2, 0, 1)
 
 
-def single_colour_pattern(frame: np.ndarray, colour: str) -> np.ndarray:
-    """One colour's pattern in every channel (capture mode shows these one after another)."""
-    return panel_for_mode(frame, "single", colour)
-
-
-def check_laser_command(d: Daemon, action: str, channel: str | None, power_pct: float | None
-                        ) -> None:
+def check_laser_command(config: Config, action: str, channel: str | None,
+                        power_pct: float | None) -> None:
     """Refuse what the colour mode forbids, before anything reaches the guardian."""
-    c = d.config.daemon
+    c = config.daemon
     mode = c.colour_mode
     if mode == "single" and channel is not None and channel != c.single_colour:
         if action == "enable" or (action == "power" and power_pct):
@@ -71,15 +68,52 @@ def check_laser_command(d: Daemon, action: str, channel: str | None, power_pct: 
                        {"field": "action", "allowed": "arm, disarm, off, power, disable"})
 
 
-def capture_colours(d: Daemon, job: Job, path: Path, frames: int | None) -> dict[str, Any]:
+class CapturePanel(Protocol):
+    """What the capture sequence uses of the panel (`nhfd.daemon.panel.Panel`)."""
+
+    def blank_frame(self) -> np.ndarray: ...
+    def hold(self) -> AbstractContextManager[None]: ...
+    def show_colour(self, frame: np.ndarray, colour: str) -> None: ...
+    def resume(self, last_view: np.ndarray | None, seq: int) -> None: ...
+
+
+class CaptureBench(Protocol):
+    """What the capture sequence uses of the bench (`nhfd.daemon.bench.Bench`)."""
+
+    slm: Any
+    camera: Any
+
+    def capture(self, frames: int | None = None) -> Any: ...
+
+
+class ShownViews(Protocol):
+    """The last view frame the frame worker delivered, and its view's sequence number."""
+
+    last_frame: np.ndarray | None
+    shown_seq: int
+
+
+class CaptureHost(Protocol):
+    """What the capture-mode snapshot uses of the daemon."""
+
+    laser: LaserLink
+    audit: AuditLog
+    frames: ShownViews
+
+    @property
+    def bench(self) -> CaptureBench: ...
+    @property
+    def panel(self) -> CapturePanel: ...
+
+
+def capture_colours(d: CaptureHost, job: Job, path: Path, frames: int | None
+                    ) -> dict[str, Any]:
     """The capture-mode snapshot: one capture per colour that has power, each with only its diode
     on and its own pattern settled on the panel; written as one PNG per colour and their mean.
 
-    The frame worker's output is held back meanwhile (`bench.held`), so a view arriving during
-    the sequence cannot replace the colour's pattern under the camera."""
-    from .bench import write_png16
-
-    bench, link = d.bench, d.laser
+    The panel is held meanwhile (`Panel.hold`), so a view arriving during the sequence cannot
+    replace the colour's pattern under the camera; afterwards it shows the last view again."""
+    bench, panel, link = d.bench, d.panel, d.laser
     if bench.slm is None or bench.camera is None:
         raise RuntimeError("capture mode needs the SLM and the camera")
     link.refresh()
@@ -88,31 +122,33 @@ def capture_colours(d: Daemon, job: Job, path: Path, frames: int | None) -> dict
     lit = [ch for ch in COLOURS if powers[ch] > 0]
     if not lit:
         raise RuntimeError("no colour has power: set per-channel power (laser power) first")
-    base = d.frames.last_frame if d.frames.last_frame is not None else bench.blank_frame()
+    base = d.frames.last_frame if d.frames.last_frame is not None else panel.blank_frame()
     images: dict[str, np.ndarray] = {}
-    bench.held = True
     try:
-        for ch in lit:
-            job.check()
-            for other in COLOURS:  # all off, and read back by the guardian
-                link.enable(other, False)
-            bench.slm.show(single_colour_pattern(base, ch), wait_settled=True)
-            link.enable(ch, True)
-            d.audit.write({"who": "daemon", "job": job.id}, "laser enable (capture mode)",
-                          channel=ch, power_pct=powers[ch])
+        with panel.hold():
             try:
-                images[ch] = bench.capture(frames).image
+                for ch in lit:
+                    job.check()
+                    for other in COLOURS:  # all off, and read back by the guardian
+                        link.enable(other, False)
+                    panel.show_colour(base, ch)
+                    link.enable(ch, True)
+                    d.audit.write({"who": "daemon", "job": job.id},
+                                  "laser enable (capture mode)", channel=ch,
+                                  power_pct=powers[ch])
+                    try:
+                        images[ch] = bench.capture(frames).image
+                    finally:
+                        link.enable(ch, False)
             finally:
-                link.enable(ch, False)
+                for ch in COLOURS:
+                    with contextlib.suppress(Exception):
+                        link.enable(ch, False)
+                d.audit.write({"who": "daemon", "job": job.id},
+                              "laser all disabled (capture mode)")
     finally:
-        for ch in COLOURS:
-            with contextlib.suppress(Exception):
-                link.enable(ch, False)
-        d.audit.write({"who": "daemon", "job": job.id}, "laser all disabled (capture mode)")
-        bench.held = False
         with contextlib.suppress(Exception):  # back to what the control loop last computed
-            bench.slm.show(d.frames.last_frame if d.frames.last_frame is not None
-                           else bench.blank_frame())
+            panel.resume(d.frames.last_frame, d.frames.shown_seq)
     # A colour camera sees each colour in its own channel; a mono one gives [H, W] per colour.
     planes = {ch: img if img.ndim == 2 else img[COLOURS.index(ch)] for ch, img in images.items()}
     zero = np.zeros_like(next(iter(planes.values())))

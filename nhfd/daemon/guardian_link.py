@@ -48,6 +48,7 @@ from nhfd.drivers.guardian import (
 )
 from nhfd.drivers.rundir import UnsafeDirectory, make_private_dir
 from nhfd.drivers.transport import same_port
+from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 from .audit import AuditLog
 from .protocol import LASER_REFUSED, NOT_AVAILABLE, RpcError
@@ -192,8 +193,6 @@ class LaserLink:
         port = None
         if self.backend == "simulated":
             if self.twin is None:
-                from nhfd.drivers.twins.mecom_twin import MecomTwin
-
                 s = self.settings
                 self.twin = MecomTwin(device_type=s.device_type, address=s.address,
                                       channel_instances=s.channel_instances,

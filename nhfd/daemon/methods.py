@@ -39,15 +39,24 @@ import queue
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any
+from pathlib import Path
+from typing import Any, Protocol
 
 import numpy as np
 
+from nhfd.calibration import CalibrationFileError
+from nhfd.config import Config
 from nhfd.device_settings import COLOURS
+from nhfd.scene.io import read_scene
 
-from .colour import capture_colours, check_laser_command, panel_for_mode
-from .jobs import Job
+from .audit import AuditLog
+from .bench import Bench
+from .colour import ShownViews, capture_colours, check_laser_command
+from .guardian_link import LaserLink
+from .jobs import Job, JobRunner
+from .panel import Panel
 from .paths import inside
+from .png import write_png16
 from .protocol import (
     BUSY,
     DEVICE_ERROR,
@@ -62,10 +71,44 @@ from .protocol import (
     bad_param,
 )
 from .server import Connection
-from .views import parse_view
+from .views import ViewSlot, parse_view
 
-if TYPE_CHECKING:
-    from .service import Daemon
+
+class Frames(ShownViews, Protocol):
+    """The frame worker as the methods see it: the last frame shown, and loads (which block
+    the calling load job until the worker answers)."""
+
+    def load_scene(self, path: str) -> dict[str, Any]: ...
+    def load_model(self, path: str) -> dict[str, Any]: ...
+
+
+class Host(Protocol):
+    """What the RPC methods use of the daemon (`nhfd.daemon.service.Daemon`)."""
+
+    config: Config
+    base_dir: Path
+    scene_dirs: list[Path]
+    model_dirs: list[Path]
+    snapshot_dirs: list[Path]
+    pattern_dirs: list[Path]
+    tcp_token: str | None
+    audit: AuditLog
+    laser: LaserLink
+    bench: Bench
+    views: ViewSlot
+    frames: Frames
+    bench_jobs: JobRunner
+    load_jobs: JobRunner
+    scene: dict[str, Any] | None
+
+    @property
+    def panel(self) -> Panel: ...
+    def status(self) -> dict[str, Any]: ...
+    def focus_stage_mm(self, z_mm: float) -> float: ...
+    def submit_bench_job(self, job: Job) -> Job: ...
+    def next_snapshot(self) -> int: ...
+    def request_shutdown(self, reason: str) -> None: ...
+
 
 SCENE_SUFFIXES = (".ply", ".splat")
 REFOCUS_MM = (-10.0, 10.0)
@@ -75,17 +118,17 @@ PATTERN_SUFFIXES = (".npy",)
 
 @dataclass(frozen=True)
 class Method:
-    func: Callable[[Daemon, Connection, Params], Any]
+    func: Callable[[Host, Connection, Params], Any]
     audited: bool  # changes the bench: written to the audit log with who and what
     while_stopping: bool = False  # still served during shutdown
 
 
-def _status(d: Daemon, conn: Connection, p: Params) -> Any:
+def _status(d: Host, conn: Connection, p: Params) -> Any:
     p.done()
     return d.status()
 
 
-def _set_view(d: Daemon, conn: Connection, p: Params) -> Any:
+def _set_view(d: Host, conn: Connection, p: Params) -> Any:
     current = d.views.view
     # Digital refocus (mm, + toward the viewer) travels with the view; it stays as it was when
     # not given.
@@ -93,14 +136,14 @@ def _set_view(d: Daemon, conn: Connection, p: Params) -> Any:
     view = parse_view(p, current)
     view["refocus_mm"] = refocus if refocus is not None else (
         current.get("refocus_mm", 0.0) if current else 0.0)
-    if d.bench.pattern is not None:  # a calibration pattern gives the panel back to the view
+    if d.panel.pattern is not None:  # a calibration pattern gives the panel back to the view
         _end_pattern(d)
     seq = d.views.submit(view)
     d.audit.view(conn.who, seq, view)
     return {"seq": seq, "view": view}
 
 
-def _focus(d: Daemon, conn: Connection, p: Params) -> Any:
+def _focus(d: Host, conn: Connection, p: Params) -> Any:
     cfg = d.config.daemon
     low, high = cfg.focus_range_mm
     z_mm = p.number("z_mm", low, high)
@@ -129,18 +172,16 @@ def _focus(d: Daemon, conn: Connection, p: Params) -> Any:
     return {"job": job.id, "stage_mm": target}
 
 
-def _focus_target(d: Daemon, z_mm: float) -> float:
+def _focus_target(d: Host, z_mm: float) -> float:
     """The stage position for `z_mm`; a configured calibration that cannot be applied (no
     accepted version to keep) is the file's error, not the daemon's."""
-    from nhfd.calibration import CalibrationFileError
-
     try:
         return d.focus_stage_mm(z_mm)
     except CalibrationFileError as exc:
         raise RpcError(INVALID_FILE, str(exc), {"field": "calibration.file"}) from None
 
 
-def _laser(d: Daemon, conn: Connection, p: Params) -> Any:
+def _laser(d: Host, conn: Connection, p: Params) -> Any:
     action = p.choice("action", ("arm", "disarm", "off", "power", "enable", "disable"))
     link = d.laser
     if action == "arm":
@@ -162,11 +203,11 @@ def _laser(d: Daemon, conn: Connection, p: Params) -> Any:
     if action == "power":
         power_pct = p.number("power_pct", 0.0, 100.0)
         p.done()
-        check_laser_command(d, action, channel, power_pct)
+        check_laser_command(d.config, action, channel, power_pct)
         applied = link.power(channel, power_pct)
         return {"channel": channel, "power_pct": applied, "capped": applied < power_pct}
     p.done()
-    check_laser_command(d, action, channel, None)
+    check_laser_command(d.config, action, channel, None)
     if action == "enable" and d.bench.slm_lost is not None:
         # The light would fall on a panel the daemon does not control.
         raise RpcError(LASER_REFUSED, f"SLM output lost ({d.bench.slm_lost}): no diode may be "
@@ -175,7 +216,7 @@ def _laser(d: Daemon, conn: Connection, p: Params) -> Any:
     return {"channel": channel, "enabled": action == "enable"}
 
 
-def _stop(d: Daemon, conn: Connection, p: Params) -> Any:
+def _stop(d: Host, conn: Connection, p: Params) -> Any:
     p.done()
     cancelled = d.bench_jobs.cancel_all() + d.load_jobs.cancel_all()
     try:
@@ -185,17 +226,16 @@ def _stop(d: Daemon, conn: Connection, p: Params) -> Any:
     return {"cancelled_jobs": cancelled, "stage": stage}
 
 
-def _blank(d: Daemon, conn: Connection, p: Params) -> Any:
+def _blank(d: Host, conn: Connection, p: Params) -> Any:
     p.done()
     try:
-        d.bench.show_blank()
+        d.panel.blank()
     except Exception as exc:
         raise RpcError(DEVICE_ERROR, f"blank failed: {exc}", {"device": "slm"}) from None
-    d.display = "blank"
     return {"showing": "blank"}
 
 
-def _camera(d: Daemon) -> Any:
+def _camera(d: Host) -> Any:
     """The open camera, or NOT_AVAILABLE with why there is none."""
     if d.bench.camera is None:
         raise RpcError(NOT_AVAILABLE,
@@ -204,7 +244,7 @@ def _camera(d: Daemon) -> Any:
     return d.bench.camera
 
 
-def _snapshot(d: Daemon, conn: Connection, p: Params) -> Any:
+def _snapshot(d: Host, conn: Connection, p: Params) -> Any:
     raw = p.string("path", None)
     frames = p.integer("frames", 1, 1000, None)
     p.done()
@@ -215,8 +255,6 @@ def _snapshot(d: Daemon, conn: Connection, p: Params) -> Any:
     _camera(d)  # refuse now, not in the job
 
     def run(job: Job) -> dict[str, Any]:
-        from .bench import write_png16
-
         if d.config.daemon.colour_mode == "capture":
             return capture_colours(d, job, path, frames)
         cap = d.bench.capture(frames)  # a failure is the camera's error in status until it works
@@ -230,18 +268,10 @@ def _snapshot(d: Daemon, conn: Connection, p: Params) -> Any:
     return {"job": job.id, "path": str(path)}
 
 
-def _end_pattern(d: Daemon) -> None:
+def _end_pattern(d: Host) -> None:
     """The last view frame (or the blank pattern) in place of a calibration pattern."""
-    d.bench.pattern = None
-    last = d.frames.last_frame
     try:
-        if last is not None and d.bench.slm is not None:
-            d.bench.slm.show(last)
-            d.bench.showing = f"view {d.frames.shown_seq}"
-            d.display = f"view {d.frames.shown_seq}"
-        else:
-            d.bench.show_blank()
-            d.display = "blank"
+        d.panel.resume(d.frames.last_frame, d.frames.shown_seq)
     except Exception as exc:
         raise RpcError(DEVICE_ERROR, f"ending the calibration pattern failed: {exc}",
                        {"device": "slm"}) from None
@@ -278,7 +308,7 @@ def _pattern_frame(path: Any, hw: tuple[int, int]) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(a, (3, h, w)))
 
 
-def _show_pattern(d: Daemon, conn: Connection, p: Params) -> Any:
+def _show_pattern(d: Host, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
     path = _checked_file("path", raw, d.pattern_dirs, d.base_dir, PATTERN_SUFFIXES)
@@ -289,16 +319,14 @@ def _show_pattern(d: Daemon, conn: Connection, p: Params) -> Any:
                        {"device": "slm"})
     if d.bench.slm_lost is not None:
         raise RpcError(DEVICE_ERROR, f"SLM output lost ({d.bench.slm_lost})", {"device": "slm"})
-    c = d.config.daemon
     try:
-        d.bench.show_pattern(panel_for_mode(frame, c.colour_mode, c.single_colour), str(path))
+        d.panel.show_pattern(frame, str(path))
     except Exception as exc:
         raise RpcError(DEVICE_ERROR, f"show_pattern failed: {exc}", {"device": "slm"}) from None
-    d.display = f"calibration pattern {path}"
     return {"showing": str(path), "shape": list(frame.shape)}
 
 
-def _stage_move(d: Daemon, conn: Connection, p: Params) -> Any:
+def _stage_move(d: Host, conn: Connection, p: Params) -> Any:
     stage = d.bench.stage
     low, high = (stage.settings.soft_limits_mm if stage is not None else (-1e6, 1e6))
     position = p.number("position_mm", low, high)
@@ -319,7 +347,7 @@ def _stage_move(d: Daemon, conn: Connection, p: Params) -> Any:
     return {"job": job.id, "stage_mm": position}
 
 
-def _capture(d: Daemon, conn: Connection, p: Params) -> Any:
+def _capture(d: Host, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     frames = p.integer("frames", 1, 1000, None)
     exposure_s = p.number("exposure_s", 1e-6, 60.0, None, low_open=False)
@@ -362,7 +390,7 @@ def _capture(d: Daemon, conn: Connection, p: Params) -> Any:
                 "shape": list(image.shape),
                 "saturated_fraction": float(saturated.mean()) if saturated.size else 0.0,
                 "max_linear": float(image.max()) if image.size else 0.0,
-                "stage_mm": stage, "showing": d.bench.showing}
+                "stage_mm": stage, "showing": d.panel.showing}
 
     job = d.submit_bench_job(Job("capture", {"path": str(path), "frames": frames,
                                              "exposure_s": exposure_s, "dark": dark}, run))
@@ -380,14 +408,12 @@ def _checked_file(field: str, raw: str, dirs: list[Any], base: Any,
     return path
 
 
-def _load_scene(d: Daemon, conn: Connection, p: Params) -> Any:
+def _load_scene(d: Host, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
     path = _checked_file("path", raw, d.scene_dirs, d.base_dir, SCENE_SUFFIXES)
 
     def run(job: Job) -> dict[str, Any]:
-        from nhfd.scene.io import read_scene
-
         # Refuses a file that is not a plausible scene (SceneFileError names the rule) before
         # the worker is asked: the old scene keeps rendering.
         load = read_scene(path)
@@ -401,7 +427,7 @@ def _load_scene(d: Daemon, conn: Connection, p: Params) -> Any:
     return _submit_load(d, "load_scene", path, run)
 
 
-def _submit_load(d: Daemon, kind: str, path: Any, run: Any) -> dict[str, Any]:
+def _submit_load(d: Host, kind: str, path: Any, run: Any) -> dict[str, Any]:
     """Queue a scene or model load; a full queue is BUSY, not a wait."""
     try:
         job = d.load_jobs.submit(Job(kind, {"path": str(path)}, run))
@@ -410,7 +436,7 @@ def _submit_load(d: Daemon, kind: str, path: Any, run: Any) -> dict[str, Any]:
     return {"job": job.id, "path": str(path)}
 
 
-def _load_model(d: Daemon, conn: Connection, p: Params) -> Any:
+def _load_model(d: Host, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
     path = _checked_file("path", raw, d.model_dirs, d.base_dir, MODEL_SUFFIXES)
@@ -423,7 +449,7 @@ def _load_model(d: Daemon, conn: Connection, p: Params) -> Any:
     return _submit_load(d, "load_model", path, run)
 
 
-def _job(d: Daemon, conn: Connection, p: Params) -> Any:
+def _job(d: Host, conn: Connection, p: Params) -> Any:
     job_id = p.integer("id", 1, 2**53)
     p.done()
     job = d.bench_jobs.get(job_id) or d.load_jobs.get(job_id)
@@ -433,7 +459,7 @@ def _job(d: Daemon, conn: Connection, p: Params) -> Any:
     return job.to_json()
 
 
-def _auth(d: Daemon, conn: Connection, p: Params) -> Any:
+def _auth(d: Host, conn: Connection, p: Params) -> Any:
     token = p.string("token", max_len=1024)
     p.done()
     if conn.transport == "unix":
@@ -444,7 +470,7 @@ def _auth(d: Daemon, conn: Connection, p: Params) -> Any:
     return {"authenticated": True}
 
 
-def _shutdown(d: Daemon, conn: Connection, p: Params) -> Any:
+def _shutdown(d: Host, conn: Connection, p: Params) -> Any:
     p.done()
     d.request_shutdown(f"shutdown requested by {conn.who}")
     return {"shutting_down": True}

@@ -16,15 +16,15 @@ below the laser heartbeat's timeout.
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
+from nhfd.config import Config
+from nhfd.drivers import factory
 from nhfd.drivers.navigator import Waypoint
 
+from .audit import AuditLog
 from .protocol import Params, RpcError
-from .views import ELEVATION_DEG, parse_view
-
-if TYPE_CHECKING:
-    from .service import Daemon
+from .views import ELEVATION_DEG, ViewSlot, parse_view
 
 log = logging.getLogger("nhfd.daemon.navigation")
 
@@ -56,8 +56,19 @@ def relative_move(view: dict[str, Any], reading: Any, dt_s: float) -> dict[str, 
     return {"translate": t, "rotate_deg": r}
 
 
+class Host(Protocol):
+    """What navigator input uses of the daemon (`nhfd.daemon.service.Daemon`)."""
+
+    config: Config
+    views: ViewSlot
+    audit: AuditLog
+
+    def record(self, method: str, params: dict[str, Any], who: dict[str, Any],
+               result: Any = None) -> None: ...
+
+
 class NavigatorInput:
-    def __init__(self, d: Daemon) -> None:
+    def __init__(self, d: Host) -> None:
         self.d = d
         self.navigator: Any = None
         self.error: str | None = None
@@ -67,8 +78,6 @@ class NavigatorInput:
         self._next_s = 0.0
 
     def open(self) -> None:
-        from nhfd.drivers import factory
-
         devices = self.d.config.devices
         try:
             self.navigator = factory.make_navigator(devices, SIMULATED_SCRIPT)

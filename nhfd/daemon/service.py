@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Any
 
 from nhfd import __version__
+from nhfd.calibration import active_calibration, calibration_refusal, new_refusal
 from nhfd.config import ConfigError, cross_field_problems
 
 from . import protocol
@@ -48,6 +49,7 @@ from .jobs import Job, JobRunner
 from .methods import METHODS
 from .navigation import NavigatorInput
 from .notify import Notifier
+from .panel import Panel
 from .paths import LOCK_NAME, SOCKET_NAME, TOKEN_NAME, make_private_dir, resolve_dirs, runtime_dir
 from .protocol import (
     BUSY,
@@ -129,7 +131,6 @@ class Daemon:
         self.navigation = NavigatorInput(self)
         self.recorder: SessionRecorder | None = None  # daemon.record / serve --record
         self.scene: dict[str, Any] | None = None
-        self.display = "blank"
         self.errors: deque[dict[str, Any]] = deque(maxlen=20)
         self.bench_jobs: JobRunner = None  # type: ignore[assignment]  # set in start()
         self.load_jobs: JobRunner = None  # type: ignore[assignment]
@@ -148,6 +149,24 @@ class Daemon:
         self._watched_fd: int | None = None
         self._signal_wake: tuple[socket.socket, socket.socket] | None = None
 
+    @property
+    def panel(self) -> Panel:
+        """What the SLM shows (the bench's: a bench opened at start brings its own)."""
+        return self.bench.panel
+
+    @property
+    def display(self) -> str:
+        """For FrameLink (nhfd/daemon/worker.py) until it shows frames with `panel.show_view`:
+        status reads `panel.current`."""
+        return self.panel.current
+
+    @display.setter
+    def display(self, what: str) -> None:
+        # FrameLink reports a view it computed, or the blank after a crash; a calibration
+        # pattern stays what the daemon shows until set_view or blank ends it.
+        if self.panel.pattern is None:
+            self.panel.current = what
+
     # -- start ---------------------------------------------------------------------------------
 
     def start(self) -> None:
@@ -163,8 +182,6 @@ class Daemon:
         problems = cross_field_problems(self.config)  # a copied config skips validation
         if problems:
             raise ConfigError("; ".join(problems))
-        from nhfd.calibration import active_calibration
-
         active_calibration(self.config)  # a configured but unreadable file stops the start here
         # Another user could have made /tmp/nhfd-<uid> first, with a fake guardian in it.
         make_private_dir(self.runtime_dir, group_writable_ok=bool(c.socket_group), mode=0o750)
@@ -185,16 +202,11 @@ class Daemon:
         kept = c.jobs_kept
         self.bench_jobs = JobRunner("bench", kept=kept, on_finish=self._job_finished)
         self.load_jobs = JobRunner("load", kept=kept, on_finish=self._job_finished)
-        if c.scene:
-            from .methods import _load_scene
-
-            _load_scene(self, Connection(None, "config", {}),  # type: ignore[arg-type]
-                        Params({"path": c.scene}))
-        if c.model:
-            from .methods import _load_model
-
-            _load_model(self, Connection(None, "config", {}),  # type: ignore[arg-type]
-                        Params({"path": c.model}))
+        # The configured scene and model load as a client's load_scene and load_model would.
+        for method, path in (("load_scene", c.scene), ("load_model", c.model)):
+            if path:
+                METHODS[method].func(self, Connection(None, "config", {}),  # type: ignore[arg-type]
+                                     Params({"path": path}))
         if c.tcp_port:
             self.tcp_token = self._token()
         self.server = LineServer(self.handle_line, unix_path=self.socket_path,
@@ -355,14 +367,12 @@ class Daemon:
                 except Exception as exc:
                     message += f"; lasers off FAILED: {exc}"
                 log.error("%s: %s", device, message)
-                self.display = "nothing (SLM output lost)"
-                self.bench.showing = "nothing (output lost)"
+                self.panel.output_lost()
                 self._error(device, message)
                 self.audit.write({"who": "daemon"}, "slm output lost", detail=message)
             else:
                 try:
-                    self.bench.show_blank()
-                    self.display = "blank"
+                    self.panel.blank()
                 except Exception as exc:
                     self._error(device, f"output back, but blank failed: {exc}")
                     continue
@@ -524,8 +534,6 @@ class Daemon:
     # -- helpers for methods -------------------------------------------------------------------
 
     def focus_stage_mm(self, z_mm: float) -> float:
-        from nhfd.calibration import active_calibration
-
         cal = active_calibration(self.config)
         if cal is not None:  # the fitted depth -> stage mapping, green's focus
             return cal.stage_mm_for(self.config.optics.z0_m + z_mm * 1e-3, 1)
@@ -551,8 +559,6 @@ class Daemon:
         self.errors.append({"time_s": time.time(), "source": source, "message": message})
 
     def _calibration_status(self) -> dict[str, Any]:
-        from nhfd.calibration import active_calibration, calibration_refusal, new_refusal
-
         c = self.config.daemon
         try:
             cal = active_calibration(self.config)
@@ -593,9 +599,7 @@ class Daemon:
                        "clients": len(self.server.connections) if self.server else 0},
             "laser": laser,
             "devices": devices,
-            # A calibration pattern (show_pattern) holds the panel until set_view or blank.
-            "display": (f"calibration pattern {self.bench.pattern}"
-                        if self.bench.pattern is not None else self.display),
+            "display": self.panel.current,
             "panel": {"width_px": self.config.slm.width_px,
                       "height_px": self.config.slm.height_px,
                       "pitch_m": self.config.slm.pitch_m,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from nhfd.cli.main import main
-from nhfd.daemon.bench import write_png16
+from nhfd.daemon.png import write_png16
 from nhfd.demos.serve import focus_command_mm, read_png16
 
 

@@ -5,13 +5,18 @@ there, which under the measured curves and sign do not code zero amplitude, agai
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import torch
 
+from nhfd import spec
+from nhfd.calibration import Calibration
 from nhfd.config import Config, _overlay
 from nhfd.daemon.frames import Encoder, frame_region, frame_settings
+from nhfd.daemon.panel import Panel, blank_pattern
 from nhfd.models.export import load_model
 
 from .test_frames import FRONT_VIEW, daemon_config, wait_for_frames
@@ -23,19 +28,21 @@ GAMMAS = (1.15, 0.9, 1.3)
 
 def write_measured_calibration(path: Path, config: Config) -> Path:
     """A calibration for the configured bench with phase sign -1 and non-nominal curves."""
-    from nhfd.calibration import Calibration
+    return measured_calibration(config, GAMMAS).save(path)
 
+
+def measured_calibration(config: Config, gammas: tuple[float, ...]) -> Calibration:
+    """The calibration `write_measured_calibration` writes, with per-colour curve `gammas`."""
     g = np.arange(256) / 255
     tables = tuple(tuple(float(v) for v in s * g**gamma) for s, gamma in
-                   zip(STROKES_RAD, GAMMAS, strict=True))
-    cal = Calibration(
+                   zip(STROKES_RAD, gammas, strict=True))
+    return Calibration(
         wavelengths_m=tuple(config.optics.wavelengths_m), pitch_m=config.slm.pitch_m,
         phase_sign=-1, phase_tables_rad=tables, phase_table_std_rad=(0.0,) * 3,
         stage_scale=1.0, stage_scale_std=0.0, stage_at_slm_mm=5.0, stage_at_slm_std_mm=0.0,
         z_offset_m=(0.0, 0.0, 0.0), z_offset_std_m=(0.0, 0.0, 0.0), magnification=1.0,
         magnification_std=0.0, rotation_deg=0.0, rotation_std_deg=0.0, mirror_x=False,
         shift_px=(0.0, 0.0), intensity=(1.0, 1.0, 1.0), intensity_std=(0.0, 0.0, 0.0))
-    return cal.save(path)
 
 
 def checker_pair(frame: np.ndarray) -> list[tuple[int, int]]:
@@ -100,3 +107,32 @@ def test_blank_surround_and_coded_zero_are_one_pattern_under_a_calibration(
     assert checker_pair(blank) == zero
     # Not the configured curves' zero: the calibration's sign and curves moved it.
     assert zero != [(64, 192)] * 3
+
+
+def test_the_panels_blank_is_the_zero_pattern_of_the_active_calibration(short_dir):
+    """Without a daemon: `Panel.blank_frame` codes zero through the active calibration's curves
+    and sign, and follows the file when a new version is swapped in."""
+    from .conftest import bench_config
+
+    base = bench_config(short_dir, None)
+    path = write_measured_calibration(short_dir / "calibration.toml", base)
+    config = Config.model_validate(_overlay(base.model_dump(),
+                                            {"calibration": {"file": str(path)}}))
+    panel = Panel(config, SimpleNamespace(slm=None, errors={"slm": None}))
+    s = config.slm
+    hw = (s.height_px, s.width_px)
+
+    def zero_of(cal: Calibration) -> np.ndarray:
+        curves = spec.phase_curves(s.phase_stroke_rad, cal.phase_tables_rad)
+        return spec.zero_pattern(hw, curves, cal.phase_sign, s.grey_invert)
+
+    blank = panel.blank_frame()
+    assert np.array_equal(blank, zero_of(Calibration.load(path)))
+    assert not np.array_equal(blank, blank_pattern(config, None))  # not the configured curves
+    assert panel.blank_frame() is blank  # one pattern per calibration version, not per frame
+
+    swapped = measured_calibration(config, (1.0, 1.0, 1.0))
+    swapped.save(path)
+    os.utime(path, ns=(1, 1))  # a new version even within the file system's mtime resolution
+    assert np.array_equal(panel.blank_frame(), zero_of(swapped))
+    assert not np.array_equal(panel.blank_frame(), blank)
