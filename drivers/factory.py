@@ -19,7 +19,8 @@ from typing import Any
 
 from nhfd.device_settings import COLOURS, LaserSettings, StageSettings
 
-from .camera import Camera
+from .camera import Camera, GenICamCamera, OpenCVCamera
+from .framebuffer import FramebufferSLM
 from .laser import Laser, MecomLaser
 from .navigator import Navigator, SimulatedNavigator, SpaceMouseNavigator, Waypoint
 from .slm import SLM, SimulatedSLM
@@ -27,6 +28,7 @@ from .stage import AptStage, Stage
 from .twins.apt_twin import AptTwin
 from .twins.clock import Clock
 from .twins.mecom_twin import MecomTwin
+from .window import WindowSLM
 
 
 class SimulatedLaser(MecomLaser):
@@ -102,12 +104,8 @@ def make_slm(devices: Any, width_px: int, height_px: int, *,
     if backend == "simulated":
         return SimulatedSLM(width_px, height_px, settings, clock=clock)
     if backend == "framebuffer":
-        from .framebuffer import FramebufferSLM
-
         return FramebufferSLM(width_px, height_px, settings, clock=clock)
     if backend == "window":
-        from .window import WindowSLM
-
         return WindowSLM(width_px, height_px, settings, clock=clock)
     raise ValueError(f"devices.slm = {backend!r}: no such backend")
 
@@ -140,12 +138,8 @@ def make_camera(
     if backend == "none":
         return None
     if backend == "opencv":
-        from .camera import OpenCVCamera
-
         return OpenCVCamera(settings)
     if backend == "genicam":
-        from .camera import GenICamCamera
-
         return GenICamCamera(settings)
     if backend == "simulated":
         twin_laser = getattr(laser, "twin", None)
@@ -155,6 +149,8 @@ def make_camera(
                 "devices.camera = 'simulated' images the simulated bench: it needs the simulated "
                 "SLM, laser and stage (devices.slm, .laser and .stage = 'simulated')"
             )
+        # The one lazy import here: the simulated camera images through the optics core
+        # (torch), and the daemon imports this module while it must stay torch-free.
         from .simcamera import SimulatedCamera, slm_frame_source
 
         def powers() -> list[float]:
