@@ -13,8 +13,11 @@ nothing outside `nhfd.drivers`); SLM geometry comes from `[slm]`.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 from nhfd.device_settings import COLOURS, LaserSettings, StageSettings
@@ -162,3 +165,90 @@ def make_camera(
             roi=roi,
         )
     raise ValueError(f"devices.camera = {backend!r}: no such backend")
+
+
+@dataclass
+class BenchDevices:
+    """The devices of one bench, each None where `[devices]` says "none" (or it failed)."""
+
+    slm: SLM | None = None
+    laser: Laser | None = None
+    stage: Stage | None = None
+    camera: Camera | None = None
+
+    def close(self) -> None:
+        """Close every device, the camera first and the laser last (its close switches every
+        channel off with read-back); every close is tried even if one raises, and the first
+        error is raised after."""
+        first: BaseException | None = None
+        for name in ("camera", "stage", "slm", "laser"):
+            device = getattr(self, name)
+            if device is None:
+                continue
+            try:
+                device.close()
+            except BaseException as exc:
+                first = first or exc
+        if first is not None:
+            raise first
+
+    def __enter__(self) -> BenchDevices:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def make_bench(
+    devices: Any,
+    width_px: int,
+    height_px: int,
+    *,
+    laser: bool = True,
+    laser_twin: MecomTwin | None = None,
+    bench: Any = None,
+    roi: tuple[int, int, int, int] | None = None,
+    clock: Clock = time.monotonic,
+    on_open: Callable[[str, Any], None] | None = None,
+    on_error: Callable[[str, Exception], None] | None = None,
+) -> BenchDevices:
+    """Build and open the configured bench in the order that wires it: SLM, laser, stage, then
+    the camera that (when simulated) watches them. The one place a bench is assembled: the
+    daemon, the benchmarks and the tests call it.
+
+    `laser=False` leaves the laser to somebody else (the daemon's guardian owns the port);
+    `laser_twin` is then the twin the simulated camera reads the emission from. `bench` and
+    `roi` are the simulated camera's `TrueBench` and sensor region. `on_open(name, device)` runs
+    right after each device opens (the daemon blanks the SLM before anything else opens).
+    Without `on_error` a failure closes what was opened and raises; with it, the failing device
+    is reported as `on_error(name, exc)`, left None, and the rest of the bench is still built.
+    """
+    out = BenchDevices()
+
+    def build(name: str, make: Callable[[], Any]) -> None:
+        try:
+            device = make()
+            if device is None:
+                return
+            setattr(out, name, device)
+            device.open()
+            if on_open is not None:
+                on_open(name, device)
+        except Exception as exc:
+            if on_error is None:
+                # Everything built so far, the failed device too (a simulated one owns a twin).
+                with contextlib.suppress(Exception):
+                    out.close()
+                raise
+            setattr(out, name, None)
+            on_error(name, exc)
+
+    build("slm", lambda: make_slm(devices, width_px, height_px, clock=clock))
+    if laser:
+        build("laser", lambda: make_laser(devices, clock=clock))
+        laser_twin = laser_twin or getattr(out.laser, "twin", None)
+    build("stage", lambda: make_stage(devices, clock=clock))
+    build("camera", lambda: make_camera(devices, slm=out.slm,
+                                        laser=SimpleNamespace(twin=laser_twin),
+                                        stage=out.stage, bench=bench, roi=roi))
+    return out
