@@ -29,6 +29,7 @@ import numpy as np
 
 from nhfd.device_settings import CameraSettings
 
+from .device import Device
 from .errors import DeviceError
 
 log = logging.getLogger(__name__)
@@ -101,12 +102,12 @@ class Capture:
         return bool(self.saturated.any())
 
 
-class Camera(ABC):
+class Camera(Device, ABC):
     """A camera that returns linear float32 images.
 
     Use it as a context manager (or call open/close). Exposure and gain are applied on open and
     whenever set; changing either drops the stored dark frame, which belongs to one setting.
-    A backend implements `_open_device`, `_close_device`, `_apply_exposure`, `_apply_gain` and
+    A backend implements `_do_open`, `_do_close`, `_apply_exposure`, `_apply_gain` and
     `_grab` (one raw frame, integers, [H, W] or [H, W, 3] R, G, B).
     """
 
@@ -120,14 +121,14 @@ class Camera(ABC):
         self._exposure_s = self.settings.exposure_s
         self._gain_db = self.settings.gain_db
         self._dark: np.ndarray | None = None
-        self._open = False
+        self._is_open = False
 
     # -- lifecycle ---------------------------------------------------------------------------
 
     def open(self) -> Camera:
-        if not self._open:
-            self._open_device()
-            self._open = True
+        if not self._is_open:
+            self._do_open()
+            self._is_open = True
             try:
                 # Explicit values on every open: a camera may come up in auto modes or with the
                 # last user's settings.
@@ -139,23 +140,13 @@ class Camera(ABC):
         return self
 
     def close(self) -> None:
-        if self._open:
-            self._open = False
-            self._close_device()
-
-    def __enter__(self) -> Camera:
-        return self.open()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        if self._is_open:
+            self._is_open = False
+            self._do_close()
 
     @property
     def is_open(self) -> bool:
-        return self._open
-
-    @property
-    def name(self) -> str:
-        return type(self).__name__
+        return self._is_open
 
     # -- settings ----------------------------------------------------------------------------
 
@@ -173,7 +164,7 @@ class Camera(ABC):
         if not (math.isfinite(exposure_s) and low <= exposure_s <= high):
             raise ValueError(f"{self.name}: exposure_s = {exposure_s!r}: must be in "
                              f"[{low:g}, {high:g}]")
-        actual = self._apply_exposure(exposure_s) if self._open else exposure_s
+        actual = self._apply_exposure(exposure_s) if self._is_open else exposure_s
         if actual != self._exposure_s:
             self._dark = None
         self._exposure_s = actual
@@ -183,7 +174,7 @@ class Camera(ABC):
         """Set the gain (dB); returns the value the camera actually uses."""
         if not (math.isfinite(gain_db) and 0 <= gain_db <= 48):
             raise ValueError(f"{self.name}: gain_db = {gain_db!r}: must be in [0, 48]")
-        actual = self._apply_gain(gain_db) if self._open else gain_db
+        actual = self._apply_gain(gain_db) if self._is_open else gain_db
         if actual != self._gain_db:
             self._dark = None
         self._gain_db = actual
@@ -209,7 +200,7 @@ class Camera(ABC):
     def capture(self, frames: int | None = None, *, subtract_dark: bool = True) -> Capture:
         """Average a burst of `frames` (default: settings.burst_frames) linearised frames and
         subtract the stored dark frame when there is one and `subtract_dark` is set."""
-        if not self._open:
+        if not self._is_open:
             raise DeviceError(f"{self.name}: not open")
         n = self.settings.burst_frames if frames is None else int(frames)
         if n < 1:
@@ -250,10 +241,10 @@ class Camera(ABC):
         return (1e-6, 60.0)
 
     @abstractmethod
-    def _open_device(self) -> None: ...
+    def _do_open(self) -> None: ...
 
     @abstractmethod
-    def _close_device(self) -> None: ...
+    def _do_close(self) -> None: ...
 
     @abstractmethod
     def _apply_exposure(self, exposure_s: float) -> float:
@@ -293,7 +284,7 @@ class OpenCVCamera(Camera):
         self._cv2 = cv2
         self._cap: Any = None
 
-    def _open_device(self) -> None:
+    def _do_open(self) -> None:
         cv2 = self._cv2
         dev = self.settings.device
         source: int | str = int(dev) if dev.isdigit() else dev
@@ -305,7 +296,7 @@ class OpenCVCamera(Camera):
         cap.set(cv2.CAP_PROP_AUTO_WB, 0)
         self._cap = cap
 
-    def _close_device(self) -> None:
+    def _do_close(self) -> None:
         if self._cap is not None:
             self._cap.release()
             self._cap = None
@@ -362,7 +353,7 @@ class GenICamCamera(Camera):
         self._h: Any = None
         self._ia: Any = None
 
-    def _open_device(self) -> None:
+    def _do_open(self) -> None:
         h = self._harvester_cls()
         h.add_file(self.settings.cti_path)
         h.update()
@@ -379,10 +370,10 @@ class GenICamCamera(Camera):
                 nodes.PixelFormat.value = self.settings.pixel_format
             self._ia.start()
         except BaseException:
-            self._close_device()
+            self._do_close()
             raise
 
-    def _close_device(self) -> None:
+    def _do_close(self) -> None:
         if self._ia is not None:
             try:
                 self._ia.stop()

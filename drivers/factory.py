@@ -13,13 +13,17 @@ nothing outside `nhfd.drivers`); SLM geometry comes from `[slm]`.
 
 from __future__ import annotations
 
+import contextlib
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from types import SimpleNamespace
 from typing import Any
 
 from nhfd.device_settings import COLOURS, LaserSettings, StageSettings
 
-from .camera import Camera
+from .camera import Camera, GenICamCamera, OpenCVCamera
+from .framebuffer import FramebufferSLM
 from .laser import Laser, MecomLaser
 from .navigator import Navigator, SimulatedNavigator, SpaceMouseNavigator, Waypoint
 from .slm import SLM, SimulatedSLM
@@ -27,6 +31,7 @@ from .stage import AptStage, Stage
 from .twins.apt_twin import AptTwin
 from .twins.clock import Clock
 from .twins.mecom_twin import MecomTwin
+from .window import WindowSLM
 
 
 class SimulatedLaser(MecomLaser):
@@ -102,12 +107,8 @@ def make_slm(devices: Any, width_px: int, height_px: int, *,
     if backend == "simulated":
         return SimulatedSLM(width_px, height_px, settings, clock=clock)
     if backend == "framebuffer":
-        from .framebuffer import FramebufferSLM
-
         return FramebufferSLM(width_px, height_px, settings, clock=clock)
     if backend == "window":
-        from .window import WindowSLM
-
         return WindowSLM(width_px, height_px, settings, clock=clock)
     raise ValueError(f"devices.slm = {backend!r}: no such backend")
 
@@ -140,12 +141,8 @@ def make_camera(
     if backend == "none":
         return None
     if backend == "opencv":
-        from .camera import OpenCVCamera
-
         return OpenCVCamera(settings)
     if backend == "genicam":
-        from .camera import GenICamCamera
-
         return GenICamCamera(settings)
     if backend == "simulated":
         twin_laser = getattr(laser, "twin", None)
@@ -155,6 +152,8 @@ def make_camera(
                 "devices.camera = 'simulated' images the simulated bench: it needs the simulated "
                 "SLM, laser and stage (devices.slm, .laser and .stage = 'simulated')"
             )
+        # The one lazy import here: the simulated camera images through the optics core
+        # (torch), and the daemon imports this module while it must stay torch-free.
         from .simcamera import SimulatedCamera, slm_frame_source
 
         def powers() -> list[float]:
@@ -166,3 +165,90 @@ def make_camera(
             roi=roi,
         )
     raise ValueError(f"devices.camera = {backend!r}: no such backend")
+
+
+@dataclass
+class BenchDevices:
+    """The devices of one bench, each None where `[devices]` says "none" (or it failed)."""
+
+    slm: SLM | None = None
+    laser: Laser | None = None
+    stage: Stage | None = None
+    camera: Camera | None = None
+
+    def close(self) -> None:
+        """Close every device, the camera first and the laser last (its close switches every
+        channel off with read-back); every close is tried even if one raises, and the first
+        error is raised after."""
+        first: BaseException | None = None
+        for name in ("camera", "stage", "slm", "laser"):
+            device = getattr(self, name)
+            if device is None:
+                continue
+            try:
+                device.close()
+            except BaseException as exc:
+                first = first or exc
+        if first is not None:
+            raise first
+
+    def __enter__(self) -> BenchDevices:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def make_bench(
+    devices: Any,
+    width_px: int,
+    height_px: int,
+    *,
+    laser: bool = True,
+    laser_twin: MecomTwin | None = None,
+    bench: Any = None,
+    roi: tuple[int, int, int, int] | None = None,
+    clock: Clock = time.monotonic,
+    on_open: Callable[[str, Any], None] | None = None,
+    on_error: Callable[[str, Exception], None] | None = None,
+) -> BenchDevices:
+    """Build and open the configured bench in the order that wires it: SLM, laser, stage, then
+    the camera that (when simulated) watches them. The one place a bench is assembled: the
+    daemon, the benchmarks and the tests call it.
+
+    `laser=False` leaves the laser to somebody else (the daemon's guardian owns the port);
+    `laser_twin` is then the twin the simulated camera reads the emission from. `bench` and
+    `roi` are the simulated camera's `TrueBench` and sensor region. `on_open(name, device)` runs
+    right after each device opens (the daemon blanks the SLM before anything else opens).
+    Without `on_error` a failure closes what was opened and raises; with it, the failing device
+    is reported as `on_error(name, exc)`, left None, and the rest of the bench is still built.
+    """
+    out = BenchDevices()
+
+    def build(name: str, make: Callable[[], Any]) -> None:
+        try:
+            device = make()
+            if device is None:
+                return
+            setattr(out, name, device)
+            device.open()
+            if on_open is not None:
+                on_open(name, device)
+        except Exception as exc:
+            if on_error is None:
+                # Everything built so far, the failed device too (a simulated one owns a twin).
+                with contextlib.suppress(Exception):
+                    out.close()
+                raise
+            setattr(out, name, None)
+            on_error(name, exc)
+
+    build("slm", lambda: make_slm(devices, width_px, height_px, clock=clock))
+    if laser:
+        build("laser", lambda: make_laser(devices, clock=clock))
+        laser_twin = laser_twin or getattr(out.laser, "twin", None)
+    build("stage", lambda: make_stage(devices, clock=clock))
+    build("camera", lambda: make_camera(devices, slm=out.slm,
+                                        laser=SimpleNamespace(twin=laser_twin),
+                                        stage=out.stage, bench=bench, roi=roi))
+    return out

@@ -55,7 +55,7 @@ class FramebufferSLM(SLM):
     def name(self) -> str:
         return f"framebuffer {self.device}"
 
-    def _open_output(self) -> None:
+    def _do_open(self) -> None:
         sysfs = self.sysfs_root / "class" / "graphics" / self.device.name
         virtual = _read(sysfs / "virtual_size")
         try:
@@ -94,7 +94,7 @@ class FramebufferSLM(SLM):
             raise FramebufferError(f"cannot map {size} bytes of {self.device}: {exc}") from None
         self._fd = fd
 
-    def _close_output(self) -> None:
+    def _do_close(self) -> None:
         if self._map is not None:
             self._map.close()
             self._map = None

@@ -35,7 +35,16 @@ from types import FrameType
 from nhfd.device_settings import COLOURS, LaserSettings
 
 from . import mecom
-from .errors import DeviceError, LinkDown, ProtocolError, ReplyTimeout, TransportError, WrongDevice
+from .device import Device
+from .errors import (
+    DeviceError,
+    LinkDown,
+    PortVanished,
+    ProtocolError,
+    ReplyTimeout,
+    TransportError,
+    WrongDevice,
+)
 from .transport import LineControl, Opener, Transport, serial_opener
 
 log = logging.getLogger(__name__)
@@ -110,7 +119,7 @@ def install_signal_handlers() -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-class Laser(ABC):
+class Laser(Device, ABC):
     """A multi-channel laser with the safety rules above. Channels are named "red", "green",
     "blue"; powers are percent of the diode's full power, clamped to the settings' cap."""
 
@@ -136,9 +145,9 @@ class Laser(ABC):
             if self._connected:
                 return self
             self._armed_until = None
-            self._connect()
+            self._do_open()
             try:
-                found = self._identify()
+                found = self._do_identify()
                 if found != self.settings.device_type:
                     raise WrongDevice(
                         f"{self.name}: device type {found}, expected {self.settings.device_type}; "
@@ -150,7 +159,7 @@ class Laser(ABC):
                 self.all_off()
             except BaseException:
                 self._connected = False
-                self._disconnect_quietly()
+                self._close_quietly()
                 raise
             atexit.register(self._off_at_exit)
             log.info("%s: open, device type %s, all channels off", self.name, found)
@@ -166,38 +175,20 @@ class Laser(ABC):
             finally:
                 self._connected = False
                 self._armed_until = None
-                self._disconnect_quietly()
+                self._close_quietly()
 
-    def __enter__(self) -> Laser:
-        return self.open()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    # A reconnect attempt that finds another device type raises WrongDevice: not retried.
+    _retry_on = (TransportError, ProtocolError)
 
     def reconnect(self) -> None:
-        """Reopen after a link loss, with exponential backoff. Re-identifies first, then all off;
-        the armed state is not restored."""
-        s = self.settings
+        """Reopen after a link loss, with exponential backoff (`Device.reconnect`). Re-identifies
+        first, then all off; the armed state is not restored."""
         with self._lock:
-            self._armed_until = None
-            self._connected = False
-            self._disconnect_quietly()
-            delay = s.reconnect_backoff_s
-            last: Exception | None = None
-            for attempt in range(1, s.reconnect_attempts + 1):
-                try:
-                    self.open()
-                    log.info("%s: reconnected on attempt %d", self.name, attempt)
-                    return
-                except WrongDevice:
-                    raise
-                except (TransportError, ProtocolError) as exc:
-                    last = exc
-                    log.warning("%s: reconnect attempt %d failed: %s", self.name, attempt, exc)
-                if attempt < s.reconnect_attempts:
-                    time.sleep(min(delay, s.reconnect_backoff_max_s))
-                    delay *= 2
-            raise LinkDown(f"{self.name}: no link after {s.reconnect_attempts} attempts: {last}")
+            super().reconnect()
+
+    def _before_reconnect(self) -> None:
+        self._armed_until = None
+        self._connected = False
 
     # -- arming --------------------------------------------------------------------------------
 
@@ -320,7 +311,7 @@ class Laser(ABC):
                             if abs(power) > self.settings.readback_tolerance_pct:
                                 problems.append(f"{channel} power reads {power:.4g} %")
                     except TransportError as exc:
-                        if not self._link_alive():
+                        if not self._do_check_link():
                             self._connected = False
                             raise self._latch(LaserFault(
                                 f"{self.name}: all-off NOT confirmed, link lost: {exc}")) from exc
@@ -359,10 +350,6 @@ class Laser(ABC):
 
     # -- shared helpers ------------------------------------------------------------------------
 
-    @property
-    def name(self) -> str:
-        return type(self).__name__
-
     def _check_channel(self, channel: str) -> None:
         if channel not in self.channels:
             raise ValueError(f"channel {channel!r}: must be one of {', '.join(self.channels)}")
@@ -389,7 +376,7 @@ class Laser(ABC):
         try:
             yield
         except BaseException as exc:
-            if isinstance(exc, TransportError) and not self._link_alive():
+            if isinstance(exc, TransportError) and not self._do_check_link():
                 self._connected = False
                 self._armed_until = None
                 self._fault = self._fault or f"link lost while changing emission: {exc}"
@@ -402,30 +389,20 @@ class Laser(ABC):
         with contextlib.suppress(Exception):
             self.close()
 
-    def _disconnect_quietly(self) -> None:
-        try:
-            self._disconnect()
-        except Exception as exc:
-            log.warning("%s: disconnect: %s", self.name, exc)
-
     # -- backend hooks -------------------------------------------------------------------------
 
     @abstractmethod
-    def _connect(self) -> None:
+    def _do_open(self) -> None:
         """Open the link (no writes to the device)."""
 
     @abstractmethod
-    def _disconnect(self) -> None: ...
-
-    def _link_alive(self) -> bool:
-        """False once the link is known to be gone (port vanished)."""
-        return True
+    def _do_close(self) -> None: ...
 
     @abstractmethod
-    def _identify(self) -> int:
+    def _do_identify(self) -> int:
         """The device type, read without writing anything."""
 
-    def _prepare(self) -> None:  # noqa: B027 - optional hook
+    def _prepare(self) -> None:
         """After a successful identification: take control of the device if it needs it."""
 
     @abstractmethod
@@ -476,8 +453,8 @@ class MecomLaser(Laser):
 
     # -- link ----------------------------------------------------------------------------------
 
-    def _connect(self) -> None:
-        self._disconnect()
+    def _do_open(self) -> None:
+        self._do_close()
         self._vanished = False
         self._transport = self._opener()
         if self.settings.latency_timer_ms:
@@ -485,12 +462,12 @@ class MecomLaser(Laser):
                 LineControl(latency_timer_ms=self.settings.latency_timer_ms)
             )
 
-    def _disconnect(self) -> None:
+    def _do_close(self) -> None:
         if self._transport is not None:
             transport, self._transport = self._transport, None
             transport.close()
 
-    def _link_alive(self) -> bool:
+    def _do_check_link(self) -> bool:
         return not self._vanished and self._transport is not None
 
     def _next_sequence(self) -> int:
@@ -501,8 +478,6 @@ class MecomLaser(Laser):
         """Send the request `make(sequence)` and return its reply. Retries (with a new sequence
         number) after a timeout or a corrupt reply; a device error raises MecomDeviceError; a
         vanished port raises PortVanished at once."""
-        from .errors import PortVanished
-
         transport = self._transport
         if transport is None:
             raise LinkDown(f"{self.name}: not connected")
@@ -556,7 +531,7 @@ class MecomLaser(Laser):
 
     # -- hooks ---------------------------------------------------------------------------------
 
-    def _identify(self) -> int:
+    def _do_identify(self) -> int:
         ids = self.settings.parameter_ids
         return self.read_parameter(ids.device_type, self.settings.channel_instances[0]).as_int
 

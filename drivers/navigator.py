@@ -21,6 +21,7 @@ from typing import Any
 
 from nhfd.device_settings import NavigatorSettings
 
+from .device import Device
 from .errors import DeviceError, PortNotFound, ProtocolError
 
 REPORT_TRANSLATION = 1
@@ -98,36 +99,17 @@ def to_reading(state: RawState, settings: NavigatorSettings, time_s: float) -> N
     )
 
 
-class Navigator(ABC):
+class Navigator(Device, ABC):
     def __init__(self, settings: NavigatorSettings | None = None, *,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.settings = settings or NavigatorSettings()
         self._clock = clock
-
-    def open(self) -> Navigator:
-        self._open()
-        return self
-
-    def close(self) -> None:
-        self._close()
-
-    def __enter__(self) -> Navigator:
-        return self.open()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
 
     def read(self) -> NavigatorReading:
         """The current velocities and buttons (consumes every report waiting)."""
         return to_reading(self._poll(), self.settings, self._clock())
 
     # -- backend hooks -------------------------------------------------------------------------
-
-    def _open(self) -> None:  # noqa: B027 - optional hook
-        pass
-
-    def _close(self) -> None:  # noqa: B027 - optional hook
-        pass
 
     @abstractmethod
     def _poll(self) -> RawState: ...
@@ -143,7 +125,7 @@ class SpaceMouseNavigator(Navigator):
         self._state = RawState()
         self.product: str = ""
 
-    def _open(self) -> None:
+    def _do_open(self) -> None:
         try:
             import hid
         except ImportError:
@@ -166,7 +148,7 @@ class SpaceMouseNavigator(Navigator):
         self.product = info.get("product_string") or f"{info['vendor_id']:04x}:" \
             f"{info['product_id']:04x}"
 
-    def _close(self) -> None:
+    def _do_close(self) -> None:
         if self._device is not None:
             self._device.close()
             self._device = None
@@ -211,7 +193,7 @@ class SimulatedNavigator(Navigator):
             raise ValueError("waypoints must be in time order")
         self._t0 = clock()
 
-    def _open(self) -> None:
+    def _do_open(self) -> None:
         self._t0 = self._clock()
 
     def _poll(self) -> RawState:

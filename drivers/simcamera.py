@@ -358,10 +358,10 @@ class SimulatedCamera(Camera):
 
     # -- Camera hooks ------------------------------------------------------------------------
 
-    def _open_device(self) -> None:
+    def _do_open(self) -> None:
         pass
 
-    def _close_device(self) -> None:
+    def _do_close(self) -> None:
         pass
 
     def _exposure_limits_s(self) -> tuple[float, float]:

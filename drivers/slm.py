@@ -8,7 +8,7 @@ before writing (a framebuffer write does not fail on an unplugged cable), keeps 
 and knows when the liquid crystal has settled.
 
 A backend implements `_write(rgb)` with rgb a C-contiguous uint8 array [H, W, 3] in R, G, B
-order, plus `_health()` and optionally `_open()` / `_close()`.
+order, plus `_health()` and optionally the `Device` hooks `_do_open()` / `_do_close()`.
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ import numpy as np
 
 from nhfd.device_settings import SLMOutputSettings
 
+from .device import Device
 from .errors import DeviceError
 
 log = logging.getLogger(__name__)
@@ -75,7 +76,7 @@ def to_rgb(frame: Any, height_px: int, width_px: int) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(grey, (3, height_px, width_px)).transpose(1, 2, 0))
 
 
-class SLM(ABC):
+class SLM(Device, ABC):
     """A phase SLM of width_px x height_px driven with 8-bit grey levels per colour channel."""
 
     def __init__(
@@ -94,7 +95,7 @@ class SLM(ABC):
         self._clock = clock
         self._last: np.ndarray | None = None
         self._shown_at = -float("inf")
-        self._open = False
+        self._is_open = False
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -106,25 +107,19 @@ class SLM(ABC):
         return self.settings.settle_ms / 1000
 
     def open(self) -> SLM:
-        if not self._open:
-            self._open_output()
-            self._open = True
+        if not self._is_open:
+            self._do_open()
+            self._is_open = True
         return self
 
     def close(self) -> None:
-        if self._open:
-            self._open = False
-            self._close_output()
-
-    def __enter__(self) -> SLM:
-        return self.open()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+        if self._is_open:
+            self._is_open = False
+            self._do_close()
 
     def show(self, frame: Any, *, wait_settled: bool = False) -> float:
         """Show a grey frame; returns the clock time at which the liquid crystal has settled."""
-        if not self._open:
+        if not self._is_open:
             raise DeviceError(f"{self.name}: not open")
         rgb = to_rgb(frame, self.height_px, self.width_px)
         if np.may_share_memory(rgb, frame):
@@ -161,17 +156,7 @@ class SLM(ABC):
     def health(self) -> SLMHealth:
         return self._health()
 
-    @property
-    def name(self) -> str:
-        return type(self).__name__
-
     # -- backend hooks -------------------------------------------------------------------------
-
-    def _open_output(self) -> None:  # noqa: B027 - optional hook
-        pass
-
-    def _close_output(self) -> None:  # noqa: B027 - optional hook
-        pass
 
     @abstractmethod
     def _write(self, rgb: np.ndarray) -> None:

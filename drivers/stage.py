@@ -31,6 +31,7 @@ from typing import Literal
 from nhfd.device_settings import StageSettings
 
 from . import apt
+from .device import Device
 from .errors import DeviceError, LinkDown, PortVanished, ReplyTimeout, TransportError, WrongDevice
 from .transport import LineControl, LineControlError, Opener, Transport, serial_opener
 
@@ -103,7 +104,7 @@ class StageState:
         return self.limit_cw or self.limit_ccw
 
 
-class Stage(ABC):
+class Stage(Device, ABC):
     """One motorised axis in mm."""
 
     def __init__(self, settings: StageSettings) -> None:
@@ -113,17 +114,18 @@ class Stage(ABC):
         self._pending_timeout_s = 0.0
         self._pending_target_mm: float | None = None  # a move's target
         self._state_lock = threading.Lock()
+        self._info_before_reconnect: StageInfo | None = None
 
     # -- lifecycle -----------------------------------------------------------------------------
 
     def open(self) -> Stage:
         """Connect and identify; configure; read the state. Never moves."""
-        self._connect()
+        self._do_open()
         try:
-            self.info = self._identify()
+            self.info = self._do_identify()
             self._configure()
         except BaseException:
-            self._disconnect_quietly()
+            self._close_quietly()
             raise
         log.info("%s: %s serial %s, firmware %s; not moved", self.name, self.info.model,
                  self.info.serial_number, self.info.firmware)
@@ -132,46 +134,35 @@ class Stage(ABC):
     def close(self) -> None:
         """Stop any motion, then disconnect."""
         try:
-            if self._link_up() and self._pending is not None:
+            if self._do_check_link() and self._pending is not None:
                 with contextlib.suppress(DeviceError):
                     self.stop()
         finally:
             self._pending = None
-            self._disconnect_quietly()
+            self._close_quietly()
 
-    def __enter__(self) -> Stage:
-        return self.open()
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+    # ReplyTimeout is a TransportError; a unit that identifies as another raises WrongDevice.
+    _retry_on = (TransportError, LinkDown)
 
     def reconnect(self) -> None:
-        """Reopen with exponential backoff; the device must identify as the same unit."""
-        s = self.settings
-        before = self.info
+        """Reopen with exponential backoff (`Device.reconnect`); the device must identify as the
+        same unit."""
+        self._info_before_reconnect = self.info
+        super().reconnect()
+
+    def _before_reconnect(self) -> None:
         self._pending = None
-        self._disconnect_quietly()
-        delay, last = s.reconnect_backoff_s, None
-        for attempt in range(1, s.reconnect_attempts + 1):
-            try:
-                self._connect()
-                info = self._identify()
-                if before is not None and info.serial_number != before.serial_number:
-                    self._disconnect_quietly()
-                    raise WrongDevice(f"{self.name}: reconnected to serial {info.serial_number}, "
-                                      f"was {before.serial_number}")
-                self.info = info
-                self._configure()
-                log.info("%s: reconnected on attempt %d", self.name, attempt)
-                return
-            except (TransportError, ReplyTimeout, LinkDown) as exc:
-                last = exc
-                self._disconnect_quietly()
-                log.warning("%s: reconnect attempt %d failed: %s", self.name, attempt, exc)
-            if attempt < s.reconnect_attempts:
-                time.sleep(min(delay, s.reconnect_backoff_max_s))
-                delay *= 2
-        raise LinkDown(f"{self.name}: no link after {s.reconnect_attempts} attempts: {last}")
+
+    def _reopen(self) -> None:
+        before = self._info_before_reconnect
+        self._do_open()
+        info = self._do_identify()
+        if before is not None and info.serial_number != before.serial_number:
+            self._close_quietly()
+            raise WrongDevice(f"{self.name}: reconnected to serial {info.serial_number}, "
+                              f"was {before.serial_number}")
+        self.info = info
+        self._configure()
 
     # -- motion --------------------------------------------------------------------------------
 
@@ -263,10 +254,6 @@ class Stage(ABC):
 
     # -- shared helpers ------------------------------------------------------------------------
 
-    @property
-    def name(self) -> str:
-        return type(self).__name__
-
     def _begin(self, kind: str, timeout_s: float, target_mm: float | None = None) -> None:
         if self.info is None:
             raise LinkDown(f"{self.name}: not open (a stage moves only after identification)")
@@ -294,28 +281,19 @@ class Stage(ABC):
         if self.settings.require_homed and not self.state().homed:
             raise NotHomed(f"{self.name}: not homed; call home() first")
 
-    def _disconnect_quietly(self) -> None:
-        try:
-            self._disconnect()
-        except Exception as exc:
-            log.warning("%s: disconnect: %s", self.name, exc)
-
     # -- backend hooks -------------------------------------------------------------------------
 
     @abstractmethod
-    def _connect(self) -> None: ...
+    def _do_open(self) -> None: ...
 
     @abstractmethod
-    def _disconnect(self) -> None: ...
-
-    def _link_up(self) -> bool:
-        return True
+    def _do_close(self) -> None: ...
 
     @abstractmethod
-    def _identify(self) -> StageInfo:
+    def _do_identify(self) -> StageInfo:
         """Who is there; raise WrongDevice for anything the settings do not allow."""
 
-    def _configure(self) -> None:  # noqa: B027 - optional hook
+    def _configure(self) -> None:
         """After identification: enable the axis, set velocities, start status updates."""
 
     @abstractmethod
@@ -376,8 +354,8 @@ class AptStage(Stage):
 
     # -- link ----------------------------------------------------------------------------------
 
-    def _connect(self) -> None:
-        self._disconnect()
+    def _do_open(self) -> None:
+        self._do_close()
         self._reset_link_state()
         self.stream = apt.AptStream(from_unit=True)
         transport = self._opener()
@@ -397,7 +375,7 @@ class AptStage(Stage):
         self._reader = threading.Thread(target=self._read_loop, name="apt-reader", daemon=True)
         self._reader.start()
 
-    def _disconnect(self) -> None:
+    def _do_close(self) -> None:
         transport = self._transport
         if transport is None:
             return
@@ -414,7 +392,7 @@ class AptStage(Stage):
         self._transport = None
         transport.close()
 
-    def _link_up(self) -> bool:
+    def _do_check_link(self) -> bool:
         return self._transport is not None and self._link_error is None
 
     def _write(self, frame: bytes) -> None:
@@ -514,7 +492,7 @@ class AptStage(Stage):
 
     # -- hooks ---------------------------------------------------------------------------------
 
-    def _identify(self) -> StageInfo:
+    def _do_identify(self) -> StageInfo:
         reply = self._request(apt.req_info(), {apt.MsgId.HW_GET_INFO}, "HW_GET_INFO")
         assert reply.data is not None
         hw = apt.HwInfo.decode(reply.data)

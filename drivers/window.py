@@ -90,7 +90,7 @@ class WindowSLM(SLM):
     def name(self) -> str:
         return f"window SLM {self.settings.drm_connector or '(auto)'}"
 
-    def _open_output(self) -> None:
+    def _do_open(self) -> None:
         try:
             import pyglet
         except ImportError:
@@ -111,7 +111,7 @@ class WindowSLM(SLM):
         pyglet.gl.glDisable(pyglet.gl.GL_DITHER)
         self._pyglet, self._window = pyglet, window
 
-    def _close_output(self) -> None:
+    def _do_close(self) -> None:
         if self._window is not None:
             self._window.close()
             self._window = None

@@ -14,10 +14,10 @@ class MyCamera(Camera):
         # Import the vendor library here, not at module level, and raise CameraUnavailable
         # with the pip/apt command when it is missing.
 
-    def _open_device(self) -> None:
+    def _do_open(self) -> None:
         raise NotImplementedError  # find the camera (by serial number, not index) and open it
 
-    def _close_device(self) -> None:
+    def _do_close(self) -> None:
         raise NotImplementedError
 
     def _apply_exposure(self, exposure_s: float) -> float:

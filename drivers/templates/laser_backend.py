@@ -15,15 +15,15 @@ class MyLaser(Laser):
                                                baud=settings.baud)
         self._transport: Transport | None = None
 
-    def _connect(self) -> None:
+    def _do_open(self) -> None:
         self._transport = self._opener()  # no writes to the device here
 
-    def _disconnect(self) -> None:
+    def _do_close(self) -> None:
         if self._transport is not None:
             self._transport.close()
             self._transport = None
 
-    def _identify(self) -> int:
+    def _do_identify(self) -> int:
         # Read the device type WITHOUT writing anything; the base compares it with the
         # settings' device_type and refuses anything else.
         raise NotImplementedError

@@ -6,10 +6,10 @@ from nhfd.drivers.navigator import Navigator, RawState
 
 
 class MyNavigator(Navigator):
-    def _open(self) -> None:
+    def _do_open(self) -> None:
         pass  # match the device by vendor AND product id
 
-    def _close(self) -> None:
+    def _do_close(self) -> None:
         pass
 
     def _poll(self) -> RawState:

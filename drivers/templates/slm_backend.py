@@ -8,10 +8,10 @@ from nhfd.drivers.slm import SLM, SLMHealth
 
 
 class MySLM(SLM):
-    def _open_output(self) -> None:
+    def _do_open(self) -> None:
         pass  # find the output (by EDID name, not index), check its geometry
 
-    def _close_output(self) -> None:
+    def _do_close(self) -> None:
         pass
 
     def _write(self, rgb: np.ndarray) -> None:

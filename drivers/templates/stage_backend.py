@@ -10,13 +10,13 @@ class MyStage(Stage):
     def __init__(self, settings: StageSettings) -> None:
         super().__init__(settings)
 
-    def _connect(self) -> None:
+    def _do_open(self) -> None:
         raise NotImplementedError  # open the transport; never move here
 
-    def _disconnect(self) -> None:
+    def _do_close(self) -> None:
         raise NotImplementedError
 
-    def _identify(self) -> StageInfo:
+    def _do_identify(self) -> StageInfo:
         # Ask the controller who it is; raise WrongDevice for a model the settings do not allow.
         raise NotImplementedError
 

@@ -20,7 +20,6 @@ import logging
 import queue
 import threading
 import time
-from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -65,34 +64,21 @@ class Bench:
     # -- open / close --------------------------------------------------------------------------
 
     def open(self) -> None:
-        d = self.config.devices
-        try:
-            self.slm = factory.make_slm(d, self.config.slm.width_px, self.config.slm.height_px)
-            if self.slm is not None:
-                self.slm.open()
-                self.panel.blank()
-        except Exception as exc:
-            self._failed("slm", exc)
-            self.slm = None
-        try:
-            self.stage = factory.make_stage(d)
-            if self.stage is not None:
-                self.stage.open()  # identifies; never moves
-        except Exception as exc:
-            self._failed("stage", exc)
-            self.stage = None
-        try:
-            laser = SimpleNamespace(twin=self.laser_twin)  # the simulated camera reads its twin
-            self.camera = factory.make_camera(d, slm=self.slm, laser=laser, stage=self.stage)
-            if self.camera is not None:
-                self.camera.open()
-        except Exception as exc:
-            self._failed("camera", exc)
-            self.camera = None
+        # The guardian owns the laser port: the bench builds no laser driver, and the simulated
+        # camera reads the guardian's twin. A device that fails is reported and left None.
+        devices = factory.make_bench(
+            self.config.devices, self.config.slm.width_px, self.config.slm.height_px,
+            laser=False, laser_twin=self.laser_twin, on_open=self._opened, on_error=self._failed)
+        self.slm, self.stage, self.camera = devices.slm, devices.stage, devices.camera
         self._refresh()  # status has the stage's state from the first request on
         self._monitor = threading.Thread(target=self._watch, name="nhfd-bench-monitor",
                                          daemon=True)
         self._monitor.start()
+
+    def _opened(self, device: str, driver: Any) -> None:
+        if device == "slm":
+            self.slm = driver
+            self.panel.blank()  # before the stage and camera open
 
     def _failed(self, device: str, exc: Exception) -> None:
         self.errors[device] = f"{type(exc).__name__}: {exc}"

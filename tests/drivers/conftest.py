@@ -15,7 +15,7 @@ from pathlib import Path
 
 import pytest
 
-from nhfd.device_settings import LaserSettings, StageSettings
+from nhfd.device_settings import LaserSettings, SLMOutputSettings, StageSettings
 from nhfd.drivers.twins.apt_twin import AptTwin
 from nhfd.drivers.twins.clock import ManualClock
 
@@ -79,3 +79,21 @@ def reaped(*procs: subprocess.Popen) -> Iterator[None]:
                     os.kill(proc.pid, signal.SIGKILL)
             with contextlib.suppress(subprocess.TimeoutExpired):
                 proc.wait(timeout=5)
+
+
+def fake_framebuffer(root: Path, *, width: int, height: int, bpp: int, stride: int,
+                     connectors: dict[str, str] | None = None) -> SLMOutputSettings:
+    """A file-backed /dev/fb1 (filled with 0xAB so untouched bytes show) and its sysfs."""
+    fb = root / "sys" / "class" / "graphics" / "fb1"
+    fb.mkdir(parents=True)
+    (fb / "virtual_size").write_text(f"{width},{height}\n")
+    (fb / "bits_per_pixel").write_text(f"{bpp}\n")
+    (fb / "stride").write_text(f"{stride}\n")
+    for name, status in (connectors or {}).items():
+        d = root / "sys" / "class" / "drm" / name
+        d.mkdir(parents=True)
+        (d / "status").write_text(status + "\n")
+    dev = root / "dev"
+    dev.mkdir()
+    (dev / "fb1").write_bytes(b"\xab" * stride * height)
+    return SLMOutputSettings(framebuffer_device=str(dev / "fb1"), sysfs_root=str(root / "sys"))

@@ -74,10 +74,10 @@ class FakeCamera(Camera):
         self.applied: list[tuple[str, float]] = []
         self.opened = 0
 
-    def _open_device(self):
+    def _do_open(self):
         self.opened += 1
 
-    def _close_device(self):
+    def _do_close(self):
         pass
 
     def _apply_exposure(self, exposure_s):

@@ -110,12 +110,10 @@ def test_simulated_camera_sees_the_simulated_bench():
 
     d = Config().devices
     # A small panel and sensor crop keep this fast; the bench's geometry is its own.
-    slm = factory.make_slm(d, 128, 128)
-    laser, stage = factory.make_laser(d), factory.make_stage(d)
     bench = TrueBench(zero_order_fraction=0.0)
     roi = bench.roi_for_panel((128, 128))
-    camera = factory.make_camera(d, slm=slm, laser=laser, stage=stage, bench=bench, roi=roi)
-    with slm, laser, stage, camera:
+    with factory.make_bench(d, 128, 128, bench=bench, roi=roi) as devices:
+        slm, laser, camera = devices.slm, devices.laser, devices.camera
         # A grey step: phase 0 on the left, pi on the right; its edge diffracts.
         frame = np.zeros((128, 128), np.uint8)
         frame[:, 64:] = 128
@@ -137,3 +135,25 @@ def test_simulated_camera_needs_the_simulated_bench():
     with pytest.raises(ValueError, match="needs the simulated SLM, laser and stage"):
         factory.make_camera(d)
     assert factory.make_camera(devices(camera="none")) is None
+
+
+def test_make_bench_reports_a_failed_device_and_still_builds_the_rest():
+    """The daemon's way: a device that cannot be built is reported and left None; the others
+    open, in wiring order, and the laser opens with every channel off."""
+    d = devices(stage="apt", camera="none")  # no port for the real stage
+    failed, opened = {}, []
+    bench = factory.make_bench(d, 8, 4, on_error=lambda name, exc: failed.update({name: exc}),
+                               on_open=lambda name, device: opened.append(name))
+    with bench:
+        assert opened == ["slm", "laser"]
+        assert bench.stage is None and bench.camera is None
+        assert isinstance(failed["stage"], ValueError)
+        assert not bench.laser.status().any_on
+        twin = bench.laser.twin
+    assert not twin.present and not any(twin.emitting().values())
+
+
+def test_make_bench_without_on_error_closes_what_it_opened_and_raises():
+    d = devices(stage="apt")
+    with pytest.raises(ValueError, match=r"devices\.apt: set usb_serial"):
+        factory.make_bench(d, 8, 4)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -11,6 +9,8 @@ from nhfd.device_settings import SLMOutputSettings
 from nhfd.drivers.framebuffer import FramebufferError, FramebufferSLM
 from nhfd.drivers.slm import SimulatedSLM, SLMOutputLost, to_rgb
 from nhfd.drivers.twins.clock import ManualClock
+
+from .conftest import fake_framebuffer
 
 H, W = 3, 5
 
@@ -71,24 +71,6 @@ def test_simulated_slm_keeps_frames_settles_and_refuses_when_unplugged(tmp_path)
 
     saved = image.imread(pngs[-1])
     assert saved.shape[:2] == (H, W) and round(float(saved[0, 0, 0]) * 255) == 30
-
-
-def fake_framebuffer(root: Path, *, width: int, height: int, bpp: int, stride: int,
-                     connectors: dict[str, str] | None = None) -> SLMOutputSettings:
-    """A file-backed /dev/fb1 (filled with 0xAB so untouched bytes show) and its sysfs."""
-    fb = root / "sys" / "class" / "graphics" / "fb1"
-    fb.mkdir(parents=True)
-    (fb / "virtual_size").write_text(f"{width},{height}\n")
-    (fb / "bits_per_pixel").write_text(f"{bpp}\n")
-    (fb / "stride").write_text(f"{stride}\n")
-    for name, status in (connectors or {}).items():
-        d = root / "sys" / "class" / "drm" / name
-        d.mkdir(parents=True)
-        (d / "status").write_text(status + "\n")
-    dev = root / "dev"
-    dev.mkdir()
-    (dev / "fb1").write_bytes(b"\xab" * stride * height)
-    return SLMOutputSettings(framebuffer_device=str(dev / "fb1"), sysfs_root=str(root / "sys"))
 
 
 def test_framebuffer_writes_bgrx_rows_with_stride_padding(tmp_path):
