@@ -24,6 +24,9 @@ def test_control_client_and_config_import_no_heavy_libraries():
         "import nhfd.cli.nhfctl",
         "import nhfd.config",
         "from nhfd.cli.main import build_parser; build_parser()",
+        # `nhfd serve` with nothing configured and the emergency `nhfd laser-off`
+        "from nhfd.cli.main import build_parser; build_parser().parse_args(['serve'])",
+        "from nhfd.cli.main import build_parser; build_parser().parse_args(['laser-off'])",
     ):
         loaded = imported_after(code)
         assert not loaded & set(HEAVY), (code, loaded & set(HEAVY))
