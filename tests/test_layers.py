@@ -42,15 +42,6 @@ SEAMS = {
 }
 # Today's violations, to be emptied (each entry "file -> imported module").
 ALLOWED: set[str] = {
-    "calib/capture.py -> nhfd.calib.fit",
-    "calib/capture.py -> nhfd.config",
-    "calib/capture.py -> nhfd.daemon.protocol",
-    "calib/capture.py -> nhfd.device_settings",
-    "calib/capture.py -> nhfd.drivers.simcamera",
-    "calib/capture.py -> nhfd.optics",
-    "calib/report.py -> nhfd.calib.geometry",
-    "calib/report.py -> nhfd.device_settings",
-    "calib/report.py -> nhfd.drivers.simcamera",
     "drivers/factory.py -> nhfd.drivers.camera",
     "drivers/factory.py -> nhfd.drivers.framebuffer",
     "drivers/factory.py -> nhfd.drivers.simcamera",
