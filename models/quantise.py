@@ -12,6 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from nhfd.models.net import pad_amounts
+
 if TYPE_CHECKING:
     from nhfd.models.data import HoloData
 
@@ -49,7 +51,6 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
         quantize_static,
     )
 
-    from nhfd.models.net import pad_amounts
 
     model = onnx.load(str(src))
     split = data.splits["train"]

@@ -18,7 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
+from nhfd.benchmarks.machine import describe
 from nhfd.cli.args import parse_wxh
+from nhfd.dataset.shard import ExampleSettings
+from nhfd.scene import _kernels as k
+from nhfd.scene.io import load_scene
+from nhfd.scene.lightfield import DepthMapping, directions, hogel_window, render_light_field
+from nhfd.scene.raster import RasterSettings, prepare, render
+from nhfd.scene.suggest import detect_up_axis, suggest_camera
 
 DEFAULT_SCENES = ("donut.ply", "guitar.compressed.ply")
 
@@ -39,7 +46,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 def numpy_composite(rec: np.ndarray, counts: np.ndarray, width: int, height: int) -> np.ndarray:
     """The baseline: composite projected records (from `_kernels.project_view`, depth order) one
     Gaussian at a time over its bounding box with NumPy. Returns rgb [3, H, W]."""
-    from nhfd.scene import _kernels as k
 
     trans = np.ones((height, width))
     live = np.ones((height, width), bool)
@@ -90,14 +96,6 @@ def _scene_paths(args: argparse.Namespace) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nhfd.benchmarks.machine import describe
-    from nhfd.dataset.shard import ExampleSettings
-    from nhfd.scene import _kernels as k
-    from nhfd.scene.io import load_scene
-    from nhfd.scene.lightfield import DepthMapping, directions, hogel_window, render_light_field
-    from nhfd.scene.raster import RasterSettings, prepare, render
-    from nhfd.scene.suggest import detect_up_axis, suggest_camera
-
     w, h = parse_wxh(args.size, "--size")
     if args.repeats < 1 or w < 1 or h < 1:
         raise ValueError("--size and --repeats must be positive")

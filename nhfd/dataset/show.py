@@ -8,6 +8,7 @@ import numpy as np
 
 from nhfd.dataset.build import load_manifest, shard_name
 from nhfd.dataset.shard import read_shard
+from nhfd.optics import Aperture, linear_to_srgb, propagate
 
 
 def focal_images(field: np.ndarray, planes_m: list[float], settings: dict) -> np.ndarray:
@@ -15,7 +16,6 @@ def focal_images(field: np.ndarray, planes_m: list[float], settings: dict) -> np
     robust percentile so brightness compares across planes."""
     import torch
 
-    from nhfd.optics import Aperture, linear_to_srgb, propagate
 
     aperture = Aperture(settings["aperture_shape"], tuple(settings["cutoff_per_px"]))
     stack = propagate(
