@@ -52,7 +52,6 @@ def export_onnx(
     (max abs difference over amplitude and phase, at sizes other than the traced one)."""
     import onnx
 
-
     if opset < MIN_OPSET:
         raise ValueError(f"--opset {opset}: must be {MIN_OPSET} or newer")
     net, info = load_run(run_dir)

@@ -51,7 +51,6 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
         quantize_static,
     )
 
-
     model = onnx.load(str(src))
     split = data.splits["train"]
     Path(dst).parent.mkdir(parents=True, exist_ok=True)

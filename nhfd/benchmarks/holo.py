@@ -46,7 +46,6 @@ def _rss_mb() -> float:
 def run(args: argparse.Namespace) -> int:
     import torch
 
-
     scene = Path(args.scene) if args.scene else (
         Path(__file__).resolve().parents[2].parent / "shared" / "data" / "scenes" / "donut.ply"
     )  # fmt: skip

@@ -63,7 +63,6 @@ def run(args: argparse.Namespace) -> int:
         return padding_accuracy(args)
     import torch
 
-
     w, h = parse_wxh(args.size or "1920x1080", "--size")
     if args.depths < 1 or args.repeats < 1 or w < 1 or h < 1:
         raise ValueError("--size, --depths and --repeats must be positive")
@@ -122,7 +121,6 @@ def run(args: argparse.Namespace) -> int:
 def _accuracy_fields(h: int, w: int, aperture, colours: int) -> dict[str, object]:
     """The seeded test fields of `--accuracy`, complex128 `[C, h, w]`."""
     import torch
-
 
     gen = torch.Generator().manual_seed(17)
     noise = torch.randn(colours, h, w, dtype=torch.complex128, generator=gen)

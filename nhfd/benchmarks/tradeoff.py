@@ -178,7 +178,6 @@ def finished_run(run_dir: Path, opts, manifest_key: str | None
 
     import torch
 
-
     path = run_dir / CHECKPOINT
     if not path.is_file():
         return None
@@ -242,7 +241,6 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
     import torch
-
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

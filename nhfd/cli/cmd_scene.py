@@ -215,7 +215,6 @@ def _fmt(values: Any) -> str:
 def _suggested(scene: Loaded, size: tuple[int, int], fov: float) -> dict[str, Any]:
     """The suggested camera and the `scene render` arguments that reproduce it."""
 
-
     cam = suggest_camera(scene.g, size[0], size[1], scene.up, fov_x_deg=fov)
     target, _, _ = robust_frame(scene.g)
     eye = cam.position
@@ -237,7 +236,6 @@ def _suggested(scene: Loaded, size: tuple[int, int], fov: float) -> dict[str, An
 
 def _camera(scene: Loaded, args: argparse.Namespace, size: tuple[int, int]) -> tuple[Any, str]:
     """The camera for `scene render`, and its pose as text."""
-
 
     centre, lo, hi = robust_frame(scene.g)
     if args.pose is None:

@@ -116,7 +116,6 @@ def run_train(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
     crop = parse_wxh(args.crop, "--crop", 8192) if args.crop else (None, None)
 
-
     options = TrainOptions.from_config(
         config, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
         inputs=args.inputs, growth=args.growth, skip=args.skip,
@@ -149,7 +148,6 @@ def run_eval(args: argparse.Namespace) -> int:
         else model / "eval"
     )  # fmt: skip
 
-
     result = evaluate(model, args.data, splits=splits, max_views=args.max_views, out_dir=out)
     print(f"wrote {out / 'eval.json'}" + (f" and {result['png']}" if "png" in result else ""))
     return 0
@@ -163,7 +161,6 @@ def run_export(args: argparse.Namespace) -> int:
     if args.int8 and not (args.data and Path(args.data).is_dir()):
         raise ValueError(f"--int8 needs --data: a dataset folder to calibrate on (got "
                          f"{args.data!r})")  # fmt: skip
-
 
     res = export_onnx(args.run, args.out, opset=args.opset, check=not args.no_check)
     m = res.metadata

@@ -73,7 +73,6 @@ def scene_depth_pass(g, poses: list[Pose], center: np.ndarray, settings: Example
     """Robust `d_near`, `d_far` of the scene over all poses (rendered at `scale` of the size)."""
     from dataclasses import replace
 
-
     small = replace(
         settings,
         width_px=max(8, round(settings.width_px * scale)),

@@ -129,7 +129,6 @@ def make_example(
 
     import torch
 
-
     t0 = time.perf_counter()
     cam = settings.camera(pose, camera_distance(pose, center))
     raster = RasterSettings(antialias=settings.antialias)

@@ -16,7 +16,6 @@ def focal_images(field: np.ndarray, planes_m: list[float], settings: dict) -> np
     robust percentile so brightness compares across planes."""
     import torch
 
-
     aperture = Aperture(settings["aperture_shape"], tuple(settings["cutoff_per_px"]))
     stack = propagate(
         torch.from_numpy(field), planes_m, settings["pitch_m"], settings["wavelengths_m"],
