@@ -144,8 +144,7 @@ def _request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
 def _socket(args: argparse.Namespace) -> str | None:
     if args.socket:
         return args.socket
-    # Same rules as the daemon; the configuration is read only when it is needed.
-
+    # Same rules as the daemon: the configuration is read only when no --socket is given.
     return str(control_socket(load_config(args.config).config.daemon.runtime_dir))
 
 
