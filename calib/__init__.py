@@ -1,1 +1,15 @@
-"""nhfd.calib: focal-stack capture and bench-model fitting."""
+"""nhfd.calib: focal-stack capture and bench-model fitting.
+
+Layer L5 (services): may import L0-L4 and the daemon's client and protocol (it drives a running
+daemon); the daemon never imports it. Everything imports at module level.
+
+  patterns     the calibration holograms (dots, gratings, flats) from a small PatternSpec
+  data         the capture folder's format (manifest and file names) and reading it back
+  capture      capturing a focal-stack data set through a BenchIO (the twins, or a daemon)
+  geometry     camera geometry from the dot hologram
+  focus        depth mapping and phase sign from the dots' focal stacks
+  response     the phase response and per-colour intensity from gratings
+  bench_model  the differentiable bench model and the depth mapping fitted through it
+  fit          the whole fit: a capture -> a `nhfd.calibration.Calibration`
+  report       PNGs of a capture against its fit
+"""

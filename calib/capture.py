@@ -5,15 +5,8 @@ capture a linear dark-subtracted image). `SimBenchIO` drives the twins directly 
 and a `SimulatedCamera`); `DaemonBenchIO` drives a running daemon (`nhfd serve`, which owns the
 devices) through its JSON-RPC methods show_pattern, stage_move, laser and capture.
 
-Layout of a capture directory:
-
-    manifest.json          what was shown, where and how (see `Manifest`), rewritten after
-                           every image so an interrupted capture resumes where it stopped
-    frames/NAME.npy        every SLM frame shown, uint8 [H, W, 3]
-    images/KEY.npz         `image` float32 (linear, dark subtracted), `saturated` bool
-    dark.npz               the dark frame (lasers off)
-    daemon/                through a daemon only: the frame being shown and the last capture,
-                           exchanged as .npy files (scratch)
+The capture directory's layout and its names are `nhfd.calib.data`'s (the format's one owner,
+read by the fit and the report); this module writes it.
 
 Procedure: dark frame; a coarse green sweep over the user's stage range to locate the SLM plane
 and the magnification (from the in-focus dots); a fine sweep per colour around it covering every
@@ -33,10 +26,15 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from nhfd.daemon.protocol import RpcError
+from nhfd.device_settings import CameraSettings
+from nhfd.drivers.simcamera import SimulatedCamera
+from nhfd.optics import PhaseCurve
+
+from .data import DARK, FRAMES_DIR, IMAGES_DIR, MANIFEST, MANIFEST_VERSION, default_camera_pitch_m
+from .fit import geometry_from, locate, measure_response
 from .patterns import PatternSpec, dots_frame, flat_frames, grating_frames
 
-MANIFEST = "manifest.json"
-MANIFEST_VERSION = 1
 COLOURS = ("R", "G", "B")
 SWEEPS = ("coarse", "grating", "fine")
 
@@ -63,9 +61,6 @@ class SimBenchIO:
 
     def __init__(self, bench: Any, panel_hw: tuple[int, int], *, exposure_s: float = 0.005,
                  roi: tuple[int, int, int, int] | None = None, noise_seed: int = 0) -> None:
-        from nhfd.device_settings import CameraSettings
-        from nhfd.drivers.simcamera import SimulatedCamera
-
         self.bench = bench
         self.frame = np.zeros((*panel_hw, 3), np.uint8)
         self.powers = (0.0, 0.0, 0.0)
@@ -137,8 +132,6 @@ class DaemonBenchIO:
         self.calls: list[str] = []  # the daemon methods called, in order (for the curious)
 
     def _call(self, method: str, **params: Any) -> Any:
-        from nhfd.daemon.protocol import RpcError
-
         self.calls.append(method)
         try:
             return self.client.call(method, **params)
@@ -241,13 +234,6 @@ def daemon_spec(status: dict[str, Any], **kw: Any) -> PatternSpec:
                        tuple(float(x) for x in panel["wavelengths_m"]), **kw)  # type: ignore[arg-type]
 
 
-def default_camera_pitch_m() -> float:
-    """The configured camera's pixel pitch (m): `devices.camera_settings.pixel_pitch_um`."""
-    from nhfd.config import Config
-
-    return Config().devices.camera_settings.pixel_pitch_um * 1e-6
-
-
 @dataclass
 class CapturePlan:
     """User choices. Stage positions in mm; `depth_margin_m` widens the fine sweep beyond the
@@ -327,8 +313,8 @@ class Capture:
                 "spec": spec.to_dict(), "plan": plan.__dict__.copy(), "frames": {},
                 "records": [], "dark": None, "located": None,
             }
-        (self.out / "images").mkdir(parents=True, exist_ok=True)
-        (self.out / "frames").mkdir(exist_ok=True)
+        (self.out / IMAGES_DIR).mkdir(parents=True, exist_ok=True)
+        (self.out / FRAMES_DIR).mkdir(exist_ok=True)
         self._done = {r["key"] for r in self.manifest["records"]}
 
     # -- helpers -----------------------------------------------------------------------------
@@ -337,9 +323,9 @@ class Capture:
         _write_json(self.out / MANIFEST, self.manifest)
 
     def _frame(self, name: str, frame: np.ndarray) -> None:
-        path = self.out / "frames" / f"{name}.npy"
+        path = self.out / FRAMES_DIR / f"{name}.npy"
         np.save(path, frame)
-        self.manifest["frames"][name] = f"frames/{name}.npy"
+        self.manifest["frames"][name] = f"{FRAMES_DIR}/{name}.npy"
 
     def _shoot(self, key: str, frame_name: str, frame: np.ndarray, colour: int,
                stage_mm: float, **extra: Any) -> None:
@@ -354,10 +340,10 @@ class Capture:
         applied = [float(x) for x in getattr(self.io, "powers_applied", powers)]
         image, saturated = self.io.capture(self.plan.burst)
         self.io.set_lasers((0.0, 0.0, 0.0))
-        _save_npz(self.out / "images" / f"{key}.npz", image=image.astype(np.float32),
+        _save_npz(self.out / IMAGES_DIR / f"{key}.npz", image=image.astype(np.float32),
                   saturated=saturated.astype(bool))
         self.manifest["records"].append({
-            "key": key, "file": f"images/{key}.npz", "frame": frame_name, "colour": colour,
+            "key": key, "file": f"{IMAGES_DIR}/{key}.npz", "frame": frame_name, "colour": colour,
             "stage_mm": float(actual),
             "exposure_s": float(getattr(self.io, "exposure_s", self.plan.exposure_s)),
             "powers": powers, "burst": self.plan.burst,
@@ -379,16 +365,12 @@ class Capture:
     # -- the procedure -------------------------------------------------------------------------
 
     def run(self) -> dict[str, Any]:
-        from nhfd.optics import PhaseCurve
-
-        from .fit import geometry_from, locate, measure_response  # late: torch
-
         p = self.plan
         if self.manifest["dark"] is None:
             self.io.set_lasers((0.0, 0.0, 0.0))
             dark = self.io.capture_dark(max(p.burst, 4))
-            _save_npz(self.out / "dark.npz", image=dark.astype(np.float32))
-            self.manifest["dark"] = "dark.npz"
+            _save_npz(self.out / DARK, image=dark.astype(np.float32))
+            self.manifest["dark"] = DARK
             self._save()
         self.progress("computing the dot hologram")
         dots = dots_frame(self.spec)

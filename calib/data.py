@@ -1,4 +1,15 @@
-"""Reading a capture directory back, with errors that name the file at fault."""
+"""The capture directory's format, and reading it back with errors that name the file at fault.
+
+Layout of a capture directory (written by `nhfd.calib.capture`):
+
+    manifest.json          what was shown, where and how, rewritten after every image so an
+                           interrupted capture resumes where it stopped
+    frames/NAME.npy        every SLM frame shown, uint8 [H, W, 3]
+    images/KEY.npz         `image` float32 (linear, dark subtracted), `saturated` bool
+    dark.npz               the dark frame (lasers off)
+    daemon/                through a daemon only: the frame being shown and the last capture,
+                           exchanged as .npy files (scratch)
+"""
 
 from __future__ import annotations
 
@@ -10,8 +21,21 @@ from typing import Any
 
 import numpy as np
 
-from .capture import MANIFEST, MANIFEST_VERSION
+from nhfd.config import Config
+
 from .patterns import PatternSpec
+
+MANIFEST = "manifest.json"
+MANIFEST_VERSION = 1
+FRAMES_DIR = "frames"
+IMAGES_DIR = "images"
+DARK = "dark.npz"
+
+
+def default_camera_pitch_m() -> float:
+    """The configured camera's pixel pitch (m): `devices.camera_settings.pixel_pitch_um`; what a
+    capture whose plan does not record it was taken with."""
+    return Config().devices.camera_settings.pixel_pitch_um * 1e-6
 
 
 class CalibrationDataError(ValueError):

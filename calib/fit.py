@@ -30,8 +30,7 @@ from .bench_model import (
     fit_depth_model,
     to_slm_grid,
 )
-from .capture import default_camera_pitch_m
-from .data import CaptureData, load_capture, load_frame, load_image
+from .data import CaptureData, default_camera_pitch_m, load_capture, load_frame, load_image
 from .focus import FocusError, dot_metric, fit_depth, peak_position
 from .geometry import Geometry, fit_geometry
 from .patterns import PatternSpec, dot_layout, grating_tiles

@@ -17,19 +17,18 @@ from pathlib import Path
 import numpy as np
 
 from nhfd.calibration import Calibration
+from nhfd.device_settings import CameraSettings
+from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 
-from .capture import default_camera_pitch_m
-from .data import load_capture
+from .data import default_camera_pitch_m, load_capture
 from .fit import _fine_stack, fit_capture
-from .geometry import detect_dots
+from .geometry import Geometry, detect_dots
 from .patterns import dot_layout
 
 
 def simulate(cal: Calibration, frame: np.ndarray, stage_mm: float, colour: int,
              image_hw: tuple[int, int]) -> np.ndarray:
     """The fitted bench's noise-free image of `frame` ([H, W, 3] uint8) at a stage reading."""
-    from nhfd.device_settings import CameraSettings
-    from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 
     pitch = float(cal.fitted_on.get("camera_pitch_m") or default_camera_pitch_m())
     h, w = image_hw
@@ -68,7 +67,6 @@ def write_report(root: Path | str, cal: Calibration | None = None,
     pitch = float(cal.fitted_on.get("camera_pitch_m") or default_camera_pitch_m())
 
     # Geometry.
-    from .geometry import Geometry
 
     geo = Geometry(cal.magnification / pitch, cal.rotation_deg, cal.mirror_x, cal.shift_px,
                    0.0, 0, 0.0, 0.0)

@@ -1,5 +1,10 @@
 """nhfd.models: the NHF network, training, evaluation and ONNX export.
 
+Layer L3 (learning): imports nhfd.dataset, nhfd.holo, nhfd.optics, nhfd.scene and the vocabulary
+(L0-L2), never the pipeline, the daemon or calib. Its modules import each other and torch at
+module level (except `inputs`, NumPy only, and `metadata`, the standard library only); onnx
+and onnxruntime load where a graph is exported or run.
+
 Modules (import what you need; nothing heavy is imported here):
 - `inputs`: what the network sees (sRGB, or sRGB + the mapped depth), built the same way by
   training and by the daemon (NumPy only);

@@ -20,8 +20,12 @@ import numpy as np
 import torch
 
 from nhfd.models.data import HoloData
+from nhfd.models.export import OnnxModel
 from nhfd.models.inputs import ALPHA_CONTENT
 from nhfd.models.loss import Optics
+from nhfd.models.metadata import expected_from_manifest
+from nhfd.models.net import predict, to_field
+from nhfd.models.train import load_run
 from nhfd.optics import (
     Aperture,
     KernelCache,
@@ -41,9 +45,6 @@ Predictor = Callable[[torch.Tensor], torch.Tensor]
 
 
 def torch_predictor(run_dir: str | Path) -> tuple[Predictor, dict]:
-    from nhfd.models.net import predict, to_field
-    from nhfd.models.train import load_run
-
     net, info = load_run(run_dir)
 
     def run(x: torch.Tensor) -> torch.Tensor:
@@ -57,9 +58,6 @@ def torch_predictor(run_dir: str | Path) -> tuple[Predictor, dict]:
 
 
 def onnx_predictor(path: str | Path, manifest: dict) -> tuple[Predictor, dict]:
-    from nhfd.models.export import OnnxModel
-    from nhfd.models.metadata import expected_from_manifest
-
     model = OnnxModel(path, expected=expected_from_manifest(manifest))
 
     def run(x: torch.Tensor) -> torch.Tensor:

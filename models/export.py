@@ -17,14 +17,18 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from nhfd.models.metadata import (
     METADATA_KEY,
     NotAModel,
     build_metadata,
     check_metadata,
+    expected_from_config,
     parse_metadata,
 )
+from nhfd.models.serving import ServingNet
+from nhfd.models.train import load_run
 
 MIN_OPSET = 18
 # What the exported graph is written as (`nhfd.models.serving`); caches of exports compare it.
@@ -47,10 +51,6 @@ def export_onnx(
     """Export a run's network to ONNX with its metadata; check it with onnxruntime against torch
     (max abs difference over amplitude and phase, at sizes other than the traced one)."""
     import onnx
-    import torch
-
-    from nhfd.models.serving import ServingNet
-    from nhfd.models.train import load_run
 
     if opset < MIN_OPSET:
         raise ValueError(f"--opset {opset}: must be {MIN_OPSET} or newer")
@@ -91,7 +91,6 @@ def export_onnx(
 
 def compare_with_torch(net, onnx_path: str | Path) -> tuple[float, list[tuple[int, int]]]:
     """Max abs difference between torch and onnxruntime outputs on random inputs."""
-    import torch
 
     model = OnnxModel(onnx_path)
     m = net.spec.multiple
@@ -213,7 +212,5 @@ class OnnxModel:
 def load_model(path: str | Path, config=None, *, threads: int = 0,
                providers: tuple[str, ...] = CPU_ONLY) -> OnnxModel:
     """Load an exported model; with a `nhfd.config.Config`, refuse one trained for other optics."""
-    from nhfd.models.metadata import expected_from_config
-
     expected = expected_from_config(config) if config is not None else None
     return OnnxModel(path, expected=expected, threads=threads, providers=providers)

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from nhfd.models.vgg import VGGFeatures
 from nhfd.optics import Aperture, KernelCache, aperture_mask, fft, plan_padding, propagate
 from nhfd.optics.refplane import margin_px
 
@@ -175,8 +176,6 @@ class FocalStackLoss:
         self.margin = optics.margin_px() if mask_margin else 0
         self.vgg = None
         if perceptual == "vgg":
-            from nhfd.models.vgg import VGGFeatures
-
             if not vgg_weights:
                 raise ValueError("perceptual = 'vgg' needs vgg_weights: a local VGG-16 file")
             self.vgg = VGGFeatures.from_file(vgg_weights)

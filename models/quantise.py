@@ -12,6 +12,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from nhfd.models.net import pad_amounts
+
 if TYPE_CHECKING:
     from nhfd.models.data import HoloData
 
@@ -48,8 +50,6 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
         QuantType,
         quantize_static,
     )
-
-    from nhfd.models.net import pad_amounts
 
     model = onnx.load(str(src))
     split = data.splits["train"]

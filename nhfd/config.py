@@ -21,6 +21,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from nhfd.calibration import active_calibration
 from nhfd.device_settings import (
     CameraSettings,
     LaserSettings,
@@ -540,8 +541,6 @@ def check_files(config: Config, origin: str) -> None:
     raising `ConfigError` with the loader's reason."""
     if not config.calibration.file:
         return
-    from nhfd.calibration import active_calibration  # numpy: only when a file is named
-
     try:
         active_calibration(config)
     except ValueError as exc:

@@ -17,7 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
+from nhfd.benchmarks.machine import describe
 from nhfd.cli.args import parse_wxh
+from nhfd.config import load_config
+from nhfd.dataset.shard import ExampleSettings
+from nhfd.holo import band_limit, colour_sampling, scene_hologram, scene_mapping
+from nhfd.optics import Aperture, propagate
+from nhfd.scene.io import load_scene
+from nhfd.scene.raster import render
+from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
 
 PAPER_S_PER_MONOCHROME = 210.0
 
@@ -37,15 +45,6 @@ def _rss_mb() -> float:
 
 def run(args: argparse.Namespace) -> int:
     import torch
-
-    from nhfd.benchmarks.machine import describe
-    from nhfd.config import load_config
-    from nhfd.dataset.shard import ExampleSettings
-    from nhfd.holo import band_limit, colour_sampling, scene_hologram, scene_mapping
-    from nhfd.optics import Aperture, propagate
-    from nhfd.scene.io import load_scene
-    from nhfd.scene.raster import render
-    from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
 
     scene = Path(args.scene) if args.scene else (
         Path(__file__).resolve().parents[2].parent / "shared" / "data" / "scenes" / "donut.ply"

@@ -38,6 +38,11 @@ from typing import Any
 
 import numpy as np
 
+from nhfd import __version__
+from nhfd.benchmarks.machine import describe
+from nhfd.daemon.client import Client
+from nhfd.models.export import OnnxModel
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("load", help="status latency and memory under a set_view storm",
@@ -212,8 +217,6 @@ def idle(window_s: float, settle_s: float = 2.0) -> list[dict[str, Any]]:
 
 def storm(sock: Path, args: argparse.Namespace, envelope: dict[str, Any], pid: int,
           worker_pid: int | None) -> dict[str, Any]:
-    from nhfd.daemon.client import Client
-
     az = envelope.get("azimuth_deg") or [-20.0, 20.0]
     el = envelope.get("elevation_deg") or [0.0, 20.0]
     dist = envelope.get("distance") or [2.0, 2.0]
@@ -292,11 +295,6 @@ def storm(sock: Path, args: argparse.Namespace, envelope: dict[str, Any], pid: i
 
 
 def run(args: argparse.Namespace) -> int:
-    from nhfd import __version__
-    from nhfd.daemon.client import Client
-
-    from .machine import describe
-
     model = Path(args.model).resolve() if args.model else None
     scene = Path(args.scene).resolve() if args.model else None
     for f in (model, scene):
@@ -304,8 +302,6 @@ def run(args: argparse.Namespace) -> int:
             raise FileNotFoundError(f"{f}: not found (--model '' runs the storm without frames)")
     envelope: dict[str, Any] = {}
     if model is not None:
-        from nhfd.models.export import OnnxModel
-
         envelope = OnnxModel(model).metadata.get("pose_envelope") or {}
     load_start = [round(x, 2) for x in os.getloadavg()]  # the machine is shared: say how much
     idle_rows = idle(args.idle) if args.idle > 0 else []

@@ -25,7 +25,11 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from nhfd.benchmarks.machine import describe
 from nhfd.cli.args import parse_wxh
+from nhfd.config import load_config
+from nhfd.optics import Aperture, KernelCache, apply_aperture, fft, plan_padding, propagate
+from nhfd.optics._validate import finite_field
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -58,10 +62,6 @@ def run(args: argparse.Namespace) -> int:
     if args.accuracy:
         return padding_accuracy(args)
     import torch
-
-    from nhfd.benchmarks.machine import describe
-    from nhfd.optics import Aperture, KernelCache, fft, plan_padding, propagate
-    from nhfd.optics._validate import finite_field
 
     w, h = parse_wxh(args.size or "1920x1080", "--size")
     if args.depths < 1 or args.repeats < 1 or w < 1 or h < 1:
@@ -122,8 +122,6 @@ def _accuracy_fields(h: int, w: int, aperture, colours: int) -> dict[str, object
     """The seeded test fields of `--accuracy`, complex128 `[C, h, w]`."""
     import torch
 
-    from nhfd.optics import Aperture, apply_aperture
-
     gen = torch.Generator().manual_seed(17)
     noise = torch.randn(colours, h, w, dtype=torch.complex128, generator=gen)
     y = torch.linspace(-1, 1, h, dtype=torch.float64)[:, None]
@@ -136,10 +134,6 @@ def _accuracy_fields(h: int, w: int, aperture, colours: int) -> dict[str, object
 
 
 def padding_accuracy(args: argparse.Namespace) -> int:
-    from nhfd.benchmarks.machine import describe
-    from nhfd.config import load_config
-    from nhfd.optics import Aperture, plan_padding, propagate
-
     cfg = load_config().config
     o = cfg.optics
     w, h = (parse_wxh(args.size, "--size") if args.size

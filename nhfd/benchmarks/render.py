@@ -18,7 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
+from nhfd.benchmarks.machine import describe
 from nhfd.cli.args import parse_wxh
+from nhfd.dataset.shard import ExampleSettings
+from nhfd.scene import _kernels as kernels
+from nhfd.scene.io import load_scene
+from nhfd.scene.lightfield import DepthMapping, directions, hogel_window, render_light_field
+from nhfd.scene.raster import RasterSettings, prepare, render
+from nhfd.scene.suggest import detect_up_axis, suggest_camera
 
 DEFAULT_SCENES = ("donut.ply", "guitar.compressed.ply")
 
@@ -39,30 +46,29 @@ def register(sub: argparse._SubParsersAction) -> None:
 def numpy_composite(rec: np.ndarray, counts: np.ndarray, width: int, height: int) -> np.ndarray:
     """The baseline: composite projected records (from `_kernels.project_view`, depth order) one
     Gaussian at a time over its bounding box with NumPy. Returns rgb [3, H, W]."""
-    from nhfd.scene import _kernels as k
 
     trans = np.ones((height, width))
     live = np.ones((height, width), bool)
     acc = np.zeros((3, height, width))
     for r in rec[counts > 0]:
-        x0 = max(int(np.ceil(r[k.U] - r[k.RX] - 0.5)), 0)
-        x1 = min(int(np.floor(r[k.U] + r[k.RX] - 0.5)), width - 1)
-        y0 = max(int(np.ceil(r[k.V] - r[k.RY] - 0.5)), 0)
-        y1 = min(int(np.floor(r[k.V] + r[k.RY] - 0.5)), height - 1)
+        x0 = max(int(np.ceil(r[kernels.U] - r[kernels.RX] - 0.5)), 0)
+        x1 = min(int(np.floor(r[kernels.U] + r[kernels.RX] - 0.5)), width - 1)
+        y0 = max(int(np.ceil(r[kernels.V] - r[kernels.RY] - 0.5)), 0)
+        y1 = min(int(np.floor(r[kernels.V] + r[kernels.RY] - 0.5)), height - 1)
         if x1 < x0 or y1 < y0:
             continue
-        dx = np.arange(x0, x1 + 1) + 0.5 - r[k.U]
-        dy = (np.arange(y0, y1 + 1) + 0.5 - r[k.V])[:, None]
-        q = 0.5 * (r[k.CA] * dx * dx + r[k.CC] * dy * dy) + r[k.CB] * dx * dy
-        al = np.minimum(k.ALPHA_MAX, r[k.OP] * np.exp(-q))
-        al[al < k.ALPHA_MIN] = 0.0
+        dx = np.arange(x0, x1 + 1) + 0.5 - r[kernels.U]
+        dy = (np.arange(y0, y1 + 1) + 0.5 - r[kernels.V])[:, None]
+        q = 0.5 * (r[kernels.CA] * dx * dx + r[kernels.CC] * dy * dy) + r[kernels.CB] * dx * dy
+        al = np.minimum(kernels.ALPHA_MAX, r[kernels.OP] * np.exp(-q))
+        al[al < kernels.ALPHA_MIN] = 0.0
         t = trans[y0 : y1 + 1, x0 : x1 + 1]
         lv = live[y0 : y1 + 1, x0 : x1 + 1]
         nt = t * (1.0 - al)
-        stop = lv & (al > 0) & (nt < k.T_MIN)
+        stop = lv & (al > 0) & (nt < kernels.T_MIN)
         keep = lv & (al > 0) & ~stop
         wgt = np.where(keep, al * t, 0.0)
-        for c, col in enumerate((k.COL_R, k.COL_G, k.COL_B)):
+        for c, col in enumerate((kernels.COL_R, kernels.COL_G, kernels.COL_B)):
             acc[c, y0 : y1 + 1, x0 : x1 + 1] += wgt * r[col]
         t[keep] = nt[keep]
         lv[stop] = False
@@ -90,14 +96,6 @@ def _scene_paths(args: argparse.Namespace) -> list[Path]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nhfd.benchmarks.machine import describe
-    from nhfd.dataset.shard import ExampleSettings
-    from nhfd.scene import _kernels as k
-    from nhfd.scene.io import load_scene
-    from nhfd.scene.lightfield import DepthMapping, directions, hogel_window, render_light_field
-    from nhfd.scene.raster import RasterSettings, prepare, render
-    from nhfd.scene.suggest import detect_up_axis, suggest_camera
-
     w, h = parse_wxh(args.size, "--size")
     if args.repeats < 1 or w < 1 or h < 1:
         raise ValueError("--size and --repeats must be positive")
@@ -126,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
         view_s = _median(times)
         # Baseline: the same projected Gaussians composited with NumPy.
         prep = prepare(g, cam)
-        rec, counts = k.project_view(
+        rec, counts = kernels.project_view(
             prep.pc, prep.cov, prep.opacities, prep.sh, prep.order, np.zeros(2), cam.R,
             cam.fx, cam.fy, cam.cx, cam.cy, w, h, cam.near, cam.far, settings.eps2d_px2,
             settings.antialias, settings.tile_px,

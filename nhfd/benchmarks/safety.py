@@ -37,6 +37,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from nhfd import __version__
+from nhfd.benchmarks.machine import describe
+
 from .load import config_text
 
 FAULTS: tuple[str, ...] = (
@@ -380,10 +383,6 @@ def fuzz(n: int, seed: int = 7) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from nhfd import __version__
-
-    from .machine import describe
-
     faults = [f.strip() for f in args.faults.split(",") if f.strip()]
     unknown = [f for f in faults if f not in FAULTS]
     if unknown:

@@ -22,8 +22,15 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+from nhfd.benchmarks.machine import describe
 from nhfd.cli.args import parse_wxh
-from nhfd.config import GROWTH_RANGE, LEARNING_RATE_RULE, SKIPS, learning_rate_ok
+from nhfd.config import GROWTH_RANGE, LEARNING_RATE_RULE, SKIPS, learning_rate_ok, load_config
+from nhfd.models.data import HoloData
+from nhfd.models.evaluate import evaluate
+from nhfd.models.export import GRAPH_FORM, OnnxModel, export_onnx
+from nhfd.models.net import parameter_count
+from nhfd.models.quantise import quantise_int8
+from nhfd.models.train import CHECKPOINT, TRAIN_LOG, TrainOptions, changed_options, load_run, train
 
 # The quality gap issue 5 allows a fast variant against the best one.
 WITHIN_DB = 2.0
@@ -171,8 +178,6 @@ def finished_run(run_dir: Path, opts, manifest_key: str | None
 
     import torch
 
-    from nhfd.models.train import CHECKPOINT, TRAIN_LOG, changed_options
-
     path = run_dir / CHECKPOINT
     if not path.is_file():
         return None
@@ -230,21 +235,12 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"--unshuffles {args.unshuffles!r}: each must be 1, 2, 4 or 8")
     if not Path(args.data).is_dir():
         raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
-    from nhfd.config import load_config
 
     config = load_config(args.config).config
     todo = variants(config, args.profiles, widths, depths, unshuffles, growths, skips)
 
     import numpy as np
     import torch
-
-    from nhfd.benchmarks.machine import describe
-    from nhfd.models.data import HoloData
-    from nhfd.models.evaluate import evaluate
-    from nhfd.models.export import GRAPH_FORM, OnnxModel, export_onnx
-    from nhfd.models.net import parameter_count
-    from nhfd.models.quantise import quantise_int8
-    from nhfd.models.train import TrainOptions, load_run, train
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

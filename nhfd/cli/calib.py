@@ -14,7 +14,23 @@ import argparse
 import sys
 from pathlib import Path
 
+from nhfd.calib.capture import (
+    CaptureError,
+    CapturePlan,
+    DaemonBenchIO,
+    SimBenchIO,
+    capture,
+    daemon_spec,
+)
+from nhfd.calib.fit import fit_capture
+from nhfd.calib.patterns import PatternSpec
+from nhfd.calib.report import write_report
+from nhfd.calibration import Calibration
 from nhfd.cli.args import parse_wxh
+from nhfd.config import load_config
+from nhfd.daemon.client import Client
+from nhfd.daemon.paths import control_socket
+from nhfd.drivers.simcamera import TrueBench
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -63,8 +79,6 @@ def _say(msg: str) -> None:
 
 
 def run_capture(args: argparse.Namespace) -> int:
-    from nhfd.calib.capture import CaptureError
-
     try:
         return _capture_direct(args) if args.direct else _capture_daemon(args)
     except CaptureError as exc:
@@ -72,8 +86,6 @@ def run_capture(args: argparse.Namespace) -> int:
 
 
 def _plan(args: argparse.Namespace, camera_pitch_m: float) -> object:
-    from nhfd.calib.capture import CapturePlan
-
     return CapturePlan(stage_center_mm=args.stage_center, stage_range_mm=args.stage_range,
                        coarse_step_mm=args.coarse_step, fine_steps=args.fine_steps,
                        camera_pitch_m=camera_pitch_m,
@@ -81,10 +93,6 @@ def _plan(args: argparse.Namespace, camera_pitch_m: float) -> object:
 
 
 def _capture_direct(args: argparse.Namespace) -> int:
-    from nhfd.calib.capture import SimBenchIO, capture
-    from nhfd.calib.patterns import PatternSpec
-    from nhfd.drivers.simcamera import TrueBench
-
     w, h = parse_wxh(args.panel)
     bench = TrueBench.randomised(args.sim_seed) if args.sim_seed is not None else TrueBench()
     spec = PatternSpec((h, w), bench.pitch_m, bench.wavelengths_m)
@@ -95,11 +103,6 @@ def _capture_direct(args: argparse.Namespace) -> int:
 
 
 def _capture_daemon(args: argparse.Namespace) -> int:
-    from nhfd.calib.capture import DaemonBenchIO, capture, daemon_spec
-    from nhfd.config import load_config
-    from nhfd.daemon.client import Client
-    from nhfd.daemon.paths import control_socket
-
     config = load_config(args.config).config
     sock = args.socket or str(control_socket(config.daemon.runtime_dir))
     pitch_um = args.camera_pitch_um or config.devices.camera_settings.pixel_pitch_um
@@ -117,8 +120,6 @@ def _capture_daemon(args: argparse.Namespace) -> int:
 
 
 def run_fit(args: argparse.Namespace) -> int:
-    from nhfd.calib.fit import fit_capture
-
     cal = fit_capture(args.dir, progress=_say)
     path = cal.save(Path(args.out))
     print(f"wrote {path}")
@@ -126,9 +127,6 @@ def run_fit(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    from nhfd.calib.report import write_report
-    from nhfd.calibration import Calibration
-
     cal = Calibration.load(args.calibration) if args.calibration else None
     for path in write_report(args.dir, cal, args.out):
         print(path)

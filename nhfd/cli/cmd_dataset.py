@@ -6,7 +6,17 @@ import argparse
 import sys
 from pathlib import Path
 
+import numpy as np
+from tqdm import tqdm
+
 from nhfd.cli.args import parse_wxh
+from nhfd.config import load_config
+from nhfd.dataset.build import build
+from nhfd.dataset.poses import PoseSampler, load_poses
+from nhfd.dataset.shard import ExampleSettings
+from nhfd.dataset.show import show
+from nhfd.scene.io import load_scene
+from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
 
 BUILD_HELP = """\
 Render the central view and depth of every pose, compute each view's complex hologram on the
@@ -65,16 +75,6 @@ def _pair(text: str, name: str) -> tuple[float, float]:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    import numpy as np
-    from tqdm import tqdm
-
-    from nhfd.config import load_config
-    from nhfd.dataset.build import build
-    from nhfd.dataset.poses import PoseSampler, load_poses
-    from nhfd.dataset.shard import ExampleSettings
-    from nhfd.scene.io import load_scene
-    from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
-
     w, h = parse_wxh(args.size, "--size", 8192)
     if args.workers < 1:
         raise ValueError(f"--workers {args.workers}: must be >= 1")
@@ -129,8 +129,6 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def run_show(args: argparse.Namespace) -> int:
-    from nhfd.dataset.show import show
-
     out = Path(args.out) if args.out else Path(args.dir) / f"show_{args.index:05d}.png"
     info = show(Path(args.dir), args.index, out)
     print(f"wrote {out} (planes {', '.join(f'{z:+.1f}' for z in info['planes_mm'])} mm)")

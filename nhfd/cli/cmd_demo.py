@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+
+from nhfd.config import load_config
+from nhfd.demos import serve as demo
+from nhfd.demos.optics import contact_sheet, run_demo, sharpness
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -40,11 +45,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_daemon_demo(args: argparse.Namespace) -> int:
-    import sys
-
-    from nhfd.config import load_config
-    from nhfd.demos import serve as demo
-
     model, scene = Path(args.model), Path(args.scene)
     if not model.is_file():
         print("nhfd demo: " + demo.HOW_TO_BUILD.format(model=model), file=sys.stderr)
@@ -69,9 +69,6 @@ def run(args: argparse.Namespace) -> int:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-
-    from nhfd.config import load_config
-    from nhfd.demos.optics import contact_sheet, run_demo, sharpness
 
     loaded = load_config(args.config)
     out = Path(args.out)

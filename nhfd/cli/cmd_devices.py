@@ -11,6 +11,7 @@ import json
 import sys
 
 from nhfd.config import load_config
+from nhfd.drivers.discovery import list_devices
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -42,8 +43,6 @@ def _section(title: str, found: list | None, note: str, lines: list[str]) -> Non
 
 
 def _devices(args: argparse.Namespace) -> int:
-    from nhfd.drivers.discovery import list_devices
-
     loaded = load_config(args.config)
     listing = list_devices(loaded.config.devices)
     if args.json:

@@ -7,15 +7,39 @@ directory, running as this user, driving the configured port; or its own port re
 nhfd guardian of this user (verified in /proc) is killed first, which frees the port. It is what
 the service manager's stop hook runs.
 
-Drivers are imported inside the handlers so `nhfd --help` stays instant.
+The emergency path stays light: this module imports the vocabulary and the laser drivers only
+(no torch, numba or numpy compute), and `nhfd` imports it only for these two commands.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 from typing import Any
+
+from nhfd.config import load_config
+from nhfd.device_settings import LaserSettings
+from nhfd.drivers.errors import DeviceError, PortBusy
+from nhfd.drivers.guardian import (
+    GuardianClient,
+    GuardianError,
+    GuardianRefused,
+    GuardianUnavailable,
+    GuardianUnresponsive,
+    guardian_pid,
+    guardian_port,
+    is_our_guardian,
+    kill_guardian,
+    port_holders,
+    run,
+    socket_path_for,
+    verify_guardian,
+)
+from nhfd.drivers.laser import MecomLaser
+from nhfd.drivers.rundir import UnsafeDirectory, check_private_dir, runtime_dir
+from nhfd.drivers.transport import same_port
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -53,12 +77,9 @@ def _settings(args: argparse.Namespace) -> tuple[Any, Any]:
     and socket on top, and the [daemon] section (runtime directory, socket group; None when
     the configuration could not be read). A broken configuration file must not stop an emergency
     off, so it is reported and the defaults are used."""
-    from nhfd.device_settings import LaserSettings
 
     settings, daemon = LaserSettings(), None
     try:
-        from nhfd.config import load_config
-
         config = load_config(args.config).config
         settings, daemon = config.devices.readybeam, config.daemon
     except Exception as exc:
@@ -76,17 +97,6 @@ def _settings(args: argparse.Namespace) -> tuple[Any, Any]:
 def _off_through_guardian(settings: Any, path: Any, group_ok: bool, timeout_s: float) -> str:
     """All off through a guardian this command can trust; returns what it did. Raises
     GuardianUnavailable (none answers; a hung one of ours is killed first) or GuardianRefused."""
-    from nhfd.drivers.guardian import (
-        GuardianClient,
-        GuardianRefused,
-        GuardianUnresponsive,
-        guardian_pid,
-        guardian_port,
-        kill_guardian,
-        verify_guardian,
-    )
-    from nhfd.drivers.rundir import UnsafeDirectory, check_private_dir
-    from nhfd.drivers.transport import same_port
 
     try:
         check_private_dir(path.parent, group_writable_ok=group_ok)
@@ -127,7 +137,6 @@ class _HungGuardianKilled(Exception):
 def _end_guardian_holding(port: str) -> bool:
     """An nhfd guardian of this user holds `port` but did not answer on the socket asked (hung,
     or serving another socket): SIGKILL it (verified in /proc), which frees the port."""
-    from nhfd.drivers.guardian import is_our_guardian, kill_guardian, port_holders
 
     if not port:
         return False
@@ -140,16 +149,6 @@ def _end_guardian_holding(port: str) -> bool:
 
 
 def _laser_off(args: argparse.Namespace) -> int:
-    from nhfd.drivers.errors import DeviceError, PortBusy
-    from nhfd.drivers.guardian import (
-        GuardianError,
-        GuardianRefused,
-        GuardianUnavailable,
-        socket_path_for,
-    )
-    from nhfd.drivers.laser import MecomLaser
-    from nhfd.drivers.rundir import runtime_dir
-
     settings, daemon = _settings(args)
     path = socket_path_for(settings, runtime_dir(daemon.runtime_dir if daemon else ""))
     group_ok = bool(daemon and daemon.socket_group)
@@ -195,11 +194,6 @@ def _laser_off(args: argparse.Namespace) -> int:
 
 
 def _guardian(args: argparse.Namespace) -> int:
-    import logging
-
-    from nhfd.drivers.guardian import run, socket_path_for
-    from nhfd.drivers.rundir import runtime_dir
-
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s laser-guardian %(levelname)s %(message)s")
     settings, daemon = _settings(args)

@@ -14,6 +14,11 @@ import sys
 import time
 from pathlib import Path
 
+from nhfd.config import load_config
+from nhfd.daemon.client import Client
+from nhfd.daemon.paths import control_socket
+from nhfd.daemon.recording import read_session, replay
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("replay", help="replay a recorded session against a daemon",
@@ -31,18 +36,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _replay(args: argparse.Namespace) -> int:
-    from nhfd.daemon.client import Client
-    from nhfd.daemon.recording import read_session, replay
-
     if args.speed < 0:
         raise ValueError(f"--speed {args.speed:g}: must be >= 0")
     entries = read_session(Path(args.file))
     if args.socket:
         sock = args.socket
     else:
-        from nhfd.config import load_config
-        from nhfd.daemon.paths import control_socket
-
         sock = str(control_socket(load_config(args.config).config.daemon.runtime_dir))
     failed = 0
     with Client(sock, timeout_s=30.0) as c:

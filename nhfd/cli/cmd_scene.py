@@ -1,7 +1,7 @@
 """`nhfd scene info|render`: what a splat scene holds, and one view of it (RGB, depth, alpha).
 
-numpy-free at import time: the scene modules (numpy, plyfile, numba through the renderer) and
-Pillow/matplotlib are imported inside the handlers, so `nhfd --help` stays fast.
+Imported only when `nhfd scene` runs (nhfd.cli.main's registry); numba compiles the renderer's
+kernels on first use, matplotlib (the depth colour map) loads only when a depth PNG is written.
 """
 
 from __future__ import annotations
@@ -11,13 +11,22 @@ import json
 import math
 import shlex
 import time
-from dataclasses import dataclass
+import warnings
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-from nhfd.cli.args import MAX_SIDE_PX, parse_wxh
+import numpy as np
+from PIL import Image
+from PIL.PngImagePlugin import PngInfo
 
-AXIS_NAMES = ("+x", "-x", "+y", "-y", "+z", "-z")  # cameras.AXES, without importing numpy
+from nhfd.cli.args import MAX_SIDE_PX, parse_wxh
+from nhfd.scene import cameras
+from nhfd.scene.io import read_scene, scene_summary
+from nhfd.scene.raster import RasterSettings, render
+from nhfd.scene.suggest import detect_up_axis, format_hint, robust_frame, suggest_camera
+
+AXIS_NAMES = tuple(cameras.AXES)
 DEFAULT_SIZE = "1024x576"
 DEFAULT_FOV_DEG = 40.0
 
@@ -179,11 +188,6 @@ FORMAT_NAMES = {"ply": "INRIA float .ply", "compressed": "PlayCanvas compressed 
 
 
 def _load(file: str, up: str | None) -> Loaded:
-    import warnings
-
-    from nhfd.scene.io import read_scene
-    from nhfd.scene.suggest import detect_up_axis, format_hint
-
     path = Path(file)
     if not path.exists():
         raise FileNotFoundError(f"scene file {file!r} not found")
@@ -210,9 +214,6 @@ def _fmt(values: Any) -> str:
 
 def _suggested(scene: Loaded, size: tuple[int, int], fov: float) -> dict[str, Any]:
     """The suggested camera and the `scene render` arguments that reproduce it."""
-    import numpy as np
-
-    from nhfd.scene.suggest import robust_frame, suggest_camera
 
     cam = suggest_camera(scene.g, size[0], size[1], scene.up, fov_x_deg=fov)
     target, _, _ = robust_frame(scene.g)
@@ -235,10 +236,6 @@ def _suggested(scene: Loaded, size: tuple[int, int], fov: float) -> dict[str, An
 
 def _camera(scene: Loaded, args: argparse.Namespace, size: tuple[int, int]) -> tuple[Any, str]:
     """The camera for `scene render`, and its pose as text."""
-    import numpy as np
-
-    from nhfd.scene import cameras as c
-    from nhfd.scene.suggest import robust_frame, suggest_camera
 
     centre, lo, hi = robust_frame(scene.g)
     if args.pose is None:
@@ -251,20 +248,20 @@ def _camera(scene: Loaded, args: argparse.Namespace, size: tuple[int, int]) -> t
     if kind == "orbit":
         if v[2] <= 0:
             raise ValueError(f"--pose {args.pose!r}: orbit radius R must be positive")
-        r, t = c.orbit(centre, v[0], v[1], v[2], scene.up)
+        r, t = cameras.orbit(centre, v[0], v[1], v[2], scene.up)
         target = centre
     elif kind == "lookat":
         if v[:3] == v[3:]:
             raise ValueError(f"--pose {args.pose!r}: eye and target must differ")
-        r, t = c.look_at(np.array(v[:3]), np.array(v[3:]), scene.up)
+        r, t = cameras.look_at(np.array(v[:3]), np.array(v[3:]), scene.up)
         target = np.array(v[3:])
     elif kind == "pos":
         if not any(v[3:]):
             raise ValueError(f"--pose {args.pose!r}: the quaternion qw,qx,qy,qz must be non-zero")
-        r, t = c.pose_from_quaternion(np.array(v[:3]), np.array(v[3:]))
+        r, t = cameras.pose_from_quaternion(np.array(v[:3]), np.array(v[3:]))
         target = centre
     else:
-        r, t = c.pose_from_ypr(np.array(v[:3]), v[3], v[4], v[5], scene.up)
+        r, t = cameras.pose_from_ypr(np.array(v[:3]), v[3], v[4], v[5], scene.up)
         target = centre
     eye = -r.T @ t
     # A near plane proportional to the viewing distance keeps close-ups and far views alike
@@ -273,13 +270,11 @@ def _camera(scene: Loaded, args: argparse.Namespace, size: tuple[int, int]) -> t
     near = args.near if args.near is not None else max(
         0.01 * dist, 1e-4 * float(np.linalg.norm(hi - lo)), 1e-6
     )
-    fx, fy, cx, cy = c.intrinsics_from_fov(size[0], size[1], args.fov)
-    return c.Camera(r, t, fx, fy, cx, cy, size[0], size[1], near=near), args.pose
+    fx, fy, cx, cy = cameras.intrinsics_from_fov(size[0], size[1], args.fov)
+    return cameras.Camera(r, t, fx, fy, cx, cy, size[0], size[1], near=near), args.pose
 
 
 def _with_near(cam: Any, near: float) -> Any:
-    from dataclasses import replace
-
     return replace(cam, near=near)
 
 
@@ -288,8 +283,6 @@ def _with_near(cam: Any, near: float) -> Any:
 
 
 def _info(args: argparse.Namespace) -> int:
-    from nhfd.scene.io import scene_summary
-
     size = parse_size(args.size)
     _check_fov(args.fov)
     _check_up(args.up)
@@ -334,8 +327,6 @@ def _print_info(d: dict[str, Any]) -> None:
 
 
 def _render(args: argparse.Namespace) -> int:
-    from nhfd.scene.raster import RasterSettings, render
-
     size = parse_size(args.size)
     _check_fov(args.fov)
     _check_up(args.up)
@@ -382,18 +373,12 @@ def _prepare_dir(path: str) -> Path:
 
 
 def _write_rgb(path: str, rgb: Any) -> str:
-    import numpy as np
-    from PIL import Image
-
     img = np.rint(np.clip(rgb.transpose(1, 2, 0), 0.0, 1.0) * 255).astype(np.uint8)
     Image.fromarray(img, "RGB").save(_prepare_dir(path))
     return f"{path} ({img.shape[1]}x{img.shape[0]} RGB)"
 
 
 def _write_alpha(path: str, alpha: Any) -> str:
-    import numpy as np
-    from PIL import Image
-
     if path.lower().endswith(".npy"):
         np.save(_prepare_dir(path), alpha.astype(np.float32))
         return f"{path} (alpha, float32)"
@@ -413,14 +398,10 @@ def depth_range(depth: Any, alpha: Any) -> tuple[float, float]:
 
 
 def _write_depth(path: str, depth: Any, alpha: Any) -> str:
-    import numpy as np
-
     if path.lower().endswith(".npy"):
         np.save(_prepare_dir(path), depth.astype(np.float32))
         return f"{path} (depth, float32 scene units, 0 where nothing was drawn)"
     import matplotlib
-    from PIL import Image
-    from PIL.PngImagePlugin import PngInfo
 
     near, far = depth_range(depth, alpha)
     t = np.clip((depth - near) / (far - near), 0.0, 1.0) if far > near else np.zeros_like(depth)

@@ -1,6 +1,7 @@
 """`nhfd serve`: run the daemon in the foreground (systemd Type=notify ready).
 
-The daemon's modules are imported inside the handler so `nhfd --help` stays instant.
+Imports the daemon, which is torch-free at module level: a daemon with nothing configured never
+loads torch, numba or onnxruntime (the frame pipeline runs in its own process).
 Exit codes: 0 clean shutdown with lasers read back off, 1 lasers not confirmed off or a failed
 start, 2 configuration error, 3 another daemon holds the lock.
 """
@@ -9,6 +10,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+
+from nhfd.config import check_files, load_config
+from nhfd.daemon import service
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -29,9 +33,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _serve(args: argparse.Namespace) -> int:
-    from nhfd.config import check_files, load_config
-    from nhfd.daemon.service import AlreadyRunning, Daemon, setup_logging
-
     loaded = load_config(args.config)  # a ConfigError: one line, exit 2 (nhfd.cli.main)
     config = loaded.config
     check_files(config, str(loaded.path or "packaged default"))
@@ -44,11 +45,11 @@ def _serve(args: argparse.Namespace) -> int:
         update["record"] = args.record
     if update:
         config = config.model_copy(update={"daemon": config.daemon.model_copy(update=update)})
-    setup_logging(config.daemon.log_format)
-    daemon = Daemon(config)
+    service.setup_logging(config.daemon.log_format)
+    daemon = service.Daemon(config)
     try:
         daemon.start()
-    except AlreadyRunning as exc:
+    except service.AlreadyRunning as exc:
         print(f"nhfd serve: error: {exc}", file=sys.stderr)
         return 3
     except Exception as exc:

@@ -1,6 +1,7 @@
 """`nhfd train|eval|export`: the NHF network (nhfd.models).
 
-torch, onnx and onnxruntime are imported inside the handlers only, so `nhfd --help` stays fast.
+Imports torch, onnx and onnxruntime (through nhfd.models); `nhfd` imports this module only for
+these three commands.
 """
 
 from __future__ import annotations
@@ -11,7 +12,12 @@ import sys
 from pathlib import Path
 
 from nhfd.cli.args import parse_wxh
-from nhfd.config import SKIPS
+from nhfd.config import GROWTH_RANGE, SKIPS, load_config
+from nhfd.models.data import HoloData
+from nhfd.models.evaluate import evaluate
+from nhfd.models.export import OnnxModel, export_onnx
+from nhfd.models.quantise import quantise_int8
+from nhfd.models.train import TrainOptions, train
 
 TRAIN_HELP = """\
 Train the U-Net that maps a view to its reference-plane hologram, with the focal-stack loss, on a
@@ -94,8 +100,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
-    from nhfd.config import GROWTH_RANGE, load_config
-
     config = load_config(args.config).config
     for name in ("steps", "batch", "lr", "checkpoint_every", "val_views", "width"):
         _positive("--" + name.replace("_", "-"), getattr(args, name))
@@ -111,8 +115,6 @@ def run_train(args: argparse.Namespace) -> int:
     if not Path(args.data).is_dir():
         raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
     crop = parse_wxh(args.crop, "--crop", 8192) if args.crop else (None, None)
-
-    from nhfd.models.train import TrainOptions, train
 
     options = TrainOptions.from_config(
         config, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
@@ -146,8 +148,6 @@ def run_eval(args: argparse.Namespace) -> int:
         else model / "eval"
     )  # fmt: skip
 
-    from nhfd.models.evaluate import evaluate
-
     result = evaluate(model, args.data, splits=splits, max_views=args.max_views, out_dir=out)
     print(f"wrote {out / 'eval.json'}" + (f" and {result['png']}" if "png" in result else ""))
     return 0
@@ -162,8 +162,6 @@ def run_export(args: argparse.Namespace) -> int:
         raise ValueError(f"--int8 needs --data: a dataset folder to calibrate on (got "
                          f"{args.data!r})")  # fmt: skip
 
-    from nhfd.models.export import export_onnx
-
     res = export_onnx(args.run, args.out, opset=args.opset, check=not args.no_check)
     m = res.metadata
     print(f"{res.path}: profile {m['profile']}, {m['parameters']} parameters, input multiple "
@@ -173,10 +171,6 @@ def run_export(args: argparse.Namespace) -> int:
         print(f"onnxruntime vs torch: max abs difference {res.max_abs_diff:.3g} ({sizes})")
     report = {"path": str(res.path), "max_abs_diff": res.max_abs_diff}
     if args.int8:
-        from nhfd.models.data import HoloData
-        from nhfd.models.export import OnnxModel
-        from nhfd.models.quantise import quantise_int8
-
         data = HoloData(args.data, max_views={"interp": 1, "extrap": 1})
         q = quantise_int8(res.path, Path(args.int8), data, int(m["input_multiple"]),
                           OnnxModel(res.path).inputs)  # fmt: skip

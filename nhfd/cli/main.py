@@ -1,32 +1,41 @@
 """`nhfd`: one entry point, one module per command group.
 
-Each command module exposes `register(subparsers)` and imports heavy libraries (torch, numba)
-inside its handlers only, so `nhfd --help` and `nhfd config ...` answer at once.
+COMMANDS is the registry: each command's name, the module under nhfd.cli that builds its parser
+and handler (`register(subparsers)`), and its one-line help. `nhfd --help` lists the registry
+without importing any command module; running a command imports its module only (which imports
+what it needs at module level), so `nhfd serve` and `nhfd laser-off` stay free of torch and numba
+and `nhfd config ...` answers at once.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Sequence
 
 from nhfd import __version__
+from nhfd.cli.args import Command, LazyCommands
 from nhfd.config import ConfigError
 
-# Modules under nhfd.cli, in the order their commands appear in --help.
-COMMANDS = (
-    "cmd_config",
-    "cmd_demo",
-    "cmd_scene",
-    "cmd_dataset",
-    "cmd_train",
-    "cmd_bench",
-    "cmd_serve",
-    "cmd_replay",
-    "cmd_laser",
-    "cmd_devices",
-    "calib",
+# In the order --help lists them; each help line is the one its module registers (a test checks).
+COMMANDS: tuple[Command, ...] = (
+    Command("config", "nhfd.cli.cmd_config", "show or check the configuration"),
+    Command("demo", "nhfd.cli.cmd_demo",
+            "run the daemon on the simulated bench: views, a focus sweep, captures -> out/demo"),
+    Command("scene", "nhfd.cli.cmd_scene",
+            "inspect and render 3D Gaussian splat scenes (.ply, compressed .ply, .splat)"),
+    Command("dataset", "nhfd.cli.cmd_dataset", "build and inspect training datasets"),
+    Command("train", "nhfd.cli.cmd_train", "train the NHF network on a dataset"),
+    Command("eval", "nhfd.cli.cmd_train", "hologram quality of a run or .onnx on held-out views"),
+    Command("export", "nhfd.cli.cmd_train", "export a run to ONNX (checked against torch)"),
+    Command("bench", "nhfd.cli.cmd_bench", "run a benchmark"),
+    Command("serve", "nhfd.cli.cmd_serve", "run the bench daemon in the foreground"),
+    Command("replay", "nhfd.cli.cmd_replay", "replay a recorded session against a daemon"),
+    Command("laser-off", "nhfd.cli.cmd_laser", "switch every laser channel off and read it back"),
+    Command("laser-guardian", "nhfd.cli.cmd_laser", "run the laser guardian in the foreground"),
+    Command("devices", "nhfd.cli.cmd_devices",
+            "list connected devices and which config entry would use each"),
+    Command("calib", "nhfd.cli.calib", "capture focal stacks and fit the bench model"),
 )
 
 
@@ -37,9 +46,9 @@ def build_parser() -> argparse.ArgumentParser:
         "holograms, and drive a holographic display bench.",
     )
     parser.add_argument("--version", action="version", version=f"nhfd {__version__}")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for name in COMMANDS:
-        importlib.import_module(f"nhfd.cli.{name}").register(sub)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True,
+                                action=LazyCommands)
+    sub.add_registry(COMMANDS)
     return parser
 
 

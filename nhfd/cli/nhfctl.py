@@ -15,7 +15,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from nhfd.config import load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.daemon.paths import control_socket
 from nhfd.daemon.protocol import RpcError, describe_codes
 
 
@@ -142,10 +144,7 @@ def _request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
 def _socket(args: argparse.Namespace) -> str | None:
     if args.socket:
         return args.socket
-    # Same rules as the daemon; the configuration is read only when it is needed.
-    from nhfd.config import load_config
-    from nhfd.daemon.paths import control_socket
-
+    # Same rules as the daemon: the configuration is read only when no --socket is given.
     return str(control_socket(load_config(args.config).config.daemon.runtime_dir))
 
 

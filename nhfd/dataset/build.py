@@ -38,6 +38,10 @@ from nhfd.dataset.shard import (
     shard_is_valid,
     write_shard,
 )
+from nhfd.holo import colour_sampling, sampling_report, scene_depth_range, scene_mapping
+from nhfd.scene.io import load_scene
+from nhfd.scene.lightfield import DepthMapping
+from nhfd.scene.raster import render
 
 MANIFEST = "manifest.json"
 AMPLITUDE_PERCENTILE = 99.5
@@ -69,9 +73,6 @@ def scene_depth_pass(g, poses: list[Pose], center: np.ndarray, settings: Example
     """Robust `d_near`, `d_far` of the scene over all poses (rendered at `scale` of the size)."""
     from dataclasses import replace
 
-    from nhfd.holo import scene_depth_range
-    from nhfd.scene.raster import render
-
     small = replace(
         settings,
         width_px=max(8, round(settings.width_px * scale)),
@@ -98,7 +99,6 @@ def plan_manifest(
     d_far: float | None = None,
 ) -> dict:
     """Everything the shards depend on, decided before any hologram is computed."""
-    from nhfd.holo import colour_sampling, sampling_report, scene_mapping
 
     depth_range = None if (d_near and d_far) else scene_depth_pass(g, poses, center, settings)
     fx = 0.5 * settings.width_px / np.tan(np.radians(settings.fov_x_deg) / 2)
@@ -134,8 +134,6 @@ def plan_manifest(
 
 
 def _mapping(manifest: dict):
-    from nhfd.scene.lightfield import DepthMapping
-
     return DepthMapping(manifest["mapping"]["a_m"], manifest["mapping"]["b_m"])
 
 
@@ -173,7 +171,6 @@ def _worker_init(scene_path: str, threads: int) -> None:
         numba.set_num_threads(threads)
     except ImportError:
         pass
-    from nhfd.scene.io import load_scene
 
     _WORKER["scene"] = load_scene(scene_path)
 
@@ -236,7 +233,6 @@ def build(
     progress: Callable[[int, int, dict], None] | None = None,
 ) -> dict:
     """Build (or resume) a dataset; returns the final manifest."""
-    from nhfd.scene.io import load_scene
 
     scene_path, out_dir = Path(scene_path), Path(out_dir)
     g = load_scene(scene_path)

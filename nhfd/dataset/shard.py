@@ -17,10 +17,14 @@ from pathlib import Path
 
 import numpy as np
 
+from nhfd.config import Config
 from nhfd.dataset.poses import Pose
+from nhfd.holo import band_limit, colour_sampling, scene_hologram
+from nhfd.optics import Aperture, reference_to_slm
 from nhfd.scene.cameras import Camera, intrinsics_from_fov
 from nhfd.scene.gaussians import Gaussians
 from nhfd.scene.lightfield import DepthMapping
+from nhfd.scene.raster import RasterSettings, render
 
 SHARD_KEYS = ("rgb", "depth", "alpha", "field", "amp_samples", "meta")
 FORMAT_VERSION = 1
@@ -29,7 +33,6 @@ FORMAT_VERSION = 1
 def _optics_defaults(config=None) -> dict:
     """The optics of a configuration (default: the packaged nhfd.toml) in ExampleSettings' SI
     fields: the one source of wavelengths, pitch, volume, z0, panel and aperture."""
-    from nhfd.config import Config
 
     c = config if config is not None else Config()
     o = c.optics
@@ -99,8 +102,6 @@ class ExampleSettings:
         return Camera(r, t, fx, fy, cx, cy, self.width_px, self.height_px, near=near)
 
     def aperture(self):
-        from nhfd.optics import Aperture
-
         return Aperture(shape=self.aperture_shape, cutoff_per_px=tuple(self.cutoff_per_px))
 
     def to_json(self) -> dict:
@@ -127,10 +128,6 @@ def make_example(
     import time
 
     import torch
-
-    from nhfd.holo import band_limit, colour_sampling, scene_hologram
-    from nhfd.optics import reference_to_slm
-    from nhfd.scene.raster import RasterSettings, render
 
     t0 = time.perf_counter()
     cam = settings.camera(pose, camera_distance(pose, center))

@@ -8,14 +8,13 @@ import numpy as np
 
 from nhfd.dataset.build import load_manifest, shard_name
 from nhfd.dataset.shard import read_shard
+from nhfd.optics import Aperture, linear_to_srgb, propagate
 
 
 def focal_images(field: np.ndarray, planes_m: list[float], settings: dict) -> np.ndarray:
     """sRGB images [D, H, W, 3] of the field's intensity at each plane, all normalised by one
     robust percentile so brightness compares across planes."""
     import torch
-
-    from nhfd.optics import Aperture, linear_to_srgb, propagate
 
     aperture = Aperture(settings["aperture_shape"], tuple(settings["cutoff_per_px"]))
     stack = propagate(

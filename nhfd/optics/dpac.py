@@ -17,7 +17,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from nhfd.optics import _validate
+from nhfd.optics import _coding, _validate
+from nhfd.optics._coding import LUT_BINS
 from nhfd.optics.aperture import Aperture, apply_aperture
 from nhfd.spec import GREY_LEVELS, TWO_PI, PhaseCurve, zero_grey
 
@@ -227,7 +228,6 @@ def level_tables(curves: tuple[PhaseCurve, ...]) -> LevelTables:
     """The fused coder's tables for one curve per channel. Exact: every bin holds at most one
     of `_nearest_level`'s decision boundaries (the midpoints of neighbouring levels on the
     circle) and decides it with `_nearest_level`'s own comparison, or is searched."""
-    from nhfd.optics._coding import LUT_BINS
 
     n_c, n = len(curves), max(len(c.phase_rad) for c in curves)
     values = np.full((n_c, n), np.inf)
@@ -296,7 +296,6 @@ def double_phase_grey(
     propagation's output) is read in place; numba's threads (`numba.set_num_threads`) share the
     rows.
     """
-    from nhfd.optics import _coding
 
     scale = _validate.positive("amplitude_scale", amplitude_scale)
     u, h, w = _rows_base(field)

@@ -1,10 +1,15 @@
 """Gaussian splat scenes: files, cameras, the CPU rasteriser and light fields.
 
-  gaussians   the one in-memory representation (activated float32 arrays)
-  io          INRIA .ply, PlayCanvas compressed .ply and .splat: load and save
-  cameras     pinhole cameras and poses (OpenCV conventions), look-at, orbit, 6-DoF
-  raster      the tile rasteriser (numba kernels in _kernels)
-  lightfield  the translated-camera light field of optics.md
+  gaussians       the one in-memory representation (activated float32 arrays)
+  io              every scene format's loader and saver, and the format sniffing
+  axes            axis conventions of splat formats, into the project's frame
+  spz, sog, gltf_splat   Niantic .spz, PlayCanvas SOG, glTF KHR_gaussian_splatting
+  cameras         pinhole cameras and poses (OpenCV conventions), look-at, orbit, 6-DoF
+  suggest         what a file does not state: which way is up, a camera that frames it
+  raster          the tile rasteriser (numba kernels in _kernels; gsplat_backend on CUDA)
+  lightfield      the translated-camera light field of optics.md
 
-numba is imported only when something is rendered, so `nhfd --help` stays fast.
+Layer L1 (compute and devices): imports only the vocabulary (L0) and itself; never optics'
+callers, datasets, models or the daemon. The one function-level import is raster's seam: the
+numba kernels (and the optional gsplat backend) load when something is rendered, not on import.
 """

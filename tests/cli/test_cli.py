@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 
-from nhfd.cli.main import main
+from nhfd.cli.args import LazyCommands
+from nhfd.cli.cmd_bench import BENCHES
+from nhfd.cli.main import COMMANDS, main
 
 HEAVY = ("torch", "numba", "onnxruntime")
 
@@ -21,6 +24,9 @@ def test_control_client_and_config_import_no_heavy_libraries():
         "import nhfd.cli.nhfctl",
         "import nhfd.config",
         "from nhfd.cli.main import build_parser; build_parser()",
+        # `nhfd serve` with nothing configured and the emergency `nhfd laser-off`
+        "from nhfd.cli.main import build_parser; build_parser().parse_args(['serve'])",
+        "from nhfd.cli.main import build_parser; build_parser().parse_args(['laser-off'])",
     ):
         loaded = imported_after(code)
         assert not loaded & set(HEAVY), (code, loaded & set(HEAVY))
@@ -39,3 +45,28 @@ def test_nhfctl_without_a_daemon_fails_with_a_one_line_reason(tmp_path):
 def test_bad_cli_values_give_one_line_reasons(capsys):
     assert main(["bench", "optics", "--depths", "0", "--out", "/dev/null"]) == 2
     assert "must be positive" in capsys.readouterr().err
+
+
+def test_help_lists_every_command_without_importing_their_modules():
+    loaded = imported_after("from nhfd.cli.main import build_parser\n"
+                            "import contextlib, io\n"
+                            "with contextlib.redirect_stdout(io.StringIO()):\n"
+                            "    try:\n        build_parser().parse_args(['--help'])\n"
+                            "    except SystemExit:\n        pass")
+    commands = {c.module for c in COMMANDS} | {b.module for b in BENCHES}
+    assert not loaded & commands, loaded & commands
+    listing = subprocess.run([sys.executable, "-m", "nhfd.cli.main", "--help"],
+                             capture_output=True, text=True, check=True).stdout
+    assert all(c.name in listing for c in COMMANDS)
+
+
+def test_registry_help_lines_are_the_ones_the_modules_register():
+    # The registry lists a command before its module is imported; once imported, the module's own
+    # parser is what --help shows. Both must say the same.
+    for registry in (COMMANDS, BENCHES):
+        sub = argparse.ArgumentParser().add_subparsers(action=LazyCommands)
+        sub.add_registry(registry)
+        for command in registry:
+            sub.load(command.name)
+        shown = {a.dest: a.help for a in sub._choices_actions}
+        assert shown == {c.name: c.help for c in registry}
