@@ -13,9 +13,19 @@ import pytest
 import torch
 
 from nhfd.daemon.colour import panel_for_mode
-from nhfd.daemon.frames import Encoder, FrameSettings, PanelBuffer, zero_pattern
+from nhfd.daemon.frame_link import PanelBuffer
 from nhfd.drivers.slm import SimulatedSLM, to_rgb
-from nhfd.optics import Aperture, double_phase, phase_to_grey, propagate, transfer_function
+from nhfd.optics import (
+    Aperture,
+    double_phase,
+    phase_to_grey,
+    propagate,
+    pupil_phase,
+    transfer_function,
+)
+from nhfd.optics.padding import plan_padding
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.settings import FrameSettings, zero_pattern
 
 SETTINGS = FrameSettings(
     panel_hw=(128, 192), window_hw=(64, 96), pitch_m=8e-6,
@@ -37,9 +47,6 @@ def slm_field_by_definition(enc: Encoder, reference: torch.Tensor) -> torch.Tens
     call where they share a depth, else each by its own; pre-compensated, the ASM kernel times
     the conjugate pupil on each colour's padded grid): what `Encoder.to_slm` computed before it
     was reduced to the kept frequencies."""
-    from nhfd.calib.bench_model import pupil_phase
-    from nhfd.optics.padding import plan_padding
-
     s, r = enc.settings, enc.region
     h, w = reference.shape[-2:]
     buf = torch.zeros((3, r.height, r.width), dtype=torch.complex64)
@@ -117,12 +124,12 @@ def test_panel_is_the_zero_pattern_with_the_region_and_the_slm_keeps_its_own_cop
     grey = np.random.default_rng(0).integers(0, 256, (3, r.height, r.width), dtype=np.uint8)
     want = zero_pattern(SETTINGS).copy()
     want[:, r.rows, r.cols] = grey
-    panel = enc.panel(grey)
+    panel = PanelBuffer(enc.zero).frame(r.top, r.left, grey)
     assert panel.shape == (3, 128, 192) and np.array_equal(panel, want)
     assert np.shares_memory(to_rgb(panel, 128, 192), panel)  # no transposing copy
     assert np.array_equal(PanelBuffer(enc.zero).frame(r.top, r.left, grey), want)
     for mode, colour in (("hw-sync", "red"), ("single", "blue")):
-        frame = panel_for_mode(enc.panel(grey), mode, colour)
+        frame = panel_for_mode(PanelBuffer(enc.zero).frame(r.top, r.left, grey), mode, colour)
         expect = np.broadcast_to(want[2], want.shape) if mode == "single" else want
         assert np.array_equal(frame, expect)
         assert np.shares_memory(to_rgb(frame, 128, 192), frame)
