@@ -33,7 +33,7 @@ class RegionPropagator:
     the window's rows only, then along columns over the kept columns only; the inverse runs along
     columns over the kept columns, then along rows over the region's rows only. The same sums as
     `propagate`'s 2D transforms, less those that multiply exact zeros, with the same kernel
-    values: equal to it to float32 rounding (tests/daemon/test_encoder.py).
+    values: equal to it to float32 rounding (tests/pipeline/test_encoder.py).
 
     The column transforms run on a transposed copy (`[n, kept columns, Hp]`: along the last
     axis, all colours in one call; along dim -2 torch makes two transposing copies of its own).

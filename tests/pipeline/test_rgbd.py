@@ -1,4 +1,4 @@
-"""The daemon feeds an rgbd model the render's mapped depth, built as training built it."""
+"""The frame pipeline feeds an rgbd model the render's mapped depth, built as training built it."""
 
 from __future__ import annotations
 
@@ -13,8 +13,7 @@ from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import Scene, SceneFrame, render_camera
 from nhfd.scene.io import load_scene
 from nhfd.scene.raster import render
-
-from .test_frames import FRONT_VIEW, make_tiny_model, make_tiny_scene, small_config
+from tests.daemon.test_frames import FRONT_VIEW, make_tiny_model, make_tiny_scene, small_config
 
 
 class Spy:
