@@ -24,7 +24,6 @@ import multiprocessing as mp
 import os
 import threading
 import time
-from pathlib import Path
 from types import SimpleNamespace
 from typing import Any, Protocol
 
@@ -439,6 +438,3 @@ def apply_camera_roi(bench: Any, config: Any) -> None:
         camera.open()
     bench.camera = camera
 
-
-def default_model_path(base: Path) -> Path:
-    return base / "models" / "nhf-donut-512.onnx"
