@@ -41,10 +41,10 @@ from nhfd.models.export import OnnxModel
 from nhfd.models.inputs import mapped_depth
 from nhfd.optics.color import srgb_to_linear
 from nhfd.optics.refplane import window_offset
+from nhfd.pipeline.frame import render_view
 from nhfd.pipeline.settings import frame_settings
-from nhfd.pipeline.view import render_camera, scene_frame
+from nhfd.pipeline.view import Scene, scene_frame
 from nhfd.scene.io import load_scene
-from nhfd.scene.raster import render
 
 # Shipped as package data of nhfd.models (the repo's models/ folder): found the same way from
 # a checkout, an editable install or a wheel.
@@ -236,7 +236,7 @@ def view_depth(view: dict[str, Any], scene: Path, meta: dict[str, Any],
     """The view rendered as the frame worker renders it: sRGB `[3, H, W]` and the mapped
     hologram depth `z_h` `[H, W]` (m, NaN off content)."""
     g = load_scene(scene)
-    r = render(g, render_camera(view, scene_frame(g, str(scene)), meta, window_hw))
+    r = render_view(view, Scene(g, scene_frame(g, str(scene))), meta, window_hw)
     m = meta["mapping"]
     return r.rgb, mapped_depth(r.depth, r.alpha, float(m["a_m"]), float(m["b_m"]))
 

@@ -5,7 +5,7 @@ Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength e
 
   asm       band-limited angular spectrum propagation and its kernels
   aperture  the relay's Fourier aperture (square or circular iris)
-  padding   how far a propagation pads, and to which fast FFT sizes
+  padding   how much to zero-pad before a propagation (to 5-smooth FFT sizes)
   dpac      double-phase amplitude coding and the grey <-> phase curves
   refplane  the window on the reference plane <-> the panel on the SLM plane
   region    a window's propagation to the region of the panel around it (the frame pipeline's)
@@ -13,7 +13,7 @@ Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength e
   quality   focal stacks and their quality measures
   color     sRGB <-> linear <-> amplitude
   cache     kernels kept between calls, by key
-  fft       the FFTs every module here uses
+  fft       FFTs checked once against a known answer before they are trusted
 """
 
 from nhfd.optics import fft
