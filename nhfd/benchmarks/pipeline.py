@@ -27,8 +27,11 @@ from nhfd.daemon.frame_link import FrameLink
 from nhfd.daemon.views import ViewSlot
 from nhfd.drivers.slm import SimulatedSLM
 from nhfd.models.export import OnnxModel
-from nhfd.pipeline.frame import STAGES
-from nhfd.pipeline.settings import frame_window_hw
+from nhfd.pipeline.window import frame_window_hw
+
+# The stages status reports, in order: the frame pipeline's four (`nhfd.pipeline.frame`), then
+# the daemon's output (the region pasted into the panel and shown).
+STAGES = ("render", "inference", "propagation", "coding", "output")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -31,9 +31,6 @@ from .encoder import Encoder, reference_field
 from .settings import Region
 from .view import Scene, render_camera
 
-# Stage names, in order, as status and the benchmark report them (output is the daemon's).
-STAGES = ("render", "inference", "propagation", "coding", "output")
-
 
 @dataclass
 class Frame:

@@ -15,6 +15,8 @@ from nhfd.optics import Aperture
 from nhfd.optics.refplane import margin_px, window_offset
 from nhfd.spec import PhaseCurve
 
+from .window import frame_window_hw
+
 
 @dataclass(frozen=True)
 class FrameSettings:
@@ -112,16 +114,6 @@ def zero_pattern(s: FrameSettings) -> np.ndarray:
     """The whole panel coding zero amplitude, through the same curves as frames
     (`nhfd.spec.zero_pattern`: the blank frame's and the coder's zero too)."""
     return spec.zero_pattern(s.panel_hw, s.curves(), s.phase_sign, s.grey_invert)
-
-
-def frame_window_hw(config: Any, metadata: dict[str, Any]) -> tuple[int, int]:
-    """The frames' window (height, width): `daemon.frame_size_px` [W, H], or the model's
-    training size when that is empty."""
-    size = list(config.daemon.frame_size_px)
-    if size:
-        return int(size[1]), int(size[0])
-    h, w = (int(v) for v in metadata["train_size_hw"])
-    return h, w
 
 
 def frame_settings(config: Any, metadata: dict[str, Any], calibration: Calibration | None, *,
