@@ -36,6 +36,7 @@ import torch
 import torch.nn.functional as F
 
 from nhfd.optics import Aperture, PhaseCurve, grey_to_phase, propagate
+from nhfd.optics.pupil import FIRST_NOLL, N_ZERNIKE, pupil_phase
 
 from .focus import STAGE_M_PER_MM, FocusError
 from .geometry import Geometry
@@ -63,54 +64,12 @@ def pixel_transfer(hw: tuple[int, int]) -> torch.Tensor:
     return torch.sinc(fx) * torch.sinc(fy)
 
 
-# Zernike terms the aberration fit covers: Noll j = 5 (oblique astigmatism) to 11 (primary
-# spherical). Piston is invisible, tilt is the geometry's shift, defocus the depth offsets.
-FIRST_NOLL = 5
-N_ZERNIKE = 7
 # Forward-difference step of the images' derivative in a Zernike coefficient (radians): small
 # against the 0.1 rad the fit must reach, large against float32 noise.
 DA_RAD = 0.02
 # Starting points of the aberration fit's astigmatism (j = 5, 6; radians at the reference
 # wavelength): a relay's astigmatism reaches the better part of a radian.
 ASTIG_GRID_RAD = (-0.6, -0.3, 0.0, 0.3, 0.6)
-
-
-def zernike(j: int, rho: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
-    """Zernike polynomial, Noll index j in 5..11 (RMS 1 over the unit disk; even j cos, odd j
-    sin), written out: the twin (`nhfd.drivers.simcamera`) has its own general form."""
-    r2 = rho * rho
-    if j == 5:
-        return math.sqrt(6) * r2 * torch.sin(2 * theta)
-    if j == 6:
-        return math.sqrt(6) * r2 * torch.cos(2 * theta)
-    if j == 7:
-        return math.sqrt(8) * (3 * r2 - 2) * rho * torch.sin(theta)
-    if j == 8:
-        return math.sqrt(8) * (3 * r2 - 2) * rho * torch.cos(theta)
-    if j == 9:
-        return math.sqrt(8) * r2 * rho * torch.sin(3 * theta)
-    if j == 10:
-        return math.sqrt(8) * r2 * rho * torch.cos(3 * theta)
-    if j == 11:
-        return math.sqrt(5) * (6 * r2 * r2 - 6 * r2 + 1)
-    raise ValueError(f"Noll index {j}: only {FIRST_NOLL}..{FIRST_NOLL + N_ZERNIKE - 1}")
-
-
-def pupil_phase(hw: tuple[int, int], cutoff_per_px: float, zernike_rad: tuple[float, ...],
-                scale: float = 1.0) -> torch.Tensor:
-    """The relay's pupil phase [H, W] (float64 radians) on the fftfreq grid of an H x W field
-    of SLM pixels: `scale * sum_k a_k Z_{5+k}(rho, theta)`, rho = |f| / cutoff (f in cycles per
-    pixel; the square iris's corners reach sqrt 2), theta from +x (columns) toward +y (rows).
-    `scale` = lambda_ref / lambda converts coefficients given at lambda_ref to a colour."""
-    fy = torch.fft.fftfreq(hw[0], dtype=torch.float64)[:, None]
-    fx = torch.fft.fftfreq(hw[1], dtype=torch.float64)[None, :]
-    rho = torch.sqrt(fx**2 + fy**2) / cutoff_per_px
-    theta = torch.atan2(fy.expand_as(rho), fx.expand_as(rho))
-    out = torch.zeros_like(rho)
-    for k, a in enumerate(zernike_rad):
-        if a:
-            out += a * zernike(FIRST_NOLL + k, rho, theta)
-    return out * scale
 
 
 def apply_pupil(field: torch.Tensor, cutoff_per_px: float, zernike_rad: tuple[float, ...],

@@ -41,6 +41,8 @@ import numpy as np
 from nhfd import __version__
 from nhfd.benchmarks.machine import describe
 from nhfd.daemon.client import Client
+from nhfd.drivers.twins.apt_twin import AptTwin
+from nhfd.drivers.twins.mecom_twin import MecomTwin
 from nhfd.models.export import OnnxModel
 
 
@@ -183,10 +185,6 @@ def idle_pids(status: dict[str, Any], daemon_pid: int) -> dict[str, int | None]:
 
 def idle(window_s: float, settle_s: float = 2.0) -> list[dict[str, Any]]:
     """Each IDLE_DEVICES configuration with nothing loaded: % of a core per process."""
-    from nhfd.daemon.client import Client
-    from nhfd.drivers.twins.apt_twin import AptTwin
-    from nhfd.drivers.twins.mecom_twin import MecomTwin
-
     rows = []
     for name, devices in IDLE_DEVICES.items():
         root = Path(tempfile.mkdtemp(prefix="nhfd-idle-", dir="/tmp"))

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import threading
 import time
 from pathlib import Path
@@ -19,6 +20,17 @@ from typing import Any
 
 import numpy as np
 
+from nhfd import __version__
+from nhfd.config import Config, _overlay, load_config
+from nhfd.daemon.bench import zero_amplitude_frame
+from nhfd.daemon.frame_link import FrameLink
+from nhfd.daemon.views import ViewSlot
+from nhfd.drivers.slm import SimulatedSLM
+from nhfd.models.export import OnnxModel
+from nhfd.pipeline.window import frame_window_hw
+
+# The stages status reports, in order: the frame pipeline's four (`nhfd.pipeline.frame`), then
+# the daemon's output (the region pasted into the panel and shown).
 STAGES = ("render", "inference", "propagation", "coding", "output")
 
 
@@ -39,10 +51,6 @@ class _Host:
     """The slice of the daemon a FrameLink needs: views, SLM and blank frame, error list."""
 
     def __init__(self, config: Any) -> None:
-        from nhfd.daemon.bench import zero_amplitude_frame
-        from nhfd.daemon.views import ViewSlot
-        from nhfd.drivers.slm import SimulatedSLM
-
         self.config = config
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
@@ -78,11 +86,6 @@ def _load(link: Any, scene: Path, model: Path) -> None:
 
 
 def measure(config: Any, model: Path, scene: Path, views: int, warmup: int) -> dict[str, Any]:
-    from nhfd.config import Config, _overlay
-    from nhfd.daemon.frames import frame_window_hw
-    from nhfd.daemon.worker import FrameLink
-    from nhfd.models.export import OnnxModel
-
     meta = OnnxModel(model).metadata
     no_cache = {"daemon": {"frame_cache_frames": 0}}
     cfg = Config.model_validate(_overlay(config.model_dump(), no_cache))
@@ -130,11 +133,6 @@ def measure(config: Any, model: Path, scene: Path, views: int, warmup: int) -> d
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
-    from nhfd import __version__
-    from nhfd.config import load_config
-
     # load_config applies the cross-field rules: a frame larger than the panel is a
     # ConfigError (exit 2) before any worker starts.
     config = load_config(args.config).config

@@ -39,6 +39,9 @@ from typing import Any
 
 from nhfd import __version__
 from nhfd.benchmarks.machine import describe
+from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.drivers.guardian import wait_gone
+from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 from .load import config_text
 
@@ -78,8 +81,6 @@ class Bench:
     """`nhfd serve` on a temporary runtime directory, its laser the twin in this process."""
 
     def __init__(self, model: Path | None = None, scene: Path | None = None) -> None:
-        from nhfd.drivers.twins.mecom_twin import MecomTwin
-
         self.root = Path(tempfile.mkdtemp(prefix="nhfd-safety-", dir="/tmp"))
         self.twin = MecomTwin()
         self.twin.start()
@@ -93,13 +94,9 @@ class Bench:
         self.pids: set[int] = set()  # guardians it spawned, for the clean-up
 
     def client(self, timeout_s: float = 10.0) -> Any:
-        from nhfd.daemon.client import Client
-
         return Client(self.socket, timeout_s=timeout_s)
 
     def wait_ready(self, frames: bool, timeout_s: float = 120.0) -> dict[str, Any]:
-        from nhfd.daemon.client import DaemonUnavailable
-
         end = time.monotonic() + timeout_s
         while time.monotonic() < end:
             if self.proc.poll() is not None:
@@ -164,8 +161,6 @@ class Bench:
         for pid in self.pids:  # a guardian that outlived its daemon (SIGKILL) holds the port
             with contextlib.suppress(ProcessLookupError):
                 os.kill(pid, signal.SIGTERM)
-        from nhfd.drivers.guardian import wait_gone
-
         for pid in self.pids:
             if not wait_gone(pid, 5.0):
                 with contextlib.suppress(ProcessLookupError):

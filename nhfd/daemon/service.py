@@ -44,6 +44,7 @@ from nhfd.config import ConfigError, cross_field_problems
 from . import protocol
 from .audit import AuditLog, compact_params
 from .bench import Bench, focus_stage_mm
+from .frame_link import FrameLink, apply_camera_roi
 from .guardian_link import LaserLink
 from .jobs import Job, JobRunner
 from .methods import METHODS
@@ -65,7 +66,6 @@ from .protocol import (
 from .recording import SessionRecorder, view_params
 from .server import Connection, LineServer
 from .views import ViewSlot
-from .worker import FrameLink, apply_camera_roi
 
 log = logging.getLogger("nhfd.daemon")
 

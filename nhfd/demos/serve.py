@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import struct
 import tempfile
+import threading
 import time
 import zlib
 from importlib import resources
@@ -29,6 +30,21 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
+
+from nhfd.calibration import active_calibration
+from nhfd.config import Config, _overlay
+from nhfd.daemon.client import Client
+from nhfd.daemon.service import Daemon
+from nhfd.drivers.simcamera import TrueBench
+from nhfd.models.export import OnnxModel
+from nhfd.models.inputs import mapped_depth
+from nhfd.optics.color import srgb_to_linear
+from nhfd.optics.refplane import window_offset
+from nhfd.pipeline.frame import render_view
+from nhfd.pipeline.settings import frame_settings
+from nhfd.pipeline.view import Scene, scene_frame
+from nhfd.scene.io import load_scene
 
 # Shipped as package data of nhfd.models (the repo's models/ folder): found the same way from
 # a checkout, an editable install or a wheel.
@@ -77,10 +93,6 @@ def demo_config(base: Any, *, model: Path, scene: Path, runtime: Path, captures:
     """The user's configuration with the bench forced to the simulated devices, the demo's model,
     scene and folders, a camera region around the hologram window and the focus mapping of the
     simulated relay."""
-    from nhfd.config import Config, _overlay
-    from nhfd.drivers.simcamera import TrueBench
-    from nhfd.models.export import OnnxModel
-
     meta = OnnxModel(model).metadata  # the window and z0 the camera region must cover
     h, w = (int(v) for v in meta["train_size_hw"])
     truth = TrueBench()
@@ -129,16 +141,10 @@ def _run(out: Path, runtime: Path, *, config: Any, model: Path, scene: Path, log
          t_start: float) -> dict[str, Any]:
     import matplotlib.pyplot as plt
 
-    from nhfd.daemon.client import Client
-    from nhfd.daemon.frames import frame_settings
-    from nhfd.daemon.service import Daemon
-
     cfg, truth, meta = demo_config(config, model=model, scene=scene, runtime=runtime,
                                    captures=out / "captures")
     daemon = Daemon(cfg, base_dir=Path.cwd(), env={}, handle_signals=False)
     daemon.start()
-    import threading
-
     loop = threading.Thread(target=daemon.run, name="nhfd-demo-daemon", daemon=True)
     loop.start()
     summary: dict[str, Any] = {"model": str(model), "scene": str(scene), "views": [],
@@ -180,7 +186,7 @@ def _run(out: Path, runtime: Path, *, config: Any, model: Path, scene: Path, log
                                            "radius": radius})  # fmt: skip
         seq = placed["seq"]
         _wait(lambda: c.status()["view"]["applied_seq"] == seq, 60, "the middle view", c)
-        settings = frame_settings(cfg, meta)
+        settings = frame_settings(cfg, meta, active_calibration(cfg))
         rgb, zh = view_depth(placed["view"], scene, meta, settings.window_hw)
         sweep_m = np.linspace(*np.nanpercentile(zh, SWEEP_PERCENTILES), FOCUS_PLANES)
         cap = cfg.devices.readybeam.max_power_pct[1]
@@ -229,13 +235,8 @@ def view_depth(view: dict[str, Any], scene: Path, meta: dict[str, Any],
                window_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """The view rendered as the frame worker renders it: sRGB `[3, H, W]` and the mapped
     hologram depth `z_h` `[H, W]` (m, NaN off content)."""
-    from nhfd.daemon.frames import render_camera, scene_frame
-    from nhfd.models.inputs import mapped_depth
-    from nhfd.scene.io import load_scene
-    from nhfd.scene.raster import render
-
     g = load_scene(scene)
-    r = render(g, render_camera(view, scene_frame(g, str(scene)), meta, window_hw))
+    r = render_view(view, Scene(g, scene_frame(g, str(scene))), meta, window_hw)
     m = meta["mapping"]
     return r.rgb, mapped_depth(r.depth, r.alpha, float(m["a_m"]), float(m["b_m"]))
 
@@ -255,8 +256,6 @@ def on_camera(camera: Any, images: np.ndarray, panel_hw: tuple[int, int],
               pitch_m: float) -> np.ndarray:
     """Window-sized images `[C, h, w]` placed on the panel (centred, as frames are) and mapped
     onto the camera's region of interest by the simulated bench's geometry -> `[C, rh, rw]`."""
-    from nhfd.optics.refplane import window_offset
-
     c, h, w = images.shape
     top, left = window_offset(panel_hw, (h, w))
     panel = np.zeros((c, *panel_hw), np.float32)
@@ -288,10 +287,6 @@ def focus_regions(sweep: list[tuple[float, np.ndarray]], rgb: np.ndarray, zh_m: 
                   camera: Any, panel_hw: tuple[int, int], pitch_m: float) -> dict[str, Any]:
     """For the near and far regions of the view: their mean depth, their masks (window and
     camera), and each capture's match with the view there (`focus_correlation`)."""
-    import torch
-
-    from nhfd.optics.color import srgb_to_linear
-
     near, far = depth_regions(zh_m)
     green = srgb_to_linear(torch.from_numpy(np.ascontiguousarray(rgb[1]))).numpy()
     mapped = on_camera(camera, np.stack([green, near, far]).astype(np.float32), panel_hw,

@@ -2,6 +2,18 @@
 
 Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength each; units are SI
 (metres, radians). Everything else in nhfd calls these; nothing re-implements them.
+
+  asm       band-limited angular spectrum propagation and its kernels
+  aperture  the relay's Fourier aperture (square or circular iris)
+  padding   how much to zero-pad before a propagation (to 5-smooth FFT sizes)
+  dpac      double-phase amplitude coding and the grey <-> phase curves
+  refplane  the window on the reference plane <-> the panel on the SLM plane
+  region    a window's propagation to the region of the panel around it (the frame pipeline's)
+  pupil     the relay's pupil phase (Zernike aberrations) on the Fourier plane
+  quality   focal stacks and their quality measures
+  color     sRGB <-> linear <-> amplitude
+  cache     kernels kept between calls, by key
+  fft       FFTs checked once against a known answer before they are trusted
 """
 
 from nhfd.optics import fft
@@ -20,6 +32,7 @@ from nhfd.optics.dpac import (
     wrap_phase,
 )
 from nhfd.optics.padding import PaddingPlan, next_fast_len, plan_padding
+from nhfd.optics.pupil import pupil_phase, zernike
 from nhfd.optics.quality import (
     Quality,
     focal_stack,
@@ -34,6 +47,7 @@ from nhfd.optics.refplane import (
     slm_to_reference,
     window_offset,
 )
+from nhfd.optics.region import RegionPropagator, region_propagators
 
 __all__ = [
     "Aperture",
@@ -42,6 +56,7 @@ __all__ = [
     "PaddingPlan",
     "PhaseCurve",
     "Quality",
+    "RegionPropagator",
     "aperture_mask",
     "apply_aperture",
     "checkerboard",
@@ -59,8 +74,10 @@ __all__ = [
     "place_window",
     "plan_padding",
     "propagate",
+    "pupil_phase",
     "quality_planes",
     "reference_to_slm",
+    "region_propagators",
     "slm_to_reference",
     "srgb_to_amplitude",
     "srgb_to_linear",
@@ -68,4 +85,5 @@ __all__ = [
     "transfer_function_z",
     "window_offset",
     "wrap_phase",
+    "zernike",
 ]

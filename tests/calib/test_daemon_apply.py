@@ -11,8 +11,8 @@ import pytest
 
 from nhfd.calibration import CalibrationFileError, active_calibration
 from nhfd.config import Config
-from nhfd.daemon.frames import frame_settings
 from nhfd.drivers.simcamera import TrueBench
+from nhfd.pipeline.settings import frame_settings
 
 from .twin_stack import (
     amplitude_for,
@@ -34,10 +34,10 @@ def test_frames_use_calibration(fitted, tmp_path: Path) -> None:
     path = fitted.save(tmp_path / "calibration.toml")
     plain = Config()
     assert active_calibration(plain) is None
-    s0 = frame_settings(plain, METADATA)
+    s0 = frame_settings(plain, METADATA, active_calibration(plain))
     assert s0.phase_sign == 1 and all(c.is_default for c in s0.curves())
     cfg = Config.model_validate({"calibration": {"file": str(path)}})
-    s1 = frame_settings(cfg, METADATA)
+    s1 = frame_settings(cfg, METADATA, active_calibration(cfg))
     assert s1.phase_sign == fitted.phase_sign == -1
     assert [c.phase_rad for c in s1.curves()] == [tuple(t) for t in fitted.phase_tables_rad]
     cal = active_calibration(cfg)
@@ -55,8 +55,8 @@ def test_unreadable_configured_file_is_an_error(tmp_path: Path) -> None:
 
 def _settings_with(cal, tmp_path: Path, name: str):
     path = cal.save(tmp_path / name)
-    return small(frame_settings(Config.model_validate({"calibration": {"file": str(path)}}),
-                                METADATA))
+    config = Config.model_validate({"calibration": {"file": str(path)}})
+    return small(frame_settings(config, METADATA, active_calibration(config)))
 
 
 def test_per_colour_focus_offsets_applied(bench: TrueBench, fitted, tmp_path: Path) -> None:
@@ -86,7 +86,7 @@ def test_acceptance_focal_stack_psnr(bench: TrueBench, fitted, tmp_path: Path) -
     stage mapping), each colour's twin-camera focal-stack PSNR against the target is within
     0.5 dB of the daemon configured with the bench's true parameters."""
     calibrated = _settings_with(fitted, tmp_path, "calibration.toml")
-    nominal = small(frame_settings(Config(), METADATA))
+    nominal = small(frame_settings(Config(), METADATA, None))
     true = dataclasses.replace(
         nominal, phase_sign=bench.phase_sign, phase_tables_rad=bench.phase_tables,
         colour_offset_m=tuple(o - bench.z_offset_m[1] for o in bench.z_offset_m))

@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from nhfd.calib.bench_model import apply_pupil
-from nhfd.daemon.frames import Encoder, FrameSettings
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.settings import FrameSettings
 
 
 def _zernike(seed: int) -> tuple[float, ...]:

@@ -10,10 +10,12 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from nhfd.daemon.frames import Encoder, FrameSettings
+from nhfd.daemon.frame_link import PanelBuffer
 from nhfd.device_settings import CameraSettings
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 from nhfd.optics import propagate
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.settings import FrameSettings
 
 PANEL_HW = (128, 128)
 WINDOW_HW = (64, 64)
@@ -53,7 +55,8 @@ def panel_frame(settings: FrameSettings, field: torch.Tensor, amplitude: float
     with torch.no_grad():
         slm = enc.to_slm((field * amplitude).to(torch.complex64))
         grey, _ = enc.code(slm)
-    return np.ascontiguousarray(enc.panel(grey).transpose(1, 2, 0))
+    panel = PanelBuffer(enc.zero).frame(enc.region.top, enc.region.left, grey)
+    return np.ascontiguousarray(panel.transpose(1, 2, 0))
 
 
 def small(settings: FrameSettings) -> FrameSettings:

@@ -114,13 +114,18 @@ def _compile_frame_kernels(tiny: dict[str, Path]) -> None:
     """One frame in this process, outside every test's deadline: numba compiles the renderer and
     the coder once and caches them, so a daemon's spawned worker loads them instead of spending
     20 s or more compiling on its first frame (a fresh checkout has no cache)."""
-    from nhfd.daemon.frames import Pipeline, SceneFrame, frame_settings
+    from nhfd.calibration import active_calibration
     from nhfd.models.export import load_model
+    from nhfd.pipeline.encoder import Encoder
+    from nhfd.pipeline.frame import compute_frame
+    from nhfd.pipeline.settings import frame_settings
+    from nhfd.pipeline.view import Scene, SceneFrame
     from nhfd.scene.io import load_scene
 
     from .test_frames import FRONT_VIEW, small_config
 
     config = small_config()
     model = load_model(tiny["model"], config)
-    Pipeline(model, frame_settings(config, model.metadata), load_scene(tiny["scene"]),
-             SceneFrame((0.0, 0.0, 0.0), "-y")).compute(FRONT_VIEW)
+    encoder = Encoder(frame_settings(config, model.metadata, active_calibration(config)))
+    scene = Scene(load_scene(tiny["scene"]), SceneFrame((0.0, 0.0, 0.0), "-y"))
+    compute_frame(FRONT_VIEW, scene, model, encoder)

@@ -91,8 +91,8 @@ def test_a_model_that_cannot_take_the_frames_is_refused_and_the_old_one_keeps_ru
 
 
 def test_check_inference_passes_the_good_model_and_names_each_mismatch(tiny, tmp_path):
-    from nhfd.daemon.worker import ModelUnfit, check_inference
     from nhfd.models.export import load_model
+    from nhfd.pipeline.worker import ModelUnfit, check_inference
 
     check_inference(load_model(tiny["model"]), WINDOW_HW, "tiny.onnx")  # a working model passes
     for kind, refusal in REFUSALS.items():

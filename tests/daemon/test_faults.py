@@ -164,8 +164,8 @@ def test_garbage_model_file_is_refused_and_the_old_model_keeps_running(short_dir
 def test_an_unavailable_execution_provider_is_refused_listing_the_available_ones(tiny):
     import onnxruntime as ort
 
-    from nhfd.daemon.worker import open_model
     from nhfd.models.export import OnnxModel, check_providers
+    from nhfd.pipeline.worker import open_model
 
     from .test_frames import small_config
 

@@ -18,15 +18,14 @@ from typing import Any
 import numpy as np
 import torch
 
+from nhfd.calibration import active_calibration
 from nhfd.config import Config, _overlay, default_text
-from nhfd.daemon.frames import (
-    Pipeline,
-    SceneFrame,
-    frame_settings,
-    reference_field,
-    zero_pattern,
-)
+from nhfd.daemon.frame_link import PanelBuffer
 from nhfd.optics import grey_to_phase, propagate
+from nhfd.pipeline.encoder import Encoder, reference_field
+from nhfd.pipeline.frame import compute_frame
+from nhfd.pipeline.settings import frame_settings, zero_pattern
+from nhfd.pipeline.view import Scene, SceneFrame
 
 # A 64 x 96 window on a 128 x 192 panel: the window plus the propagation margin (24 px at
 # z0 = 6 mm) fits with room to spare, so "outside the region" is a real part of the panel.
@@ -118,14 +117,15 @@ def test_frame_reconstructs_the_predicted_field_and_leaves_the_rest_zero(tiny):
 
     config = small_config()
     model = load_model(tiny["model"], config)
-    settings = frame_settings(config, model.metadata)
+    settings = frame_settings(config, model.metadata, active_calibration(config))
     assert settings.window_hw == (64, 96) and settings.panel_hw == (128, 192)
-    pipe = Pipeline(model, settings, load_scene(tiny["scene"]), SceneFrame((0.0, 0.0, 0.0), "-y"))
-    frame = pipe.compute(FRONT_VIEW)
+    encoder = Encoder(settings)
+    scene = Scene(load_scene(tiny["scene"]), SceneFrame((0.0, 0.0, 0.0), "-y"))
+    frame = compute_frame(FRONT_VIEW, scene, model, encoder)
     assert set(frame.timings_s) == {"render", "inference", "propagation", "coding"}
     assert frame.rgb.shape == (3, 64, 96) and frame.rgb.max() > 0.1  # the cloud is in view
-    panel = pipe.encoder.panel(frame.grey)
     r = frame.region
+    panel = PanelBuffer(encoder.zero).frame(r.top, r.left, frame.grey)
     assert panel.shape == (3, 128, 192) and panel.dtype == np.uint8
 
     # Outside the coded region the frame is exactly the precomputed zero-amplitude pattern.
@@ -145,7 +145,7 @@ def test_frame_reconstructs_the_predicted_field_and_leaves_the_rest_zero(tiny):
                       pitch, lams, aperture=ap) * settings.amplitude_scale
     top, left = (128 - 64) // 2, (192 - 96) // 2
     shown_window = shown[:, top : top + 64, left : left + 96]
-    region_field = pipe.encoder.to_slm(predicted)  # the aperture-filtered prediction, on the SLM
+    region_field = encoder.to_slm(predicted)  # the aperture-filtered prediction, on the SLM
     wanted = propagate(region_field, settings.z0_m, pitch, lams, aperture=ap)[
         :, r.window_top : r.window_top + 64, r.window_left : r.window_left + 96]
     errors = relative_error_up_to_phase(shown_window, wanted)
@@ -155,9 +155,11 @@ def test_frame_reconstructs_the_predicted_field_and_leaves_the_rest_zero(tiny):
     # Digital refocus is part of the kernel: refocused by 3 mm, the same prediction is shown on a
     # reference plane 3 mm nearer the viewer: it matches there, and no longer at z0.
     refocus_m = 3e-3
-    refocused = Pipeline(model, frame_settings(config, model.metadata, refocus_m=refocus_m),
-                         pipe.scene, pipe.frame)
-    moved = refocused.encoder.panel(refocused.compute(FRONT_VIEW).grey)
+    refocused = Encoder(frame_settings(config, model.metadata, active_calibration(config),
+                                       refocus_m=refocus_m))
+    moved_frame = compute_frame(FRONT_VIEW, scene, model, refocused)
+    moved = PanelBuffer(refocused.zero).frame(moved_frame.region.top, moved_frame.region.left,
+                                              moved_frame.grey)
     moved_phase = grey_to_phase(torch.from_numpy(moved), settings.curves())
     moved_field = torch.polar(torch.ones_like(moved_phase), moved_phase)
     at = {z: propagate(moved_field, z, pitch, lams, aperture=ap)[

@@ -34,6 +34,9 @@ _PROBE = textwrap.dedent("""
     shutil.rmtree(root, ignore_errors=True)
     print("model:", status["model"])
     print("heavy:", sorted(m for m in ("torch", "numba", "onnxruntime") if m in sys.modules))
+    above = {"nhfd.pipeline", "nhfd.models", "nhfd.calib"}
+    print("above the daemon:", sorted(m for m in sys.modules
+                                      if ".".join(m.split(".")[:2]) in above))
 """)
 
 
@@ -43,3 +46,6 @@ def test_a_daemon_with_nothing_configured_imports_no_torch_numba_or_onnxruntime(
     assert done.returncode == 0, done.stderr[-3000:]
     assert "model: none loaded" in done.stdout, done.stdout
     assert "heavy: []" in done.stdout, done.stdout
+    # The frame pipeline, the models and calib are the spawned worker's (by name), never loaded
+    # in the daemon's own process.
+    assert "above the daemon: []" in done.stdout, done.stdout

@@ -13,11 +13,12 @@ import numpy as np
 import torch
 
 from nhfd import spec
-from nhfd.calibration import Calibration
+from nhfd.calibration import Calibration, active_calibration
 from nhfd.config import Config, _overlay
-from nhfd.daemon.frames import Encoder, frame_region, frame_settings
 from nhfd.daemon.panel import Panel, blank_pattern
 from nhfd.models.export import load_model
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.settings import frame_region, frame_settings
 
 from .test_frames import FRONT_VIEW, daemon_config, wait_for_frames
 
@@ -84,7 +85,7 @@ def test_blank_surround_and_coded_zero_are_one_pattern_under_a_calibration(
 
     # The coder the frame worker runs, on an all-zero field of the coded region.
     model = load_model(short_dir / "models" / "tiny.onnx", config)
-    settings = frame_settings(config, model.metadata)
+    settings = frame_settings(config, model.metadata, active_calibration(config))
     assert settings.phase_sign == -1 and not any(cv.is_default for cv in settings.curves())
     encoder = Encoder(settings)
     region = frame_region(settings)

@@ -1,7 +1,6 @@
 """The encoder's fast paths against the definitions they replace: the region's propagation by
-`propagate` of the zero-padded window (per colour depth, with the pupil pre-compensation), the
-torch coding path (`double_phase` + `phase_to_grey`), and the panel as the zero pattern with the
-region pasted in, shown on the SLM without a transposing copy."""
+`propagate` of the zero-padded window (per colour depth, with the pupil pre-compensation), and
+the torch coding path (`double_phase` + `phase_to_grey`)."""
 
 from __future__ import annotations
 
@@ -12,10 +11,17 @@ import numpy as np
 import pytest
 import torch
 
-from nhfd.daemon.colour import panel_for_mode
-from nhfd.daemon.frames import Encoder, FrameSettings, PanelBuffer, zero_pattern
-from nhfd.drivers.slm import SimulatedSLM, to_rgb
-from nhfd.optics import Aperture, double_phase, phase_to_grey, propagate, transfer_function
+from nhfd.optics import (
+    Aperture,
+    double_phase,
+    phase_to_grey,
+    propagate,
+    pupil_phase,
+    transfer_function,
+)
+from nhfd.optics.padding import plan_padding
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.settings import FrameSettings
 
 SETTINGS = FrameSettings(
     panel_hw=(128, 192), window_hw=(64, 96), pitch_m=8e-6,
@@ -37,9 +43,6 @@ def slm_field_by_definition(enc: Encoder, reference: torch.Tensor) -> torch.Tens
     call where they share a depth, else each by its own; pre-compensated, the ASM kernel times
     the conjugate pupil on each colour's padded grid): what `Encoder.to_slm` computed before it
     was reduced to the kept frequencies."""
-    from nhfd.calib.bench_model import pupil_phase
-    from nhfd.optics.padding import plan_padding
-
     s, r = enc.settings, enc.region
     h, w = reference.shape[-2:]
     buf = torch.zeros((3, r.height, r.width), dtype=torch.complex64)
@@ -109,24 +112,3 @@ def test_code_is_the_torch_coding_path_within_one_level():
         d = np.abs(rank[255 - grey[c].astype(np.int64)] - rank[255 - ref[c].astype(np.int64)])
         d = np.minimum(d, 256 - d)
         assert d.max() <= 1 and np.mean(d != 0) < 1e-3
-
-
-def test_panel_is_the_zero_pattern_with_the_region_and_the_slm_keeps_its_own_copy():
-    enc = Encoder(SETTINGS)
-    r = enc.region
-    grey = np.random.default_rng(0).integers(0, 256, (3, r.height, r.width), dtype=np.uint8)
-    want = zero_pattern(SETTINGS).copy()
-    want[:, r.rows, r.cols] = grey
-    panel = enc.panel(grey)
-    assert panel.shape == (3, 128, 192) and np.array_equal(panel, want)
-    assert np.shares_memory(to_rgb(panel, 128, 192), panel)  # no transposing copy
-    assert np.array_equal(PanelBuffer(enc.zero).frame(r.top, r.left, grey), want)
-    for mode, colour in (("hw-sync", "red"), ("single", "blue")):
-        frame = panel_for_mode(enc.panel(grey), mode, colour)
-        expect = np.broadcast_to(want[2], want.shape) if mode == "single" else want
-        assert np.array_equal(frame, expect)
-        assert np.shares_memory(to_rgb(frame, 128, 192), frame)
-        slm = SimulatedSLM(192, 128).open()
-        slm.show(frame)
-        frame[:] = 7  # the caller's array changes later: what the SLM keeps does not
-        assert np.array_equal(slm.last_frame, expect) and np.array_equal(slm.frames[-1], expect)

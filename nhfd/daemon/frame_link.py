@@ -1,269 +1,119 @@
-"""The frame worker: one spawned process that renders, runs the network and codes frames.
+"""The daemon's side of the frame worker: the spawned process that renders, runs the network
+and codes frames (`nhfd.pipeline.worker`, whose docstring has the pipe's protocol).
 
-Why a process: rendering (numba), inference (onnxruntime) and propagation (torch) hold the CPU
-for tens of milliseconds at a time; in the daemon's own process they would delay the control
-loop that feeds the laser guardian's heartbeat. Why spawned, not forked: a fork copies the
-daemon's threads' locks and the already-initialised thread pools of torch/OpenMP in whatever state
-they are in; a fresh interpreter sets its thread counts before any pool exists.
+Why a process: rendering, inference and propagation hold the CPU for tens of milliseconds at a
+time; in the daemon's own process they would delay the control loop that feeds the laser
+guardian's heartbeat. Why spawned, not forked: a fork copies the daemon's threads' locks and
+the already-initialised thread pools of torch/OpenMP in whatever state they are in; a fresh
+interpreter gets its thread counts in its environment before any pool exists.
 
-Protocol (tuples over one duplex `multiprocessing` pipe):
-
-  daemon -> worker   ("model", req_id, path)   ("scene", req_id, path)
-                     ("frame", seq, view)       ("stop",)
-  worker -> daemon   ("ready", pid)
-                     ("model" | "scene", req_id, ok, info | error message)
-                     ("frame", seq, payload)    ("frame_error", seq, message)
-
-The worker drains its pipe before each frame and computes only the newest view (latest wins);
-loads are applied in order, and a failed load leaves the previous model or scene in use. The
-daemon side (`FrameLink`) never blocks on the pipe: it polls it once per control-loop tick.
+The daemon spawns the worker by its module's name (`WORKER_MODULE`) and learns everything of
+the model (its metadata, why one was refused) as data over the pipe: nothing here imports the
+pipeline, the models or torch. `FrameLink` never blocks on the pipe: it polls it once per
+control-loop tick, and it shows the frames it gets (the "output" stage: the coded region pasted
+into the blank frame, `PanelBuffer`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import importlib
 import itertools
-import json
 import logging
 import multiprocessing as mp
 import os
 import threading
 import time
-from collections import OrderedDict
-from pathlib import Path
-from typing import Any
+from types import SimpleNamespace
+from typing import Any, Protocol
 
 import numpy as np
 
+from nhfd.calibration import active_calibration
+from nhfd.drivers import factory
+from nhfd.drivers.slm import SLMOutputLost
+
 from .colour import panel_for_mode
 
-log = logging.getLogger("nhfd.daemon.worker")
+log = logging.getLogger("nhfd.daemon.frame_link")
 
 # How long a load may take in the worker before the load job gives up waiting (s).
 LOAD_TIMEOUT_S = 120.0
 # A crashed worker is restarted at most this often (s), so a worker that dies at start-up does
 # not spin.
 RESTART_BACKOFF_S = 2.0
+# The worker process's module: the spawned interpreter imports it by this name and runs its
+# `worker_main(conn, config_data, calibration)`.
+WORKER_MODULE = "nhfd.pipeline.worker"
 
 
-# -- the worker process ------------------------------------------------------------------------
+# -- what the frame link uses of the daemon ----------------------------------------------------
 
 
-def _set_threads(threads: int, layer: str) -> None:
-    """Thread counts before any library starts its pools (the process is fresh: spawned)."""
-    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
-        os.environ[var] = str(threads)
-    os.environ["NUMBA_THREADING_LAYER"] = layer
+class PanelOutput(Protocol):
+    """The daemon's SLM side (`nhfd.daemon.bench.Bench`), as far as frames go."""
+
+    slm: Any  # an nhfd.drivers.slm.SLM, None without one
+    showing: str
+    # A capture job holds the panel: frames wait, the job shows the newest one after.
+    held: bool
+
+    def blank_frame(self) -> np.ndarray: ...
+
+    def show_blank(self) -> None: ...
+
+    def note_slm_lost(self, detail: str) -> None: ...
+
+
+class ViewSource(Protocol):
+    """The newest view requested (`nhfd.daemon.views.ViewSlot`)."""
+
+    seq: int
+    view: dict[str, Any] | None
+
+    def mark_applied(self, seq: int) -> None: ...
+
+
+class LaserSwitch(Protocol):
+    def off(self) -> None: ...
+
+
+class FrameHost(Protocol):
+    """What `FrameLink` uses of the daemon (`nhfd.daemon.service.Daemon`): its configuration,
+    the views, the SLM and its blank frame, the lasers (off when the worker crashes), the
+    display line and the error list of `status`."""
+
+    config: Any  # nhfd.config.Config
+    bench: PanelOutput
+    views: ViewSource
+    laser: LaserSwitch
+    display: str
+
+    def _error(self, source: str, message: str) -> None: ...
+
+
+# -- the worker process, seen from the daemon --------------------------------------------------
+
+
+def worker_environment(config: Any) -> dict[str, str]:
+    """The worker's thread counts, for its environment: read once, when torch, numba and
+    onnxruntime load in the spawned process, so they must be there before its first import."""
+    threads = str(int(config.daemon.worker_threads))
+    env = {var: threads for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
+    env["NUMBA_THREADING_LAYER"] = str(config.daemon.worker_threading_layer)
+    return env
+
+
+def run_by_name(module: str, env: dict[str, str], *args: Any) -> None:
+    """The spawned process's target: set its environment, then import `module` by name and run
+    its `worker_main(*args)`. By name, so the daemon has no import edge to the frame pipeline
+    (and never loads torch itself)."""
+    os.environ.update(env)
     # OpenMP threads sleep when idle instead of spinning: each stage hands the cores to another
     # library (render and coding in numba, propagation in torch, inference in onnxruntime), and a
     # spinning pool takes them from the next stage. Set before torch or numba load libgomp.
     os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-    import torch
-
-    torch.set_num_threads(threads)
-    torch.set_num_interop_threads(1)
-
-
-def open_model(path: str, config: Any, threads: int) -> Any:
-    """An `OnnxModel` checked against the configured optics, on the configured providers, with
-    `threads` intra-op threads in pools that do not spin (`nhfd.models.export.session_options`)."""
-    import onnxruntime as ort
-
-    from nhfd.models.export import check_providers, load_model
-
-    # Checked here too, so the error names the setting to change. No silent fallback: a bench
-    # configured for CUDA that quietly ran on the CPU would be 10x slower with nothing but a
-    # warning to say why; the load fails instead and the previous model keeps running.
-    providers = check_providers(list(config.daemon.onnx_providers),
-                                ort.get_available_providers(), "daemon.onnx_providers")
-    # validates; raises ModelMismatch etc.
-    return load_model(path, config, threads=threads, providers=tuple(providers))
-
-
-class ModelUnfit(ValueError):
-    """A model whose graph cannot take the daemon's frames, or whose test inference gives
-    outputs of another shape or non-finite values; the message names the file and what differs."""
-
-
-# The test inference's input: mid-grey sRGB everywhere and, for an rgbd model, the reference
-# plane's depth (0): a frame the daemon could send, so a model that fails it fails real frames.
-TEST_GREY = 0.5
-
-
-def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
-    """Run `model` once on a frame of `window_hw` (padded to its input multiple, as frames are)
-    and refuse it, with `ModelUnfit`, unless it takes that input and returns finite amplitude
-    and phase of [1, colours, H, W]. Before the swap: a model that passes the metadata check
-    but cannot serve frames must not replace a working one."""
-    h, w = window_hw
-    c, m = model.channels, model.multiple
-    ph, pw = h + (-h) % m, w + (-w) % m
-    inp = model.session.get_inputs()[0]
-    declared = list(inp.shape)
-    want = f"[B, {c}, {ph}, {pw}] ({inp.name}, a {h} x {w} frame window padded to multiples " \
-           f"of {m})"
-    if len(declared) != 4:
-        raise ModelUnfit(f"{path}: input shape: expected {want}, found {declared}")
-    for what, expected, found in zip(("channels", "height", "width"), (c, ph, pw),
-                                     declared[1:], strict=True):
-        if isinstance(found, int) and found != expected:
-            raise ModelUnfit(f"{path}: input {what}: expected {expected}, found {found} "
-                             f"(input shape: expected {want}, found {declared})")
-    x = np.full((1, c, ph, pw), TEST_GREY, np.float32)
-    if c == 4:
-        x[:, 3] = 0.0
-    try:
-        outputs = model.run_raw(x)
-    except Exception as exc:  # onnxruntime's own types: the first line says what
-        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:300]
-        raise ModelUnfit(f"{path}: a test inference on a {want} input failed: {first}") from None
-    colours = len(model.metadata["wavelengths_m"])
-    for name, out in zip(("amplitude", "phase"), outputs, strict=True):
-        if list(out.shape) != [1, colours, ph, pw]:
-            raise ModelUnfit(f"{path}: output {name} shape: expected [1, {colours}, {ph}, {pw}], "
-                             f"found {list(out.shape)}")
-        bad = int(out.size - np.count_nonzero(np.isfinite(out)))
-        if bad:
-            raise ModelUnfit(f"{path}: output {name}: expected finite values, found {bad} of "
-                             f"{out.size} not finite (test inference on a mid-grey frame)")
-
-
-def model_info(model: Any, path: str) -> dict[str, Any]:
-    m = model.metadata
-    return {"path": path, "profile": m.get("profile"), "train_size_hw": m.get("train_size_hw"),
-            "fx": m.get("fx"), "amplitude_scale": m.get("amplitude_scale"),
-            "z0_m": m.get("z0_m"), "volume_m": m.get("volume_m"), "mapping": m.get("mapping"),
-            "pose_envelope": m.get("pose_envelope"), "parameters": m.get("parameters"),
-            "train_steps": m.get("train_steps"), "scene_sha256": m.get("scene_sha256"),
-            "providers": list(model.session.get_providers()), "loaded_s": time.time()}
-
-
-class _WorkerState:
-    def __init__(self, config: Any) -> None:
-        self.config = config
-        self.threads = int(config.daemon.worker_threads)
-        self.model: Any = None
-        self.model_id = 0
-        self.scene: Any = None
-        self.scene_frame: Any = None
-        self.scene_id = 0
-        self.pipelines: dict[float, Any] = {}  # refocus_m -> Pipeline (each its own kernels)
-        self.cache: OrderedDict[str, dict[str, Any]] = OrderedDict()
-        self.cache_size = int(config.daemon.frame_cache_frames)
-
-    def load_model(self, path: str) -> dict[str, Any]:
-        from nhfd.daemon.frames import frame_window_hw
-
-        model = open_model(path, self.config, self.threads)
-        check_inference(model, frame_window_hw(self.config, model.metadata), path)
-        self.model, self.model_id = model, self.model_id + 1
-        self.pipelines.clear()
-        return model_info(model, path)
-
-    def load_scene(self, path: str) -> dict[str, Any]:
-        from nhfd.daemon.frames import scene_frame
-        from nhfd.scene.io import read_scene
-
-        load = read_scene(path)
-        scene = load.gaussians
-        self.scene, self.scene_frame = scene, scene_frame(scene, path)
-        self.scene_id += 1
-        self.pipelines.clear()
-        return {"path": path, **load.counts(), "center": self.scene_frame.center,
-                "up": self.scene_frame.up}
-
-    def pipeline(self, refocus_m: float) -> Any:
-        from nhfd.daemon.frames import Pipeline, frame_settings
-
-        if refocus_m not in self.pipelines:
-            if len(self.pipelines) >= 8:  # a refocus sweep must not grow kernels without bound
-                self.pipelines.clear()
-            settings = frame_settings(self.config, self.model.metadata, refocus_m=refocus_m)
-            self.pipelines[refocus_m] = Pipeline(self.model, settings, self.scene,
-                                                 self.scene_frame)
-        return self.pipelines[refocus_m]
-
-    def frame(self, view: dict[str, Any]) -> dict[str, Any]:
-        from nhfd.daemon.frames import envelope_warnings
-
-        if self.model is None:
-            raise RuntimeError("no model loaded (load_model, or daemon.model)")
-        if self.scene is None:
-            raise RuntimeError("no scene loaded (load_scene, or daemon.scene)")
-        refocus_m = float(view.get("refocus_mm", 0.0)) * 1e-3
-        key = json.dumps([view, self.model_id, self.scene_id], sort_keys=True)
-        if key in self.cache:
-            self.cache.move_to_end(key)
-            hit = dict(self.cache[key])
-            hit["cached"] = True
-            hit["timings_s"] = {k: 0.0 for k in hit["timings_s"]}
-            return hit
-        pipe = self.pipeline(refocus_m)
-        frame = pipe.compute(view)
-        r = frame.region
-        rgb = frame.rgb
-        payload = {
-            "region": [r.top, r.left, r.height, r.width, r.window_top, r.window_left],
-            "grey": frame.grey,
-            "rgb": (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8) if rgb is not None else None,
-            "timings_s": frame.timings_s,
-            "clipped_fraction": frame.clipped_fraction,
-            "warnings": envelope_warnings(view, self.scene_frame,
-                                          self.model.metadata.get("pose_envelope")),
-            "cached": False,
-        }
-        if self.cache_size:
-            self.cache[key] = payload
-            while len(self.cache) > self.cache_size:
-                self.cache.popitem(last=False)
-        return payload
-
-
-def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None) -> None:
-    """Entry point of the spawned process. `calibration`: the daemon's accepted one (kept when
-    the file on disk is refused, as in the daemon)."""
-    from nhfd.config import Config
-
-    config = Config.model_validate(config_data)
-    if calibration is not None:
-        from nhfd.calibration import keep
-
-        keep(config, calibration)
-    _set_threads(int(config.daemon.worker_threads), config.daemon.worker_threading_layer)
-    import numba
-
-    numba.set_num_threads(int(config.daemon.worker_threads))
-    state = _WorkerState(config)
-    conn.send(("ready", os.getpid()))
-    while True:
-        try:
-            msgs = [conn.recv()]
-            while conn.poll(0):
-                msgs.append(conn.recv())
-        except (EOFError, OSError):
-            return  # the daemon is gone: nothing to show frames to
-        latest: tuple | None = None
-        for msg in msgs:
-            if msg[0] == "stop":
-                return
-            if msg[0] == "frame":
-                latest = msg  # latest wins: an older view that was overtaken is never computed
-                continue
-            kind, req_id, path = msg
-            try:
-                info = state.load_model(path) if kind == "model" else state.load_scene(path)
-                conn.send((kind, req_id, True, info))
-            except Exception as exc:  # reported to the daemon; the old model/scene stays
-                conn.send((kind, req_id, False, f"{type(exc).__name__}: {exc}"))
-        if latest is not None:
-            _, seq, view = latest
-            try:
-                conn.send(("frame", seq, state.frame(view)))
-            except Exception as exc:
-                conn.send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))
-
-
-# -- the daemon side ---------------------------------------------------------------------------
+    importlib.import_module(module).worker_main(*args)
 
 
 class Pending:
@@ -299,8 +149,9 @@ class FrameWorker:
     def start(self) -> None:
         ctx = mp.get_context("spawn")
         here, there = ctx.Pipe(duplex=True)
-        self.process = ctx.Process(target=worker_main,
-                                   args=(there, self.config.model_dump(),
+        self.process = ctx.Process(target=run_by_name,
+                                   args=(WORKER_MODULE, worker_environment(self.config), there,
+                                         self.config.model_dump(),
                                          _accepted_calibration(self.config)),
                                    name="nhfd-frame-worker", daemon=True)
         self.process.start()
@@ -350,7 +201,7 @@ class FrameLink:
     frames it returns, load models and scenes, and turn a worker crash into lasers off plus an
     error in `status` (then restart it with the same model and scene)."""
 
-    def __init__(self, daemon: Any) -> None:
+    def __init__(self, daemon: FrameHost) -> None:
         self.d = daemon
         self.worker = FrameWorker(daemon.config)
         self.model_path: str | None = None
@@ -367,7 +218,7 @@ class FrameLink:
         self.crashes = 0
         self.state = "idle"
         self._start_lock = threading.Lock()
-        self._zero: Any = None  # a PanelBuffer of the blank frame `_zero_of`, built on use
+        self._zero: PanelBuffer | None = None  # of the blank frame `_zero_of`, built on use
         self._zero_of: np.ndarray | None = None
         self._restart_at = 0.0
 
@@ -486,8 +337,6 @@ class FrameLink:
                 bench.slm.show(frame)
                 bench.showing = f"view {seq}"
             except Exception as exc:
-                from nhfd.drivers.slm import SLMOutputLost
-
                 self.d._error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
                 if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
                     bench.note_slm_lost(str(exc))
@@ -513,8 +362,6 @@ class FrameLink:
         coded region."""
         blank = self.d.bench.blank_frame()
         if self._zero is None or self._zero_of is not blank:
-            from nhfd.daemon.frames import PanelBuffer
-
             self._zero, self._zero_of = PanelBuffer(blank), blank
         top, left = payload["region"][:2]
         return self._zero.frame(top, left, payload["grey"])
@@ -548,11 +395,28 @@ class FrameLink:
                 "pose_warnings": self.warnings}
 
 
+class PanelBuffer:
+    """Full panel frames from the zero pattern and a coded region, built in the SLM's `[H, W, 3]`
+    layout: a frame is a fresh copy of the interleaved zero pattern with the region interleaved
+    in, returned as its `[3, H, W]` view. `nhfd.drivers.slm.to_rgb` takes that view as it is,
+    where a channel-first frame costs a transposing copy of the whole panel (~10 ms at
+    1920 x 1080)."""
+
+    def __init__(self, zero: np.ndarray) -> None:
+        self.zero_hwc = np.ascontiguousarray(np.asarray(zero, np.uint8).transpose(1, 2, 0))
+
+    def frame(self, top: int, left: int, grey: np.ndarray) -> np.ndarray:
+        out = self.zero_hwc.copy()
+        _, h, w = grey.shape
+        dst = out[top : top + h, left : left + w]
+        for c in range(grey.shape[0]):
+            dst[..., c] = grey[c]
+        return out.transpose(2, 0, 1)
+
+
 def _accepted_calibration(config: Any) -> Any:
     """The calibration this process applies, for the worker; None when there is none to keep
     (the worker's own load then says why, with each frame)."""
-    from nhfd.calibration import active_calibration
-
     try:
         return active_calibration(config)
     except ValueError:
@@ -565,10 +429,6 @@ def apply_camera_roi(bench: Any, config: Any) -> None:
     roi = list(config.daemon.camera_roi_px)
     if not roi or bench.camera is None or config.devices.camera != "simulated":
         return
-    from types import SimpleNamespace
-
-    from nhfd.drivers import factory
-
     with contextlib.suppress(Exception):
         bench.camera.close()
     camera = factory.make_camera(config.devices, slm=bench.slm,
@@ -578,6 +438,3 @@ def apply_camera_roi(bench: Any, config: Any) -> None:
         camera.open()
     bench.camera = camera
 
-
-def default_model_path(base: Path) -> Path:
-    return base / "models" / "nhf-donut-512.onnx"

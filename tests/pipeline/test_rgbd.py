@@ -1,16 +1,19 @@
-"""The daemon feeds an rgbd model the render's mapped depth, built as training built it."""
+"""The frame pipeline feeds an rgbd model the render's mapped depth, built as training built it."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from nhfd.daemon.frames import Pipeline, SceneFrame, frame_settings, render_camera
+from nhfd.calibration import active_calibration
 from nhfd.models.export import load_model
 from nhfd.models.inputs import depth_channel, mapped_depth
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.frame import compute_frame
+from nhfd.pipeline.settings import frame_settings
+from nhfd.pipeline.view import Scene, SceneFrame, render_camera
 from nhfd.scene.io import load_scene
 from nhfd.scene.raster import render
-
-from .test_frames import FRONT_VIEW, make_tiny_model, make_tiny_scene, small_config
+from tests.daemon.test_frames import FRONT_VIEW, make_tiny_model, make_tiny_scene, small_config
 
 
 class Spy:
@@ -29,15 +32,16 @@ def test_an_rgbd_model_gets_the_renders_mapped_depth(tmp_path):
     config = small_config()
     model = Spy(load_model(make_tiny_model(tmp_path, inputs="rgbd"), config))
     assert model.inputs == "rgbd"
-    scene = load_scene(make_tiny_scene(tmp_path / "cloud.ply"))
-    pipe = Pipeline(model, frame_settings(config, model.metadata), scene,
-                    SceneFrame((0.0, 0.0, 0.0), "-y"))  # fmt: skip
-    frame = pipe.compute(FRONT_VIEW)
+    scene = Scene(load_scene(make_tiny_scene(tmp_path / "cloud.ply")),
+                  SceneFrame((0.0, 0.0, 0.0), "-y"))
+    encoder = Encoder(frame_settings(config, model.metadata, active_calibration(config)))
+    frame = compute_frame(FRONT_VIEW, scene, model, encoder)
     (x,) = model.seen
     assert x.shape == (4, 64, 96)
     np.testing.assert_array_equal(x[:3], frame.rgb)
 
-    again = render(scene, render_camera(FRONT_VIEW, pipe.frame, model.metadata, (64, 96)))
+    again = render(scene.gaussians, render_camera(FRONT_VIEW, scene.frame, model.metadata,
+                                                  (64, 96)))
     m = model.metadata
     want = depth_channel(mapped_depth(again.depth, again.alpha, m["mapping"]["a_m"],
                                       m["mapping"]["b_m"]), m["volume_m"])  # fmt: skip

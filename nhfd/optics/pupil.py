@@ -1,0 +1,55 @@
+"""The relay's pupil phase: Zernike aberrations on the Fourier plane (optics.md).
+
+A calibration fits the relay's aberrations as Zernike coefficients (`nhfd.calib.bench_model`);
+the frame pipeline's propagation kernels carry their conjugate (`nhfd.optics.region`). Both take
+the phase from here, on the `fftfreq` grid the angular spectrum method uses.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+# Zernike terms of the pupil phase: Noll j = 5 (oblique astigmatism) to 11 (primary spherical).
+# Piston is invisible, tilt is the geometry's shift, defocus the depth offsets.
+FIRST_NOLL = 5
+N_ZERNIKE = 7
+
+
+def zernike(j: int, rho: torch.Tensor, theta: torch.Tensor) -> torch.Tensor:
+    """Zernike polynomial, Noll index j in 5..11 (RMS 1 over the unit disk; even j cos, odd j
+    sin), written out: the twin (`nhfd.drivers.simcamera`) has its own general form."""
+    r2 = rho * rho
+    if j == 5:
+        return math.sqrt(6) * r2 * torch.sin(2 * theta)
+    if j == 6:
+        return math.sqrt(6) * r2 * torch.cos(2 * theta)
+    if j == 7:
+        return math.sqrt(8) * (3 * r2 - 2) * rho * torch.sin(theta)
+    if j == 8:
+        return math.sqrt(8) * (3 * r2 - 2) * rho * torch.cos(theta)
+    if j == 9:
+        return math.sqrt(8) * r2 * rho * torch.sin(3 * theta)
+    if j == 10:
+        return math.sqrt(8) * r2 * rho * torch.cos(3 * theta)
+    if j == 11:
+        return math.sqrt(5) * (6 * r2 * r2 - 6 * r2 + 1)
+    raise ValueError(f"Noll index {j}: only {FIRST_NOLL}..{FIRST_NOLL + N_ZERNIKE - 1}")
+
+
+def pupil_phase(hw: tuple[int, int], cutoff_per_px: float, zernike_rad: tuple[float, ...],
+                scale: float = 1.0) -> torch.Tensor:
+    """The relay's pupil phase [H, W] (float64 radians) on the fftfreq grid of an H x W field
+    of SLM pixels: `scale * sum_k a_k Z_{5+k}(rho, theta)`, rho = |f| / cutoff (f in cycles per
+    pixel; the square iris's corners reach sqrt 2), theta from +x (columns) toward +y (rows).
+    `scale` = lambda_ref / lambda converts coefficients given at lambda_ref to a colour."""
+    fy = torch.fft.fftfreq(hw[0], dtype=torch.float64)[:, None]
+    fx = torch.fft.fftfreq(hw[1], dtype=torch.float64)[None, :]
+    rho = torch.sqrt(fx**2 + fy**2) / cutoff_per_px
+    theta = torch.atan2(fy.expand_as(rho), fx.expand_as(rho))
+    out = torch.zeros_like(rho)
+    for k, a in enumerate(zernike_rad):
+        if a:
+            out += a * zernike(FIRST_NOLL + k, rho, theta)
+    return out * scale

@@ -1,0 +1,18 @@
+"""The frame pipeline: a view of the scene -> the SLM's coded grey region (issue 22).
+
+L4 runtime; imports L0-L3, never nhfd.daemon or nhfd.calib. The daemon spawns `worker` as its
+own process by name and talks to it over a pipe (`nhfd.daemon.frame_link`); the tests,
+`nhfd bench pipeline` and `nhfd demo` call the rest directly.
+
+  frame     `compute_frame(view, scene, model, encoder) -> Frame`: the whole data flow, its
+            stages in order (render, inference, propagation, coding), each timed
+  settings  `FrameSettings` and its one constructor `frame_settings(config, metadata,
+            calibration)`; the panel `Region` a frame changes, the zero pattern around it
+  window    the frame window's size (`frame_window_hw`), torch-free for the CLI
+  view      a view -> the render camera (`SceneFrame`, `Scene`, `render_camera`), and whether
+            it lies inside the model's trained poses (`envelope_warnings`)
+  encoder   `Encoder`: the reference-plane field -> the SLM plane (`nhfd.optics.region`) ->
+            double-phase coding -> calibrated phase -> grey, uint8
+  worker    the frame worker process: `worker_main`, model loading and checking (`open_model`,
+            `check_inference`, `ModelUnfit`, `model_info`), the frame cache
+"""

@@ -1,0 +1,232 @@
+"""The frame worker: the spawned process that renders, runs the network and codes frames.
+
+Why a process: rendering (numba), inference (onnxruntime) and propagation (torch) hold the CPU
+for tens of milliseconds at a time; in the daemon's own process they would delay the control
+loop that feeds the laser guardian's heartbeat. The daemon (`nhfd.daemon.frame_link`) spawns it
+by this module's name, with the thread counts in the environment before anything here imports
+torch, numba or onnxruntime (a fresh interpreter: no pools exist yet).
+
+Protocol (tuples over one duplex `multiprocessing` pipe):
+
+  daemon -> worker   ("model", req_id, path)   ("scene", req_id, path)
+                     ("frame", seq, view)       ("stop",)
+  worker -> daemon   ("ready", pid)
+                     ("model" | "scene", req_id, ok, info | error message)
+                     ("frame", seq, payload)    ("frame_error", seq, message)
+
+Everything the daemon learns of the model (its metadata, why it was refused: `ModelUnfit`,
+`ModelMismatch`) crosses the pipe as data: the daemon never imports the model code. The worker
+drains its pipe before each frame and computes only the newest view (latest wins); loads are
+applied in order, and a failed load leaves the previous model or scene in use.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import OrderedDict
+from typing import Any
+
+import numba
+import numpy as np
+import onnxruntime as ort
+import torch
+
+from nhfd.calibration import Calibration, active_calibration, keep
+from nhfd.config import Config
+from nhfd.models.export import check_providers, load_model
+from nhfd.scene.io import read_scene
+
+from .encoder import Encoder
+from .frame import compute_frame
+from .settings import frame_settings
+from .view import Scene, envelope_warnings, scene_frame
+from .window import frame_window_hw
+
+# Encoders kept per refocus depth: a refocus sweep must not grow kernels without bound.
+MAX_ENCODERS = 8
+# The test inference's input: mid-grey sRGB everywhere and, for an rgbd model, the reference
+# plane's depth (0): a frame the daemon could send, so a model that fails it fails real frames.
+TEST_GREY = 0.5
+
+
+def _set_threads(threads: int) -> None:
+    """The libraries' pools at `threads` (their environment, OMP_NUM_THREADS, NUMBA_NUM_THREADS
+    and the rest, was set by the process's creator before they loaded)."""
+    torch.set_num_threads(threads)
+    torch.set_num_interop_threads(1)
+    numba.set_num_threads(threads)
+
+
+def open_model(path: str, config: Any, threads: int) -> Any:
+    """An `OnnxModel` checked against the configured optics, on the configured providers, with
+    `threads` intra-op threads in pools that do not spin (`nhfd.models.export.session_options`)."""
+    # Checked here too, so the error names the setting to change. No silent fallback: a bench
+    # configured for CUDA that quietly ran on the CPU would be 10x slower with nothing but a
+    # warning to say why; the load fails instead and the previous model keeps running.
+    providers = check_providers(list(config.daemon.onnx_providers),
+                                ort.get_available_providers(), "daemon.onnx_providers")
+    # validates; raises ModelMismatch etc.
+    return load_model(path, config, threads=threads, providers=tuple(providers))
+
+
+class ModelUnfit(ValueError):
+    """A model whose graph cannot take the daemon's frames, or whose test inference gives
+    outputs of another shape or non-finite values; the message names the file and what differs."""
+
+
+def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
+    """Run `model` once on a frame of `window_hw` (padded to its input multiple, as frames are)
+    and refuse it, with `ModelUnfit`, unless it takes that input and returns finite amplitude
+    and phase of [1, colours, H, W]. Before the swap: a model that passes the metadata check
+    but cannot serve frames must not replace a working one."""
+    h, w = window_hw
+    c, m = model.channels, model.multiple
+    ph, pw = h + (-h) % m, w + (-w) % m
+    inp = model.session.get_inputs()[0]
+    declared = list(inp.shape)
+    want = f"[B, {c}, {ph}, {pw}] ({inp.name}, a {h} x {w} frame window padded to multiples " \
+           f"of {m})"
+    if len(declared) != 4:
+        raise ModelUnfit(f"{path}: input shape: expected {want}, found {declared}")
+    for what, expected, found in zip(("channels", "height", "width"), (c, ph, pw),
+                                     declared[1:], strict=True):
+        if isinstance(found, int) and found != expected:
+            raise ModelUnfit(f"{path}: input {what}: expected {expected}, found {found} "
+                             f"(input shape: expected {want}, found {declared})")
+    x = np.full((1, c, ph, pw), TEST_GREY, np.float32)
+    if c == 4:
+        x[:, 3] = 0.0
+    try:
+        outputs = model.run_raw(x)
+    except Exception as exc:  # onnxruntime's own types: the first line says what
+        first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:300]
+        raise ModelUnfit(f"{path}: a test inference on a {want} input failed: {first}") from None
+    colours = len(model.metadata["wavelengths_m"])
+    for name, out in zip(("amplitude", "phase"), outputs, strict=True):
+        if list(out.shape) != [1, colours, ph, pw]:
+            raise ModelUnfit(f"{path}: output {name} shape: expected [1, {colours}, {ph}, {pw}], "
+                             f"found {list(out.shape)}")
+        bad = int(out.size - np.count_nonzero(np.isfinite(out)))
+        if bad:
+            raise ModelUnfit(f"{path}: output {name}: expected finite values, found {bad} of "
+                             f"{out.size} not finite (test inference on a mid-grey frame)")
+
+
+def model_info(model: Any, path: str) -> dict[str, Any]:
+    """What the daemon reports of a loaded model (its `status`'s "model"): plain data."""
+    m = model.metadata
+    return {"path": path, "profile": m.get("profile"), "train_size_hw": m.get("train_size_hw"),
+            "fx": m.get("fx"), "amplitude_scale": m.get("amplitude_scale"),
+            "z0_m": m.get("z0_m"), "volume_m": m.get("volume_m"), "mapping": m.get("mapping"),
+            "pose_envelope": m.get("pose_envelope"), "parameters": m.get("parameters"),
+            "train_steps": m.get("train_steps"), "scene_sha256": m.get("scene_sha256"),
+            "providers": list(model.session.get_providers()), "loaded_s": time.time()}
+
+
+class _WorkerState:
+    def __init__(self, config: Any) -> None:
+        self.config = config
+        self.threads = int(config.daemon.worker_threads)
+        self.model: Any = None
+        self.model_id = 0
+        self.scene: Scene | None = None
+        self.scene_id = 0
+        self.encoders: dict[float, Encoder] = {}  # refocus_m -> Encoder (each its own kernels)
+        self.cache: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        self.cache_size = int(config.daemon.frame_cache_frames)
+
+    def load_model(self, path: str) -> dict[str, Any]:
+        model = open_model(path, self.config, self.threads)
+        check_inference(model, frame_window_hw(self.config, model.metadata), path)
+        self.model, self.model_id = model, self.model_id + 1
+        self.encoders.clear()
+        return model_info(model, path)
+
+    def load_scene(self, path: str) -> dict[str, Any]:
+        load = read_scene(path)
+        frame = scene_frame(load.gaussians, path)
+        self.scene = Scene(load.gaussians, frame)
+        self.scene_id += 1
+        self.encoders.clear()
+        return {"path": path, **load.counts(), "center": frame.center, "up": frame.up}
+
+    def encoder(self, refocus_m: float) -> Encoder:
+        if refocus_m not in self.encoders:
+            if len(self.encoders) >= MAX_ENCODERS:
+                self.encoders.clear()
+            settings = frame_settings(self.config, self.model.metadata,
+                                      active_calibration(self.config), refocus_m=refocus_m)
+            self.encoders[refocus_m] = Encoder(settings)
+        return self.encoders[refocus_m]
+
+    def frame(self, view: dict[str, Any]) -> dict[str, Any]:
+        if self.model is None:
+            raise RuntimeError("no model loaded (load_model, or daemon.model)")
+        if self.scene is None:
+            raise RuntimeError("no scene loaded (load_scene, or daemon.scene)")
+        refocus_m = float(view.get("refocus_mm", 0.0)) * 1e-3
+        key = json.dumps([view, self.model_id, self.scene_id], sort_keys=True)
+        if key in self.cache:
+            self.cache.move_to_end(key)
+            hit = dict(self.cache[key])
+            hit["cached"] = True
+            hit["timings_s"] = {k: 0.0 for k in hit["timings_s"]}
+            return hit
+        frame = compute_frame(view, self.scene, self.model, self.encoder(refocus_m))
+        r = frame.region
+        rgb = frame.rgb
+        payload = {
+            "region": [r.top, r.left, r.height, r.width, r.window_top, r.window_left],
+            "grey": frame.grey,
+            "rgb": (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8) if rgb is not None else None,
+            "timings_s": frame.timings_s,
+            "clipped_fraction": frame.clipped_fraction,
+            "warnings": envelope_warnings(view, self.scene.frame,
+                                          self.model.metadata.get("pose_envelope")),
+            "cached": False,
+        }
+        if self.cache_size:
+            self.cache[key] = payload
+            while len(self.cache) > self.cache_size:
+                self.cache.popitem(last=False)
+        return payload
+
+
+def worker_main(conn: Any, config_data: dict[str, Any],
+                calibration: Calibration | None = None) -> None:
+    """Entry point of the spawned process. `calibration`: the daemon's accepted one (kept when
+    the file on disk is refused, as in the daemon)."""
+    config = Config.model_validate(config_data)
+    if calibration is not None:
+        keep(config, calibration)
+    _set_threads(int(config.daemon.worker_threads))
+    state = _WorkerState(config)
+    conn.send(("ready", os.getpid()))
+    while True:
+        try:
+            msgs = [conn.recv()]
+            while conn.poll(0):
+                msgs.append(conn.recv())
+        except (EOFError, OSError):
+            return  # the daemon is gone: nothing to show frames to
+        latest: tuple | None = None
+        for msg in msgs:
+            if msg[0] == "stop":
+                return
+            if msg[0] == "frame":
+                latest = msg  # latest wins: an older view that was overtaken is never computed
+                continue
+            kind, req_id, path = msg
+            try:
+                info = state.load_model(path) if kind == "model" else state.load_scene(path)
+                conn.send((kind, req_id, True, info))
+            except Exception as exc:  # reported to the daemon; the old model/scene stays
+                conn.send((kind, req_id, False, f"{type(exc).__name__}: {exc}"))
+        if latest is not None:
+            _, seq, view = latest
+            try:
+                conn.send(("frame", seq, state.frame(view)))
+            except Exception as exc:
+                conn.send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))
