@@ -86,7 +86,7 @@ class Calibration:
     unmodulated_phase_rad: tuple[float, ...] = ()
     # Relay aberrations: Zernike coefficients for Noll j = 5, 6, ... (radians at
     # zernike_wavelength_m; pupil radius = the aperture's cutoff, see
-    # nhfd.calib.bench_model.pupil_phase); () = not fitted.
+    # nhfd.optics.pupil.pupil_phase); () = not fitted.
     zernike_rad: tuple[float, ...] = ()
     zernike_std_rad: tuple[float, ...] = ()
     zernike_wavelength_m: float = 0.0

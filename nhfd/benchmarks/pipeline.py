@@ -16,14 +16,15 @@ import os
 import threading
 import time
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 
 from nhfd import __version__
 from nhfd.config import Config, _overlay, load_config
-from nhfd.daemon.bench import zero_amplitude_frame
 from nhfd.daemon.frame_link import FrameLink
+from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
 from nhfd.drivers.slm import SimulatedSLM
 from nhfd.models.export import OnnxModel
@@ -48,17 +49,20 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 class _Host:
-    """The slice of the daemon a FrameLink needs: views, SLM and blank frame, error list."""
+    """The slice of the daemon a FrameLink needs (`FrameHost`): views, the panel on a simulated
+    SLM, the error list."""
 
     def __init__(self, config: Any) -> None:
         self.config = config
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
-        blank = zero_amplitude_frame(config)  # the daemon's Bench rebuilds it on a swap only
-        self.bench = type("B", (), {"slm": self.slm, "showing": "", "held": False,
-                                    "blank_frame": lambda _self: blank})()
-        self.display = ""
         self.errors: list[str] = []
+        self.bench = self  # where a lost SLM is noted
+        self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}))
+        self.laser = None  # no lasers here (FrameLink switches them off if the worker dies)
+
+    def note_slm_lost(self, detail: str) -> None:
+        self._error("slm", detail)
 
     def _error(self, source: str, message: str) -> None:
         self.errors.append(f"{source}: {message}")

@@ -23,6 +23,7 @@ pipeline as a separate, spawned process and talks to it over a pipe.
   recording session recording (JSON lines) and replay
   png       16-bit PNGs of camera images
   notify, audit, paths  systemd notify, the audit log, runtime dirs and allowed directories
-  worker, frames  the frame worker process and its pipeline (moving to nhfd.pipeline, L4: the
-            last modules here that import above L1)
+  frame_link  the daemon's side of the frame worker: spawns `nhfd.pipeline.worker` by name,
+            sends the newest view, puts returned frames on the panel, restarts a crashed worker
+            (lasers off first)
 """

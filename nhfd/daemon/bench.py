@@ -22,11 +22,9 @@ import threading
 import time
 from typing import Any
 
-import numpy as np
-
 from nhfd.drivers import factory
 
-from .panel import Panel, blank_pattern, coding_calibration
+from .panel import Panel
 
 log = logging.getLogger("nhfd.daemon.bench")
 
@@ -35,12 +33,6 @@ def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
     """The documented default mapping without calibration: the camera sees the reference plane
     at `stage_at_reference_mm`, and one mm of hologram depth is one mm of stage travel."""
     return stage_at_reference_mm + z_mm
-
-
-def zero_amplitude_frame(config: Any) -> np.ndarray:
-    """The blank of the active calibration's coding, for `nhfd bench pipeline`'s stand-in daemon
-    (nhfd/benchmarks/pipeline.py) until it takes `nhfd.daemon.panel.blank_pattern`."""
-    return blank_pattern(config, coding_calibration(config))
 
 
 class Bench:
@@ -186,28 +178,3 @@ class Bench:
             "camera": {"backend": d.camera, "open": self.camera is not None,
                        "error": self.errors["camera"]},
         }
-
-    # -- the panel's former names here, for FrameLink (nhfd/daemon/worker.py) and tests outside
-    # the control plane's files, until they use `panel` (issue 22): delegations only.
-
-    def blank_frame(self) -> np.ndarray:
-        return self.panel.blank_frame()
-
-    def show_blank(self) -> None:
-        self.panel.blank()
-
-    @property
-    def held(self) -> bool:
-        return self.panel.held
-
-    @property
-    def showing(self) -> str:
-        return self.panel.showing
-
-    @showing.setter
-    def showing(self, what: str) -> None:
-        self.panel.showing = what
-
-    @property
-    def pattern(self) -> str | None:
-        return self.panel.pattern

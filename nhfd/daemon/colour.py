@@ -45,7 +45,7 @@ def panel_for_mode(frame: np.ndarray, mode: str, colour: str) -> np.ndarray:
         return frame
     c = COLOURS.index(colour)
     # Built in the SLM's [H, W, 3] layout and returned as its [3, H, W] view: the SLM takes it
-    # without a transposing copy of the whole panel (see nhfd.daemon.frames.PanelBuffer).
+    # without a transposing copy of the whole panel (see nhfd.daemon.frame_link.PanelBuffer).
     out = np.empty((*frame.shape[1:], frame.shape[0]), frame.dtype)
     for k in range(frame.shape[0]):
         out[..., k] = frame[c]

@@ -33,8 +33,6 @@ from nhfd.calibration import active_calibration
 from nhfd.drivers import factory
 from nhfd.drivers.slm import SLMOutputLost
 
-from .colour import panel_for_mode
-
 log = logging.getLogger("nhfd.daemon.frame_link")
 
 # How long a load may take in the worker before the load job gives up waiting (s).
@@ -50,17 +48,18 @@ WORKER_MODULE = "nhfd.pipeline.worker"
 # -- what the frame link uses of the daemon ----------------------------------------------------
 
 
-class PanelOutput(Protocol):
-    """The daemon's SLM side (`nhfd.daemon.bench.Bench`), as far as frames go."""
+class PanelView(Protocol):
+    """The daemon's panel (`nhfd.daemon.panel.Panel`), as far as view frames go."""
 
-    slm: Any  # an nhfd.drivers.slm.SLM, None without one
-    showing: str
-    # A capture job holds the panel: frames wait, the job shows the newest one after.
-    held: bool
+    def show_view(self, frame: np.ndarray, seq: int) -> np.ndarray: ...
 
     def blank_frame(self) -> np.ndarray: ...
 
-    def show_blank(self) -> None: ...
+    def blank(self) -> None: ...
+
+
+class SLMFaults(Protocol):
+    """Where an SLM whose output is lost is reported (`nhfd.daemon.bench.Bench`)."""
 
     def note_slm_lost(self, detail: str) -> None: ...
 
@@ -80,14 +79,14 @@ class LaserSwitch(Protocol):
 
 class FrameHost(Protocol):
     """What `FrameLink` uses of the daemon (`nhfd.daemon.service.Daemon`): its configuration,
-    the views, the SLM and its blank frame, the lasers (off when the worker crashes), the
-    display line and the error list of `status`."""
+    the views, the panel (view frames and the blank), the lasers (off when the worker crashes)
+    and the error list of `status`."""
 
     config: Any  # nhfd.config.Config
-    bench: PanelOutput
+    panel: PanelView
+    bench: SLMFaults
     views: ViewSource
     laser: LaserSwitch
-    display: str
 
     def _error(self, source: str, message: str) -> None: ...
 
@@ -328,19 +327,13 @@ class FrameLink:
         sent_at = self.inflight[1] if self.inflight and self.inflight[0] == seq else None
         self.inflight = None
         t0 = time.perf_counter()
-        frame = self._panel(payload)
-        c = self.d.config.daemon
-        frame = panel_for_mode(frame, c.colour_mode, c.single_colour)
-        bench = self.d.bench
-        if bench.slm is not None and not bench.held:  # held: the capture job shows it after
-            try:
-                bench.slm.show(frame)
-                bench.showing = f"view {seq}"
-            except Exception as exc:
-                self.d._error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
-                if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
-                    bench.note_slm_lost(str(exc))
-                return
+        try:  # the panel applies the colour mode, and holds the frame back during a capture
+            frame = self.d.panel.show_view(self._panel(payload), seq)
+        except Exception as exc:
+            self.d._error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
+            if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
+                self.d.bench.note_slm_lost(str(exc))
+            return
         done = time.perf_counter()
         stages = dict(payload["timings_s"])
         stages["output"] = done - t0
@@ -354,13 +347,12 @@ class FrameLink:
         self.last_rgb, self.last_frame = payload.get("rgb"), frame
         self.shown_seq = seq
         self.frames_shown += 1
-        self.d.display = f"view {seq}"
         self.d.views.mark_applied(seq)
 
     def _panel(self, payload: dict[str, Any]) -> np.ndarray:
         """The full panel: the blank frame (the zero pattern of the coding in use) outside the
         coded region."""
-        blank = self.d.bench.blank_frame()
+        blank = self.d.panel.blank_frame()
         if self._zero is None or self._zero_of is not blank:
             self._zero, self._zero_of = PanelBuffer(blank), blank
         top, left = payload["region"][:2]
@@ -379,8 +371,7 @@ class FrameLink:
         except Exception as exc:
             message += f"; lasers off FAILED: {exc}"
         with contextlib.suppress(Exception):
-            self.d.bench.show_blank()
-            self.d.display = "blank"
+            self.d.panel.blank()
         self.d._error("frame worker", message)
         self.worker.close(timeout_s=0.5)
         self.state = "crashed"

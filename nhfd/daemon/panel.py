@@ -115,9 +115,7 @@ class Panel:
     def show_view(self, frame: np.ndarray, seq: int) -> np.ndarray:
         """View `seq`'s full-panel frame ([3, H, W] uint8) in the colour mode; it reaches the
         SLM unless the panel is held. Returns the frame as shown (what `resume` shows again);
-        raises what the SLM raises. FrameLink's way onto the panel: until it takes it, it shows
-        frames itself through the bench's and the daemon's delegations (`Bench.showing`,
-        `Daemon.display`)."""
+        raises what the SLM raises. FrameLink's one way onto the panel."""
         c = self.config.daemon
         frame = panel_for_mode(frame, c.colour_mode, c.single_colour)
         if self.devices.slm is not None and not self.held:

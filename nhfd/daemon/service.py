@@ -154,19 +154,6 @@ class Daemon:
         """What the SLM shows (the bench's: a bench opened at start brings its own)."""
         return self.bench.panel
 
-    @property
-    def display(self) -> str:
-        """For FrameLink (nhfd/daemon/worker.py) until it shows frames with `panel.show_view`:
-        status reads `panel.current`."""
-        return self.panel.current
-
-    @display.setter
-    def display(self, what: str) -> None:
-        # FrameLink reports a view it computed, or the blank after a crash; a calibration
-        # pattern stays what the daemon shows until set_view or blank ends it.
-        if self.panel.pattern is None:
-            self.panel.current = what
-
     # -- start ---------------------------------------------------------------------------------
 
     def start(self) -> None:

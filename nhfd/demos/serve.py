@@ -71,7 +71,7 @@ or copy a released nhf-donut-512.onnx there, or pass --model PATH."""
 
 
 def read_png16(path: Path) -> np.ndarray:
-    """A 16-bit greyscale PNG written by `nhfd.daemon.bench.write_png16` -> float [0, 1]."""
+    """A 16-bit greyscale PNG written by `nhfd.daemon.png.write_png16` -> float [0, 1]."""
     data = path.read_bytes()
     pos, idat, size = 8, b"", (0, 0)
     while pos < len(data):

@@ -20,7 +20,7 @@ blank frame's). Same definitions as `double_phase` + `phase_to_grey` (torch), co
   has a constant level, one holding several (curves much longer than 2 pi) is searched. The same
   levels as `_nearest_level` for the same phase, exactly (tests/optics/test_coding.py).
 
-Imported lazily (numba compiles or loads its cache on first use).
+numba compiles the kernels (or loads them from its cache) on their first call, not on import.
 """
 
 from __future__ import annotations

@@ -174,11 +174,11 @@ def test_calibration_methods_refuse_clearly(daemon: tuple[Running, Path]) -> Non
     assert np.all(r.daemon.bench.slm.last_frame == 7)
     assert c.status()["display"] == f"calibration pattern {(allowed / 'ok.npy').resolve()}"
     c.call("set_view", orbit={"azimuth_deg": 0, "elevation_deg": 0, "radius": 1})
-    assert r.daemon.bench.pattern is None and c.status()["display"] == "blank"  # no model yet
+    assert r.daemon.panel.pattern is None and c.status()["display"] == "blank"  # no model yet
     assert not np.any(r.daemon.bench.slm.last_frame == 7)
     c.call("show_pattern", path="ok.npy")
     c.call("blank")
-    assert c.status()["display"] == "blank" and r.daemon.bench.pattern is None
+    assert c.status()["display"] == "blank" and r.daemon.panel.pattern is None
 
     with pytest.raises(RpcError) as info:
         c.call("stage_move", position_mm=30.0)

@@ -275,7 +275,7 @@ def test_a_worker_crash_is_an_error_in_status_and_turns_the_lasers_off(short_dir
         assert mecom_twin.dark_since() is not None and mecom_twin.dark_since() - killed < 1.0
         error = next(e for e in c.status()["errors"] if e["source"] == "frame worker")
         assert f"pid {pid}" in error["message"] and "lasers switched off" in error["message"]
-        assert r.daemon.bench.showing == "blank"
+        assert r.daemon.panel.showing == "blank"
         # It comes back (same model and scene) and shows views again.
         wait_until(lambda: c.status()["frames"]["state"] == "running"
                    and c.status()["frames"]["pid"] != pid, 20, "the restarted worker")
