@@ -29,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from nhfd import spec
 from nhfd.spec import PhaseCurve
 
 FORMAT = "nhfd-calibration"
@@ -333,6 +334,15 @@ def _dump(doc: dict[str, Any], prefix: str = "") -> str:
             name = f"{prefix}{k}"
             out += f"\n[{name}]\n" + _dump(v, f"{name}.")
     return out
+
+
+def panel_coding(slm: Any, cal: Calibration | None) -> tuple[tuple[PhaseCurve, ...], int, bool]:
+    """The phase curves, sign and grey inversion frames are coded with, for the configuration's
+    `[slm]` section: a calibration's measured curves and sign replace the configured ones. The
+    one rule for the blank panel (`nhfd.daemon.panel`) and for frames (`nhfd.pipeline.settings`),
+    so the zero pattern around a frame is the frame's own zero."""
+    curves = spec.phase_curves(slm.phase_stroke_rad, cal.phase_tables_rad if cal else ())
+    return tuple(curves), int(cal.phase_sign if cal else slm.phase_sign), bool(slm.grey_invert)
 
 
 # The active calibration: the file a configuration names (`[calibration] file`), loaded once per

@@ -28,7 +28,7 @@ from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
 from nhfd.drivers.slm import SimulatedSLM
 from nhfd.models.export import OnnxModel
-from nhfd.pipeline.window import frame_window_hw
+from nhfd.pipeline.settings import frame_window_hw
 
 # The stages status reports, in order: the frame pipeline's four (`nhfd.pipeline.frame`), then
 # the daemon's output (the region pasted into the panel and shown).

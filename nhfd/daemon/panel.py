@@ -28,9 +28,8 @@ from typing import Any, Protocol
 import numpy as np
 
 from nhfd import spec
-from nhfd.calibration import Calibration, active_calibration
+from nhfd.calibration import Calibration, active_calibration, panel_coding
 from nhfd.config import Config
-from nhfd.spec import PhaseCurve
 
 from .colour import panel_for_mode
 
@@ -56,21 +55,11 @@ def coding_calibration(config: Config) -> Calibration | None:
         return None
 
 
-def coding(config: Config, cal: Calibration | None
-           ) -> tuple[tuple[PhaseCurve, ...], int, bool]:
-    """The phase curves, sign and grey inversion frames are coded with: the calibration's
-    measured curves and sign (as the frame worker's `frame_settings` takes them), else the
-    configured ones."""
-    s = config.slm
-    curves = spec.phase_curves(s.phase_stroke_rad, cal.phase_tables_rad if cal else ())
-    return tuple(curves), int(cal.phase_sign if cal else s.phase_sign), bool(s.grey_invert)
-
-
 def blank_pattern(config: Config, cal: Calibration | None) -> np.ndarray:
     """The blank of the whole panel ([3, H, W] uint8) under `cal` (None: the configured
     curves); see `nhfd.spec.zero_pattern`."""
     s = config.slm
-    return spec.zero_pattern((s.height_px, s.width_px), *coding(config, cal))
+    return spec.zero_pattern((s.height_px, s.width_px), *panel_coding(config.slm, cal))
 
 
 class Panel:

@@ -8,7 +8,6 @@ own process by name and talks to it over a pipe (`nhfd.daemon.frame_link`); the 
             stages in order (render, inference, propagation, coding), each timed
   settings  `FrameSettings` and its one constructor `frame_settings(config, metadata,
             calibration)`; the panel `Region` a frame changes, the zero pattern around it
-  window    the frame window's size (`frame_window_hw`), torch-free for the CLI
   view      a view -> the render camera (`SceneFrame`, `Scene`, `render_camera`), and whether
             it lies inside the model's trained poses (`envelope_warnings`)
   encoder   `Encoder`: the reference-plane field -> the SLM plane (`nhfd.optics.region`) ->

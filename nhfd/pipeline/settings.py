@@ -10,12 +10,10 @@ from typing import Any
 import numpy as np
 
 from nhfd import spec
-from nhfd.calibration import Calibration
+from nhfd.calibration import Calibration, panel_coding
 from nhfd.optics import Aperture
 from nhfd.optics.refplane import margin_px, window_offset
 from nhfd.spec import PhaseCurve
-
-from .window import frame_window_hw
 
 
 @dataclass(frozen=True)
@@ -116,6 +114,16 @@ def zero_pattern(s: FrameSettings) -> np.ndarray:
     return spec.zero_pattern(s.panel_hw, s.curves(), s.phase_sign, s.grey_invert)
 
 
+def frame_window_hw(config: Any, metadata: dict[str, Any]) -> tuple[int, int]:
+    """The frames' window (height, width): `daemon.frame_size_px` [W, H], or the model's
+    training size when that is empty."""
+    size = list(config.daemon.frame_size_px)
+    if size:
+        return int(size[1]), int(size[0])
+    h, w = (int(v) for v in metadata["train_size_hw"])
+    return h, w
+
+
 def frame_settings(config: Any, metadata: dict[str, Any], calibration: Calibration | None, *,
                    refocus_m: float = 0.0) -> FrameSettings:
     """The settings of frames for a model under a configuration and a calibration (None: the
@@ -127,6 +135,7 @@ def frame_settings(config: Any, metadata: dict[str, Any], calibration: Calibrati
     window_hw = frame_window_hw(config, metadata)
     s = config.slm
     cal = calibration
+    _, sign, invert = panel_coding(s, cal)
     return FrameSettings(
         panel_hw=(s.height_px, s.width_px),
         window_hw=window_hw,
@@ -138,8 +147,8 @@ def frame_settings(config: Any, metadata: dict[str, Any], calibration: Calibrati
         amplitude_scale=float(metadata["amplitude_scale"]),
         zero_below=float(config.coding.zero_below),
         phase_stroke_rad=tuple(float(v) for v in s.phase_stroke_rad),
-        phase_sign=int(cal.phase_sign if cal else s.phase_sign),
-        grey_invert=bool(s.grey_invert),
+        phase_sign=sign,
+        grey_invert=invert,
         refocus_m=float(refocus_m),
         padding=config.optics.padding,
         phase_tables_rad=cal.phase_tables_rad if cal else (),

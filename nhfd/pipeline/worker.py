@@ -40,9 +40,8 @@ from nhfd.scene.io import read_scene
 
 from .encoder import Encoder
 from .frame import compute_frame
-from .settings import frame_settings
+from .settings import frame_settings, frame_window_hw
 from .view import Scene, envelope_warnings, scene_frame
-from .window import frame_window_hw
 
 # Encoders kept per refocus depth: a refocus sweep must not grow kernels without bound.
 MAX_ENCODERS = 8
