@@ -144,13 +144,9 @@ class Stage(Device, ABC):
     # ReplyTimeout is a TransportError; a unit that identifies as another raises WrongDevice.
     _retry_on = (TransportError, LinkDown)
 
-    def reconnect(self) -> None:
-        """Reopen with exponential backoff (`Device.reconnect`); the device must identify as the
-        same unit."""
-        self._info_before_reconnect = self.info
-        super().reconnect()
-
     def _before_reconnect(self) -> None:
+        # `Device.reconnect` with back-off; the device must identify as the same unit.
+        self._info_before_reconnect = self.info
         self._pending = None
 
     def _reopen(self) -> None:
