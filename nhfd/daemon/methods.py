@@ -78,7 +78,7 @@ from .protocol import (
     RpcError,
     bad_param,
 )
-from .server import Connection
+from .server import Connection, forwarded_by_ssh
 from .views import ViewSlot, parse_view
 
 
@@ -205,6 +205,10 @@ def _laser(d: Host, conn: Connection, p: Params) -> Any:
             # A person arms from the bench's machine, identified by uid; never over the network.
             raise RpcError(FORBIDDEN, "arming is accepted only over the Unix socket",
                            {"field": "action", "allowed": "arm over the Unix socket only"})
+        if forwarded_by_ssh(conn.peer):  # the socket reached from elsewhere through SSH
+            raise RpcError(FORBIDDEN, "arming is refused through an SSH tunnel: a person arms "
+                           "on the bench's machine", {"field": "action", "allowed":
+                                                      "arm over the Unix socket only"})
         reply = link.arm(duration_s)
         return {"armed": True, "armed_remaining_s": reply.get("armed_remaining_s"),
                 "by_uid": conn.peer.get("uid")}

@@ -74,14 +74,25 @@ Handler = Callable[[Connection, bytes], bytes | None]
 
 
 def peer_credentials(sock: socket.socket) -> dict[str, Any]:
-    """uid, gid and pid of a Unix-socket peer from the kernel (SO_PEERCRED): not forgeable."""
+    """uid, gid and pid of a Unix-socket peer from the kernel (SO_PEERCRED): not forgeable; and
+    the peer's process name, which says when the socket is forwarded through SSH (`sshd`)."""
     pid, uid, gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
                                                         struct.calcsize("3i")))
     try:
         user = pwd.getpwuid(uid).pw_name
     except KeyError:
         user = None
-    return {"uid": uid, "gid": gid, "pid": pid, "user": user}
+    try:
+        process: str | None = Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        process = None
+    return {"uid": uid, "gid": gid, "pid": pid, "user": user, "process": process}
+
+
+def forwarded_by_ssh(peer: dict[str, Any]) -> bool:
+    """The Unix-socket peer is sshd (`ssh -L local.sock:control.sock`, OpenSSH's session process
+    `sshd` or, from 9.8, `sshd-session`): a person on another machine, not at the bench."""
+    return str(peer.get("process") or "").startswith("sshd")
 
 
 class LineServer:

@@ -8,8 +8,11 @@ from __future__ import annotations
 
 import datetime
 import ipaddress
+import json
 import socket
 import ssl
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -18,7 +21,7 @@ from nhfd.cli import nhfctl
 from nhfd.config import ConfigError, validate
 from nhfd.daemon.client import Client, TLSFailure
 from nhfd.daemon.protocol import RpcError
-from nhfd.daemon.server import LineServer
+from nhfd.daemon.server import LineServer, forwarded_by_ssh, peer_credentials
 
 from .conftest import Running, bench_config, free_port
 
@@ -141,3 +144,51 @@ def test_an_unloadable_certificate_names_the_keys(tmp_path):
     with pytest.raises(ValueError, match=r"daemon.tls_cert = .*c.pem.*cannot load") as info:
         server_tls_context(tmp_path / "c.pem", tmp_path / "k.pem")
     assert isinstance(info.value, ValueError) and not isinstance(info.value, ssl.SSLError)
+
+
+def test_arming_through_an_ssh_tunnel_is_refused(short_dir, mecom_twin):
+    # `ssh -L local.sock:control.sock bench` makes sshd the socket's peer: the kernel names the
+    # process (SO_PEERCRED's pid, /proc/<pid>/comm). Here a client names itself as OpenSSH's
+    # session process does, so the daemon sees exactly what a tunnel shows it.
+    code = """if True:
+        import ctypes, sys
+        ctypes.CDLL(None).prctl(15, b"sshd-session", 0, 0, 0)  # PR_SET_NAME
+        from nhfd.daemon.client import Client
+        from nhfd.daemon.protocol import RpcError
+        with Client(sys.argv[1]) as c:
+            c.call("laser", action="power", channel="red", power_pct=5.0)
+            try:
+                c.call("laser", action="arm", duration_s=30.0)
+                print("armed")
+            except RpcError as exc:
+                print(exc.name, exc.message)
+    """
+    r = Running(bench_config(short_dir, mecom_twin), short_dir)
+    try:
+        done = subprocess.run([sys.executable, "-c", code, str(r.socket)], capture_output=True,
+                              text=True, timeout=60)
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.strip() == ("forbidden arming is refused through an SSH tunnel: a "
+                                       "person arms on the bench's machine")
+        assert r.client().status()["laser"]["armed"] is False
+        # The same socket from a process at the bench arms (the audit log names the process).
+        assert r.client().call("laser", action="arm", duration_s=30.0)["armed"] is True
+        audit = [json.loads(line) for line in
+                 (short_dir / "run" / "audit.jsonl").read_text().splitlines()]
+        refused = [e for e in audit if e.get("outcome", "").startswith("refused")
+                   and e["who"].get("process") == "sshd-session"]
+        assert refused, audit[-5:]
+    finally:
+        r.stop()
+
+
+def test_the_peer_process_is_named_by_the_kernel():
+    a, b = socket.socketpair(socket.AF_UNIX)
+    try:
+        assert peer_credentials(a)["process"] == Path("/proc/self/comm").read_text().strip()
+        assert not forwarded_by_ssh(peer_credentials(a))
+        assert forwarded_by_ssh({"process": "sshd"}) and forwarded_by_ssh({"process":
+                                                                            "sshd-session"})
+    finally:
+        a.close()
+        b.close()
