@@ -1,8 +1,9 @@
 """Remote operation (issue 25, part 6): the daemon's TCP port over TLS with a self-signed
 certificate made here. A client that trusts the certificate and knows the token is served; one
 that does not trust it fails verification before any byte of the token leaves; a wrong token is
-refused; arming stays refused over TLS as over any TCP connection; and a non-loopback address
-without TLS is refused at the configuration and at the server."""
+refused; arming stays refused over TLS as over any TCP connection, and through an SSH tunnel to
+the Unix socket; and a non-loopback address without TLS is refused at the configuration and at
+the server."""
 
 from __future__ import annotations
 
