@@ -201,8 +201,12 @@ def test_the_page_shows_the_bench_and_steers_it_but_never_arms(bench, browser):
     camera = decoded_pixels(browser, "camera")
     assert camera.shape == (24, 32, 4)
     assert camera[..., 0].max() == 255  # scaled to its own peak
-    saved = np.asarray(Image.open(root / "snaps" / name))
-    assert saved.shape == (24, 32)
+    # It is that capture: the saved 16-bit PNG scaled to its own peak, to a grey level.
+    saved = np.asarray(Image.open(root / "snaps" / name)).astype(np.float64)
+    assert saved.shape == (24, 32) and saved.max() > 0
+    expected = np.round(saved / saved.max() * 255)
+    assert np.abs(camera[..., 0] - expected).max() <= 1
+    assert (camera[..., 0] == camera[..., 1]).all()  # grey
 
     c.call("laser", action="off")
     wait.until(lambda d: d.find_element(By.ID, "armed").text == "not armed")
