@@ -339,14 +339,25 @@ class WebView:
         self._clients[ws] = {}
         if self._poller is None or self._poller.done():
             self._poller = asyncio.create_task(self._push_loop())
+        # Each operation runs on its own (a snapshot waits for its job): a focus sent meanwhile
+        # is not held up behind it. The daemon still takes one call at a time (the bridge).
+        tasks: set[asyncio.Task] = set()
+
+        async def answer(text: str) -> None:
+            reply = await self._operate(text)
+            with contextlib.suppress(ConnectionError, RuntimeError):
+                await ws.send_str(json.dumps(reply))
+
         try:
             async for msg in ws:
-                if msg.type != WSMsgType.TEXT:
-                    continue
-                reply = await self._operate(msg.data)
-                await ws.send_str(json.dumps(reply))
+                if msg.type == WSMsgType.TEXT:
+                    task = asyncio.create_task(answer(msg.data))
+                    tasks.add(task)
+                    task.add_done_callback(tasks.discard)
         finally:
             self._clients.pop(ws, None)
+            for task in tasks:
+                task.cancel()
         return ws
 
     async def _operate(self, text: str) -> dict[str, Any]:
