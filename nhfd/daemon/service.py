@@ -196,7 +196,8 @@ class Daemon:
                                      Params({"path": path}))
         if c.tcp_port:
             self.tcp_token = self._token()
-        tls = (server_tls_context(self.base_dir / c.tls_cert, self.base_dir / c.tls_key)
+        tls = (server_tls_context(self.base_dir / Path(c.tls_cert).expanduser(),
+                                  self.base_dir / Path(c.tls_key).expanduser())
                if c.tcp_port and c.tls_cert else None)
         self.server = LineServer(self.handle_line, unix_path=self.socket_path,
                                  socket_group=c.socket_group, tcp_port=c.tcp_port,
