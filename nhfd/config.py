@@ -247,6 +247,48 @@ class ModelSettings(_Section):
         return self
 
 
+LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
+
+
+def _tls_problem(host: str, tls_cert: str, tls_key: str, prefix: str) -> str | None:
+    """Why a listener's host and TLS files do not go together, or None: a certificate needs its
+    key (and the reverse), and a host other than loopback needs both (a token must never cross
+    a network in clear)."""
+    if bool(tls_cert) != bool(tls_key):
+        return (f"tls_cert = {tls_cert!r}, tls_key = {tls_key!r}: give both {prefix}tls_cert and "
+                f"{prefix}tls_key, or neither")
+    if host not in LOOPBACK_HOSTS and not tls_cert:
+        return (f"host = {host!r} is not loopback ({', '.join(LOOPBACK_HOSTS)}): listening "
+                f"elsewhere needs TLS, set {prefix}tls_cert and {prefix}tls_key")
+    return None
+
+
+class WebSettings(_Section):
+    """`[daemon.web]`: the live web view `nhfd serve` serves (the `web` extra, aiohttp)."""
+
+    enabled: bool = False
+    # Address and port of the page (0 = any free port, logged at start). Loopback by default; any
+    # other address needs tls_cert and tls_key.
+    host: str = "127.0.0.1"
+    port: Annotated[int, Field(ge=0, le=65535)] = 8765
+    # PEM certificate (chain) and private key for HTTPS ("" = plain HTTP, loopback only).
+    tls_cert: str = ""
+    tls_key: str = ""
+    # File holding the token the page asks for ("" = the daemon's TCP token when daemon.tcp_port
+    # is on, else <runtime_dir>/web.token, created mode 0600 at start and removed at stop).
+    token_file: str = ""
+    # How often the page's state and thumbnails are pushed (s), and the thumbnails' longest side.
+    push_interval_s: Annotated[float, Field(ge=0.05, le=10)] = 0.5
+    thumbnail_px: Annotated[int, Field(ge=16, le=2048)] = 320
+
+    @model_validator(mode="after")
+    def _tls_elsewhere(self) -> WebSettings:
+        problem = _tls_problem(self.host, self.tls_cert, self.tls_key, "daemon.web.")
+        if problem:
+            raise ValueError(problem)
+        return self
+
+
 class DaemonSettings(_Section):
     """`nhfd serve`: control sockets, where files may be read and written, focus mapping.
 
@@ -263,6 +305,14 @@ class DaemonSettings(_Section):
     tcp_port: Annotated[int, Field(ge=0, le=65535)] = 0
     # File holding the TCP token ("" = <runtime_dir>/tcp.token, created mode 0600 at start).
     tcp_token_file: str = ""
+    # Address the TCP port listens on. Loopback by default; any other address (remote clients)
+    # needs tls_cert and tls_key, and the token is still asked for.
+    tcp_host: str = "127.0.0.1"
+    # PEM certificate (chain) and private key: the TCP port speaks TLS ("" = plain, loopback only).
+    tls_cert: str = ""
+    tls_key: str = ""
+    # The live web view (nhfd.web), off by default.
+    web: WebSettings = WebSettings()
     # Longest request line accepted (bytes); clients connected at once; requests in one batch.
     max_line_bytes: Annotated[int, Field(ge=1024, le=16_777_216)] = 65536
     max_clients: Annotated[int, Field(ge=1, le=4096)] = 64
@@ -345,6 +395,9 @@ class DaemonSettings(_Section):
                 self.camera_roi_px and min(self.camera_roi_px[2:]) < 1):
             raise ValueError(f"camera_roi_px = {self.camera_roi_px}: give [top, left, height, "
                              "width] (height and width >= 1) or []")
+        problem = _tls_problem(self.tcp_host, self.tls_cert, self.tls_key, "daemon.")
+        if problem:
+            raise ValueError(problem.replace("host =", "tcp_host =", 1))
         return self
 
 

@@ -25,6 +25,7 @@ LAYERS = {
     "nhfd.pipeline": 4,
     "nhfd.daemon": 5, "nhfd.calib": 5,
     "nhfd.cli": 6, "nhfd.benchmarks": 6, "nhfd.demos": 6,
+    "nhfd.web": 6,
 }
 LAYER_NAMES = ["L0 vocabulary", "L1 compute and devices", "L2 data", "L3 learning", "L4 runtime",
                "L5 services", "L6 entry points"]
@@ -44,6 +45,8 @@ SEAMS = {
     # The simulated camera images through nhfd.optics (torch): it loads only when configured, so
     # the daemon's device factory stays torch-free.
     "drivers/factory.py -> nhfd.drivers.simcamera": "optional backend: the simulated camera",
+    # The web view needs the `web` extra (aiohttp): `nhfd serve` loads it only when enabled.
+    "nhfd/cli/cmd_serve.py -> nhfd.web.server": "optional extra: the web view (aiohttp)",
 }
 # Violations being worked off (each entry "file -> imported module"); empty, and to stay so.
 ALLOWED: set[str] = set()

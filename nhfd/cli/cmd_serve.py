@@ -4,11 +4,16 @@ Imports the daemon, which is torch-free at module level: a daemon with nothing c
 loads torch, numba or onnxruntime (the frame pipeline runs in its own process).
 Exit codes: 0 clean shutdown with lasers read back off, 1 lasers not confirmed off or a failed
 start, 2 configuration error, 3 another daemon holds the lock.
+
+With `[daemon.web] enabled = true` it also serves the live web view (nhfd.web.server, the `web`
+extra: aiohttp) on a thread, a client of the daemon's own Unix socket; it stops with the daemon.
 """
 
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import logging
 import sys
 
 from nhfd.config import check_files, load_config
@@ -45,6 +50,11 @@ def _serve(args: argparse.Namespace) -> int:
         update["record"] = args.record
     if update:
         config = config.model_copy(update={"daemon": config.daemon.model_copy(update=update)})
+    web = config.daemon.web
+    if web.enabled and importlib.util.find_spec("aiohttp") is None:
+        print("nhfd serve: error: daemon.web.enabled = true needs the web extra: "
+              "pip install 'nhfd[web]'", file=sys.stderr)
+        return 2
     service.setup_logging(config.daemon.log_format)
     daemon = service.Daemon(config)
     try:
@@ -56,4 +66,28 @@ def _serve(args: argparse.Namespace) -> int:
         print(f"nhfd serve: error: start failed, lasers left to the guardian: "
               f"{type(exc).__name__}: {exc}", file=sys.stderr)
         return 1
-    return daemon.run()
+    view = None
+    if web.enabled:
+        try:
+            view = _start_web(daemon)
+        except Exception as exc:
+            print(f"nhfd serve: error: the web view did not start: {type(exc).__name__}: {exc}",
+                  file=sys.stderr)
+            daemon.request_shutdown("the web view did not start")
+            daemon.run()  # the loop sees the request at once: lasers off, read back, closed
+            return 1
+    try:
+        return daemon.run()
+    finally:
+        if view is not None:
+            view.stop()
+
+
+def _start_web(daemon: service.Daemon):  # -> nhfd.web.server.WebView
+    # The optional path: aiohttp loads only when [daemon.web] is enabled (a listed seam).
+    from nhfd.web.server import serve_daemon
+
+    view = serve_daemon(daemon)
+    logging.getLogger("nhfd.web").info("web view at %s (token in %s)", view.url,
+                                       view.token_source)
+    return view

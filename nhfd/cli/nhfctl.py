@@ -40,8 +40,14 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--socket", help="control socket (default: from the configuration)")
     p.add_argument("--config", help="configuration file whose daemon.runtime_dir to use")
-    p.add_argument("--tcp", metavar="HOST:PORT", help="loopback TCP instead of the socket")
+    p.add_argument("--tcp", metavar="HOST:PORT", help="TCP instead of the socket (a host other "
+                   "than loopback only with --tls or --tls-ca)")
     p.add_argument("--token-file", help="TCP token file")
+    p.add_argument("--tls", action="store_true",
+                   help="TLS on --tcp, the daemon's certificate checked against the system's CAs")
+    p.add_argument("--tls-ca", metavar="PEM",
+                   help="TLS on --tcp, the daemon's certificate checked against this file (its "
+                   "own self-signed certificate, or the CA that signed it)")
     p.add_argument("--timeout-s", type=float, default=5.0, help="per-call timeout (default 5)")
     p.add_argument("--json", action="store_true", help="print the raw JSON result")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
@@ -152,7 +158,8 @@ def _connect(args: argparse.Namespace) -> Client:
     if args.tcp:
         host, _, port = args.tcp.rpartition(":")
         token = Path(args.token_file).read_text().strip() if args.token_file else None
-        return Client(tcp=(host, int(port)), token=token, timeout_s=args.timeout_s)
+        return Client(tcp=(host.strip("[]"), int(port)), token=token, tls=args.tls,
+                      tls_ca=args.tls_ca, timeout_s=args.timeout_s)
     return Client(_socket(args), timeout_s=args.timeout_s)
 
 

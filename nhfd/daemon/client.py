@@ -1,4 +1,4 @@
-"""The reference client of `nhfd serve`: JSON-RPC 2.0 lines over the Unix socket or loopback TCP.
+"""The reference client of `nhfd serve`: JSON-RPC 2.0 lines over the Unix socket or TCP (TLS).
 
 Standard library only (no torch, numba, onnxruntime, not even numpy), so `nhfctl` answers in a
 fraction of a second. Every call is bounded by `timeout_s`.
@@ -6,6 +6,11 @@ fraction of a second. Every call is bounded by `timeout_s`.
     with Client() as c:                       # the socket from the configuration's rules
         c.call("set_view", orbit={"azimuth_deg": 30, "elevation_deg": 10, "radius": 4})
         print(c.status()["laser"]["armed"])
+
+    # another machine: TLS, the daemon's certificate (or its CA) pinned, and the token
+    with Client(tcp=("bench.lab", 7700), tls_ca="bench.pem", token=token) as c: ...
+
+A token is sent to a host other than loopback only over TLS (ValueError otherwise).
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ from __future__ import annotations
 import itertools
 import os
 import socket
+import ssl
 from pathlib import Path
 from typing import Any
 
@@ -20,32 +26,69 @@ from . import protocol
 from .paths import control_socket
 from .protocol import RpcError
 
+LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
+
 
 class DaemonUnavailable(ConnectionError):
     """Nothing answers on the socket (or it hung up / timed out)."""
 
 
+class TLSFailure(DaemonUnavailable):
+    """The TLS handshake failed: most often the daemon's certificate is not the one trusted."""
+
+
+def client_tls_context(ca_path: str | os.PathLike[str] | None = None) -> ssl.SSLContext:
+    """Verifies the daemon's certificate and host name: against `ca_path` (the daemon's own
+    self-signed certificate, or the CA that signed it: pinning) or the system's CAs."""
+    ctx = ssl.create_default_context(cafile=str(ca_path) if ca_path else None)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    return ctx
+
+
 class Client:
     def __init__(self, socket_path: str | os.PathLike[str] | None = None, *,
                  tcp: tuple[str, int] | None = None, token: str | None = None,
+                 tls: bool | ssl.SSLContext = False,
+                 tls_ca: str | os.PathLike[str] | None = None,
                  timeout_s: float = 5.0) -> None:
         self._ids = itertools.count(1)
         self._buffer = bytearray()
+        use_tls = bool(tls) or tls_ca is not None
         if tcp is not None:
-            self.where = f"{tcp[0]}:{tcp[1]}"
-            family, address = socket.AF_INET, tcp
+            host, port = tcp
+            self.where = f"{host}:{port}"
+            if token is not None and not use_tls and host not in LOOPBACK_HOSTS:
+                raise ValueError(f"{self.where} is not loopback: the token goes there only over "
+                                 "TLS (tls_ca / nhfctl --tls-ca) or through an SSH tunnel")
+            try:
+                self._sock = socket.create_connection((host, port), timeout=timeout_s)
+            except OSError as exc:
+                raise DaemonUnavailable(f"no nhfd serve at {self.where} "
+                                        f"({exc.strerror or exc})") from None
+            if use_tls:
+                ctx = tls if isinstance(tls, ssl.SSLContext) else client_tls_context(tls_ca)
+                try:
+                    self._sock = ctx.wrap_socket(self._sock, server_hostname=host)
+                except ssl.SSLCertVerificationError as exc:
+                    self._sock.close()
+                    raise TLSFailure(f"TLS with nhfd serve at {self.where} failed: certificate "
+                                     f"verify failed: {exc.verify_message} (the certificate "
+                                     "trusted is tls_ca / nhfctl --tls-ca)") from None
+                except (OSError, ssl.SSLError) as exc:
+                    self._sock.close()
+                    raise TLSFailure(f"TLS with nhfd serve at {self.where} failed: "
+                                     f"{exc}") from None
         else:
             path = Path(socket_path) if socket_path else control_socket()
             self.where = str(path)
-            family, address = socket.AF_UNIX, str(path)  # type: ignore[assignment]
-        self._sock = socket.socket(family, socket.SOCK_STREAM)
-        self._sock.settimeout(timeout_s)
-        try:
-            self._sock.connect(address)
-        except OSError as exc:
-            self._sock.close()
-            raise DaemonUnavailable(f"no nhfd serve at {self.where} "
-                                    f"({exc.strerror or exc})") from None
+            self._sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+            self._sock.settimeout(timeout_s)
+            try:
+                self._sock.connect(str(path))
+            except OSError as exc:
+                self._sock.close()
+                raise DaemonUnavailable(f"no nhfd serve at {self.where} "
+                                        f"({exc.strerror or exc})") from None
         if token is not None:
             self.call("auth", token=token)
 

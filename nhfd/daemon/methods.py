@@ -25,6 +25,11 @@ so a bad request changes nothing.
   load_scene   {path}                                 -> {job}
   load_model   {path}                                 -> {job} (old model kept on failure)
   job          {id}                                   -> one job's state
+  preview      {source: slm|camera, max_px?}          -> read-only: the SLM's last frame or the
+                                                         last capture, every k-th pixel so the
+                                                         longest side is at most max_px, as
+                                                         uint8 pixels (base64, [H, W, C]), for
+                                                         the web view's thumbnails
   auth         {token}                                -> TCP connections only
   shutdown     {}                                     -> lasers off, devices closed, exit
 
@@ -34,9 +39,12 @@ behind a job.
 
 from __future__ import annotations
 
+import base64
 import hmac
+import math
 import queue
 import time
+import weakref
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -70,7 +78,7 @@ from .protocol import (
     RpcError,
     bad_param,
 )
-from .server import Connection
+from .server import Connection, forwarded_by_ssh
 from .views import ViewSlot, parse_view
 
 
@@ -114,6 +122,11 @@ SCENE_SUFFIXES = (".ply", ".splat")
 REFOCUS_MM = (-10.0, 10.0)
 MODEL_SUFFIXES = (".onnx",)
 PATTERN_SUFFIXES = (".npy",)
+
+
+# The last capture of each bench (snapshot or capture, time_s and linear image), for `preview`.
+_LAST_CAPTURE: weakref.WeakKeyDictionary[Any, tuple[float, np.ndarray]] = (
+    weakref.WeakKeyDictionary())
 
 
 @dataclass(frozen=True)
@@ -192,6 +205,10 @@ def _laser(d: Host, conn: Connection, p: Params) -> Any:
             # A person arms from the bench's machine, identified by uid; never over the network.
             raise RpcError(FORBIDDEN, "arming is accepted only over the Unix socket",
                            {"field": "action", "allowed": "arm over the Unix socket only"})
+        if forwarded_by_ssh(conn.peer):  # the socket reached from elsewhere through SSH
+            raise RpcError(FORBIDDEN, "arming is refused through an SSH tunnel: a person arms "
+                           "on the bench's machine", {"field": "action", "allowed":
+                                                      "arm over the Unix socket only"})
         reply = link.arm(duration_s)
         return {"armed": True, "armed_remaining_s": reply.get("armed_remaining_s"),
                 "by_uid": conn.peer.get("uid")}
@@ -258,6 +275,7 @@ def _snapshot(d: Host, conn: Connection, p: Params) -> Any:
         if d.config.daemon.colour_mode == "capture":
             return capture_colours(d, job, path, frames)
         cap = d.bench.capture(frames)  # a failure is the camera's error in status until it works
+        _LAST_CAPTURE[d.bench] = (time.time(), cap.image)
         job.check()
         write_png16(path, cap.image)
         return {"path": str(path), "frames": cap.frames, "exposure_s": cap.exposure_s,
@@ -377,6 +395,7 @@ def _capture(d: Host, conn: Connection, p: Params) -> Any:
             n, exposure = frames or camera.settings.burst_frames, camera.exposure_s
         else:
             cap = d.bench.capture(frames)
+            _LAST_CAPTURE[d.bench] = (time.time(), cap.image)
             image, saturated, n, exposure = cap.image, cap.saturated, cap.frames, cap.exposure_s
         job.check()
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -459,6 +478,35 @@ def _job(d: Host, conn: Connection, p: Params) -> Any:
     return job.to_json()
 
 
+def _preview(d: Host, conn: Connection, p: Params) -> Any:
+    source = p.choice("source", ("slm", "camera"))
+    max_px = p.integer("max_px", 16, 4096, 320)
+    p.done()
+    if source == "slm":
+        slm = d.bench.slm
+        frame = slm.last_frame if slm is not None else None  # [3, H, W] uint8, what it shows
+        if frame is None:
+            return {"source": source, "available": False, "showing": d.panel.showing}
+        pixels, extra = frame.transpose(1, 2, 0), {"showing": d.panel.showing}
+    else:
+        last = _LAST_CAPTURE.get(d.bench)
+        if last is None:
+            return {"source": source, "available": False}
+        time_s, image = last
+        grey = image.mean(axis=0) if image.ndim == 3 else image
+        peak = float(np.max(grey)) if grey.size else 0.0
+        # Shown linear, scaled to its own peak (a display, not a measurement).
+        scaled = np.clip(np.nan_to_num(grey / peak if peak > 0 else grey * 0.0), 0.0, 1.0)
+        pixels = np.round(scaled * 255).astype(np.uint8)[..., None]
+        extra = {"time_s": time_s, "peak_linear": peak}
+    h, w = pixels.shape[:2]
+    step = max(1, math.ceil(max(h, w) / max_px))  # every step-th pixel: phase is not averaged
+    thumb = np.ascontiguousarray(pixels[::step, ::step])
+    return {"source": source, "available": True, "size_hw": [h, w], "step": step,
+            "shape_hwc": list(thumb.shape), "pixels_b64": base64.b64encode(thumb).decode(),
+            **extra}
+
+
 def _auth(d: Host, conn: Connection, p: Params) -> Any:
     token = p.string("token", max_len=1024)
     p.done()
@@ -490,6 +538,7 @@ METHODS: dict[str, Method] = {
     "load_scene": Method(_load_scene, audited=True),
     "load_model": Method(_load_model, audited=True),
     "job": Method(_job, audited=False, while_stopping=True),
+    "preview": Method(_preview, audited=False),
     "auth": Method(_auth, audited=False, while_stopping=True),
     "shutdown": Method(_shutdown, audited=True, while_stopping=True),
 }

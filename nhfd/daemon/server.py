@@ -1,4 +1,4 @@
-"""The line server: a Unix socket (mode 0660, a lab group) and optional loopback TCP.
+"""The line server: a Unix socket (mode 0660, a lab group) and optional TCP, TLS where asked.
 
 Single-threaded and non-blocking, driven by the control loop's `poll()`, so request handling and
 the laser heartbeat share one thread: if handling hangs, the heartbeat stops and the guardian
@@ -6,6 +6,10 @@ switches the lasers off. Each connection gets at most `lines_per_poll` requests 
 flooding client cannot starve the others or the heartbeat. A line over the size cap is answered
 with an error and skipped up to its newline; a client that stops reading its replies is dropped
 once `max_pending_bytes` are waiting.
+
+The TCP port listens on loopback unless `daemon.tcp_host` says otherwise, and then only with TLS
+(`daemon.tls_cert`, `daemon.tls_key`): a token never crosses a network in clear. The TLS handshake
+runs non-blocking in the same loop, so a slow or silent peer holds a client slot, never the loop.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import os
 import pwd
 import selectors
 import socket
+import ssl
 import stat
 import struct
 from collections.abc import Callable
@@ -30,6 +35,22 @@ from .protocol import INVALID_REQUEST, RpcError
 log = logging.getLogger("nhfd.daemon.server")
 
 LOOPBACK = "127.0.0.1"
+LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
+
+
+def server_tls_context(cert_path: str | os.PathLike[str],
+                       key_path: str | os.PathLike[str]) -> ssl.SSLContext:
+    """A server context (TLS 1.2 at least) from PEM files; ValueError naming the file that
+    cannot be loaded."""
+    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        ctx.load_cert_chain(cert_path, key_path)
+    except (OSError, ssl.SSLError) as exc:
+        raise ValueError(f"daemon.tls_cert = {str(cert_path)!r}, daemon.tls_key = "
+                         f"{str(key_path)!r}: cannot load them as a PEM certificate and its "
+                         f"key ({exc})") from None
+    return ctx
 
 
 @dataclass
@@ -42,6 +63,7 @@ class Connection:
     discarding: bool = False  # inside an oversized line: skip to its newline
     authed: bool = False
     closing: bool = False
+    handshaking: bool = False  # TLS: the handshake is not finished yet
 
     @property
     def who(self) -> dict[str, Any]:
@@ -52,24 +74,41 @@ Handler = Callable[[Connection, bytes], bytes | None]
 
 
 def peer_credentials(sock: socket.socket) -> dict[str, Any]:
-    """uid, gid and pid of a Unix-socket peer from the kernel (SO_PEERCRED): not forgeable."""
+    """uid, gid and pid of a Unix-socket peer from the kernel (SO_PEERCRED): not forgeable; and
+    the peer's process name, which says when the socket is forwarded through SSH (`sshd`)."""
     pid, uid, gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
                                                         struct.calcsize("3i")))
     try:
         user = pwd.getpwuid(uid).pw_name
     except KeyError:
         user = None
-    return {"uid": uid, "gid": gid, "pid": pid, "user": user}
+    try:
+        process: str | None = Path(f"/proc/{pid}/comm").read_text().strip()
+    except OSError:
+        process = None
+    return {"uid": uid, "gid": gid, "pid": pid, "user": user, "process": process}
+
+
+def forwarded_by_ssh(peer: dict[str, Any]) -> bool:
+    """The Unix-socket peer is sshd (`ssh -L local.sock:control.sock`, OpenSSH's session process
+    `sshd` or, from 9.8, `sshd-session`): a person on another machine, not at the bench."""
+    return str(peer.get("process") or "").startswith("sshd")
 
 
 class LineServer:
     def __init__(self, handler: Handler, *, unix_path: Path, socket_group: str = "",
-                 tcp_port: int = 0, max_line_bytes: int = 65536, max_clients: int = 64,
+                 tcp_port: int = 0, tcp_host: str = LOOPBACK, tls: ssl.SSLContext | None = None,
+                 max_line_bytes: int = 65536, max_clients: int = 64,
                  lines_per_poll: int = 64, max_pending_bytes: int = 4 << 20) -> None:
+        if tcp_port and tcp_host not in LOOPBACK_HOSTS and tls is None:
+            raise ValueError(f"daemon.tcp_host = {tcp_host!r} is not loopback: listening "
+                             "elsewhere needs TLS, set daemon.tls_cert and daemon.tls_key")
         self.handler = handler
         self.unix_path = unix_path
         self.socket_group = socket_group
         self.tcp_port = tcp_port
+        self.tcp_host = tcp_host
+        self.tls = tls
         self.max_line_bytes = max_line_bytes
         self.max_clients = max_clients
         self.lines_per_poll = lines_per_poll
@@ -103,10 +142,12 @@ class LineServer:
                 raise RuntimeError(f"daemon.socket_group = {self.socket_group!r}: {exc}") from None
         self._add_listener(unix, "unix")
         if self.tcp_port:
-            tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            family, _, _, _, address = socket.getaddrinfo(
+                self.tcp_host, self.tcp_port, type=socket.SOCK_STREAM)[0]
+            tcp = socket.socket(family, socket.SOCK_STREAM)
             tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            tcp.bind((LOOPBACK, self.tcp_port))  # loopback only, never a routable address
-            self.tcp_address = tcp.getsockname()
+            tcp.bind(address)  # loopback, or (checked in __init__) TLS
+            self.tcp_address = tcp.getsockname()[:2]
             self._add_listener(tcp, "tcp")
 
     def _add_listener(self, sock: socket.socket, transport: str) -> None:
@@ -178,25 +219,79 @@ class LineServer:
         sock.setblocking(False)
         peer = (peer_credentials(sock) if transport == "unix"
                 else {"address": f"{address[0]}:{address[1]}"})
-        conn = Connection(sock, transport, peer)
+        handshaking = False
+        if transport == "tcp" and self.tls is not None:
+            try:
+                sock = self.tls.wrap_socket(sock, server_side=True,
+                                            do_handshake_on_connect=False)
+            except (OSError, ssl.SSLError):
+                sock.close()
+                return
+            peer["tls"] = True
+            handshaking = True
+        conn = Connection(sock, transport, peer, handshaking=handshaking)
         self.connections[sock.fileno()] = conn
         self.selector.register(sock, selectors.EVENT_READ, ("conn", conn))
+        if handshaking:
+            self._handshake(conn)
+
+    def _handshake(self, conn: Connection) -> bool:
+        """Advance a TLS handshake; True once it is done. A failed one (a plain-text client, an
+        untrusted certificate on the client's side) drops the connection."""
+        want = selectors.EVENT_READ
+        try:
+            conn.sock.do_handshake()  # type: ignore[attr-defined]
+        except ssl.SSLWantReadError:
+            return False
+        except ssl.SSLWantWriteError:
+            want |= selectors.EVENT_WRITE
+            with contextlib.suppress(KeyError, ValueError):
+                self.selector.modify(conn.sock, want, ("conn", conn))
+            return False
+        except (OSError, ssl.SSLError) as exc:
+            log.info("TLS handshake with %s failed: %s", conn.peer.get("address"), exc)
+            self._drop(conn)
+            return False
+        conn.handshaking = False
+        with contextlib.suppress(KeyError, ValueError):
+            self.selector.modify(conn.sock, want, ("conn", conn))
+        return True
 
     def _service(self, conn: Connection, events: int) -> None:
+        if conn.handshaking and not self._handshake(conn):
+            return
         if events & selectors.EVENT_WRITE:
             self._flush(conn)
         if events & selectors.EVENT_READ:
-            try:
-                data = conn.sock.recv(65536)
-            except (BlockingIOError, InterruptedError):
+            data = self._receive(conn)
+            if data is None:
                 return
-            except OSError:
-                data = b""
             if not data:
                 self._drop(conn)
                 return
             conn.inbuf += data
             self._handle_lines(conn)
+
+    def _receive(self, conn: Connection) -> bytes | None:
+        """What the peer sent (b"" when it hung up), None when nothing is there yet. TLS hands
+        out one record per recv and may hold more already decrypted, which select cannot see:
+        that is read too."""
+        data = bytearray()
+        try:
+            while True:
+                chunk = conn.sock.recv(65536)
+                if not chunk:
+                    break
+                data += chunk
+                pending = getattr(conn.sock, "pending", None)
+                if pending is None or not pending():
+                    break
+        except (BlockingIOError, InterruptedError, ssl.SSLWantReadError,
+                ssl.SSLWantWriteError):
+            return bytes(data) if data else None
+        except OSError:
+            pass
+        return bytes(data)
 
     def _handle_lines(self, conn: Connection) -> None:
         for _ in range(self.lines_per_poll):
@@ -251,7 +346,7 @@ class LineServer:
             while conn.outbuf:
                 sent = conn.sock.send(conn.outbuf)
                 del conn.outbuf[:sent]
-        except (BlockingIOError, InterruptedError):
+        except (BlockingIOError, InterruptedError, ssl.SSLWantReadError, ssl.SSLWantWriteError):
             pass
         except OSError:
             self._drop(conn)

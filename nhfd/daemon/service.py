@@ -64,7 +64,7 @@ from .protocol import (
     RpcError,
 )
 from .recording import SessionRecorder, view_params
-from .server import Connection, LineServer
+from .server import Connection, LineServer, server_tls_context
 from .views import ViewSlot
 
 log = logging.getLogger("nhfd.daemon")
@@ -196,8 +196,12 @@ class Daemon:
                                      Params({"path": path}))
         if c.tcp_port:
             self.tcp_token = self._token()
+        tls = (server_tls_context(self.base_dir / Path(c.tls_cert).expanduser(),
+                                  self.base_dir / Path(c.tls_key).expanduser())
+               if c.tcp_port and c.tls_cert else None)
         self.server = LineServer(self.handle_line, unix_path=self.socket_path,
                                  socket_group=c.socket_group, tcp_port=c.tcp_port,
+                                 tcp_host=c.tcp_host, tls=tls,
                                  max_line_bytes=c.max_line_bytes, max_clients=c.max_clients)
         self.server.listen()
         if self.handle_signals:
