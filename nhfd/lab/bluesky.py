@@ -43,7 +43,7 @@ import numpy as np
 from ophyd import Component as Cpt
 from ophyd import Device, Kind, Signal
 from ophyd.positioner import PositionerBase
-from ophyd.signal import InternalSignal, SignalRO
+from ophyd.signal import UNSET_VALUE, InternalSignal, SignalRO
 from ophyd.status import Status
 from PIL import Image
 
@@ -166,6 +166,8 @@ class ImageSignal(InternalSignal):
     the numpy dtype and the shape of the image read."""
 
     def describe(self) -> dict[str, Any]:
+        if self._readback is UNSET_VALUE:  # the shape is the camera region's, known once read
+            raise RuntimeError(f"{self.name}: no image yet: trigger the camera before describe()")
         desc = super().describe()
         desc[self.name]["dtype_numpy"] = np.dtype(np.float32).str
         return desc

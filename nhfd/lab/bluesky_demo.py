@@ -23,6 +23,7 @@ import contextlib
 import shutil
 import tempfile
 import threading
+import time
 import tomllib
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -215,12 +216,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--num", type=int, default=11)
     args = ap.parse_args(argv)
     with simulated_bench() as sim:
+        t0 = time.perf_counter()
         docs = run_scan(sim.bench, args.start_mm, args.stop_mm, args.num)
+        scan_s = time.perf_counter() - t0
     table = scan_table(docs)
     plot(table, args.out)
     best = int(np.argmax(table["sharpness"]))
     print(f"{len(table['focus_mm'])} events; sharpest at focus {table['focus_mm'][best]:+.3f} mm "
-          f"(dots at {FOCUS_MM:+.3f} mm); plot {args.out}")
+          f"(dots at {FOCUS_MM:+.3f} mm); scan {scan_s:.1f} s; plot {args.out}")
     return 0
 
 
