@@ -36,11 +36,13 @@ from nhfd.lab.bluesky_demo import (
 )
 
 START_MM, STOP_MM, POINTS = -0.5, 1.5, 5  # FOCUS_MM (0.5) is the middle point
+JOB_TIMEOUT_S = 30.0
 
 
 @pytest.fixture(scope="module")
 def sim() -> Iterator[SimBench]:
     with simulated_bench() as s:
+        s.bench.link.job_timeout_s = JOB_TIMEOUT_S  # a stuck job fails the test, not hangs it
         yield s
 
 
@@ -157,6 +159,7 @@ def test_a_refused_focus_fails_the_status_with_the_daemons_message(sim: SimBench
 
 def test_a_failed_focus_job_fails_the_status_with_the_jobs_error() -> None:
     with simulated_bench(arm=False) as s:
+        s.bench.link.job_timeout_s = JOB_TIMEOUT_S
         twin = s.daemon.bench.stage.twin
         twin.vanish()
         deadline = time.monotonic() + 5
