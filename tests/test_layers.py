@@ -26,6 +26,7 @@ LAYERS = {
     "nhfd.daemon": 5, "nhfd.calib": 5,
     "nhfd.cli": 6, "nhfd.benchmarks": 6, "nhfd.demos": 6,
     "nhfd.web": 6,
+    "nhfd.lab": 6,
 }
 LAYER_NAMES = ["L0 vocabulary", "L1 compute and devices", "L2 data", "L3 learning", "L4 runtime",
                "L5 services", "L6 entry points"]
