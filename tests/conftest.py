@@ -22,7 +22,7 @@ def _seeded() -> None:
 
 
 # Tests of devices and the daemon wait on sockets, ptys and processes: none may hang.
-DEADLINE_DIRS = ("drivers", "daemon")
+DEADLINE_DIRS = ("drivers", "daemon", "web", "lab")
 TEST_DEADLINE_S = 30
 
 
