@@ -244,6 +244,10 @@ class DevicesBenchIO:
         self._shown: bytes | None = None
         self._powers: tuple[float, ...] | None = None
         self._arm_s = arm_s
+        if devices.slm.last_frame is None:
+            # A triggered camera exposes on a flip: the panel shows something from the start
+            # (as the daemon's blank at start-up).
+            devices.slm.blank()
         stage = devices.stage
         if stage.settings.require_homed and not stage.state().homed:
             stage.home()
@@ -257,7 +261,8 @@ class DevicesBenchIO:
         key = hashlib.blake2b(frame.tobytes(), digest_size=16).digest() + \
             str(frame.shape).encode()
         if key != self._shown:  # as DaemonBenchIO: a frame already up is not sent again
-            self.devices.slm.show(frame)
+            # The patterns are [H, W, 3]; the SLM takes [H, W] or [3, H, W] (a view, no copy).
+            self.devices.slm.show(frame.transpose(2, 0, 1) if frame.ndim == 3 else frame)
             self._shown = key
 
     def move_stage(self, position_mm: float) -> float:

@@ -203,6 +203,6 @@ def test_the_panels_phase_response_is_recovered_through_the_daemon(daemon):
     dphi = unfold(folded)
     truth = 2 * math.pi * (TRUE_WAVES[levels] - TRUE_WAVES[0])
     err = np.abs(dphi - truth)
-    # 12-bit quantisation of weak orders limits the small steps; the rest is tight.
-    assert err.max() < 0.1, (dphi.round(3), truth.round(3))
+    # 12-bit quantisation of the orders' counts: 0.026 rad at most, 0.018 rad median here.
+    assert err.max() < 0.05, (dphi.round(3), truth.round(3))
     assert float(np.median(err)) < 0.03
