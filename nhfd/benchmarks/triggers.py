@@ -26,6 +26,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from nhfd.benchmarks.machine import describe
 from nhfd.calib.capture import CapturePlan, DevicesBenchIO, capture
 from nhfd.calib.patterns import PatternSpec
@@ -86,7 +88,7 @@ def one(source: str, args: argparse.Namespace, workdir: Path) -> dict[str, Any]:
             "delay_ms": args.delay_ms if line is not None else None,
             "images": images, "frames_shown": b.slm.count, "wall_s": wall_s,
             "waited_s": io.waited_s, "per_image_ms": 1e3 * wall_s / images,
-            "located": manifest["located"],
+            "located": manifest["located"], "records": manifest["records"],
         }
 
 
@@ -105,15 +107,22 @@ def run(args: argparse.Namespace) -> int:
             print(f"  {source:<9} {how:<40} {row['images']:4d} images "
                   f"({row['frames_shown']} frames)  {row['wall_s']:7.2f} s  waiting "
                   f"{row['waited_s']:6.2f} s  {row['per_image_ms']:6.1f} ms/image", flush=True)
-    plain, trig = rows
+        plain, trig = rows
+        # The same frames, positions and noise: a capture that saw a frame before it settled
+        # (or an old one) would differ.
+        diff = max(float(np.abs(np.load(Path(tmp) / "none" / r["file"])["image"]
+                                - np.load(Path(tmp) / "slm_flip" / r["file"])["image"]).max())
+                   for r in plain["records"])
     same = all(abs(plain["located"][k] - trig["located"][k]) <= 1e-6 * max(1.0, abs(
         plain["located"][k])) for k in ("magnification", "rotation_deg", "stage_at_slm_mm"))
     print(f"  triggered / settle: {trig['wall_s'] / plain['wall_s']:.2f}x wall time, "
           f"{trig['waited_s']:.2f} s vs {plain['waited_s']:.2f} s waiting; "
-          f"same located geometry: {same}")
+          f"same located geometry: {same}; largest image difference {diff:.3g}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"rows": rows, "same_geometry": same, "machine": describe()},
-                              indent=2))
+    for row in rows:
+        del row["records"]
+    out.write_text(json.dumps({"rows": rows, "same_geometry": same,
+                               "max_image_difference": diff, "machine": describe()}, indent=2))
     print(f"wrote {out}")
     return 0
