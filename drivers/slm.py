@@ -206,12 +206,12 @@ class SimulatedSLM(SLM):
 
     def panel_frame(self) -> np.ndarray:
         """What the panel shows now, uint8 [H, W, 3]: the last frame whose flip has come
-        (grey 0 before the first)."""
+        (grey 0, [H, W], before the first)."""
         now = self._clock()
         for _, flip_s, rgb in reversed(self._flips):
             if flip_s <= now:
                 return rgb
-        return np.zeros((*self.shape, 3), np.uint8)
+        return np.zeros(self.shape, np.uint8)
 
     def _write(self, rgb: np.ndarray) -> None:
         # `show` hands each backend a frame of its own: kept as is, seen as [3, H, W].
