@@ -143,7 +143,17 @@ def make_camera(
     roi: tuple[int, int, int, int] | None = None,
 ) -> Camera | None:
     """The configured camera. The simulated one needs the simulated SLM, laser and stage it
-    watches (their twins are the bench's truth); `bench` is a `TrueBench` (default: its own)."""
+    watches (their twins are the bench's truth); `bench` is a `TrueBench` (default: its own).
+    When `slm`'s flip output is wired (`slm.trigger`), the camera's trigger input is on it."""
+    camera = _make_camera(devices, slm=slm, laser=laser, stage=stage, bench=bench, roi=roi)
+    line = getattr(slm, "trigger", None)
+    if camera is not None and line is not None:
+        camera.trigger = line
+    return camera
+
+
+def _make_camera(devices: Any, *, slm: SLM | None, laser: Laser | None, stage: Stage | None,
+                 bench: Any, roi: tuple[int, int, int, int] | None) -> Camera | None:
     backend, settings = devices.camera, devices.camera_settings
     if backend == "none":
         return None
@@ -236,8 +246,9 @@ def make_bench(
     `pitch_um` is [slm]'s, checked against an slmsuite SLM's own.
 
     `[devices.trigger]` wires the SLM's flip output to the camera's trigger input
-    (drivers/trigger.py): both get the same `TriggerLine`. It is modelled on the simulated SLM,
-    the only one whose flip this process sees.
+    (drivers/trigger.py): the SLM holds the `TriggerLine`, and a camera made to watch it
+    (`make_camera`, here or when the daemon rebuilds it) takes it. It is modelled on the
+    simulated SLM, the only one whose flip this process sees.
     """
     trigger = getattr(devices, "trigger", None)
     if trigger is not None and trigger.source != "none" and devices.slm != "simulated":
@@ -264,7 +275,15 @@ def make_bench(
             setattr(out, name, None)
             on_error(name, exc)
 
-    build("slm", lambda: make_slm(devices, width_px, height_px, clock=clock, pitch_um=pitch_um))
+    line = TriggerLine.from_settings(trigger, clock=clock) if trigger is not None else None
+
+    def slm_with_trigger() -> SLM | None:
+        slm = make_slm(devices, width_px, height_px, clock=clock, pitch_um=pitch_um)
+        if slm is not None and line is not None:
+            slm.attach_trigger(line)  # before it opens: the first frame's flip is on the line
+        return slm
+
+    build("slm", slm_with_trigger)
     if laser:
         build("laser", lambda: make_laser(devices, clock=clock))
         laser_twin = laser_twin or getattr(out.laser, "twin", None)
@@ -272,8 +291,4 @@ def make_bench(
     build("camera", lambda: make_camera(devices, slm=out.slm,
                                         laser=SimpleNamespace(twin=laser_twin),
                                         stage=out.stage, bench=bench, roi=roi))
-    line = TriggerLine.from_settings(trigger, clock=clock) if trigger is not None else None
-    if line is not None and out.slm is not None and out.camera is not None:
-        out.slm.attach_trigger(line)
-        out.camera.trigger = line
     return out

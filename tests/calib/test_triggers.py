@@ -123,3 +123,52 @@ def test_the_trigger_is_refused_where_this_process_cannot_see_the_flip():
         make_bench(d, PANEL, PANEL)
     with pytest.raises(ValueError, match=r"source"):
         TriggerSettings(source="camera_line")  # type: ignore[arg-type]
+
+
+def test_through_the_daemon_a_capture_right_after_show_pattern_sees_the_new_frame(tmp_path):
+    """The daemon's capture job sleeps the SLM's settle time (none with the wire) and the camera
+    exposes on the flip: calibration's DaemonBenchIO gets the pattern it just showed."""
+    import contextlib
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    from daemon.conftest import Running, bench_config
+
+    from nhfd.calib.capture import DaemonBenchIO
+
+    root = Path(tempfile.mkdtemp(prefix="nhfd-t-", dir="/tmp"))  # short: a Unix socket
+    true = TrueBench()
+    config = bench_config(root, None, colour_mode="hw-sync",
+                          camera_roi_px=list(true.roi_for_panel((PANEL, PANEL))),
+                          pattern_dirs=[str(root / "calib")])
+    d = config.devices
+    devices = d.model_copy(update={
+        "camera": "simulated",
+        "slm_output": d.slm_output.model_copy(update={"settle_ms": 0.0,
+                                                      "flip_latency_ms": FLIP_LATENCY_MS}),
+        "trigger": TriggerSettings(source="slm_flip", delay_ms=DELAY_MS, timeout_ms=500.0)})
+    slm = config.slm.model_copy(update={"width_px": PANEL, "height_px": PANEL})
+    r = Running(config.model_copy(update={"devices": devices, "slm": slm}), root)
+    try:
+        io = DaemonBenchIO(r.client(timeout_s=30.0), root / "calib" / "io", arm_s=60.0)
+        io.set_lasers((0.0, 1.0, 0.0))
+        shown = frames(2)
+        refs = []
+        for f in shown:
+            io.show(f)
+            time.sleep(FLIP_LATENCY_MS / 1000 + 0.05)
+            refs.append(io.capture(1)[0])
+        line = r.daemon.bench.camera.trigger
+        assert line is not None and r.daemon.bench.slm.settle_s == 0.0
+        for k in (1, 0, 2):
+            before = len(line.record)
+            io.show(shown[k])
+            assert nearest(io.capture(1)[0], refs) == k
+            (rec,) = line.record[before:]
+            assert rec.exposure_start_s >= rec.flip_s + DELAY_MS / 1000 > rec.written_s
+        io.lasers_off()
+    finally:
+        with contextlib.suppress(Exception):
+            r.stop()
+        shutil.rmtree(root, ignore_errors=True)
