@@ -35,30 +35,38 @@ import numpy as np
 
 from nhfd.device_settings import COLOURS, CameraSettings, SLMOutputSettings, SlmsuiteSettings
 
-from .camera import Camera, CameraUnavailable, ResponseCurve
+from .camera import Camera, ResponseCurve
 from .errors import DeviceError
 from .slm import GREY_LEVELS, SLM, SLMHealth
 
 log = logging.getLogger(__name__)
+
+class SlmsuiteUnavailable(DeviceError):
+    """slmsuite, or the configured class, cannot be loaded; the message says what to install."""
+
 
 # Relative tolerance of the pitch cross-check (a vendor's pitch is given to a few digits).
 PITCH_REL_TOL = 1e-3
 
 
 def load_class(spec: str, kind: str) -> type:
-    """"module:Class" -> the class; CameraUnavailable/DeviceError saying what is missing."""
+    """"module:Class" -> the class; SlmsuiteUnavailable saying what is missing."""
     module_name, _, name = spec.partition(":")
     try:
         module = importlib.import_module(module_name)
     except ImportError as exc:
-        raise CameraUnavailable(
+        raise SlmsuiteUnavailable(
             f"devices.slmsuite.{kind}_class = {spec!r}: cannot import {module_name} ({exc}); "
             "pip install 'nhfd[slmsuite]' (and the vendor's SDK for real hardware)") from None
     cls = getattr(module, name, None)
     if not isinstance(cls, type):
-        raise DeviceError(f"devices.slmsuite.{kind}_class = {spec!r}: {module_name} has no "
-                          f"class {name}")
+        raise SlmsuiteUnavailable(f"devices.slmsuite.{kind}_class = {spec!r}: {module_name} "
+                                  f"has no class {name}")
     return cls
+
+
+def _class_name(spec: str, given: Any) -> str:
+    return spec.partition(":")[2] if given is None else type(given).__name__
 
 
 def _kwargs(raw: dict[str, Any]) -> dict[str, Any]:
@@ -82,9 +90,7 @@ class SlmsuiteSLM(SLM):
 
     @property
     def name(self) -> str:
-        inner = type(self.device or self._given).__name__ if (self.device or self._given) \
-            else self.suite.slm_class.partition(":")[2]
-        return f"SlmsuiteSLM({inner})"
+        return f"SlmsuiteSLM({_class_name(self.suite.slm_class, self._given)})"
 
     def _do_open(self) -> None:
         device = self._given
@@ -153,9 +159,7 @@ class SlmsuiteCamera(Camera):
 
     @property
     def name(self) -> str:
-        d = self.device or self._given
-        inner = type(d).__name__ if d is not None else self.suite.camera_class.partition(":")[2]
-        return f"SlmsuiteCamera({inner})"
+        return f"SlmsuiteCamera({_class_name(self.suite.camera_class, self._given)})"
 
     def _do_open(self) -> None:
         device = self._given
@@ -202,8 +206,9 @@ class SlmsuiteCamera(Camera):
 
     def _grab(self) -> np.ndarray:
         try:
-            raw = self.device.get_image(timeout_s=self.suite.frame_timeout_s, averaging=False,
-                                        hdr=False)
+            # slmsuite adds the exposure to timeout_s, as camera_settings.frame_timeout_s means.
+            raw = self.device.get_image(timeout_s=self.settings.frame_timeout_s,
+                                        averaging=False, hdr=False)
         except Exception as exc:
             raise DeviceError(f"{self.name}: get_image failed: {type(exc).__name__}: {exc}") \
                 from exc

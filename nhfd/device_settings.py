@@ -305,8 +305,6 @@ class SlmsuiteSettings(_Settings):
     # The frame's channel a (monochrome) slmsuite SLM shows: the colour its laser is. In
     # colour_mode = "single" every channel holds the single colour's pattern.
     channel: Literal["red", "green", "blue"] = "green"
-    # Longest wait for one camera frame beyond the exposure (slmsuite's timeout_s).
-    frame_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
 
     @field_validator("slm_class", "camera_class")
     @classmethod

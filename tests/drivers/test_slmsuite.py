@@ -31,12 +31,14 @@ from slmsuite.hardware.cameras.simulated import SimulatedCamera
 from slmsuite.hardware.slms.simulated import SimulatedSLM
 
 from nhfd.calib.capture import DaemonBenchIO
+from nhfd.config import Config
 from nhfd.device_settings import (
     CameraSettings,
     SLMOutputSettings,
     SlmsuiteSettings,
 )
-from nhfd.drivers.slmsuite import SlmsuiteCamera, SlmsuiteSLM
+from nhfd.drivers.factory import make_bench
+from nhfd.drivers.slmsuite import SlmsuiteCamera, SlmsuiteSLM, SlmsuiteUnavailable
 from nhfd.spec import PhaseCurve, nearest_level
 
 logging.getLogger("slmsuite").setLevel(logging.ERROR)  # "resolution is unusual" for test panels
@@ -96,9 +98,17 @@ def test_geometry_and_bit_depth_mismatches_are_refused_naming_both():
                     device=SimulatedSLM((10, 6), pitch_um=(8.0, 8.0))).open()
     with pytest.raises(ValueError, match=r"bitdepth 10: nhfd codes 256 grey levels"):
         SlmsuiteSLM(10, 6, device=SimulatedSLM((10, 6), bitdepth=10)).open()
-    with pytest.raises(Exception, match=r"devices.slmsuite.slm_class = 'nope.nothing:X': cannot "
-                                        r"import nope.nothing"):
+    with pytest.raises(SlmsuiteUnavailable, match=r"devices.slmsuite.slm_class = "
+                                                  r"'nope.nothing:X': cannot import nope.nothing"):
         SlmsuiteSLM(10, 6, suite=SlmsuiteSettings(slm_class="nope.nothing:X")).open()
+    # From the configuration: [devices.slmsuite]'s class and kwargs, [slm]'s pitch.
+    devices = Config().devices.model_copy(update={
+        "slm": "slmsuite", "camera": "none", "laser": "none", "stage": "none",
+        "slmsuite": SlmsuiteSettings(slm_kwargs={"resolution": [10, 6], "pitch_um": [8.0, 8.0]})})
+    with make_bench(devices, 10, 6, pitch_um=8.0) as b:
+        assert b.slm.device.shape == (6, 10)
+    with pytest.raises(ValueError, match=r"pitch_um is \[8\.0, 8\.0\] but \[slm\] pitch_um is 12"):
+        make_bench(devices, 10, 6, pitch_um=12.0)
 
 
 def test_the_camera_flags_the_top_level_of_the_devices_bit_depth_and_scales_gain():
