@@ -188,10 +188,10 @@ class SimulatedSLM(SLM):
         self.frames: deque[np.ndarray] = deque(maxlen=self.settings.history_frames)
         self.count = 0
         self._plugged = True
-        # (flip time, frame [H, W, 3]) of recent frames: what the panel shows when
-        # (flip_latency_ms after each write); the simulated camera images `panel_frame()`.
+        # (written, flipped, frame [H, W, 3]) of recent frames: the panel shows each from its
+        # flip on (flip_latency_ms after the write); the simulated camera images `panel_frame()`.
         self._flips: deque[tuple[float, float, np.ndarray]] = deque(
-            maxlen=self.settings.history_frames)  # (written, flip, frame)
+            maxlen=self.settings.history_frames)
         self._never_flips = False
 
     def unplug(self) -> None:

@@ -115,8 +115,8 @@ class TriggerLine:
         TriggerTimeout when no flip came within the timeout after the write."""
         with self._cond:
             written = self._written_s
-            deadline = max(written, self._clock()) + self.timeout_s \
-                if written == -float("inf") else written + self.timeout_s
+            # Nothing written yet: the timeout counts from now.
+            deadline = (self._clock() if written == -float("inf") else written) + self.timeout_s
             while True:
                 flips = [t for t in self._edges if t >= written]
                 if flips:
