@@ -19,6 +19,7 @@ import hashlib
 import json
 import math
 import os
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -225,6 +226,86 @@ class DaemonBenchIO:
 
     def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
         return self._image("capture.npy", frames, False)
+
+
+class DevicesBenchIO:
+    """The bench's drivers driven directly (`nhfd.drivers.factory.make_bench`'s `BenchDevices`:
+    SLM, laser, stage and camera in this process), as the daemon's capture job drives them: each
+    capture first waits out the SLM's settle time, which is none when the SLM's flip output is
+    wired to the camera's trigger (`[devices.trigger]`): the camera's exposure then starts on
+    the flip's edge (nhfd.drivers.trigger). The person running it arms the lasers (`arm_s`).
+    `waited_s` sums the time captures spent waiting for the panel (settle or trigger)."""
+
+    def __init__(self, devices: Any, *, exposure_s: float = 0.005, arm_s: float = 600.0) -> None:
+        self.devices = devices
+        self.devices.camera.set_exposure(exposure_s)
+        self.powers_applied = [0.0, 0.0, 0.0]
+        self.waited_s = 0.0
+        self._shown: bytes | None = None
+        self._powers: tuple[float, ...] | None = None
+        self._arm_s = arm_s
+        if devices.slm.last_frame is None:
+            # A triggered camera exposes on a flip: the panel shows something from the start
+            # (as the daemon's blank at start-up).
+            devices.slm.blank()
+        stage = devices.stage
+        if stage.settings.require_homed and not stage.state().homed:
+            stage.home()
+
+    @property
+    def exposure_s(self) -> float:
+        return float(self.devices.camera.exposure_s)
+
+    def show(self, frame: np.ndarray) -> None:
+        frame = np.ascontiguousarray(frame, dtype=np.uint8)
+        key = hashlib.blake2b(frame.tobytes(), digest_size=16).digest() + \
+            str(frame.shape).encode()
+        if key != self._shown:  # as DaemonBenchIO: a frame already up is not sent again
+            # The patterns are [H, W, 3]; the SLM takes [H, W] or [3, H, W] (a view, no copy).
+            self.devices.slm.show(frame.transpose(2, 0, 1) if frame.ndim == 3 else frame)
+            self._shown = key
+
+    def move_stage(self, position_mm: float) -> float:
+        state = self.devices.stage.move_to(float(position_mm))
+        return float(state.position_mm if state else position_mm)
+
+    def set_lasers(self, powers: tuple[float, float, float]) -> None:
+        powers = tuple(float(p) for p in powers)
+        if powers == self._powers:
+            return
+        laser = self.devices.laser
+        names = ("red", "green", "blue")
+        for c, (name, pw) in enumerate(zip(names, powers, strict=True)):
+            if pw <= 0:
+                laser.enable(name, False)
+                self.powers_applied[c] = 0.0
+        if any(pw > 0 for pw in powers) and laser.armed_remaining_s < 5.0:
+            laser.arm(self._arm_s)
+        for c, (name, pw) in enumerate(zip(names, powers, strict=True)):
+            if pw > 0:
+                self.powers_applied[c] = laser.set_power(name, 100.0 * pw) / 100.0
+                laser.enable(name)
+        self._powers = powers
+
+    def _settled(self) -> None:
+        t0 = time.monotonic()
+        self.devices.slm.wait_settled()  # 0 s with a trigger: the camera waits on the edge
+        self.waited_s += time.monotonic() - t0
+
+    def capture_dark(self, frames: int) -> np.ndarray:
+        self._settled()
+        return self.devices.camera.capture_dark(frames)
+
+    def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        self._settled()
+        line = self.devices.camera.trigger
+        before = len(line.record) if line is not None else 0
+        called = time.monotonic()
+        cap = self.devices.camera.capture(frames)
+        if line is not None:  # the wait for the edge (+ delay), on the line's clock
+            self.waited_s += sum(max(0.0, r.exposure_start_s - called)
+                                 for r in line.record[before:])
+        return cap.image, cap.saturated
 
 
 def daemon_spec(status: dict[str, Any], **kw: Any) -> PatternSpec:

@@ -27,7 +27,9 @@ from .framebuffer import FramebufferSLM
 from .laser import Laser, MecomLaser
 from .navigator import Navigator, SimulatedNavigator, SpaceMouseNavigator, Waypoint
 from .slm import SLM, SimulatedSLM
+from .slmsuite import SlmsuiteCamera, SlmsuiteSLM
 from .stage import AptStage, Stage
+from .trigger import TriggerLine
 from .twins.apt_twin import AptTwin
 from .twins.clock import Clock
 from .twins.mecom_twin import MecomTwin
@@ -100,7 +102,9 @@ def make_stage(devices: Any, *, clock: Clock = time.monotonic) -> Stage | None:
 
 
 def make_slm(devices: Any, width_px: int, height_px: int, *,
-             clock: Callable[[], float] = time.monotonic) -> SLM | None:
+             clock: Callable[[], float] = time.monotonic,
+             pitch_um: float | None = None) -> SLM | None:
+    """`pitch_um` ([slm]'s) is checked against a backend that knows its own (slmsuite)."""
     backend, settings = devices.slm, devices.slm_output
     if backend == "none":
         return None
@@ -110,6 +114,9 @@ def make_slm(devices: Any, width_px: int, height_px: int, *,
         return FramebufferSLM(width_px, height_px, settings, clock=clock)
     if backend == "window":
         return WindowSLM(width_px, height_px, settings, clock=clock)
+    if backend == "slmsuite":
+        return SlmsuiteSLM(width_px, height_px, settings, devices.slmsuite, pitch_um=pitch_um,
+                           clock=clock)
     raise ValueError(f"devices.slm = {backend!r}: no such backend")
 
 
@@ -136,7 +143,17 @@ def make_camera(
     roi: tuple[int, int, int, int] | None = None,
 ) -> Camera | None:
     """The configured camera. The simulated one needs the simulated SLM, laser and stage it
-    watches (their twins are the bench's truth); `bench` is a `TrueBench` (default: its own)."""
+    watches (their twins are the bench's truth); `bench` is a `TrueBench` (default: its own).
+    When `slm`'s flip output is wired (`slm.trigger`), the camera's trigger input is on it."""
+    camera = _make_camera(devices, slm=slm, laser=laser, stage=stage, bench=bench, roi=roi)
+    line = getattr(slm, "trigger", None)
+    if camera is not None and line is not None:
+        camera.trigger = line
+    return camera
+
+
+def _make_camera(devices: Any, *, slm: SLM | None, laser: Laser | None, stage: Stage | None,
+                 bench: Any, roi: tuple[int, int, int, int] | None) -> Camera | None:
     backend, settings = devices.camera, devices.camera_settings
     if backend == "none":
         return None
@@ -144,6 +161,9 @@ def make_camera(
         return OpenCVCamera(settings)
     if backend == "genicam":
         return GenICamCamera(settings)
+    if backend == "slmsuite":
+        return SlmsuiteCamera(settings, devices.slmsuite,
+                              slm=slm if isinstance(slm, SlmsuiteSLM) else None)
     if backend == "simulated":
         twin_laser = getattr(laser, "twin", None)
         twin_stage = getattr(stage, "twin", None)
@@ -211,6 +231,7 @@ def make_bench(
     clock: Clock = time.monotonic,
     on_open: Callable[[str, Any], None] | None = None,
     on_error: Callable[[str, Exception], None] | None = None,
+    pitch_um: float | None = None,
 ) -> BenchDevices:
     """Build and open the configured bench in the order that wires it: SLM, laser, stage, then
     the camera that (when simulated) watches them. The one place a bench is assembled: the
@@ -222,7 +243,18 @@ def make_bench(
     right after each device opens (the daemon blanks the SLM before anything else opens).
     Without `on_error` a failure closes what was opened and raises; with it, the failing device
     is reported as `on_error(name, exc)`, left None, and the rest of the bench is still built.
+    `pitch_um` is [slm]'s, checked against an slmsuite SLM's own.
+
+    `[devices.trigger]` wires the SLM's flip output to the camera's trigger input
+    (drivers/trigger.py): the SLM holds the `TriggerLine`, and a camera made to watch it
+    (`make_camera`, here or when the daemon rebuilds it) takes it. It is modelled on the
+    simulated SLM, the only one whose flip this process sees.
     """
+    trigger = getattr(devices, "trigger", None)
+    if trigger is not None and trigger.source != "none" and devices.slm != "simulated":
+        raise ValueError(
+            f"devices.trigger.source = {trigger.source!r} needs devices.slm = 'simulated' (its "
+            f"flip output is modelled); with devices.slm = {devices.slm!r} set source = 'none'")
     out = BenchDevices()
 
     def build(name: str, make: Callable[[], Any]) -> None:
@@ -243,7 +275,15 @@ def make_bench(
             setattr(out, name, None)
             on_error(name, exc)
 
-    build("slm", lambda: make_slm(devices, width_px, height_px, clock=clock))
+    line = TriggerLine.from_settings(trigger, clock=clock) if trigger is not None else None
+
+    def slm_with_trigger() -> SLM | None:
+        slm = make_slm(devices, width_px, height_px, clock=clock, pitch_um=pitch_um)
+        if slm is not None and line is not None:
+            slm.attach_trigger(line)  # before it opens: the first frame's flip is on the line
+        return slm
+
+    build("slm", slm_with_trigger)
     if laser:
         build("laser", lambda: make_laser(devices, clock=clock))
         laser_twin = laser_twin or getattr(out.laser, "twin", None)

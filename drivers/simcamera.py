@@ -286,7 +286,11 @@ class TrueBench:
 
 def slm_frame_source(slm: Any) -> FrameSource:
     """Adapt an `nhfd.drivers.slm.SLM` (its `last_frame`, [3, H, W] or None) to a frame source;
-    a panel that has shown nothing shows grey 0."""
+    a panel that has shown nothing shows grey 0. An SLM that models its flip (`panel_frame()`:
+    the simulated SLM) gives what the panel shows at the moment of the exposure."""
+
+    if hasattr(slm, "panel_frame"):
+        return slm.panel_frame
 
     def source() -> np.ndarray:
         last = slm.last_frame

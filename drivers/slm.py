@@ -96,6 +96,8 @@ class SLM(Device, ABC):
         self._last: np.ndarray | None = None
         self._shown_at = -float("inf")
         self._is_open = False
+        # The frame-flip output's wire to the camera (drivers/trigger.py), when one is wired.
+        self.trigger: Any = None
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -104,6 +106,10 @@ class SLM(Device, ABC):
 
     @property
     def settle_s(self) -> float:
+        # With the flip output wired to the camera, the camera's exposure waits on the flip's
+        # edge (plus its trigger delay): the host sleeps no settle time.
+        if self.trigger is not None:
+            return 0.0
         return self.settings.settle_ms / 1000
 
     def open(self) -> SLM:
@@ -129,6 +135,9 @@ class SLM(Device, ABC):
         health = self.health()
         if not health.ok:
             raise SLMOutputLost(f"{self.name}: output lost: {health.detail}")
+        if self.trigger is not None:
+            # Before the write: a flip the write causes is later than this.
+            self.trigger.written(self._clock())
         self._write(rgb)
         self._last = rgb
         self._shown_at = self._clock()
@@ -138,6 +147,10 @@ class SLM(Device, ABC):
 
     def blank(self) -> float:
         return self.show(np.zeros(self.shape, np.uint8))
+
+    def attach_trigger(self, line: Any) -> None:
+        """Wire the frame-flip output to a camera's trigger input (a `TriggerLine`)."""
+        self.trigger = line
 
     def wait_settled(self) -> None:
         remaining = self._shown_at + self.settle_s - self._clock()
@@ -175,12 +188,30 @@ class SimulatedSLM(SLM):
         self.frames: deque[np.ndarray] = deque(maxlen=self.settings.history_frames)
         self.count = 0
         self._plugged = True
+        # (written, flipped, frame [H, W, 3]) of recent frames: the panel shows each from its
+        # flip on (flip_latency_ms after the write); the simulated camera images `panel_frame()`.
+        self._flips: deque[tuple[float, float, np.ndarray]] = deque(
+            maxlen=self.settings.history_frames)
+        self._never_flips = False
 
     def unplug(self) -> None:
         self._plugged = False
 
     def replug(self) -> None:
         self._plugged = True
+
+    def never_flip(self, stuck: bool = True) -> None:
+        """Test-only: frames are written but the panel never flips to them (no flip edge)."""
+        self._never_flips = stuck
+
+    def panel_frame(self) -> np.ndarray:
+        """What the panel shows now, uint8 [H, W, 3]: the last frame whose flip has come
+        (grey 0, [H, W], before the first)."""
+        now = self._clock()
+        for _, flip_s, rgb in reversed(self._flips):
+            if flip_s <= now:
+                return rgb
+        return np.zeros(self.shape, np.uint8)
 
     def _write(self, rgb: np.ndarray) -> None:
         # `show` hands each backend a frame of its own: kept as is, seen as [3, H, W].
@@ -194,6 +225,19 @@ class SimulatedSLM(SLM):
             out = Path(self.settings.png_dir)
             out.mkdir(parents=True, exist_ok=True)
             image.imsave(out / f"slm_{self.count:06d}.png", rgb)
+        if not self._never_flips:
+            now = self._clock()
+            flip_s = now + self.settings.flip_latency_ms / 1000
+            self._flips.append((now, flip_s, rgb))
+            if self.trigger is not None:
+                self.trigger.edge(flip_s)
+
+    def attach_trigger(self, line: Any) -> None:
+        super().attach_trigger(line)
+        if self._flips:  # the frame already up (the daemon's blank) has flipped: say so
+            written_s, flip_s, _ = self._flips[-1]
+            line.written(written_s)
+            line.edge(flip_s)
 
     def _health(self) -> SLMHealth:
         return SLMHealth(True, "simulated") if self._plugged else SLMHealth(False, "unplugged")

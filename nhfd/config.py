@@ -27,7 +27,9 @@ from nhfd.device_settings import (
     LaserSettings,
     NavigatorSettings,
     SLMOutputSettings,
+    SlmsuiteSettings,
     StageSettings,
+    TriggerSettings,
 )
 
 DEFAULT_NAME = "packaged default"
@@ -128,16 +130,18 @@ class DeviceSettings(_Section):
     so the laser guardian validates them without loading the rest of nhfd.
     """
 
-    slm: Literal["simulated", "framebuffer", "window", "none"] = "simulated"
+    slm: Literal["simulated", "framebuffer", "window", "slmsuite", "none"] = "simulated"
     laser: Literal["simulated", "readybeam", "none"] = "simulated"
     stage: Literal["simulated", "apt", "none"] = "simulated"
-    camera: Literal["simulated", "opencv", "genicam", "none"] = "simulated"
+    camera: Literal["simulated", "opencv", "genicam", "slmsuite", "none"] = "simulated"
     navigator: Literal["none", "simulated", "spacemouse"] = "none"
     slm_output: SLMOutputSettings = SLMOutputSettings()
     readybeam: LaserSettings = LaserSettings()
     apt: StageSettings = StageSettings()
     spacemouse: NavigatorSettings = NavigatorSettings()
     camera_settings: CameraSettings = CameraSettings()
+    slmsuite: SlmsuiteSettings = SlmsuiteSettings()
+    trigger: TriggerSettings = TriggerSettings()
 
 
 # A profile's width growth per level: 1 keeps the base width, 2 doubles it (the classic U-Net,

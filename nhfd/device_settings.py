@@ -197,6 +197,10 @@ class SLMOutputSettings(_Settings):
     png_dir: str = ""
     # Simulated SLM: how many recent frames to keep.
     history_frames: Annotated[int, Field(ge=1, le=10000)] = 8
+    # Simulated SLM: time from the host's write to the panel flipping to the frame (an HDMI
+    # panel shows a frame one or more refreshes after it was sent). settle_ms must cover it plus
+    # the liquid crystal's response when captures are not triggered (drivers/trigger.py).
+    flip_latency_ms: Annotated[float, Field(ge=0, le=1000)] = 0.0
 
 
 # ------------------------------------------------------------------------------------- navigator
@@ -277,3 +281,52 @@ class CameraSettings(_Settings):
     pixel_format: str = ""
     # Longest wait for one frame beyond the exposure itself.
     frame_timeout_s: Annotated[float, Field(gt=0, le=60)] = 2.0
+
+
+# -------------------------------------------------------------------------------------- slmsuite
+
+
+# A TOML value a vendor class's keyword argument may take (strict: TOML is typed).
+SlmsuiteArg = int | float | str | bool | list[int] | list[float] | list[str]
+
+
+class SlmsuiteSettings(_Settings):
+    """Vendor hardware through slmsuite (`[devices] slm = "slmsuite"` and/or `camera =
+    "slmsuite"`): any slmsuite SLM or camera class as "module:Class" and its keyword arguments.
+    nhfd's grey frames go to the SLM as they are (slmsuite's phase-to-grey conversion is
+    bypassed: nhfd's calibrated curves stay authoritative)."""
+
+    slm_class: str = "slmsuite.hardware.slms.simulated:SimulatedSLM"
+    # e.g. {resolution = [1920, 1080], pitch_um = [8.0, 8.0]}: the panel's size and pitch must
+    # match [slm]'s width_px, height_px and pitch_um (checked on open).
+    slm_kwargs: dict[str, SlmsuiteArg] = {}
+    camera_class: str = "slmsuite.hardware.cameras.simulated:SimulatedCamera"
+    camera_kwargs: dict[str, SlmsuiteArg] = {}
+    # The frame's channel a (monochrome) slmsuite SLM shows: the colour its laser is. In
+    # colour_mode = "single" every channel holds the single colour's pattern.
+    channel: Literal["red", "green", "blue"] = "green"
+
+    @field_validator("slm_class", "camera_class")
+    @classmethod
+    def _module_colon_class(cls, v: str) -> str:
+        module, _, name = v.partition(":")
+        if not module or not name.isidentifier():
+            raise ValueError(f"{v!r}: expected 'module:Class', e.g. "
+                             "'slmsuite.hardware.slms.simulated:SimulatedSLM'")
+        return v
+
+
+# -------------------------------------------------------------------------------------- triggers
+
+
+class TriggerSettings(_Settings):
+    """Hardware triggering of captures (drivers/trigger.py). "none": a capture waits out the SLM's
+    settle_ms after each frame. "slm_flip": the SLM's frame-flip output is wired to the camera's
+    trigger input; the camera arms, the frame flips, and the exposure starts delay_ms after the
+    edge, with no settle sleep on the host."""
+
+    source: Literal["none", "slm_flip"] = "none"
+    # The camera's trigger delay after the edge: the liquid crystal's response to a new frame.
+    delay_ms: Annotated[float, Field(ge=0, le=1000)] = 10.0
+    # No edge within this long after a frame was written: the capture fails (TriggerTimeout).
+    timeout_ms: Annotated[float, Field(gt=0, le=60000)] = 500.0

@@ -56,7 +56,34 @@ class Setup:
     saturates: bool = False  # the lit scene drives part (not all) of the sensor to full scale
 
 
-@pytest.fixture(params=["ramp", "simulated", "bench"])
+def slmsuite_setup() -> Iterator[Setup]:
+    """slmsuite's simulated camera imaging slmsuite's simulated SLM (its far field) through
+    nhfd's slmsuite backends; the light is the SLM's simulated illumination."""
+    simulated = pytest.importorskip(
+        "slmsuite.hardware.slms.simulated", reason="slmsuite is not installed: pip install "
+        "'nhfd[slmsuite]'")
+    from slmsuite.hardware.cameras.simulated import SimulatedCamera
+
+    from nhfd.device_settings import SlmsuiteSettings
+    from nhfd.drivers.slmsuite import SlmsuiteCamera
+
+    n = 32
+    device = simulated.SimulatedSLM((n, n), pitch_um=(8.0, 8.0))
+    # A seeded random (diffuser) frame spreads the beam into speckle over the whole sensor;
+    # with this gain the mean pixel is ~60 of 255 levels at 4 ms.
+    device.set_phase(np.random.default_rng(5).integers(0, 256, (n, n), dtype=np.uint8))
+    beam = device.source["amplitude_sim"].copy()
+    camera = SlmsuiteCamera(CameraSettings(exposure_s=0.004), SlmsuiteSettings(),
+                            device=SimulatedCamera(device, gain=15000.0))
+
+    def light(on: bool) -> None:
+        device.source["amplitude_sim"] = beam if on else 0 * beam
+
+    with camera:
+        yield Setup(camera, light)
+
+
+@pytest.fixture(params=["ramp", "simulated", "slmsuite", "bench"])
 def setup(request: pytest.FixtureRequest) -> Iterator[Setup]:
     if request.param == "ramp":
         camera = RampCamera(CameraSettings(exposure_s=0.004, response_gamma=2.2, bit_depth=10))
@@ -84,6 +111,8 @@ def setup(request: pytest.FixtureRequest) -> Iterator[Setup]:
                     laser.disarm()
 
             yield Setup(devices.camera, light)
+    elif request.param == "slmsuite":
+        yield from slmsuite_setup()
     else:
         backend, (target, *rest) = bench_target(
             "NHFD_TEST_CAMERA", ("opencv", "genicam"), "opencv:0")

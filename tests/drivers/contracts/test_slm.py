@@ -32,13 +32,26 @@ def real_slm(tmp_path: Path) -> SLM:
     return WindowSLM(width, height, SLMOutputSettings(drm_connector=target))
 
 
-@pytest.fixture(params=["simulated", "framebuffer-file", "bench"])
+def slmsuite_slm() -> SLM:
+    """slmsuite's simulated SLM behind nhfd's slmsuite backend."""
+    simulated = pytest.importorskip(
+        "slmsuite.hardware.slms.simulated", reason="slmsuite is not installed: pip install "
+        "'nhfd[slmsuite]'")
+    from nhfd.drivers.slmsuite import SlmsuiteSLM
+
+    device = simulated.SimulatedSLM((W, H), pitch_um=(8.0, 8.0))
+    return SlmsuiteSLM(W, H, SLMOutputSettings(settle_ms=0.0), pitch_um=8.0, device=device)
+
+
+@pytest.fixture(params=["simulated", "framebuffer-file", "slmsuite", "bench"])
 def slm(request: pytest.FixtureRequest, tmp_path: Path) -> Iterator[SLM]:
     if request.param == "simulated":
         driver: SLM = SimulatedSLM(W, H, SLMOutputSettings(settle_ms=0.0))
     elif request.param == "framebuffer-file":
         settings = fake_framebuffer(tmp_path, width=W, height=H, bpp=32, stride=W * 4)
         driver = FramebufferSLM(W, H, settings.model_copy(update={"settle_ms": 0.0}))
+    elif request.param == "slmsuite":
+        driver = slmsuite_slm()
     else:
         driver = real_slm(tmp_path)
     with driver:
