@@ -60,7 +60,8 @@ class Bench:
         # camera reads the guardian's twin. A device that fails is reported and left None.
         devices = factory.make_bench(
             self.config.devices, self.config.slm.width_px, self.config.slm.height_px,
-            laser=False, laser_twin=self.laser_twin, on_open=self._opened, on_error=self._failed)
+            laser=False, laser_twin=self.laser_twin, on_open=self._opened, on_error=self._failed,
+            pitch_um=self.config.slm.pitch_um)
         self.slm, self.stage, self.camera = devices.slm, devices.stage, devices.camera
         self._refresh()  # status has the stage's state from the first request on
         self._monitor = threading.Thread(target=self._watch, name="nhfd-bench-monitor",

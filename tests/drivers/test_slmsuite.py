@@ -249,3 +249,20 @@ def test_frames_coded_with_the_measured_curve_diffract_as_designed(daemon, measu
     # Measured here: 100.0 % against 97.2 % in the first order, 0.0 % against 1.1 % at zero.
     assert share["measured"][0] > 0.995 and share["measured"][1] < 0.002
     assert share["nominal"][0] < 0.98 and share["nominal"][1] > 0.005
+
+
+def test_a_daemon_refuses_an_slmsuite_panel_whose_pitch_is_not_the_configured_one():
+    """The daemon hands [slm] pitch_um to the backend: a bench configured for 12 um driving an
+    8 um slmsuite panel reports the mismatch and shows nothing on it."""
+    root = Path(tempfile.mkdtemp(prefix="nhfd-s-", dir="/tmp"))
+    config = slmsuite_daemon_config(root)
+    config = config.model_copy(update={"slm": config.slm.model_copy(update={"pitch_um": 12.0})})
+    r = Running(config, root)
+    try:
+        status = r.client(timeout_s=30.0).call("status")
+        errors = " ".join(str(e) for e in status["errors"])
+        assert "pitch_um is [8.0, 8.0] but [slm] pitch_um is 12" in errors
+        assert r.daemon.bench.slm is None
+    finally:
+        r.stop()
+        shutil.rmtree(root, ignore_errors=True)
