@@ -50,6 +50,7 @@ from nhfd.models.evaluate import evaluate
 from nhfd.models.export import OnnxModel, export_onnx
 from nhfd.models.quantise import quantise_int8
 from nhfd.models.train import RESUMABLE_CHANGES, TrainOptions, train
+from nhfd.optics import quality_planes
 from nhfd.scene.io import load_scene, save_ply, scene_format
 from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
 
@@ -71,6 +72,7 @@ JITTER_FRACTION = 0.02
 # evaluated view per pixel, and the report.
 PRIOR_S = {"example": 7.0, "step_per_px": 0.257 / (384 * 224), "export": 20.0,
            "int8": 10.0, "eval_per_px": 2.0 / (512 * 288), "report": 10.0}  # fmt: skip
+SPEED_STAGES = ("dataset", "train", "eval")
 
 
 @dataclass(frozen=True)
@@ -163,6 +165,13 @@ def _peak_rss_mb() -> float:
 
 def _children_peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+
+
+def _cpu_s() -> float:
+    """CPU seconds of this process and its finished children (the dataset's workers): on a
+    shared machine, the work a stage did, whatever else ran beside it."""
+    me, kids = (resource.getrusage(w) for w in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN))
+    return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
 def _fmt_s(seconds: float) -> str:
@@ -407,7 +416,8 @@ def build_report(ctx: Context, sheet: dict | None = None) -> dict:
                                            if f["focus_bins"] else None),
         },
         "contact_sheet": sheet,
-        "stages": {k: {"seconds": v.get("seconds"), "peak_rss_mb": v.get("peak_rss_mb"),
+        "stages": {k: {"seconds": v.get("seconds"), "cpu_s": v.get("cpu_s"),
+                       "peak_rss_mb": v.get("peak_rss_mb"),
                        "children_peak_rss_mb": v.get("children_peak_rss_mb"),
                        "skipped_in_last_run": v.get("skipped", False)}
                    for k, v in state.get("stages", {}).items()},
@@ -416,8 +426,6 @@ def build_report(ctx: Context, sheet: dict | None = None) -> dict:
 
 
 def _quality_planes(ctx: Context) -> tuple[float, ...]:
-    from nhfd.optics import quality_planes
-
     v = ctx.config.optics.volume_mm
     return quality_planes((v[0] * 1e-3, v[1] * 1e-3))
 
@@ -564,22 +572,25 @@ def run_build(
         write_json_atomic(out / STATE, state)
         reset = _reset_peak_rss()
         children0 = _children_peak_mb()
-        t0 = time.perf_counter()
+        t0, cpu0 = time.perf_counter(), _cpu_s()
         result = STAGE_FUNCS[stage](ctx)
-        seconds = time.perf_counter() - t0
+        seconds, cpu_s = time.perf_counter() - t0, _cpu_s() - cpu0
         ctx.results[stage] = result
         children = _children_peak_mb()
         state["stages"][stage].update(
-            done=True, result=result, seconds=seconds,
+            done=True, result=result, seconds=seconds, cpu_s=cpu_s,
             peak_rss_mb=_peak_rss_mb() if reset else None,
             children_peak_rss_mb=children if children > children0 else None, skipped=False,
         )  # fmt: skip
         write_json_atomic(out / STATE, state)
         ran.append(stage)
-        done_est = sum(estimate[s] for s in ran)
-        done_s = sum(state["stages"][s]["seconds"] for s in ran)
-        speed = done_s / max(done_est, 1e-9)
-        say(f"[{i}/{len(STAGES)}] {stage}: done in {_fmt_s(seconds)}")
+        # The machine's speed against the estimates, from the long stages only (a stage of a
+        # second or two says nothing about the rest).
+        timed = [s for s in ran if s in SPEED_STAGES]
+        if timed:
+            speed = (sum(state["stages"][s]["seconds"] for s in timed)
+                     / max(sum(estimate[s] for s in timed), 1e-9))
+        say(f"[{i}/{len(STAGES)}] {stage}: done in {_fmt_s(seconds)} ({cpu_s:.0f} CPU s)")
     write_json_atomic(out / STATE, state)
     if ran:  # the report's stage table then has every stage's time, its own included
         write_json_atomic(out / "report.json", build_report(ctx, ctx.results["report"]["sheet"]))

@@ -273,7 +273,7 @@ class BuildRecipe(_Section):
 
 def _default_recipes() -> dict[str, BuildRecipe]:
     return {
-        "quick": BuildRecipe(views=40, width_px=256, height_px=144, steps=1500,
+        "quick": BuildRecipe(views=40, width_px=256, height_px=144, steps=1000,
                              crop_width_px=192, crop_height_px=112, eval_views=4),
         "default": BuildRecipe(),
     }
