@@ -567,14 +567,25 @@ def run_build(
         # An unfinished stage with the same inputs continues (the dataset's shards, the
         # training checkpoint); one whose inputs changed, or that is redone, starts over.
         ctx.force_stage = bool(entry) and (entry["key"] != keys[stage] or entry.get("done"))
-        state["stages"][stage] = {"key": keys[stage], "done": False,
-                                  "started": time.time()}  # fmt: skip
+        # Time spent by interrupted attempts at the same stage counts toward its time.
+        before = (entry or {}).get("partial", {"seconds": 0.0, "cpu_s": 0.0}) \
+            if not ctx.force_stage else {"seconds": 0.0, "cpu_s": 0.0}
+        state["stages"][stage] = {"key": keys[stage], "done": False, "started": time.time(),
+                                  "partial": before}  # fmt: skip
         write_json_atomic(out / STATE, state)
         reset = _reset_peak_rss()
         children0 = _children_peak_mb()
         t0, cpu0 = time.perf_counter(), _cpu_s()
-        result = STAGE_FUNCS[stage](ctx)
-        seconds, cpu_s = time.perf_counter() - t0, _cpu_s() - cpu0
+        try:
+            result = STAGE_FUNCS[stage](ctx)
+        except BaseException:
+            state["stages"][stage]["partial"] = {
+                "seconds": before["seconds"] + time.perf_counter() - t0,
+                "cpu_s": before["cpu_s"] + _cpu_s() - cpu0}
+            write_json_atomic(out / STATE, state)
+            raise
+        seconds = before["seconds"] + time.perf_counter() - t0
+        cpu_s = before["cpu_s"] + _cpu_s() - cpu0
         ctx.results[stage] = result
         children = _children_peak_mb()
         state["stages"][stage].update(

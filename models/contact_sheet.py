@@ -24,10 +24,10 @@ from nhfd.optics import Aperture, KernelCache, focal_stack, linear_to_srgb
 # Content quantiles that define the near and far regions (by mapped depth: larger is nearer).
 REGION_QUANTILE = 0.25
 # Crop side as a fraction of the view's shorter side; figure layout (inches, dots per inch).
-CROP_FRACTION = 0.4
+CROP_FRACTION = 0.3
 COLUMNS = ("view", "focus near", "focus far", "near region\nfocus near",
            "near region\nfocus far", "far region\nfocus near", "far region\nfocus far")
-PANEL_IN, LABEL_IN, DPI = 1.9, 0.45, 100
+PANEL_IN, LABEL_IN, DPI = 1.9, 0.75, 100
 PLANE_STEP_M = 1e-4  # focus planes rounded to 0.1 mm (kernels reused)
 
 
@@ -94,7 +94,7 @@ def contact_sheet(model_path: str | Path, data_dir: str | Path, out_png: str | P
     fig = plt.figure(figsize=(size[0] / DPI, size[1] / DPI), dpi=DPI)
     rows = 2 * len(picks)
     top_frac = 1 - LABEL_IN * DPI / size[1]
-    grid = fig.add_gridspec(rows, len(COLUMNS), left=0.07, right=0.995, bottom=0.01,
+    grid = fig.add_gridspec(rows, len(COLUMNS), left=0.08, right=0.995, bottom=0.01,
                             top=top_frac, wspace=0.04, hspace=0.12)  # fmt: skip
     shown = []
     for v, (split, j) in enumerate(picks):
@@ -126,7 +126,7 @@ def contact_sheet(model_path: str | Path, data_dir: str | Path, out_png: str | P
                 ax.imshow(panel, interpolation="nearest")
                 ax.set_xticks([])
                 ax.set_yticks([])
-                if c in (0, 1, 2):
+                if c == 0:
                     for region, colour in (("near", "#00e5ff"), ("far", "#ff3df5")):
                         top, left = boxes[region]
                         ax.add_patch(Rectangle((left - 0.5, top - 0.5), side, side, fill=False,
@@ -137,7 +137,9 @@ def contact_sheet(model_path: str | Path, data_dir: str | Path, out_png: str | P
                         spine.set_edgecolor(colour)
                         spine.set_linewidth(2)
                 if c == 0:
-                    ax.set_ylabel(f"{split} #{index}\n{name}", fontsize=8)
+                    planes = (f"\nnear {z_near * 1e3:+.1f}, far {z_far * 1e3:+.1f} mm"
+                              if r == 0 else "")
+                    ax.set_ylabel(f"{split} #{index}\n{name}{planes}", fontsize=7)
                 if v == 0 and r == 0:
                     ax.set_title(COLUMNS[c], fontsize=8)
         shown.append({"split": split, "index": int(index), "near_focus_mm": z_near * 1e3,
@@ -145,7 +147,7 @@ def contact_sheet(model_path: str | Path, data_dir: str | Path, out_png: str | P
                       "near_box": list(boxes["near"]), "far_box": list(boxes["far"])})
     fig.suptitle("held-out views: the hologram focused on the near content (cyan), then on "
                  "the far content (magenta); crops at the same enlargement", fontsize=9,
-                 y=1 - 0.12 * LABEL_IN * DPI / size[1])  # fmt: skip
+                 y=1 - 0.05 * DPI / size[1], va="top")  # fmt: skip
     out_png = Path(out_png)
     tmp = out_png.with_name(out_png.stem + ".tmp.png")
     fig.savefig(tmp, dpi=DPI)
