@@ -195,3 +195,40 @@ def test_cli_refuses_a_bad_device_and_a_bad_profile(tmp_path, capsys):
                  "huge"]) == 2  # fmt: skip
     assert "--profile 'huge'" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "o")
+
+
+def test_serve_loads_the_scene_and_the_model_into_a_running_daemon(built, tmp_path_factory):
+    import argparse
+    import contextlib
+    import shutil
+    import tempfile
+
+    from nhfd.cli.cmd_model import serve
+    from tests.daemon.conftest import Running, bench_config
+
+    out, *_ = built
+    root = Path(tempfile.mkdtemp(prefix="nhfd-mb-", dir="/tmp"))  # a short socket path
+    config = bench_config(root, None)
+    running = Running(config, root)
+    try:
+        args = argparse.Namespace(model_dir=None, scene_dir=None, socket=str(running.socket))
+        # relative folders are the daemon's (its base_dir is root): serve from there
+        cwd = os.getcwd()
+        os.chdir(root)
+        try:
+            serve(config, SCENE, out, "nhf-donut-crop-tiny.onnx", args)
+        finally:
+            os.chdir(cwd)
+        status = running.client().status()
+        assert Path(status["scene"]["path"]) == root / "scenes" / SCENE.name
+        assert status["scene"]["gaussians"] == 2108
+        assert Path(status["model"]["path"]).name == "nhf-donut-crop-tiny.onnx"
+        assert (root / "models" / "nhf-donut-crop-tiny.onnx").read_bytes() == \
+            (out / "model.onnx").read_bytes()
+        view = status["view"]["requested"]
+        assert view["kind"] == "orbit" and view["azimuth_deg"] == 0.0  # middle of [-20, 20]
+        assert view["elevation_deg"] == 20.0
+    finally:
+        with contextlib.suppress(Exception):
+            running.stop()
+        shutil.rmtree(root, ignore_errors=True)
