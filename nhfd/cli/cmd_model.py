@@ -16,6 +16,7 @@ from pathlib import Path
 from nhfd.config import load_config
 from nhfd.daemon.client import Client
 from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
+from nhfd.models.train import training_device
 from nhfd.scene.cameras import parse_axis
 
 BUILD_HELP = f"""\
@@ -63,6 +64,7 @@ def run_model_build(args: argparse.Namespace) -> int:
     if args.up:
         parse_axis(args.up)
     device = resolve_device(args.device)
+    training_device(device, check_available=True)  # before hours of dataset, not after
     recipe = Recipe.from_config(config, args.profile, device=device,
                                 progress=not args.no_progress)  # fmt: skip
     scene = Path(args.scene)

@@ -194,6 +194,12 @@ def test_cli_refuses_a_bad_device_and_a_bad_profile(tmp_path, capsys):
     assert main(["model", "build", str(SCENE), "--out", str(tmp_path / "o"), "--profile",
                  "huge"]) == 2  # fmt: skip
     assert "--profile 'huge'" in capsys.readouterr().err
+    import torch
+
+    if not torch.cuda.is_available():  # refused before any stage runs, not after the dataset
+        assert main(["model", "build", str(SCENE), "--out", str(tmp_path / "o"), "--device",
+                     "cuda"]) == 2  # fmt: skip
+        assert "device = 'cuda': this machine's torch sees 0 CUDA" in capsys.readouterr().err
     assert not os.path.exists(tmp_path / "o")
 
 
