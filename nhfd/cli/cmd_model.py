@@ -14,7 +14,8 @@ import time
 from pathlib import Path
 
 from nhfd.config import load_config
-from nhfd.daemon.client import Client
+from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.daemon.protocol import RpcError
 from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
 from nhfd.models.train import training_device
 from nhfd.scene.cameras import parse_axis
@@ -86,7 +87,13 @@ def run_model_build(args: argparse.Namespace) -> int:
           + (f", skipped {', '.join(res.skipped)}" if res.skipped else "")
           + f" in {time.perf_counter() - t0:.0f} s")
     if args.serve:
-        serve(config, scene, out, f"nhf-{_stem(scene)}-{recipe.name}.onnx", args)
+        try:
+            serve(config, scene, out, f"nhf-{_stem(scene)}-{recipe.name}.onnx", args)
+        except (DaemonUnavailable, RpcError, RuntimeError) as exc:
+            # The build is done and kept; only serving it failed.
+            print(f"nhfd model build: --serve: {exc}; the model is built: {out / 'model.onnx'}",
+                  file=sys.stderr)  # fmt: skip
+            return 1
     return 0
 
 
@@ -118,9 +125,9 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
     d = config.daemon
     model_dir = Path(args.model_dir or d.model_dirs[0])
     scene_dir = Path(args.scene_dir or d.scene_dirs[0])
-    model = _place(out / "model.onnx", model_dir, model_name)
-    scene_file = _place(scene, scene_dir, scene.name)
-    with Client(args.socket, timeout_s=30.0) as c:
+    with Client(args.socket, timeout_s=30.0) as c:  # no daemon: nothing is copied
+        model = _place(out / "model.onnx", model_dir, model_name)
+        scene_file = _place(scene, scene_dir, scene.name)
         for method, path in (("load_scene", scene_file), ("load_model", model)):
             job = c.call(method, path=str(path))["job"]
             state = _wait(c, job)
