@@ -235,9 +235,13 @@ def _scene(ctx: Context) -> dict:
 
 
 def _reduce(ctx: Context) -> dict:
-    """The scene the dataset renders, written as `scene.ply`. Here the whole scene: the
-    integrator wires `nhfd.scene.cull.reduce_scene(gaussians, cameras)` into this stage (its
-    report goes into this result and the scene file written is the reduced one)."""
+    """The scene the dataset renders, written as `scene.ply`: here the whole scene. Culling to
+    what the pose envelope can show (issue 24, part 3: `nhfd.scene.cull.reduce_scene`) goes in
+    this stage: the envelope's cameras are
+    `[settings.camera(p, camera_distance(p, sampler.center)) for p in poses]` with
+    `sampler, poses = _poses(ctx)` and `settings = _example_settings(ctx)`; the reduced scene
+    is written instead, its report (`CullReport.to_dict()`) merged into this result, and the
+    cull's own settings added to `_stage_params("reduce")` so that changing them redoes it."""
     g = load_scene(ctx.scene)
     tmp = ctx.path("scene.ply.tmp")
     save_ply(tmp, g)
