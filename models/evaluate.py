@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from nhfd.models.data import HoloData
-from nhfd.models.export import OnnxModel
+from nhfd.models.export import OnnxModel, run_training_poses
 from nhfd.models.inputs import ALPHA_CONTENT
 from nhfd.models.loss import Optics
 from nhfd.models.metadata import expected_from_manifest
@@ -45,6 +45,7 @@ Predictor = Callable[[torch.Tensor], torch.Tensor]
 
 
 def torch_predictor(run_dir: str | Path) -> tuple[Predictor, dict]:
+    """A run's network, and what it is (`train_poses`: its training poses, or None)."""
     net, info = load_run(run_dir)
 
     def run(x: torch.Tensor) -> torch.Tensor:
@@ -54,7 +55,7 @@ def torch_predictor(run_dir: str | Path) -> tuple[Predictor, dict]:
 
     return run, {"source": str(run_dir), "kind": "torch run", "profile":
                  info["options"].get("profile"), "net": info["net"],
-                 "inputs": net.spec.inputs}  # fmt: skip
+                 "inputs": net.spec.inputs, "train_poses": run_training_poses(info)}  # fmt: skip
 
 
 def onnx_predictor(path: str | Path, manifest: dict) -> tuple[Predictor, dict]:
@@ -65,26 +66,45 @@ def onnx_predictor(path: str | Path, manifest: dict) -> tuple[Predictor, dict]:
         return torch.polar(torch.from_numpy(amp), torch.from_numpy(phase))
 
     return run, {"source": str(path), "kind": "onnx", "profile": model.metadata.get("profile"),
-                 "net": model.metadata.get("net"), "inputs": model.inputs}  # fmt: skip
+                 "net": model.metadata.get("net"), "inputs": model.inputs,
+                 "train_poses": model.metadata.get("train_poses")}  # fmt: skip
 
 
-def _camera_dirs(manifest: dict) -> np.ndarray:
-    centre = np.asarray(manifest.get("center", [0, 0, 0]), np.float64)
-    dirs = []
-    for p in manifest["poses"]:
-        r, t = np.asarray(p["R"], np.float64), np.asarray(p["t"], np.float64)
-        d = -r.T @ t - centre
-        dirs.append(d / max(np.linalg.norm(d), 1e-12))
-    return np.array(dirs)
+def _directions(positions: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    d = np.asarray(positions, np.float64) - np.asarray(centre, np.float64)
+    return d / np.maximum(np.linalg.norm(d, axis=-1, keepdims=True), 1e-12)
 
 
-def nearest_train_angle_deg(manifest: dict, index: int) -> float:
-    dirs = _camera_dirs(manifest)
-    train = manifest["splits"].get("train", [])
-    if not train:
+def _positions(manifest: dict) -> np.ndarray:
+    return np.array([-np.asarray(p["R"], np.float64).T @ np.asarray(p["t"], np.float64)
+                     for p in manifest["poses"]])  # fmt: skip
+
+
+def nearest_train_angle_deg(manifest: dict, index: int, trained: dict | None = None) -> float:
+    """Angle (degrees, seen from the scene's centre) between view `index` of `manifest` and the
+    nearest training pose: the model's own (`trained`, its metadata's `train_poses`) when
+    given, else the manifest's train split (right only for the dataset the model was trained
+    on: a fresh dataset's own training views would read 0)."""
+    if trained:
+        centre = np.asarray(trained["center"], np.float64)
+        train_dirs = _directions(np.asarray(trained["positions"]), centre)
+        view_dir = _directions(_positions(manifest)[index], centre)
+    else:
+        train = manifest["splits"].get("train", [])
+        if not train:
+            return float("nan")
+        dirs = _directions(_positions(manifest), manifest.get("center", [0, 0, 0]))
+        train_dirs, view_dir = dirs[train], dirs[index]
+    if len(train_dirs) == 0:
         return float("nan")
-    cos = np.clip(dirs[train] @ dirs[index], -1, 1)
+    cos = np.clip(train_dirs @ view_dir, -1, 1)
     return float(np.degrees(np.arccos(cos.max())))
+
+
+ANGLE_FROM_METADATA = "the poses the model was trained on (its metadata's train_poses)"
+ANGLE_FALLBACK = ("the evaluated dataset's train split: the model records no training poses "
+                  "(exported before they were recorded, or its dataset folder was gone); right "
+                  "only when the evaluated dataset is the one it was trained on")
 
 
 def focus_check(
@@ -152,6 +172,10 @@ def evaluate(
         predictor, about = onnx_predictor(source, data.manifest)
     else:
         predictor, about = torch_predictor(source)
+    trained = about.pop("train_poses", None)
+    about["angle_reference"] = ANGLE_FROM_METADATA if trained else ANGLE_FALLBACK
+    if not trained:
+        log(f"angles to the nearest training pose: measured against {ANGLE_FALLBACK}")
     optics = Optics.from_manifest(data.manifest)
     planes = quality_planes(optics.volume_m)
     cache = KernelCache()
@@ -176,7 +200,7 @@ def evaluate(
             focus = focus_check(pred, target, rgb, s.zh[j], optics, cache)
             views.append({
                 "index": index, "split": split,
-                "nearest_train_deg": nearest_train_angle_deg(data.manifest, index),
+                "nearest_train_deg": nearest_train_angle_deg(data.manifest, index, trained),
                 **{f"{k}_psnr_db": v.psnr_db for k, v in q.items()},
                 **{f"{k}_ssim": v.ssim for k, v in q.items()},
                 "model_psnr_per_plane_db": list(q["model"].psnr_per_plane_db),

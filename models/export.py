@@ -26,6 +26,7 @@ from nhfd.models.metadata import (
     check_metadata,
     expected_from_config,
     parse_metadata,
+    training_poses,
 )
 from nhfd.models.serving import ServingNet
 from nhfd.models.train import load_run
@@ -73,7 +74,7 @@ def export_onnx(
             dynamic_shapes=dynamic, external_data=False, verbose=False,
         )  # fmt: skip
     model = onnx.load(str(tmp))
-    meta = build_metadata(info, opset=opset)
+    meta = build_metadata(info, opset=opset, train_poses=run_training_poses(info))
     del model.metadata_props[:]
     props = ((METADATA_KEY, json.dumps(meta)), ("nhfd_version", str(meta["nhfd_version"])))
     for key, value in props:
@@ -87,6 +88,19 @@ def export_onnx(
     if check:
         diff, sizes = compare_with_torch(net, out_path)
     return ExportResult(out_path, diff, sizes, meta)
+
+
+def run_training_poses(run_info: dict) -> dict | None:
+    """The training poses of a run (`training_poses`), read from the dataset it was trained on
+    when that folder still holds the same manifest; None otherwise."""
+    ds = run_info.get("dataset") or {}
+    path = Path(str(ds.get("data_dir", ""))) / "manifest.json"
+    if not ds.get("data_dir") or not path.is_file():
+        return None
+    manifest = json.loads(path.read_text())
+    if manifest.get("key") != ds.get("manifest_key"):
+        return None
+    return training_poses(manifest)
 
 
 def compare_with_torch(net, onnx_path: str | Path) -> tuple[float, list[tuple[int, int]]]:

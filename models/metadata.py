@@ -36,8 +36,26 @@ def manifest_sha256(data_dir: str | Path) -> str | None:
     return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else None
 
 
-def build_metadata(run_info: dict, *, opset: int) -> dict[str, Any]:
-    """The metadata of a model exported from a run (`run.json` of `nhfd train`)."""
+def training_poses(manifest: dict) -> dict[str, Any] | None:
+    """The camera positions of a dataset's training split and the centre they orbit, as the
+    metadata records them (`train_poses`): what `nhfd eval` measures a view's angle to the
+    nearest training pose against. None when the manifest has no training poses."""
+    poses, train = manifest.get("poses") or [], (manifest.get("splits") or {}).get("train") or []
+    if not poses or not train:
+        return None
+    positions = []
+    for i in train:
+        r, t = poses[i]["R"], poses[i]["t"]
+        # position = -R^T t of the world-to-camera R, t
+        positions.append([-sum(r[k][j] * t[k] for k in range(3)) for j in range(3)])
+    return {"center": [float(v) for v in manifest.get("center", [0.0, 0.0, 0.0])],
+            "positions": [[float(v) for v in p] for p in positions]}
+
+
+def build_metadata(run_info: dict, *, opset: int, train_poses: dict | None = None
+                   ) -> dict[str, Any]:  # fmt: skip
+    """The metadata of a model exported from a run (`run.json` of `nhfd train`), with the
+    training poses (`training_poses` of its dataset) when known."""
     ds = run_info["dataset"]
     s = ds["settings"]
     net = run_info["net"]
@@ -64,6 +82,7 @@ def build_metadata(run_info: dict, *, opset: int) -> dict[str, Any]:
         "train_crop_hw": [int(opts["crop_height_px"]), int(opts["crop_width_px"])],
         "resolution_note": "another input size keeps the trained fx (the window changes)",
         "pose_envelope": ds.get("envelope"),
+        "train_poses": train_poses,
         "scene_sha256": (ds.get("scene") or {}).get("sha256"),
         "colour_space": COLOUR_SPACE,
         "input_multiple": int(net["unshuffle"]) * 2 ** int(net["depth"]),

@@ -236,10 +236,65 @@ class TrainSettings(_Section):
     threads: Annotated[int, Field(ge=0, le=1024)] = 0
 
 
+class BuildRecipe(_Section):
+    """One `nhfd model build` recipe (nhfd.models.build): the dataset's poses and size, what to
+    train, and what to evaluate. A 0 or "" takes the value from [model] / [model.train]."""
+
+    # Poses sampled: train / interpolation / extrapolation in the proportions 100 / 20 / 10.
+    views: Annotated[int, Field(ge=3, le=100_000)] = 130
+    width_px: Pixels = 512
+    height_px: Pixels = 288
+    fov_x_deg: Annotated[float, Field(ge=1, le=170)] = 40.0
+    azimuth_deg: Annotated[list[float], Field(min_length=2, max_length=2)] = [-30.0, 30.0]
+    elevation_deg: Annotated[list[float], Field(min_length=2, max_length=2)] = [10.0, 30.0]
+    radius_scale: Annotated[list[float], Field(min_length=2, max_length=2)] = [0.9, 1.1]
+    phase: Literal["depth", "zero", "random"] = "depth"
+    seed: Annotated[int, Field(ge=0)] = 0
+    # [model.profiles] name ("" = [model].profile); optimiser steps and training crop
+    # (0 = [model.train]'s).
+    network: str = ""
+    steps: Annotated[int, Field(ge=0, le=10_000_000)] = 0
+    crop_width_px: Annotated[int, Field(ge=0, le=32768)] = 0
+    crop_height_px: Annotated[int, Field(ge=0, le=32768)] = 0
+    # Held-out views evaluated per split (0 = all); views on the contact sheet; whether to
+    # export a static int8 model (kept only within INT8_MAX_LOSS_DB of the float one).
+    eval_views: Annotated[int, Field(ge=0, le=100_000)] = 0
+    sheet_views: Annotated[int, Field(ge=1, le=6)] = 3
+    int8: bool = True
+
+    @model_validator(mode="after")
+    def _ranges_ordered(self) -> BuildRecipe:
+        for name in ("azimuth_deg", "elevation_deg", "radius_scale"):
+            lo, hi = _finite(name, getattr(self, name))
+            if not lo <= hi:
+                raise ValueError(f"{name} = {getattr(self, name)}: needs low <= high")
+        if not -89 <= self.elevation_deg[0] <= self.elevation_deg[1] <= 89:
+            raise ValueError(f"elevation_deg = {self.elevation_deg}: must lie in [-89, 89]")
+        if not self.radius_scale[0] > 0:
+            raise ValueError(f"radius_scale = {self.radius_scale}: must be > 0")
+        return self
+
+
+def _default_recipes() -> dict[str, BuildRecipe]:
+    return {
+        "quick": BuildRecipe(views=40, width_px=256, height_px=144, steps=1000,
+                             crop_width_px=192, crop_height_px=112, eval_views=4),
+        "default": BuildRecipe(),
+    }
+
+
+class BuildSettings(_Section):
+    """`nhfd model build`: which recipe runs unless --profile says, and the recipes."""
+
+    profile: str = "default"
+    profiles: dict[str, BuildRecipe] = Field(default_factory=_default_recipes)
+
+
 class ModelSettings(_Section):
     profile: str = "fast"
     profiles: dict[str, ModelProfile] = Field(default_factory=_default_profiles)
     train: TrainSettings = TrainSettings()
+    build: BuildSettings = BuildSettings()
 
     @model_validator(mode="after")
     def _profile_exists(self) -> ModelSettings:
@@ -248,6 +303,17 @@ class ModelSettings(_Section):
                 f"profile = {self.profile!r}: not one of the profiles "
                 f"{', '.join(sorted(self.profiles))}"
             )
+        if self.build.profile not in self.build.profiles:
+            raise ValueError(
+                f"build.profile = {self.build.profile!r}: not one of the recipes "
+                f"{', '.join(sorted(self.build.profiles))}"
+            )
+        for name, recipe in self.build.profiles.items():
+            if recipe.network and recipe.network not in self.profiles:
+                raise ValueError(
+                    f"build.profiles.{name}.network = {recipe.network!r}: not one of the "
+                    f"profiles {', '.join(sorted(self.profiles))}"
+                )
         return self
 
 

@@ -1,0 +1,155 @@
+"""`nhfd model build SCENE`: a splat scene to an evaluated, exported (and served) model.
+
+Imports torch, onnx and onnxruntime (through nhfd.models); `nhfd` imports this module only for
+this command.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+from nhfd.config import load_config
+from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.daemon.protocol import RpcError
+from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
+from nhfd.models.train import training_device
+from nhfd.scene.cameras import parse_axis
+
+BUILD_HELP = f"""\
+Choose the poses around the scene, build the dataset, train, export (float32, and int8 where
+it stays within 0.5 dB of it), evaluate the held-out views against the 2D-hologram and black
+baselines with the focus check, and write OUT/report.json and OUT/contact_sheet.png. Stages:
+{", ".join(STAGES)}. Interrupted builds resume (run the same command again): finished stages
+are skipped, the dataset keeps its shards and training its checkpoint. A folder built from
+another scene, recipe or settings is refused unless --force. Recipes: nhfd.toml
+[model.build.profiles] (quick: a first look in minutes; default: the shipped model's recipe).
+With --serve, the scene and the model are loaded into the running daemon (`nhfd serve`).
+"""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("model", help="a scene to a served model in one command",
+                       description=__doc__)  # fmt: skip
+    cmds = p.add_subparsers(dest="model_command", metavar="COMMAND", required=True)
+    b = cmds.add_parser("build", help="build (or resume) a scene's model", description=BUILD_HELP,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    b.add_argument("scene", help="splat scene (.ply, .compressed.ply, .splat, .spz, .glb, .sog)")
+    b.add_argument("--profile", help="recipe from nhfd.toml [model.build.profiles] "
+                   "(default: [model.build].profile)")
+    b.add_argument("--out", help="output folder (default builds/SCENE-PROFILE)")
+    b.add_argument("--device", default="auto",
+                   help="where to train: cpu, cuda, cuda:N or auto (CUDA if torch sees one)")
+    b.add_argument("--workers", type=int, help="dataset processes (default: every core)")
+    b.add_argument("--up", help="scene up axis (default: declared or detected), e.g. --up=-y")
+    b.add_argument("--force", action="store_true",
+                   help="replace a build made from another scene, recipe or settings")
+    b.add_argument("--serve", action="store_true",
+                   help="then load the scene and the model into the running daemon")
+    b.add_argument("--socket", help="the daemon's control socket (default: the configured one)")
+    b.add_argument("--model-dir", help="folder the daemon loads models from, to copy the model "
+                   "into (default: the first of daemon.model_dirs, from here)")
+    b.add_argument("--scene-dir", help="folder the daemon loads scenes from, to copy the scene "
+                   "into (default: the first of daemon.scene_dirs, from here)")
+    b.add_argument("--no-progress", action="store_true", help="no progress bars")
+    b.add_argument("--config", help="nhfd.toml to read the recipes and the optics from")
+    b.set_defaults(handler=run_model_build)
+
+
+def run_model_build(args: argparse.Namespace) -> int:
+    config = load_config(args.config).config
+    if args.up:
+        parse_axis(args.up)
+    device = resolve_device(args.device)
+    training_device(device, check_available=True)  # before hours of dataset, not after
+    recipe = Recipe.from_config(config, args.profile, device=device,
+                                progress=not args.no_progress)  # fmt: skip
+    scene = Path(args.scene)
+    out = Path(args.out) if args.out else Path("builds") / f"{_stem(scene)}-{recipe.name}"
+    t0 = time.perf_counter()
+    res = run_build(scene, out, recipe, config, force=args.force, up=args.up,
+                    workers=args.workers, progress=not args.no_progress)  # fmt: skip
+    r = res.report
+    f = r["heldout"]["float"]
+    print(f"{out}: model.onnx, {f['views']} held-out views: {f['model_psnr_db']:.2f} dB "
+          f"(2D hologram {f['hologram_2d_psnr_db']:.2f}, black {f['black_psnr_db']:.2f}); "
+          f"focus {f['focus_bins_passed']}/{f['focus_bins']} depth bins")
+    if "int8" in r["heldout"]:
+        q = r["heldout"]["int8"]
+        print(f"int8: {q['model_psnr_db']:.2f} dB ({-q['loss_vs_float_db']:+.2f} dB): "
+              + ("kept, model-int8.onnx" if q["kept"] else "not kept"))
+    print(f"report: {out / 'report.json'}, {out / 'contact_sheet.png'}; "
+          f"ran {', '.join(res.ran) or 'nothing'}"
+          + (f", skipped {', '.join(res.skipped)}" if res.skipped else "")
+          + f" in {time.perf_counter() - t0:.0f} s")
+    if args.serve:
+        try:
+            serve(config, scene, out, f"nhf-{_stem(scene)}-{recipe.name}.onnx", args)
+        except (DaemonUnavailable, RpcError, RuntimeError) as exc:
+            # The build is done and kept; only serving it failed.
+            print(f"nhfd model build: --serve: {exc}; the model is built: {out / 'model.onnx'}",
+                  file=sys.stderr)  # fmt: skip
+            return 1
+    return 0
+
+
+def _stem(scene: Path) -> str:
+    name = scene.name
+    for suffix in (".compressed.ply", ".ply", ".splat", ".spz", ".glb", ".gltf", ".sog"):
+        if name.endswith(suffix):
+            return name[: -len(suffix)] or "scene"
+    return scene.stem or "scene"
+
+
+def _place(src: Path, folder: Path, name: str) -> Path:
+    """`src` copied into `folder` as `name` (atomically), unless it already lies there."""
+    folder.mkdir(parents=True, exist_ok=True)
+    if src.resolve().parent == folder.resolve():
+        return src.resolve()
+    dst = folder / name
+    tmp = dst.with_name(dst.name + ".tmp")
+    shutil.copyfile(src, tmp)
+    tmp.replace(dst)
+    return dst.resolve()
+
+
+def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namespace) -> None:
+    """Load the scene and the float model into the running daemon, then show a view from the
+    middle of the trained poses. The daemon reads files only inside its configured folders, so
+    both are copied there first (the original scene: the daemon takes its up axis from its
+    format, as the build did)."""
+    d = config.daemon
+    model_dir = Path(args.model_dir or d.model_dirs[0])
+    scene_dir = Path(args.scene_dir or d.scene_dirs[0])
+    with Client(args.socket, timeout_s=30.0) as c:  # no daemon: nothing is copied
+        model = _place(out / "model.onnx", model_dir, model_name)
+        scene_file = _place(scene, scene_dir, scene.name)
+        for method, path in (("load_scene", scene_file), ("load_model", model)):
+            job = c.call(method, path=str(path))["job"]
+            state = _wait(c, job)
+            if state["state"] != "done":
+                raise RuntimeError(f"{method} {path}: {state.get('error') or state['state']}"
+                                   " (the daemon reads files only inside daemon.scene_dirs and "
+                                   "daemon.model_dirs: see --scene-dir, --model-dir)")
+            print(f"{method}: {path}", file=sys.stderr)
+        report = json.loads((out / "report.json").read_text())
+        r = report["recipe"]
+        orbit = {"azimuth_deg": sum(r["azimuth_deg"]) / 2,
+                 "elevation_deg": sum(r["elevation_deg"]) / 2,
+                 "radius": report["scene"]["suggested_distance"] * sum(r["radius_scale"]) / 2}
+        c.call("set_view", orbit=orbit)
+    print(f"serving {model.name} on {scene_file.name}; view: orbit {orbit['azimuth_deg']:.0f}, "
+          f"{orbit['elevation_deg']:.0f}, {orbit['radius']:.3g} (inside the trained poses)")
+
+
+def _wait(client: Client, job_id: int, timeout_s: float = 600.0) -> dict:
+    end = time.monotonic() + timeout_s
+    while True:
+        job = client.call("job", id=job_id)
+        if job["state"] not in ("queued", "running") or time.monotonic() > end:
+            return job
+        time.sleep(0.1)

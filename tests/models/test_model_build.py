@@ -1,0 +1,240 @@
+"""`nhfd model build`: the whole chain on a tiny recipe, its resume, its refusals, its report."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import struct
+from pathlib import Path
+
+import pytest
+
+from nhfd.config import Config
+from nhfd.models import build as mb
+from nhfd.models.build import STAGES, Recipe, run_build
+from nhfd.models.train import TrainOptions
+
+SCENE = Path(__file__).parents[1] / "data" / "formats" / "donut-crop.ply"
+
+
+def tiny_recipe(**kw) -> Recipe:
+    train = TrainOptions(width=8, depth=2, unshuffle=1, inputs="rgbd", steps=40,
+                         crop_width_px=32, crop_height_px=32, checkpoint_every=10, val_views=1,
+                         progress=False, threads=1)  # fmt: skip
+    base = dict(name="tiny", views=8, width_px=48, height_px=32, fov_x_deg=40.0,
+                azimuth_deg=(-20.0, 20.0), elevation_deg=(10.0, 30.0), radius_scale=(0.9, 1.1),
+                phase="depth", seed=0, eval_views=0, sheet_views=2, int8=True, train=train)
+    base.update(kw)
+    return Recipe(**base)
+
+
+def _png_size(path: Path) -> tuple[int, int]:
+    head = path.read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n"
+    return struct.unpack(">II", head[16:24])
+
+
+def _fingerprints(out: Path) -> dict[str, tuple[int, str]]:
+    files = [p for p in out.rglob("*") if p.is_file() and p.name != mb.STATE]
+    return {str(p.relative_to(out)): (p.stat().st_mtime_ns,
+                                      hashlib.sha256(p.read_bytes()).hexdigest())
+            for p in files}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory):
+    """A build interrupted by a failure in training, then rerun to the end."""
+    out = tmp_path_factory.mktemp("build") / "donut"
+    logs: list[str] = []
+    real_train = mb.train
+
+    def failing_train(*a, **k):
+        raise RuntimeError("injected failure in training")
+
+    mb.train = failing_train
+    try:
+        with pytest.raises(RuntimeError, match="injected failure"):
+            run_build(SCENE, out, tiny_recipe(), Config(), workers=1, log=logs.append,
+                      progress=False)  # fmt: skip
+    finally:
+        mb.train = real_train
+    state = json.loads((out / mb.STATE).read_text())
+    after_failure = {s: e.get("done") for s, e in state["stages"].items()}
+    shards = {p.name: p.stat().st_mtime_ns for p in (out / "dataset").glob("view_*.npz")}
+    logs.clear()
+    res = run_build(SCENE, out, tiny_recipe(), Config(), workers=1, log=logs.append,
+                    progress=False)  # fmt: skip
+    return out, res, after_failure, shards, list(logs)
+
+
+def test_a_failure_in_training_keeps_the_dataset_and_the_rerun_continues_from_train(built):
+    out, res, after_failure, shards, logs = built
+    assert after_failure == {"scene": True, "reduce": True, "dataset": True, "train": False}
+    assert res.skipped == ["scene", "reduce", "dataset"]
+    assert res.ran == ["train", "export", "eval", "report"]
+    assert any(line == "[3/7] dataset: skipped (done, inputs unchanged)" for line in logs)
+    # the dataset's shards were not rewritten by the rerun
+    assert {p.name: p.stat().st_mtime_ns for p in (out / "dataset").glob("view_*.npz")} == shards
+    assert len(shards) == 8
+
+
+def test_the_build_writes_the_model_the_report_and_the_contact_sheet(built):
+    out, res, *_ = built
+    report = json.loads((out / "report.json").read_text())
+    assert report == res.report
+    f = report["heldout"]["float"]
+    for key in ("model_psnr_db", "hologram_2d_psnr_db", "black_psnr_db", "model_ssim",
+                "margin_over_2d_db", "focus_bins_passed", "focus_bins", "psnr_vs_angle"):
+        assert key in f, key
+    assert f["views"] == 2  # one interpolation and one extrapolation view of 8 poses
+    assert f["model_psnr_db"] > f["black_psnr_db"] + 1  # even 40 steps beat black
+    assert report["checks"]["beats_black"] is True
+    assert f["angle_reference"].startswith("the poses the model was trained on")
+    # held-out views lie off the training poses
+    assert all(angle > 0 for angle, _ in f["psnr_vs_angle"])
+    assert report["reduce"] == {"reduced": False, "gaussians": 2108}
+    assert [v["n_views"] for v in report["dataset"]["light_field_views"]] == [81, 49, 36]
+    m = report["dataset"]["depth_mapping"]
+    assert m["z_max_m"] == pytest.approx(3e-3) and m["d_near"] < m["d_far"]
+    assert (out / "model.onnx").stat().st_size > 1000
+    q = report["heldout"]["int8"]
+    assert q["kept"] == (q["loss_vs_float_db"] <= mb.INT8_MAX_LOSS_DB)
+    assert (out / "model-int8.onnx").exists() == q["kept"]
+    assert set(report["stages"]) == set(STAGES)
+    assert all(s["seconds"] > 0 for s in report["stages"].values())
+    assert report["stages"]["train"]["peak_rss_mb"] > 50  # torch alone is more
+    sheet = report["contact_sheet"]
+    assert _png_size(out / "contact_sheet.png") == tuple(sheet["size_px"])
+    from nhfd.models.contact_sheet import sheet_size_px
+
+    assert tuple(sheet["size_px"]) == sheet_size_px(2, (32, 48))
+    for v in sheet["views"]:
+        assert v["near_focus_mm"] > v["far_focus_mm"]  # near content has the larger z_h
+
+
+def test_a_rerun_skips_every_stage_and_touches_no_file(built):
+    out, *_ = built
+    before = _fingerprints(out)
+    logs: list[str] = []
+    res = run_build(SCENE, out, tiny_recipe(), Config(), workers=1, log=logs.append,
+                    progress=False)  # fmt: skip
+    assert res.ran == [] and res.skipped == list(STAGES)
+    assert [line.split(": ", 1)[1] for line in logs] == \
+        ["skipped (done, inputs unchanged)"] * len(STAGES)
+    assert _fingerprints(out) == before
+
+
+def test_another_recipe_or_scene_is_refused_without_force(built, tmp_path):
+    out, *_ = built
+    before = _fingerprints(out)
+    with pytest.raises(ValueError, match=rf"{out} holds a build of .* with profile 'tiny', not "
+                       r"of .* with profile 'other'; use another --out, or --force"):
+        run_build(SCENE, out, tiny_recipe(name="other"), Config(), progress=False,
+                  log=lambda _m: None)  # fmt: skip
+    with pytest.raises(ValueError, match=r"the train stage was built with other settings.*"
+                       r"--force to redo it"):
+        run_build(SCENE, out, mb.recipe_with(tiny_recipe(), steps=41), Config(),
+                  progress=False, log=lambda _m: None)  # fmt: skip
+    assert _fingerprints(out) == before
+    stray = tmp_path / "stray"
+    stray.mkdir()
+    (stray / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"holds files that are not a model build.*--force"):
+        run_build(SCENE, stray, tiny_recipe(), Config(), progress=False, log=lambda _m: None)
+
+
+def test_recipes_come_from_the_configuration():
+    config = Config()
+    default = Recipe.from_config(config)
+    assert default.name == "default" and default.views == 130
+    assert (default.width_px, default.height_px) == (512, 288)
+    # the default recipe trains as `nhfd train` does by default (the shipped model's recipe)
+    assert default.train == TrainOptions.from_config(config)
+    quick = Recipe.from_config(config, "quick")
+    assert quick.train.steps < default.train.steps and quick.views < default.views
+    with pytest.raises(ValueError, match=r"--profile 'huge': not one of the recipes default, "
+                       r"quick"):
+        Recipe.from_config(config, "huge")
+
+
+@pytest.mark.parametrize("toml,message", [
+    ('[model.build]\nprofile = "nope"', "build.profile = 'nope': not one of the recipes "
+     "default, quick"),
+    ('[model.build.profiles.quick]\nnetwork = "huge"',
+     "build.profiles.quick.network = 'huge': not one of the profiles accurate, balanced"),
+    ("[model.build.profiles.quick]\nelevation_deg = [10.0, 95.0]",
+     r"elevation_deg = \[10.0, 95.0\]: must lie in \[-89, 89\]"),
+    ("[model.build.profiles.quick]\nviews = 2", r"model.build.profiles.quick.views.*2"),
+])  # fmt: skip
+def test_bad_recipes_are_refused_naming_the_key(tmp_path, toml, message):
+    from nhfd.config import load_config
+
+    path = tmp_path / "nhfd.toml"
+    path.write_text(toml + "\n")
+    with pytest.raises(ValueError, match=message):
+        load_config(path)
+
+
+def test_a_recipe_of_ones_own_takes_the_default_recipe_for_what_it_leaves_out(tmp_path):
+    from nhfd.config import load_config
+
+    path = tmp_path / "nhfd.toml"
+    path.write_text("[model.build.profiles.mine]\nsteps = 200\n")
+    mine = Recipe.from_config(load_config(path).config, "mine")
+    assert mine.train.steps == 200 and mine.views == 130 and mine.train.profile == "fast"
+
+
+def test_cli_refuses_a_bad_device_and_a_bad_profile(tmp_path, capsys):
+    from nhfd.cli.main import main
+
+    assert main(["model", "build", str(SCENE), "--out", str(tmp_path / "o"), "--device",
+                 "tpu"]) == 2  # fmt: skip
+    assert "--device 'tpu': must be cpu, cuda, cuda:N or auto" in capsys.readouterr().err
+    assert main(["model", "build", str(SCENE), "--out", str(tmp_path / "o"), "--profile",
+                 "huge"]) == 2  # fmt: skip
+    assert "--profile 'huge'" in capsys.readouterr().err
+    import torch
+
+    if not torch.cuda.is_available():  # refused before any stage runs, not after the dataset
+        assert main(["model", "build", str(SCENE), "--out", str(tmp_path / "o"), "--device",
+                     "cuda"]) == 2  # fmt: skip
+        assert "device = 'cuda': this machine's torch sees 0 CUDA" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "o")
+
+
+def test_serve_loads_the_scene_and_the_model_into_a_running_daemon(built, tmp_path_factory):
+    import argparse
+    import contextlib
+    import shutil
+    import tempfile
+
+    from nhfd.cli.cmd_model import serve
+    from tests.daemon.conftest import Running, bench_config
+
+    out, *_ = built
+    root = Path(tempfile.mkdtemp(prefix="nhfd-mb-", dir="/tmp"))  # a short socket path
+    config = bench_config(root, None)
+    running = Running(config, root)
+    try:
+        args = argparse.Namespace(model_dir=None, scene_dir=None, socket=str(running.socket))
+        # relative folders are the daemon's (its base_dir is root): serve from there
+        cwd = os.getcwd()
+        os.chdir(root)
+        try:
+            serve(config, SCENE, out, "nhf-donut-crop-tiny.onnx", args)
+        finally:
+            os.chdir(cwd)
+        status = running.client().status()
+        assert Path(status["scene"]["path"]) == root / "scenes" / SCENE.name
+        assert status["scene"]["gaussians"] == 2108
+        assert Path(status["model"]["path"]).name == "nhf-donut-crop-tiny.onnx"
+        assert (root / "models" / "nhf-donut-crop-tiny.onnx").read_bytes() == \
+            (out / "model.onnx").read_bytes()
+        view = status["view"]["requested"]
+        assert view["kind"] == "orbit" and view["azimuth_deg"] == 0.0  # middle of [-20, 20]
+        assert view["elevation_deg"] == 20.0
+    finally:
+        with contextlib.suppress(Exception):
+            running.stop()
+        shutil.rmtree(root, ignore_errors=True)
