@@ -16,18 +16,20 @@ render time. `reduce_scene` removes them in three steps, each against the same r
 2. **SH bands** (measured on the check views). The highest band is dropped while the rendered
    change against the original scene stays within `grey_levels / 255` on every check view
    (sRGB clipped to [0, 1], and alpha); the first band that would exceed it is kept.
-3. **Faint Gaussians** (measured on the check views). Each Gaussian's largest compositing
-   weight `alpha * T` over the check views' pixels is recorded by a copy of the compositor;
-   Gaussians below a threshold (starting at what is left of the budget after step 2) are
-   dropped, and the threshold halves until the reduced scene renders within `grey_levels / 255`
-   of the original on every check view. Gaussians that no check view draws are kept (their
-   contribution was not measured).
+3. **Faint Gaussians** (weighed on more views, checked on the check views). Each Gaussian's
+   largest compositing weight `alpha * T` is recorded by a copy of the compositor over the check
+   views and, of every light field in the envelope, its unmoved and four corner views
+   (`weight_cameras`: occlusion changes most between them). Gaussians below a threshold
+   (starting at what is left of the budget after step 2) are dropped, and the threshold halves
+   until the reduced scene renders within `grey_levels / 255` of the original on every check
+   view. Gaussians that none of those views draws are kept (their weight was not measured).
 
 Steps 2 and 3 render the check views: all envelope cameras when there are at most
 `check_views`, else `check_views` of them spread evenly over the list (a dataset's envelope has
-~10^4 light-field views; their neighbours differ by a fraction of a pixel's shift). The report's
-`max_grey_change` is the final scene's largest change against the original over those views, in
-grey levels; frustum culling adds nothing to it anywhere in the envelope.
+~10^4 light-field views). The report's `max_grey_change` is the final scene's largest change
+against the original over the check views, in grey levels; frustum culling adds nothing to it
+anywhere in the envelope. Views that were not checked can change more (docs/scenes.md gives the
+change measured on held-out views of the shared scenes).
 """
 
 from __future__ import annotations
@@ -62,6 +64,7 @@ __all__ = [
     "reduce_scene",
     "truncate_sh",
     "visible_anywhere",
+    "weight_cameras",
 ]
 
 
@@ -73,8 +76,10 @@ class CullReport:
     plane, or too faint for the renderer to draw at all). `max_grey_change`: the largest change of
     any checked pixel (sRGB clipped to [0, 1], or alpha) between the original and the reduced
     scene, in grey levels (1/255); `sh_grey_change` the part of it measured after dropping SH
-    bands only. `render_s_before` / `_after`: seconds to render `n_views_timed` envelope views
-    (best of two) with the original and the reduced scene."""
+    bands only; `sh_next_grey_change` what dropping the band that was kept would have changed
+    (None when no band was kept above degree 0, or SH was not pruned). `render_s_before` /
+    `_after`: seconds to render `n_views_timed` envelope views (per view the best of three, the
+    two scenes alternating) with the original and the reduced scene."""
 
     n_gaussians_in: int
     n_kept: int
@@ -89,8 +94,10 @@ class CullReport:
     n_views_envelope: int
     n_views_checked: int
     n_views_timed: int
+    n_views_weighed: int
     render_s_before: float
     render_s_after: float
+    sh_next_grey_change: float | None = None
 
     @property
     def kept_fraction(self) -> float:
@@ -235,22 +242,38 @@ def max_weights(g: Gaussians, cameras: Sequence[Camera],
     import numba
 
     best = np.full(len(g), -1.0)
-    for cam in cameras:
-        prep = prepare(g, cam)
+    if len(g) == 0:
+        return best
+    for base, members in _groups(cameras):
+        prep = prepare(g, base)
         if prep.order.shape[0] == 0:
             continue
-        rec, counts = _project(prep, cam, (0.0, 0.0), prep.order, settings)
-        w, h, tile = int(cam.width_px), int(cam.height_px), settings.tile_px
-        offsets = np.zeros(counts.shape[0] + 1, np.int64)
-        np.cumsum(counts, out=offsets[1:])
-        tiles = k.fill_tile_ids(rec, counts, offsets, tile, w, h)
-        n_tiles = ((w + tile - 1) // tile) * ((h + tile - 1) // tile)
-        starts, gauss = k.sort_by_tile(tiles, counts, offsets, n_tiles)
-        out = np.zeros((numba.get_num_threads(), counts.shape[0]))
-        _max_weights_kernel(rec, starts, gauss, tile, w, h, out)
-        per = np.where(counts > 0, out.max(0), -1.0)
-        np.maximum.at(best, prep.order, per)
+        for _, cam, shift in members:
+            rec, counts = _project(prep, cam, shift, prep.order, settings)
+            w, h, tile = int(cam.width_px), int(cam.height_px), settings.tile_px
+            offsets = np.zeros(counts.shape[0] + 1, np.int64)
+            np.cumsum(counts, out=offsets[1:])
+            tiles = k.fill_tile_ids(rec, counts, offsets, tile, w, h)
+            n_tiles = ((w + tile - 1) // tile) * ((h + tile - 1) // tile)
+            starts, gauss = k.sort_by_tile(tiles, counts, offsets, n_tiles)
+            out = np.zeros((numba.get_num_threads(), counts.shape[0]))
+            _max_weights_kernel(rec, starts, gauss, tile, w, h, out)
+            np.maximum.at(best, prep.order, np.where(counts > 0, out.max(0), -1.0))
     return np.where(best < 0, np.inf, best)
+
+
+def weight_cameras(cameras: Sequence[Camera]) -> list[Camera]:
+    """Of each light field (cameras sharing a rotation), the unmoved views and the four corner
+    views (extreme sideways moves): where occlusion differs most across the field."""
+    out = []
+    for _, members in _groups(cameras):
+        shifts = np.array([m[2] for m in members])
+        pick = set(np.flatnonzero((shifts == 0).all(1)).tolist())
+        for sx in (shifts[:, 0].min(), shifts[:, 0].max()):
+            for sy in (shifts[:, 1].min(), shifts[:, 1].max()):
+                pick.add(int(np.argmin(np.hypot(shifts[:, 0] - sx, shifts[:, 1] - sy))))
+        out.extend(members[i][1] for i in sorted(pick))
+    return out
 
 
 def truncate_sh(g: Gaussians, degree: int) -> Gaussians:
@@ -281,16 +304,20 @@ def _spread(n: int, count: int) -> list[int]:
     return sorted({round(float(v)) for v in np.linspace(0, n - 1, count)})
 
 
-def _render_seconds(g: Gaussians, cameras: Sequence[Camera], settings: RasterSettings) -> float:
-    total = 0.0
+def _render_seconds(a: Gaussians, b: Gaussians, cameras: Sequence[Camera],
+                    settings: RasterSettings, rounds: int = 3) -> tuple[float, float]:
+    """Seconds to render `cameras` with `a` and with `b`: per view the best of `rounds`, the two
+    scenes alternating, so that load from other processes on a shared machine falls on both."""
+    ta = tb = 0.0
     for cam in cameras:
-        best = math.inf
-        for _ in range(2):  # best of two: the machine is shared
-            t0 = time.perf_counter()
-            render(g, cam, settings)
-            best = min(best, time.perf_counter() - t0)
-        total += best
-    return total
+        best = [math.inf, math.inf]
+        for _ in range(rounds):
+            for j, g in enumerate((a, b)):
+                t0 = time.perf_counter()
+                render(g, cam, settings)
+                best[j] = min(best[j], time.perf_counter() - t0)
+        ta, tb = ta + best[0], tb + best[1]
+    return ta, tb
 
 
 def reduce_scene(
@@ -323,23 +350,26 @@ def reduce_scene(
     n_in, deg_in = len(g), g.sh_degree
 
     seen = visible_anywhere(g, cameras, settings)
-    reduced = g.subset(np.flatnonzero(seen))
+    reduced = g if seen.all() else g.subset(np.flatnonzero(seen))
     n_frustum = n_in - len(reduced)
 
     checks = [cameras[i] for i in _spread(len(cameras), check_views)]
     reference = [_shown(render(g, cam, settings)) for cam in checks]
 
-    sh_change = 0.0
+    sh_change, sh_next = 0.0, None
     while prune_sh and reduced.sh_degree > 0:
         candidate = truncate_sh(reduced, reduced.sh_degree - 1)
         change = max_change(candidate, checks, reference, settings)
         if change > tol:
+            sh_next = change / GREY_LEVEL
             break
         reduced, sh_change = candidate, change
 
-    n_faint, threshold, change_now = 0, 0.0, sh_change
+    n_faint, threshold, change_now, n_weighed = 0, 0.0, sh_change, 0
     if cull_faint and len(reduced) and tol - sh_change > 0:
-        weights = max_weights(reduced, checks, settings)
+        weighed = checks + weight_cameras(cameras)
+        n_weighed = len(weighed)
+        weights = max_weights(reduced, weighed, settings)
         t = tol - sh_change
         for _ in range(MAX_HALVINGS + 1):
             drop = weights < t
@@ -356,14 +386,18 @@ def reduce_scene(
         # Only frustum culling ran: equal by construction; measured all the same.
         change_now = max_change(reduced, checks, reference, settings)
     timed = [checks[i] for i in _spread(len(checks), timing_views)] if timing_views else []
+    if reduced is g:
+        before = after = _render_seconds(g, g, timed, settings, rounds=2)[0]
+    else:
+        before, after = _render_seconds(g, reduced, timed, settings)
     report = CullReport(
         n_gaussians_in=n_in, n_kept=len(reduced), n_culled_frustum=n_frustum,
         n_culled_contribution=n_faint, sh_degree_in=deg_in, sh_degree_out=reduced.sh_degree,
         max_grey_change=change_now / GREY_LEVEL, sh_grey_change=sh_change / GREY_LEVEL,
         grey_levels=float(grey_levels), contribution_threshold=threshold,
         n_views_envelope=len(cameras), n_views_checked=len(checks), n_views_timed=len(timed),
-        render_s_before=_render_seconds(g, timed, settings),
-        render_s_after=_render_seconds(reduced, timed, settings),
+        n_views_weighed=n_weighed, render_s_before=before, render_s_after=after,
+        sh_next_grey_change=sh_next,
     )  # fmt: skip
     return reduced, report
 
