@@ -79,7 +79,9 @@ class CullReport:
     bands only; `sh_next_grey_change` what dropping the band that was kept would have changed
     (None when no band was kept above degree 0, or SH was not pruned). `render_s_before` /
     `_after`: seconds to render `n_views_timed` envelope views (per view the best of three, the
-    two scenes alternating) with the original and the reduced scene."""
+    two scenes alternating) with the original and the reduced scene; on a shared machine they
+    move with its load, so `tile_pairs_before` / `_after` give the same views' work as the
+    (Gaussian, tile) pairs composited, which does not."""
 
     n_gaussians_in: int
     n_kept: int
@@ -98,6 +100,8 @@ class CullReport:
     render_s_before: float
     render_s_after: float
     sh_next_grey_change: float | None = None
+    tile_pairs_before: int = 0
+    tile_pairs_after: int = 0
 
     @property
     def kept_fraction(self) -> float:
@@ -108,9 +112,15 @@ class CullReport:
         b = self.render_s_before
         return (b - self.render_s_after) / b if b > 0 else 0.0
 
+    @property
+    def work_saved_fraction(self) -> float:
+        b = self.tile_pairs_before
+        return (b - self.tile_pairs_after) / b if b > 0 else 0.0
+
     def to_dict(self) -> dict:
         return {**asdict(self), "kept_fraction": self.kept_fraction,
-                "render_saved_fraction": self.render_saved_fraction}
+                "render_saved_fraction": self.render_saved_fraction,
+                "work_saved_fraction": self.work_saved_fraction}
 
     def summary(self) -> str:
         return (f"kept {self.n_kept} of {self.n_gaussians_in} Gaussians "
@@ -119,7 +129,8 @@ class CullReport:
                 f"{self.sh_degree_out}; max change {self.max_grey_change:.2f} grey levels over "
                 f"{self.n_views_checked} of {self.n_views_envelope} views; render "
                 f"{self.render_s_before:.3f} -> {self.render_s_after:.3f} s "
-                f"({100 * self.render_saved_fraction:.0f}% saved, {self.n_views_timed} views)")
+                f"({100 * self.render_saved_fraction:.0f}% saved, {self.n_views_timed} views; "
+                f"{100 * self.work_saved_fraction:.0f}% fewer splat-tile pairs)")
 
 
 def envelope_light_field_cameras(
@@ -305,19 +316,23 @@ def _spread(n: int, count: int) -> list[int]:
 
 
 def _render_seconds(a: Gaussians, b: Gaussians, cameras: Sequence[Camera],
-                    settings: RasterSettings, rounds: int = 3) -> tuple[float, float]:
+                    settings: RasterSettings, rounds: int = 3) -> tuple[float, float, int, int]:
     """Seconds to render `cameras` with `a` and with `b`: per view the best of `rounds`, the two
-    scenes alternating, so that load from other processes on a shared machine falls on both."""
-    ta = tb = 0.0
+    scenes alternating, so that load from other processes on a shared machine falls on both;
+    and the (Gaussian, tile) pairs each composited, a measure of work that no load changes."""
+    seconds, pairs = [0.0, 0.0], [0, 0]
     for cam in cameras:
-        best = [math.inf, math.inf]
+        best, work = [math.inf, math.inf], [0, 0]
         for _ in range(rounds):
             for j, g in enumerate((a, b)):
                 t0 = time.perf_counter()
-                render(g, cam, settings)
+                stats = render(g, cam, settings).stats
                 best[j] = min(best[j], time.perf_counter() - t0)
-        ta, tb = ta + best[0], tb + best[1]
-    return ta, tb
+                work[j] = int(stats.get("tile_pairs", 0))
+        for j in range(2):
+            seconds[j] += best[j]
+            pairs[j] += work[j]
+    return seconds[0], seconds[1], pairs[0], pairs[1]
 
 
 def reduce_scene(
@@ -387,9 +402,10 @@ def reduce_scene(
         change_now = max_change(reduced, checks, reference, settings)
     timed = [checks[i] for i in _spread(len(checks), timing_views)] if timing_views else []
     if reduced is g:
-        before = after = _render_seconds(g, g, timed, settings, rounds=2)[0]
+        before, _, pairs_before, _ = _render_seconds(g, g, timed, settings, rounds=2)
+        after, pairs_after = before, pairs_before
     else:
-        before, after = _render_seconds(g, reduced, timed, settings)
+        before, after, pairs_before, pairs_after = _render_seconds(g, reduced, timed, settings)
     report = CullReport(
         n_gaussians_in=n_in, n_kept=len(reduced), n_culled_frustum=n_frustum,
         n_culled_contribution=n_faint, sh_degree_in=deg_in, sh_degree_out=reduced.sh_degree,
@@ -397,7 +413,8 @@ def reduce_scene(
         grey_levels=float(grey_levels), contribution_threshold=threshold,
         n_views_envelope=len(cameras), n_views_checked=len(checks), n_views_timed=len(timed),
         n_views_weighed=n_weighed, render_s_before=before, render_s_after=after,
-        sh_next_grey_change=sh_next,
+        sh_next_grey_change=sh_next, tile_pairs_before=pairs_before,
+        tile_pairs_after=pairs_after,
     )  # fmt: skip
     return reduced, report
 

@@ -242,6 +242,8 @@ def test_report_counts_add_up_and_serialise():
     assert d["n_culled_frustum"] == 10
     assert d["n_views_envelope"] == 18 and d["n_views_checked"] == 18 and d["n_views_timed"] == 2
     assert d["render_s_before"] > 0 and d["render_s_after"] > 0
+    # Fewer splats composited: the work (splat-tile pairs) of the timed views goes down.
+    assert 0 < d["tile_pairs_after"] < d["tile_pairs_before"]
     assert f"kept {d['n_kept']} of {len(g)}" in report.summary()
 
 
