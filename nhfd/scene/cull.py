@@ -128,7 +128,7 @@ class CullReport:
                 f"{self.n_culled_contribution} too faint), SH degree {self.sh_degree_in} -> "
                 f"{self.sh_degree_out}; max change {self.max_grey_change:.2f} grey levels over "
                 f"{self.n_views_checked} of {self.n_views_envelope} views; render "
-                f"{self.render_s_before:.3f} -> {self.render_s_after:.3f} s "
+                f"{1e3 * self.render_s_before:.1f} -> {1e3 * self.render_s_after:.1f} ms "
                 f"({100 * self.render_saved_fraction:.0f}% saved, {self.n_views_timed} views; "
                 f"{100 * self.work_saved_fraction:.0f}% fewer splat-tile pairs)")
 
