@@ -12,6 +12,9 @@ import numpy as np
 import pytest
 
 from nhfd.cli.main import main
+from nhfd.dataset.envelope import dataset_envelope
+from nhfd.dataset.poses import Pose
+from nhfd.dataset.shard import ExampleSettings, camera_distance
 from nhfd.scene.cameras import Camera, intrinsics_from_fov, look_at
 from nhfd.scene.cull import (
     GREY_LEVEL,
@@ -263,10 +266,6 @@ def test_envelope_cameras_are_the_light_field_views():
 
 
 def test_dataset_envelope_holds_every_view_the_build_renders():
-    from nhfd.dataset.envelope import dataset_envelope
-    from nhfd.dataset.poses import Pose
-    from nhfd.dataset.shard import ExampleSettings, camera_distance
-
     rng = np.random.default_rng(2)
     g = scene(splats(rng, 80, (-0.5, -0.4, 2.0), (0.5, 0.4, 3.0)))
     settings = ExampleSettings(width_px=64, height_px=36)
