@@ -17,7 +17,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "demo",
         help="run the daemon on the simulated bench: views, a focus sweep, captures -> out/demo",
         description="Start the daemon on the simulated bench with the shipped model "
-        "(models/nhf-donut-512.onnx) and the donut scene, move the view along a short orbit, "
+        "(models/nhf-donut-512.onnx) and the donut scene, or with --model and --scene your own "
+        "(the model must have been trained on that scene for the configured optics and panel), "
+        "move the view along a short orbit, "
         "sweep the camera's focus from the near to the far end of the hologram volume with the "
         "green laser armed at its cap, and write the rendered views, the SLM phase frames, a "
         "contact sheet of the captures and summary.json (per-stage timings) to --out. "
@@ -25,10 +27,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--config", help="configuration file (default: the search order)")
     p.add_argument("--out", default="out/demo", help="output folder (default out/demo)")
-    p.add_argument("--model", default="models/nhf-donut-512.onnx",
-                   help="exported model (default models/nhf-donut-512.onnx)")
-    p.add_argument("--scene", default="models/scenes/donut.ply",
-                   help="splat scene (default models/scenes/donut.ply)")
+    p.add_argument("--model", default=str(demo.DEFAULT_MODEL), metavar="ONNX",
+                   help="exported model, e.g. one `nhfd model build` made from your scene "
+                   "(default: the shipped models/nhf-donut-512.onnx)")
+    p.add_argument("--scene", default=str(demo.DEFAULT_SCENE), metavar="PATH",
+                   help="the splat scene the model was trained on (default: the shipped "
+                   "models/scenes/donut.ply)")
     p.set_defaults(handler=run_daemon_demo)
     which = p.add_subparsers(dest="which", metavar="optics", required=False)
     o = which.add_parser(
@@ -46,15 +50,16 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run_daemon_demo(args: argparse.Namespace) -> int:
     model, scene = Path(args.model), Path(args.scene)
-    if not model.is_file():
-        print("nhfd demo: " + demo.HOW_TO_BUILD.format(model=model), file=sys.stderr)
-        return 3
-    if not scene.is_file():
-        print(f"nhfd demo: the scene {scene} is not there (it ships in models/scenes/)",
-              file=sys.stderr)
-        return 3
     loaded = load_config(args.config)
+    try:
+        # Before the daemon starts: a missing file, or a model for another scene, optics or
+        # panel (a ValueError naming both), is reported here instead of as a load that fails.
+        demo.check_model_and_scene(model, scene, loaded.config)
+    except FileNotFoundError as exc:
+        print(f"nhfd demo: {exc}", file=sys.stderr)
+        return 3
     print(f"nhfd demo: configuration {loaded.path or 'packaged default'}", flush=True)
+    print(f"nhfd demo: model {model}, scene {scene}", flush=True)
     out = Path(args.out)
     summary = demo.run(out, config=loaded.config, model=model, scene=scene)
     med = summary["stages_ms_median"]

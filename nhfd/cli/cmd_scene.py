@@ -1,7 +1,9 @@
-"""`nhfd scene info|render`: what a splat scene holds, and one view of it (RGB, depth, alpha).
+"""`nhfd scene info|render|reduce`: what a splat scene holds, one view of it (RGB, depth,
+alpha), and the scene reduced to what a dataset's pose envelope shows (nhfd.scene.cull).
 
 Imported only when `nhfd scene` runs (nhfd.cli.main's registry); numba compiles the renderer's
-kernels on first use, matplotlib (the depth colour map) loads only when a depth PNG is written.
+kernels on first use, matplotlib (the depth colour map) loads only when a depth PNG is written,
+and `reduce` loads the dataset's envelope (nhfd.dataset.envelope: torch) only when it runs.
 """
 
 from __future__ import annotations
@@ -21,8 +23,9 @@ from PIL import Image
 from PIL.PngImagePlugin import PngInfo
 
 from nhfd.cli.args import MAX_SIDE_PX, parse_wxh
+from nhfd.config import load_config
 from nhfd.scene import cameras
-from nhfd.scene.io import read_scene, scene_summary
+from nhfd.scene.io import read_scene, save_ply, scene_summary
 from nhfd.scene.raster import RasterSettings, render
 from nhfd.scene.suggest import detect_up_axis, format_hint, robust_frame, suggest_camera
 
@@ -62,6 +65,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
     _register_info(verbs)
     _register_render(verbs)
+    _register_reduce(verbs)
 
 
 def _add_view_options(p: argparse.ArgumentParser) -> None:
@@ -113,6 +117,42 @@ def _register_render(verbs: argparse._SubParsersAction) -> None:
                         help="antialiased splatting (opacity-compensated dilation); use for "
                         "scenes trained with it, e.g. Mip-Splatting")
     render.set_defaults(handler=_render)
+
+
+def _register_reduce(verbs: argparse._SubParsersAction) -> None:
+    reduce = verbs.add_parser(
+        "reduce",
+        help="cull what a dataset's pose envelope cannot show; drop SH bands that change no "
+        "pixel by a grey level",
+        description="Make the cameras `nhfd dataset build` would render with the same options "
+        "(every pose's light field and its depth-pass view), then cull the Gaussians no view "
+        "draws and those too faint to change any checked pixel by more than --grey-levels, and "
+        "drop SH bands within the same tolerance (nhfd.scene.cull). Prints what was kept, the "
+        "largest change, the render time saved, and the depth mapping, light-field views and "
+        "focal planes of the envelope; with -o writes the reduced scene as an INRIA .ply.",
+        epilog="example:\n  nhfd scene reduce guitar.compressed.ply -o guitar-reduced.ply "
+        "--size 512x288\n  nhfd dataset build --scene guitar-reduced.ply --up=-y ...",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    reduce.add_argument("file", metavar="FILE", help="scene file (any format `scene info` reads)")
+    reduce.add_argument("-o", "--out", metavar="PLY", help="write the reduced scene (.ply)")
+    _add_view_options(reduce)
+    reduce.add_argument("--views", type=int, default=130, help="poses (default 130)")
+    reduce.add_argument("--azimuth", default="-30,30", help="training azimuth sector, degrees")
+    reduce.add_argument("--elevation", default="10,30", help="elevation range, degrees")
+    reduce.add_argument("--radius-scale", default="0.9,1.1",
+                        help="radius range as multiples of the suggested camera distance")
+    reduce.add_argument("--seed", type=int, default=0, help="pose seed (default 0)")
+    reduce.add_argument("--per-colour-views", action="store_true",
+                        help="as `dataset build --per-colour-views`")
+    reduce.add_argument("--config", help="nhfd.toml to take the optics from")
+    reduce.add_argument("--grey-levels", type=float, default=1.0, metavar="G",
+                        help="largest change of a checked pixel, in grey levels of 255 "
+                        "(default 1)")
+    reduce.add_argument("--check-views", type=int, default=24, metavar="N",
+                        help="envelope views rendered to measure changes (default 24)")
+    reduce.add_argument("--json", action="store_true", help="machine-readable output")
+    reduce.set_defaults(handler=_reduce)
 
 
 # --------------------------------------------------------------------------------------------
@@ -415,3 +455,74 @@ def _write_depth(path: str, depth: Any, alpha: Any) -> str:
     img = np.rint(rgb * 255).astype(np.uint8)
     Image.fromarray(img, "RGB").save(_prepare_dir(path), pnginfo=meta)
     return f"{path} (depth, turbo from near {near:.4g} to far {far:.4g})"
+
+
+def _pair(text: str, option: str) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"{option} {text!r}: give two numbers, LOW,HIGH") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
+        raise ValueError(f"{option} {text!r}: need finite LOW <= HIGH")
+    return lo, hi
+
+
+def _reduce(args: argparse.Namespace) -> int:
+    # The envelope needs the dataset's settings, mapping and sampling (torch): loaded here only,
+    # so `scene info` and `scene render` stay light.
+    from nhfd.dataset import envelope as env_mod
+
+    w, h = parse_size(args.size)
+    _check_fov(args.fov)
+    _check_up(args.up)
+    if args.out is not None:
+        _check_output("-o", args.out, (".ply",))
+    if args.views < 1:
+        raise ValueError(f"--views {args.views}: must be >= 1")
+    if not (math.isfinite(args.grey_levels) and 0 <= args.grey_levels <= 255):
+        raise ValueError(f"--grey-levels {args.grey_levels:g}: must be in [0, 255]")
+    if args.check_views < 1:
+        raise ValueError(f"--check-views {args.check_views}: must be >= 1")
+    ranges = {k: _pair(getattr(args, k.replace("-", "_")), f"--{k}")
+              for k in ("azimuth", "elevation", "radius-scale")}
+    config = load_config(args.config).config
+    settings = env_mod.ExampleSettings.from_config(
+        config, width_px=w, height_px=h, fov_x_deg=args.fov,
+        shared_views=not args.per_colour_views)
+    scene = _load(args.file, args.up)
+    if len(scene.g) == 0:
+        raise ValueError(f"{scene.path}: the scene holds no Gaussians; nothing to reduce")
+    sampler = env_mod.default_sampler(scene.g, scene.path, settings, views=args.views, up=scene.up,
+                              azimuth_deg=ranges["azimuth"], elevation_deg=ranges["elevation"],
+                              radius_scale=ranges["radius-scale"], seed=args.seed)
+    t0 = time.perf_counter()
+    env = env_mod.dataset_envelope(scene.g, sampler.sample(), np.array(sampler.center), settings)
+    t1 = time.perf_counter()
+    reduced, report = env_mod.reduce_scene(scene.g, env.cameras, grey_levels=args.grey_levels,
+                                   check_views=args.check_views)
+    t2 = time.perf_counter()
+    out = {"file": str(scene.path), "up_axis": scene.up, "up_reason": scene.up_reason,
+           "envelope": env.describe(), "reduction": report.to_dict(),
+           "seconds": {"envelope": t1 - t0, "reduce": t2 - t1}, "written": None}
+    if args.out is not None:
+        save_ply(args.out, reduced)
+        out["written"] = str(args.out)
+    if args.json:
+        print(json.dumps(out, indent=2))
+        return 0
+    e, m = out["envelope"], out["envelope"]["mapping"]
+    print(f"{scene.path}: up {scene.up} ({scene.up_reason})")
+    print(f"envelope      {e['n_poses']} poses x {e['views_per_pose']} light-field views + "
+          f"{e['n_poses']} depth-pass views = {e['n_cameras']} cameras ({w}x{h}, fov "
+          f"{args.fov:g} deg)")
+    print(f"mapping       d_near {m['d_near']:.4g}, d_far {m['d_far']:.4g} -> z_h in "
+          f"[{m['z_min_m'] * 1e3:+.1f}, {m['z_max_m'] * 1e3:+.1f}] mm")
+    print("windows       " + ", ".join(f"{s['wavelength_nm']:.0f} nm W={s['window']} "
+                                       f"({s['n_views']} views)" for s in e["sampling"]))
+    print("focal planes  " + ", ".join(f"{z * 1e3:+.1f}" for z in e["focal_planes_m"]) + " mm")
+    print(f"reduced       {report.summary()}")
+    print(f"took          envelope {t1 - t0:.1f} s, reduction {t2 - t1:.1f} s")
+    if args.out is not None:
+        # An INRIA .ply carries no up axis; the detector may read it differently from FILE.
+        print(f"wrote {args.out} (INRIA .ply; pass --up={scene.up} when using it)")
+    return 0

@@ -1,7 +1,8 @@
 """`nhfd demo`: the daemon on the simulated bench, driven as a user drives it.
 
 Starts `nhfd serve`'s daemon (in this process, its control loop on a thread; the frame worker is
-its own spawned process) with the shipped model and the donut scene, then over the Unix socket:
+its own spawned process) with the shipped model and the donut scene (or the user's: `--model`,
+`--scene`, checked first by `check_model_and_scene`), then over the Unix socket:
 moves the view along a short orbit inside the model's pose envelope, arms the green laser at its
 power cap, sweeps the camera's focus from the near to the far end of the middle view's content
 and captures the simulated camera, and shuts the daemon down (lasers off). The contact sheet
@@ -19,6 +20,7 @@ which is what a calibration (issue 8) will provide for a real bench.
 
 from __future__ import annotations
 
+import hashlib
 import json
 import struct
 import tempfile
@@ -37,7 +39,7 @@ from nhfd.config import Config, _overlay
 from nhfd.daemon.client import Client
 from nhfd.daemon.service import Daemon
 from nhfd.drivers.simcamera import TrueBench
-from nhfd.models.export import OnnxModel
+from nhfd.models.export import OnnxModel, load_model
 from nhfd.models.inputs import mapped_depth
 from nhfd.optics.color import srgb_to_linear
 from nhfd.optics.refplane import window_offset
@@ -89,6 +91,52 @@ def read_png16(path: Path) -> np.ndarray:
     return rows[:, 1:].copy().view(">u2").astype(np.float64) / 65535.0
 
 
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_model_and_scene(model: Path, scene: Path, config: Any) -> dict[str, Any]:
+    """The demo's model and scene, checked before the daemon starts (which would otherwise wait
+    for a load that fails): both files exist (FileNotFoundError; for the model, how to build
+    it), the model is for the configured optics (`ModelMismatch`, a ValueError naming what
+    differs), it was trained on this scene (its metadata's `scene_sha256` is the file's) and its
+    hologram fits the configured panel (`panel_hw` is the SLM's, the training size within it);
+    each mismatch a ValueError naming the model and the scene or panel. Returns the metadata."""
+    model, scene = Path(model), Path(scene)
+    if not model.is_file():
+        raise FileNotFoundError(HOW_TO_BUILD.format(model=model))
+    if not scene.is_file():
+        raise FileNotFoundError(f"the scene {scene} is not there (the donut ships in "
+                                f"{DEFAULT_SCENE.parent}; pass --scene PATH for another)")
+    meta = load_model(model, config).metadata
+    want = meta.get("scene_sha256")
+    if want:
+        have = _sha256(scene)
+        if have != want:
+            raise ValueError(
+                f"the model {model} was trained on another scene than {scene} (SHA-256 "
+                f"{want[:12]}... in the model's metadata, {have[:12]}... for the file): pass "
+                f"--scene with the scene the model was built from, or --model with a model "
+                f"built from {scene.name}")
+    panel = (int(config.slm.height_px), int(config.slm.width_px))
+    model_panel = tuple(int(v) for v in meta.get("panel_hw") or panel)
+    if model_panel != panel:
+        raise ValueError(
+            f"the model {model} makes holograms for a {model_panel[1]}x{model_panel[0]} panel, "
+            f"the configured SLM ([slm] width_px, height_px) is {panel[1]}x{panel[0]}: use a "
+            f"model trained for this panel")
+    h, w = (int(v) for v in meta["train_size_hw"])
+    if h > panel[0] or w > panel[1]:
+        raise ValueError(
+            f"the model {model} was trained at {w}x{h}, larger than the configured "
+            f"{panel[1]}x{panel[0]} SLM")
+    return meta
+
+
 def demo_config(base: Any, *, model: Path, scene: Path, runtime: Path, captures: Path) -> Any:
     """The user's configuration with the bench forced to the simulated devices, the demo's model,
     scene and folders, a camera region around the hologram window and the focus mapping of the
@@ -128,6 +176,7 @@ def run(out: Path, *, config: Any, model: Path, scene: Path, log: Any = print) -
     matplotlib.use("Agg")
 
     t_start = time.perf_counter()
+    check_model_and_scene(model, scene, config)
     out.mkdir(parents=True, exist_ok=True)
     for sub in ("views", "slm", "captures"):
         (out / sub).mkdir(exist_ok=True)

@@ -1,0 +1,137 @@
+"""Every camera a dataset build renders, before it is built: the pose envelope that
+`nhfd.scene.cull.reduce_scene` reduces a scene to (issue 24, part 3).
+
+A build (`build.plan_manifest`, `shard.make_example`) renders, per pose, a quarter-size depth
+view (the depth pass that fixes the mapping) and the light field of the central camera: one view
+per STFT bin of each group of colours that shares views (`holo.hologram._view_groups`: all
+colours with `shared_views`, else colours with equal slopes), the bin k = 0 being the central
+view itself. `dataset_envelope` makes the same cameras, from the same settings and with the
+same mapping, so nothing the build will render is left out of the envelope.
+
+`default_sampler` is `nhfd dataset build`'s pose sampler with its defaults (the orbit around the
+scene's median at the suggested camera's distance), as a function.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from nhfd.dataset.build import scene_depth_pass
+from nhfd.dataset.poses import Pose, PoseSampler
+from nhfd.dataset.shard import ExampleSettings, camera_distance
+from nhfd.holo import colour_sampling, sampling_report, scene_mapping
+from nhfd.holo.hologram import _view_groups
+from nhfd.optics.quality import quality_planes
+from nhfd.scene.cameras import Camera
+from nhfd.scene.cull import envelope_light_field_cameras, reduce_scene
+from nhfd.scene.gaussians import Gaussians
+from nhfd.scene.lightfield import DepthMapping
+from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
+
+# `nhfd scene reduce` loads this module alone, when it runs, and takes these from it.
+__all__ = ["DEPTH_PASS_SCALE", "Envelope", "ExampleSettings", "dataset_envelope",
+           "default_sampler", "reduce_scene"]
+
+# The depth pass renders at this fraction of the view size (build.scene_depth_pass's default).
+DEPTH_PASS_SCALE = 0.25
+
+
+@dataclass(frozen=True)
+class Envelope:
+    """`cameras`: every view the build renders (depth-pass views first, then each pose's light
+    field, pose-major); `mapping` and its `mapping_report`, the `sampling` report (windows,
+    views per colour), `views_per_pose` (light-field views) and the evaluation's focal planes."""
+
+    cameras: list[Camera]
+    mapping: DepthMapping
+    mapping_report: dict
+    sampling: list[dict]
+    n_poses: int
+    views_per_pose: int
+    focal_planes_m: tuple[float, ...]
+
+    def describe(self) -> dict:
+        m = self.mapping_report
+        return {"n_poses": self.n_poses, "views_per_pose": self.views_per_pose,
+                "n_cameras": len(self.cameras),
+                "mapping": {k: m[k] for k in ("d_near", "d_far", "z_min_m", "z_max_m", "a_m",
+                                              "b_m", "depth_exaggeration") if k in m},
+                "sampling": self.sampling, "focal_planes_m": list(self.focal_planes_m)}
+
+
+def default_sampler(
+    g: Gaussians,
+    scene_path: str | Path,
+    settings: ExampleSettings,
+    *,
+    views: int = 130,
+    up: str | None = None,
+    azimuth_deg: tuple[float, float] = (-30.0, 30.0),
+    elevation_deg: tuple[float, float] = (10.0, 30.0),
+    radius_scale: tuple[float, float] = (0.9, 1.1),
+    seed: int = 0,
+) -> PoseSampler:
+    """`nhfd dataset build`'s sampler for `views` poses (train, interp, extrap as 100:20:10)."""
+    if views < 1:
+        raise ValueError(f"views must be >= 1, got {views}")
+    up = up or detect_up_axis(g, format_hint(scene_path))[0]
+    cam = suggest_camera(g, settings.width_px, settings.height_px, up,
+                         fov_x_deg=settings.fov_x_deg)  # fmt: skip
+    center = np.median(g.means, axis=0)
+    dist = float(np.linalg.norm(cam.position - center))
+    n_interp, n_extrap = round(views * 20 / 130), round(views * 10 / 130)
+    return PoseSampler(
+        center=tuple(float(v) for v in center), up=up,
+        radius=(radius_scale[0] * dist, radius_scale[1] * dist), azimuth_deg=azimuth_deg,
+        elevation_deg=elevation_deg, jitter=0.02 * dist,
+        n_train=max(1, views - n_interp - n_extrap), n_interp=n_interp, n_extrap=n_extrap,
+        seed=seed,
+    )  # fmt: skip
+
+
+def dataset_envelope(
+    g: Gaussians,
+    poses: list[Pose],
+    center: np.ndarray,
+    settings: ExampleSettings,
+    *,
+    d_near: float | None = None,
+    d_far: float | None = None,
+) -> Envelope:
+    """The cameras a build of `g` with these poses and settings renders (see the module
+    docstring); the mapping comes from the same depth pass the build runs."""
+    if not poses:
+        raise ValueError("poses: need at least one pose, got none")
+    small = replace(settings, width_px=max(8, round(settings.width_px * DEPTH_PASS_SCALE)),
+                    height_px=max(8, round(settings.height_px * DEPTH_PASS_SCALE)))  # fmt: skip
+    depth_cams = [small.camera(p, camera_distance(p, center)) for p in poses]
+    depth_range = None if (d_near and d_far) else scene_depth_pass(g, poses, center, settings,
+                                                                   scale=DEPTH_PASS_SCALE)
+    fx = 0.5 * settings.width_px / np.tan(np.radians(settings.fov_x_deg) / 2)
+    mapping, report = scene_mapping(
+        settings.volume_m[0], settings.volume_m[1], settings.pitch_m, float(fx),
+        depth_range=depth_range, d_near=d_near, d_far=d_far,
+    )  # fmt: skip
+    sampling = colour_sampling(
+        settings.wavelengths_m, settings.pitch_m, settings.volume_m, settings.aperture(),
+        windows=settings.windows, shared=settings.shared_views,
+    )  # fmt: skip
+    taus = _view_taus(sampling, settings.shared_views)
+    pose_cams = [settings.camera(p, camera_distance(p, center)) for p in poses]
+    views = envelope_light_field_cameras(pose_cams, mapping, settings.pitch_m, taus)
+    return Envelope(
+        cameras=depth_cams + views, mapping=mapping, mapping_report=report,
+        sampling=sampling_report(sampling), n_poses=len(poses),
+        views_per_pose=sum(len(t) ** 2 for t in taus),
+        focal_planes_m=quality_planes(settings.volume_m),
+    )  # fmt: skip
+
+
+def _view_taus(sampling, shared_views: bool) -> list[np.ndarray]:
+    """The slopes each rendered group uses, as `holo.hologram.scene_hologram` picks them: the
+    longest wavelength's in each group of colours that share views."""
+    return [sampling[max(grp, key=lambda c: sampling[c].wavelength_m)].tau
+            for grp in _view_groups(sampling, shared_views)]
