@@ -4,7 +4,7 @@ Stages, in order (`STAGES`), each writing under the output folder OUT:
 
 1. `scene`: load the scene, its up axis (declared by the format or guessed, `--up` overrides)
    and the suggested camera distance; the pose sampler around it -> `scene.json`.
-2. `reduce`: the scene the dataset renders -> `scene.ply` (`_reduce`).
+2. `reduce`: the scene reduced to what the dataset's views can show -> `scene.ply` (`_reduce`).
 3. `dataset`: `nhfd.dataset.build` into `dataset/` (its own resume: shards already written are
    kept).
 4. `train`: `nhfd.models.train` into `run/` (its own resume: the checkpoint).
@@ -42,6 +42,7 @@ import numpy as np
 from nhfd import __version__
 from nhfd.dataset.build import build as build_dataset
 from nhfd.dataset.build import sha256_file, write_json_atomic
+from nhfd.dataset.envelope import dataset_envelope
 from nhfd.dataset.poses import PoseSampler
 from nhfd.dataset.shard import ExampleSettings
 from nhfd.models.contact_sheet import contact_sheet
@@ -51,6 +52,7 @@ from nhfd.models.export import OnnxModel, export_onnx
 from nhfd.models.quantise import quantise_int8
 from nhfd.models.train import RESUMABLE_CHANGES, TrainOptions, train
 from nhfd.optics import quality_planes
+from nhfd.scene.cull import reduce_scene
 from nhfd.scene.io import load_scene, save_ply, scene_format
 from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
 
@@ -66,12 +68,14 @@ INTERP_SHARE, EXTRAP_SHARE = 20 / 130, 10 / 130
 # Jitter of the look-at point, as a fraction of the camera distance (as `nhfd dataset build`).
 JITTER_FRACTION = 0.02
 # Seconds per unit of work on this project's 2-core machine, the estimate before a stage has
-# run (then the measured rate of the finished stages scales what is left): a dataset example per
+# run (then the measured rate of the finished stages scales what is left): the reduction per
+# pose-pixel (the donut's 130 poses at 1024 x 576, about 2 min), a dataset example per
 # worker (the shipped donut build, 130 examples in 7 min 40 s on 2 workers), a training step per
 # pixel of the crop (257 ms at 384 x 224, the shipped run), an export with its check, an
 # evaluated view per pixel, and the report.
-PRIOR_S = {"example": 7.0, "step_per_px": 0.257 / (384 * 224), "export": 20.0,
-           "int8": 10.0, "eval_per_px": 2.0 / (512 * 288), "report": 10.0}  # fmt: skip
+PRIOR_S = {"reduce_per_px": 1.0e-6, "example": 7.0, "step_per_px": 0.257 / (384 * 224),
+           "export": 20.0, "int8": 10.0, "eval_per_px": 2.0 / (512 * 288),
+           "report": 10.0}  # fmt: skip
 SPEED_STAGES = ("dataset", "train", "eval")
 
 
@@ -93,6 +97,10 @@ class Recipe:
     sheet_views: int
     int8: bool
     train: TrainOptions = field(default_factory=TrainOptions)
+    # Reduce the scene to what the dataset's views can show (`nhfd.scene.cull.reduce_scene`)
+    # within this many grey levels per pixel.
+    reduce: bool = True
+    reduce_grey_levels: float = 1.0
 
     @staticmethod
     def from_config(config, name: str | None = None, *, device: str = "cpu",
@@ -111,7 +119,8 @@ class Recipe:
         )  # fmt: skip
         return Recipe(name, r.views, r.width_px, r.height_px, r.fov_x_deg,
                       tuple(r.azimuth_deg), tuple(r.elevation_deg), tuple(r.radius_scale),
-                      r.phase, r.seed, r.eval_views, r.sheet_views, r.int8, options)  # fmt: skip
+                      r.phase, r.seed, r.eval_views, r.sheet_views, r.int8, options,
+                      reduce=r.reduce, reduce_grey_levels=r.reduce_grey_levels)  # fmt: skip
 
     def to_json(self) -> dict:
         """The recipe as its stages' keys see it: training options that change neither the
@@ -235,18 +244,27 @@ def _scene(ctx: Context) -> dict:
 
 
 def _reduce(ctx: Context) -> dict:
-    """The scene the dataset renders, written as `scene.ply`: here the whole scene. Culling to
-    what the pose envelope can show (issue 24, part 3: `nhfd.scene.cull.reduce_scene`) goes in
-    this stage: the envelope's cameras are
-    `[settings.camera(p, camera_distance(p, sampler.center)) for p in poses]` with
-    `sampler, poses = _poses(ctx)` and `settings = _example_settings(ctx)`; the reduced scene
-    is written instead, its report (`CullReport.to_dict()`) merged into this result, and the
-    cull's own settings added to `_stage_params("reduce")` so that changing them redoes it."""
+    """The scene the dataset renders, written as `scene.ply`: reduced to what the dataset's
+    cameras (every pose's depth pass and light field, `dataset_envelope`) can show within the
+    recipe's grey levels (`nhfd.scene.cull.reduce_scene`), or the whole scene when the recipe
+    says `reduce = false`. The envelope's mapping, light-field views and focal planes go in the
+    report either way: they are what the dataset will use."""
     g = load_scene(ctx.scene)
+    out: dict = {"reduced": False, "gaussians": len(g), "outputs": ["scene.ply"]}
+    if ctx.recipe.reduce:
+        sampler, poses = _poses(ctx)
+        env = dataset_envelope(g, poses, np.asarray(sampler.center), _example_settings(ctx))
+        g, report = reduce_scene(g, env.cameras, grey_levels=ctx.recipe.reduce_grey_levels)
+        ctx.log(f"reduce: {report.summary()}")
+        out.update(reduced=True, gaussians=len(g), **report.to_dict(),
+                   envelope={"poses": env.n_poses, "views_per_pose": env.views_per_pose,
+                             "cameras": len(env.cameras),
+                             "focal_planes_mm": [round(z * 1e3, 4) for z in env.focal_planes_m],
+                             "mapping": env.mapping_report})  # fmt: skip
     tmp = ctx.path("scene.ply.tmp")
     save_ply(tmp, g)
     os.replace(tmp, ctx.path("scene.ply"))
-    return {"reduced": False, "gaussians": len(g), "outputs": ["scene.ply"]}
+    return out
 
 
 def _poses(ctx: Context):
@@ -448,7 +466,7 @@ def _stage_params(ctx: Context, stage: str) -> Any:
                 "fov": r.fov_x_deg, "up": ctx.up, "views": r.views, "az": r.azimuth_deg,
                 "el": r.elevation_deg, "radius": r.radius_scale, "seed": r.seed}
     if stage == "reduce":
-        return {}
+        return {"reduce": r.reduce, "grey_levels": r.reduce_grey_levels}
     if stage == "dataset":
         return _example_settings(ctx).to_json()
     if stage == "train":
@@ -466,6 +484,8 @@ def _work(ctx: Context, stage: str) -> float:
     px = r.width_px * r.height_px
     held = round(r.views * INTERP_SHARE) + round(r.views * EXTRAP_SHARE)
     n_eval = min(held, 2 * r.eval_views) if r.eval_views else held
+    if stage == "reduce":
+        return r.views * px * PRIOR_S["reduce_per_px"] * r.reduce
     if stage == "dataset":
         return r.views * PRIOR_S["example"] / max(1, ctx.workers)
     if stage == "train":

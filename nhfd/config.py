@@ -261,6 +261,10 @@ class BuildRecipe(_Section):
     eval_views: Annotated[int, Field(ge=0, le=100_000)] = 0
     sheet_views: Annotated[int, Field(ge=1, le=6)] = 3
     int8: bool = True
+    # Reduce the scene to what the dataset's views can show before building it, within this
+    # many grey levels per pixel (nhfd.scene.cull; 0 still drops the splats no view draws).
+    reduce: bool = True
+    reduce_grey_levels: Annotated[float, Field(ge=0.0, le=255.0)] = 1.0
 
     @model_validator(mode="after")
     def _ranges_ordered(self) -> BuildRecipe:

@@ -14,6 +14,7 @@ from nhfd.config import Config
 from nhfd.models import build as mb
 from nhfd.models.build import STAGES, Recipe, run_build
 from nhfd.models.train import TrainOptions
+from nhfd.scene.io import load_scene
 
 SCENE = Path(__file__).parents[1] / "data" / "formats" / "donut-crop.ply"
 
@@ -93,7 +94,14 @@ def test_the_build_writes_the_model_the_report_and_the_contact_sheet(built):
     assert f["angle_reference"].startswith("the poses the model was trained on")
     # held-out views lie off the training poses
     assert all(angle > 0 for angle, _ in f["psnr_vs_angle"])
-    assert report["reduce"] == {"reduced": False, "gaussians": 2108}
+    # The scene the dataset rendered is the reduction, which the report states and counts.
+    red = report["reduce"]
+    assert red["reduced"] is True and red["n_gaussians_in"] == 2108
+    assert red["n_kept"] == red["gaussians"] == len(load_scene(out / "scene.ply"))
+    assert red["n_kept"] + red["n_culled_frustum"] + red["n_culled_contribution"] == 2108
+    assert red["max_grey_change"] <= red["grey_levels"] == 1.0
+    # the colours share the longest wavelength's 9 x 9 views (the dataset renders 81 per pose)
+    assert red["envelope"]["poses"] == 8 and red["envelope"]["views_per_pose"] == 81
     assert [v["n_views"] for v in report["dataset"]["light_field_views"]] == [81, 49, 36]
     m = report["dataset"]["depth_mapping"]
     assert m["z_max_m"] == pytest.approx(3e-3) and m["d_near"] < m["d_far"]
