@@ -1,11 +1,12 @@
 """`nhfd bench distributed`: speed-up of 2 local workers against 1, dataset build and training.
 
 Dataset build (the same small dataset of `--scene`, `--views` views at `--size`, built from
-scratch each time into a fresh folder): one process (torch on every core: the default), 2 local
-processes (`--workers 2`, one thread each), and Ray tasks on a local Ray instance of 1 and of 2
-CPUs (`--executor ray`; the build time includes starting Ray and its workers). Every build's
-shards are checked equal, byte for byte, to the first's. The speed-ups compare the build times
-(the CLI's whole `build` call: depth pass, examples, merge), not the process's start.
+scratch each time into a fresh folder): one process on one thread and on two (the default: one
+per core), 2 local processes (`--workers 2`, one thread each), and Ray tasks on a local Ray
+instance of 1 and of 2 CPUs (`--executor ray`; the build time includes starting Ray and its
+workers). Every build's shards are checked equal, byte for byte, to the first's. The speed-ups
+compare the build times (the CLI's whole `build` call: depth pass, examples, merge), not the
+process's start.
 
 Training (a synthetic dataset, `--train-steps` steps of batch `--batch` at `--crop`): one
 process on one thread, one process on two threads (torch's intra-op parallelism, the
@@ -198,7 +199,9 @@ def run(args: argparse.Namespace) -> int:
                     "size": args.size, "dataset": {}, "train": {}}  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="nhfd-bench-dist-") as tmp:
         root = Path(tmp)
-        cases = [("1 process", []), ("2 processes", ["--workers", "2"])]
+        cases = [("1 process, 1 thread", ["--threads", "1"]),
+                 ("1 process, 2 threads", ["--threads", "2"]),
+                 ("2 processes", ["--workers", "2"])]
         if not args.no_ray:
             try:
                 import ray  # noqa: F401 (only whether it is installed)
@@ -214,10 +217,11 @@ def run(args: argparse.Namespace) -> int:
             r["same_bytes_as_first"] = True if ref is None else _same_bytes(ref, folder)
             ref = ref or folder
             report["dataset"][label] = r
-            print(f"dataset  {label:<16} build {r['build_s']:7.1f} s  process "
+            print(f"dataset  {label:<20} build {r['build_s']:7.1f} s  process "
                   f"{r['process_wall_s']:7.1f} s  peak {r['peak_rss_mib']:6.0f} MiB  "
                   f"same bytes {r['same_bytes_as_first']}")
-        _speedups(report["dataset"], "build_s", ("1 process", "2 processes"),
+        _speedups(report["dataset"], "build_s", ("1 process, 1 thread", "2 processes"),
+                  ("1 process, 2 threads", "2 processes"),
                   ("ray, 1 worker", "ray, 2 workers"))  # fmt: skip
         if not args.no_train:
             cw, ch = parse_wxh(args.crop, "--crop")

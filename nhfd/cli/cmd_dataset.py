@@ -62,6 +62,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--seed", type=int, default=0, help="base seed (poses, random phase)")
     b.add_argument("--workers", type=int, default=1,
                    help="local processes, or a local Ray instance's CPUs (2 uses both cores)")
+    b.add_argument("--threads", type=int, default=None,
+                   help="threads of a one-process build (default: one per core)")
     b.add_argument("--shard", default=None, metavar="K/N",
                    help="build only part K of N (examples i with i %% N == K-1)")
     b.add_argument("--executor", default="local", choices=EXECUTORS,
@@ -99,6 +101,8 @@ def run_build(args: argparse.Namespace) -> int:
     w, h = parse_wxh(args.size, "--size", 8192)
     if args.workers < 1:
         raise ValueError(f"--workers {args.workers}: must be >= 1")
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f"--threads {args.threads}: must be >= 1")
     part = parse_shard(args.shard) if args.shard is not None else None
     if args.address and args.executor != "ray":
         raise ValueError(f"--address {args.address!r}: only with --executor ray")
@@ -140,7 +144,7 @@ def run_build(args: argparse.Namespace) -> int:
     manifest = build(scene, Path(args.out), poses, settings, seed=args.seed, sampler=sampler,
                      workers=args.workers, force=args.force, d_near=args.d_near,
                      d_far=args.d_far, progress=progress, shard=part, executor=args.executor,
-                     address=args.address)  # fmt: skip
+                     address=args.address, threads=args.threads)  # fmt: skip
     bar.close()
     if manifest["amplitude_scale"] is None:
         print(f"{args.out}: part {args.shard} built ({n_mine} views); "

@@ -422,6 +422,7 @@ def build(
     shard: tuple[int, int] | None = None,
     executor: str = "local",
     address: str | None = None,
+    threads: int | None = None,
 ) -> dict:
     """Build (or resume) a dataset; returns the final manifest.
 
@@ -429,6 +430,8 @@ def build(
     whichever part finds every shard present (or by `merge`), and until then this returns the
     planned manifest (`amplitude_scale` None). `executor` "ray" runs one Ray task per example
     (`address`: a running cluster's; None starts a local instance with `workers` CPUs).
+    `threads`: torch's and numba's threads of an in-process build (`workers` 1; default: one per
+    core); pool and Ray workers run one thread each.
     The returned dict carries `build_timing` (this run's speed); the file does not, so that two
     builds of the same dataset are identical byte for byte."""
 
@@ -436,6 +439,8 @@ def build(
         raise ValueError(f"executor = {executor!r}: must be one of {', '.join(EXECUTORS)}")
     if workers < 1:
         raise ValueError(f"workers = {workers}: must be >= 1")
+    if threads is not None and threads < 1:
+        raise ValueError(f"threads = {threads}: must be >= 1")
     scene_path, out_dir = Path(scene_path), Path(out_dir)
     g = load_scene(scene_path)
     center = np.median(g.means, axis=0) if len(g) else np.zeros(3)
@@ -484,7 +489,7 @@ def build(
         if executor == "ray":
             _run_ray(manifest, out_dir, todo, address=address, workers=workers, on_result=record)
         elif workers <= 1:
-            _worker_init(str(scene_path), threads=max(1, os.cpu_count() or 1))
+            _worker_init(str(scene_path), threads=threads or max(1, os.cpu_count() or 1))
             for i in todo:
                 record(_build_timed(manifest, i, out_dir))
         else:
