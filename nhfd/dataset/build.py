@@ -250,7 +250,9 @@ def build_example(manifest: dict, index: int, out_dir: str | Path) -> Path:
     The unit every executor runs (in-process, the process pool, `--shard K/N`, Ray tasks): its
     result depends only on the manifest and the index (the example's seed is
     `example_seed(manifest seed, index)`, never the worker or the order), so a retried or
-    re-run example writes the same bytes. Each process loads the scene once."""
+    re-run example writes the same bytes. Each process loads the scene once; a process that
+    has not built from this scene yet (a pool or Ray worker) sets torch and numba to one thread,
+    its share of the cores."""
     if not 0 <= index < len(manifest["poses"]):
         raise ValueError(f"index {index}: the dataset has examples 0..{len(manifest['poses']) - 1}")
     return Path(_build_timed(manifest, index, out_dir)["path"])

@@ -83,6 +83,12 @@ def test_parts_merge_into_the_single_build(reference, tmp_path):
     # An explicit merge of a complete folder rewrites the same bytes.
     merge(out)
     _assert_same_bytes(single, out)
+    # A part run again finds its shards valid and builds nothing.
+    stamps = {p.name: p.stat().st_mtime_ns for p in out.glob("view_*.npz")}
+    again = build(scene, out, _poses(), SMALL, seed=7, shard=(1, 2))
+    assert "build_timing" not in again
+    assert {p.name: p.stat().st_mtime_ns for p in out.glob("view_*.npz")} == stamps
+    _assert_same_bytes(single, out)
 
 
 def test_a_part_with_other_settings_is_refused_naming_the_setting(reference, tmp_path):
