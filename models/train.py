@@ -6,6 +6,14 @@ atomically every `checkpoint_every` steps and at the end), `train_log.csv`, `val
 `curves.png`. Running the same command again continues from the checkpoint's step with the same
 data order: every random draw of a step comes from (seed, step) and the order of an epoch from
 (seed, epoch), so an interrupted run ends with the same weights as an uninterrupted one.
+
+Under `torchrun` (WORLD_SIZE > 1) the same loop runs as DistributedDataParallel: every process
+draws the step's whole batch and crops from (seed, step) as one process would, keeps its own
+contiguous share (batch / WORLD_SIZE views), and DDP averages the gradients (gloo on the CPU,
+nccl on GPUs), so a step's update is one process's on the whole batch up to float summation
+order. The L2 term is a mean over the batch, so that holds exactly; the SSIM term's scale and the
+field term's normalisation are taken over each process's share, which changes the loss slightly
+(within the run-to-run spread). Rank 0 alone writes the run folder and validates.
 """
 
 from __future__ import annotations
@@ -24,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
 
 from nhfd import __version__
 from nhfd.config import LEARNING_RATE_RULE, ModelSettings, learning_rate_ok
@@ -166,6 +176,37 @@ class TrainOptions:
                     deep_width=p.deep_width, profile=name)
         base.update({k: v for k, v in overrides.items() if v is not None})
         return TrainOptions(**base)
+
+
+@dataclass(frozen=True)
+class Distributed:
+    """This process's place in a torchrun job."""
+
+    rank: int
+    world_size: int
+    local_rank: int
+    backend: str
+    started_group: bool  # this process initialised the group (and destroys it at the end)
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def distributed_from_env(device: torch.device) -> Distributed | None:
+    """Join the torchrun job the environment describes (WORLD_SIZE > 1): gloo on the CPU, nccl
+    on CUDA; None when this is the only process."""
+    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if world <= 1:
+        return None
+    rank = int(os.environ.get("RANK", "0"))
+    local = int(os.environ.get("LOCAL_RANK", str(rank)))
+    backend = "nccl" if device.type == "cuda" else "gloo"
+    started = False
+    if not dist.is_initialized():
+        dist.init_process_group(backend=backend)
+        started = True
+    return Distributed(dist.get_rank(), dist.get_world_size(), local, backend, started)
 
 
 @dataclass
@@ -344,6 +385,40 @@ def train(
     schedule follows `options.steps`, so raising the budget on resume changes the remaining
     steps' rates."""
     say = log or (lambda msg: print(msg, file=sys.stderr))
+    device = training_device(options.device, check_available=True)
+    world = int(os.environ.get("WORLD_SIZE", "1") or 1)
+    if world > 1 and options.batch % world:
+        raise ValueError(
+            f"batch = {options.batch}: must be a multiple of WORLD_SIZE = {world} (each "
+            "process takes an equal share of a step's views)"
+        )
+    ddp = distributed_from_env(device)
+    if ddp is not None:
+        try:
+            return _train(data_dir, run_dir, options, force=force, say=say, data=data,
+                          stop_at=stop_at, ddp=ddp)  # fmt: skip
+        finally:
+            if ddp.started_group:
+                dist.destroy_process_group()
+    return _train(data_dir, run_dir, options, force=force, say=say, data=data, stop_at=stop_at,
+                  ddp=None)  # fmt: skip
+
+
+def _train(
+    data_dir: str | Path,
+    run_dir: str | Path,
+    options: TrainOptions,
+    *,
+    force: bool,
+    say: Callable[[str], None],
+    data: HoloData | None,
+    stop_at: int | None,
+    ddp: Distributed | None,
+) -> TrainResult:
+    main = ddp is None or ddp.is_main
+    world = 1 if ddp is None else ddp.world_size
+    if not main:
+        say = lambda _msg: None  # noqa: E731 (rank 0 speaks for the job)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     say(tune_malloc())
@@ -359,6 +434,9 @@ def train(
         field_weight=options.field_weight,
     )  # fmt: skip
     device = training_device(options.device, check_available=True)
+    if ddp is not None and device.type == "cuda":
+        device = torch.device("cuda", ddp.local_rank)  # one GPU per process
+        torch.cuda.set_device(device)
     net = build_net(options.spec, seed=options.seed).to(device)
     if loss_fn.vgg is not None:
         loss_fn.vgg.to(device)
@@ -373,13 +451,22 @@ def train(
         _set_rng_states(ckpt["rng"])
         step = int(ckpt["step"])
         say(f"resuming {run_dir} at step {step} of {options.steps}")
-    elif force:
+    elif force and main:
         ckpt_path.unlink(missing_ok=True)
         for name in (TRAIN_LOG, VAL_LOG):
             (run_dir / name).unlink(missing_ok=True)
     resumed_from = step
-    _truncate_csv(run_dir / TRAIN_LOG, TRAIN_COLUMNS, step)
-    _truncate_csv(run_dir / VAL_LOG, VAL_COLUMNS, step)
+    if main:
+        _truncate_csv(run_dir / TRAIN_LOG, TRAIN_COLUMNS, step)
+        _truncate_csv(run_dir / VAL_LOG, VAL_COLUMNS, step)
+    model: torch.nn.Module = net
+    if ddp is not None:
+        # Built after the checkpoint is loaded; DDP also broadcasts rank 0's weights.
+        model = DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda"
+                                        else None)  # fmt: skip
+        model.spec = net.spec  # predict() reads the network's spec
+    share = slice(0, options.batch) if ddp is None else slice(
+        ddp.rank * options.batch // world, (ddp.rank + 1) * options.batch // world)
     n_train = len(train_split)
     per_epoch = -(-n_train // options.batch)
     run_info = {
@@ -391,14 +478,17 @@ def train(
         "steps_per_epoch": per_epoch,
         "nhfd_version": __version__,
     }
-    (run_dir / RUN_JSON).write_text(json.dumps(run_info, indent=1, default=str))
+    if ddp is not None:
+        run_info["distributed"] = {"world_size": world, "backend": ddp.backend}
+    if main:
+        (run_dir / RUN_JSON).write_text(json.dumps(run_info, indent=1, default=str))
     say(f"network {options.spec.to_json()} ({run_info['parameters']} parameters, input multiple "
         f"{options.spec.multiple}); {n_train} training views, {per_epoch} steps per epoch; "
         f"crops {options.crop_width_px}x{options.crop_height_px}")  # fmt: skip
     say(f"loss: {loss_fn.describe()}; planes: {options.plane_mode}")
     fixed = uniform_planes(data_volume(data), options.planes_from_depth + options.planes_random)
     bar = None
-    if options.progress:
+    if options.progress and main:
         from tqdm import tqdm
 
         bar = tqdm(total=options.steps, initial=step, unit="step", desc="train", file=sys.stderr)
@@ -407,6 +497,8 @@ def train(
     t_start, steps_done = time.perf_counter(), 0
 
     def checkpoint() -> None:
+        if not main:
+            return
         _atomic_save({
             "step": step, "model": net.state_dict(), "optimizer": opt.state_dict(),
             "rng": _rng_states(),
@@ -425,7 +517,9 @@ def train(
             views = batch_views(options.seed, step, options.batch, n_train)
             x, target, zh, edges = random_crop(train_split, views, options.crop_hw, rng,
                                                options.inputs)
-            x, target = x.to(device), target.to(device)
+            # Every process draws the whole batch (the same crops and planes as one process);
+            # each trains on its share.
+            x, target = x[share].to(device), target[share].to(device)
             if options.plane_mode == "uniform":
                 planes = fixed
             else:
@@ -436,27 +530,31 @@ def train(
             lr = lr_at(step, options)
             for g in opt.param_groups:
                 g["lr"] = lr
-            amp, phase = predict(net, x)
+            amp, phase = predict(model, x)
             out = loss_fn(to_field(amp, phase, 1.0), target, planes, perc, edges)
             opt.zero_grad(set_to_none=True)
             out["loss"].backward()
             opt.step()
             step += 1
             steps_done += 1
-            last_loss = float(out["loss"].detach())
+            terms = torch.stack([out[k].detach().float() for k in ("loss", "l2", "perceptual")])
+            if ddp is not None:
+                dist.all_reduce(terms)  # the job's mean, as one process would log it
+                terms = terms / world
+            last_loss, l2_val, perc_val = (float(v) for v in terms.cpu())
             if not math.isfinite(last_loss):
                 raise FloatingPointError(f"step {step}: loss is {last_loss}; lower the rate")
-            _append(run_dir / TRAIN_LOG, TRAIN_COLUMNS, {
-                "step": step, "epoch": (step - 1) // per_epoch, "loss": f"{last_loss:.6g}",
-                "l2": f"{float(out['l2'].detach()):.6g}",
-                "perceptual": f"{float(out['perceptual'].detach()):.6g}",
-                "lr": f"{lr:.4g}", "planes": " ".join(f"{z * 1e3:.2f}" for z in planes),
-                "seconds": f"{time.perf_counter() - t0:.4f}",
-            })  # fmt: skip
+            if main:
+                _append(run_dir / TRAIN_LOG, TRAIN_COLUMNS, {
+                    "step": step, "epoch": (step - 1) // per_epoch, "loss": f"{last_loss:.6g}",
+                    "l2": f"{l2_val:.6g}", "perceptual": f"{perc_val:.6g}",
+                    "lr": f"{lr:.4g}", "planes": " ".join(f"{z * 1e3:.2f}" for z in planes),
+                    "seconds": f"{time.perf_counter() - t0:.4f}",
+                })  # fmt: skip
             if bar is not None:
                 bar.update(1)
                 bar.set_postfix(loss=f"{last_loss:.4g}")
-            if step % per_epoch == 0 or step == options.steps:
+            if main and (step % per_epoch == 0 or step == options.steps):
                 for split in ("interp", "extrap"):
                     res = validate_views(net, data, loss_fn, options, split)
                     if res:
@@ -476,10 +574,13 @@ def train(
     if steps_done == 0 and not ckpt_path.exists():
         checkpoint()
     elapsed = time.perf_counter() - t_start
-    try:
-        plot_curves(run_dir)
-    except Exception as exc:  # a plot is a convenience; a finished run must not fail over it
-        say(f"curves.png not written: {exc}")
+    if main:
+        try:
+            plot_curves(run_dir)
+        except Exception as exc:  # a plot is a convenience; a finished run must not fail over it
+            say(f"curves.png not written: {exc}")
+    if ddp is not None:
+        dist.barrier()  # no process leaves before rank 0 has written the final checkpoint
     return TrainResult(run_dir, step, last_loss, elapsed / max(1, steps_done), resumed_from)
 
 

@@ -25,6 +25,8 @@ BENCHES: tuple[Command, ...] = (
     Command("safety", "nhfd.benchmarks.safety", "time from each fault to every laser off"),
     Command("triggers", "nhfd.benchmarks.triggers",
             "calibration capture time with and without hardware triggers"),
+    Command("distributed", "nhfd.benchmarks.distributed",
+            "2 local workers vs 1: dataset build and training"),
 )
 
 

@@ -1,4 +1,4 @@
-"""`nhfd dataset build|show`: training data from a splat scene (views + complex holograms)."""
+"""`nhfd dataset build|merge|show`: training data from a splat scene (views + complex holograms)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ from tqdm import tqdm
 
 from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config
-from nhfd.dataset.build import build
+from nhfd.dataset.build import EXECUTORS, build, merge, parse_shard, shard_indices
 from nhfd.dataset.poses import PoseSampler, load_poses
 from nhfd.dataset.shard import ExampleSettings
 from nhfd.dataset.show import show
@@ -23,6 +23,13 @@ Render the central view and depth of every pose, compute each view's complex hol
 reference plane by wavefront inversion of its light field (all colours), and write one shard per
 view plus manifest.json. A first depth-only pass over all poses fixes the scene's depth mapping.
 Interrupted builds resume (run the same command again); nothing is overwritten without --force.
+
+Beyond one process: --workers N runs N local processes; --shard K/N builds part K of N (the
+examples i with i % N == K-1) so N machines sharing the --out folder each build one part (give
+all parts the same arguments); the part that finds every shard present writes the manifest, or
+run `nhfd dataset merge OUT`. --executor ray runs one Ray task per example (retried if a worker
+dies) on the cluster at --address, or on a local Ray instance with --workers CPUs. Every way
+writes the same bytes.
 
 Poses: --views N samples a train / interpolation / extrapolation split around the scene (about
 100 / 20 / 10 of N by default; see nhfd.dataset.poses), or --poses FILE reads them.
@@ -53,10 +60,26 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--d-near", type=float, help="override the measured scene near depth")
     b.add_argument("--d-far", type=float, help="override the measured scene far depth")
     b.add_argument("--seed", type=int, default=0, help="base seed (poses, random phase)")
-    b.add_argument("--workers", type=int, default=1, help="processes (2 uses both cores)")
+    b.add_argument("--workers", type=int, default=1,
+                   help="local processes, or a local Ray instance's CPUs (2 uses both cores)")
+    b.add_argument("--threads", type=int, default=None,
+                   help="threads of a one-process build (default: one per core)")
+    b.add_argument("--shard", default=None, metavar="K/N",
+                   help="build only part K of N (examples i with i %% N == K-1)")
+    b.add_argument("--executor", default="local", choices=EXECUTORS,
+                   help="local processes (default) or Ray tasks (pip install 'nhfd[ray]')")
+    b.add_argument("--address", default=None,
+                   help="Ray cluster address (e.g. 10.0.0.1:6379 or auto); default: start a "
+                        "local Ray instance")  # fmt: skip
     b.add_argument("--force", action="store_true", help="replace a dataset built differently")
     b.add_argument("--config", help="nhfd.toml to take the optics from")
     b.set_defaults(handler=run_build)
+    m = cmds.add_parser("merge", help="write the manifest once every part's shards exist",
+                        description="Check that every example's shard exists and was built for "
+                        "the folder's manifest, then complete the manifest (amplitude scale). "
+                        "Names the missing examples, or the settings a stray shard differs in.")
+    m.add_argument("dir", help="dataset folder")
+    m.set_defaults(handler=run_merge)
     s = cmds.add_parser("show", help="PNG of a shard's view and its hologram's focal stack")
     s.add_argument("dir", help="dataset folder")
     s.add_argument("--index", type=int, default=0, help="view index (default 0)")
@@ -78,6 +101,11 @@ def run_build(args: argparse.Namespace) -> int:
     w, h = parse_wxh(args.size, "--size", 8192)
     if args.workers < 1:
         raise ValueError(f"--workers {args.workers}: must be >= 1")
+    if args.threads is not None and args.threads < 1:
+        raise ValueError(f"--threads {args.threads}: must be >= 1")
+    part = parse_shard(args.shard) if args.shard is not None else None
+    if args.address and args.executor != "ray":
+        raise ValueError(f"--address {args.address!r}: only with --executor ray")
     config = load_config(args.config).config
     settings = ExampleSettings.from_config(config, width_px=w, height_px=h, fov_x_deg=args.fov,
                                            phase=args.phase,
@@ -105,7 +133,8 @@ def run_build(args: argparse.Namespace) -> int:
             n_interp=n_interp, n_extrap=n_extrap, seed=args.seed,
         )  # fmt: skip
         poses, sampler = ps.sample(), ps.describe()
-    bar = tqdm(total=len(poses), unit="view", desc="dataset", file=sys.stderr)
+    n_mine = len(shard_indices(len(poses), part))
+    bar = tqdm(total=n_mine, unit="view", desc="dataset", file=sys.stderr)
 
     def progress(done: int, total: int, r: dict) -> None:
         bar.n = done
@@ -114,8 +143,13 @@ def run_build(args: argparse.Namespace) -> int:
 
     manifest = build(scene, Path(args.out), poses, settings, seed=args.seed, sampler=sampler,
                      workers=args.workers, force=args.force, d_near=args.d_near,
-                     d_far=args.d_far, progress=progress)  # fmt: skip
+                     d_far=args.d_far, progress=progress, shard=part, executor=args.executor,
+                     address=args.address, threads=args.threads)  # fmt: skip
     bar.close()
+    if manifest["amplitude_scale"] is None:
+        print(f"{args.out}: part {args.shard} built ({n_mine} views); "
+              "the manifest is completed when every part is (or by `nhfd dataset merge`)")
+        return 0
     m = manifest["mapping"]
     print(f"{args.out}: {len(poses)} views ({', '.join(f'{k} {len(v)}' for k, v in manifest['splits'].items())})")  # noqa: E501
     print(f"mapping: d_near {m['d_near']:.4g}, d_far {m['d_far']:.4g} -> z_h in "
@@ -125,6 +159,13 @@ def run_build(args: argparse.Namespace) -> int:
                                   f"({s['n_views']} views)" for s in manifest["sampling"]))
     print(f"amplitude scale: {manifest['amplitude_scale']['value']:.4g} "
           f"(p{manifest['amplitude_scale']['percentile']} on the SLM plane)")
+    return 0
+
+
+def run_merge(args: argparse.Namespace) -> int:
+    manifest = merge(Path(args.dir))
+    print(f"{args.dir}: {len(manifest['poses'])} views merged; amplitude scale "
+          f"{manifest['amplitude_scale']['value']:.4g}")  # fmt: skip
     return 0
 
 

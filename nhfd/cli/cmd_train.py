@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -25,6 +26,13 @@ dataset folder from `nhfd dataset build`. Seeded; checkpoints every --checkpoint
 and at the end; running the same command again resumes where it stopped, with the same data
 order (--steps may be raised to continue). Writes RUN/train_log.csv, val_log.csv (interpolation
 and extrapolation views, every epoch), curves.png and run.json. Defaults: nhfd.toml [model].
+
+On several processes or machines, start it under torchrun (DistributedDataParallel; gloo on the
+CPU, nccl on GPUs; --batch must be a multiple of the number of processes, which share each
+step's views):  torchrun --nproc-per-node 2 --standalone -m nhfd.cli.main train ...
+Across machines: torchrun --nnodes 2 --node-rank R --rdzv-backend c10d
+--rdzv-endpoint HOST:29500 --nproc-per-node P -m nhfd.cli.main train ... (the same --data and
+--out paths on every machine; rank 0 writes the run folder).
 """
 
 
@@ -128,6 +136,8 @@ def run_train(args: argparse.Namespace) -> int:
         device=args.device, progress=not args.no_progress,
     )  # fmt: skip
     result = train(args.data, args.out, options, force=args.force)
+    if int(os.environ.get("RANK", "0") or 0) != 0:
+        return 0  # under torchrun, rank 0 reports for the job
     print(f"{result.run_dir}: step {result.step}, loss {result.last_loss:.4g}, "
           f"{result.seconds_per_step * 1e3:.0f} ms per step"
           + (f" (resumed at step {result.resumed_from})" if result.resumed_from else ""))

@@ -6,11 +6,15 @@
 2. The manifest freezes the poses, the mapping, the angular sampling, the pose envelope, the
    settings and the scene file's SHA-256; its `key` (a hash of all that) is written into every
    shard. A rebuild with other settings into the same folder is refused unless `force`.
-3. Shards are written one per view, atomically; shards already present for the same key are
-   kept, so an interrupted build resumes where it stopped.
-4. When every shard exists, the dataset's amplitude scale (a robust percentile of the targets'
-   amplitude on the SLM plane, over content pixels, pooled over all shards and shared by R, G
-   and B) goes into the manifest.
+3. Shards are written one per view, atomically, by `build_example(manifest, index, out_dir)`,
+   whose result depends on the manifest and the index alone; shards already present for the same
+   key are kept, so an interrupted build resumes where it stopped. The executors only decide
+   where `build_example` runs: in this process, a local process pool (`workers`), one part of N
+   on each machine sharing the folder (`shard`), or Ray tasks (`executor="ray"`).
+4. When every shard exists, `merge` puts the dataset's amplitude scale (a robust percentile of
+   the targets' amplitude on the SLM plane, over content pixels, pooled over all shards and
+   shared by R, G and B) into the manifest. Neither shards nor the manifest hold timings or
+   dates: the same dataset built twice, in any way, is the same bytes.
 """
 
 from __future__ import annotations
@@ -153,8 +157,12 @@ def _settings(manifest: dict) -> ExampleSettings:
     return ExampleSettings(**s)
 
 
-# Worker state: one scene per process, loaded once.
+# Worker state: one scene per process, loaded once (keyed by its path and SHA-256).
 _WORKER: dict = {}
+# Test hook (tests/dataset/test_distributed.py): "INDEX:DIR" makes the first process that builds
+# example INDEX while DIR/armed exists create DIR/crashed and die at once, as a killed worker
+# would; the retry finds DIR/crashed and builds the example. Unset in normal use.
+CRASH_ENV = "NHFD_TEST_CRASH_AT"
 
 
 def _worker_init(scene_path: str, threads: int) -> None:
@@ -173,17 +181,49 @@ def _worker_init(scene_path: str, threads: int) -> None:
         pass
 
     _WORKER["scene"] = load_scene(scene_path)
+    _WORKER["scene_path"] = str(scene_path)
 
 
-def _build_one(out_dir: str, manifest: dict, index: int) -> dict:
-    """Compute and write one shard (in a worker or in-process)."""
-    g = _WORKER["scene"]
+def _scene(manifest: dict):
+    """This process's copy of the manifest's scene, checked against the manifest's SHA-256 the
+    first time (a worker on another machine may see another file under the same path)."""
+    path = manifest["scene"]["path"]
+    if _WORKER.get("scene_path") != path:
+        _worker_init(path, threads=1)
+    if _WORKER.get("checked") != (path, manifest["scene"]["sha256"]):
+        digest = sha256_file(Path(path))
+        if digest != manifest["scene"]["sha256"]:
+            raise ValueError(
+                f"{path}: SHA-256 {digest[:12]} is not the manifest's "
+                f"{manifest['scene']['sha256'][:12]}; every worker must see the same scene file"
+            )
+        _WORKER["checked"] = (path, manifest["scene"]["sha256"])
+    return _WORKER["scene"]
+
+
+def _crash_hook(index: int) -> None:
+    spec = os.environ.get(CRASH_ENV)
+    if not spec:
+        return
+    at, folder = spec.split(":", 1)
+    armed, crashed = Path(folder) / "armed", Path(folder) / "crashed"
+    if int(at) == index and armed.exists() and not crashed.exists():
+        crashed.write_text(str(os.getpid()))
+        os._exit(1)
+
+
+def _build_timed(manifest: dict, index: int, out_dir: str | Path) -> dict:
+    """Compute and write one shard; its path and the seconds each stage took."""
+    _crash_hook(index)
+    g = _scene(manifest)
     poses = _poses(manifest)
     settings = _settings(manifest)
     seed = example_seed(manifest["seed"], index)
     pose = poses[index]
     t0 = time.perf_counter()
     ex = make_example(g, pose, np.array(manifest["center"]), _mapping(manifest), settings, seed)
+    # Nothing that varies between runs (timings, hosts, dates) goes into a shard: a shard's bytes
+    # are a function of the manifest and the index alone.
     meta = {
         "manifest_key": manifest["key"],
         "index": index,
@@ -194,11 +234,32 @@ def _build_one(out_dir: str, manifest: dict, index: int) -> dict:
         "mapping": manifest["mapping"],
         "sampling": manifest["sampling"],
         "settings": manifest["settings"],
-        "timing": ex["timing"],
+        "views": ex["timing"]["views"],
         "nhfd_version": __version__,
     }
-    write_shard(Path(out_dir) / shard_name(index), ex, meta)
-    return {"index": index, "seconds": time.perf_counter() - t0, **ex["timing"]}
+    path = Path(out_dir) / shard_name(index)
+    write_shard(path, ex, meta)
+    return {"index": index, "path": str(path), "seconds": time.perf_counter() - t0,
+            **ex["timing"]}  # fmt: skip
+
+
+def build_example(manifest: dict, index: int, out_dir: str | Path) -> Path:
+    """Build example `index` of a planned dataset (`plan_manifest`'s dict) and write its shard
+    atomically into `out_dir`; returns the shard's path.
+
+    The unit every executor runs (in-process, the process pool, `--shard K/N`, Ray tasks): its
+    result depends only on the manifest and the index (the example's seed is
+    `example_seed(manifest seed, index)`, never the worker or the order), so a retried or
+    re-run example writes the same bytes. Each process loads the scene once; a process that
+    has not built from this scene yet (a pool or Ray worker) sets torch and numba to one thread,
+    its share of the cores."""
+    if not 0 <= index < len(manifest["poses"]):
+        raise ValueError(f"index {index}: the dataset has examples 0..{len(manifest['poses']) - 1}")
+    return Path(_build_timed(manifest, index, out_dir)["path"])
+
+
+def _build_one(out_dir: str, manifest: dict, index: int) -> dict:
+    return _build_timed(manifest, index, out_dir)
 
 
 def _build_star(job: tuple) -> dict:
@@ -218,6 +279,135 @@ def amplitude_scale(out_dir: Path, n: int) -> dict:
     }
 
 
+def parse_shard(text: str) -> tuple[int, int]:
+    """'K/N' (part K of N, 1-based) -> (K, N)."""
+    parts = str(text).split("/")
+    try:
+        k, n = (int(v) for v in parts)
+    except ValueError:
+        raise ValueError(f"--shard {text!r} is not of the form K/N (e.g. 1/4)") from None
+    if n < 1 or not 1 <= k <= n:
+        raise ValueError(f"--shard {text!r}: need N >= 1 and K in 1..N")
+    return k, n
+
+
+def shard_indices(n_examples: int, part: tuple[int, int] | None) -> list[int]:
+    """The examples part (K, N) builds: every index i with i % N == K - 1 (strided, so each part
+    gets a share of every split and of every region of the orbit); all when `part` is None."""
+    if part is None:
+        return list(range(n_examples))
+    k, n = part
+    if n < 1 or not 1 <= k <= n:
+        raise ValueError(f"shard part {k}/{n}: need N >= 1 and K in 1..N")
+    return [i for i in range(n_examples) if i % n == k - 1]
+
+
+# The manifest fields the key hashes (plan_manifest's `frozen`): what a mismatch is named by.
+_FROZEN = ("format_version", "scene", "settings", "seed", "center", "poses", "mapping",
+           "sampling")  # fmt: skip
+
+
+def manifest_differences(a: dict, b: dict) -> list[str]:
+    """The frozen fields (one level into dicts: "settings.width_px") in which two manifests
+    differ, as "name: A != B" strings."""
+    out = []
+    for key in _FROZEN:
+        va, vb = a.get(key), b.get(key)
+        if va == vb:
+            continue
+        if isinstance(va, dict) and isinstance(vb, dict):
+            for sub in sorted(set(va) | set(vb)):
+                if va.get(sub) != vb.get(sub):
+                    out.append(f"{key}.{sub}: {_short(va.get(sub))} != {_short(vb.get(sub))}")
+        else:
+            out.append(f"{key}: {_short(va)} != {_short(vb)}")
+    return out
+
+
+def _short(v) -> str:
+    text = json.dumps(v, default=str)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def missing_shards(out_dir: Path, manifest: dict) -> list[int]:
+    """Indices whose shard is absent, unreadable or written for another manifest key."""
+    return [i for i in range(len(manifest["poses"]))
+            if not shard_is_valid(out_dir / shard_name(i), manifest["key"])]  # fmt: skip
+
+
+def merge(out_dir: Path, manifest: dict | None = None) -> dict:
+    """Write the dataset's one manifest once every example's shard exists: the planned manifest
+    (`manifest`, or the folder's own) plus the amplitude scale pooled over all shards. Any number
+    of parts may call it: the result depends only on the shards, so it is written identically."""
+    out_dir = Path(out_dir)
+    on_disk = load_manifest(out_dir)
+    manifest = dict(manifest or on_disk)
+    if on_disk.get("key") != manifest["key"]:
+        diff = manifest_differences(on_disk, manifest)
+        raise ValueError(f"{out_dir}: its manifest was planned with other settings ("
+                         f"{'; '.join(diff) or 'key ' + str(on_disk.get('key'))[:12]})")
+    for path in sorted(out_dir.glob("view_*.npz")):
+        meta = _shard_meta(path)
+        if meta is not None and meta.get("manifest_key") != manifest["key"]:
+            theirs = {**manifest, **{k: meta[k] for k in ("settings", "mapping", "sampling")
+                                     if k in meta}}  # fmt: skip
+            diff = manifest_differences(manifest, theirs)
+            raise ValueError(f"{path}: built for another dataset (manifest key "
+                             f"{str(meta.get('manifest_key'))[:12]} != {manifest['key'][:12]}"
+                             f"{'; ' + '; '.join(diff) if diff else ''}); "
+                             "rebuild it with the same settings, or --force")  # fmt: skip
+    missing = missing_shards(out_dir, manifest)
+    if missing:
+        shown = ", ".join(str(i) for i in missing[:10]) + (" ..." if len(missing) > 10 else "")
+        raise ValueError(f"{out_dir}: {len(missing)} of {len(manifest['poses'])} shards are "
+                         f"missing or incomplete (examples {shown}); build the remaining parts "
+                         "first")  # fmt: skip
+    manifest.pop("build_timing", None)
+    manifest["amplitude_scale"] = amplitude_scale(out_dir, len(manifest["poses"]))
+    write_json_atomic(out_dir / MANIFEST, manifest)
+    return manifest
+
+
+def _shard_meta(path: Path) -> dict | None:
+    try:
+        return read_shard(path)["meta"]
+    except ValueError:
+        return None
+
+
+def _run_ray(manifest: dict, out_dir: Path, todo: list[int], *, address: str | None,
+             workers: int, on_result: Callable[[dict], None]) -> None:  # fmt: skip
+    """One Ray task per example, each calling build_example; a task whose worker dies or
+    raises is retried (up to 3 times). Without `address`, a local Ray instance with `workers`
+    CPUs is started (and stopped); with one, the cluster there runs the tasks, and every node
+    must see `out_dir` and the scene file under the same paths."""
+    try:
+        import ray
+    except ImportError:
+        raise ValueError("--executor ray needs Ray: pip install 'nhfd[ray]'") from None
+    started = False
+    if not ray.is_initialized():
+        if address:
+            ray.init(address=address)
+        else:
+            ray.init(num_cpus=workers, include_dashboard=False, log_to_driver=False)
+        started = True
+    try:
+        task = ray.remote(num_cpus=1, max_retries=3, retry_exceptions=True)(_build_timed)
+        ref = ray.put(manifest)
+        pending = [task.remote(ref, i, str(out_dir)) for i in todo]
+        while pending:
+            ready, pending = ray.wait(pending, num_returns=1)
+            for r in ray.get(ready):
+                on_result(r)
+    finally:
+        if started:
+            ray.shutdown()
+
+
+EXECUTORS = ("local", "ray")
+
+
 def build(
     scene_path: Path,
     out_dir: Path,
@@ -231,9 +421,28 @@ def build(
     d_near: float | None = None,
     d_far: float | None = None,
     progress: Callable[[int, int, dict], None] | None = None,
+    shard: tuple[int, int] | None = None,
+    executor: str = "local",
+    address: str | None = None,
+    threads: int | None = None,
 ) -> dict:
-    """Build (or resume) a dataset; returns the final manifest."""
+    """Build (or resume) a dataset; returns the final manifest.
 
+    `shard` (K, N) builds only part K of N (`shard_indices`); the manifest is completed by
+    whichever part finds every shard present (or by `merge`), and until then this returns the
+    planned manifest (`amplitude_scale` None). `executor` "ray" runs one Ray task per example
+    (`address`: a running cluster's; None starts a local instance with `workers` CPUs).
+    `threads`: torch's and numba's threads of an in-process build (`workers` 1; default: one per
+    core); pool and Ray workers run one thread each.
+    The returned dict carries `build_timing` (this run's speed); the file does not, so that two
+    builds of the same dataset are identical byte for byte."""
+
+    if executor not in EXECUTORS:
+        raise ValueError(f"executor = {executor!r}: must be one of {', '.join(EXECUTORS)}")
+    if workers < 1:
+        raise ValueError(f"workers = {workers}: must be >= 1")
+    if threads is not None and threads < 1:
+        raise ValueError(f"threads = {threads}: must be >= 1")
     scene_path, out_dir = Path(scene_path), Path(out_dir)
     g = load_scene(scene_path)
     center = np.median(g.means, axis=0) if len(g) else np.zeros(3)
@@ -246,30 +455,45 @@ def build(
                              d_near=d_near, d_far=d_far)  # fmt: skip
     if existing is not None and existing.get("key") != manifest["key"]:
         if not force:
+            diff = manifest_differences(existing, manifest)
             raise ValueError(
                 f"{out_dir} holds a dataset built with other settings, poses or scene "
-                f"(manifest key {existing.get('key', '?')[:12]} != {manifest['key'][:12]}); "
+                f"(manifest key {existing.get('key', '?')[:12]} != {manifest['key'][:12]}"
+                f"{': ' + '; '.join(diff) if diff else ''}); "
                 "use another --out, or --force to replace it"
             )
         for old in out_dir.glob("view_*.npz"):
             old.unlink()
-    write_json_atomic(manifest_path, manifest)
-    # Temporary files of an interrupted build are never shards; clear them.
-    for stale in out_dir.glob("*.tmp"):
-        stale.unlink(missing_ok=True)
-    todo = [i for i in range(len(poses))
-            if not shard_is_valid(out_dir / shard_name(i), manifest["key"])]  # fmt: skip
-    done = len(poses) - len(todo)
+        existing = None
+    if existing is None:
+        # Parts of a sharded build plan the same manifest (same bytes), so whichever writes it
+        # first writes what the others would.
+        write_json_atomic(manifest_path, manifest)
+    # Temporary files of an interrupted build are never shards; clear them (only in a
+    # whole-dataset build: other parts may be writing theirs right now).
+    if shard is None and executor == "local":
+        for stale in out_dir.glob("*.tmp"):
+            stale.unlink(missing_ok=True)
+    mine = shard_indices(len(poses), shard)
+    todo = [i for i in mine if not shard_is_valid(out_dir / shard_name(i), manifest["key"])]
+    done = len(mine) - len(todo)
     stats: list[dict] = []
+
+    def record(r: dict) -> None:
+        nonlocal done
+        done += 1
+        stats.append(r)
+        if progress:
+            progress(done, len(mine), r)
+
+    t_start = time.perf_counter()
     if todo:
-        if workers <= 1:
-            _worker_init(str(scene_path), threads=max(1, os.cpu_count() or 1))
-            results = (_build_one(str(out_dir), manifest, i) for i in todo)
-            for r in results:
-                done += 1
-                stats.append(r)
-                if progress:
-                    progress(done, len(poses), r)
+        if executor == "ray":
+            _run_ray(manifest, out_dir, todo, address=address, workers=workers, on_result=record)
+        elif workers <= 1:
+            _worker_init(str(scene_path), threads=threads or max(1, os.cpu_count() or 1))
+            for i in todo:
+                record(_build_timed(manifest, i, out_dir))
         else:
             import multiprocessing as mp
 
@@ -280,20 +504,20 @@ def build(
                           initargs=(str(scene_path), 1)) as pool:  # fmt: skip
                 jobs = [(str(out_dir), manifest, i) for i in todo]
                 for res in pool.imap_unordered(_build_star, jobs):
-                    done += 1
-                    stats.append(res)
-                    if progress:
-                        progress(done, len(poses), res)
-    manifest["amplitude_scale"] = amplitude_scale(out_dir, len(poses))
+                    record(res)
+    wall_s = time.perf_counter() - t_start
+    if shard is None or not missing_shards(out_dir, manifest):
+        manifest = merge(out_dir, manifest)
     if stats:
         manifest["build_timing"] = {
             "examples": len(stats),
+            "wall_s": wall_s,
             "median_example_s": float(np.median([s["seconds"] for s in stats])),
             "median_render_s": float(np.median([s["render_s"] for s in stats])),
             "median_invert_s": float(np.median([s["invert_s"] for s in stats])),
             "workers": workers,
+            "executor": executor,
         }
-    write_json_atomic(manifest_path, manifest)
     return manifest
 
 

@@ -3,7 +3,9 @@
 `make_example(scene, pose, mapping, settings, seed)` depends only on its arguments, so results do
 not depend on how many workers run or in which order (a distributed executor can call it as is).
 A shard is an uncompressed `.npz` written to a temporary name and renamed into place, so an
-interrupted build never leaves a half-written shard under the final name.
+interrupted build never leaves a half-written shard under the final name. Its bytes depend only on
+its contents (fixed zip dates, fixed member order), so builds on different machines, executors or
+days are compared by comparing files.
 """
 
 from __future__ import annotations
@@ -183,21 +185,36 @@ def make_example(
     }
 
 
+# Zip member dates: numpy's savez stamps the time of writing, which would make two builds of the
+# same example differ in their bytes. 1980-01-01 is the earliest date a zip can hold.
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)
+
+
+def _write_npz(f, arrays: dict[str, np.ndarray]) -> None:
+    """An uncompressed .npz (np.load reads it) whose bytes depend only on `arrays`."""
+    with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+        for name, array in arrays.items():
+            info = zipfile.ZipInfo(name + ".npy", date_time=_ZIP_DATE)
+            info.compress_type = zipfile.ZIP_STORED
+            info.external_attr = 0o644 << 16
+            with zf.open(info, "w", force_zip64=True) as member:
+                np.lib.format.write_array(member, np.asanyarray(array), allow_pickle=False)
+
+
 def write_shard(path: Path, example: dict, meta: dict) -> None:
     """Write atomically: a temporary file in the same folder, flushed, then renamed."""
     path = Path(path)
     fd, tmp = tempfile.mkstemp(prefix=path.stem + ".", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            np.savez(
-                f,
-                rgb=example["rgb"],
-                depth=example["depth"],
-                alpha=example["alpha"],
-                field=example["field"],
-                amp_samples=example["amp_samples"],
-                meta=np.array(json.dumps(meta)),
-            )
+            _write_npz(f, {
+                "rgb": example["rgb"],
+                "depth": example["depth"],
+                "alpha": example["alpha"],
+                "field": example["field"],
+                "amp_samples": example["amp_samples"],
+                "meta": np.array(json.dumps(meta)),
+            })  # fmt: skip
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
