@@ -43,7 +43,7 @@ from nhfd import __version__
 from nhfd.dataset.build import build as build_dataset
 from nhfd.dataset.build import sha256_file, write_json_atomic
 from nhfd.dataset.envelope import dataset_envelope
-from nhfd.dataset.poses import PoseSampler
+from nhfd.dataset.poses import EXTRAP_SHARE, INTERP_SHARE, PoseSampler, orbit_sampler
 from nhfd.dataset.shard import ExampleSettings
 from nhfd.models.contact_sheet import contact_sheet
 from nhfd.models.data import HoloData
@@ -54,7 +54,7 @@ from nhfd.models.train import RESUMABLE_CHANGES, TrainOptions, train
 from nhfd.optics import quality_planes
 from nhfd.scene.cull import reduce_scene
 from nhfd.scene.io import load_scene, save_ply, scene_format
-from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
+from nhfd.scene.suggest import detect_up_axis, format_hint
 
 STAGES = ("scene", "reduce", "dataset", "train", "export", "eval", "report")
 STATE = "build.json"
@@ -63,10 +63,6 @@ FORMAT_VERSION = 1
 # A quantised model is kept only if its held-out PSNR is within this of the float model's
 # (issue 24).
 INT8_MAX_LOSS_DB = 0.5
-# The held-out split proportions of a sampled pose set (nhfd.dataset.poses: 100 / 20 / 10).
-INTERP_SHARE, EXTRAP_SHARE = 20 / 130, 10 / 130
-# Jitter of the look-at point, as a fraction of the camera distance (as `nhfd dataset build`).
-JITTER_FRACTION = 0.02
 # Seconds per unit of work on this project's 2-core machine, the estimate before a stage has
 # run (then the measured rate of the finished stages scales what is left): the reduction per
 # pose-pixel (the donut's 130 poses at 1024 x 576, about 2 min), a dataset example per
@@ -224,17 +220,12 @@ def _scene(ctx: Context) -> dict:
         up, reason = ctx.up, "given (--up)"
     else:
         up, reason = detect_up_axis(g, format_hint(ctx.scene))
-    cam = suggest_camera(g, r.width_px, r.height_px, up, fov_x_deg=r.fov_x_deg)
-    center = np.median(g.means, axis=0)
-    dist = float(np.linalg.norm(cam.position - center))
-    n_interp, n_extrap = round(r.views * INTERP_SHARE), round(r.views * EXTRAP_SHARE)
-    sampler = PoseSampler(
-        center=tuple(float(v) for v in center), up=up,
-        radius=(r.radius_scale[0] * dist, r.radius_scale[1] * dist),
-        azimuth_deg=r.azimuth_deg, elevation_deg=r.elevation_deg,
-        jitter=JITTER_FRACTION * dist, n_train=max(1, r.views - n_interp - n_extrap),
-        n_interp=n_interp, n_extrap=n_extrap, seed=r.seed,
-    )  # fmt: skip
+    sampler = orbit_sampler(g, up, width_px=r.width_px, height_px=r.height_px,
+                            fov_x_deg=r.fov_x_deg, views=r.views, azimuth_deg=r.azimuth_deg,
+                            elevation_deg=r.elevation_deg, radius_scale=r.radius_scale,
+                            seed=r.seed)  # fmt: skip
+    center = np.asarray(sampler.center)
+    dist = sampler.radius[0] / r.radius_scale[0]
     result = {"path": str(ctx.scene), "format": fmt, "gaussians": len(g), "up": up,
               "up_reason": reason, "center": [float(v) for v in center],
               "suggested_distance": dist, "sampler": sampler.describe(),

@@ -6,17 +6,16 @@ import argparse
 import sys
 from pathlib import Path
 
-import numpy as np
 from tqdm import tqdm
 
 from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config
 from nhfd.dataset.build import EXECUTORS, build, merge, parse_shard, shard_indices
-from nhfd.dataset.poses import PoseSampler, load_poses
+from nhfd.dataset.poses import load_poses, orbit_sampler
 from nhfd.dataset.shard import ExampleSettings
 from nhfd.dataset.show import show
 from nhfd.scene.io import load_scene
-from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
+from nhfd.scene.suggest import detect_up_axis, format_hint
 
 BUILD_HELP = """\
 Render the central view and depth of every pose, compute each view's complex hologram on the
@@ -119,19 +118,11 @@ def run_build(args: argparse.Namespace) -> int:
         if args.views < 1:
             raise ValueError(f"--views {args.views}: must be >= 1")
         up = args.up or detect_up_axis(g, format_hint(scene))[0]
-        cam = suggest_camera(g, w, h, up, fov_x_deg=args.fov)
-        center = np.median(g.means, axis=0)
-        dist = float(np.linalg.norm(cam.position - center))
-        r_lo, r_hi = _pair(args.radius_scale, "--radius-scale")
-        n_interp = round(args.views * 20 / 130)
-        n_extrap = round(args.views * 10 / 130)
-        ps = PoseSampler(
-            center=tuple(float(v) for v in center), up=up, radius=(r_lo * dist, r_hi * dist),
-            azimuth_deg=_pair(args.azimuth, "--azimuth"),
-            elevation_deg=_pair(args.elevation, "--elevation"),
-            jitter=0.02 * dist, n_train=max(1, args.views - n_interp - n_extrap),
-            n_interp=n_interp, n_extrap=n_extrap, seed=args.seed,
-        )  # fmt: skip
+        ps = orbit_sampler(g, up, width_px=w, height_px=h, fov_x_deg=args.fov, views=args.views,
+                           azimuth_deg=_pair(args.azimuth, "--azimuth"),
+                           elevation_deg=_pair(args.elevation, "--elevation"),
+                           radius_scale=_pair(args.radius_scale, "--radius-scale"),
+                           seed=args.seed)  # fmt: skip
         poses, sampler = ps.sample(), ps.describe()
     n_mine = len(shard_indices(len(poses), part))
     bar = tqdm(total=n_mine, unit="view", desc="dataset", file=sys.stderr)

@@ -492,9 +492,11 @@ def _reduce(args: argparse.Namespace) -> int:
     scene = _load(args.file, args.up)
     if len(scene.g) == 0:
         raise ValueError(f"{scene.path}: the scene holds no Gaussians; nothing to reduce")
-    sampler = env_mod.default_sampler(scene.g, scene.path, settings, views=args.views, up=scene.up,
-                              azimuth_deg=ranges["azimuth"], elevation_deg=ranges["elevation"],
-                              radius_scale=ranges["radius-scale"], seed=args.seed)
+    sampler = env_mod.orbit_sampler(scene.g, scene.up, width_px=w, height_px=h,
+                                    fov_x_deg=args.fov, views=args.views,
+                                    azimuth_deg=ranges["azimuth"],
+                                    elevation_deg=ranges["elevation"],
+                                    radius_scale=ranges["radius-scale"], seed=args.seed)
     t0 = time.perf_counter()
     env = env_mod.dataset_envelope(scene.g, sampler.sample(), np.array(sampler.center), settings)
     t1 = time.perf_counter()

@@ -8,19 +8,17 @@ colours with `shared_views`, else colours with equal slopes), the bin k = 0 bein
 view itself. `dataset_envelope` makes the same cameras, from the same settings and with the
 same mapping, so nothing the build will render is left out of the envelope.
 
-`default_sampler` is `nhfd dataset build`'s pose sampler with its defaults (the orbit around the
-scene's median at the suggested camera's distance), as a function.
+`orbit_sampler` (from `nhfd.dataset.poses`) is `nhfd dataset build`'s pose sampler.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from pathlib import Path
 
 import numpy as np
 
 from nhfd.dataset.build import scene_depth_pass
-from nhfd.dataset.poses import Pose, PoseSampler
+from nhfd.dataset.poses import Pose, orbit_sampler
 from nhfd.dataset.shard import ExampleSettings, camera_distance
 from nhfd.holo import colour_sampling, sampling_report, scene_mapping
 from nhfd.holo.hologram import _view_groups
@@ -29,11 +27,10 @@ from nhfd.scene.cameras import Camera
 from nhfd.scene.cull import envelope_light_field_cameras, reduce_scene
 from nhfd.scene.gaussians import Gaussians
 from nhfd.scene.lightfield import DepthMapping
-from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
 
 # `nhfd scene reduce` loads this module alone, when it runs, and takes these from it.
 __all__ = ["DEPTH_PASS_SCALE", "Envelope", "ExampleSettings", "dataset_envelope",
-           "default_sampler", "reduce_scene"]
+           "orbit_sampler", "reduce_scene"]
 
 # The depth pass renders at this fraction of the view size (build.scene_depth_pass's default).
 DEPTH_PASS_SCALE = 0.25
@@ -60,36 +57,6 @@ class Envelope:
                 "mapping": {k: m[k] for k in ("d_near", "d_far", "z_min_m", "z_max_m", "a_m",
                                               "b_m", "depth_exaggeration") if k in m},
                 "sampling": self.sampling, "focal_planes_m": list(self.focal_planes_m)}
-
-
-def default_sampler(
-    g: Gaussians,
-    scene_path: str | Path,
-    settings: ExampleSettings,
-    *,
-    views: int = 130,
-    up: str | None = None,
-    azimuth_deg: tuple[float, float] = (-30.0, 30.0),
-    elevation_deg: tuple[float, float] = (10.0, 30.0),
-    radius_scale: tuple[float, float] = (0.9, 1.1),
-    seed: int = 0,
-) -> PoseSampler:
-    """`nhfd dataset build`'s sampler for `views` poses (train, interp, extrap as 100:20:10)."""
-    if views < 1:
-        raise ValueError(f"views must be >= 1, got {views}")
-    up = up or detect_up_axis(g, format_hint(scene_path))[0]
-    cam = suggest_camera(g, settings.width_px, settings.height_px, up,
-                         fov_x_deg=settings.fov_x_deg)  # fmt: skip
-    center = np.median(g.means, axis=0)
-    dist = float(np.linalg.norm(cam.position - center))
-    n_interp, n_extrap = round(views * 20 / 130), round(views * 10 / 130)
-    return PoseSampler(
-        center=tuple(float(v) for v in center), up=up,
-        radius=(radius_scale[0] * dist, radius_scale[1] * dist), azimuth_deg=azimuth_deg,
-        elevation_deg=elevation_deg, jitter=0.02 * dist,
-        n_train=max(1, views - n_interp - n_extrap), n_interp=n_interp, n_extrap=n_extrap,
-        seed=seed,
-    )  # fmt: skip
 
 
 def dataset_envelope(

@@ -22,8 +22,14 @@ from pathlib import Path
 import numpy as np
 
 from nhfd.scene.cameras import look_at, orbit_position, parse_axis
+from nhfd.scene.gaussians import Gaussians
+from nhfd.scene.suggest import suggest_camera
 
 SPLITS = ("train", "interp", "extrap")
+# The held-out shares of an orbit's poses (train : interp : extrap = 100 : 20 : 10, the paper's
+# setting) and the look-at jitter as a fraction of the camera distance.
+INTERP_SHARE, EXTRAP_SHARE = 20 / 130, 10 / 130
+JITTER_FRACTION = 0.02
 
 
 @dataclass(frozen=True)
@@ -174,3 +180,35 @@ def load_poses(path: Path) -> list[Pose]:
             raise ValueError(f"{where}: R is not a rotation matrix")
         poses.append(Pose(_tuple2(rot), tuple(float(v) for v in t), split))
     return poses
+
+
+def orbit_sampler(
+    g: Gaussians,
+    up: str,
+    *,
+    width_px: int,
+    height_px: int,
+    fov_x_deg: float,
+    views: int = 130,
+    azimuth_deg: tuple[float, float] = (-30.0, 30.0),
+    elevation_deg: tuple[float, float] = (10.0, 30.0),
+    radius_scale: tuple[float, float] = (0.9, 1.1),
+    seed: int = 0,
+) -> PoseSampler:
+    """The default orbit for `g` (`nhfd dataset build`, `nhfd scene reduce`, `nhfd model build`):
+    `views` poses split by `INTERP_SHARE` and `EXTRAP_SHARE` around the Gaussians' median, at
+    `radius_scale` times the distance of the camera `nhfd.scene.suggest` places for a
+    `width_px` x `height_px` view of `fov_x_deg`."""
+    if views < 1:
+        raise ValueError(f"views must be >= 1, got {views}")
+    cam = suggest_camera(g, width_px, height_px, up, fov_x_deg=fov_x_deg)
+    center = np.median(g.means, axis=0)
+    dist = float(np.linalg.norm(cam.position - center))
+    n_interp, n_extrap = round(views * INTERP_SHARE), round(views * EXTRAP_SHARE)
+    return PoseSampler(
+        center=tuple(float(v) for v in center), up=up,
+        radius=(radius_scale[0] * dist, radius_scale[1] * dist), azimuth_deg=tuple(azimuth_deg),
+        elevation_deg=tuple(elevation_deg), jitter=JITTER_FRACTION * dist,
+        n_train=max(1, views - n_interp - n_extrap), n_interp=n_interp, n_extrap=n_extrap,
+        seed=seed,
+    )  # fmt: skip
