@@ -21,10 +21,12 @@ from nhfd.models.train import training_device
 from nhfd.scene.cameras import parse_axis
 
 BUILD_HELP = f"""\
-Choose the poses around the scene, build the dataset, train, export (float32, and int8 where
-it stays within 0.5 dB of it), evaluate the held-out views against the 2D-hologram and black
-baselines with the focus check, and write OUT/report.json and OUT/contact_sheet.png. Stages:
-{", ".join(STAGES)}. Interrupted builds resume (run the same command again): finished stages
+Choose the poses around the scene, reduce the scene to what they can show (nhfd scene reduce),
+build the dataset, train, export (float32, and int8 where it stays within 0.5 dB of it),
+evaluate the held-out views against the 2D-hologram and black baselines with the focus check,
+and write OUT/report.json and OUT/contact_sheet.png.
+Stages: {", ".join(STAGES)}.
+Interrupted builds resume (run the same command again): finished stages
 are skipped, the dataset keeps its shards and training its checkpoint. A folder built from
 another scene, recipe or settings is refused unless --force. Recipes: nhfd.toml
 [model.build.profiles] (quick: a first look in minutes; default: the shipped model's recipe).
