@@ -23,6 +23,8 @@ BENCHES: tuple[Command, ...] = (
     Command("pipeline", "nhfd.benchmarks.pipeline", "view-change-to-SLM latency per stage"),
     Command("load", "nhfd.benchmarks.load", "status latency and memory under a set_view storm"),
     Command("safety", "nhfd.benchmarks.safety", "time from each fault to every laser off"),
+    Command("geometry", "nhfd.benchmarks.geometry",
+            "dot geometry, warps and SSIM vs OpenCV and kornia"),
 )
 
 
