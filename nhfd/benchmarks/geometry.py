@@ -83,7 +83,7 @@ AGREE = 1e-4
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("geometry", help="dot geometry, warps and SSIM vs OpenCV and kornia",
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--benches", type=int, default=20, help="random benches (default 20)")
+    p.add_argument("--benches", type=int, default=40, help="random benches (default 40)")
     p.add_argument("--seed", type=int, default=500, help="first bench seed (default 500)")
     p.add_argument("--repeats", type=int, default=5, help="timed repeats; the median is kept")
     p.add_argument("--out", default="out/bench/geometry.json", help="JSON file to write")
@@ -166,30 +166,43 @@ def compare_methods(args: argparse.Namespace) -> dict[str, Any]:
         lay = dot_layout(spec)
         cut = image.shape[1] // 3
         cases += [(lay, image, truth, 0), (lay, image[:, cut:], truth, cut)]
-    out: dict[str, Any] = {}
-    for method in METHODS:
-        errs, fails, times = [], [], []
-        for n, (lay, image, truth, cut) in enumerate(cases):
+    errs: dict[str, list] = {m: [] for m in METHODS}
+    fails: dict[str, list] = {m: [] for m in METHODS}
+    times: dict[str, list] = {m: [] for m in METHODS}
+    # Methods take turns on each case, so a change in the machine's load hits them alike.
+    for n, (lay, image, truth, cut) in enumerate(cases):
+        for method in METHODS:
             t0 = time.perf_counter()
             try:
                 geo = fit_with(method, image, lay)
             except GeometryError as exc:
-                fails.append(f"case {n}: {exc}")
+                fails[method].append(f"case {n}: {exc}")
                 continue
             finally:
-                times.append(time.perf_counter() - t0)
+                times[method].append(time.perf_counter() - t0)
             if geo.mirror_x != truth["mirror_x"]:
-                fails.append(f"case {n}: wrong mirror")
+                fails[method].append(f"case {n}: wrong mirror")
                 continue
-            errs.append(errors(geo, truth, cut))
-        e = np.asarray(errs).reshape(-1, 3)
+            errs[method].append((n, *errors(geo, truth, cut)))
+    out: dict[str, Any] = {}
+    default = {row[0]: row[1:] for row in errs[METHODS[0]]}
+    for method in METHODS:
+        e = np.asarray([row[1:] for row in errs[method]]).reshape(-1, 3)
+        # Case by case against the default, where both succeeded: [lower, higher] error counts.
+        pairs = np.asarray([(default[row[0]], row[1:]) for row in errs[method]
+                            if row[0] in default]).reshape(-1, 2, 3)
+        vs_default = {name: [int((pairs[:, 1, k] < pairs[:, 0, k]).sum()),
+                             int((pairs[:, 1, k] > pairs[:, 0, k]).sum())]
+                      for k, name in enumerate(("scale", "rotation", "centre"))}
         rms = np.sqrt((e**2).mean(axis=0)) if len(e) else [math.nan] * 3
         mx = e.max(axis=0) if len(e) else [math.nan] * 3
-        out[method] = {"cases": len(cases), "failures": len(fails), "why": fails,
+        out[method] = {"cases": len(cases), "failures": len(fails[method]),
+                       "why": fails[method],
                        "scale_rms": float(rms[0]), "scale_max": float(mx[0]),
                        "rotation_rms_deg": float(rms[1]), "rotation_max_deg": float(mx[1]),
                        "centre_rms_px": float(rms[2]), "centre_max_px": float(mx[2]),
-                       "ms_per_image": 1e3 * statistics.median(times)}
+                       "ms_per_image": 1e3 * statistics.median(times[method]),
+                       "vs_default_lower_higher": vs_default}
     return out
 
 
@@ -316,6 +329,10 @@ def run(args: argparse.Namespace) -> int:
               f"{m['rotation_rms_deg']:>8.4f}°{m['rotation_max_deg']:>7.4f}°"
               f"{m['centre_rms_px']:>8.3f} px{m['centre_max_px']:>7.3f}"
               f"{m['ms_per_image']:>10.1f}")
+        if name != METHODS[0]:
+            print("    against " + METHODS[0] + ", cases with a lower / higher error: " +
+                  ", ".join(f"{k} {lo} / {hi}" for k, (lo, hi) in
+                            m["vs_default_lower_higher"].items()))
         for why in m["why"]:
             print(f"    {why}")
     same = same_values(args)
