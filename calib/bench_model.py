@@ -5,10 +5,9 @@ fitted sign to the SLM's phase (each pixel a flat square: `pixel_transfer`), the
 aperture and the angular spectrum method (`nhfd.optics.propagate`, never re-implemented) carry
 it to depth `z`. The comparison happens at the SLM pixel centres: each captured image is
 resampled there once through the fitted camera geometry (`to_slm_grid`, kornia's `warp_affine`;
-the camera samples the
-SLM plane two to three times finer than its pixels, so this loses little; the camera pixels'
-area, a blur of a third of an SLM pixel, is left out), which saves mapping every rendered image
-onto the sensor. What the model leaves out (fill factor, gap light, zero
+the camera samples the SLM plane two to three times finer than its pixels, so this loses little;
+the camera pixels' area, a blur of a third of an SLM pixel, is left out), which saves mapping
+every rendered image onto the sensor. What the model leaves out (fill factor, gap light, zero
 order, illumination envelope) reaches the camera, after the dot/negated-dot pair average of the
 fine sweep, as an additive smooth background and a common factor: each colour gets a gain and a
 background level. Both frames of the pair are rendered and averaged, as captured.
