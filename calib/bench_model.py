@@ -4,10 +4,10 @@ The model is the nominal bench: a grey frame goes through the fitted grey->phase
 fitted sign to the SLM's phase (each pixel a flat square: `pixel_transfer`), the relay's Fourier
 aperture and the angular spectrum method (`nhfd.optics.propagate`, never re-implemented) carry
 it to depth `z`. The comparison happens at the SLM pixel centres: each captured image is
-resampled there once through the fitted camera geometry (`to_slm_grid`; the camera samples the
-SLM plane two to three times finer than its pixels, so this loses little; the camera pixels'
-area, a blur of a third of an SLM pixel, is left out), which saves mapping every rendered image
-onto the sensor. What the model leaves out (fill factor, gap light, zero
+resampled there once through the fitted camera geometry (`to_slm_grid`, kornia's `warp_affine`;
+the camera samples the SLM plane two to three times finer than its pixels, so this loses little;
+the camera pixels' area, a blur of a third of an SLM pixel, is left out), which saves mapping
+every rendered image onto the sensor. What the model leaves out (fill factor, gap light, zero
 order, illumination envelope) reaches the camera, after the dot/negated-dot pair average of the
 fine sweep, as an additive smooth background and a common factor: each colour gets a gain and a
 background level. Both frames of the pair are rendered and averaged, as captured.
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-import torch.nn.functional as F
+from kornia.geometry.transform import warp_affine
 
 from nhfd.optics import Aperture, PhaseCurve, grey_to_phase, propagate
 from nhfd.optics.pupil import FIRST_NOLL, N_ZERNIKE, pupil_phase
@@ -133,18 +133,24 @@ def to_slm_grid(image: np.ndarray, geo: Geometry, panel_hw: tuple[int, int], pit
     """A camera image sampled (bilinearly) at the SLM pixel centres through the geometry:
     ([H, W] values, [H, W] bool: inside the image and EDGE_MARGIN_PX inside the panel)."""
     h, w = panel_hw
-    rows, cols = np.mgrid[0:h, 0:w]
-    xy = np.stack([(cols - (w - 1) / 2) * pitch_m, (rows - (h - 1) / 2) * pitch_m], -1)
-    cam = geo.to_camera(xy.reshape(-1, 2))
+    # SLM pixel (col, row) -> camera (col, row) is affine: camera = a @ (col, row) + b.
+    a = geo.matrix * pitch_m
+    b = geo.to_camera(np.array([[-(w - 1) / 2 * pitch_m, -(h - 1) / 2 * pitch_m]]))[0]
+    forward = np.eye(3)
+    forward[:2, :2], forward[:2, 2] = a, b
+    # warp_affine takes the map from the source (camera) to the destination (SLM grid);
+    # align_corners: pixel centres at integers, as the geometry counts them.
+    vals = warp_affine(torch.from_numpy(np.asarray(image, np.float64))[None, None],
+                       torch.from_numpy(np.linalg.inv(forward)[:2])[None], (h, w),
+                       mode="bilinear", padding_mode="zeros", align_corners=True)[0, 0]
+    rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
+    cam_col = a[0, 0] * cols + a[0, 1] * rows + b[0]
+    cam_row = a[1, 0] * cols + a[1, 1] * rows + b[1]
     ih, iw = image.shape
-    ok = (cam[:, 0] >= 0) & (cam[:, 1] >= 0) & (cam[:, 0] <= iw - 1) & (cam[:, 1] <= ih - 1)
-    grid = torch.from_numpy(np.stack([cam[:, 0] / ((iw - 1) / 2) - 1,
-                                      cam[:, 1] / ((ih - 1) / 2) - 1], -1)).double()
-    vals = F.grid_sample(torch.from_numpy(np.asarray(image, np.float64))[None, None],
-                         grid[None, None], mode="bilinear", align_corners=True)[0, 0, 0]
+    ok = (cam_col >= 0) & (cam_row >= 0) & (cam_col <= iw - 1) & (cam_row <= ih - 1)
     m = EDGE_MARGIN_PX
     inner = (rows >= m) & (rows < h - m) & (cols >= m) & (cols < w - m)
-    return vals.numpy().reshape(h, w), ok.reshape(h, w) & inner
+    return vals.numpy(), ok & inner
 
 
 @dataclass(frozen=True)

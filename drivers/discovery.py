@@ -1,9 +1,10 @@
 """What is plugged in, and which `[devices]` entry would use it (`nhfd devices`).
 
-Three listings, each optional on the machine: serial ports (pyserial's `list_ports`), HID
-devices (hidapi, when installed) and USB devices (pyusb with a libusb backend, when installed;
-the `libusb-package` wheel supplies libusb without a system library). A device matches a config
-entry by USB serial number or port path (laser, stage) or by vendor AND product id (SpaceMouse).
+Three listings: serial ports (pyserial's `list_ports`), HID devices (hidapi) and USB devices
+(pyusb, through the libusb that the `libusb-package` wheel ships, so no system library is
+needed; a machine where even that cannot load gets the USB listing's note instead). A device
+matches a config entry by USB serial number or port path (laser, stage) or by vendor AND product
+id (SpaceMouse).
 A Thorlabs controller (0403:faf0) that no entry names yet is reported as a candidate, with the
 serial number to put in the config.
 
@@ -14,6 +15,12 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
 from typing import Any
+
+import hid
+import libusb_package
+import usb.backend.libusb1
+import usb.core
+from serial.tools import list_ports
 
 from .navigator import matches as spacemouse_matches
 from .transport import same_port
@@ -45,9 +52,8 @@ class Found:
 @dataclass(frozen=True)
 class Listing:
     serial: list[Found]
-    hid: list[Found] | None  # None: not available (why in hid_note)
-    usb: list[Found] | None
-    hid_note: str = ""
+    hid: list[Found]
+    usb: list[Found] | None  # None: no libusb could be loaded (why in usb_note)
     usb_note: str = ""
 
 
@@ -78,8 +84,6 @@ def uses_of(devices: Any, *, port: str = "", serial_number: str = "", vid: int |
 
 
 def serial_ports(devices: Any) -> list[Found]:
-    from serial.tools import list_ports
-
     found = []
     for p in sorted(list_ports.comports(), key=lambda p: p.device):
         serial = p.serial_number or ""
@@ -91,11 +95,7 @@ def serial_ports(devices: Any) -> list[Found]:
     return found
 
 
-def hid_devices(devices: Any) -> tuple[list[Found] | None, str]:
-    try:
-        import hid
-    except ImportError:
-        return None, "hidapi not installed: pip install hidapi"
+def hid_devices(devices: Any) -> list[Found]:
     found = []
     for d in hid.enumerate():
         vid, pid = d.get("vendor_id"), d.get("product_id")
@@ -106,15 +106,10 @@ def hid_devices(devices: Any) -> tuple[list[Found] | None, str]:
                            " ".join(x for x in (d.get("manufacturer_string"),
                                                 d.get("product_string")) if x),
                            uses_of(devices, serial_number=serial, vid=vid, pid=pid)))
-    return found, ""
+    return found
 
 
 def _usb_backend() -> Any:
-    try:
-        import libusb_package
-        import usb.backend.libusb1
-    except ImportError:
-        return None
     return usb.backend.libusb1.get_backend(find_library=libusb_package.find_library)
 
 
@@ -127,13 +122,10 @@ def _usb_string(dev: Any, attr: str) -> str:
 
 def usb_devices(devices: Any) -> tuple[list[Found] | None, str]:
     try:
-        import usb.core
-    except ImportError:
-        return None, "pyusb not installed: pip install pyusb libusb-package"
-    try:
         found_devices = list(usb.core.find(find_all=True, backend=_usb_backend()))
     except usb.core.NoBackendError:
-        return None, "pyusb found no libusb backend: pip install libusb-package"
+        # libusb-package ships no libusb for this platform and the system has none.
+        return None, "pyusb found no libusb: install the system's libusb-1.0"
     found = []
     for dev in found_devices:
         serial = _usb_string(dev, "serial_number")
@@ -147,6 +139,5 @@ def usb_devices(devices: Any) -> tuple[list[Found] | None, str]:
 
 
 def list_devices(devices: Any) -> Listing:
-    hid_found, hid_note = hid_devices(devices)
     usb_found, usb_note = usb_devices(devices)
-    return Listing(serial_ports(devices), hid_found, usb_found, hid_note, usb_note)
+    return Listing(serial_ports(devices), hid_devices(devices), usb_found, usb_note)

@@ -6,8 +6,7 @@ id 1. Other ids (battery, LEDs) are ignored. Devices are matched by vendor AND p
 0x046d is Logitech's, shared with mice and keyboards.
 
 `Navigator.read()` returns velocities: each raw axis through a dead zone, scaled linearly from the
-dead-zone edge to full deflection, times the configured maximum. hidapi is optional (the
-`navigator` extra) and imported only when a real device is opened.
+dead-zone edge to full deflection, times the configured maximum.
 """
 
 from __future__ import annotations
@@ -18,6 +17,8 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
+
+import hid
 
 from nhfd.device_settings import NavigatorSettings
 
@@ -116,7 +117,7 @@ class Navigator(Device, ABC):
 
 
 class SpaceMouseNavigator(Navigator):
-    """A 3Dconnexion SpaceMouse through hidapi (`pip install nhfd[navigator]`)."""
+    """A 3Dconnexion SpaceMouse through hidapi."""
 
     def __init__(self, settings: NavigatorSettings | None = None, *,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -126,12 +127,6 @@ class SpaceMouseNavigator(Navigator):
         self.product: str = ""
 
     def _do_open(self) -> None:
-        try:
-            import hid
-        except ImportError:
-            raise DeviceError(
-                "the SpaceMouse backend needs hidapi: pip install 'nhfd[navigator]'"
-            ) from None
         found = [d for d in hid.enumerate()
                  if matches(d["vendor_id"], d["product_id"], self.settings.usb_ids)]
         # A device may expose several interfaces; the multi-axis controller is usage page 1,

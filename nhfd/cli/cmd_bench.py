@@ -27,6 +27,8 @@ BENCHES: tuple[Command, ...] = (
             "calibration capture time with and without hardware triggers"),
     Command("distributed", "nhfd.benchmarks.distributed",
             "2 local workers vs 1: dataset build and training"),
+    Command("geometry", "nhfd.benchmarks.geometry",
+            "dot geometry, warps and SSIM vs OpenCV and kornia"),
 )
 
 

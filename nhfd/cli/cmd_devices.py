@@ -1,7 +1,7 @@
 """`nhfd devices`: connected serial, HID and USB devices, and which config entry would use each.
 
-Works with nothing connected and without the optional libraries (hidapi, pyusb): it says what it
-could not list and why. Exit code 0 unless the configuration is invalid.
+Works with nothing connected; where no libusb can be loaded it says so in place of the USB
+listing. Exit code 0 unless the configuration is invalid.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "devices",
         help="list connected devices and which config entry would use each",
-        description="List serial ports (USB vendor:product, serial number), HID devices (with "
-        "hidapi) and USB devices (with pyusb), and which [devices] entry would use each: by "
+        description="List serial ports (USB vendor:product, serial number), HID devices "
+        "(hidapi) and USB devices (pyusb), and which [devices] entry would use each: by "
         "USB serial number or port for the laser and stage, by vendor and product id for the "
         "SpaceMouse.",
     )
@@ -49,15 +49,14 @@ def _devices(args: argparse.Namespace) -> int:
         print(json.dumps({
             "config": str(loaded.path) if loaded.path else None,
             "serial": [f.as_dict() for f in listing.serial],
-            "hid": None if listing.hid is None else [f.as_dict() for f in listing.hid],
-            "hid_note": listing.hid_note,
+            "hid": [f.as_dict() for f in listing.hid],
             "usb": None if listing.usb is None else [f.as_dict() for f in listing.usb],
             "usb_note": listing.usb_note,
         }, indent=2))
         return 0
     lines = [f"config: {loaded.path or 'packaged default only'}"]
     _section("Serial ports", listing.serial, "", lines)
-    _section("HID devices", listing.hid, listing.hid_note, lines)
+    _section("HID devices", listing.hid, "", lines)
     _section("USB devices", listing.usb, listing.usb_note, lines)
     print("\n".join(lines), file=sys.stdout)
     return 0

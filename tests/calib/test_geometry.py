@@ -8,7 +8,14 @@ import math
 import numpy as np
 import pytest
 
-from nhfd.calib.geometry import GeometryError, fit_geometry
+from nhfd.calib.geometry import (
+    Geometry,
+    GeometryError,
+    fit_geometry,
+    fit_similarity,
+    identify_dots,
+    ransac_inliers,
+)
 from nhfd.calib.patterns import PatternSpec, dot_layout
 
 
@@ -58,3 +65,37 @@ def test_no_dots_is_a_clear_error() -> None:
     flat = np.random.default_rng(0).normal(0.05, 0.001, (200, 200))
     with pytest.raises(GeometryError):
         fit_geometry(flat, dot_layout(spec))
+
+
+def test_ransac_keeps_the_dots_that_fit_and_finds_the_mirror() -> None:
+    """OpenCV's RANSAC (`ransac_inliers`) against a known similarity: dots displaced by 2-6 px
+    (a centroid pulled by haze) are left out, the rest kept, under the right mirror."""
+    rng = np.random.default_rng(11)
+    spec = PatternSpec((128, 128), 8e-6, (6.6e-7, 5.2e-7, 4.5e-7))
+    xy = dot_layout(spec).xy_m
+    for mirror in (False, True):
+        truth = Geometry(2.9e5, 181.3, mirror, (150.2, 149.7), 0.0, 0, 0.0, 0.0)
+        cam = truth.to_camera(xy) + rng.normal(0, 0.1, xy.shape)
+        bad = rng.choice(len(xy), 6, replace=False)
+        angle = rng.uniform(0, 2 * math.pi, len(bad))
+        cam[bad] += rng.uniform(2, 6, (len(bad), 1)) * np.stack([np.cos(angle),
+                                                                 np.sin(angle)], 1)
+        keep = ransac_inliers(xy, cam)
+        assert set(np.flatnonzero(~keep)) == set(bad)
+        geo = fit_similarity(xy[keep], cam[keep])
+        assert geo.mirror_x is mirror
+        assert abs(geo.px_per_m / truth.px_per_m - 1) < 1e-3
+        assert abs(geo.rotation_deg - truth.rotation_deg) < 0.05
+        assert np.hypot(*np.subtract(geo.shift_px, truth.shift_px)) < 0.1
+        # The fit on every dot is pulled by the displaced ones.
+        assert fit_similarity(xy, cam).rms_px > 5 * geo.rms_px
+
+
+def test_scattered_spots_are_no_lattice() -> None:
+    # Two triangles, sides 1 and 10 px: half the nearest-neighbour steps are 1 px, half 10 px,
+    # so none is near their median (the lattice spacing it would take): no orientation exists.
+    tri = np.array([[0.0, 0.0], [1.0, 0.0], [0.5, 0.87]])
+    pts = np.concatenate([tri + 100, tri * 10 + 300])
+    spec = PatternSpec((128, 128), 8e-6, (6.6e-7, 5.2e-7, 4.5e-7))
+    with pytest.raises(GeometryError, match="form no lattice"):
+        identify_dots(pts, dot_layout(spec))
