@@ -274,7 +274,7 @@ V4L2_AUTO_EXPOSURE_MANUAL = 1
 
 
 class OpenCVCamera(Camera):
-    """Any V4L2/UVC camera through OpenCV's VideoCapture (opencv-python-headless)."""
+    """Any V4L2/UVC camera through OpenCV's VideoCapture (opencv-contrib-python-headless)."""
 
     def __init__(
         self, settings: CameraSettings | None = None, *, response: ResponseCurve | None = None
@@ -284,8 +284,8 @@ class OpenCVCamera(Camera):
             import cv2
         except ImportError:
             raise CameraUnavailable(
-                "OpenCVCamera needs OpenCV: pip install opencv-python-headless "
-                "(or opencv-contrib-python-headless)"
+                "OpenCVCamera needs OpenCV, a dependency of nhfd: pip install "
+                "opencv-contrib-python-headless"
             ) from None
         self._cv2 = cv2
         self._cap: Any = None
