@@ -290,6 +290,8 @@ def test_nhfd_demo_removes_its_temporary_runtime_directory(tmp_path, monkeypatch
         raise RuntimeError("stopped by the test")
 
     monkeypatch.setattr(demo, "demo_config", stop_here)
+    # The model and scene checks run before the runtime directory exists; not this test's subject.
+    monkeypatch.setattr(demo, "check_model_and_scene", lambda *a: {})
     with pytest.raises(RuntimeError, match="stopped by the test"):
         demo.run(tmp_path / "out", config=None, model=tmp_path / "m.onnx",
                  scene=tmp_path / "s.ply", log=lambda *a: None)
