@@ -63,7 +63,7 @@ EXPOSURE_S = 0.05
 HOW_TO_BUILD = """\
 The demo needs the trained default model {model}, which is not there.
 Build it (about 8 min + 45 min on 2 cores, or a few minutes with --device cuda on a GPU; see
-README "The shipped model"):
+docs/network.md, "The shipped model"):
   .venv/bin/nhfd dataset build --scene models/scenes/donut.ply --out datasets/donut-512 \\
       --views 130 --size 512x288 --workers 2
   .venv/bin/nhfd train --data datasets/donut-512 --out runs/donut-512
