@@ -25,7 +25,7 @@ import os
 import tempfile
 import time
 from collections.abc import Callable
-from dataclasses import asdict
+from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,15 +48,14 @@ from nhfd.scene.lightfield import DepthMapping
 from nhfd.scene.raster import render
 
 MANIFEST = "manifest.json"
+# The depth pass that fixes a build's mapping renders at this fraction of the view size.
+DEPTH_PASS_SCALE = 0.25
 AMPLITUDE_PERCENTILE = 99.5
 
 
 def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
     with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
+        return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def shard_name(index: int) -> str:
@@ -72,22 +71,40 @@ def write_json_atomic(path: Path, data: dict) -> None:
     os.replace(tmp, path)
 
 
-def scene_depth_pass(g, poses: list[Pose], center: np.ndarray, settings: ExampleSettings,
-                     *, scale: float = 0.25) -> dict:  # fmt: skip
-    """Robust `d_near`, `d_far` of the scene over all poses (rendered at `scale` of the size)."""
-    from dataclasses import replace
+def depth_pass_cameras(poses: list[Pose], center: np.ndarray, settings: ExampleSettings,
+                       scale: float = DEPTH_PASS_SCALE) -> list:  # fmt: skip
+    """The depth pass's cameras: each pose's, at `scale` of the view size."""
+    small = replace(settings, width_px=max(8, round(settings.width_px * scale)),
+                    height_px=max(8, round(settings.height_px * scale)))  # fmt: skip
+    return [small.camera(pose, camera_distance(pose, center)) for pose in poses]
 
-    small = replace(
-        settings,
-        width_px=max(8, round(settings.width_px * scale)),
-        height_px=max(8, round(settings.height_px * scale)),
-    )
+
+def scene_depth_pass(g, poses: list[Pose], center: np.ndarray, settings: ExampleSettings,
+                     *, scale: float = DEPTH_PASS_SCALE) -> dict:  # fmt: skip
+    """Robust `d_near`, `d_far` of the scene over all poses (rendered at `scale` of the size)."""
     depths, alphas = [], []
-    for pose in poses:
-        view = render(g, small.camera(pose, camera_distance(pose, center)))
+    for camera in depth_pass_cameras(poses, center, settings, scale):
+        view = render(g, camera)
         depths.append(view.depth)
         alphas.append(view.alpha)
     return scene_depth_range(depths, alphas)
+
+
+def plan_optics(g, poses: list[Pose], center: np.ndarray, settings: ExampleSettings, *,
+                d_near: float | None = None, d_far: float | None = None):  # fmt: skip
+    """The depth mapping (from the depth pass unless `d_near` and `d_far` are given), its report,
+    and each colour's light-field sampling: what every example of a build shares."""
+    depth_range = None if (d_near and d_far) else scene_depth_pass(g, poses, center, settings)
+    fx = 0.5 * settings.width_px / np.tan(np.radians(settings.fov_x_deg) / 2)
+    mapping, report = scene_mapping(
+        settings.volume_m[0], settings.volume_m[1], settings.pitch_m, float(fx),
+        depth_range=depth_range, d_near=d_near, d_far=d_far,
+    )  # fmt: skip
+    sampling = colour_sampling(
+        settings.wavelengths_m, settings.pitch_m, settings.volume_m, settings.aperture(),
+        windows=settings.windows, shared=settings.shared_views,
+    )  # fmt: skip
+    return mapping, report, sampling
 
 
 def plan_manifest(
@@ -104,16 +121,8 @@ def plan_manifest(
 ) -> dict:
     """Everything the shards depend on, decided before any hologram is computed."""
 
-    depth_range = None if (d_near and d_far) else scene_depth_pass(g, poses, center, settings)
-    fx = 0.5 * settings.width_px / np.tan(np.radians(settings.fov_x_deg) / 2)
-    mapping, report = scene_mapping(
-        settings.volume_m[0], settings.volume_m[1], settings.pitch_m, float(fx),
-        depth_range=depth_range, d_near=d_near, d_far=d_far,
-    )  # fmt: skip
-    sampling = colour_sampling(
-        settings.wavelengths_m, settings.pitch_m, settings.volume_m, settings.aperture(),
-        windows=settings.windows, shared=settings.shared_views,
-    )  # fmt: skip
+    mapping, report, sampling = plan_optics(g, poses, center, settings, d_near=d_near,
+                                            d_far=d_far)  # fmt: skip
     frozen = {
         "format_version": FORMAT_VERSION,
         "scene": {"path": str(scene_path), "sha256": sha256_file(scene_path), "gaussians": len(g)},

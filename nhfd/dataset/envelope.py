@@ -13,14 +13,14 @@ same mapping, so nothing the build will render is left out of the envelope.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
-from nhfd.dataset.build import scene_depth_pass
+from nhfd.dataset.build import DEPTH_PASS_SCALE, depth_pass_cameras, plan_optics
 from nhfd.dataset.poses import Pose, orbit_sampler
 from nhfd.dataset.shard import ExampleSettings, camera_distance
-from nhfd.holo import colour_sampling, sampling_report, scene_mapping
+from nhfd.holo import sampling_report
 from nhfd.holo.hologram import _view_groups
 from nhfd.optics.quality import quality_planes
 from nhfd.scene.cameras import Camera
@@ -32,8 +32,6 @@ from nhfd.scene.lightfield import DepthMapping
 __all__ = ["DEPTH_PASS_SCALE", "Envelope", "ExampleSettings", "dataset_envelope",
            "orbit_sampler", "reduce_scene"]
 
-# The depth pass renders at this fraction of the view size (build.scene_depth_pass's default).
-DEPTH_PASS_SCALE = 0.25
 
 
 @dataclass(frozen=True)
@@ -72,20 +70,9 @@ def dataset_envelope(
     docstring); the mapping comes from the same depth pass the build runs."""
     if not poses:
         raise ValueError("poses: need at least one pose, got none")
-    small = replace(settings, width_px=max(8, round(settings.width_px * DEPTH_PASS_SCALE)),
-                    height_px=max(8, round(settings.height_px * DEPTH_PASS_SCALE)))  # fmt: skip
-    depth_cams = [small.camera(p, camera_distance(p, center)) for p in poses]
-    depth_range = None if (d_near and d_far) else scene_depth_pass(g, poses, center, settings,
-                                                                   scale=DEPTH_PASS_SCALE)
-    fx = 0.5 * settings.width_px / np.tan(np.radians(settings.fov_x_deg) / 2)
-    mapping, report = scene_mapping(
-        settings.volume_m[0], settings.volume_m[1], settings.pitch_m, float(fx),
-        depth_range=depth_range, d_near=d_near, d_far=d_far,
-    )  # fmt: skip
-    sampling = colour_sampling(
-        settings.wavelengths_m, settings.pitch_m, settings.volume_m, settings.aperture(),
-        windows=settings.windows, shared=settings.shared_views,
-    )  # fmt: skip
+    depth_cams = depth_pass_cameras(poses, center, settings)
+    mapping, report, sampling = plan_optics(g, poses, center, settings, d_near=d_near,
+                                            d_far=d_far)  # fmt: skip
     taus = _view_taus(sampling, settings.shared_views)
     pose_cams = [settings.camera(p, camera_distance(p, center)) for p in poses]
     views = envelope_light_field_cameras(pose_cams, mapping, settings.pitch_m, taus)

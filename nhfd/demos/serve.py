@@ -20,7 +20,6 @@ which is what a calibration (issue 8) will provide for a real bench.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import struct
 import tempfile
@@ -38,6 +37,7 @@ from nhfd.calibration import active_calibration
 from nhfd.config import Config, _overlay
 from nhfd.daemon.client import Client
 from nhfd.daemon.service import Daemon
+from nhfd.dataset.build import sha256_file
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.models.export import OnnxModel, load_model
 from nhfd.models.inputs import mapped_depth
@@ -91,14 +91,6 @@ def read_png16(path: Path) -> np.ndarray:
     return rows[:, 1:].copy().view(">u2").astype(np.float64) / 65535.0
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def check_model_and_scene(model: Path, scene: Path, config: Any) -> dict[str, Any]:
     """The demo's model and scene, checked before the daemon starts (which would otherwise wait
     for a load that fails): both files exist (FileNotFoundError; for the model, how to build
@@ -115,7 +107,7 @@ def check_model_and_scene(model: Path, scene: Path, config: Any) -> dict[str, An
     meta = load_model(model, config).metadata
     want = meta.get("scene_sha256")
     if want:
-        have = _sha256(scene)
+        have = sha256_file(scene)
         if have != want:
             raise ValueError(
                 f"the model {model} was trained on another scene than {scene} (SHA-256 "
