@@ -132,7 +132,7 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
         scene_file = _place(scene, scene_dir, scene.name)
         for method, path in (("load_scene", scene_file), ("load_model", model)):
             job = c.call(method, path=str(path))["job"]
-            state = _wait(c, job)
+            state = c.wait_job(job)
             if state["state"] != "done":
                 raise RuntimeError(f"{method} {path}: {state.get('error') or state['state']}"
                                    " (the daemon reads files only inside daemon.scene_dirs and "
@@ -148,10 +148,3 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
           f"{orbit['elevation_deg']:.0f}, {orbit['radius']:.3g} (inside the trained poses)")
 
 
-def _wait(client: Client, job_id: int, timeout_s: float = 600.0) -> dict:
-    end = time.monotonic() + timeout_s
-    while True:
-        job = client.call("job", id=job_id)
-        if job["state"] not in ("queued", "running") or time.monotonic() > end:
-            return job
-        time.sleep(0.1)

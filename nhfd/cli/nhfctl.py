@@ -250,15 +250,6 @@ def _human(cmd: str, result: Any) -> str:
     return str(result)
 
 
-def _wait_job(client: Client, job_id: int, timeout_s: float = 600.0) -> dict[str, Any]:
-    end = time.monotonic() + timeout_s
-    while True:
-        job = client.call("job", id=job_id)
-        if job["state"] not in ("queued", "running") or time.monotonic() > end:
-            return job
-        time.sleep(0.1)
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cmd = args.command
@@ -276,7 +267,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                     time.sleep(args.interval_s)
             result = client.call(method, **params)
             if getattr(args, "wait", False) and isinstance(result, dict) and "job" in result:
-                result = _wait_job(client, int(result["job"]))
+                result = client.wait_job(int(result["job"]))
                 if result["state"] != "done":
                     why = result["error"] or "still running after the wait"
                     print(f"nhfctl {cmd}: error: job {result['id']} {result['state']}: {why}",

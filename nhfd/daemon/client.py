@@ -19,6 +19,7 @@ import itertools
 import os
 import socket
 import ssl
+import time
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +134,17 @@ class Client:
 
     def status(self) -> dict[str, Any]:
         return self.call("status")
+
+    def wait_job(self, job_id: int, timeout_s: float = 600.0, poll_s: float = 0.1
+                 ) -> dict[str, Any]:  # fmt: skip
+        """The job `job_id` once it has ended, or as it stands after `timeout_s` (its state then
+        still "queued" or "running": the caller decides what a timeout means)."""
+        end = time.monotonic() + timeout_s
+        while True:
+            job = self.call("job", id=job_id)
+            if job["state"] not in ("queued", "running") or time.monotonic() > end:
+                return job
+            time.sleep(poll_s)
 
     def close(self) -> None:
         self._sock.close()
