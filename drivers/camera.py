@@ -122,7 +122,8 @@ class Camera(Device, ABC):
         self._gain_db = self.settings.gain_db
         self._dark: np.ndarray | None = None
         self._is_open = False
-        # The trigger input's wire from the SLM's flip output (drivers/trigger.py), if wired.
+        # The trigger input's wire from the SLM's flip output, or the exposure-active output's
+        # wire to the host (drivers/trigger.py), if wired.
         self.trigger: Any = None
 
     # -- lifecycle ---------------------------------------------------------------------------
@@ -209,7 +210,7 @@ class Camera(Device, ABC):
             raise ValueError(f"frames = {frames!r}: must be >= 1")
         total: np.ndarray | None = None
         saturated: np.ndarray | None = None
-        if self.trigger is not None:
+        if self.trigger is not None and self.trigger.flip_triggers_exposure:
             # Armed: the burst's first exposure starts on the flip of the frame last written
             # (plus the trigger delay); TriggerTimeout when the edge never comes.
             self.trigger.wait_exposure_start()

@@ -248,13 +248,21 @@ def make_bench(
     `[devices.trigger]` wires the SLM's flip output to the camera's trigger input
     (drivers/trigger.py): the SLM holds the `TriggerLine`, and a camera made to watch it
     (`make_camera`, here or when the daemon rebuilds it) takes it. It is modelled on the
-    simulated SLM, the only one whose flip this process sees.
+    simulated SLM, the only one whose flip this process sees. `source = "camera_exposure"` is
+    the same `TriggerLine` carrying the simulated camera's exposure-active output to the SLM's
+    writes, which wait for it to fall.
     """
     trigger = getattr(devices, "trigger", None)
     if trigger is not None and trigger.source != "none" and devices.slm != "simulated":
         raise ValueError(
             f"devices.trigger.source = {trigger.source!r} needs devices.slm = 'simulated' (its "
             f"flip output is modelled); with devices.slm = {devices.slm!r} set source = 'none'")
+    if trigger is not None and trigger.source == "camera_exposure" and \
+            devices.camera != "simulated":
+        raise ValueError(
+            f"devices.trigger.source = 'camera_exposure' needs devices.camera = 'simulated' (its "
+            f"exposure-active output is modelled); with devices.camera = {devices.camera!r} set "
+            "source = 'none'")
     out = BenchDevices()
 
     def build(name: str, make: Callable[[], Any]) -> None:

@@ -378,6 +378,23 @@ class SimulatedCamera(Camera):
         return gain_db
 
     def _grab(self) -> np.ndarray:
+        line = self.trigger
+        if line is None or not line.exposure_gates_write:
+            return self._expose()
+        # The exposure-active output is wired (drivers/trigger.py, "camera_exposure"): the line is
+        # high from the exposure's start, when the panel is imaged, to its end, exposure_s later
+        # in time (only then does the exposure take time: other benches keep fast captures).
+        start = line.exposure_begins()
+        try:
+            raw = self._expose()
+            left = start + self._exposure_s - line.clock()
+            if left > 0:
+                time.sleep(left)
+        finally:
+            line.exposure_ends(line.clock())
+        return raw
+
+    def _expose(self) -> np.ndarray:
         if self._stalled:
             timeout_s = self._exposure_s + self.settings.frame_timeout_s
             time.sleep(timeout_s)

@@ -108,7 +108,9 @@ class SLM(Device, ABC):
     def settle_s(self) -> float:
         # With the flip output wired to the camera, the camera's exposure waits on the flip's
         # edge (plus its trigger delay): the host sleeps no settle time.
-        if self.trigger is not None:
+        # (The camera's exposure-active line, "camera_exposure", says nothing of the panel: the
+        # settle time stays.)
+        if self.trigger is not None and self.trigger.flip_triggers_exposure:
             return 0.0
         return self.settings.settle_ms / 1000
 
@@ -135,10 +137,17 @@ class SLM(Device, ABC):
         health = self.health()
         if not health.ok:
             raise SLMOutputLost(f"{self.name}: output lost: {health.detail}")
-        if self.trigger is not None:
-            # Before the write: a flip the write causes is later than this.
-            self.trigger.written(self._clock())
-        self._write(rgb)
+        if self.trigger is not None and self.trigger.exposure_gates_write:
+            # The camera's exposure-active line: no frame changes while the sensor integrates
+            # (TriggerTimeout when the line stays high).
+            with self.trigger.frame_write():
+                self.trigger.written(self._clock())
+                self._write(rgb)
+        else:
+            if self.trigger is not None:
+                # Before the write: a flip the write causes is later than this.
+                self.trigger.written(self._clock())
+            self._write(rgb)
         self._last = rgb
         self._shown_at = self._clock()
         if wait_settled:
@@ -149,7 +158,8 @@ class SLM(Device, ABC):
         return self.show(np.zeros(self.shape, np.uint8))
 
     def attach_trigger(self, line: Any) -> None:
-        """Wire the frame-flip output to a camera's trigger input (a `TriggerLine`)."""
+        """Wire the frame-flip output to a camera's trigger input, or the camera's
+        exposure-active output to the host (a `TriggerLine`)."""
         self.trigger = line
 
     def wait_settled(self) -> None:

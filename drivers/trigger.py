@@ -17,6 +17,22 @@ that never flips) gives no edge, and the capture fails after `timeout_ms` with a
 `TriggerTimeout` naming the trigger and the timeout. `record` keeps, per triggered exposure, the
 frame's write, its flip and the exposure's start (the twin's record a test reads).
 
+With `source = "camera_exposure"` the other wire is used: the camera's exposure-active output
+(high from the exposure's start to its end) is wired to the host. Without it the host cannot
+tell when an exposure is over, only when its image has arrived (after readout and transfer), and
+must not write the next frame before then; with it, the SLM's write waits only for the line to be
+low (`wait_exposure_over`), so the next frame's write and settle may overlap the last image's
+readout, and no frame changes while the sensor integrates. The SLM still waits its settle time
+(nothing tells the camera when the panel flipped). The simulated camera raises the line for each
+exposure (`exposure_begins` / `exposure_ends`, its exposure then lasting `exposure_s` in time);
+it models no readout, and a capture call returns with its image, so the overlap itself is not
+simulated (that needs an asynchronous capture). `exposures` and `writes` are the twin's record:
+a write inside an exposure window is the fault the line prevents (`writes_during_exposures`).
+A line stuck high (`stick_high()`, test-only: a pulled cable reading high, a camera that never
+ends its exposure) fails the write after `timeout_ms` with a `TriggerTimeout` naming the
+trigger and the timeout; a cut one (`cut()`) reads low, and frames are then written inside
+exposures, as without the wire.
+
 A real camera's trigger mode (GenICam TriggerMode/TriggerSource/TriggerDelay, or a vendor SDK's
 equivalent) is set by its backend; this module holds the timing every backend shares.
 """
@@ -25,15 +41,19 @@ from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
 from .errors import DeviceError
 
+SOURCES = ("none", "slm_flip", "camera_exposure")
+
 
 class TriggerTimeout(DeviceError):
-    """No trigger edge arrived within the trigger's timeout after a frame was written."""
+    """No trigger edge arrived within the trigger's timeout after a frame was written, or the
+    camera's exposure-active line stayed high past it."""
 
 
 @dataclass(frozen=True)
@@ -46,13 +66,22 @@ class TriggeredExposure:
     exposure_start_s: float
 
 
+@dataclass(frozen=True)
+class ExposureWindow:
+    """One exposure on the line's clock, as the exposure-active line showed it."""
+
+    start_s: float
+    end_s: float
+
+
 class TriggerLine:
-    """The wire from the SLM's frame-flip output to the camera's trigger input."""
+    """The wire from the SLM's frame-flip output to the camera's trigger input ("slm_flip"), or
+    from the camera's exposure-active output to the host ("camera_exposure")."""
 
     def __init__(self, source: str = "slm_flip", *, delay_ms: float = 10.0,
                  timeout_ms: float = 500.0, clock: Callable[[], float] = time.monotonic) -> None:
-        if source != "slm_flip":
-            raise ValueError(f"trigger source {source!r}: expected 'slm_flip'")
+        if source not in SOURCES[1:]:
+            raise ValueError(f"trigger source {source!r}: expected one of {SOURCES[1:]}")
         if not (0 <= delay_ms <= 1000):
             raise ValueError(f"trigger delay_ms = {delay_ms!r}: must be in [0, 1000]")
         if not (0 < timeout_ms <= 60000):
@@ -66,6 +95,25 @@ class TriggerLine:
         self._edges: list[float] = []  # flip edges not older than the last write
         self._cut = False
         self.record: list[TriggeredExposure] = []
+        # camera_exposure: the line's level, and the twin's record of exposures and writes.
+        self._exposing_since: float | None = None
+        self._stuck_high = False
+        self.exposures: list[ExposureWindow] = []
+        self.writes: list[float] = []
+
+    @property
+    def flip_triggers_exposure(self) -> bool:
+        """slm_flip: the camera exposes on the flip (plus delay); the host sleeps no settle."""
+        return self.source == "slm_flip"
+
+    @property
+    def exposure_gates_write(self) -> bool:
+        """camera_exposure: a frame is written only while no exposure is running."""
+        return self.source == "camera_exposure"
+
+    @property
+    def clock(self) -> Callable[[], float]:
+        return self._clock
 
     @classmethod
     def from_settings(cls, settings: Any, *,
@@ -86,6 +134,8 @@ class TriggerLine:
         """The host wrote a frame at `at_s`: from now on only a later flip triggers."""
         with self._cond:
             self._written_s = at_s
+            if self.exposure_gates_write:
+                self.writes.append(at_s)
             self._edges = [t for t in self._edges if t >= at_s]
 
     def edge(self, at_s: float) -> None:
@@ -99,13 +149,72 @@ class TriggerLine:
     # -- test-only fault -----------------------------------------------------------------------
 
     def cut(self) -> None:
-        """Test-only: the wire is cut (or the SLM never flips): no edge reaches the camera."""
+        """Test-only: the wire is cut. slm_flip: no edge reaches the camera (as when the SLM never
+        flips). camera_exposure: the host's input reads low, so frames are written whatever the
+        camera does; the twin's record still holds the true exposures."""
         with self._cond:
             self._cut = True
 
     def mend(self) -> None:
         with self._cond:
             self._cut = False
+            self._stuck_high = False
+            self._cond.notify_all()
+
+    def stick_high(self) -> None:
+        """Test-only: the exposure-active line reads high whatever the camera does (a camera
+        that never ends its exposure, a broken input pulled high)."""
+        with self._cond:
+            self._stuck_high = True
+
+    # -- camera_exposure: the camera's exposure-active output ----------------------------------
+
+    def exposure_begins(self) -> float:
+        """The camera's exposure starts now (the line rises); returns the start. Not while a
+        frame is being written (`frame_write`): the wiring orders the two."""
+        with self._cond:
+            self._exposing_since = self._clock()
+            return self._exposing_since
+
+    def exposure_ends(self, at_s: float) -> None:
+        with self._cond:
+            if self._exposing_since is not None:
+                self.exposures.append(ExposureWindow(self._exposing_since, at_s))
+            self._exposing_since = None
+            self._cond.notify_all()
+
+    @contextmanager
+    def frame_write(self) -> Iterator[float]:
+        """Around the SLM's write of a frame: waits for the line to be low (`wait_exposure_over`)
+        and holds off the next exposure until the write is done (the line wired to the SLM's
+        trigger input, or the host's write between exposures), so no write falls inside one."""
+        with self._cond:
+            yield self.wait_exposure_over()
+
+    def wait_exposure_over(self) -> float:
+        """Block while the exposure-active line is high (at once when low); returns when it was
+        seen low, on the line's clock. Raises TriggerTimeout when it stays high past the
+        timeout: the host cannot know the exposure is over, so it must not write a frame."""
+        with self._cond:
+            if self._cut:
+                return self._clock()
+            deadline = self._clock() + self.timeout_s
+            while self._stuck_high or self._exposing_since is not None:
+                left = deadline - self._clock()
+                if left <= 0:
+                    raise TriggerTimeout(
+                        f"trigger {self.source}: the camera's exposure-active line stayed high "
+                        f"for {self.timeout_s * 1e3:g} ms (devices.trigger.timeout_ms): is the "
+                        "camera's exposure output wired to the host, and is the camera stuck?")
+                self._cond.wait(min(left, 0.05))
+            return self._clock()
+
+    def writes_during_exposures(self) -> list[tuple[float, ExposureWindow]]:
+        """The twin's check: each frame write that fell inside an exposure (none on a working
+        line)."""
+        with self._cond:
+            return [(w, e) for e in self.exposures for w in self.writes
+                    if e.start_s < w < e.end_s]
 
     # -- the camera's side ---------------------------------------------------------------------
 

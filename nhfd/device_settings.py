@@ -323,10 +323,13 @@ class TriggerSettings(_Settings):
     """Hardware triggering of captures (drivers/trigger.py). "none": a capture waits out the SLM's
     settle_ms after each frame. "slm_flip": the SLM's frame-flip output is wired to the camera's
     trigger input; the camera arms, the frame flips, and the exposure starts delay_ms after the
-    edge, with no settle sleep on the host."""
+    edge, with no settle sleep on the host. "camera_exposure": the camera's exposure-active output
+    is wired to the host; a frame is written only once the line is low (no frame changes during
+    an exposure, none waits for the image's readout), the settle sleep stays."""
 
-    source: Literal["none", "slm_flip"] = "none"
+    source: Literal["none", "slm_flip", "camera_exposure"] = "none"
     # The camera's trigger delay after the edge: the liquid crystal's response to a new frame.
     delay_ms: Annotated[float, Field(ge=0, le=1000)] = 10.0
-    # No edge within this long after a frame was written: the capture fails (TriggerTimeout).
+    # No edge within this long after a frame was written: the capture fails (TriggerTimeout);
+    # camera_exposure: the line high this long when a frame is to be written: the write fails.
     timeout_ms: Annotated[float, Field(gt=0, le=60000)] = 500.0

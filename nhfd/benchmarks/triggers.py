@@ -1,19 +1,22 @@
 """`nhfd bench triggers`: calibration capture time with and without hardware triggers.
 
 The same calibration capture (`nhfd.calib.capture`, up to the grating and flat frames: dark,
-coarse sweep, locate, gratings and flats per colour) runs twice on the simulated bench, driven
+coarse sweep, locate, gratings and flats per colour) runs three times on the simulated bench, driven
 through the drivers as the daemon's capture job drives them (`DevicesBenchIO`):
 
   settle   `[devices.trigger] source = "none"`: after each new frame the capture waits out the
            SLM's settle_ms (nhfd's default 50 ms: it must cover the display pipeline's latency
            and the liquid crystal's response, neither of which the host sees);
   trigger  `source = "slm_flip"`: the camera is armed and exposes `delay_ms` after the panel's
-           flip edge; the host sleeps nothing.
+           flip edge; the host sleeps nothing;
+  exposure `source = "camera_exposure"`: the camera's exposure-active line gates each frame's
+           write (none during an exposure); the settle sleep stays. The simulated camera's
+           exposure then takes its exposure time in wall time (in the other runs it takes none).
 
 The simulated panel flips `--flip-latency-ms` after each write (one 60 Hz refresh by default)
-and the trigger delay is the liquid crystal's response (`--delay-ms`). Both runs see the same
+and the trigger delay is the liquid crystal's response (`--delay-ms`). All runs see the same
 frames, the same stage positions and the same camera noise; the figure is the wall time of each
-capture, the time captures spent waiting for the panel, and whether both located the same bench
+capture, the time captures spent waiting for the panel, and whether all located the same bench
 geometry. The stage moves at `--stage-mm-s` (the simulated APT stage's own motion).
 """
 
@@ -37,6 +40,7 @@ from nhfd.drivers.factory import make_bench
 from nhfd.drivers.simcamera import TrueBench
 
 HELP = "calibration capture time with and without hardware triggers"
+SOURCES = ("none", "slm_flip", "camera_exposure")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -81,11 +85,10 @@ def one(source: str, args: argparse.Namespace, workdir: Path) -> dict[str, Any]:
         manifest = capture(workdir / source, io, spec, plan)
         wall_s = time.perf_counter() - t0
         images = len(manifest["records"]) + 1  # + the dark frame
-        line = b.camera.trigger
         return {
-            "source": source, "settle_ms": settle_ms if line is None else 0.0,
+            "source": source, "settle_ms": 1e3 * b.slm.settle_s,
             "flip_latency_ms": args.flip_latency_ms,
-            "delay_ms": args.delay_ms if line is not None else None,
+            "delay_ms": args.delay_ms if source == "slm_flip" else None,
             "images": images, "frames_shown": b.slm.count, "wall_s": wall_s,
             "waited_s": io.waited_s, "per_image_ms": 1e3 * wall_s / images,
             "located": manifest["located"], "records": manifest["records"],
@@ -99,24 +102,28 @@ def run(args: argparse.Namespace) -> int:
           f"{args.panel} x {args.panel} panel; {describe()}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="nhfd-triggers-") as tmp:
-        for source in ("none", "slm_flip"):
+        for source in SOURCES:
             row = one(source, args, Path(tmp))
             rows.append(row)
-            how = (f"settle {row['settle_ms']:g} ms" if source == "none" else
-                   f"trigger, flip {row['flip_latency_ms']:.1f} ms + delay {row['delay_ms']:g} ms")
-            print(f"  {source:<9} {how:<40} {row['images']:4d} images "
+            how = (f"trigger, flip {row['flip_latency_ms']:.1f} ms + delay {row['delay_ms']:g} ms"
+                   if source == "slm_flip" else
+                   f"exposure line, settle {row['settle_ms']:g} ms"
+                   if source == "camera_exposure" else f"settle {row['settle_ms']:g} ms")
+            print(f"  {source:<15} {how:<40} {row['images']:4d} images "
                   f"({row['frames_shown']} frames)  {row['wall_s']:7.2f} s  waiting "
                   f"{row['waited_s']:6.2f} s  {row['per_image_ms']:6.1f} ms/image", flush=True)
-        plain, trig = rows
+        plain, trig, gated = rows
         # The same frames, positions and noise: a capture that saw a frame before it settled
         # (or an old one) would differ.
         diff = max(float(np.abs(np.load(Path(tmp) / "none" / r["file"])["image"]
-                                - np.load(Path(tmp) / "slm_flip" / r["file"])["image"]).max())
-                   for r in plain["records"])
-    same = all(abs(plain["located"][k] - trig["located"][k]) <= 1e-6 * max(1.0, abs(
-        plain["located"][k])) for k in ("magnification", "rotation_deg", "stage_at_slm_mm"))
+                                - np.load(Path(tmp) / other / r["file"])["image"]).max())
+                   for r in plain["records"] for other in SOURCES[1:])
+    same = all(abs(plain["located"][k] - row["located"][k]) <= 1e-6 * max(1.0, abs(
+        plain["located"][k])) for k in ("magnification", "rotation_deg", "stage_at_slm_mm")
+        for row in (trig, gated))
     print(f"  triggered / settle: {trig['wall_s'] / plain['wall_s']:.2f}x wall time, "
-          f"{trig['waited_s']:.2f} s vs {plain['waited_s']:.2f} s waiting; "
+          f"{trig['waited_s']:.2f} s vs {plain['waited_s']:.2f} s waiting; exposure line / "
+          f"settle: {gated['wall_s'] / plain['wall_s']:.2f}x, {gated['waited_s']:.2f} s waiting; "
           f"same located geometry: {same}; largest image difference {diff:.3g}")
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
