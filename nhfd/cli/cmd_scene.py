@@ -25,7 +25,7 @@ from PIL.PngImagePlugin import PngInfo
 from nhfd.cli.args import MAX_SIDE_PX, parse_wxh
 from nhfd.config import load_config
 from nhfd.scene import cameras
-from nhfd.scene.io import read_scene, save_ply, scene_summary
+from nhfd.scene.io import is_sog_folder, read_scene, save_ply, scene_summary
 from nhfd.scene.raster import RasterSettings, render
 from nhfd.scene.suggest import detect_up_axis, format_hint, robust_frame, suggest_camera
 
@@ -231,8 +231,8 @@ def _load(file: str, up: str | None) -> Loaded:
     path = Path(file)
     if not path.exists():
         raise FileNotFoundError(f"scene file {file!r} not found")
-    if not path.is_file():
-        raise ValueError(f"scene file {file!r} is not a file")
+    if not (path.is_file() or is_sog_folder(path)):
+        raise ValueError(f"scene file {file!r} is not a file (nor a SOG folder with meta.json)")
     t0 = time.perf_counter()
     load = read_scene(path)  # SceneFileError is a ValueError naming the file
     seconds = time.perf_counter() - t0

@@ -55,7 +55,7 @@ import numpy as np
 from nhfd.calibration import CalibrationFileError
 from nhfd.config import Config
 from nhfd.device_settings import COLOURS
-from nhfd.scene.io import read_scene
+from nhfd.scene.io import SCENE_SUFFIXES, is_sog_folder, read_scene
 
 from .audit import AuditLog
 from .bench import Bench
@@ -118,7 +118,6 @@ class Host(Protocol):
     def request_shutdown(self, reason: str) -> None: ...
 
 
-SCENE_SUFFIXES = (".ply", ".splat")
 REFOCUS_MM = (-10.0, 10.0)
 MODEL_SUFFIXES = (".onnx",)
 PATTERN_SUFFIXES = (".npy",)
@@ -419,7 +418,7 @@ def _capture(d: Host, conn: Connection, p: Params) -> Any:
 def _checked_file(field: str, raw: str, dirs: list[Any], base: Any,
                   suffixes: tuple[str, ...]) -> Any:
     path = inside(field, raw, dirs, base)
-    if path.suffix.lower() not in suffixes:
+    if path.suffix.lower() not in suffixes and path.name.lower() not in suffixes:
         raise bad_param(field, f"{raw!r} has the wrong suffix", " or ".join(suffixes))
     if not path.is_file():
         raise RpcError(INVALID_FILE, f"{field}: {path} is not a readable file",
@@ -430,7 +429,10 @@ def _checked_file(field: str, raw: str, dirs: list[Any], base: Any,
 def _load_scene(d: Host, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
-    path = _checked_file("path", raw, d.scene_dirs, d.base_dir, SCENE_SUFFIXES)
+    path = inside("path", raw, d.scene_dirs, d.base_dir)
+    if not is_sog_folder(path):  # a SOG scene may be a folder; anything else is one file
+        path = _checked_file("path", raw, d.scene_dirs, d.base_dir,
+                             (*SCENE_SUFFIXES, "meta.json"))
 
     def run(job: Job) -> dict[str, Any]:
         # Refuses a file that is not a plausible scene (SceneFileError names the rule) before

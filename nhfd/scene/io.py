@@ -218,6 +218,17 @@ def scene_format(path: PathLike) -> str | None:
     return None
 
 
+# The names scenes are read from: a file with one of these suffixes, or a SOG scene's folder (or
+# its meta.json). The daemon's load_scene and the CLI accept these.
+SCENE_SUFFIXES = (".ply", ".splat", ".spz", ".glb", ".gltf", ".sog")
+
+
+def is_sog_folder(path: PathLike) -> bool:
+    """A folder holding a SOG scene's meta.json (and its WebP images)."""
+    path = Path(path)
+    return path.is_dir() and (path / "meta.json").is_file()
+
+
 # Formats a name promises, and how their files start: a file that breaks the promise says so.
 _MAGIC_OF = {".ply": ("PLY", "'ply'"), ".spz": (".spz", "gzip data or 'NGSP'"),
              ".glb": (".glb", "'glTF'")}

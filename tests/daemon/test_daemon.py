@@ -5,9 +5,11 @@ from __future__ import annotations
 
 import contextlib
 import json
+import shutil
 import socket
 import threading
 import time
+from pathlib import Path
 
 import pytest
 
@@ -282,3 +284,22 @@ def test_systemd_notify_socket_mode_and_lock(short_dir, mecom_twin):
             seen.append(notify.recv(4096).decode())
     assert any("STOPPING=1" in m for m in seen)
     notify.close()
+
+
+def test_the_daemon_loads_every_scene_format_nhfd_reads(running, short_dir):
+    """.spz, .glb, a .sog bundle and a SOG folder load as scenes (each the donut crop or the tiny
+    SH scene, counted as its file declares); a folder without meta.json is refused."""
+    formats = Path(__file__).parents[1] / "data" / "formats"
+    scenes = short_dir / "scenes"
+    for name in ("donut-crop.v4.spz", "donut-crop.glb", "donut-crop.sog"):
+        shutil.copy(formats / name, scenes / name)
+    shutil.copytree(formats / "tiny-sh.sog.d", scenes / "tiny-sh.sog.d")
+    (scenes / "empty.d").mkdir()
+    c = running.client(timeout_s=30.0)
+    for path, gaussians in (("donut-crop.v4.spz", 2108), ("donut-crop.glb", 2108),
+                            ("donut-crop.sog", 2108), ("tiny-sh.sog.d", 64)):
+        job = c.wait_job(c.call("load_scene", path=path)["job"], timeout_s=60.0)
+        assert job["state"] == "done", (path, job["error"])
+        assert c.status()["scene"]["gaussians"] == gaussians, path
+    with pytest.raises(RpcError, match="wrong suffix"):
+        c.call("load_scene", path="empty.d")
