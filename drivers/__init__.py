@@ -7,7 +7,7 @@ nhfd.models, nhfd.pipeline, nhfd.daemon or nhfd.calib. Nothing here but simcamer
 and the factory imports simcamera only when a simulated camera is built (the daemon imports the
 factory and must stay torch-free); nothing imports numba or onnxruntime. The optional
 third-party backends (hidapi, pyusb, pyglet, OpenCV, harvesters) are imported only where a real
-device is opened.
+device is opened (hidapi and pyusb are dependencies; slmsuite is the `slmsuite` extra).
 
   device       Device: the lifecycle every kind shares (open/close, the _do_open, _do_close,
                _do_identify and _do_check_link hooks) and the one reconnect with back-off
@@ -23,8 +23,12 @@ device is opened.
   framebuffer  FramebufferSLM (/dev/fbN, geometry from sysfs)
   window       WindowSLM (full-screen window on a named output, vsync; pyglet when opened)
   camera       Camera base (response, bursts, dark frames) + OpenCVCamera, GenICamCamera
+  slmsuite     SlmsuiteSLM and SlmsuiteCamera: any slmsuite SLM or camera, nhfd's grey levels
+               passed through unchanged
+  trigger      TriggerLine: the SLM's frame-flip output or the camera's exposure-active line,
+               and its simulated timing
   simcamera    SimulatedCamera and its TrueBench (imports torch and nhfd.optics)
-  navigator    SpaceMouse HID parsing, SpaceMouseNavigator (hidapi, optional), SimulatedNavigator
+  navigator    SpaceMouse HID parsing, SpaceMouseNavigator (hidapi), SimulatedNavigator
   mecom, apt   protocol frames, every constant in one place
   twins        MecomTwin and AptTwin: protocol peers on pseudo-terminals, with faults
   factory      [devices] -> drivers (a simulated laser / stage = the real driver + its twin),

@@ -17,5 +17,9 @@ Modules (import what you need; nothing heavy is imported here):
 - `evaluate`: `evaluate` (optics.md quality vs the baselines, focus check, PNG);
 - `export`: `export_onnx`, `OnnxModel`, `load_model`; `metadata`: what a model records and the
   check that refuses a model for other optics;
+- `quantise`: static int8 export; `serving`: the graph the daemon runs; `vgg`: the optional
+  perceptual loss's features;
+- `build`: `run_build`, `nhfd model build`'s stages (scene to evaluated model, resumable);
+  `contact_sheet`: its held-out focal-stack picture;
 - `synthetic`: a tiny dataset in the real format, for tests and smoke runs.
 """

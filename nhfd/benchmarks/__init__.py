@@ -11,5 +11,8 @@ runs, so each imports what it measures at module level.
   pipeline  view-change-to-SLM latency per stage
   load      the daemon's status latency and memory under a set_view storm; idle CPU
   safety    time from each fault to every laser off
+  geometry  calibration's dot geometry vs OpenCV; the bench model's warp and SSIM vs kornia
+  triggers  a simulated calibration capture with and without hardware triggers
+  distributed  2 local workers vs 1: dataset build (processes, Ray) and training (torchrun)
   machine   what machine a benchmark ran on
 """

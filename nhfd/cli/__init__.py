@@ -5,8 +5,9 @@
   args        shared argument parsing and `LazyCommands`, the subparsers that load on demand
   cmd_config  `nhfd config show|check`
   cmd_demo    `nhfd demo` (the daemon on the simulated bench) and `nhfd demo optics`
-  cmd_scene   `nhfd scene info|render`
-  cmd_dataset `nhfd dataset build|show`
+  cmd_scene   `nhfd scene info|render|reduce`
+  cmd_dataset `nhfd dataset build|merge|show`
+  cmd_model   `nhfd model build`: a scene to an evaluated, exported (and served) model
   cmd_train   `nhfd train|eval|export` (torch, onnxruntime)
   cmd_bench   `nhfd bench NAME`: its own registry of nhfd.benchmarks modules
   cmd_serve   `nhfd serve`: the daemon in the foreground (torch-free)
@@ -18,5 +19,6 @@
               torch, numba or onnxruntime)
 
 Every module imports at module level; what keeps `nhfd --help`, `nhfd serve` and `nhfd laser-off`
-light is that main imports only the chosen command's module.
+light is that main imports only the chosen command's module (and cmd_serve imports the web view,
+cmd_scene the dataset envelope, only when used: the listed seams).
 """

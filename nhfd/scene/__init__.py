@@ -8,6 +8,8 @@
   suggest         what a file does not state: which way is up, a camera that frames it
   raster          the tile rasteriser (numba kernels in _kernels; gsplat_backend on CUDA)
   lightfield      the translated-camera light field of optics.md
+  cull            reduce_scene: what a set of cameras can show (undrawn and faint splats, SH
+                  bands), within a grey-level budget
 
 Layer L1 (compute and devices): imports only the vocabulary (L0) and itself; never optics'
 callers, datasets, models or the daemon. The one function-level import is raster's seam: the
