@@ -308,7 +308,8 @@ def _train(ctx: Context) -> dict:
 
 
 def _export(ctx: Context) -> dict:
-    res = export_onnx(ctx.path("run"), ctx.path("model.onnx"))
+    # The dataset rendered the reduced scene.ply; the user serves the original file.
+    res = export_onnx(ctx.path("run"), ctx.path("model.onnx"), source_scene=ctx.scene)
     out = {"float": {"path": "model.onnx", "max_abs_diff_vs_torch": res.max_abs_diff,
                      "parameters": res.metadata["parameters"],
                      "bytes": ctx.path("model.onnx").stat().st_size},

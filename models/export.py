@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from nhfd.dataset.build import sha256_file
 from nhfd.models.metadata import (
     METADATA_KEY,
     NotAModel,
@@ -47,10 +48,13 @@ class ExportResult:
 
 
 def export_onnx(
-    run_dir: str | Path, out_path: str | Path, *, opset: int = MIN_OPSET, check: bool = True
+    run_dir: str | Path, out_path: str | Path, *, opset: int = MIN_OPSET, check: bool = True,
+    source_scene: str | Path | None = None,
 ) -> ExportResult:
     """Export a run's network to ONNX with its metadata; check it with onnxruntime against torch
-    (max abs difference over amplitude and phase, at sizes other than the traced one)."""
+    (max abs difference over amplitude and phase, at sizes other than the traced one).
+    `source_scene`: the file the dataset's scene was reduced from (`nhfd model build`), recorded
+    as `source_scene_sha256` so that the original file serves the model too."""
     import onnx
 
     if opset < MIN_OPSET:
@@ -75,6 +79,8 @@ def export_onnx(
         )  # fmt: skip
     model = onnx.load(str(tmp))
     meta = build_metadata(info, opset=opset, train_poses=run_training_poses(info))
+    if source_scene is not None:
+        meta["source_scene_sha256"] = sha256_file(Path(source_scene))
     del model.metadata_props[:]
     props = ((METADATA_KEY, json.dumps(meta)), ("nhfd_version", str(meta["nhfd_version"])))
     for key, value in props:

@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from nhfd.config import Config
+from nhfd.demos.serve import check_model_and_scene
 from nhfd.models import build as mb
 from nhfd.models.build import STAGES, Recipe, run_build
 from nhfd.models.train import TrainOptions
@@ -119,6 +120,22 @@ def test_the_build_writes_the_model_the_report_and_the_contact_sheet(built):
     assert tuple(sheet["size_px"]) == sheet_size_px(2, (32, 48))
     for v in sheet["views"]:
         assert v["near_focus_mm"] > v["far_focus_mm"]  # near content has the larger z_h
+
+
+def test_the_demo_serves_the_model_with_the_scene_file_it_was_built_from(built, tmp_path):
+    """The dataset rendered the reduced scene.ply, whose hash is the model's scene_sha256; the
+    model also records its source file's, so `nhfd demo --scene SOURCE` takes it, and a file of
+    neither is refused."""
+    out, *_ = built
+    model = out / "model.onnx"
+    meta = check_model_and_scene(model, SCENE, Config())
+    assert meta["source_scene_sha256"] == hashlib.sha256(SCENE.read_bytes()).hexdigest()
+    assert meta["scene_sha256"] == hashlib.sha256((out / "scene.ply").read_bytes()).hexdigest()
+    check_model_and_scene(model, out / "scene.ply", Config())
+    other = tmp_path / "other.ply"
+    other.write_bytes(SCENE.read_bytes() + b"\n")
+    with pytest.raises(ValueError, match="trained on another scene than"):
+        check_model_and_scene(model, other, Config())
 
 
 def test_a_rerun_skips_every_stage_and_touches_no_file(built):
