@@ -46,9 +46,9 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
-from .errors import DeviceError
+from nhfd.device_settings import TRIGGER_DELAY_MS, TRIGGER_SOURCES, TRIGGER_TIMEOUT_MS
 
-SOURCES = ("none", "slm_flip", "camera_exposure")
+from .errors import DeviceError
 
 
 class TriggerTimeout(DeviceError):
@@ -80,12 +80,15 @@ class TriggerLine:
 
     def __init__(self, source: str = "slm_flip", *, delay_ms: float = 10.0,
                  timeout_ms: float = 500.0, clock: Callable[[], float] = time.monotonic) -> None:
-        if source not in SOURCES[1:]:
-            raise ValueError(f"trigger source {source!r}: expected one of {SOURCES[1:]}")
-        if not (0 <= delay_ms <= 1000):
-            raise ValueError(f"trigger delay_ms = {delay_ms!r}: must be in [0, 1000]")
-        if not (0 < timeout_ms <= 60000):
-            raise ValueError(f"trigger timeout_ms = {timeout_ms!r}: must be in (0, 60000]")
+        wired = TRIGGER_SOURCES[1:]
+        if source not in wired:
+            raise ValueError(f"trigger source {source!r}: expected one of {wired}")
+        lo, hi = TRIGGER_DELAY_MS
+        if not (lo <= delay_ms <= hi):
+            raise ValueError(f"trigger delay_ms = {delay_ms!r}: must be in [{lo:g}, {hi:g}]")
+        lo, hi = TRIGGER_TIMEOUT_MS
+        if not (lo < timeout_ms <= hi):
+            raise ValueError(f"trigger timeout_ms = {timeout_ms!r}: must be in ({lo:g}, {hi:g}]")
         self.source = source
         self.delay_s = delay_ms / 1000
         self.timeout_s = timeout_ms / 1000
@@ -198,16 +201,21 @@ class TriggerLine:
         with self._cond:
             if self._cut:
                 return self._clock()
-            deadline = self._clock() + self.timeout_s
-            while self._stuck_high or self._exposing_since is not None:
-                left = deadline - self._clock()
-                if left <= 0:
-                    raise TriggerTimeout(
-                        f"trigger {self.source}: the camera's exposure-active line stayed high "
-                        f"for {self.timeout_s * 1e3:g} ms (devices.trigger.timeout_ms): is the "
-                        "camera's exposure output wired to the host, and is the camera stuck?")
-                self._cond.wait(min(left, 0.05))
+            self._wait(lambda: not (self._stuck_high or self._exposing_since is not None),
+                       self._clock() + self.timeout_s,
+                       f"the camera's exposure-active line stayed high for "
+                       f"{self.timeout_s * 1e3:g} ms (devices.trigger.timeout_ms): is the "
+                       "camera's exposure output wired to the host, and is the camera stuck?")
             return self._clock()
+
+    def _wait(self, ready: Callable[[], bool], deadline_s: float, missed: str) -> None:
+        """Wait on the line's condition (held by the caller) until `ready()`; TriggerTimeout
+        naming the trigger and `missed` past `deadline_s` on the line's clock."""
+        while not ready():
+            left = deadline_s - self._clock()
+            if left <= 0:
+                raise TriggerTimeout(f"trigger {self.source}: {missed}")
+            self._cond.wait(min(left, 0.05))
 
     def writes_during_exposures(self) -> list[tuple[float, ExposureWindow]]:
         """The twin's check: each frame write that fell inside an exposure (none on a working
@@ -226,18 +234,11 @@ class TriggerLine:
             written = self._written_s
             # Nothing written yet: the timeout counts from now.
             deadline = (self._clock() if written == -float("inf") else written) + self.timeout_s
-            while True:
-                flips = [t for t in self._edges if t >= written]
-                if flips:
-                    flip = flips[-1]
-                    break
-                left = deadline - self._clock()
-                if left <= 0:
-                    raise TriggerTimeout(
-                        f"trigger {self.source}: no frame-flip edge within "
-                        f"{self.timeout_s * 1e3:g} ms (devices.trigger.timeout_ms) of the frame "
-                        "written: is the SLM's flip output wired to the camera's trigger input?")
-                self._cond.wait(min(left, 0.05))
+            self._wait(lambda: any(t >= written for t in self._edges), deadline,
+                       f"no frame-flip edge within {self.timeout_s * 1e3:g} ms "
+                       "(devices.trigger.timeout_ms) of the frame written: is the SLM's flip "
+                       "output wired to the camera's trigger input?")
+            flip = [t for t in self._edges if t >= written][-1]
         start = flip + self.delay_s
         wait = start - self._clock()
         if wait > 0:

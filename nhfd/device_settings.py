@@ -319,6 +319,13 @@ class SlmsuiteSettings(_Settings):
 # -------------------------------------------------------------------------------------- triggers
 
 
+# The trigger wirings ("none" first: no line) and the ranges of their settings (ms): the one
+# place for drivers.trigger's TriggerLine and for `nhfd bench triggers`.
+TRIGGER_SOURCES = ("none", "slm_flip", "camera_exposure")
+TRIGGER_DELAY_MS = (0.0, 1000.0)  # closed
+TRIGGER_TIMEOUT_MS = (0.0, 60000.0)  # (low, high]
+
+
 class TriggerSettings(_Settings):
     """Hardware triggering of captures (drivers/trigger.py). "none": a capture waits out the SLM's
     settle_ms after each frame. "slm_flip": the SLM's frame-flip output is wired to the camera's
@@ -327,9 +334,9 @@ class TriggerSettings(_Settings):
     is wired to the host; a frame is written only once the line is low (no frame changes during
     an exposure, none waits for the image's readout), the settle sleep stays."""
 
-    source: Literal["none", "slm_flip", "camera_exposure"] = "none"
+    source: Literal[TRIGGER_SOURCES] = "none"
     # The camera's trigger delay after the edge: the liquid crystal's response to a new frame.
-    delay_ms: Annotated[float, Field(ge=0, le=1000)] = 10.0
+    delay_ms: Annotated[float, Field(ge=TRIGGER_DELAY_MS[0], le=TRIGGER_DELAY_MS[1])] = 10.0
     # No edge within this long after a frame was written: the capture fails (TriggerTimeout);
     # camera_exposure: the line high this long when a frame is to be written: the write fails.
-    timeout_ms: Annotated[float, Field(gt=0, le=60000)] = 500.0
+    timeout_ms: Annotated[float, Field(gt=TRIGGER_TIMEOUT_MS[0], le=TRIGGER_TIMEOUT_MS[1])] = 500.0

@@ -35,12 +35,11 @@ from nhfd.benchmarks.machine import describe
 from nhfd.calib.capture import CapturePlan, DevicesBenchIO, capture
 from nhfd.calib.patterns import PatternSpec
 from nhfd.config import Config
-from nhfd.device_settings import TriggerSettings
+from nhfd.device_settings import TRIGGER_SOURCES, TriggerSettings
 from nhfd.drivers.factory import make_bench
 from nhfd.drivers.simcamera import TrueBench
 
 HELP = "calibration capture time with and without hardware triggers"
-SOURCES = ("none", "slm_flip", "camera_exposure")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -102,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
           f"{args.panel} x {args.panel} panel; {describe()}", flush=True)
     rows = []
     with tempfile.TemporaryDirectory(prefix="nhfd-triggers-") as tmp:
-        for source in SOURCES:
+        for source in TRIGGER_SOURCES:
             row = one(source, args, Path(tmp))
             rows.append(row)
             how = (f"trigger, flip {row['flip_latency_ms']:.1f} ms + delay {row['delay_ms']:g} ms"
@@ -117,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
         # (or an old one) would differ.
         diff = max(float(np.abs(np.load(Path(tmp) / "none" / r["file"])["image"]
                                 - np.load(Path(tmp) / other / r["file"])["image"]).max())
-                   for r in plain["records"] for other in SOURCES[1:])
+                   for r in plain["records"] for other in TRIGGER_SOURCES[1:])
     same = all(abs(plain["located"][k] - row["located"][k]) <= 1e-6 * max(1.0, abs(
         plain["located"][k])) for k in ("magnification", "rotation_deg", "stage_at_slm_mm")
         for row in (trig, gated))

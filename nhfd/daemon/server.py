@@ -38,16 +38,16 @@ LOOPBACK = "127.0.0.1"
 LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
 
 
-def server_tls_context(cert_path: str | os.PathLike[str],
-                       key_path: str | os.PathLike[str]) -> ssl.SSLContext:
-    """A server context (TLS 1.2 at least) from PEM files; ValueError naming the file that
-    cannot be loaded."""
+def server_tls_context(cert_path: str | os.PathLike[str], key_path: str | os.PathLike[str],
+                       section: str = "daemon") -> ssl.SSLContext:
+    """A server context (TLS 1.2 at least) from PEM files; ValueError naming the settings
+    (`section`.tls_cert and .tls_key) when they cannot be loaded."""
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
     ctx.minimum_version = ssl.TLSVersion.TLSv1_2
     try:
         ctx.load_cert_chain(cert_path, key_path)
     except (OSError, ssl.SSLError) as exc:
-        raise ValueError(f"daemon.tls_cert = {str(cert_path)!r}, daemon.tls_key = "
+        raise ValueError(f"{section}.tls_cert = {str(cert_path)!r}, {section}.tls_key = "
                          f"{str(key_path)!r}: cannot load them as a PEM certificate and its "
                          f"key ({exc})") from None
     return ctx

@@ -45,6 +45,7 @@ from PIL import Image
 from nhfd.config import LOOPBACK_HOSTS, WebSettings
 from nhfd.daemon.client import Client, DaemonUnavailable
 from nhfd.daemon.protocol import DEVICE_ERROR, RpcError
+from nhfd.daemon.server import server_tls_context
 
 log = logging.getLogger("nhfd.web")
 
@@ -112,16 +113,8 @@ def serve_daemon(daemon: Any) -> WebView:
 def tls_context(settings: WebSettings, base_dir: Path) -> ssl.SSLContext | None:
     if not settings.tls_cert:
         return None
-    cert = base_dir / Path(settings.tls_cert).expanduser()
-    key = base_dir / Path(settings.tls_key).expanduser()
-    ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
-    ctx.minimum_version = ssl.TLSVersion.TLSv1_2
-    try:
-        ctx.load_cert_chain(cert, key)
-    except (OSError, ssl.SSLError) as exc:
-        raise ValueError(f"daemon.web.tls_cert = {str(cert)!r}, daemon.web.tls_key = "
-                         f"{str(key)!r}: cannot load them ({exc})") from None
-    return ctx
+    return server_tls_context(base_dir / Path(settings.tls_cert).expanduser(),
+                              base_dir / Path(settings.tls_key).expanduser(), "daemon.web")
 
 
 def thumbnail(preview: dict[str, Any]) -> dict[str, Any] | None:

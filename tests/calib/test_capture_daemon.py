@@ -4,17 +4,14 @@ to the direct path's, and paths outside daemon.pattern_dirs refused."""
 
 from __future__ import annotations
 
-import contextlib
 import json
-import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
-from daemon.conftest import Running, bench_config
+from daemon.conftest import Running, bench_config, running_daemon
 
 from nhfd.calib.capture import (
     CaptureError,
@@ -46,14 +43,8 @@ def daemon_config(root: Path) -> Any:
 
 @pytest.fixture(scope="module")
 def daemon() -> Iterator[tuple[Running, Path]]:
-    root = Path(tempfile.mkdtemp(prefix="nhfd-c-", dir="/tmp"))  # short: a Unix socket
-    r = Running(daemon_config(root), root)
-    try:
+    with running_daemon(daemon_config, "nhfd-c-") as (r, root):
         yield r, root
-    finally:
-        with contextlib.suppress(Exception):
-            r.stop()
-        shutil.rmtree(root, ignore_errors=True)
 
 
 def plan() -> CapturePlan:

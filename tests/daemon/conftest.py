@@ -81,6 +81,22 @@ class Running:
         assert not self.thread.is_alive()
 
 
+@contextlib.contextmanager
+def running_daemon(make_config: Any, prefix: str = "nhfd-r-") -> Iterator[tuple[Running, Path]]:
+    """A `Running` daemon of `make_config(root)` in a fresh directory under /tmp (its Unix socket
+    path must stay short), stopped and removed afterwards."""
+    root = Path(tempfile.mkdtemp(prefix=prefix, dir="/tmp"))
+    r = None
+    try:
+        r = Running(make_config(root), root)
+        yield r, root
+    finally:
+        if r is not None:
+            with contextlib.suppress(Exception):
+                r.stop()
+        shutil.rmtree(root, ignore_errors=True)
+
+
 @pytest.fixture
 def running(short_dir: Path, mecom_twin: MecomTwin) -> Iterator[Running]:
     r = Running(bench_config(short_dir, mecom_twin), short_dir)

@@ -12,11 +12,8 @@ orders' powers give the grey level's phase step (I1 / I0 = (2 / pi)^2 tan^2(dphi
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
-import shutil
-import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -26,7 +23,7 @@ import pytest
 
 pytest.importorskip("slmsuite", reason="slmsuite is not installed: pip install 'nhfd[slmsuite]'")
 
-from daemon.conftest import Running, bench_config
+from daemon.conftest import Running, bench_config, running_daemon
 from slmsuite.hardware.cameras.simulated import SimulatedCamera
 from slmsuite.hardware.slms.simulated import SimulatedSLM
 
@@ -149,14 +146,8 @@ def slmsuite_daemon_config(root: Path) -> Any:
 
 @pytest.fixture(scope="module")
 def daemon() -> Iterator[tuple[Running, Path]]:
-    root = Path(tempfile.mkdtemp(prefix="nhfd-s-", dir="/tmp"))  # short: a Unix socket
-    r = Running(slmsuite_daemon_config(root), root)
-    try:
+    with running_daemon(slmsuite_daemon_config, "nhfd-s-") as (r, root):
         yield r, root
-    finally:
-        with contextlib.suppress(Exception):
-            r.stop()
-        shutil.rmtree(root, ignore_errors=True)
 
 
 def orders(image: np.ndarray) -> tuple[float, float]:
@@ -254,15 +245,12 @@ def test_frames_coded_with_the_measured_curve_diffract_as_designed(daemon, measu
 def test_a_daemon_refuses_an_slmsuite_panel_whose_pitch_is_not_the_configured_one():
     """The daemon hands [slm] pitch_um to the backend: a bench configured for 12 um driving an
     8 um slmsuite panel reports the mismatch and shows nothing on it."""
-    root = Path(tempfile.mkdtemp(prefix="nhfd-s-", dir="/tmp"))
-    config = slmsuite_daemon_config(root)
-    config = config.model_copy(update={"slm": config.slm.model_copy(update={"pitch_um": 12.0})})
-    r = Running(config, root)
-    try:
+    def twelve_um(root: Path) -> Any:
+        config = slmsuite_daemon_config(root)
+        return config.model_copy(update={"slm": config.slm.model_copy(update={"pitch_um": 12.0})})
+
+    with running_daemon(twelve_um, "nhfd-s-") as (r, _):
         status = r.client(timeout_s=30.0).call("status")
         errors = " ".join(str(e) for e in status["errors"])
         assert "pitch_um is [8.0, 8.0] but [slm] pitch_um is 12" in errors
         assert r.daemon.bench.slm is None
-    finally:
-        r.stop()
-        shutil.rmtree(root, ignore_errors=True)

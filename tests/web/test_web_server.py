@@ -22,7 +22,7 @@ from tests.daemon.conftest import Running, bench_config
 
 aiohttp = pytest.importorskip("aiohttp", reason="the web view needs the web extra (aiohttp)")
 
-from nhfd.web.server import OPERATIONS, WebView  # noqa: E402
+from nhfd.web.server import OPERATIONS, WebView, tls_context  # noqa: E402
 
 
 class FakeDaemon:
@@ -205,3 +205,11 @@ def test_the_web_view_loads_no_torch():
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                           timeout=60)
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_a_certificate_that_cannot_load_names_the_web_views_settings(tmp_path):
+    (tmp_path / "junk.pem").write_text("not a certificate\n")
+    settings = WebSettings(tls_cert="junk.pem", tls_key="junk.pem")
+    with pytest.raises(ValueError, match=r"^daemon\.web\.tls_cert = '.*junk\.pem', "
+                                         r"daemon\.web\.tls_key = '.*junk\.pem': cannot load"):
+        tls_context(settings, tmp_path)
