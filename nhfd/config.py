@@ -228,7 +228,7 @@ class TrainSettings(_Section):
     perceptual: Literal["ssim", "vgg", "none"] = "ssim"
     perceptual_weight: Annotated[float, Field(ge=0, le=1000)] = 0.1
     perceptual_planes: Annotated[int, Field(ge=0, le=64)] = 2
-    field_weight: Annotated[float, Field(ge=0, le=1000)] = 0.05
+    field_weight: Annotated[float, Field(ge=0, le=1000)] = 0.25
     ssim_window_px: Annotated[int, Field(ge=3, le=63)] = 7
     vgg_weights: str = ""
     checkpoint_every: Annotated[int, Field(ge=1)] = 250
