@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from nhfd.config import DEVICE_PATTERN, DEVICES
+from nhfd.scene import gsplat_backend
 
 SETTING = "daemon.device"
 
@@ -48,6 +49,25 @@ def resolve_device(value: str | torch.device, setting: str = SETTING, *,
                 "no driver)")
         raise ValueError(f"{setting} = {value!r}: {sees}; use \"auto\" or \"cpu\"")
     return torch.device("cuda", index)
+
+
+def check_cuda_frames(value: str, device: torch.device, onnx_providers: list[str],
+                      setting: str = SETTING) -> None:
+    """Refuse, before a model loads, a CUDA device whose frames could not be computed: gsplat
+    absent (every frame would fail to render) or an onnxruntime without its CUDA provider (a
+    CPU-only build: `onnx_providers` is what it has). The message names `setting`, its value
+    (and what "auto" chose) and the fix."""
+    if device.type != "cuda":
+        return
+    chose = f" (chose {device}: torch sees a GPU)" if str(value).strip() == "auto" else ""
+    fix = 'or set it to "cpu"'
+    if "CUDAExecutionProvider" not in onnx_providers:
+        raise ValueError(f"{setting} = {value!r}{chose}: this onnxruntime has no "
+                         f"CUDAExecutionProvider (available: {', '.join(onnx_providers)}); "
+                         f"install onnxruntime-gpu in place of onnxruntime, {fix}")
+    if not gsplat_backend.available():
+        raise ValueError(f"{setting} = {value!r}{chose}: CUDA frames render with gsplat, which "
+                         f"does not import here; pip install 'nhfd[gpu]', {fix}")
 
 
 def _cuda_count() -> int:

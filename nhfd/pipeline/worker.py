@@ -38,7 +38,7 @@ from nhfd.config import Config
 from nhfd.models.export import check_providers, load_model, read_model_metadata
 from nhfd.scene.io import read_scene
 
-from .device import resolve_device
+from .device import check_cuda_frames, resolve_device
 from .encoder import Encoder
 from .frame import compute_frame
 from .settings import frame_settings, frame_window_hw
@@ -69,6 +69,7 @@ def open_model(path: str, config: Any, threads: int) -> Any:
                                 ort.get_available_providers(), "daemon.onnx_providers")
     device = resolve_device(config.daemon.device)  # a CUDA device torch lacks: ValueError
     if device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
+        check_cuda_frames(config.daemon.device, device, ort.get_available_providers())
         window_hw = frame_window_hw(config, read_model_metadata(path)[0])
         return load_model(path, config, threads=threads, providers=tuple(providers),
                           device=device, input_hw=window_hw,

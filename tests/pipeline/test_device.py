@@ -348,3 +348,21 @@ def test_host_copy_goes_through_pinned_memory():
     hosts, _done = HostCopy("cuda:0").start(t)
     assert hosts[0].is_pinned()
     np.testing.assert_array_equal(HostCopy("cuda:0").fetch(t)[0], t.cpu().numpy())
+
+
+def test_cuda_frames_without_gsplat_or_onnxruntime_gpu_are_refused_before_a_model_loads(
+        monkeypatch):
+    from nhfd.pipeline import device as device_mod
+
+    gpu = torch.device("cuda", 0)
+    with pytest.raises(ValueError, match=r"daemon\.device = 'auto' \(chose cuda:0: torch sees a "
+                                         r"GPU\): this onnxruntime has no CUDAExecutionProvider "
+                                         r"\(available: CPUExecutionProvider\); install "
+                                         r"onnxruntime-gpu"):
+        device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"])
+    monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: False)
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': CUDA frames render with "
+                                         r"gsplat, which does not import here; pip install "
+                                         r"'nhfd\[gpu\]'"):
+        device_mod.check_cuda_frames("cuda", gpu, CPU_CUDA_TRT)
+    device_mod.check_cuda_frames("cpu", torch.device("cpu"), [])  # the CPU needs neither
