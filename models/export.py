@@ -11,7 +11,10 @@ and crops back, and refuses a model trained for optics other than the configured
 from __future__ import annotations
 
 import json
+import os
+import re
 import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -129,17 +132,132 @@ def compare_with_torch(net, onnx_path: str | Path) -> tuple[float, list[tuple[in
 
 # Where a model runs unless told otherwise (the daemon takes `daemon.onnx_providers`).
 CPU_ONLY = ("CPUExecutionProvider",)
+TENSORRT, CUDA = "TensorrtExecutionProvider", "CUDAExecutionProvider"
+# The providers that run a graph on a CUDA device, in the order a CUDA device prefers them:
+# TensorRT's engines first, the CUDA provider as the fallback (nodes TensorRT does not take, or
+# no TensorRT libraries: onnxruntime then runs the whole graph on the CUDA provider).
+GPU_PROVIDERS = (TENSORRT, CUDA)
+# A provider with its options, as onnxruntime takes them.
+Provider = str | tuple[str, dict[str, Any]]
 
 
-def check_providers(wanted: list[str], available: list[str], setting: str = "providers"
-                    ) -> list[str]:  # fmt: skip
+def provider_name(p: Provider) -> str:
+    return p if isinstance(p, str) else p[0]
+
+
+def check_providers(wanted: Sequence[Provider], available: list[str],
+                    setting: str = "providers") -> list[Provider]:  # fmt: skip
     """`wanted` execution providers, in order, or a ValueError naming `setting`, the missing
     ones, and what this onnxruntime has."""
-    missing = [p for p in wanted if p not in available]
+    wanted = list(wanted)
+    missing = [provider_name(p) for p in wanted if provider_name(p) not in available]
     if missing:
         raise ValueError(f"{setting}: {', '.join(missing)} not available in this onnxruntime; "
                          f"available: {', '.join(available)}")
     return wanted
+
+
+def default_engine_cache_dir(environ: dict[str, str] | None = None) -> Path:
+    """Where TensorRT engines go when `daemon.engine_cache_dir` is "": $XDG_CACHE_HOME/nhfd/
+    tensorrt, else ~/.cache/nhfd/tensorrt."""
+    env = os.environ if environ is None else environ
+    base = env.get("XDG_CACHE_HOME") or str(Path(env.get("HOME") or Path.home()) / ".cache")
+    return Path(base) / "nhfd" / "tensorrt"
+
+
+def engine_cache_key(model_sha256: str, input_shape: Sequence[int] | None, gpu_name: str
+                     ) -> str:
+    """The folder name of one TensorRT engine: an engine is built for one graph (the model
+    file's SHA-256), one input shape (the profile it was optimised for; None: "dynamic", the
+    shapes onnxruntime meets) and one GPU model, and a cached one is reused only when all three
+    match."""
+    sha = str(model_sha256).lower()
+    if not re.fullmatch(r"[0-9a-f]{64}", sha):
+        raise ValueError(f"model_sha256 = {model_sha256!r}: expected 64 hex digits")
+    shape = "dynamic"
+    if input_shape is not None:
+        dims = [int(v) for v in input_shape]
+        if len(dims) != 4 or min(dims) < 1:
+            raise ValueError(f"input_shape = {list(input_shape)}: expected [B, C, H, W], each "
+                             ">= 1")
+        shape = "x".join(map(str, dims))
+    gpu = re.sub(r"[^a-z0-9]+", "-", str(gpu_name).lower()).strip("-")
+    if not gpu:
+        raise ValueError(f"gpu_name = {gpu_name!r}: expected the GPU's name")
+    return f"{sha[:16]}-{shape}-{gpu}"
+
+
+def execution_providers(device: str, available: list[str], configured: Sequence[str], *,
+                        setting: str = "daemon.onnx_providers", device_setting: str =
+                        "daemon.device", engine_cache_dir: str | Path | None = None,
+                        model_sha256: str = "", input_name: str = "rgb",
+                        input_shape: Sequence[int] | None = None, gpu_name: str = "",
+                        tensorrt_fp16: bool = False) -> list[Provider]:
+    """The providers, with their options, a session for `device` ("cpu", "cuda" or "cuda:N")
+    is created with. Pure: what onnxruntime has (`available`) and the configured list are given.
+
+    CPU: the configured list as it is, each one checked (today's behaviour). CUDA: the GPU
+    providers of the configured list, in its order (checked); when it names none (the default,
+    ["CPUExecutionProvider"]), TensorRT where this onnxruntime has it, then CUDA, which must be
+    there (a ValueError names `device_setting` and what onnxruntime has); the CPU provider last.
+    Each GPU provider gets the device index; TensorRT also an engine cache of its own,
+    `engine_cache_dir` / `engine_cache_key(model_sha256, input_shape, gpu_name)`, a timing
+    cache shared by that GPU's engines, and with `input_shape` a profile of exactly that shape
+    (an engine optimised for the frames it serves)."""
+    dev = str(device)
+    kind, _, index_text = dev.partition(":")
+    if kind == "cpu":
+        return check_providers(list(configured), available, setting)
+    if kind != "cuda":
+        raise ValueError(f"{device_setting} = {device!r}: expected cpu, cuda or cuda:N here")
+    index = int(index_text or 0)
+    wanted = [p for p in configured if p in GPU_PROVIDERS]
+    if wanted:
+        check_providers(wanted, available, setting)
+    else:
+        if CUDA not in available:
+            raise ValueError(f"{device_setting} = {device!r}: this onnxruntime has no "
+                             f"{CUDA} (available: {', '.join(available)}); install "
+                             "onnxruntime-gpu, or set it to \"cpu\"")
+        wanted = [p for p in GPU_PROVIDERS if p in available]
+    out: list[Provider] = []
+    for name in wanted:
+        options: dict[str, Any] = {"device_id": index}
+        if name == TENSORRT:
+            root = Path(engine_cache_dir) if engine_cache_dir else default_engine_cache_dir()
+            shape = list(input_shape) if input_shape is not None else None
+            key = engine_cache_key(model_sha256, shape, gpu_name)
+            options.update({
+                "trt_engine_cache_enable": True,
+                "trt_engine_cache_path": str(root / key),
+                "trt_timing_cache_enable": True,
+                "trt_timing_cache_path": str(root),
+                "trt_fp16_enable": bool(tensorrt_fp16),
+            })
+            if shape is not None:
+                profile = f"{input_name}:{'x'.join(str(int(v)) for v in shape)}"
+                options.update({"trt_profile_min_shapes": profile,
+                                "trt_profile_opt_shapes": profile,
+                                "trt_profile_max_shapes": profile})
+        out.append((name, options))
+    out.append("CPUExecutionProvider")
+    return out
+
+
+def read_model_metadata(path: str | Path) -> tuple[dict, str]:
+    """A model file's metadata and its input's name ("rgb" or "rgbd"), read with onnx (no
+    session): what a GPU session's options depend on before it exists."""
+    import onnx
+
+    name = str(path)
+    try:
+        model = onnx.load(name, load_external_data=False)
+    except Exception as exc:  # onnx's own types for a file that is not a model
+        raise NotAModel(f"{name}: not a readable ONNX model ({str(exc)[:200]})") from None
+    props = {p.key: p.value for p in model.metadata_props}
+    initialisers = {i.name for i in model.graph.initializer}
+    inputs = [i.name for i in model.graph.input if i.name not in initialisers]
+    return parse_metadata(props, name), (inputs[0] if inputs else "")
 
 
 def session_options(threads: int = 0) -> Any:
@@ -166,22 +284,37 @@ class OnnxModel:
 
     `expected` (optics keys, see `nhfd.models.metadata.expected_from_config`) makes loading refuse
     a model trained for other optics, with a message that says what differs.
+
+    `device` ("cpu", "cuda:N" or a torch device): where `run_on` takes its input and leaves its
+    outputs. On CUDA the session's providers come from `execution_providers` (`providers` is
+    then the configured list it chooses from), TensorRT's engines cached under
+    `engine_cache_dir` for `input_hw` (the frame window, padded here to the input multiple),
+    and `run_on` binds device memory (I/O binding: no host round trip). `__call__` and `run_raw`
+    take and return NumPy arrays on any device.
     """
 
     def __init__(self, path: str | Path, *, expected: dict | None = None, threads: int = 0,
-                 source: str | None = None, providers: tuple[str, ...] = CPU_ONLY
-                 ) -> None:  # fmt: skip
+                 source: str | None = None, providers: tuple[str, ...] = CPU_ONLY,
+                 device: str | torch.device = "cpu", input_hw: tuple[int, int] | None = None,
+                 engine_cache_dir: str | Path | None = None,
+                 device_setting: str = "device") -> None:  # fmt: skip
         import onnxruntime as ort
 
         self.path = Path(path)
+        self.device = torch.device(device)
         name = source or str(self.path)
         if not self.path.is_file():
             raise FileNotFoundError(f"{name}: no such model file")
+        available = ort.get_available_providers()
         # before the session: its errors below are reported as an unreadable file
-        check_providers(list(providers), ort.get_available_providers())
+        if self.device.type == "cuda":
+            chosen = self._gpu_providers(list(providers), available, input_hw, engine_cache_dir,
+                                         device_setting)
+        else:
+            chosen = check_providers(list(providers), available)
         try:
             self.session = ort.InferenceSession(
-                str(self.path), sess_options=session_options(threads), providers=list(providers)
+                str(self.path), sess_options=session_options(threads), providers=chosen
             )
         except Exception as exc:  # onnxruntime raises its own exception types for bad files
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
@@ -201,11 +334,80 @@ class OnnxModel:
         self.channels = 3 + (self.inputs == "rgbd")
         self.multiple = int(self.metadata["input_multiple"])
         self.amplitude_scale = float(self.metadata["amplitude_scale"])
+        self.colours = len(self.metadata["wavelengths_m"])
+
+    def _gpu_providers(self, configured: list[str], available: list[str],
+                       input_hw: tuple[int, int] | None, engine_cache_dir: str | Path | None,
+                       device_setting: str) -> list[Provider]:
+        """`execution_providers` for this file on this CUDA device (its hash, its padded input
+        shape, the GPU's name)."""
+        device = f"cuda:{self.device.index or 0}"
+        if not torch.cuda.is_available() or (self.device.index or 0) >= torch.cuda.device_count():
+            raise ValueError(f"{device_setting} = {device!r}: torch sees no such CUDA device")
+        shape = None
+        name = "rgb"
+        if input_hw is not None:
+            meta, name = read_model_metadata(self.path)
+            m = int(meta["input_multiple"])
+            h, w = (int(v) for v in input_hw)
+            shape = (1, 3 + (name == "rgbd"), h + (-h) % m, w + (-w) % m)
+        return execution_providers(
+            device, available, configured, device_setting=device_setting,
+            engine_cache_dir=engine_cache_dir, model_sha256=sha256_file(self.path),
+            input_name=name, input_shape=shape,
+            gpu_name=torch.cuda.get_device_name(self.device.index or 0))
 
     def run_raw(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The graph as is: `[B, C, H, W]` float32 with H, W multiples of `multiple`."""
         amp, phase = self.session.run(["amplitude", "phase"], {self.inputs: x})
         return amp, phase
+
+    def run_bound(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The graph on a tensor `[B, C, H, W]` float32 (H, W multiples of `multiple`) on this
+        model's device, its outputs written to fresh tensors there: onnxruntime's I/O binding,
+        so on CUDA nothing crosses to the host. The caller's queued work on `x` finishes first
+        (torch's stream is synchronised: onnxruntime runs on a stream of its own), and the
+        outputs are complete when this returns."""
+        if x.device != self.device:
+            raise ValueError(f"input on {x.device}: this model runs on {self.device}")
+        if x.dim() != 4 or x.shape[1] != self.channels:
+            raise ValueError(f"{self.inputs} input {tuple(x.shape)}: expected [B, "
+                             f"{self.channels}, H, W]")
+        x = x.detach().to(torch.float32).contiguous()
+        b, _c, h, w = x.shape
+        amp = torch.empty((b, self.colours, h, w), dtype=torch.float32, device=x.device)
+        phase = torch.empty_like(amp)
+        kind = "cuda" if x.device.type == "cuda" else "cpu"
+        index = (x.device.index or 0) if kind == "cuda" else 0
+        binding = self.session.io_binding()
+        binding.bind_input(self.inputs, kind, index, np.float32, list(x.shape), x.data_ptr())
+        for out_name, out in (("amplitude", amp), ("phase", phase)):
+            binding.bind_output(out_name, kind, index, np.float32, list(out.shape),
+                                out.data_ptr())
+        if kind == "cuda":
+            torch.cuda.current_stream(x.device).synchronize()
+        self.session.run_with_iobinding(binding)
+        binding.synchronize_outputs()
+        return amp, phase
+
+    def run_on(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """`__call__` on tensors on this model's device: `[C, H, W]` or `[B, C, H, W]` of any
+        size, padded with zeros to the multiple (as `__call__`'s black and reference-plane
+        depth) and cropped back; amplitude and phase tensors on the same device."""
+        given = tuple(x.shape)
+        single = x.dim() == 3
+        if single:
+            x = x[None]
+        if x.dim() != 4 or x.shape[1] != self.channels:
+            raise ValueError(f"{self.inputs} input {given}: expected [{self.channels}, H, W] or "
+                             f"[B, {self.channels}, H, W]")
+        h, w = x.shape[-2:]
+        ph, pw = (-h) % self.multiple, (-w) % self.multiple
+        if ph or pw:
+            x = torch.nn.functional.pad(x, (0, pw, 0, ph))
+        amp, phase = self.run_bound(x)
+        amp, phase = amp[..., :h, :w], phase[..., :h, :w]
+        return (amp[0], phase[0]) if single else (amp, phase)
 
     def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Amplitude (amplitude-scale units) and phase for inputs `[C, H, W]` or `[B, C, H, W]`
@@ -230,7 +432,13 @@ class OnnxModel:
 
 
 def load_model(path: str | Path, config=None, *, threads: int = 0,
-               providers: tuple[str, ...] = CPU_ONLY) -> OnnxModel:
-    """Load an exported model; with a `nhfd.config.Config`, refuse one trained for other optics."""
+               providers: tuple[str, ...] = CPU_ONLY, device: str | torch.device = "cpu",
+               input_hw: tuple[int, int] | None = None,
+               engine_cache_dir: str | Path | None = None) -> OnnxModel:
+    """Load an exported model; with a `nhfd.config.Config`, refuse one trained for other optics.
+    `device`, `input_hw`, `engine_cache_dir`: `OnnxModel`'s (a CUDA device's errors name
+    daemon.device when a config is given)."""
     expected = expected_from_config(config) if config is not None else None
-    return OnnxModel(path, expected=expected, threads=threads, providers=providers)
+    return OnnxModel(path, expected=expected, threads=threads, providers=providers,
+                     device=device, input_hw=input_hw, engine_cache_dir=engine_cache_dir,
+                     device_setting="daemon.device" if config is not None else "device")

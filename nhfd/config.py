@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tomllib
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -363,6 +364,11 @@ class WebSettings(_Section):
         return self
 
 
+# daemon.device's values (`nhfd.pipeline.device.resolve_device` turns one into a torch device).
+DEVICES = ("auto", "cpu", "cuda", "cuda:N")
+DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:[0-9]+)?)$")
+
+
 class DaemonSettings(_Section):
     """`nhfd serve`: control sockets, where files may be read and written, focus mapping.
 
@@ -457,6 +463,21 @@ class DaemonSettings(_Section):
     # the whole sensor). A small region keeps simulated captures fast; real cameras ignore it.
     camera_roi_px: Annotated[list[Annotated[int, Field(ge=0, le=65536)]],
                              Field(max_length=4)] = []
+    # Where the frame worker computes frames: "auto" (the first CUDA device when torch sees one,
+    # else the CPU), "cpu", "cuda" or "cuda:N". On CUDA every stage runs on the GPU (gsplat,
+    # onnxruntime's TensorRT or CUDA provider, propagation, coding) and only the uint8 panel
+    # region crosses to the host; a CUDA device torch does not see fails the model load.
+    device: str = "auto"
+    # TensorRT engines built for the frame worker, one folder per model hash, input shape and GPU
+    # ("" = $XDG_CACHE_HOME/nhfd/tensorrt, else ~/.cache/nhfd/tensorrt).
+    engine_cache_dir: str = ""
+
+    @model_validator(mode="after")
+    def _device_named(self) -> DaemonSettings:
+        if not DEVICE_PATTERN.match(self.device):
+            raise ValueError(f"device = {self.device!r}: must be one of {', '.join(DEVICES)} "
+                             "(N: a CUDA device index)")
+        return self
 
     @model_validator(mode="after")
     def _focus_range_ordered(self) -> DaemonSettings:

@@ -23,6 +23,7 @@ LAYERS = {
     "nhfd.holo": 2, "nhfd.dataset": 2,
     "nhfd.models": 3,
     "nhfd.pipeline": 4,
+    "nhfd.pipeline.device": 4,
     "nhfd.daemon": 5, "nhfd.calib": 5,
     "nhfd.cli": 6, "nhfd.benchmarks": 6, "nhfd.demos": 6,
     "nhfd.web": 6,

@@ -28,6 +28,7 @@ from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
 from nhfd.drivers.slm import SimulatedSLM
 from nhfd.models.export import OnnxModel
+from nhfd.pipeline.device import resolve_device
 from nhfd.pipeline.settings import frame_window_hw
 
 # The stages status reports, in order: the frame pipeline's four (`nhfd.pipeline.frame`), then
@@ -45,6 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--views", type=int, default=12, help="views measured per model")
     p.add_argument("--warmup", type=int, default=3, help="views not counted")
     p.add_argument("--json", default="out/bench/pipeline.json", help="JSON results file")
+    p.add_argument("--device", help="where frames are computed: auto, cpu, cuda or cuda:N "
+                   "(default: daemon.device)")
     p.set_defaults(handler=run)
 
 
@@ -140,6 +143,10 @@ def run(args: argparse.Namespace) -> int:
     # load_config applies the cross-field rules: a frame larger than the panel is a
     # ConfigError (exit 2) before any worker starts.
     config = load_config(args.config).config
+    if getattr(args, "device", None):  # checked here: a clean error before any worker starts
+        resolve_device(args.device, "--device")
+        config = Config.model_validate(_overlay(config.model_dump(),
+                                                {"daemon": {"device": args.device}}))
     models = [Path(m) for m in (args.model or ["models/nhf-donut-512.onnx"])]
     missing = [m for m in models if not m.is_file()]
     if missing:

@@ -47,10 +47,12 @@ class RegionPropagator:
         self.padded_hw = padded_hw
         self.region_hw = region_hw
         self.offset = offset
+        self.device = kernel.device
         kept = kernel != 0
         self.row_runs = _runs(kept.any(-1).any(0))
         self.col_runs = _runs(kept.any(-2).any(0))
-        cols = torch.tensor([i for a, b in self.col_runs for i in range(a, b)], dtype=torch.long)
+        cols = torch.tensor([i for a, b in self.col_runs for i in range(a, b)], dtype=torch.long,
+                            device=kernel.device)
         reduced = kernel.index_select(-1, cols)
         # Per run of kept rows: the kernel there, kept columns only, transposed: [n, nc, run].
         self.kernels = [reduced[:, a:b].transpose(-1, -2).contiguous() for a, b in self.row_runs]
@@ -61,9 +63,11 @@ class RegionPropagator:
     def _scratch(self, n: int, h: int, w: int) -> tuple[torch.Tensor, ...]:
         if not self._buffers or self._window_hw != (h, w) or self._buffers[0].shape[0] != n:
             (hp, wp), (hr, _wr), nc = self.padded_hw, self.region_hw, self.n_cols
-            z = torch.complex64
-            self._buffers = (torch.zeros((n, h, wp), dtype=z), torch.zeros((n, nc, hp), dtype=z),
-                             torch.zeros((n, nc, hp), dtype=z), torch.zeros((n, hr, wp), dtype=z))
+            z, d = torch.complex64, self.device
+            self._buffers = (torch.zeros((n, h, wp), dtype=z, device=d),
+                             torch.zeros((n, nc, hp), dtype=z, device=d),
+                             torch.zeros((n, nc, hp), dtype=z, device=d),
+                             torch.zeros((n, hr, wp), dtype=z, device=d))
             self._window_hw = (h, w)
         return self._buffers
 
@@ -73,7 +77,7 @@ class RegionPropagator:
         r0, c0 = self.offset
         n, h, w = window.shape
         if not self.col_runs or not self.row_runs:  # the kernel passes nothing
-            return torch.zeros((n, hr, wr), dtype=torch.complex64)
+            return torch.zeros((n, hr, wr), dtype=torch.complex64, device=self.device)
         padded, columns, spectrum, back_rows = self._scratch(n, h, w)
         # Forward along rows: the window's rows, zero-padded to Wp.
         padded[..., c0 : c0 + w] = window
@@ -97,33 +101,34 @@ def region_propagators(region_hw: tuple[int, int], window_at: tuple[int, int], p
                        wavelengths_m: Sequence[float], z_m: Sequence[float], aperture: Aperture,
                        padding: str = "auto", cache: KernelCache | None = None,
                        zernike_rad: Sequence[float] = (), zernike_wavelength_m: float = 0.0,
-                       ) -> list[RegionPropagator]:
+                       device: torch.device | str = "cpu") -> list[RegionPropagator]:
     """The propagation of a window at `window_at` (row, column) inside a `region_hw` region, per
     group of colours sharing a depth: colour c by `z_m[c]` (metres) at `wavelengths_m[c]`, through
     `aperture`. With `zernike_rad` (Noll j = 5, 6, ... in radians at `zernike_wavelength_m`, the
     middle colour's wavelength when 0) each colour's kernel carries the conjugate pupil phase.
-    The kernels come through `cache`, under the keys `propagate` uses."""
+    The kernels come through `cache`, under the keys `propagate` uses; they, the scratch buffers
+    and the output live on `device` (the input window must be there too)."""
     cache = cache if cache is not None else KernelCache()
     zs, lams = tuple(float(z) for z in z_m), tuple(float(v) for v in wavelengths_m)
+    device = torch.device(device)
     if any(zernike_rad):
         groups = _kernels_precompensated(region_hw, pitch_m, lams, zs, aperture, padding, cache,
-                                         tuple(zernike_rad), zernike_wavelength_m)
+                                         tuple(zernike_rad), zernike_wavelength_m, device)
     else:
-        groups = _kernels(region_hw, pitch_m, lams, zs, aperture, padding, cache)
+        groups = _kernels(region_hw, pitch_m, lams, zs, aperture, padding, cache, device)
     return [RegionPropagator(colours, hw, kernel, window_at, region_hw)
             for colours, hw, kernel in groups]
 
 
 def _kernels(hw: tuple[int, int], pitch_m: float, lams: tuple[float, ...],
              zs: tuple[float, ...], aperture: Aperture, padding: str, cache: KernelCache,
-             ) -> list[tuple[slice, tuple[int, int], torch.Tensor]]:
-    """(colours, padded shape, kernels [n, Hp, Wp]) per group of colours."""
-    cpu = torch.device("cpu")
+             device: torch.device) -> list[tuple[slice, tuple[int, int], torch.Tensor]]:
+    """(colours, padded shape, kernels [n, Hp, Wp]) per group of colours, on `device`."""
     if len(set(zs)) == 1:
         plan = plan_padding(hw, pitch_m, lams, abs(zs[0]), aperture,
                             padding)  # type: ignore[arg-type]
         k = propagation_kernels(plan, pitch_m, lams, (zs[0],), aperture, True, torch.complex64,
-                                cpu, cache)
+                                device, cache)
         return [(slice(0, len(zs)), plan.padded_hw, k[0])]
     # Per-colour depths (calibrated focus offsets): one kernel per colour, each cached.
     cutoffs = aperture.cutoffs(len(zs))
@@ -132,7 +137,7 @@ def _kernels(hw: tuple[int, int], pitch_m: float, lams: tuple[float, ...],
         lam = (lams[c],)
         ap = Aperture(aperture.shape, (cutoffs[c],))
         plan = plan_padding(hw, pitch_m, lam, abs(z), ap, padding)  # type: ignore[arg-type]
-        k = propagation_kernels(plan, pitch_m, lam, (z,), ap, True, torch.complex64, cpu, cache)
+        k = propagation_kernels(plan, pitch_m, lam, (z,), ap, True, torch.complex64, device, cache)
         out.append((slice(c, c + 1), plan.padded_hw, k[0]))
     return out
 
@@ -140,10 +145,11 @@ def _kernels(hw: tuple[int, int], pitch_m: float, lams: tuple[float, ...],
 def _kernels_precompensated(hw: tuple[int, int], pitch_m: float, lams: tuple[float, ...],
                             zs: tuple[float, ...], aperture: Aperture, padding: str,
                             cache: KernelCache, zernike_rad: tuple[float, ...],
-                            zernike_wavelength_m: float,
+                            zernike_wavelength_m: float, device: torch.device,
                             ) -> list[tuple[slice, tuple[int, int], torch.Tensor]]:
     """Per colour: the ASM kernel times the conjugate of the relay's pupil phase, cached under a
-    key that names the aberration (a kernel for other coefficients is never reused)."""
+    key that names the aberration (a kernel for other coefficients is never reused). Computed
+    on the CPU (float64 pupil phases), then moved to `device` once."""
     cutoffs = aperture.cutoffs(len(zs))
     lam_ref = zernike_wavelength_m or lams[len(lams) // 2]
     out = []
@@ -157,9 +163,11 @@ def _kernels_precompensated(hw: tuple[int, int], pitch_m: float, lams: tuple[flo
             padded_hw = plan.padded_hw  # type: ignore[attr-defined]
             k = transfer_function(padded_hw, pitch_m, [lam], [z], aperture=ap)[0, 0]
             ph = pupil_phase(padded_hw, cutoffs[c], zernike_rad, lam_ref / lam)
-            return k * torch.polar(torch.ones_like(ph), -ph).to(k.dtype)
+            return (k * torch.polar(torch.ones_like(ph), -ph).to(k.dtype)).to(device)
 
         key = ("asm-pupil", plan.padded_hw, pitch_m, lam, z, ap, zernike_rad, lam_ref)
+        if device.type != "cpu":  # the CPU's key as it always was
+            key += (str(device),)
         out.append((slice(c, c + 1), plan.padded_hw, cache.get(key, kernel)[None]))
     return out
 

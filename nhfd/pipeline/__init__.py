@@ -12,6 +12,8 @@ own process by name and talks to it over a pipe (`nhfd.daemon.frame_link`); the 
             it lies inside the model's trained poses (`envelope_warnings`)
   encoder   `Encoder`: the reference-plane field -> the SLM plane (`nhfd.optics.region`) ->
             double-phase coding -> calibrated phase -> grey, uint8
+  device    `daemon.device` -> a torch device (`resolve_device`), the pinned asynchronous host
+            copy of a CUDA frame (`HostCopy`), CUDA-event stage times (`StageClock`)
   worker    the frame worker process: `worker_main`, model loading and checking (`open_model`,
             `check_inference`, `ModelUnfit`, `model_info`), the frame cache
 """

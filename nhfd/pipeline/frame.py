@@ -13,20 +13,28 @@
 
 The daemon adds the fifth stage, output: the coded region pasted into the precomputed
 zero-amplitude pattern of the full panel, shown on the SLM.
+
+The encoder's device (`Encoder(settings, device=...)`, `daemon.device`) decides where: on the
+CPU the stages above as they always ran (numba render and coding, onnxruntime on NumPy arrays,
+torch propagation). With `encoder.device_coding` (every CUDA device) the frame stays on the
+device: gsplat renders, the network input is built there, onnxruntime binds device memory
+(`OnnxModel.run_on`), the propagation and `device_grey` run there, and only the uint8 region
+and the uint8 preview of the view cross to the host, in one asynchronous pinned copy; the stage
+times come from CUDA events (the copy counts in coding).
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 
-from nhfd.models.inputs import network_input
+from nhfd.models.inputs import ALPHA_CONTENT, DEPTH_CLIP, input_channels, network_input
 from nhfd.scene.raster import Render, render
 
+from .device import StageClock
 from .encoder import Encoder, reference_field
 from .settings import Region
 from .view import Scene, render_camera
@@ -35,7 +43,8 @@ from .view import Scene, render_camera
 @dataclass
 class Frame:
     """One computed frame: the coded region (grey `[3, h, w]` uint8) and where it goes, the
-    rendered view (sRGB `[3, H, W]` float32) and the seconds each stage took."""
+    rendered view (sRGB `[3, H, W]` float32; from a device frame, its uint8 preview / 255) and
+    the seconds each stage took."""
 
     region: Region
     grey: np.ndarray
@@ -56,9 +65,12 @@ def compute_frame(view: dict[str, Any], scene: Scene, model: Any, encoder: Encod
     coding       -> grey `[3, Hr, Wr]` uint8 and the clipped fraction per colour
 
     `model`: an `nhfd.models.export.OnnxModel` (or anything with its `metadata`, `inputs` and
-    call). Not thread-safe: the encoder keeps scratch buffers."""
+    call; with `run_on` too on a device path). Not thread-safe: the encoder keeps scratch
+    buffers."""
+    if encoder.device_coding:
+        return compute_frame_on_device(view, scene, model, encoder)
     s = encoder.settings
-    clock = _StageClock()
+    clock = StageClock()
     rendered = render_view(view, scene, model.metadata, s.window_hw)
     clock.stage("render")
     amplitude, phase = infer(model, rendered)
@@ -72,9 +84,80 @@ def compute_frame(view: dict[str, Any], scene: Scene, model: Any, encoder: Encod
 
 
 def render_view(view: dict[str, Any], scene: Scene, metadata: dict[str, Any],
-                window_hw: tuple[int, int]) -> Render:
+                window_hw: tuple[int, int], backend: str = "cpu") -> Render:
     """The view rendered through the model's camera (`render_camera`) on the frame window."""
-    return render(scene.gaussians, render_camera(view, scene.frame, metadata, window_hw))
+    return render(scene.gaussians, render_camera(view, scene.frame, metadata, window_hw),
+                  backend=backend)
+
+
+def compute_frame_on_device(view: dict[str, Any], scene: Scene, model: Any, encoder: Encoder
+                            ) -> Frame:
+    """`compute_frame` with every stage on `encoder.device`; see the module's docstring."""
+    s, dev = encoder.settings, encoder.device
+    model_device = getattr(model, "device", None)
+    if model_device is not None and torch.device(model_device) != dev:
+        raise ValueError(f"the model runs on {model_device}, the encoder on {dev}: load both "
+                         "for one device (daemon.device)")
+    clock = StageClock(dev)
+    with torch.no_grad():
+        rendered = render_view(view, scene, model.metadata, s.window_hw,
+                               backend="gsplat" if dev.type == "cuda" else "cpu")
+        rgb, depth, alpha = (_on(v, dev) for v in (rendered.rgb, rendered.depth, rendered.alpha))
+        clock.stage("render")
+        meta = model.metadata
+        x = network_input_on_device(rgb, model.inputs, depth=depth, alpha=alpha,
+                                    mapping=meta.get("mapping"), volume_m=meta.get("volume_m"))
+        if hasattr(model, "run_on"):
+            amplitude, phase = model.run_on(x)
+        else:  # a callable on NumPy arrays (tests' stand-ins)
+            amplitude, phase = (_on(v, dev) for v in model(x.cpu().numpy()))
+        clock.stage("inference")
+        slm_field = encoder.to_slm(reference_field(amplitude, phase, s.amplitude_scale))
+        clock.stage("propagation")
+        grey_t, clipped_t, bad_t = encoder.code_on_device(slm_field)
+        # The view's preview as the worker quantises it: round(clip(rgb) * 255), uint8.
+        preview_t = (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+        started = encoder.host.start(grey_t, clipped_t, bad_t, preview_t)
+        clock.stage("coding")
+        grey, clipped, bad, preview = encoder.host.wait(started)
+    fractions = encoder.check_coded(clipped, bad)
+    return Frame(encoder.region, grey, clock.seconds, preview.astype(np.float32) / 255,
+                 fractions)
+
+
+def _on(value: Any, device: torch.device) -> torch.Tensor:
+    """A render's or a model's array as a tensor on `device` (gsplat's may already be one)."""
+    if isinstance(value, torch.Tensor):
+        return value.to(device)
+    return torch.from_numpy(np.ascontiguousarray(value)).to(device)
+
+
+def network_input_on_device(rgb: torch.Tensor, inputs: str, *, depth: torch.Tensor | None = None,
+                            alpha: torch.Tensor | None = None, mapping: dict | None = None,
+                            volume_m: Any = None) -> torch.Tensor:
+    """`nhfd.models.inputs.network_input` in torch on the tensors' device: `[C, H, W]` float32,
+    the same float32 arithmetic (the depth channel `(b / half) / d + (a - centre) / half`,
+    clipped to +-DEPTH_CLIP, 0 where coverage is below ALPHA_CONTENT or the depth is not a
+    positive finite number)."""
+    rgb = rgb.to(torch.float32)
+    if input_channels(inputs) == 3:
+        return rgb
+    if depth is None or alpha is None or mapping is None or volume_m is None:
+        raise ValueError("an rgbd model needs the render's depth and alpha, the scene mapping "
+                         "and the volume")
+    lo, hi = float(volume_m[0]), float(volume_m[1])
+    if not hi > lo:
+        raise ValueError(f"volume_m = {list(volume_m)}: the far end must lie beyond the near end")
+    centre, half = (lo + hi) / 2, (hi - lo) / 2
+    a_m, b_m = float(mapping["a_m"]), float(mapping["b_m"])
+    d = depth.to(torch.float32)
+    f32 = np.float32
+    ch = torch.tensor(f32(b_m / half), device=d.device) / d
+    ch = (ch + torch.tensor(f32((a_m - centre) / half), device=d.device)).clamp(-DEPTH_CLIP,
+                                                                               DEPTH_CLIP)
+    content = (alpha >= ALPHA_CONTENT) & (d > 0) & torch.isfinite(d)
+    ch = torch.where(content, ch, torch.zeros_like(ch))
+    return torch.cat([rgb, ch[None]])
 
 
 def infer(model: Any, rendered: Render) -> tuple[np.ndarray, np.ndarray]:
@@ -84,16 +167,3 @@ def infer(model: Any, rendered: Render) -> tuple[np.ndarray, np.ndarray]:
     x = network_input(rendered.rgb, model.inputs, depth=rendered.depth, alpha=rendered.alpha,
                       mapping=meta.get("mapping"), volume_m=meta.get("volume_m"))
     return model(x)
-
-
-class _StageClock:
-    """Seconds per stage: each `stage(name)` ends the stage that began at the previous one."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = {}
-        self._t = time.perf_counter()
-
-    def stage(self, name: str) -> None:
-        now = time.perf_counter()
-        self.seconds[name] = now - self._t
-        self._t = now

@@ -35,9 +35,10 @@ import torch
 
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
-from nhfd.models.export import check_providers, load_model
+from nhfd.models.export import check_providers, load_model, read_model_metadata
 from nhfd.scene.io import read_scene
 
+from .device import check_cuda_frames, resolve_device
 from .encoder import Encoder
 from .frame import compute_frame
 from .settings import frame_settings, frame_window_hw
@@ -66,6 +67,13 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     # warning to say why; the load fails instead and the previous model keeps running.
     providers = check_providers(list(config.daemon.onnx_providers),
                                 ort.get_available_providers(), "daemon.onnx_providers")
+    device = resolve_device(config.daemon.device)  # a CUDA device torch lacks: ValueError
+    if device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
+        check_cuda_frames(config.daemon.device, device, ort.get_available_providers())
+        window_hw = frame_window_hw(config, read_model_metadata(path)[0])
+        return load_model(path, config, threads=threads, providers=tuple(providers),
+                          device=device, input_hw=window_hw,
+                          engine_cache_dir=config.daemon.engine_cache_dir or None)
     # validates; raises ModelMismatch etc.
     return load_model(path, config, threads=threads, providers=tuple(providers))
 
@@ -157,7 +165,7 @@ class _WorkerState:
                 self.encoders.clear()
             settings = frame_settings(self.config, self.model.metadata,
                                       active_calibration(self.config), refocus_m=refocus_m)
-            self.encoders[refocus_m] = Encoder(settings)
+            self.encoders[refocus_m] = Encoder(settings, device=self.model.device)
         return self.encoders[refocus_m]
 
     def frame(self, view: dict[str, Any]) -> dict[str, Any]:

@@ -1,0 +1,159 @@
+"""Where frames are computed: `daemon.device` -> a torch device, and the one host copy a CUDA
+frame makes (issue 23).
+
+`resolve_device("auto" | "cpu" | "cuda" | "cuda:N")`: "auto" is the first CUDA device when
+torch sees one, else the CPU; a CUDA device torch does not see is a ValueError, never a silent
+fall back to the CPU (a bench configured for the GPU that quietly ran 20x slower would say
+nothing of why). On CUDA every stage of a frame runs on the GPU and only the uint8 panel region
+(and the uint8 preview of the rendered view) crosses to the host: `HostCopy` copies it
+asynchronously into pinned memory and waits for that copy alone.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+import torch
+
+from nhfd.config import DEVICE_PATTERN, DEVICES
+from nhfd.scene import gsplat_backend
+
+SETTING = "daemon.device"
+
+
+def resolve_device(value: str | torch.device, setting: str = SETTING, *,
+                   cuda_count: int | None = None) -> torch.device:
+    """The torch device `value` names; `cuda_count` (tests) stands in for what torch sees.
+
+    A ValueError names `setting`, the value, and the allowed values or the CUDA devices torch
+    sees."""
+    if isinstance(value, torch.device):
+        value = str(value)
+    text = str(value).strip().lower()
+    if not DEVICE_PATTERN.match(text):
+        raise ValueError(f"{setting} = {value!r}: must be one of {', '.join(DEVICES)} "
+                         "(N: a CUDA device index)")
+    count = _cuda_count() if cuda_count is None else int(cuda_count)
+    kind, _, index_text = text.partition(":")
+    if kind == "cpu":
+        return torch.device("cpu")
+    if kind == "auto":
+        return torch.device("cuda", 0) if count > 0 else torch.device("cpu")
+    index = int(index_text or 0)
+    if index >= count:
+        sees = (f"torch sees {count} CUDA device{'s' if count != 1 else ''} "
+                f"(indices 0..{count - 1})" if count else
+                f"torch {torch.__version__} sees no CUDA device (a CPU-only build, no GPU, or "
+                "no driver)")
+        raise ValueError(f"{setting} = {value!r}: {sees}; use \"auto\" or \"cpu\"")
+    return torch.device("cuda", index)
+
+
+def check_cuda_frames(value: str, device: torch.device, onnx_providers: list[str],
+                      setting: str = SETTING) -> None:
+    """Refuse, before a model loads, a CUDA device whose frames could not be computed: gsplat
+    absent (every frame would fail to render) or an onnxruntime without its CUDA provider (a
+    CPU-only build: `onnx_providers` is what it has). The message names `setting`, its value
+    (and what "auto" chose) and the fix."""
+    if device.type != "cuda":
+        return
+    chose = f" (chose {device}: torch sees a GPU)" if str(value).strip() == "auto" else ""
+    fix = 'or set it to "cpu"'
+    if "CUDAExecutionProvider" not in onnx_providers:
+        raise ValueError(f"{setting} = {value!r}{chose}: this onnxruntime has no "
+                         f"CUDAExecutionProvider (available: {', '.join(onnx_providers)}); "
+                         f"install onnxruntime-gpu in place of onnxruntime, {fix}")
+    if not gsplat_backend.available():
+        raise ValueError(f"{setting} = {value!r}{chose}: CUDA frames render with gsplat, which "
+                         f"does not import here; pip install 'nhfd[gpu]', {fix}")
+
+
+def _cuda_count() -> int:
+    return torch.cuda.device_count() if torch.cuda.is_available() else 0
+
+
+def gpu_name(device: torch.device) -> str:
+    """The GPU's name as the driver gives it ("NVIDIA H100 80GB HBM3"): part of the TensorRT
+    engine cache's key (an engine is built for one GPU model)."""
+    return torch.cuda.get_device_name(device)
+
+
+class HostCopy:
+    """Device tensors -> host NumPy arrays through pinned memory, copied asynchronously on the
+    device's current stream: `start` queues the copies, `wait` waits for those copies only (a
+    CUDA event), not for the whole device.
+
+    Each copy's pinned tensor comes from torch's caching host allocator: a block is reused only
+    once nothing refers to it, so the arrays returned stay valid while a caller keeps them (the
+    worker's frame cache does), and a steady stream of frames allocates nothing new. On the CPU
+    the tensors' own memory is returned (no copy)."""
+
+    def __init__(self, device: torch.device | str) -> None:
+        self.device = torch.device(device)
+
+    def start(self, *tensors: torch.Tensor | None) -> tuple[list[torch.Tensor | None], Any]:
+        if self.device.type != "cuda":
+            return [None if t is None else t.detach() for t in tensors], None
+        hosts: list[torch.Tensor | None] = []
+        for t in tensors:
+            if t is None:
+                hosts.append(None)
+                continue
+            host = torch.empty(t.shape, dtype=t.dtype, pin_memory=True)
+            host.copy_(t.detach(), non_blocking=True)
+            hosts.append(host)
+        done = torch.cuda.Event()
+        done.record(torch.cuda.current_stream(self.device))
+        return hosts, done
+
+    def wait(self, started: tuple[list[torch.Tensor | None], Any]) -> list[np.ndarray | None]:
+        hosts, done = started
+        if done is not None:
+            done.synchronize()
+        return [None if h is None else h.numpy() for h in hosts]
+
+    def fetch(self, *tensors: torch.Tensor | None) -> list[np.ndarray | None]:
+        return self.wait(self.start(*tensors))
+
+
+class StageClock:
+    """Seconds per stage: each `stage(name)` ends the stage that began at the previous one.
+
+    On the CPU, wall-clock time. On CUDA, events recorded on the stream (no synchronisation
+    between stages: the frame is queued as fast as the host can); `seconds` reads them after
+    the frame's host copy has waited for the last one."""
+
+    def __init__(self, device: torch.device | None = None) -> None:
+        self._perf = time.perf_counter
+        self._device = torch.device(device) if device is not None else torch.device("cpu")
+        self._cuda = self._device.type == "cuda"
+        self._names: list[str] = []
+        self._wall: dict[str, float] = {}
+        if self._cuda:
+            self._events = [self._event()]
+        else:
+            self._t = self._perf()
+
+    def _event(self) -> Any:
+        e = torch.cuda.Event(enable_timing=True)
+        e.record(torch.cuda.current_stream(self._device))
+        return e
+
+    def stage(self, name: str) -> None:
+        if self._cuda:
+            self._names.append(name)
+            self._events.append(self._event())
+            return
+        now = self._perf()
+        self._wall[name] = now - self._t
+        self._t = now
+
+    @property
+    def seconds(self) -> dict[str, float]:
+        if not self._cuda:
+            return self._wall
+        self._events[-1].synchronize()
+        return {n: 1e-3 * a.elapsed_time(b)
+                for n, a, b in zip(self._names, self._events, self._events[1:], strict=True)}

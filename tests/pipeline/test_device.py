@@ -1,0 +1,368 @@
+"""One frame path on any device (issue 23): `daemon.device` resolution, the onnxruntime providers
+and TensorRT engine cache a CUDA device gets, and the device path's arithmetic (torch coding,
+network input, I/O binding) checked on the CPU against the CPU path it must reproduce. The tests
+that need a GPU skip without one."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from nhfd.calibration import active_calibration
+from nhfd.config import Config, _overlay, default_text
+from nhfd.models.export import (
+    CUDA,
+    TENSORRT,
+    default_engine_cache_dir,
+    engine_cache_key,
+    execution_providers,
+    load_model,
+)
+from nhfd.models.inputs import network_input
+from nhfd.optics import double_phase_grey
+from nhfd.pipeline.device import HostCopy, resolve_device
+from nhfd.pipeline.encoder import DEVICE_LUT_BINS, Encoder, device_curves, device_grey
+from nhfd.pipeline.frame import compute_frame, network_input_on_device
+from nhfd.pipeline.settings import frame_settings
+from nhfd.pipeline.view import Scene, scene_frame
+from nhfd.scene.io import read_scene
+from nhfd.spec import PhaseCurve
+from tests.daemon.test_frames import small_config
+from tests.pipeline.test_encoder import SETTINGS
+
+REPO = Path(__file__).resolve().parents[2]
+MODEL = REPO / "models" / "nhf-donut-512.onnx"
+SCENE = REPO / "models" / "scenes" / "donut.ply"
+SHA = "ab" * 32
+H100 = "NVIDIA H100 80GB HBM3"
+CPU_CUDA_TRT = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecutionProvider"]
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+# -- daemon.device -----------------------------------------------------------------------------
+
+def test_auto_picks_cuda_only_where_torch_sees_it():
+    assert resolve_device("auto", cuda_count=0) == torch.device("cpu")
+    assert resolve_device("auto", cuda_count=2) == torch.device("cuda", 0)
+    assert resolve_device("cuda", cuda_count=1) == torch.device("cuda", 0)
+    assert resolve_device("cuda:1", cuda_count=2) == torch.device("cuda", 1)
+    assert resolve_device(" CPU ", cuda_count=4) == torch.device("cpu")
+    if not torch.cuda.is_available():
+        assert resolve_device("auto") == torch.device("cpu")
+
+
+def test_a_cuda_device_torch_does_not_see_is_refused_naming_the_setting():
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:0': torch .* sees no CUDA "
+                                         r"device"):
+        resolve_device("cuda:0", cuda_count=0)
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:3': torch sees 2 CUDA devices "
+                                         r"\(indices 0\.\.1\)"):
+        resolve_device("cuda:3", cuda_count=2)
+
+
+@pytest.mark.parametrize("bad", ["gpu", "cuda:", "cpu:0", "cuda:-1", "auto:1", ""])
+def test_a_device_name_outside_the_allowed_ones_lists_them(bad):
+    with pytest.raises(ValueError, match=rf"daemon\.device = {bad!r}: must be one of auto, cpu, "
+                                         r"cuda, cuda:N"):
+        resolve_device(bad, cuda_count=1)
+
+
+def test_the_configuration_checks_daemon_device():
+    assert small_config().daemon.device == "auto"
+    assert small_config(daemon={"device": "cuda:1"}).daemon.device == "cuda:1"
+    with pytest.raises(ValueError, match=r"device = 'gpu': must be one of auto, cpu, cuda, "
+                                         r"cuda:N"):
+        small_config(daemon={"device": "gpu"})
+
+
+# -- providers and the TensorRT engine cache ----------------------------------------------------
+
+def test_the_cpu_keeps_the_configured_providers_and_refuses_missing_ones():
+    available = ["AzureExecutionProvider", "CPUExecutionProvider"]
+    assert execution_providers("cpu", available, ["CPUExecutionProvider"]) == \
+        ["CPUExecutionProvider"]
+    with pytest.raises(ValueError, match=r"daemon\.onnx_providers: CUDAExecutionProvider not "
+                                         r"available in this onnxruntime; available: "
+                                         r"AzureExecutionProvider, CPUExecutionProvider"):
+        execution_providers("cpu", available, ["CUDAExecutionProvider", "CPUExecutionProvider"])
+
+
+def test_a_cuda_device_gets_tensorrt_then_cuda_with_the_engine_cache_keyed(tmp_path):
+    shape = (1, 3, 576, 1024)
+    got = execution_providers("cuda:1", CPU_CUDA_TRT, ["CPUExecutionProvider"],
+                              engine_cache_dir=tmp_path, model_sha256=SHA, input_name="rgb",
+                              input_shape=shape, gpu_name=H100)
+    assert [p if isinstance(p, str) else p[0] for p in got] == CPU_CUDA_TRT
+    trt_opts, cuda_opts = got[0][1], got[1][1]
+    assert cuda_opts == {"device_id": 1}
+    key = "abababababababab-1x3x576x1024-nvidia-h100-80gb-hbm3"
+    assert engine_cache_key(SHA, shape, H100) == key
+    assert trt_opts["device_id"] == 1
+    assert trt_opts["trt_engine_cache_enable"] is True
+    assert trt_opts["trt_engine_cache_path"] == str(tmp_path / key)
+    assert trt_opts["trt_timing_cache_path"] == str(tmp_path)
+    for which in ("min", "opt", "max"):
+        assert trt_opts[f"trt_profile_{which}_shapes"] == "rgb:1x3x576x1024"
+    assert trt_opts["trt_fp16_enable"] is False
+
+
+def test_the_engine_cache_key_changes_with_the_model_the_shape_and_the_gpu():
+    base = engine_cache_key(SHA, (1, 4, 288, 512), H100)
+    assert base == engine_cache_key(SHA.upper(), [1, 4, 288, 512], H100)
+    others = {engine_cache_key("cd" * 32, (1, 4, 288, 512), H100),
+              engine_cache_key(SHA, (1, 4, 576, 1024), H100),
+              engine_cache_key(SHA, (1, 3, 288, 512), H100),
+              engine_cache_key(SHA, (1, 4, 288, 512), "NVIDIA RTX A6000"),
+              engine_cache_key(SHA, None, H100)}
+    assert len(others) == 5 and base not in others
+    assert engine_cache_key(SHA, None, H100) == "abababababababab-dynamic-nvidia-h100-80gb-hbm3"
+    # A GPU name is never a path: no separators or spaces survive.
+    assert engine_cache_key(SHA, None, "A/B \\ C..D").endswith("-a-b-c-d")
+    with pytest.raises(ValueError, match=r"model_sha256 = 'abc': expected 64 hex digits"):
+        engine_cache_key("abc", None, H100)
+    with pytest.raises(ValueError, match=r"input_shape = \[3, 288, 512\]: expected \[B, C, H, "
+                                         r"W\]"):
+        engine_cache_key(SHA, (3, 288, 512), H100)
+
+
+def test_the_default_engine_cache_follows_xdg():
+    assert default_engine_cache_dir({"XDG_CACHE_HOME": "/c", "HOME": "/h"}) == \
+        Path("/c/nhfd/tensorrt")
+    assert default_engine_cache_dir({"HOME": "/h"}) == Path("/h/.cache/nhfd/tensorrt")
+
+
+def test_cuda_without_tensorrt_runs_on_the_cuda_provider_and_without_it_is_refused():
+    got = execution_providers("cuda", ["CUDAExecutionProvider", "CPUExecutionProvider"],
+                              ["CPUExecutionProvider"], model_sha256=SHA, gpu_name=H100)
+    assert got == [(CUDA, {"device_id": 0}), "CPUExecutionProvider"]
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:0': this onnxruntime has no "
+                                         r"CUDAExecutionProvider \(available: "
+                                         r"CPUExecutionProvider\); install onnxruntime-gpu"):
+        execution_providers("cuda:0", ["CPUExecutionProvider"], ["CPUExecutionProvider"])
+
+
+def test_configured_gpu_providers_choose_among_them_in_their_order():
+    got = execution_providers("cuda:0", CPU_CUDA_TRT, ["CUDAExecutionProvider",
+                                                       "CPUExecutionProvider"])
+    assert got == [(CUDA, {"device_id": 0}), "CPUExecutionProvider"]
+    with pytest.raises(ValueError, match=r"daemon\.onnx_providers: TensorrtExecutionProvider not "
+                                         r"available"):
+        execution_providers("cuda:0", ["CUDAExecutionProvider", "CPUExecutionProvider"],
+                            [TENSORRT, "CPUExecutionProvider"])
+
+
+# -- the device path's arithmetic, on the CPU ---------------------------------------------------
+
+def _field(seed: int, shape=(3, 40, 56)) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    amp = torch.rand(shape, generator=g) * 2.6  # past the scale (2.0): some pixels clip
+    amp[:, :6] *= 0.01  # a band below zero_below
+    return torch.polar(amp, (torch.rand(shape, generator=g) * 2 - 1) * math.pi)
+
+
+def _circular_level_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    d = np.abs(a.astype(np.int64) - b.astype(np.int64)) % 256
+    return np.minimum(d, 256 - d)
+
+
+CALIBRATED = PhaseCurve(tuple(2.3 * math.pi * (g / 255) ** 1.2 for g in range(256)))
+
+
+@pytest.mark.parametrize(("curves", "sign", "invert", "with_gain"), [
+    ((PhaseCurve.linear(),), 1, False, False),
+    ((PhaseCurve.linear(),), -1, True, True),
+    ((CALIBRATED, PhaseCurve.linear(), CALIBRATED), 1, False, True),
+])
+def test_the_device_coder_gives_the_cpu_coders_grey_levels(curves, sign, invert, with_gain):
+    field = _field(7)
+    gain = None
+    if with_gain:
+        gain = 0.8 + 0.6 * torch.rand(field.shape, generator=torch.Generator().manual_seed(8))
+    want, want_clipped = double_phase_grey(field, 2.0, curves, sign=sign, invert=invert,
+                                           zero_below=0.03, gain=gain)
+    dc = device_curves(tuple(curves), sign, invert, 3, "cpu")
+    grey, clipped, bad = device_grey(field, 2.0, dc, sign=sign, invert=invert, zero_below=0.03,
+                                     gain=gain)
+    got = grey.numpy()
+    assert got.dtype == np.uint8 and got.shape == want.shape and int(bad) == 0
+    # float32 phases here, float64 in numba's pass: the neighbouring level of the curve (one
+    # step of phase on the circle; a curve longer than 2 pi has levels 2 pi apart), and only
+    # near a decision boundary.
+    assert (got == want).mean() > 0.998
+    per = list(curves) * 3 if len(curves) == 1 else list(curves)
+    for c, curve in enumerate(per):
+        table = np.array(curve.phase_rad)
+        step = np.diff(table).max()
+        shown = sign * table[255 - got[c] if invert else got[c]]
+        wanted = sign * table[255 - want[c] if invert else want[c]]
+        apart = np.abs(np.angle(np.exp(1j * (shown - wanted))))
+        assert apart.max() <= step + 1e-9, (c, apart.max(), step)
+    # The zero_below band codes the zero pattern's levels exactly; the clipped counts agree.
+    np.testing.assert_array_equal(got[:, :6], want[:, :6])
+    assert tuple(clipped.tolist()) == pytest.approx(want_clipped, abs=0)
+    assert min(want_clipped) > 0.05
+
+
+def test_the_device_curve_table_is_the_curve_up_to_its_bin():
+    dc = device_curves((CALIBRATED,), 1, False, 3, "cpu")
+    assert dc.lut is not None and dc.lut.shape == (3, DEVICE_LUT_BINS)
+    assert device_curves((PhaseCurve.linear(),), 1, False, 3, "cpu").lut is None
+
+
+def test_a_non_finite_field_is_refused_on_the_device_path():
+    enc = Encoder(SETTINGS, device_coding=True)
+    field = torch.zeros((3, enc.region.height, enc.region.width), dtype=torch.complex64)
+    field[1, 3, 4] = complex(float("nan"), 0.0)
+    with pytest.raises(ValueError, match=r"field contains 1 non-finite amplitudes"):
+        enc.code(field)
+
+
+def test_the_device_network_input_is_the_numpy_one_bit_for_bit():
+    rng = np.random.default_rng(11)
+    rgb = rng.random((3, 24, 40), dtype=np.float32)
+    depth = rng.uniform(0.5, 3.0, (24, 40)).astype(np.float32)
+    depth[0, :5] = 0.0  # not positive: background
+    depth[1, :5] = np.nan
+    alpha = rng.random((24, 40), dtype=np.float32)
+    kw = {"mapping": {"a_m": 0.004, "b_m": 0.003}, "volume_m": [-0.002, 0.003]}
+    want = network_input(rgb, "rgbd", depth=depth, alpha=alpha, **kw)
+    got = network_input_on_device(torch.from_numpy(rgb), "rgbd", depth=torch.from_numpy(depth),
+                                  alpha=torch.from_numpy(alpha), **kw)
+    np.testing.assert_array_equal(got.numpy(), want)
+    assert np.isfinite(want).all() and (want[3] != 0).mean() > 0.3
+
+
+@pytest.fixture(scope="module")
+def donut() -> dict:
+    """The shipped model and scene, at a 64 x 96 window (fully convolutional: any multiple)."""
+    if not MODEL.is_file() or not SCENE.is_file():
+        pytest.skip(f"{MODEL.name} or {SCENE.name} absent")
+    # The default configuration: the shipped model's optics.
+    config = Config.model_validate(_overlay(tomllib.loads(default_text()),
+                                            {"daemon": {"frame_size_px": [96, 64]}}))
+    model = load_model(MODEL, config, threads=1)
+    load = read_scene(SCENE)
+    scene = Scene(load.gaussians, scene_frame(load.gaussians, str(SCENE)))
+    env = model.metadata["pose_envelope"]
+    view = {"kind": "orbit", "azimuth_deg": float(np.mean(env["azimuth_deg"])),
+            "elevation_deg": float(np.mean(env["elevation_deg"])),
+            "radius": float(np.mean(env["distance"])), "refocus_mm": 0.0}
+    settings = frame_settings(config, model.metadata, active_calibration(config))
+    return {"config": config, "model": model, "scene": scene, "view": view,
+            "settings": settings}
+
+
+def test_io_binding_gives_the_sessions_own_outputs(donut):
+    model = donut["model"]
+    c = model.channels  # 4: the shipped model sees the mapped depth too
+    x = np.random.default_rng(3).random((c, 50, 70), dtype=np.float32)  # padded to the multiple
+    want_a, want_p = model(x)
+    got_a, got_p = model.run_on(torch.from_numpy(x))
+    np.testing.assert_array_equal(got_a.numpy(), want_a)
+    np.testing.assert_array_equal(got_p.numpy(), want_p)
+    with pytest.raises(ValueError, match=rf"{model.inputs} input \(5, 50, 70\): expected "
+                                         rf"\[{c}, H, W\]"):
+        model.run_on(torch.zeros(5, 50, 70))
+
+
+def test_the_device_path_on_the_cpu_gives_the_cpu_paths_frame(donut):
+    d = donut
+    cpu = compute_frame(d["view"], d["scene"], d["model"], Encoder(d["settings"]))
+    explicit = compute_frame(d["view"], d["scene"], d["model"],
+                             Encoder(d["settings"], device="cpu"))
+    np.testing.assert_array_equal(explicit.grey, cpu.grey)  # the CPU path, not the device one
+    dev = compute_frame(d["view"], d["scene"], d["model"],
+                        Encoder(d["settings"], device_coding=True))
+    assert dev.grey.shape == cpu.grey.shape and dev.grey.dtype == np.uint8
+    diff = _circular_level_diff(dev.grey, cpu.grey)
+    assert diff.max() <= 1 and (diff == 0).mean() > 0.999
+    assert dev.clipped_fraction == pytest.approx(cpu.clipped_fraction, abs=0)
+    assert set(dev.timings_s) == {"render", "inference", "propagation", "coding"}
+    # The preview is the rendered view quantised as the worker sends it.
+    np.testing.assert_array_equal((np.clip(dev.rgb, 0, 1) * 255 + 0.5).astype(np.uint8),
+                                  (np.clip(cpu.rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
+
+
+def test_the_worker_refuses_a_cuda_device_torch_does_not_see(donut):
+    if torch.cuda.is_available():
+        pytest.skip("torch sees a CUDA device here")
+    from nhfd.pipeline.worker import open_model
+
+    config = Config.model_validate(_overlay(donut["config"].model_dump(),
+                                            {"daemon": {"device": "cuda"}}))
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': torch .* sees no CUDA"):
+        open_model(str(MODEL), config, 1)
+
+
+def test_bench_pipeline_device_cuda_is_a_clean_error_without_cuda(capsys):
+    if torch.cuda.is_available():
+        pytest.skip("torch sees a CUDA device here")
+    from nhfd.cli.main import main
+
+    assert main(["bench", "pipeline", "--device", "cuda", "--model", str(MODEL)]) == 2
+    err = capsys.readouterr().err
+    assert "nhfd bench: error: --device = 'cuda': torch" in err and "sees no CUDA device" in err
+    assert main(["bench", "pipeline", "--device", "gpu", "--model", str(MODEL)]) == 2
+    assert "--device = 'gpu': must be one of auto, cpu, cuda, cuda:N" in capsys.readouterr().err
+
+
+def test_host_copy_on_the_cpu_hands_back_the_tensors_memory():
+    t = torch.arange(6, dtype=torch.uint8).reshape(2, 3)
+    (a, none) = HostCopy("cpu").fetch(t, None)
+    assert none is None and a.ctypes.data == t.data_ptr()
+
+
+# -- CUDA only ----------------------------------------------------------------------------------
+
+@needs_cuda
+def test_the_cuda_frame_is_the_cpu_frame_within_one_grey_level(donut):
+    d = donut
+    cpu = compute_frame(d["view"], d["scene"], d["model"], Encoder(d["settings"]))
+    model = load_model(MODEL, d["config"], threads=1, device="cuda:0", input_hw=(64, 96))
+    gpu = compute_frame(d["view"], d["scene"], model, Encoder(d["settings"], device="cuda:0"))
+    diff = _circular_level_diff(gpu.grey, cpu.grey)
+    # gsplat's render and the GPU's network and FFTs differ from the CPU's in rounding.
+    assert (diff <= 1).mean() > 0.98, f"{(diff <= 1).mean():.4f} within one level"
+    assert set(gpu.timings_s) == {"render", "inference", "propagation", "coding"}
+
+
+@needs_cuda
+def test_cuda_inference_binds_device_memory(donut):
+    model = load_model(MODEL, donut["config"], threads=1, device="cuda:0", input_hw=(64, 96))
+    assert model.session.get_providers()[0] in (TENSORRT, CUDA)
+    x = torch.rand(model.channels, 64, 96, device="cuda:0")
+    amp, phase = model.run_on(x)
+    assert amp.device == x.device and phase.device == x.device
+    want_a, _want_p = donut["model"](x.cpu().numpy())
+    np.testing.assert_allclose(amp.cpu().numpy(), want_a, atol=1e-3)
+
+
+@needs_cuda
+def test_host_copy_goes_through_pinned_memory():
+    t = torch.arange(1000, device="cuda:0").to(torch.uint8)
+    hosts, _done = HostCopy("cuda:0").start(t)
+    assert hosts[0].is_pinned()
+    np.testing.assert_array_equal(HostCopy("cuda:0").fetch(t)[0], t.cpu().numpy())
+
+
+def test_cuda_frames_without_gsplat_or_onnxruntime_gpu_are_refused_before_a_model_loads(
+        monkeypatch):
+    from nhfd.pipeline import device as device_mod
+
+    gpu = torch.device("cuda", 0)
+    with pytest.raises(ValueError, match=r"daemon\.device = 'auto' \(chose cuda:0: torch sees a "
+                                         r"GPU\): this onnxruntime has no CUDAExecutionProvider "
+                                         r"\(available: CPUExecutionProvider\); install "
+                                         r"onnxruntime-gpu"):
+        device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"])
+    monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: False)
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': CUDA frames render with "
+                                         r"gsplat, which does not import here; pip install "
+                                         r"'nhfd\[gpu\]'"):
+        device_mod.check_cuda_frames("cuda", gpu, CPU_CUDA_TRT)
+    device_mod.check_cuda_frames("cpu", torch.device("cpu"), [])  # the CPU needs neither
