@@ -422,7 +422,8 @@ class FrameLink:
         views = self.d.views
         if (self.state == "running" and self.worker.ready and self.inflight is None
                 and self.model_path is not None and self.scene_path is not None
-                and views.view is not None and views.seq > self.sent_seq):
+                and views.view is not None and views.seq > self.sent_seq
+                and (self.worker.transport != "shm" or self.worker.free_slots)):
             return self.send_at_s  # the step then sends it (_send_next's conditions hold)
         return math.inf
 
