@@ -5,6 +5,10 @@ double-phase coding that amplify their errors. Calibrated on the first training 
 dataset. On 2 cores at 1024 x 576 it took the earlier fast profile (16/3/4) from 35.5 to 26.3 ms
 for 0.16 dB of held-out PSNR (`nhfd bench tradeoff --int8`); it helps less, or not at all, where
 convolutions are a smaller share of the time.
+
+`record_heldout_loss` writes what `nhfd eval` measured of an int8 model and its float model into
+the int8 file's own metadata (`nhfd model build` does, at its eval stage): the daemon serves the
+int8 sibling by that record (`daemon.int8`, docs/frames.md).
 """
 
 from __future__ import annotations
