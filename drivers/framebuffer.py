@@ -5,7 +5,14 @@ configured root, so a test can point both the device and sysfs at files). Pixels
 (B, G, R[, X] in memory for the usual BGR order); rows are `stride` bytes apart and the padding
 after each row is left alone. 16 bpp is refused: it cannot carry 8-bit grey levels.
 
-The framebuffer gives no vsync or flip feedback and its writes succeed with the cable unplugged,
+Pacing: where the driver offers the FBIO_WAITFORVSYNC ioctl (asked once, at open), each write
+waits for the vertical blank first, so frames change between scans, at most one per refresh
+(the wait blocks the caller for up to one refresh, as the window backend's vsync flip does).
+Where it does not (ENOTTY, EINVAL: many fbdev drivers), writes go at once and the daemon's
+timer at `slm.refresh_hz` paces view frames (`nhfd.daemon.frame_link`); `vsync_detail` says
+which, for `status`.
+
+The framebuffer gives no flip feedback and its writes succeed with the cable unplugged,
 so health polls the DRM connectors' `status` files: the configured connector must read
 "connected", or (none configured) every connector connected at open must still be.
 """
@@ -13,8 +20,11 @@ so health polls the DRM connectors' `status` files: the configured connector mus
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import mmap
 import os
+import struct
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -25,6 +35,16 @@ from nhfd.device_settings import SLMOutputSettings
 
 from .errors import DeviceError
 from .slm import SLM, SLMHealth
+
+# <linux/fb.h>: #define FBIO_WAITFORVSYNC _IOW('F', 0x20, __u32): write direction (1 << 30), a
+# 4-byte argument (4 << 16), type 'F' (0x46 << 8), number 0x20. The argument is the CRTC, 0.
+FBIO_WAITFORVSYNC = 0x40044620
+
+
+def wait_for_vsync(fd: int) -> None:
+    """Block until the next vertical blank of the framebuffer open on `fd` (OSError where the
+    driver has no FBIO_WAITFORVSYNC)."""
+    fcntl.ioctl(fd, FBIO_WAITFORVSYNC, struct.pack("I", 0))
 
 
 class FramebufferError(DeviceError):
@@ -50,6 +70,8 @@ class FramebufferSLM(SLM):
         self._fd: int | None = None
         self._map: mmap.mmap | None = None
         self._watched: list[Path] = []
+        self.vsync = False
+        self.vsync_detail = ""
 
     @property
     def name(self) -> str:
@@ -93,6 +115,18 @@ class FramebufferSLM(SLM):
             os.close(fd)
             raise FramebufferError(f"cannot map {size} bytes of {self.device}: {exc}") from None
         self._fd = fd
+        self.vsync, self.vsync_detail = self._detect_vsync(fd)
+
+    def _detect_vsync(self, fd: int) -> tuple[bool, str]:
+        """Once, at open: does the driver offer FBIO_WAITFORVSYNC? (One wait, at most a
+        refresh.)"""
+        try:
+            wait_for_vsync(fd)
+        except OSError as exc:
+            name = errno.errorcode.get(exc.errno or 0, str(exc.errno))
+            return False, (f"{self.device} has no FBIO_WAITFORVSYNC ({name}): writes are not "
+                           "synchronised to the vertical blank")
+        return True, f"{self.device}: each write waits for the vertical blank (FBIO_WAITFORVSYNC)"
 
     def _do_close(self) -> None:
         if self._map is not None:
@@ -105,6 +139,13 @@ class FramebufferSLM(SLM):
 
     def _write(self, rgb: np.ndarray) -> None:
         assert self._map is not None
+        if self.vsync and self._fd is not None:
+            try:
+                wait_for_vsync(self._fd)
+            except OSError as exc:  # it worked at open: say so once and stop asking
+                self.vsync = False
+                self.vsync_detail = (f"{self.device}: FBIO_WAITFORVSYNC failed ({exc}); writes "
+                                     "are no longer synchronised to the vertical blank")
         bytes_pp = self.bits_per_pixel // 8
         rows = np.ndarray((self.height_px, self.stride_bytes), np.uint8, buffer=self._map)
         pixels = rows[:, : self.width_px * bytes_pp].reshape(self.height_px, self.width_px,

@@ -79,6 +79,11 @@ def to_rgb(frame: Any, height_px: int, width_px: int) -> np.ndarray:
 class SLM(Device, ABC):
     """A phase SLM of width_px x height_px driven with 8-bit grey levels per colour channel."""
 
+    # Whether a write waits for the vertical blank, and what `status` says of it ("": the
+    # backend does not say; the framebuffer asks its driver for FBIO_WAITFORVSYNC at open).
+    vsync: bool = False
+    vsync_detail: str = ""
+
     def __init__(
         self,
         width_px: int,
@@ -196,6 +201,8 @@ class SimulatedSLM(SLM):
                  *, clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(width_px, height_px, settings, clock=clock)
         self.frames: deque[np.ndarray] = deque(maxlen=self.settings.history_frames)
+        # The clock at each recent write: how often frames reached the panel (pacing tests).
+        self.written_s: deque[float] = deque(maxlen=self.settings.history_frames)
         self.count = 0
         self._plugged = True
         # (written, flipped, frame [H, W, 3]) of recent frames: the panel shows each from its
@@ -226,6 +233,7 @@ class SimulatedSLM(SLM):
     def _write(self, rgb: np.ndarray) -> None:
         # `show` hands each backend a frame of its own: kept as is, seen as [3, H, W].
         self.frames.append(rgb.transpose(2, 0, 1))
+        self.written_s.append(self._clock())
         self.count += 1
         if self.settings.png_dir:
             # matplotlib.image.imsave is what plt.imsave calls; importing it directly picks no

@@ -49,7 +49,7 @@ from nhfd.models.contact_sheet import contact_sheet
 from nhfd.models.data import HoloData
 from nhfd.models.evaluate import evaluate
 from nhfd.models.export import OnnxModel, export_onnx
-from nhfd.models.quantise import quantise_int8
+from nhfd.models.quantise import INT8_MAX_LOSS_DB, quantise_int8, record_heldout_loss
 from nhfd.models.train import RESUMABLE_CHANGES, TrainOptions, train
 from nhfd.optics import quality_planes
 from nhfd.scene.cull import reduce_scene
@@ -60,9 +60,6 @@ STAGES = ("scene", "reduce", "dataset", "train", "export", "eval", "report")
 STATE = "build.json"
 FORMAT = "nhfd-model-build"
 FORMAT_VERSION = 1
-# A quantised model is kept only if its held-out PSNR is within this of the float model's
-# (issue 24).
-INT8_MAX_LOSS_DB = 0.5
 # Seconds per unit of work on this project's 2-core machine, the estimate before a stage has
 # run (then the measured rate of the finished stages scales what is left): the reduction per
 # pose-pixel (the donut's 130 poses at 1024 x 576, about 2 min), a dataset example per
@@ -360,6 +357,10 @@ def _eval(ctx: Context) -> dict:
         keep = loss <= INT8_MAX_LOSS_DB
         q["loss_vs_float_db"] = loss
         q["kept"] = keep
+        # The figures travel inside the int8 file too: the daemon serves it by them.
+        record_heldout_loss(ctx.path(ex["int8"]["path"]), ctx.path(ex["float"]["path"]),
+                            float_psnr_db=f["model_psnr_db"], int8_psnr_db=q["model_psnr_db"],
+                            views=int(q.get("views") or 0))  # fmt: skip
         dst = ctx.path("model-int8.onnx")
         if keep:
             _copy_atomic(ctx.path(ex["int8"]["path"]), dst)

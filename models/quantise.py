@@ -5,17 +5,31 @@ double-phase coding that amplify their errors. Calibrated on the first training 
 dataset. On 2 cores at 1024 x 576 it took the earlier fast profile (16/3/4) from 35.5 to 26.3 ms
 for 0.16 dB of held-out PSNR (`nhfd bench tradeoff --int8`); it helps less, or not at all, where
 convolutions are a smaller share of the time.
+
+`record_heldout_loss` writes what `nhfd eval` measured of an int8 model and its float model into
+the int8 file's own metadata (`nhfd model build` does, at its eval stage): the daemon serves the
+int8 sibling by that record (`daemon.int8`, docs/frames.md).
 """
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
+from nhfd.models.metadata import METADATA_KEY
 from nhfd.models.net import pad_amounts
 
 if TYPE_CHECKING:
     from nhfd.models.data import HoloData
+
+# An int8 model is served (and `nhfd model build` keeps it) only if its held-out PSNR is within
+# this of its float model's (issue 24).
+INT8_MAX_LOSS_DB = 0.5
+# The key of the held-out record in an int8 model's nhfd metadata (`record_heldout_loss`).
+HELDOUT_KEY = "int8_heldout"
 
 
 def output_nodes(model) -> tuple[list[str], list[str]]:
@@ -80,3 +94,35 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
         q.metadata_props.add().CopyFrom(prop)
     onnx.save(q, str(dst))
     return dst
+
+
+def file_sha256(path: str | Path) -> str:
+    with open(path, "rb") as f:
+        return hashlib.file_digest(f, "sha256").hexdigest()
+
+
+def record_heldout_loss(int8_path: str | Path, float_path: str | Path, *, float_psnr_db: float,
+                        int8_psnr_db: float, views: int) -> dict[str, Any]:
+    """Write into the int8 model's own nhfd metadata what `nhfd eval` measured of it and of its
+    float model on the held-out views: the figure travels with the file, so whoever serves it
+    (the daemon's frame worker) need not trust a separate report. The float model's SHA-256
+    ties the record to the float file it was measured against. Returns the record."""
+    import onnx
+
+    record = {"float_psnr_db": float(float_psnr_db), "int8_psnr_db": float(int8_psnr_db),
+              "loss_vs_float_db": float(float_psnr_db) - float(int8_psnr_db),
+              "views": int(views), "float_sha256": file_sha256(float_path),
+              "max_loss_db": INT8_MAX_LOSS_DB}  # fmt: skip
+    model = onnx.load(str(int8_path))
+    for prop in model.metadata_props:
+        if prop.key == METADATA_KEY:
+            meta = json.loads(prop.value)
+            meta[HELDOUT_KEY] = record
+            prop.value = json.dumps(meta)
+            break
+    else:
+        raise ValueError(f"{int8_path}: no nhfd metadata to record the held-out loss in")
+    tmp = Path(int8_path).with_name(Path(int8_path).name + ".rec.tmp")
+    onnx.save(model, str(tmp))
+    os.replace(tmp, int8_path)
+    return record

@@ -68,6 +68,9 @@ class SLMSettings(_Section):
     ] * 3
     phase_sign: Literal[1, -1] = 1
     grey_invert: bool = False
+    # The panel's refresh rate: the daemon shows at most one view frame per refresh (paced by
+    # a timer; a framebuffer that offers FBIO_WAITFORVSYNC also waits for the vertical blank).
+    refresh_hz: Annotated[float, Field(ge=1, le=1000)] = 60.0
 
     @property
     def pitch_m(self) -> float:
@@ -448,6 +451,13 @@ class DaemonSettings(_Section):
     # (e.g. ["CUDAExecutionProvider", "CPUExecutionProvider"]). One this onnxruntime lacks makes
     # load_model fail with the list of those available (the previous model keeps running).
     onnx_providers: Annotated[list[str], Field(min_length=1)] = ["CPUExecutionProvider"]
+    # The model's int8 sibling (<stem>-int8.onnx beside it) on the CPU path: "auto" serves it
+    # where its metadata records a held-out loss within 0.5 dB of this float model, "never"
+    # serves the float model, "always" the int8 one whenever it exists.
+    int8: Literal["auto", "never", "always"] = "auto"
+    # How frames cross from the frame worker: "shm" (shared-memory slots, only a small message
+    # on the pipe) or "pickle" (the arrays pickled through the pipe; for comparison).
+    frame_transport: Literal["shm", "pickle"] = "shm"
     # Colour timing (hardware.md): "single" (daemon.single_colour's pattern in every channel,
     # only that diode may be on), "capture" (snapshots step through the colours: all off, the
     # colour's pattern, settle, that diode on, capture, off; clients only set powers) or

@@ -6,6 +6,13 @@ For each model given (the shipped 512 x 288 one by default; add a 1024 x 576 mod
 the clock runs from sending the view to the worker until the full panel frame has been shown on a
 simulated SLM (the daemon's path, IPC included). The first views warm the caches (numba, kernels)
 and are not counted. The frame cache is off: every view is computed.
+
+--transport shm,pickle measures both ways frames cross from the worker in one run (shared-memory
+slots, the default, or the arrays pickled through the pipe), and --int8 never,auto the float model
+and the int8 sibling the daemon would serve (`daemon.int8`); each combination in its own worker,
+all given the same views in turn (a loaded machine loads them alike). The panel's refresh
+pacing is off here (slm.refresh_hz at its maximum): the figure is the pipeline's, not the
+panel's.
 """
 
 from __future__ import annotations
@@ -48,6 +55,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", default="out/bench/pipeline.json", help="JSON results file")
     p.add_argument("--device", help="where frames are computed: auto, cpu, cuda or cuda:N "
                    "(default: daemon.device)")
+    p.add_argument("--frame-size-px", type=int, nargs=2, metavar=("W", "H"),
+                   help="hologram window (daemon.frame_size_px; default: the configuration's)")
+    p.add_argument("--transport", default="shm",
+                   help="comma list of frame transports to compare: shm, pickle (default shm)")
+    p.add_argument("--int8", default=None,
+                   help="comma list of daemon.int8 settings to compare: auto, never, always "
+                        "(default: the configuration's)")
     p.set_defaults(handler=run)
 
 
@@ -92,51 +106,82 @@ def _load(link: Any, scene: Path, model: Path) -> None:
         raise ValueError(str(failed[0])) from None
 
 
-def measure(config: Any, model: Path, scene: Path, views: int, warmup: int) -> dict[str, Any]:
+def measure(config: Any, model: Path, scene: Path, views: int, warmup: int, *,
+            transport: str | None = None, int8: str | None = None) -> dict[str, Any]:
+    """One model under one transport and int8 setting (`measure_side_by_side` of one)."""
+    return measure_side_by_side(config, model, scene, views, warmup, [(transport, int8)])[0]
+
+
+def measure_side_by_side(config: Any, model: Path, scene: Path, views: int, warmup: int,
+                         variants: list[tuple[str | None, str | None]]) -> list[dict[str, Any]]:
+    """`model` under each (transport, daemon.int8) of `variants` (None: the configuration's),
+    each in its own worker, all started first and then given the same views in turn, one frame
+    at a time (the order rotating per view): on a loaded machine the variants see the same load
+    and their medians compare."""
     meta = OnnxModel(model).metadata
-    no_cache = {"daemon": {"frame_cache_frames": 0}}
-    cfg = Config.model_validate(_overlay(config.model_dump(), no_cache))
-    wh, ww = frame_window_hw(cfg, meta)
-    if wh > cfg.slm.height_px or ww > cfg.slm.width_px:
-        raise ValueError(f"{model}: trained at {ww} x {wh}, larger than the {cfg.slm.width_px} x "
-                         f"{cfg.slm.height_px} panel; set daemon.frame_size_px to at most "
-                         f"[{cfg.slm.width_px}, {cfg.slm.height_px}]")
-    host = _Host(cfg)
-    link = FrameLink(host)
+    runs = []
     try:
-        _load(link, scene, model)
+        for transport, int8 in variants:
+            daemon: dict[str, Any] = {"frame_cache_frames": 0}
+            if transport is not None:
+                daemon["frame_transport"] = transport
+            if int8 is not None:
+                daemon["int8"] = int8
+            # No refresh pacing: the bench times the pipeline, not the panel.
+            overlay = {"daemon": daemon, "slm": {"refresh_hz": 1000.0}}
+            cfg = Config.model_validate(_overlay(config.model_dump(), overlay))
+            wh, ww = frame_window_hw(cfg, meta)
+            if wh > cfg.slm.height_px or ww > cfg.slm.width_px:
+                raise ValueError(f"{model}: trained at {ww} x {wh}, larger than the "
+                                 f"{cfg.slm.width_px} x {cfg.slm.height_px} panel; set "
+                                 f"daemon.frame_size_px to at most [{cfg.slm.width_px}, "
+                                 f"{cfg.slm.height_px}]")
+            host = _Host(cfg)
+            link = FrameLink(host)
+            runs.append((cfg, host, link, []))
+            _load(link, scene, model)
         env = meta.get("pose_envelope") or {}
         az = env.get("azimuth_deg") or [-20.0, 20.0]
         el = env.get("elevation_deg") or [20.0, 20.0]
         dist = env.get("distance") or [2.0, 2.0]
-        rows = []
         for i, a in enumerate(np.linspace(az[0], az[1], warmup + views)):
-            seq = host.views.submit({"kind": "orbit", "azimuth_deg": float(a),
-                                     "elevation_deg": 0.5 * (el[0] + el[1]),
-                                     "radius": 0.5 * (dist[0] + dist[1]), "refocus_mm": 0.0})
-            t0 = time.perf_counter()
-            while link.shown_seq < seq:
-                link.step()
-                if host.errors:
-                    raise RuntimeError(host.errors[-1])
-                time.sleep(0.0005)
-            total_ms = (time.perf_counter() - t0) * 1e3
-            if i >= warmup:
-                t = link.timings or {}
-                rows.append({**{k: t[f"{k}_ms"] for k in STAGES}, "total": total_ms})
+            view = {"kind": "orbit", "azimuth_deg": float(a),
+                    "elevation_deg": 0.5 * (el[0] + el[1]),
+                    "radius": 0.5 * (dist[0] + dist[1]), "refocus_mm": 0.0}
+            for k in range(len(runs)):
+                _cfg, host, link, rows = runs[(i + k) % len(runs)]
+                seq = host.views.submit(view)
+                t0 = time.perf_counter()
+                while link.shown_seq < seq:
+                    link.step()
+                    if host.errors:
+                        raise RuntimeError(host.errors[-1])
+                    time.sleep(0.0005)
+                total_ms = (time.perf_counter() - t0) * 1e3
+                if i >= warmup:
+                    t = link.timings or {}
+                    rows.append({**{k: t[f"{k}_ms"] for k in STAGES}, "total": total_ms})
+        infos = [dict(link.model_info or {}) for _cfg, _host, link, _rows in runs]
     finally:
-        link.close()
+        for _cfg, _host, link, _rows in runs:
+            link.close()
     h, w = (int(v) for v in meta["train_size_hw"])
-    size = list(cfg.daemon.frame_size_px) or [w, h]
-    summary = {k: {"median_ms": float(np.median([r[k] for r in rows])),
-                   "p90_ms": float(np.percentile([r[k] for r in rows], 90))}
-               for k in (*STAGES, "total")}
-    after = float(np.median([r["total"] - r["render"] for r in rows]))
-    return {"model": str(model), "profile": meta.get("profile"), "size_wh": size,
-            "views": len(rows), "stages": summary, "after_render_median_ms": after,
-            "ipc_and_wait_median_ms": float(np.median(
-                [r["total"] - sum(r[k] for k in STAGES) for r in rows])),
-            "rows": rows}
+    out = []
+    for (cfg, _host, _link, rows), info in zip(runs, infos, strict=True):
+        size = list(cfg.daemon.frame_size_px) or [w, h]
+        summary = {k: {"median_ms": float(np.median([r[k] for r in rows])),
+                       "p90_ms": float(np.percentile([r[k] for r in rows], 90))}
+                   for k in (*STAGES, "total")}
+        after = float(np.median([r["total"] - r["render"] for r in rows]))
+        out.append({"model": str(model), "profile": meta.get("profile"), "size_wh": size,
+                    "transport": cfg.daemon.frame_transport, "int8": cfg.daemon.int8,
+                    "served": info.get("served", str(model)), "variant": info.get("variant"),
+                    "variant_reason": info.get("variant_reason"),
+                    "views": len(rows), "stages": summary, "after_render_median_ms": after,
+                    "ipc_and_wait_median_ms": float(np.median(
+                        [r["total"] - sum(r[k] for k in STAGES) for r in rows])),
+                    "rows": rows})
+    return out
 
 
 def run(args: argparse.Namespace) -> int:
@@ -152,21 +197,42 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         raise FileNotFoundError(f"{missing[0]}: no such model (see `nhfd demo` for how to build "
                                 "the default one)")
+    if args.frame_size_px:
+        config = Config.model_validate(_overlay(
+            config.model_dump(), {"daemon": {"frame_size_px": list(args.frame_size_px)}}))
+    transports = _choices("--transport", args.transport, ("shm", "pickle"))
+    int8s = _choices("--int8", args.int8, ("auto", "never", "always")) if args.int8 else [None]
     results = []
     for model in models:
-        r = measure(config, model, Path(args.scene), args.views, args.warmup)
-        results.append(r)
-        s = r["stages"]
-        print(f"{model} ({r['profile']}, {r['size_wh'][0]} x {r['size_wh'][1]}), "
-              f"{r['views']} views, worker threads {config.daemon.worker_threads}:")
-        print(f"  {'stage':<12} {'median ms':>10} {'p90 ms':>8}")
-        for k in (*STAGES, "total"):
-            print(f"  {k:<12} {s[k]['median_ms']:>10.1f} {s[k]['p90_ms']:>8.1f}")
-        print(f"  after rendering: {r['after_render_median_ms']:.1f} ms (goal <= 100 ms); "
-              f"IPC and waiting: {r['ipc_and_wait_median_ms']:.1f} ms")
+        variants = [(t, q) for q in int8s for t in transports]
+        for r in measure_side_by_side(config, model, Path(args.scene), args.views, args.warmup,
+                                      variants):
+            results.append(r)
+            _print(r, config)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"nhfd_version": __version__, "cpus": os.cpu_count(),
                                "results": results}, indent=1))
     print(f"wrote {out}")
     return 0
+
+
+def _choices(flag: str, text: str, allowed: tuple[str, ...]) -> list[str]:
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    bad = [t for t in items if t not in allowed]
+    if bad or not items:
+        raise ValueError(f"{flag} {text!r}: give a comma list of {', '.join(allowed)}")
+    return items
+
+
+def _print(r: dict[str, Any], config: Any) -> None:
+    s = r["stages"]
+    print(f"{r['model']} ({r['profile']}, {r['size_wh'][0]} x {r['size_wh'][1]}), "
+          f"{r['views']} views, worker threads {config.daemon.worker_threads}, frames by "
+          f"{r['transport']}, serving {r['variant']} {r['served']} "
+          f"(daemon.int8 = {r['int8']}: {r['variant_reason']}):")
+    print(f"  {'stage':<12} {'median ms':>10} {'p90 ms':>8}")
+    for k in (*STAGES, "total"):
+        print(f"  {k:<12} {s[k]['median_ms']:>10.1f} {s[k]['p90_ms']:>8.1f}")
+    print(f"  after rendering: {r['after_render_median_ms']:.1f} ms (goal <= 100 ms); "
+          f"IPC and waiting: {r['ipc_and_wait_median_ms']:.1f} ms")

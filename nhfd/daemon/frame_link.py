@@ -12,6 +12,18 @@ the model (its metadata, why one was refused) as data over the pipe: nothing her
 pipeline, the models or torch. `FrameLink` never blocks on the pipe: it polls it once per
 control-loop tick, and it shows the frames it gets (the "output" stage: the coded region pasted
 into the blank frame, `PanelBuffer`).
+
+Frames cross in shared memory (docs/frames.md): `FrameWorker` creates `SLOTS` segments named
+`nhfd-<pid>-<n>-<slot>` in /dev/shm, each sized for the whole panel (a grey region and its
+render can never be larger, so a model, scene or refocus that changes the window needs no new
+slot), and unlinks them whenever the worker is closed: stop, crash, restart. A slot is named in
+each frame request; the worker writes only that one, and the daemon names it again only after
+it has copied the frame out, so no slot is overwritten while the daemon reads it.
+
+Pacing: at most one view frame per refresh (`slm.refresh_hz`). A frame that arrives sooner
+waits (the control loop wakes for it at `wake_s`); the next view goes to the worker only once
+the frame before it is on the panel, so the frame shown is never older than one refresh.
+`status` counts frames shown, dropped and late (`FrameLink.status`).
 """
 
 from __future__ import annotations
@@ -20,10 +32,12 @@ import contextlib
 import importlib
 import itertools
 import logging
+import math
 import multiprocessing as mp
 import os
 import threading
 import time
+from multiprocessing import shared_memory
 from types import SimpleNamespace
 from typing import Any, Protocol
 
@@ -43,6 +57,17 @@ RESTART_BACKOFF_S = 2.0
 # The worker process's module: the spawned interpreter imports it by this name and runs its
 # `worker_main(conn, config_data, calibration)`.
 WORKER_MODULE = "nhfd.pipeline.worker"
+# Shared-memory slots per worker: one the worker writes while the daemon may still hold the
+# other (a frame waiting for its refresh).
+SLOTS = 2
+# The /dev/shm names of the slots start with this (then the daemon's pid, a counter, the slot).
+SHM_PREFIX = "nhfd-"
+# A frame is shown when its refresh is due within this (s): the control loop's select may wake
+# a little before the time it was given.
+DUE_SLACK_S = 0.0005
+# A view goes to a worker faster than the panel this long (plus 1.5 frame times) before the
+# refresh its frame is for (s).
+SEND_MARGIN_S = 0.002
 
 
 # -- what the frame link uses of the daemon ----------------------------------------------------
@@ -135,27 +160,78 @@ class FrameWorker:
     """The worker process and its pipe, seen from the daemon. Non-blocking except `start`."""
 
     _ids = itertools.count(1)
+    _workers = itertools.count(1)
 
-    def __init__(self, config: Any) -> None:
+    def __init__(self, config: Any, module: str = WORKER_MODULE) -> None:
         self.config = config
+        self.module = module
         self.process: Any = None
         self.conn: Any = None
         self.pid: int | None = None
         self.ready = False
         self._send_lock = threading.Lock()  # load jobs send from their own thread
         self.pending: dict[int, Pending] = {}
+        self.transport = str(config.daemon.frame_transport)
+        self.shms: list[shared_memory.SharedMemory] = []
+        self.free_slots: list[int] = []
 
     def start(self) -> None:
-        ctx = mp.get_context("spawn")
-        here, there = ctx.Pipe(duplex=True)
-        self.process = ctx.Process(target=run_by_name,
-                                   args=(WORKER_MODULE, worker_environment(self.config), there,
-                                         self.config.model_dump(),
-                                         _accepted_calibration(self.config)),
-                                   name="nhfd-frame-worker", daemon=True)
-        self.process.start()
+        slots = self._make_slots() if self.transport == "shm" else None
+        try:
+            ctx = mp.get_context("spawn")
+            here, there = ctx.Pipe(duplex=True)
+            self.process = ctx.Process(target=run_by_name,
+                                       args=(self.module, worker_environment(self.config), there,
+                                             self.config.model_dump(),
+                                             _accepted_calibration(self.config), slots),
+                                       name="nhfd-frame-worker", daemon=True)
+            self.process.start()
+        except BaseException:
+            self._unlink()
+            raise
         there.close()
         self.conn, self.ready, self.pid = here, False, self.process.pid
+
+    def _make_slots(self) -> dict[str, Any]:
+        """The slots, each for a grey region and a render as large as the panel."""
+        panel = self.config.slm
+        nbytes = 2 * 3 * int(panel.height_px) * int(panel.width_px)
+        tag = f"{SHM_PREFIX}{os.getpid()}-{next(self._workers)}"
+        try:
+            for i in range(SLOTS):
+                self.shms.append(shared_memory.SharedMemory(name=f"{tag}-{i}", create=True,
+                                                            size=nbytes))
+        except BaseException:
+            self._unlink()
+            raise
+        self.free_slots = list(range(SLOTS))
+        return {"names": [shm.name for shm in self.shms], "bytes": nbytes}
+
+    def take_slot(self) -> int | None:
+        """A slot the worker may write (None: pickled transport); raises LookupError if none is
+        free."""
+        if self.transport != "shm":
+            return None
+        if not self.free_slots:
+            raise LookupError("no free frame slot")
+        return self.free_slots.pop(0)
+
+    def release(self, slot: int | None) -> None:
+        if slot is not None and slot not in self.free_slots and slot < len(self.shms):
+            self.free_slots.append(slot)
+
+    def arrays(self, payload: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
+        """A frame's grey region and render: views into its slot (copy before releasing it),
+        or the arrays pickled in the payload."""
+        slot = payload.get("slot")
+        if slot is None:
+            return payload["grey"], payload.get("rgb")
+        buf = self.shms[slot].buf
+        grey = np.ndarray(tuple(payload["grey_shape"]), np.uint8, buffer=buf)
+        rgb_shape = payload.get("rgb_shape")
+        rgb = (np.ndarray(tuple(rgb_shape), np.uint8, buffer=buf, offset=grey.nbytes)
+               if rgb_shape else None)
+        return grey, rgb
 
     @property
     def alive(self) -> bool:
@@ -189,10 +265,20 @@ class FrameWorker:
             self.process.join(timeout_s)
         with contextlib.suppress(Exception):
             self.conn.close()
+        self._unlink()
         for p in self.pending.values():
             p.ok, p.result = False, "the frame worker stopped"
             p.done.set()
         self.pending.clear()
+
+    def _unlink(self) -> None:
+        """Remove the slots from /dev/shm (the worker is gone: nothing else maps them)."""
+        for shm in self.shms:
+            with contextlib.suppress(FileNotFoundError):
+                shm.unlink()
+            with contextlib.suppress(BufferError):  # a view still alive: unmapped when freed
+                shm.close()
+        self.shms, self.free_slots = [], []
 
 
 class FrameLink:
@@ -200,13 +286,15 @@ class FrameLink:
     frames it returns, load models and scenes, and turn a worker crash into lasers off plus an
     error in `status` (then restart it with the same model and scene)."""
 
-    def __init__(self, daemon: FrameHost) -> None:
+    def __init__(self, daemon: FrameHost, worker_module: str = WORKER_MODULE) -> None:
         self.d = daemon
-        self.worker = FrameWorker(daemon.config)
+        # `worker_module`: another worker speaking the same protocol (tests use a fake one).
+        self.worker = FrameWorker(daemon.config, worker_module)
         self.model_path: str | None = None
         self.model_info: dict[str, Any] | None = None
         self.scene_path: str | None = None
-        self.inflight: tuple[int, float] | None = None  # (seq, sent at perf_counter)
+        # (seq, sent at perf_counter, its slot, sent at monotonic)
+        self.inflight: tuple[int, float, int | None, float] | None = None
         self.sent_seq = 0
         self.shown_seq = 0
         self.timings: dict[str, Any] | None = None
@@ -214,6 +302,18 @@ class FrameLink:
         self.last_rgb: np.ndarray | None = None
         self.last_frame: np.ndarray | None = None
         self.frames_shown = 0
+        # Computed frames superseded before being shown, plus views never computed because a
+        # newer one overtook them (latest wins); shown more than one refresh after the worker
+        # finished them (docs/frames.md).
+        self.frames_dropped = 0
+        self.frames_late = 0
+        self.refresh_s = 1.0 / float(daemon.config.slm.refresh_hz)
+        self.pending: tuple[int, dict[str, Any], float | None] | None = None  # waits its refresh
+        self.last_show_s = -math.inf  # monotonic, when the last view frame went to the panel
+        self.last_age_s: float | None = None
+        self.max_age_s = 0.0
+        self._view_seq = 0  # the newest view sent to a worker (never reset: skipped views)
+        self.compute_s: float | None = None  # the worker's recent frame time, request to ready
         self.crashes = 0
         self.state = "idle"
         self._start_lock = threading.Lock()
@@ -272,12 +372,13 @@ class FrameLink:
     # -- the control loop's part ---------------------------------------------------------------
 
     def step(self) -> None:
-        """Once per tick: collect what the worker sent, show frames, send the newest view."""
+        """Once per tick: collect what the worker sent, show the newest frame when its refresh
+        is due, send the newest view."""
         if self.state in ("idle", "stopped"):
             return
         if self.state == "crashed":
             if time.monotonic() >= self._restart_at:
-                self.worker = FrameWorker(self.d.config)
+                self.worker = FrameWorker(self.d.config, self.worker.module)
                 self.inflight = None
                 self.start()
             return
@@ -290,7 +391,41 @@ class FrameLink:
             return
         for msg in msgs:
             self._handle(msg)
+        if self.pending is not None and time.monotonic() >= self.due_s - DUE_SLACK_S:
+            seq, payload, sent_at = self.pending
+            self.pending = None
+            self._show(seq, payload, sent_at)
         self._send_next()
+
+    @property
+    def due_s(self) -> float:
+        """When the next view frame may go to the panel (monotonic): one refresh after the
+        last."""
+        return self.last_show_s + self.refresh_s
+
+    @property
+    def send_at_s(self) -> float:
+        """When the next view may go to the worker (monotonic): early enough that its frame is
+        ready for the next refresh (1.5 x the worker's recent frame time plus a margin before
+        it), no earlier, so a worker faster than the panel computes the view that is newest
+        just before the refresh instead of one a refresh old."""
+        if self.compute_s is None:
+            return -math.inf
+        return self.due_s - 1.5 * self.compute_s - SEND_MARGIN_S
+
+    @property
+    def wake_s(self) -> float:
+        """When the control loop must step again (monotonic; inf: nothing is waiting): for a
+        frame waiting for its refresh, or a newer view waiting for its time to go out."""
+        if self.pending is not None:
+            return self.due_s
+        views = self.d.views
+        if (self.state == "running" and self.worker.ready and self.inflight is None
+                and self.model_path is not None and self.scene_path is not None
+                and views.view is not None and views.seq > self.sent_seq
+                and (self.worker.transport != "shm" or self.worker.free_slots)):
+            return self.send_at_s  # the step then sends it (_send_next's conditions hold)
+        return math.inf
 
     def _handle(self, msg: tuple) -> None:
         kind = msg[0]
@@ -304,37 +439,67 @@ class FrameLink:
                 pending.ok, pending.result = ok, result
                 pending.done.set()
         elif kind == "frame":
-            self._show(msg[1], msg[2])
+            seq, payload = msg[1], msg[2]
+            sent_at = self.inflight[1] if self.inflight and self.inflight[0] == seq else None
+            if sent_at is not None and payload.get("ready_s") is not None:
+                took = max(0.0, float(payload["ready_s"]) - self.inflight[3])
+                self.compute_s = took if self.compute_s is None else (
+                    0.7 * self.compute_s + 0.3 * took)
+            self.inflight = None
+            if self.pending is not None:  # superseded before its refresh came
+                self.frames_dropped += 1
+                self.worker.release(self.pending[1].get("slot"))
+            self.pending = (seq, payload, sent_at)
         elif kind == "frame_error":
             seq, message = msg[1], msg[2]
+            if self.inflight is not None:
+                self.worker.release(self.inflight[2])
             self.inflight = None
             self.d._error("frame worker", f"view {seq}: {message}")
 
     def _send_next(self) -> None:
-        if self.inflight is not None or not self.worker.ready:
+        # One frame at a time, computed or waiting: the next view is taken only once the frame
+        # before it is on the panel, so what the worker computes is the newest view then.
+        if self.inflight is not None or self.pending is not None or not self.worker.ready:
             return
         if self.model_path is None or self.scene_path is None:
             return
         slot = self.d.views
         if slot.view is None or slot.seq <= self.sent_seq:
             return
+        if time.monotonic() < self.send_at_s:
+            return  # the loop wakes at send_at_s (wake_s)
         seq, view = slot.seq, slot.view
-        self.worker.send(("frame", seq, view))
-        self.inflight = (seq, time.perf_counter())
+        try:
+            shm_slot = self.worker.take_slot()
+        except LookupError:  # every slot still held: cannot happen with one frame at a time
+            return
+        self.worker.send(("frame", seq, view, shm_slot))
+        self.inflight = (seq, time.perf_counter(), shm_slot, time.monotonic())
         self.sent_seq = seq
+        if self._view_seq and seq > self._view_seq + 1:
+            self.frames_dropped += seq - self._view_seq - 1  # overtaken, never computed
+        self._view_seq = max(self._view_seq, seq)
 
-    def _show(self, seq: int, payload: dict[str, Any]) -> None:
-        sent_at = self.inflight[1] if self.inflight and self.inflight[0] == seq else None
-        self.inflight = None
+    def _show(self, seq: int, payload: dict[str, Any], sent_at: float | None) -> None:
         t0 = time.perf_counter()
+        self.last_show_s = time.monotonic()
+        try:
+            panel, rgb = self._panel(payload)
+        finally:  # copied out (or refused): the worker may write the slot again
+            self.worker.release(payload.get("slot"))
         try:  # the panel applies the colour mode, and holds the frame back during a capture
-            frame = self.d.panel.show_view(self._panel(payload), seq)
+            frame = self.d.panel.show_view(panel, seq)
         except Exception as exc:
             self.d._error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
             if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
                 self.d.bench.note_slm_lost(str(exc))
             return
         done = time.perf_counter()
+        if payload.get("ready_s") is not None:
+            age = time.monotonic() - float(payload["ready_s"])
+            self.last_age_s, self.max_age_s = age, max(self.max_age_s, age)
+            self.frames_late += age > self.refresh_s
         stages = dict(payload["timings_s"])
         stages["output"] = done - t0
         timings = {f"{k}_ms": round(v * 1e3, 3) for k, v in stages.items()}
@@ -344,19 +509,23 @@ class FrameLink:
                        clipped_fraction=list(payload["clipped_fraction"]))
         self.timings = timings
         self.warnings = list(payload["warnings"])
-        self.last_rgb, self.last_frame = payload.get("rgb"), frame
+        self.last_rgb, self.last_frame = rgb, frame
         self.shown_seq = seq
         self.frames_shown += 1
         self.d.views.mark_applied(seq)
 
-    def _panel(self, payload: dict[str, Any]) -> np.ndarray:
+    def _panel(self, payload: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
         """The full panel: the blank frame (the zero pattern of the coding in use) outside the
-        coded region."""
+        coded region; and a copy of the render. Both copied out of the frame's slot."""
         blank = self.d.panel.blank_frame()
         if self._zero is None or self._zero_of is not blank:
             self._zero, self._zero_of = PanelBuffer(blank), blank
         top, left = payload["region"][:2]
-        return self._zero.frame(top, left, payload["grey"])
+        grey, rgb = self.worker.arrays(payload)
+        panel = self._zero.frame(top, left, grey)
+        rgb = None if rgb is None else rgb.copy()
+        del grey  # no view into the slot outlives this call
+        return panel, rgb
 
     def _crashed(self) -> None:
         code = self.worker.process.exitcode if self.worker.process is not None else None
@@ -373,16 +542,32 @@ class FrameLink:
         with contextlib.suppress(Exception):
             self.d.panel.blank()
         self.d._error("frame worker", message)
+        if self.pending is not None:  # its slot goes with the worker: never shown
+            self.frames_dropped += 1
+            self.pending = None
         self.worker.close(timeout_s=0.5)
         self.state = "crashed"
         self.sent_seq = 0
         self._restart_at = time.monotonic() + RESTART_BACKOFF_S
 
     def status(self) -> dict[str, Any]:
+        info = self.model_info or {}
+        slm = getattr(getattr(self.d.panel, "devices", None), "slm", None)
+        pacing = f"timer: one frame per refresh at {1 / self.refresh_s:g} Hz (slm.refresh_hz)"
+        if getattr(slm, "vsync_detail", ""):  # the framebuffer's FBIO_WAITFORVSYNC, or why not
+            pacing += f"; {slm.vsync_detail}"
         return {"state": self.state, "pid": self.worker.pid, "alive": self.worker.alive,
                 "model": self.model_path, "scene": self.scene_path,
+                "model_variant": info.get("variant"),
+                "model_variant_reason": info.get("variant_reason"),
                 "sent_seq": self.sent_seq, "shown_seq": self.shown_seq,
-                "frames_shown": self.frames_shown, "crashes": self.crashes,
+                "frames_shown": self.frames_shown, "frames_dropped": self.frames_dropped,
+                "frames_late": self.frames_late,
+                "last_frame_age_ms": (None if self.last_age_s is None
+                                      else round(self.last_age_s * 1e3, 3)),
+                "max_frame_age_ms": round(self.max_age_s * 1e3, 3),
+                "refresh_hz": round(1 / self.refresh_s, 6), "pacing": pacing,
+                "transport": self.worker.transport, "crashes": self.crashes,
                 "pose_warnings": self.warnings}
 
 

@@ -296,6 +296,7 @@ class Daemon:
         due = self._next_beat_s
         if self.navigation.navigator is not None:
             due = min(due, self.navigation.next_read_s)
+        due = min(due, self.frames.wake_s)  # a frame waiting for its refresh (slm.refresh_hz)
         return max(0.0, due - now)
 
     def step(self, timeout_s: float) -> None:

@@ -70,6 +70,25 @@ def check_cuda_frames(value: str, device: torch.device, onnx_providers: list[str
                          f"does not import here; pip install 'nhfd[gpu]', {fix}")
 
 
+def frame_device(value: str, onnx_providers: list[str], setting: str = SETTING
+                 ) -> tuple[torch.device, str]:
+    """The device frames are computed on, and why. "auto" takes the GPU only where its whole
+    frame path is installed (gsplat and onnxruntime's CUDA provider): a workstation whose pip
+    torch has CUDA but whose onnxruntime is the CPU build keeps serving frames on the CPU, and
+    the reason says what is missing. A device named explicitly ("cuda", "cuda:N") that cannot
+    run frames is refused (`check_cuda_frames`): never a silent fall back."""
+    device = resolve_device(value, setting)
+    if device.type != "cuda":
+        return device, f"{setting} = {value!r}: the CPU"
+    try:
+        check_cuda_frames(value, device, onnx_providers, setting)
+    except ValueError as e:
+        if str(value).strip().lower() != "auto":
+            raise
+        return torch.device("cpu"), f"{e}; computing frames on the CPU"
+    return device, f"{setting} = {value!r}: {device}"
+
+
 def _cuda_count() -> int:
     return torch.cuda.device_count() if torch.cuda.is_available() else 0
 

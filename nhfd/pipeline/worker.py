@@ -9,10 +9,17 @@ torch, numba or onnxruntime (a fresh interpreter: no pools exist yet).
 Protocol (tuples over one duplex `multiprocessing` pipe):
 
   daemon -> worker   ("model", req_id, path)   ("scene", req_id, path)
-                     ("frame", seq, view)       ("stop",)
+                     ("frame", seq, view, slot) ("stop",)
   worker -> daemon   ("ready", pid)
                      ("model" | "scene", req_id, ok, info | error message)
                      ("frame", seq, payload)    ("frame_error", seq, message)
+
+Frames cross in shared memory (`daemon.frame_transport = "shm"`): the daemon creates the slots
+(`multiprocessing.shared_memory`, each sized for the whole panel, so any region fits), names
+them to the worker at spawn, and names the slot each frame request may write; the worker owns
+that slot until its reply, the daemon from then until it has copied the frame out. The payload
+then says where the arrays are (`slot`, `grey_shape`, `rgb_shape`) and carries no array. With
+slot None (`"pickle"`) the arrays travel in the payload, pickled, as before.
 
 Everything the daemon learns of the model (its metadata, why it was refused: `ModelUnfit`,
 `ModelMismatch`) crosses the pipe as data: the daemon never imports the model code. The worker
@@ -26,6 +33,8 @@ import json
 import os
 import time
 from collections import OrderedDict
+from multiprocessing import shared_memory
+from pathlib import Path
 from typing import Any
 
 import numba
@@ -36,9 +45,10 @@ import torch
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
 from nhfd.models.export import check_providers, load_model, read_model_metadata
+from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, file_sha256
 from nhfd.scene.io import read_scene
 
-from .device import check_cuda_frames, resolve_device
+from .device import frame_device
 from .encoder import Encoder
 from .frame import compute_frame
 from .settings import frame_settings, frame_window_hw
@@ -67,9 +77,9 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     # warning to say why; the load fails instead and the previous model keeps running.
     providers = check_providers(list(config.daemon.onnx_providers),
                                 ort.get_available_providers(), "daemon.onnx_providers")
-    device = resolve_device(config.daemon.device)  # a CUDA device torch lacks: ValueError
+    # A CUDA device torch lacks, or one named without its frame path installed: ValueError.
+    device, _ = frame_device(config.daemon.device, ort.get_available_providers())
     if device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
-        check_cuda_frames(config.daemon.device, device, ort.get_available_providers())
         window_hw = frame_window_hw(config, read_model_metadata(path)[0])
         return load_model(path, config, threads=threads, providers=tuple(providers),
                           device=device, input_hw=window_hw,
@@ -132,6 +142,89 @@ def model_info(model: Any, path: str) -> dict[str, Any]:
             "providers": list(model.session.get_providers()), "loaded_s": time.time()}
 
 
+def int8_sibling(path: str | Path) -> Path:
+    """Where the int8 model of a float model lies: `<stem>-int8.onnx` beside it (`nhfd model
+    build` writes model.onnx and model-int8.onnx)."""
+    p = Path(path)
+    return p.with_name(f"{p.stem}-int8{p.suffix}")
+
+
+def cpu_path(config: Any) -> bool:
+    """Whether the frames' inference runs on the CPU: onnxruntime's CPU provider first, and no
+    CUDA device asked for (`daemon.device`, where this nhfd has it)."""
+    if frame_device(config.daemon.device, ort.get_available_providers())[0].type != "cpu":
+        return False
+    return config.daemon.onnx_providers[0] == "CPUExecutionProvider"
+
+
+def choose_variant(path: str, config: Any, int8_metadata: dict[str, Any] | None
+                   ) -> tuple[str, str]:
+    """("int8" | "float", why) for the float model at `path` whose int8 sibling has the nhfd
+    metadata `int8_metadata` (None: no sibling). `daemon.int8`: "never", "always" (whenever the
+    sibling exists), "auto": the sibling's own metadata must record a held-out loss against
+    this very float file (its SHA-256) within INT8_MAX_LOSS_DB."""
+    mode = config.daemon.int8
+    sibling = int8_sibling(path).name
+    if mode == "never":
+        return "float", "daemon.int8 = \"never\""
+    if not cpu_path(config):
+        return "float", (f"int8 serves only on the CPU path (daemon.onnx_providers = "
+                         f"{list(config.daemon.onnx_providers)}, daemon.device = "
+                         f"{config.daemon.device!r})")
+    if int8_metadata is None:
+        return "float", f"no int8 model beside it ({sibling})"
+    if mode == "always":
+        return "int8", f"daemon.int8 = \"always\" ({sibling})"
+    record = int8_metadata.get(HELDOUT_KEY)
+    if not isinstance(record, dict) or "loss_vs_float_db" not in record:
+        return "float", (f"{sibling} records no held-out loss against the float model (`nhfd "
+                         "model build` records it; `nhfd export --int8` does not)")
+    if record.get("float_sha256") != file_sha256(path):
+        return "float", (f"{sibling}'s held-out loss was measured against another float model "
+                         "(SHA-256 differs): rebuild it")
+    loss = float(record["loss_vs_float_db"])
+    if not np.isfinite(loss) or loss > INT8_MAX_LOSS_DB:
+        return "float", (f"{sibling} loses {loss:.2f} dB of held-out PSNR, more than "
+                         f"{INT8_MAX_LOSS_DB} dB")
+    return "int8", (f"{sibling} loses {loss:.2f} dB of held-out PSNR (within "
+                    f"{INT8_MAX_LOSS_DB} dB, {record.get('views')} views)")
+
+
+class FrameSlots:
+    """The daemon's shared-memory slots, attached by name. Each holds a frame's grey `[3, h, w]`
+    uint8 and then its render's RGB `[3, h', w']` uint8, back to back."""
+
+    def __init__(self, names: list[str], slot_bytes: int) -> None:
+        self.slot_bytes = int(slot_bytes)
+        self.shms: list[shared_memory.SharedMemory] = []
+        for name in names:
+            # Attaching registers the name with the resource tracker again: the daemon's own
+            # tracker (a spawned child shares it), which already holds it, so this process's exit
+            # unlinks nothing; the daemon unlinks its slots when it closes the worker.
+            self.shms.append(shared_memory.SharedMemory(name=name))
+
+    def write(self, slot: int, payload: dict[str, Any]) -> dict[str, Any]:
+        """The payload with its arrays copied into `slot`, replaced by their shapes."""
+        grey, rgb = payload["grey"], payload.get("rgb")
+        need = grey.nbytes + (rgb.nbytes if rgb is not None else 0)
+        if need > self.slot_bytes:
+            raise ValueError(f"frame of {need} bytes (grey {list(grey.shape)}, rgb "
+                             f"{None if rgb is None else list(rgb.shape)}) does not fit a "
+                             f"{self.slot_bytes}-byte slot (the panel's size)")
+        buf = self.shms[slot].buf
+        np.ndarray(grey.shape, np.uint8, buffer=buf)[...] = grey
+        if rgb is not None:
+            np.ndarray(rgb.shape, np.uint8, buffer=buf, offset=grey.nbytes)[...] = rgb
+        out = {k: v for k, v in payload.items() if k not in ("grey", "rgb")}
+        out.update(slot=slot, grey_shape=list(grey.shape),
+                   rgb_shape=None if rgb is None else list(rgb.shape))
+        return out
+
+    def close(self) -> None:
+        for shm in self.shms:
+            shm.close()
+
+
 class _WorkerState:
     def __init__(self, config: Any) -> None:
         self.config = config
@@ -145,11 +238,31 @@ class _WorkerState:
         self.cache_size = int(config.daemon.frame_cache_frames)
 
     def load_model(self, path: str) -> dict[str, Any]:
+        """The float model at `path`, or its int8 sibling where `choose_variant` says so (an
+        int8 model that fails to load or to infer falls back to the float one, saying why)."""
         model = open_model(path, self.config, self.threads)
         check_inference(model, frame_window_hw(self.config, model.metadata), path)
-        self.model, self.model_id = model, self.model_id + 1
+        served, variant, why = model, "float", ""
+        sibling = int8_sibling(path)
+        if Path(path).stem.endswith("-int8") or HELDOUT_KEY in model.metadata:
+            variant, why = "int8", "the model given is an int8 model"
+        elif self.config.daemon.int8 != "never" and sibling.is_file() and cpu_path(self.config):
+            try:
+                q = open_model(str(sibling), self.config, self.threads)
+                variant, why = choose_variant(path, self.config, q.metadata)
+                if variant == "int8":
+                    check_inference(q, frame_window_hw(self.config, q.metadata), str(sibling))
+                    served = q
+            except Exception as exc:  # the float model serves; status says why
+                variant, why = "float", f"{sibling.name} refused: {type(exc).__name__}: {exc}"
+        else:
+            variant, why = choose_variant(path, self.config, None)
+        self.model, self.model_id = served, self.model_id + 1
         self.encoders.clear()
-        return model_info(model, path)
+        info = model_info(served, path)
+        info.update(variant=variant, variant_reason=why,
+                    served=str(sibling) if variant == "int8" else path)
+        return info
 
     def load_scene(self, path: str) -> dict[str, Any]:
         load = read_scene(path)
@@ -202,14 +315,25 @@ class _WorkerState:
 
 
 def worker_main(conn: Any, config_data: dict[str, Any],
-                calibration: Calibration | None = None) -> None:
+                calibration: Calibration | None = None,
+                slots: dict[str, Any] | None = None) -> None:
     """Entry point of the spawned process. `calibration`: the daemon's accepted one (kept when
-    the file on disk is refused, as in the daemon)."""
+    the file on disk is refused, as in the daemon). `slots`: the daemon's shared-memory slots
+    ({"names": [...], "bytes": n}; None: frames are pickled through the pipe)."""
     config = Config.model_validate(config_data)
     if calibration is not None:
         keep(config, calibration)
     _set_threads(int(config.daemon.worker_threads))
     state = _WorkerState(config)
+    shm = FrameSlots(slots["names"], slots["bytes"]) if slots else None
+    try:
+        _serve(conn, state, shm)
+    finally:
+        if shm is not None:
+            shm.close()
+
+
+def _serve(conn: Any, state: _WorkerState, shm: FrameSlots | None) -> None:
     conn.send(("ready", os.getpid()))
     while True:
         try:
@@ -232,8 +356,14 @@ def worker_main(conn: Any, config_data: dict[str, Any],
             except Exception as exc:  # reported to the daemon; the old model/scene stays
                 conn.send((kind, req_id, False, f"{type(exc).__name__}: {exc}"))
         if latest is not None:
-            _, seq, view = latest
+            seq, view, slot = latest[1], latest[2], latest[3] if len(latest) > 3 else None
             try:
-                conn.send(("frame", seq, state.frame(view)))
+                payload = state.frame(view)
+                if slot is not None and shm is not None:
+                    payload = shm.write(slot, payload)
+                # When the frame was whole in its slot (CLOCK_MONOTONIC, shared by both
+                # processes): the daemon's "late" counts from here.
+                payload["ready_s"] = time.monotonic()
+                conn.send(("frame", seq, payload))
             except Exception as exc:
                 conn.send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))

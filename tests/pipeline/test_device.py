@@ -366,3 +366,22 @@ def test_cuda_frames_without_gsplat_or_onnxruntime_gpu_are_refused_before_a_mode
                                          r"'nhfd\[gpu\]'"):
         device_mod.check_cuda_frames("cuda", gpu, CPU_CUDA_TRT)
     device_mod.check_cuda_frames("cpu", torch.device("cpu"), [])  # the CPU needs neither
+
+
+def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(monkeypatch):
+    """A workstation whose torch sees a GPU but whose onnxruntime is the CPU build: "auto" serves
+    frames on the CPU and says why; "cuda" named explicitly is refused."""
+    from nhfd.pipeline import device as device_mod
+
+    monkeypatch.setattr(device_mod, "_cuda_count", lambda: 1)
+    monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
+    device, why = device_mod.frame_device("auto", ["CPUExecutionProvider"])
+    assert device == torch.device("cpu")
+    assert "no CUDAExecutionProvider" in why and why.endswith("computing frames on the CPU")
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': this onnxruntime has no "
+                                         r"CUDAExecutionProvider"):
+        device_mod.frame_device("cuda", ["CPUExecutionProvider"])
+    device, why = device_mod.frame_device("auto", CPU_CUDA_TRT)
+    assert device == torch.device("cuda", 0) and why == "daemon.device = 'auto': cuda:0"
+    monkeypatch.setattr(device_mod, "_cuda_count", lambda: 0)
+    assert device_mod.frame_device("auto", CPU_CUDA_TRT)[0] == torch.device("cpu")

@@ -1,0 +1,122 @@
+"""Frames cross from the real frame worker in shared memory: what the daemon shows is, byte for
+byte, `compute_frame`'s grey in the blank panel; the pipe carries only a small message; the
+region changing size (a refocus) needs no new slot; the daemon's stop leaves /dev/shm clean."""
+
+from __future__ import annotations
+
+import os
+import pickle
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from nhfd.benchmarks.pipeline import _Host, _load
+from nhfd.calibration import active_calibration
+from nhfd.daemon.frame_link import SHM_PREFIX, SLOTS, FrameLink, PanelBuffer
+from nhfd.models.export import load_model
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.frame import compute_frame
+from nhfd.pipeline.settings import frame_settings
+from nhfd.pipeline.view import Scene, scene_frame
+from nhfd.scene.io import read_scene
+
+from .test_frames import FRONT_VIEW, small_config
+
+
+def our_segments() -> list[str]:
+    return sorted(p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*"))
+
+
+def arrays_in(obj: Any) -> list[str]:
+    """Every numpy array (or bytes-like blob) anywhere in a message, by path."""
+    if isinstance(obj, np.ndarray | bytes | bytearray | memoryview):
+        return [type(obj).__name__]
+    if isinstance(obj, dict):
+        return [f"{k}.{p}" for k, v in obj.items() for p in arrays_in(v)]
+    if isinstance(obj, list | tuple):
+        return [f"{i}.{p}" for i, v in enumerate(obj) for p in arrays_in(v)]
+    return []
+
+
+def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny):
+    config = small_config(daemon={"frame_cache_frames": 0})
+    host = _Host(config)
+    link = FrameLink(host)
+    received: list[tuple] = []
+    receive = link.worker.receive
+
+    def spy() -> list[tuple]:
+        msgs = receive()
+        received.extend(msgs)
+        return msgs
+
+    link.worker.receive = spy
+    model = load_model(tiny["model"], config)
+    load = read_scene(str(tiny["scene"]))
+    scene = Scene(load.gaussians, scene_frame(load.gaussians, str(tiny["scene"])))
+    shapes = []
+    try:
+        _load(link, tiny["scene"], tiny["model"])
+        assert len(our_segments()) == SLOTS
+        for refocus_mm in (0.0, 3.0):  # a refocus widens the coded region
+            view = dict(FRONT_VIEW, refocus_mm=refocus_mm)
+            seq = host.views.submit(view)
+            deadline = time.monotonic() + 30
+            while link.shown_seq < seq:
+                link.step()
+                assert not host.errors, host.errors
+                assert time.monotonic() < deadline, "no frame"
+                time.sleep(0.002)
+            msg = next(m for m in received if m[0] == "frame" and m[1] == seq)
+            # The pipe message says where the frame is; the arrays are not in it.
+            assert arrays_in(msg) == []
+            assert len(pickle.dumps(msg)) < 2000
+            payload = msg[2]
+            assert payload["slot"] in range(SLOTS)
+
+            settings = frame_settings(config, model.metadata, active_calibration(config),
+                                      refocus_m=refocus_mm * 1e-3)
+            expected = compute_frame(view, scene, model, Encoder(settings))
+            r = expected.region
+            assert payload["grey_shape"] == list(expected.grey.shape) == [3, r.height, r.width]
+            assert payload["region"][:4] == [r.top, r.left, r.height, r.width]
+            panel = PanelBuffer(host.panel.blank_frame()).frame(r.top, r.left, expected.grey)
+            shown = host.slm.last_frame
+            assert shown.tobytes() == panel.tobytes()  # byte-identical, blank around it
+            assert np.array_equal(link.last_rgb, (np.clip(expected.rgb, 0, 1) * 255 + 0.5
+                                                  ).astype(np.uint8))
+            shapes.append(payload["grey_shape"])
+        assert shapes[0] != shapes[1]
+        assert len(our_segments()) == SLOTS  # the same slots served both sizes
+    finally:
+        link.close()
+    assert our_segments() == []
+
+
+def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny):
+    """`daemon.frame_transport = "pickle"` (kept for `nhfd bench pipeline --transport`): no
+    segments, the grey in the message."""
+    config = small_config(daemon={"frame_cache_frames": 0, "frame_transport": "pickle"})
+    host = _Host(config)
+    link = FrameLink(host)
+    received: list[tuple] = []
+    receive = link.worker.receive
+    link.worker.receive = lambda: (msgs := receive(), received.extend(msgs))[0]
+    try:
+        _load(link, tiny["scene"], tiny["model"])
+        assert our_segments() == []
+        seq = host.views.submit(FRONT_VIEW)
+        deadline = time.monotonic() + 30
+        while link.shown_seq < seq:
+            link.step()
+            assert time.monotonic() < deadline, "no frame"
+            time.sleep(0.002)
+        msg = next(m for m in received if m[0] == "frame")
+        assert "2.grey.ndarray" in arrays_in(msg) and msg[2].get("slot") is None
+        r = msg[2]["region"]
+        shown = host.slm.last_frame[:, r[0]:r[0] + r[2], r[1]:r[1] + r[3]]
+        assert np.array_equal(shown, msg[2]["grey"])
+    finally:
+        link.close()

@@ -1,0 +1,230 @@
+"""Frame pacing and the frame counts in status, with a fake frame worker much faster than the
+panel's refresh; the framebuffer's FBIO_WAITFORVSYNC; shared-memory slots after a crash.
+
+The fake worker is this module's `worker_main`: the daemon spawns it by name as it spawns the
+real one (`FrameLink(worker_module=...)`), so it speaks the real protocol through the real pipe
+and slots, without torch. Its frames are instant and filled with their view's sequence number.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+from types import SimpleNamespace
+from typing import Any
+
+import numpy as np
+
+from nhfd.config import Config, _overlay
+from nhfd.daemon import frame_link
+from nhfd.daemon.frame_link import SHM_PREFIX, FrameLink
+from nhfd.daemon.panel import Panel
+from nhfd.daemon.views import ViewSlot
+from nhfd.device_settings import SLMOutputSettings
+from nhfd.drivers import framebuffer
+from nhfd.drivers.framebuffer import FBIO_WAITFORVSYNC, FramebufferSLM
+from nhfd.drivers.slm import SimulatedSLM
+
+from .conftest import bench_config, wait_until
+
+REFRESH_HZ = 10.0  # a slow panel: a loaded test machine keeps to its refreshes with room
+
+
+def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
+                slots: dict[str, Any] | None = None) -> None:
+    """A frame worker whose frames take no time: grey = the view's seq (mod 256) in a region of
+    half the panel; a view with "crash" kills the process."""
+    from multiprocessing import shared_memory
+
+    shms = [shared_memory.SharedMemory(name=n) for n in slots["names"]]
+    panel_h, panel_w = config_data["slm"]["height_px"], config_data["slm"]["width_px"]
+    h, w = panel_h // 2, panel_w // 2
+    conn.send(("ready", os.getpid()))
+    while True:
+        try:
+            msg = conn.recv()
+        except EOFError:
+            return
+        if msg[0] == "stop":
+            return
+        if msg[0] in ("model", "scene"):
+            conn.send((msg[0], msg[1], True, {"path": msg[2]}))
+            continue
+        _, seq, view, slot = msg
+        if view.get("crash"):
+            os._exit(3)
+        np.ndarray((3, h, w), np.uint8, buffer=shms[slot].buf)[...] = seq % 256
+        conn.send(("frame", seq, {
+            "slot": slot, "grey_shape": [3, h, w], "rgb_shape": None,
+            "region": [h // 2, w // 2, h, w, 0, 0], "timings_s": {"render": 0.0},
+            "clipped_fraction": [0.0, 0.0, 0.0], "warnings": [], "cached": False,
+            "ready_s": time.monotonic()}))
+
+
+class Host:
+    """The slice of the daemon a FrameLink uses, on a simulated SLM that keeps its write times."""
+
+    def __init__(self, config: Config) -> None:
+        self.config = config
+        self.views = ViewSlot()
+        self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px,
+                                SLMOutputSettings(history_frames=10000)).open()
+        self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}))
+        self.bench = self
+        self.laser = SimpleNamespace(off=lambda: None)
+        self.errors: list[str] = []
+
+    def note_slm_lost(self, detail: str) -> None:
+        self._error("slm", detail)
+
+    def _error(self, source: str, message: str) -> None:
+        self.errors.append(f"{source}: {message}")
+
+
+def running_link(root: Path) -> tuple[Host, FrameLink]:
+    base = bench_config(root, None)
+    config = Config.model_validate(_overlay(base.model_dump(), {"slm": {"refresh_hz": REFRESH_HZ}}))
+    host = Host(config)
+    link = FrameLink(host, worker_module=__name__)
+    link.model_path, link.scene_path = "fake.onnx", "fake.ply"
+    link.start()
+    deadline = time.monotonic() + 20
+    while link.state != "running":
+        link.step()
+        time.sleep(0.01)
+        assert time.monotonic() < deadline, "the fake worker did not start"
+    return host, link
+
+
+def our_segments() -> list[str]:
+    return sorted(p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*"))
+
+
+def step_until(link: FrameLink, until_s: float, submit: Any = None) -> None:
+    """The daemon's loop: step, then sleep until the link's wake time (or the next request)."""
+    while time.monotonic() < until_s:
+        if submit is not None:
+            submit()
+        link.step()
+        time.sleep(max(0.0, min(0.002, link.wake_s - time.monotonic())))
+
+
+def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir):
+    host, link = running_link(short_dir)
+    period_s = 1 / REFRESH_HZ
+    sent: list[tuple[int, int | None]] = []  # (slot named in a request, slot the daemon holds)
+    send = link.worker.send
+
+    def spy(msg: tuple) -> None:
+        if msg[0] == "frame":
+            sent.append((msg[3], None if link.pending is None else link.pending[1]["slot"]))
+        send(msg)
+
+    link.worker.send = spy
+    try:
+        start = time.monotonic()
+        views = iter(range(1, 100000))
+        step_until(link, start + 1.2,
+                   lambda: host.views.submit({"kind": "orbit", "azimuth_deg": float(next(views))}))
+        last = host.views.seq
+        step_until(link, time.monotonic() + 3 * period_s)
+        elapsed = time.monotonic() - start
+        s = link.status()
+        written = np.array(host.slm.written_s)
+        # The last view requested is the one on the panel, its seq in every grey level.
+        assert link.shown_seq == last
+        top, left, h, w = 36 // 4, 64 // 4, 36 // 2, 64 // 2
+        assert np.all(host.slm.last_frame[:, top:top + h, left:left + w] == last % 256)
+        # At most one frame per refresh: the shown count is bounded by the refreshes, and no two
+        # writes are closer than a refresh (less the loop's wake-up slack).
+        assert s["frames_shown"] == len(written) >= 5
+        assert s["frames_shown"] <= elapsed / period_s + 1
+        assert np.diff(written).min() >= period_s - frame_link.DUE_SLACK_S - 1e-4
+        # Every view is shown or dropped by latest wins (overtaken before it was computed):
+        # views were requested ~500 times faster than the panel shows them.
+        assert s["frames_shown"] + s["frames_dropped"] == last
+        assert s["frames_dropped"] > 10 * s["frames_shown"]
+        # No frame shown is older than one refresh: the view goes out just in time for its
+        # refresh, not a refresh early.
+        assert s["frames_late"] == 0 and s["max_frame_age_ms"] <= period_s * 1e3
+        assert s["refresh_hz"] == REFRESH_HZ and "10 Hz" in s["pacing"]
+        # The daemon never names a slot it still holds.
+        assert sent and all(named != held for named, held in sent)
+    finally:
+        link.close()
+    assert our_segments() == []
+
+
+def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slots(short_dir,
+                                                                                    monkeypatch):
+    monkeypatch.setattr(frame_link, "RESTART_BACKOFF_S", 0.0)
+    host, link = running_link(short_dir)
+    try:
+        first = our_segments()
+        assert len(first) == frame_link.SLOTS
+        host.views.submit({"crash": True})
+        wait_until(lambda: (link.step(), link.state == "crashed")[1], 10, "the crash")
+        assert our_segments() == []  # unlinked with the crashed worker
+        assert any("died with exit code 3" in e for e in host.errors)
+        wait_until(lambda: (link.step(), link.state == "running")[1], 20, "the restart")
+        second = our_segments()
+        assert len(second) == frame_link.SLOTS and not set(second) & set(first)
+        seq = host.views.submit({"kind": "orbit"})
+        wait_until(lambda: (link.step(), link.shown_seq == seq)[1], 10, "a frame after it")
+    finally:
+        link.close()
+    assert our_segments() == []
+
+
+# -- the framebuffer's vertical blank ------------------------------------------------------------
+
+
+def fake_framebuffer(root: Path, width: int, height: int) -> SLMOutputSettings:
+    fb = root / "sys" / "class" / "graphics" / "fb1"
+    fb.mkdir(parents=True)
+    (fb / "virtual_size").write_text(f"{width},{height}\n")
+    (fb / "bits_per_pixel").write_text("32\n")
+    (fb / "stride").write_text(f"{width * 4}\n")
+    (root / "dev").mkdir()
+    (root / "dev" / "fb1").write_bytes(b"\0" * width * 4 * height)
+    return SLMOutputSettings(framebuffer_device=str(root / "dev" / "fb1"),
+                             sysfs_root=str(root / "sys"))
+
+
+def test_fbio_waitforvsync_is_the_linux_ioctl_number():
+    # _IOW('F', 0x20, __u32): direction write (1) << 30 | size 4 << 16 | 'F' << 8 | 0x20.
+    assert FBIO_WAITFORVSYNC == (1 << 30) | (4 << 16) | (ord("F") << 8) | 0x20 == 0x40044620
+
+
+def test_framebuffer_waits_for_the_vertical_blank_before_each_write_where_offered(tmp_path,
+                                                                               monkeypatch):
+    fb = tmp_path / "dev" / "fb1"
+    waits: list[tuple[int, bytes, int]] = []  # (request, argument, first byte when it waited)
+
+    def ioctl(fd: int, request: int, arg: bytes) -> bytes:
+        waits.append((request, arg, fb.read_bytes()[0]))
+        return arg
+
+    monkeypatch.setattr(framebuffer.fcntl, "ioctl", ioctl)
+    settings = fake_framebuffer(tmp_path, 4, 2)
+    with FramebufferSLM(4, 2, settings) as slm:
+        assert slm.vsync and "waits for the vertical blank" in slm.vsync_detail
+        slm.show(np.full((2, 4), 7, np.uint8))
+        slm.show(np.full((2, 4), 9, np.uint8))
+    # Asked once at open, then before each write (the panel still showing the previous frame),
+    # always FBIO_WAITFORVSYNC on CRTC 0.
+    assert [w[2] for w in waits] == [0, 0, 7]
+    assert all(w[:2] == (0x40044620, b"\0\0\0\0") for w in waits)
+    assert fb.read_bytes()[:4] == bytes([9, 9, 9, 0xFF])
+
+
+def test_a_framebuffer_without_fbio_waitforvsync_falls_back_and_says_so(tmp_path):
+    # A regular file stands in for /dev/fb1: the ioctl fails with ENOTTY, as on fbdev drivers
+    # that do not implement it.
+    settings = fake_framebuffer(tmp_path, 4, 2)
+    with FramebufferSLM(4, 2, settings) as slm:
+        assert not slm.vsync
+        assert "has no FBIO_WAITFORVSYNC (ENOTTY)" in slm.vsync_detail
+        slm.show(np.full((2, 4), 5, np.uint8))
+    assert (tmp_path / "dev" / "fb1").read_bytes()[:4] == bytes([5, 5, 5, 0xFF])
