@@ -36,6 +36,8 @@ import torch
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
 from nhfd.models.export import check_providers, load_model
+from nhfd.models.metadata import checked_sizes_hw
+from nhfd.models.sizes import window_check
 from nhfd.scene.io import read_scene
 
 from .encoder import Encoder
@@ -138,10 +140,16 @@ class _WorkerState:
 
     def load_model(self, path: str) -> dict[str, Any]:
         model = open_model(path, self.config, self.threads)
-        check_inference(model, frame_window_hw(self.config, model.metadata), path)
+        window_hw = frame_window_hw(self.config, model.metadata)
+        # UncheckedSize names the size, the checked ones and daemon.allow_unchecked_sizes
+        warning = window_check(model.metadata, window_hw, path,
+                               allow=self.config.daemon.allow_unchecked_sizes)
+        check_inference(model, window_hw, path)
         self.model, self.model_id = model, self.model_id + 1
         self.encoders.clear()
-        return model_info(model, path)
+        return {**model_info(model, path), "window_hw": list(window_hw),
+                "checked_sizes_hw": [list(hw) for hw in checked_sizes_hw(model.metadata)[0]],
+                **({"size_warning": warning} if warning else {})}
 
     def load_scene(self, path: str) -> dict[str, Any]:
         load = read_scene(path)
