@@ -4,6 +4,7 @@ refuses a window of a size its model was not checked at."""
 
 from __future__ import annotations
 
+import json
 import shutil
 
 import numpy as np
@@ -26,11 +27,25 @@ def exported(tiny_run, tmp_path_factory):
     return export_onnx(tiny_run, tmp_path_factory.mktemp("sizes") / "tiny.onnx")
 
 
+def _rewrite_metadata(path, meta) -> None:
+    import onnx
+
+    model = onnx.load(str(path))
+    for prop in model.metadata_props:
+        if prop.key == "nhfd":
+            prop.value = json.dumps(meta)
+    onnx.save(model, str(path))
+
+
 @pytest.fixture(scope="module")
-def unchecked(tiny_run, tmp_path_factory):
-    """An export without checks: metadata with no checked_sizes, as older files have."""
-    return export_onnx(tiny_run, tmp_path_factory.mktemp("unchecked") / "old.onnx",
-                       check=False).path
+def unchecked(exported, tmp_path_factory):
+    """The model as an older export (or one made with --no-check) is: no checked_sizes."""
+    path = tmp_path_factory.mktemp("unchecked") / "old.onnx"
+    shutil.copyfile(exported.path, path)
+    meta = read_metadata(path)
+    del meta["checked_sizes"]
+    _rewrite_metadata(path, meta)
+    return path
 
 
 def test_export_records_the_training_window_1024x576_and_the_panel_against_torch(exported):
@@ -129,17 +144,8 @@ def test_check_sizes_against_the_run_and_refuses_another_run(exported, tiny_run,
                  "--run", str(tiny_run)]) == 0
     entry = next(e for e in read_metadata(path)["checked_sizes"] if e["hw"] == [120, 200])
     assert entry["against"] == "the torch network of its run" and entry["max_abs_diff"] < 1e-4
-    other = dict(read_metadata(path), train_steps=-1)
     assert check_sizes(path, [(64, 64)], lambda hw: float("nan"))[0]["ok"] is False
-    import json
-
-    import onnx
-
-    m = onnx.load(str(path))
-    for p in m.metadata_props:
-        if p.key == "nhfd":
-            p.value = json.dumps(other)
-    onnx.save(m, str(path))
+    _rewrite_metadata(path, dict(read_metadata(path), train_steps=-1))
     assert main(["model", "check-sizes", str(path), "--run", str(tiny_run)]) == 2
     assert "not the run" in capsys.readouterr().err
 
