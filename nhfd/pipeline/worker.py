@@ -147,8 +147,11 @@ class _WorkerState:
         check_inference(model, window_hw, path)
         self.model, self.model_id = model, self.model_id + 1
         self.encoders.clear()
+        checked, recorded = checked_sizes_hw(model.metadata)
+        # recorded False: an older export, only its training window counts as checked
         return {**model_info(model, path), "window_hw": list(window_hw),
-                "checked_sizes_hw": [list(hw) for hw in checked_sizes_hw(model.metadata)[0]],
+                "checked_sizes_hw": [list(hw) for hw in checked],
+                "checked_sizes_recorded": recorded,
                 **({"size_warning": warning} if warning else {})}
 
     def load_scene(self, path: str) -> dict[str, Any]:

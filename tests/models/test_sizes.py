@@ -164,4 +164,5 @@ def test_the_worker_refuses_an_unchecked_window_at_load_unless_allowed(unchecked
     assert refusing.model is None  # nothing replaced
     info = state(True).load_model(str(unchecked))
     assert info["window_hw"] == [128, 192] and info["checked_sizes_hw"] == [[64, 64]]
+    assert info["checked_sizes_recorded"] is False  # an older export: the training window only
     assert "allow_unchecked_sizes" in info["size_warning"]
