@@ -133,3 +133,18 @@ def test_the_frame_is_the_coding_of_the_optics_cores_whole_panel_propagation(pan
     step = np.abs(grey.astype(int) - panel.frame.grey.astype(int))
     step = np.minimum(step, 256 - step)
     assert step.max() <= 1 and (step > 0).mean() < 1e-3
+
+
+def test_the_window_is_any_size_up_to_the_panel_and_a_larger_training_size_is_refused():
+    from nhfd.pipeline.settings import frame_window_hw
+
+    meta = {"train_size_hw": [288, 512]}
+    whole = Config.model_validate({"daemon": {"frame_size_px": [1920, 1080]}})
+    assert frame_window_hw(whole, meta) == PANEL_HW
+    assert frame_window_hw(Config(), meta) == (288, 512)  # empty: the training size
+    small = Config.model_validate({"slm": {"width_px": 400, "height_px": 200}, "optics": {
+        "hologram_width_px": 256, "hologram_height_px": 128}})
+    with pytest.raises(ValueError, match=r"^frame window 512 x 288 \(the model's training size: "
+                       r"daemon\.frame_size_px is empty\) does not fit the panel 400 x 200 .*"
+                       r"set daemon\.frame_size_px to at most \[400, 200\]$"):
+        frame_window_hw(small, meta)
