@@ -33,6 +33,7 @@ from nhfd.models.metadata import (
     training_poses,
 )
 from nhfd.models.serving import ServingNet
+from nhfd.models.sizes import check_and_record, sizes_to_check
 from nhfd.models.train import load_run
 
 MIN_OPSET = 18
@@ -52,12 +53,14 @@ class ExportResult:
 
 def export_onnx(
     run_dir: str | Path, out_path: str | Path, *, opset: int = MIN_OPSET, check: bool = True,
-    source_scene: str | Path | None = None,
+    source_scene: str | Path | None = None, check_sizes_hw: list[tuple[int, int]] | None = None,
 ) -> ExportResult:
     """Export a run's network to ONNX with its metadata; check it with onnxruntime against torch
     (max abs difference over amplitude and phase, at sizes other than the traced one).
     `source_scene`: the file the dataset's scene was reduced from (`nhfd model build`), recorded
-    as `source_scene_sha256` so that the original file serves the model too."""
+    as `source_scene_sha256` so that the original file serves the model too. `check_sizes_hw`:
+    the input sizes recorded as `checked_sizes` besides the training window
+    (`nhfd.models.sizes.DEFAULT_SIZES_HW` unless given)."""
     import onnx
 
     if opset < MIN_OPSET:
@@ -96,6 +99,8 @@ def export_onnx(
     diff, sizes = (float("nan"), [])
     if check:
         diff, sizes = compare_with_torch(net, out_path)
+        meta = check_and_record(out_path, sizes_to_check(meta, check_sizes_hw),
+                                lambda hw: compare_with_torch(net, out_path, [hw])[0])
     return ExportResult(out_path, diff, sizes, meta)
 
 
@@ -112,21 +117,24 @@ def run_training_poses(run_info: dict) -> dict | None:
     return training_poses(manifest)
 
 
-def compare_with_torch(net, onnx_path: str | Path) -> tuple[float, list[tuple[int, int]]]:
-    """Max abs difference between torch and onnxruntime outputs on random inputs."""
+def compare_with_torch(net, onnx_path: str | Path, sizes_hw: list[tuple[int, int]] | None = None
+                       ) -> tuple[float, list[tuple[int, int]]]:  # fmt: skip
+    """Max abs difference between torch and onnxruntime outputs on random inputs, at
+    `sizes_hw` (default: CHECK_SIZES_STRIDES)."""
 
     model = OnnxModel(onnx_path)
     m = net.spec.multiple
     rng = np.random.default_rng(0)
     worst, sizes = 0.0, []
-    for hs, ws in CHECK_SIZES_STRIDES:
-        x = rng.random((1, net.spec.channels, hs * m, ws * m), dtype=np.float32)
+    for h, w in sizes_hw or [(hs * m, ws * m) for hs, ws in CHECK_SIZES_STRIDES]:
+        x = rng.random((1, net.spec.channels, h, w), dtype=np.float32)
         with torch.no_grad():
             ta, tp = net(torch.from_numpy(x))
         oa, op = model.run_raw(x)
-        worst = max(worst, float(np.abs(ta.numpy() - oa).max()),
-                    float(np.abs(tp.numpy() - op).max()))
-        sizes.append((hs * m, ws * m))
+        # NaN anywhere is a failed check: max() would drop it, np.max keeps it
+        d = float(np.max([np.abs(ta.numpy() - oa).max(), np.abs(tp.numpy() - op).max()]))
+        worst = max(worst, d if np.isfinite(d) else float("inf"))
+        sizes.append((h, w))
     return worst, sizes
 
 

@@ -21,6 +21,11 @@ COLOUR_SPACE = "sRGB-encoded in [0, 1], composited on black, R, G, B"
 # Keys compared against the configured optics, with the relative tolerance of float values.
 OPTICS_KEYS = ("wavelengths_m", "pitch_m", "aperture_shape", "cutoff_per_px", "z0_m", "volume_m")
 REL_TOL = 1e-6
+# Largest absolute difference (amplitude units and radians) at which a size check passes: float32
+# rounding across shapes stays far below it (measured: 2e-7 between torch and onnxruntime for the
+# tiny test network at 1920 x 1080; 0, bit for bit, between the shipped model's full-size run and
+# its tiles); a wrong graph or kernel at some shape is off by order 1.
+SIZE_TOLERANCE = 1e-3
 
 
 class ModelMismatch(ValueError):
@@ -52,10 +57,12 @@ def training_poses(manifest: dict) -> dict[str, Any] | None:
             "positions": [[float(v) for v in p] for p in positions]}
 
 
-def build_metadata(run_info: dict, *, opset: int, train_poses: dict | None = None
-                   ) -> dict[str, Any]:  # fmt: skip
+def build_metadata(run_info: dict, *, opset: int, train_poses: dict | None = None,
+                   checked_sizes: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """The metadata of a model exported from a run (`run.json` of `nhfd train`), with the
-    training poses (`training_poses` of its dataset) when known."""
+    training poses (`training_poses` of its dataset) when known, and the input sizes it was
+    checked at (`checked_sizes`, entries of `checked_size_entry`; `nhfd.models.sizes` adds them
+    after the export's checks, so a model exported unchecked has none)."""
     ds = run_info["dataset"]
     s = ds["settings"]
     net = run_info["net"]
@@ -103,7 +110,34 @@ def build_metadata(run_info: dict, *, opset: int, train_poses: dict | None = Non
         },
         "opset": int(opset),
         "nhfd_version": run_info.get("nhfd_version"),
-    }
+    } | ({"checked_sizes": list(checked_sizes)} if checked_sizes is not None else {})
+
+
+def checked_size_entry(hw: tuple[int, int], max_abs_diff: float, against: str) -> dict[str, Any]:
+    """One `checked_sizes` entry: the graph's input height and width (multiples of
+    input_multiple), the largest absolute difference over amplitude and phase from the reference
+    it was checked `against` (a sentence), and whether that is within SIZE_TOLERANCE."""
+    ok = math.isfinite(max_abs_diff) and max_abs_diff <= SIZE_TOLERANCE
+    return {"hw": [int(hw[0]), int(hw[1])], "max_abs_diff": float(max_abs_diff), "ok": ok,
+            "against": against}
+
+
+def padded_hw(hw: tuple[int, int], multiple: int) -> tuple[int, int]:
+    """A window's size rounded up to the input multiple (what the graph runs at)."""
+    h, w = int(hw[0]), int(hw[1])
+    return h + (-h) % multiple, w + (-w) % multiple
+
+
+def checked_sizes_hw(metadata: dict[str, Any]) -> tuple[list[tuple[int, int]], bool]:
+    """The graph input sizes (h, w) a model passed its size checks at, and whether they come
+    from its metadata. A model without `checked_sizes` (exported before they were recorded, or
+    with --no-check) counts only its training window (padded to the multiple) as checked: the
+    size it was trained and evaluated at; False says so."""
+    m = int(metadata.get("input_multiple") or 1)
+    if "checked_sizes" not in metadata:
+        return [padded_hw(metadata["train_size_hw"], m)], False
+    return [(int(e["hw"][0]), int(e["hw"][1])) for e in metadata["checked_sizes"]
+            if e.get("ok")], True
 
 
 def expected_from_config(config) -> dict[str, Any]:

@@ -21,6 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from nhfd.models.metadata import METADATA_KEY
 from nhfd.models.net import pad_amounts
+from nhfd.models.sizes import check_and_record
 
 if TYPE_CHECKING:
     from nhfd.models.data import HoloData
@@ -90,9 +91,17 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
                     weight_type=QuantType.QInt8, nodes_to_exclude=heads + tail)  # fmt: skip
     q = onnx.load(str(dst))
     del q.metadata_props[:]
+    checked: list = []
     for prop in model.metadata_props:
-        q.metadata_props.add().CopyFrom(prop)
+        copy = q.metadata_props.add()
+        copy.CopyFrom(prop)
+        if prop.key == METADATA_KEY:  # the float model's size checks are not this model's
+            meta = json.loads(prop.value)
+            checked = meta.pop("checked_sizes", None) or []
+            copy.value = json.dumps(meta)
     onnx.save(q, str(dst))
+    if checked:  # the same sizes, checked on the int8 graph itself (full run against tiles)
+        check_and_record(dst, [tuple(e["hw"]) for e in checked])
     return dst
 
 

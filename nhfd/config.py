@@ -441,6 +441,9 @@ class DaemonSettings(_Section):
     # model's training size). The trained fx is kept, so another size shows more or less of the
     # scene at the same scale.
     frame_size_px: Annotated[list[Pixels], Field(max_length=2)] = []
+    # Serve a frame window whose size (padded to the model's input multiple) is not among the
+    # model's checked_sizes (`nhfd model check-sizes`); false: such a model load is refused.
+    allow_unchecked_sizes: bool = False
     # Frames kept by the frame worker, keyed by view and settings (a revisited view is instant).
     frame_cache_frames: Annotated[int, Field(ge=0, le=1024)] = 16
     # Threads of the frame worker process for torch (intra-op; inter-op is 1), numba and

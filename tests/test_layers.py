@@ -22,6 +22,7 @@ LAYERS = {
     "nhfd.optics": 1, "nhfd.scene": 1, "nhfd.drivers": 1,
     "nhfd.holo": 2, "nhfd.dataset": 2,
     "nhfd.models": 3,
+    "nhfd.models.sizes": 3,
     "nhfd.pipeline": 4,
     "nhfd.pipeline.device": 4,
     "nhfd.daemon": 5, "nhfd.calib": 5,

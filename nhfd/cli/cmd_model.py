@@ -13,11 +13,20 @@ import sys
 import time
 from pathlib import Path
 
+from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
 from nhfd.daemon.protocol import RpcError
 from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
-from nhfd.models.train import training_device
+from nhfd.models.export import compare_with_torch
+from nhfd.models.metadata import SIZE_TOLERANCE
+from nhfd.models.sizes import (
+    check_sizes,
+    read_metadata,
+    record_checked_sizes,
+    sizes_to_check,
+)
+from nhfd.models.train import load_run, training_device
 from nhfd.scene.cameras import parse_axis
 
 BUILD_HELP = f"""\
@@ -32,6 +41,16 @@ another scene, recipe or settings is refused unless --force. Recipes: nhfd.toml
 [model.build.profiles] (quick: a first look in minutes; default: the shipped model's recipe).
 With --serve, the scene and the model are loaded into the running daemon (`nhfd serve`).
 """
+
+
+CHECK_SIZES_HELP = """\
+Run the model at each size and record the result in its metadata (checked_sizes), which the
+daemon reads: it refuses a frame window whose size the model was not checked at unless
+[daemon] allow_unchecked_sizes = true. With --run, each size is compared with the run's torch
+network (as `nhfd export` does); without, the full-size inference is compared with the same
+graph run on overlapping tiles of the training window's size, beyond its receptive margin (a
+convolutional network computes the same function at every size away from its borders), and
+must be finite. Exits 1 when a size fails (recorded as failed)."""
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -60,6 +79,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--no-progress", action="store_true", help="no progress bars")
     b.add_argument("--config", help="nhfd.toml to read the recipes and the optics from")
     b.set_defaults(handler=run_model_build)
+    c = cmds.add_parser("check-sizes", help="check a model at more input sizes and record them",
+                        description=CHECK_SIZES_HELP)  # fmt: skip
+    c.add_argument("model", help="an exported model (.onnx); its metadata is rewritten in place")
+    c.add_argument("--sizes", nargs="+", metavar="WxH",
+                   help="window sizes, width x height, e.g. 1920x1080 (rounded up to the model's "
+                   "input multiple; default: its training window, 1024x576 and 1920x1080)")
+    c.add_argument("--run", help="the run folder it was exported from: compare with its torch "
+                   "network (default: the ONNX-only tile check)")
+    c.set_defaults(handler=run_check_sizes)
 
 
 def run_model_build(args: argparse.Namespace) -> int:
@@ -148,3 +176,30 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
           f"{orbit['elevation_deg']:.0f}, {orbit['radius']:.3g} (inside the trained poses)")
 
 
+
+
+def run_check_sizes(args: argparse.Namespace) -> int:
+    path = Path(args.model)
+    meta = read_metadata(path)
+    if args.sizes:
+        wanted = [parse_wxh(s, "--sizes")[::-1] for s in args.sizes]
+        sizes = sizes_to_check(meta, wanted, training=False)
+    else:
+        sizes = sizes_to_check(meta)
+    compare = None
+    if args.run:
+        net, info = load_run(args.run)
+        if (info.get("step") != meta.get("train_steps")
+                or (info.get("dataset") or {}).get("manifest_key") != meta.get(
+                    "dataset_manifest_key")):
+            raise ValueError(f"--run {args.run}: not the run {path} was exported from (its "
+                             "train steps or dataset manifest differ)")
+        compare = lambda hw: compare_with_torch(net, path, [hw])[0]  # noqa: E731
+    entries = check_sizes(path, sizes, compare)
+    record_checked_sizes(path, entries)
+    for e in entries:
+        h, w = e["hw"]
+        print(f"{w} x {h}: {'ok' if e['ok'] else 'FAILED'}, max abs difference "
+              f"{e['max_abs_diff']:.3g} (tolerance {SIZE_TOLERANCE:g}) against {e['against']}")
+    print(f"{path}: checked_sizes recorded")
+    return 0 if all(e["ok"] for e in entries) else 1

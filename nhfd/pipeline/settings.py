@@ -116,11 +116,18 @@ def zero_pattern(s: FrameSettings) -> np.ndarray:
 
 def frame_window_hw(config: Any, metadata: dict[str, Any]) -> tuple[int, int]:
     """The frames' window (height, width): `daemon.frame_size_px` [W, H], or the model's
-    training size when that is empty."""
+    training size when that is empty; any size up to the panel, the whole panel included (the
+    frame worker then refuses a size the model was not checked at: `nhfd.models.sizes`)."""
     size = list(config.daemon.frame_size_px)
-    if size:
+    if size:  # the configuration checked it fits the panel
         return int(size[1]), int(size[0])
     h, w = (int(v) for v in metadata["train_size_hw"])
+    ph, pw = config.slm.height_px, config.slm.width_px
+    if h > ph or w > pw:
+        raise ValueError(f"frame window {w} x {h} (the model's training size: "
+                         f"daemon.frame_size_px is empty) does not fit the panel {pw} x {ph} "
+                         f"(slm.width_px x height_px); set daemon.frame_size_px to at most "
+                         f"[{pw}, {ph}]")
     return h, w
 
 

@@ -45,7 +45,9 @@ import torch
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
 from nhfd.models.export import check_providers, load_model, read_model_metadata
+from nhfd.models.metadata import checked_sizes_hw
 from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, file_sha256
+from nhfd.models.sizes import window_check
 from nhfd.scene.io import read_scene
 
 from .device import frame_device
@@ -241,7 +243,11 @@ class _WorkerState:
         """The float model at `path`, or its int8 sibling where `choose_variant` says so (an
         int8 model that fails to load or to infer falls back to the float one, saying why)."""
         model = open_model(path, self.config, self.threads)
-        check_inference(model, frame_window_hw(self.config, model.metadata), path)
+        window_hw = frame_window_hw(self.config, model.metadata)
+        allow = self.config.daemon.allow_unchecked_sizes
+        # UncheckedSize names the size, the checked ones and daemon.allow_unchecked_sizes
+        warning = window_check(model.metadata, window_hw, path, allow=allow)
+        check_inference(model, window_hw, path)
         served, variant, why = model, "float", ""
         sibling = int8_sibling(path)
         if Path(path).stem.endswith("-int8") or HELDOUT_KEY in model.metadata:
@@ -251,7 +257,8 @@ class _WorkerState:
                 q = open_model(str(sibling), self.config, self.threads)
                 variant, why = choose_variant(path, self.config, q.metadata)
                 if variant == "int8":
-                    check_inference(q, frame_window_hw(self.config, q.metadata), str(sibling))
+                    window_check(q.metadata, window_hw, str(sibling), allow=allow)
+                    check_inference(q, window_hw, str(sibling))
                     served = q
             except Exception as exc:  # the float model serves; status says why
                 variant, why = "float", f"{sibling.name} refused: {type(exc).__name__}: {exc}"
@@ -259,9 +266,16 @@ class _WorkerState:
             variant, why = choose_variant(path, self.config, None)
         self.model, self.model_id = served, self.model_id + 1
         self.encoders.clear()
+        # recorded False: an older export, only its training window counts as checked
+        checked, recorded = checked_sizes_hw(served.metadata)
+        device, device_why = frame_device(self.config.daemon.device, ort.get_available_providers())
         info = model_info(served, path)
         info.update(variant=variant, variant_reason=why,
-                    served=str(sibling) if variant == "int8" else path)
+                    served=str(sibling) if variant == "int8" else path,
+                    window_hw=list(window_hw), checked_sizes_hw=[list(hw) for hw in checked],
+                    checked_sizes_recorded=recorded, device=str(device), device_reason=device_why)
+        if warning:
+            info["size_warning"] = warning
         return info
 
     def load_scene(self, path: str) -> dict[str, Any]:

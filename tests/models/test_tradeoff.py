@@ -202,3 +202,22 @@ def test_the_bench_end_to_end_on_a_tiny_dataset(tiny_data, tmp_path, capsys):
         assert r["torch_over_onnxruntime"] == pytest.approx(r["torch_ms"] / r["onnxruntime_ms"])
     assert report["fastest_within_db"]["name"] in rows
     assert (out / "tradeoff.png").is_file()
+
+
+def test_int8_checks_its_own_sizes_not_the_float_models(tiny_data, tiny_run, tmp_path):
+    """The float model's checked_sizes were measured against torch; the int8 graph is another
+    model, so it gets the same sizes checked on itself (full run against tiles)."""
+    from nhfd.models.data import HoloData
+    from nhfd.models.net import NetSpec
+    from nhfd.models.quantise import quantise_int8
+    from nhfd.models.sizes import read_metadata
+
+    src = export_onnx(tiny_run, tmp_path / "m.onnx").path
+    spec = NetSpec(**json.loads((tiny_run / "run.json").read_text())["net"])
+    dst = quantise_int8(src, tmp_path / "m-int8.onnx", HoloData(tiny_data), spec.multiple,
+                        spec.inputs)  # fmt: skip
+    float_sizes = read_metadata(src)["checked_sizes"]
+    int8_sizes = read_metadata(dst)["checked_sizes"]
+    assert [e["hw"] for e in int8_sizes] == [e["hw"] for e in float_sizes]
+    assert all("torch" in e["against"] for e in float_sizes)
+    assert all("torch" not in e["against"] and "tile" in e["against"] for e in int8_sizes)
