@@ -43,6 +43,7 @@ from nhfd.dataset.shard import (
     write_shard,
 )
 from nhfd.holo import colour_sampling, sampling_report, scene_depth_range, scene_mapping
+from nhfd.scene import gsplat_backend
 from nhfd.scene.io import load_scene
 from nhfd.scene.lightfield import DepthMapping
 from nhfd.scene.raster import render
@@ -241,8 +242,6 @@ def check_device(device: str, flag: str = "--device") -> str:
     if index >= n:
         raise ValueError(f"{flag} {name}: this machine's torch sees {n} CUDA device(s); "
                          "use --device cpu")  # fmt: skip
-    from nhfd.scene import gsplat_backend
-
     if not gsplat_backend.available():
         raise ValueError(f"{flag} {name}: needs the gsplat package (pip install 'nhfd[gpu]')")
     return name

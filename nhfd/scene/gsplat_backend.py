@@ -11,7 +11,8 @@ implements the CPU renderer's semantics; each convention is converted here by on
 - near / far: both cull a centre whose camera z lies outside [near, far]; passed as they are.
 - quaternions: both w x y z (gsplat normalises them itself; nhfd's are unit already).
 - scales and opacities: `gsplat.rasterization` takes activated values, like `Gaussians`
-  (exp and sigmoid are a trainer's business): no log, no logit (`gaussian_inputs`).
+  (exp and sigmoid are a trainer's business): no log, no logit (`gaussian_inputs`). Opacities
+  are clamped to nhfd's alpha cap (`gsplat_opacities`, below).
 - SH: both [N, K, 3] basis-major, K = (degree + 1)^2, the same real basis and signs; the
   permutation is the identity and `sh_degree` follows from K (`sh_to_gsplat`). Colour is
   `max(SH + 0.5, 0)` in both (gsplat's `clamp_min(colors + 0.5, 0)`), no upper clamp.
@@ -24,12 +25,22 @@ implements the CPU renderer's semantics; each convention is converted here by on
   to whole pixels), so both reach alpha = 1/255; per-pixel alpha below 1/255 is skipped in both,
   and a pixel stops before the splat that takes its transmittance to 1e-4 in both.
 
-The one difference no input can undo is the alpha cap: where `opacity * exp(-q) > 0.99`, gsplat
-draws up to 0.999 where nhfd draws 0.99. It touches only splats with opacity above 0.99, in
-their cores (Mahalanobis radius below sqrt(2 ln(op / 0.99)), 0.14 sigma for op = 1), by at most
-0.009 in alpha; `alpha_cap_difference` gives the bound, and the CUDA comparison tests hold 45 dB
-with it. It is used only when CUDA is available and gsplat imports;
-`raster.render(..., backend="auto")` falls back to the CPU otherwise.
+The alpha cap is the one convention no input converts exactly: nhfd draws
+`min(0.99, op exp(-q))` (INRIA's cap), gsplat `min(0.999, op exp(-q))` (a constant in its
+kernel). Passed as they are, a splat of opacity 1 leaves a transmittance of 0.001 behind its
+core instead of 0.01, and with the shared stop rule (a pixel stops before the splat that would
+take it below 1e-4) a whole opaque splat can drop out: alpha off by 0.07 on the donut. So the
+adapter passes `min(op, 0.99)`: gsplat's cap never binds, the core's alpha and transmittance are
+nhfd's, and splats of opacity up to 0.99 render identically. A splat above 0.99 differs only on
+the ring where `op exp(-q)` falls from `op` to 0.99, by at most `0.99 (1 - 0.99 / op)` in alpha
+(0.0099 for op = 1; `opacity_clamp_error`), and its faintest edge (op e^-q within 1% above
+1/255) is drawn by nhfd only. Emulated on the CPU (nhfd's compositor recompiled
+with gsplat's cap, 512 x 288, docs/gpu.md) this leaves the shared scenes at RGB 82 / 94 / 65 dB
+(donut, guitar, tiny-sh) and depth within 4e-4 / 2e-5 / 1.4e-3 relative where alpha > 0.5; with
+opacities at most 0.99 everything agrees to float rounding.
+
+It is used only when CUDA is available and gsplat imports; `raster.render(..., backend="auto")`
+falls back to the CPU otherwise.
 """
 
 from __future__ import annotations
@@ -39,6 +50,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from nhfd.scene._kernels import ALPHA_MAX
 from nhfd.scene.cameras import Camera
 from nhfd.scene.gaussians import Gaussians
 
@@ -108,16 +120,30 @@ def sh_to_gsplat(sh: np.ndarray) -> tuple[np.ndarray, int]:
     return np.ascontiguousarray(sh), degree
 
 
+def gsplat_opacities(opacities: np.ndarray) -> np.ndarray:
+    """Activated opacities for gsplat, clamped to nhfd's alpha cap (0.99) so that gsplat's
+    higher cap (0.999) never binds: see the module docstring. float32."""
+    return np.minimum(np.asarray(opacities, np.float32), np.float32(ALPHA_MAX))
+
+
+def opacity_clamp_error(opacity: float) -> float:
+    """The largest alpha difference between nhfd (`min(0.99, op e^-q)`) and gsplat given the
+    clamped opacity (`0.99 e^-q`) over all q >= 0: 0 up to 0.99, else `0.99 (1 - 0.99 / op)`."""
+    op = float(opacity)
+    return 0.0 if op <= ALPHA_MAX else ALPHA_MAX * (1.0 - ALPHA_MAX / op)
+
+
 def gaussian_inputs(g: Gaussians) -> dict[str, np.ndarray | int]:
     """gsplat.rasterization's per-Gaussian arguments from a `Gaussians`: `means`, `quats`
     (w x y z, as nhfd's), `scales` (activated standard deviations: no log), `opacities`
-    (activated: no logit), `colors` (SH, `sh_to_gsplat`) and `sh_degree`."""
+    (activated: no logit; clamped by `gsplat_opacities`), `colors` (SH, `sh_to_gsplat`) and
+    `sh_degree`."""
     colors, degree = sh_to_gsplat(g.sh)
     return {
         "means": np.ascontiguousarray(g.means, np.float32),
         "quats": np.ascontiguousarray(g.quats, np.float32),
         "scales": np.ascontiguousarray(g.scales, np.float32),
-        "opacities": np.ascontiguousarray(g.opacities, np.float32),
+        "opacities": np.ascontiguousarray(gsplat_opacities(g.opacities)),
         "colors": colors,
         "sh_degree": degree,
     }
@@ -145,14 +171,6 @@ def accumulated_to_expected(accumulated, alpha):
             return np.where(alpha > 0, accumulated / np.maximum(alpha, GSPLAT_ED_ALPHA_FLOOR),
                             0.0).astype(np.float32)  # fmt: skip
     return expected_depth(accumulated / alpha.clamp(min=GSPLAT_ED_ALPHA_FLOOR), alpha)
-
-
-def alpha_cap_difference(opacity: float) -> float:
-    """The largest per-Gaussian alpha by which gsplat (cap 0.999) exceeds nhfd (cap 0.99) for a
-    splat of this (compensated) opacity: 0 up to 0.99, then `min(op, 0.999) - 0.99`."""
-    from nhfd.scene._kernels import ALPHA_MAX
-
-    return max(0.0, min(float(opacity), GSPLAT_ALPHA_MAX) - ALPHA_MAX)
 
 
 def check_same_size(cams: Sequence[Camera]) -> tuple[int, int]:

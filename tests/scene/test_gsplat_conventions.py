@@ -134,16 +134,29 @@ def test_sh_known_coefficient_lands_on_the_same_basis() -> None:
     assert colors[0, 3, 1] == 1.0 and np.count_nonzero(colors) == 1
 
 
-def test_alpha_cap_difference_is_bounded_and_only_above_099() -> None:
-    """The one difference the adapter cannot undo: gsplat caps alpha at 0.999, nhfd at 0.99."""
+def test_opacities_are_clamped_to_nhfds_alpha_cap() -> None:
+    """gsplat caps alpha at 0.999, nhfd at 0.99: opacities reach gsplat clamped to 0.99, so its
+    cap never binds and an opaque core leaves nhfd's transmittance (0.01, not 0.001)."""
     assert _kernels.ALPHA_MAX == 0.99
     assert gsplat_backend.GSPLAT_ALPHA_MAX == 0.999
-    assert gsplat_backend.alpha_cap_difference(0.99) == 0.0
-    assert gsplat_backend.alpha_cap_difference(0.5) == 0.0
-    assert gsplat_backend.alpha_cap_difference(1.0) == pytest.approx(0.009)
-    assert gsplat_backend.alpha_cap_difference(0.995) == pytest.approx(0.005)
     assert gsplat_backend.GSPLAT_ALPHA_MIN == _kernels.ALPHA_MIN
     assert gsplat_backend.GSPLAT_T_MIN == _kernels.T_MIN
+    op = np.array([0.2, 0.99, 0.995, 1.0], np.float32)
+    clamped = gsplat_backend.gsplat_opacities(op)
+    np.testing.assert_array_equal(clamped, np.float32([0.2, 0.99, 0.99, 0.99]))
+    g = make_gaussians(np.zeros((4, 3)), np.tile([1.0, 0, 0, 0], (4, 1)), np.full((4, 3), 0.1),
+                       op, np.zeros((4, 1, 3)))  # fmt: skip
+    np.testing.assert_array_equal(gsplat_backend.gaussian_inputs(g)["opacities"], clamped)
+    # The alpha each draws as q grows from the centre: gsplat's with the clamp against nhfd's.
+    q = np.linspace(0.0, 6.0, 20001)
+    for o in (0.5, 0.99, 0.995, 1.0):
+        ours = np.minimum(_kernels.ALPHA_MAX, o * np.exp(-q))
+        theirs = np.minimum(gsplat_backend.GSPLAT_ALPHA_MAX, min(o, 0.99) * np.exp(-q))
+        worst = np.abs(ours - theirs).max()
+        assert worst == pytest.approx(gsplat_backend.opacity_clamp_error(o), abs=1e-5)
+        assert ours[0] == theirs[0]  # the core: the same alpha, so the same transmittance
+    assert gsplat_backend.opacity_clamp_error(0.99) == 0.0
+    assert gsplat_backend.opacity_clamp_error(1.0) == pytest.approx(0.0099)
 
 
 def test_modes_batches_and_refusals() -> None:
@@ -257,7 +270,9 @@ def test_projection_matches_gsplats_reference(antialias: bool) -> None:
     np.testing.assert_allclose(r[:, [_kernels.CA, _kernels.CB, _kernels.CC]],
                                conics[0, idx].numpy(), rtol=2e-4, atol=1e-7)  # fmt: skip
     op = inputs["opacities"][idx] * (comp[0, idx].numpy() if antialias else 1.0)
-    np.testing.assert_allclose(r[:, _kernels.OP], op, rtol=2e-5)
+    below = g.opacities[idx] <= 0.99  # above, gsplat gets the clamped opacity (tested above)
+    assert below.sum() > 50
+    np.testing.assert_allclose(r[below, _kernels.OP], op[below], rtol=2e-5)
     # Every splat nhfd draws, gsplat's reference keeps (radius > 0).
     assert (radii[0, idx] > 0).all()
 
@@ -285,7 +300,8 @@ def test_near_plane_culls_the_same_centres() -> None:
 # --- CUDA: gsplat's images against the CPU renderer ------------------------------------------
 
 
-def assert_matches_cpu(g: Gaussians, cam: Camera, settings: RasterSettings, what: str) -> None:
+def assert_matches_cpu(g: Gaussians, cam: Camera, settings: RasterSettings, what: str,
+                      depth_rel: float = 1e-4, depth_rel_p99: float = 1e-4) -> None:  # fmt: skip
     cpu = render(g, cam, settings, backend="cpu")
     gpu = render(g, cam, settings, backend="gsplat")
     assert gpu.stats.get("backend") == "gsplat"
@@ -294,7 +310,9 @@ def assert_matches_cpu(g: Gaussians, cam: Camera, settings: RasterSettings, what
     assert p >= 45.0, f"{what}: RGB PSNR {p:.1f} dB"
     sel = (cpu.alpha > 0.5) & (gpu.alpha > 0.5)
     rel = np.abs(gpu.depth[sel].astype(np.float64) - cpu.depth[sel]) / cpu.depth[sel]
-    assert rel.max() <= 1e-4, f"{what}: depth off by {rel.max():.2e} relative"
+    assert rel.max() <= depth_rel, f"{what}: depth off by {rel.max():.2e} relative"
+    p99 = float(np.quantile(rel, 0.99))
+    assert p99 <= depth_rel_p99, f"{what}: depth off by {p99:.2e} relative at the 99th percentile"
     np.testing.assert_array_equal(gpu.depth[gpu.alpha == 0], 0.0)
 
 
@@ -309,14 +327,19 @@ def test_cuda_analytic_splats_match_cpu(degree: int, antialias: bool) -> None:
 
 
 @cuda
-def test_cuda_opaque_splats_differ_only_by_the_alpha_cap() -> None:
-    """Opacity 1: gsplat's 0.999 cap against nhfd's 0.99 changes alpha by at most 0.009."""
+def test_cuda_opaque_splats_differ_only_by_the_opacity_clamp() -> None:
+    """Opacity 1 everywhere: each splat's alpha is off by at most 1% of itself (0.99 / op), so
+    a pixel's alpha by at most 1% of itself, plus one splat at the 1/255 threshold that only
+    nhfd draws (op e^-q in [1/255, 1/(0.99 * 255))) and the stop rule's 1e-4. Emulated on the
+    CPU: at most 0.0095, RGB 54-55 dB."""
     g = random_gaussians(7, 300, 0, max_opacity=1.0)
     g = Gaussians(g.means, g.quats, g.scales, np.ones_like(g.opacities), g.sh)
     cam = random_camera(7)
     cpu = render(g, cam, backend="cpu")
     gpu = render(g, cam, backend="gsplat")
-    assert np.abs(gpu.alpha - cpu.alpha).max() <= gsplat_backend.alpha_cap_difference(1.0) + 1e-4
+    diff = np.abs(gpu.alpha - cpu.alpha)
+    assert (diff <= 0.01 * cpu.alpha + 1 / 255 + 2e-4).all()
+    assert diff.max() <= gsplat_backend.opacity_clamp_error(1.0) + 2e-4
     assert psnr(gpu.rgb, cpu.rgb) >= 45.0
 
 
@@ -331,9 +354,16 @@ def test_cuda_shared_scenes_match_cpu(shared_scenes: Path, name: str) -> None:
         pytest.skip(f"{path} not found")
     g = load_scene(path)
     up, _ = detect_up_axis(g, format_hint(path))
+    # With opacities at most 0.99 the two renderers' semantics are the same: the brief's gates.
+    capped = Gaussians(g.means, g.quats, g.scales, np.minimum(g.opacities, np.float32(0.99)),
+                       g.sh)  # fmt: skip
     for size in ((256, 144), (512, 288)):
         cam = suggest_camera(g, *size, up)
-        assert_matches_cpu(g, cam, RasterSettings(), f"{name} at {size}")
+        assert_matches_cpu(capped, cam, RasterSettings(), f"{name} at {size}, op <= 0.99")
+        # As the scene is: RGB at the gate; depth within the opacity clamp's bound (emulated
+        # 1.4e-3 at worst on tiny-sh, docs/gpu.md), and at the gate for most pixels.
+        assert_matches_cpu(g, cam, RasterSettings(), f"{name} at {size}", depth_rel=3e-3,
+                           depth_rel_p99=1e-3)
 
 
 @cuda
