@@ -124,3 +124,25 @@ def test_auto_on_the_cpu_trains_exactly_as_float32(tiny_data, tmp_path):
     b = torch.load(tmp_path / "b" / CHECKPOINT, weights_only=False)["model"]
     for k in a:
         assert torch.equal(a[k], b[k]), k
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("amp", ["fp16", "bf16", "auto"])
+def test_cuda_amp_training_is_finite_and_keeps_its_scaler(tiny_data, tmp_path, amp):
+    """A few CUDA steps in each mode: finite loss, float32 weights, and for fp16 the gradient
+    scaler's state in the checkpoint (a resumed run continues with its scale)."""
+    if amp == "bf16" and not torch.cuda.is_bf16_supported():
+        pytest.skip("this GPU has no bf16")
+    data = HoloData(tiny_data)
+    quiet = {"log": lambda _m: None, "data": data}
+    res = train(tiny_data, tmp_path / amp, tiny_options(steps=4, amp=amp, device="cuda"), **quiet)
+    assert res.step == 4 and math.isfinite(res.last_loss)
+    ckpt = torch.load(tmp_path / amp / CHECKPOINT, weights_only=False)
+    fp16 = amp_dtype(amp, CUDA) is torch.float16
+    assert (ckpt["grad_scaler"] is not None) == fp16
+    if fp16:
+        assert ckpt["grad_scaler"]["scale"] > 0
+    assert all(t.dtype == torch.float32 for t in ckpt["model"].values())
+    more = train(tiny_data, tmp_path / amp, tiny_options(steps=6, amp=amp, device="cuda"),
+                 **quiet)  # fmt: skip
+    assert more.resumed_from == 4 and math.isfinite(more.last_loss)
