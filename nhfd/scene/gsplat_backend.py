@@ -29,10 +29,10 @@ The alpha cap is the one convention no input converts exactly: nhfd draws
 `min(0.99, op exp(-q))` (INRIA's cap), gsplat `min(0.999, op exp(-q))` (a constant in its
 kernel). Passed as they are, a splat of opacity 1 leaves a transmittance of 0.001 behind its
 core instead of 0.01, and with the shared stop rule (a pixel stops before the splat that would
-take it below 1e-4) a whole opaque splat can drop out: alpha off by 0.07 on the donut. So the
-adapter passes `min(op, 0.99)`: gsplat's cap never binds, the core's alpha and transmittance are
-nhfd's, and splats of opacity up to 0.99 render identically. A splat above 0.99 differs only on
-the ring where `op exp(-q)` falls from `op` to 0.99, by at most `0.99 (1 - 0.99 / op)` in alpha
+take it below 1e-4) a whole opaque splat can drop out: alpha off by 0.07 on the donut (CPU
+emulation). So the adapter passes `min(op, 0.99)`: gsplat's cap never binds, the core's alpha
+and transmittance are nhfd's, and splats of opacity up to 0.99 render identically. Outside its
+core a splat above 0.99 draws `0.99 / op` of nhfd's alpha, at most `0.99 (1 - 0.99 / op)` less
 (0.0099 for op = 1; `opacity_clamp_error`), and its faintest edge (op e^-q within 1% above
 1/255) is drawn by nhfd only. Emulated on the CPU (nhfd's compositor recompiled
 with gsplat's cap, 512 x 288, docs/gpu.md) this leaves the shared scenes at RGB 82 / 94 / 65 dB
