@@ -26,7 +26,8 @@ import os
 import random
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
@@ -60,7 +61,56 @@ VAL_COLUMNS = ("step", "epoch", "split", "views", "loss", "l2", "psnr_db")
 LR_FLOOR = 0.05
 # Options that may change when a run is resumed (they do not change what a step computes).
 # The device changes float rounding, not the computation, so a run may move between them.
-RESUMABLE_CHANGES = ("steps", "checkpoint_every", "val_views", "threads", "device", "progress")
+# So does mixed precision (`amp`): it changes the forward pass's rounding, not what it computes.
+RESUMABLE_CHANGES = ("steps", "checkpoint_every", "val_views", "threads", "device", "progress",
+                     "amp")  # fmt: skip
+AMP_MODES = ("auto", "off", "bf16", "fp16")
+
+
+def amp_dtype(amp: str, device: torch.device) -> torch.dtype | None:
+    """The autocast dtype of the network's forward pass for `[model.train] amp`, or None (full
+    float32). "auto": on CUDA bf16 where the GPU supports it, else fp16; off on the CPU (bf16
+    autocast there is slower than float32 on most CPUs). "bf16" runs on the CPU or CUDA; "fp16"
+    needs CUDA (a gradient scaler keeps its small gradients)."""
+    if amp not in AMP_MODES:
+        raise ValueError(f"amp = {amp!r}: must be one of {', '.join(AMP_MODES)}")
+    if amp == "off" or (amp == "auto" and device.type != "cuda"):
+        return None
+    if amp == "auto":
+        return torch.bfloat16 if torch.cuda.is_bf16_supported() else torch.float16
+    if amp == "fp16" and device.type != "cuda":
+        raise ValueError(f"amp = 'fp16' on {device}: needs CUDA (on the CPU use bf16 or off)")
+    return torch.bfloat16 if amp == "bf16" else torch.float16
+
+
+def autocast_context(dtype: torch.dtype | None, device: torch.device) -> AbstractContextManager:
+    """The forward pass's autocast region (a no-op context for float32)."""
+    if dtype is None:
+        return nullcontext()
+    return torch.autocast(device.type, dtype=dtype)
+
+
+def grad_scaler(dtype: torch.dtype | None, device: torch.device) -> torch.amp.GradScaler:
+    """A gradient scaler, enabled only for fp16 (bf16 has float32's range)."""
+    return torch.amp.GradScaler(device.type, enabled=dtype == torch.float16)
+
+
+def float32_loss(
+    loss_fn: FocalStackLoss,
+    amp: torch.Tensor,
+    phase: torch.Tensor,
+    target: torch.Tensor,
+    planes: Sequence[float],
+    perceptual_planes: Sequence[int],
+    edges: Sequence[bool],
+) -> dict[str, torch.Tensor]:
+    """The focal-stack loss in float32 whatever autocast region it is called from: the network's
+    (possibly half-precision) outputs are cast up and autocast is switched off, so the field,
+    the FFTs and the propagation are complex64 (torch's half FFTs need power-of-two sizes, and
+    half would lose the loss's dynamic range)."""
+    with torch.autocast(target.device.type, enabled=False):
+        field = to_field(amp.float(), phase.float(), 1.0)
+        return loss_fn(field, target.to(torch.complex64), planes, perceptual_planes, edges)
 
 
 def training_device(name: str, *, check_available: bool = False) -> torch.device:
@@ -119,12 +169,15 @@ class TrainOptions:
     checkpoint_every: int = _TRAIN.checkpoint_every
     val_views: int = _TRAIN.val_views
     threads: int = _TRAIN.threads
+    amp: str = _TRAIN.amp
     device: str = "cpu"
     progress: bool = True
 
     def __post_init__(self) -> None:
         _ = self.spec  # NetSpec validates the network's shape
         training_device(self.device)  # validates the name; availability is checked at start
+        if self.amp not in AMP_MODES:
+            raise ValueError(f"amp = {self.amp!r}: must be one of {', '.join(AMP_MODES)}")
         checks = {
             "steps": (self.steps >= 1, "must be at least 1"),
             "batch": (self.batch >= 1, "must be at least 1"),
@@ -441,6 +494,8 @@ def _train(
     if loss_fn.vgg is not None:
         loss_fn.vgg.to(device)
     opt = torch.optim.Adam(net.parameters(), lr=options.learning_rate)
+    half = amp_dtype(options.amp, device)
+    scaler = grad_scaler(half, device)
     ckpt_path = run_dir / CHECKPOINT
     step = 0
     if ckpt_path.exists() and not force:
@@ -448,6 +503,8 @@ def _train(
         _check_resumable(ckpt, options, data, ckpt_path)
         net.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
+        if scaler.is_enabled() and ckpt.get("grad_scaler"):
+            scaler.load_state_dict(ckpt["grad_scaler"])
         _set_rng_states(ckpt["rng"])
         step = int(ckpt["step"])
         say(f"resuming {run_dir} at step {step} of {options.steps}")
@@ -485,7 +542,8 @@ def _train(
     say(f"network {options.spec.to_json()} ({run_info['parameters']} parameters, input multiple "
         f"{options.spec.multiple}); {n_train} training views, {per_epoch} steps per epoch; "
         f"crops {options.crop_width_px}x{options.crop_height_px}")  # fmt: skip
-    say(f"loss: {loss_fn.describe()}; planes: {options.plane_mode}")
+    say(f"loss: {loss_fn.describe()}; planes: {options.plane_mode}; forward pass in "
+        f"{str(half).removeprefix('torch.') if half else 'float32'}, loss in float32")
     fixed = uniform_planes(data_volume(data), options.planes_from_depth + options.planes_random)
     bar = None
     if options.progress and main:
@@ -502,6 +560,7 @@ def _train(
         _atomic_save({
             "step": step, "model": net.state_dict(), "optimizer": opt.state_dict(),
             "rng": _rng_states(),
+            "grad_scaler": scaler.state_dict() if scaler.is_enabled() else None,
             "data_order": {"seed": options.seed, "epoch": step // per_epoch,
                            "position": step % per_epoch, "batch": options.batch,
                            "n_train": n_train},
@@ -530,11 +589,14 @@ def _train(
             lr = lr_at(step, options)
             for g in opt.param_groups:
                 g["lr"] = lr
-            amp, phase = predict(model, x)
-            out = loss_fn(to_field(amp, phase, 1.0), target, planes, perc, edges)
+            with autocast_context(half, device):
+                amp, phase = predict(model, x)
+            out = float32_loss(loss_fn, amp, phase, target, planes, perc, edges)
             opt.zero_grad(set_to_none=True)
-            out["loss"].backward()
-            opt.step()
+            # Without fp16 the scaler is disabled: backward() and opt.step() as they were.
+            scaler.scale(out["loss"]).backward()
+            scaler.step(opt)
+            scaler.update()
             step += 1
             steps_done += 1
             terms = torch.stack([out[k].detach().float() for k in ("loss", "l2", "perceptual")])

@@ -238,6 +238,7 @@ class TrainSettings(_Section):
     checkpoint_every: Annotated[int, Field(ge=1)] = 250
     val_views: Annotated[int, Field(ge=1, le=10_000)] = 8
     threads: Annotated[int, Field(ge=0, le=1024)] = 0
+    amp: Literal["auto", "off", "bf16", "fp16"] = "auto"
 
 
 class BuildRecipe(_Section):

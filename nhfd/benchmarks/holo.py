@@ -5,6 +5,10 @@ the configured volume (+-3 mm) and aperture (half band), depth-aware phase; R, G
 shared set of views (the default) and, at the smaller size, from each colour's own directions,
 with the error between the two. The paper reports about 3.5 minutes per monochrome hologram
 for this step; its ratio to ours is printed. Peak memory is the process's peak resident size.
+
+`--device cuda` (or cuda:N) renders the light fields with gsplat, several views per call, and
+inverts on that GPU (`nhfd dataset build --device cuda`'s path), timed with the GPU
+synchronised; the CPU path is `--device cpu`, the default. Each row records its device.
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ import numpy as np
 from nhfd.benchmarks.machine import describe
 from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config
+from nhfd.dataset.build import DEVICES, check_device
 from nhfd.dataset.shard import ExampleSettings
 from nhfd.holo import band_limit, colour_sampling, scene_hologram, scene_mapping
 from nhfd.optics import Aperture, propagate
@@ -36,6 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", default=None, help="scene file (default: the shared donut)")
     p.add_argument("--sizes", default="512x288,1024x576", help="comma-separated WxH list")
     p.add_argument("--out", default="out/bench/holo.json", help="JSON file to write")
+    p.add_argument("--device", default="cpu", metavar="|".join(DEVICES),
+                   help="cpu (default), or cuda / cuda:N: gsplat renders and the GPU inverts")
     p.set_defaults(handler=run)
 
 
@@ -46,6 +53,13 @@ def _rss_mb() -> float:
 def run(args: argparse.Namespace) -> int:
     import torch
 
+    device = check_device(args.device)
+    on_gpu = device != "cpu"
+
+    def sync() -> None:
+        if on_gpu:
+            torch.cuda.synchronize(device)
+
     scene = Path(args.scene) if args.scene else (
         Path(__file__).resolve().parents[2].parent / "shared" / "data" / "scenes" / "donut.ply"
     )  # fmt: skip
@@ -55,13 +69,15 @@ def run(args: argparse.Namespace) -> int:
     up, _ = detect_up_axis(g, format_hint(scene))
     config = load_config().config
     machine = describe()
-    print(f"{scene.name}: {len(g)} Gaussians; {machine}")
-    results: dict = {"scene": scene.name, "sizes": {}}
+    gpu = torch.cuda.get_device_name(device) if on_gpu else None
+    print(f"{scene.name}: {len(g)} Gaussians; {machine}; device {device}"
+          f"{' (' + gpu + ')' if gpu else ''}")  # fmt: skip
+    results: dict = {"scene": scene.name, "device": device, "gpu": gpu, "sizes": {}}
     for size in args.sizes.split(","):
         w, h = parse_wxh(size, "--sizes")
         s = ExampleSettings.from_config(config, width_px=w, height_px=h)
         cam = suggest_camera(g, w, h, up, fov_x_deg=s.fov_x_deg)
-        central = render(g, cam)
+        central = render(g, cam)  # the mapping from the CPU render, as dataset builds do
         d = central.depth[central.alpha > 0.5]
         mapping, _ = scene_mapping(
             s.volume_m[0], s.volume_m[1], s.pitch_m, cam.fx,
@@ -70,11 +86,18 @@ def run(args: argparse.Namespace) -> int:
         aperture = Aperture(s.aperture_shape, s.cutoff_per_px)
         shared = colour_sampling(s.wavelengths_m, s.pitch_m, s.volume_m, aperture, shared=True)
         rss0 = _rss_mb()
+        if on_gpu:  # warm-up: gsplat's first call loads (or JIT-compiles) its kernels
+            scene_hologram(g, cam, mapping, s.pitch_m, shared[:1], shared_views=True,
+                           device=device)  # fmt: skip
+            sync()
         t0 = time.perf_counter()
-        holo = scene_hologram(g, cam, mapping, s.pitch_m, shared, shared_views=True)
+        holo = scene_hologram(g, cam, mapping, s.pitch_m, shared, shared_views=True,
+                              device=device)  # fmt: skip
+        sync()
         total = time.perf_counter() - t0
         row = {
-            "views_rendered": holo.n_views, "windows": [c.window for c in shared],
+            "device": device, "views_rendered": holo.n_views,
+            "windows": [c.window for c in shared],
             "render_s": holo.render_s, "invert_s": holo.invert_s, "total_s": total,
             "peak_rss_mb": _rss_mb(), "peak_rss_growth_mb": _rss_mb() - rss0,
             "paper_ratio_vs_3_colours": 3 * PAPER_S_PER_MONOCHROME / total,
@@ -86,7 +109,9 @@ def run(args: argparse.Namespace) -> int:
         if w * h <= 512 * 288:
             own = colour_sampling(s.wavelengths_m, s.pitch_m, s.volume_m, aperture)
             t0 = time.perf_counter()
-            per = scene_hologram(g, cam, mapping, s.pitch_m, own, shared_views=False)
+            per = scene_hologram(g, cam, mapping, s.pitch_m, own, shared_views=False,
+                                 device=device)  # fmt: skip
+            sync()
             per_s = time.perf_counter() - t0
             a = band_limit(holo.field, aperture)
             b = band_limit(per.field, aperture)

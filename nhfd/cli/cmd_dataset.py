@@ -10,7 +10,15 @@ from tqdm import tqdm
 
 from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config
-from nhfd.dataset.build import EXECUTORS, build, merge, parse_shard, shard_indices
+from nhfd.dataset.build import (
+    DEVICES,
+    EXECUTORS,
+    build,
+    check_device,
+    merge,
+    parse_shard,
+    shard_indices,
+)
 from nhfd.dataset.poses import load_poses, orbit_sampler
 from nhfd.dataset.shard import ExampleSettings
 from nhfd.dataset.show import show
@@ -70,6 +78,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--address", default=None,
                    help="Ray cluster address (e.g. 10.0.0.1:6379 or auto); default: start a "
                         "local Ray instance")  # fmt: skip
+    b.add_argument("--device", default="cpu", metavar="|".join(DEVICES),
+                   help="cpu (default): the CPU rasteriser and inversion; cuda or cuda:N: gsplat "
+                        "renders the light fields, batched over views, and the inversion runs "
+                        "on that GPU (pip install 'nhfd[gpu]')")  # fmt: skip
     b.add_argument("--force", action="store_true", help="replace a dataset built differently")
     b.add_argument("--config", help="nhfd.toml to take the optics from")
     b.set_defaults(handler=run_build)
@@ -103,6 +115,7 @@ def run_build(args: argparse.Namespace) -> int:
     if args.threads is not None and args.threads < 1:
         raise ValueError(f"--threads {args.threads}: must be >= 1")
     part = parse_shard(args.shard) if args.shard is not None else None
+    device = check_device(args.device)
     if args.address and args.executor != "ray":
         raise ValueError(f"--address {args.address!r}: only with --executor ray")
     config = load_config(args.config).config
@@ -135,7 +148,7 @@ def run_build(args: argparse.Namespace) -> int:
     manifest = build(scene, Path(args.out), poses, settings, seed=args.seed, sampler=sampler,
                      workers=args.workers, force=args.force, d_near=args.d_near,
                      d_far=args.d_far, progress=progress, shard=part, executor=args.executor,
-                     address=args.address, threads=args.threads)  # fmt: skip
+                     address=args.address, threads=args.threads, device=device)  # fmt: skip
     bar.close()
     if manifest["amplitude_scale"] is None:
         print(f"{args.out}: part {args.shard} built ({n_mine} views); "

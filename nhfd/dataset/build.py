@@ -43,6 +43,7 @@ from nhfd.dataset.shard import (
     write_shard,
 )
 from nhfd.holo import colour_sampling, sampling_report, scene_depth_range, scene_mapping
+from nhfd.scene import gsplat_backend
 from nhfd.scene.io import load_scene
 from nhfd.scene.lightfield import DepthMapping
 from nhfd.scene.raster import render
@@ -221,7 +222,32 @@ def _crash_hook(index: int) -> None:
         os._exit(1)
 
 
-def _build_timed(manifest: dict, index: int, out_dir: str | Path) -> dict:
+DEVICES = ("cpu", "cuda", "cuda:N")
+
+
+def check_device(device: str, flag: str = "--device") -> str:
+    """`device` if it names one this build can use: "cpu", or "cuda" / "cuda:N" on a machine
+    whose torch sees that GPU and has gsplat; else ValueError naming `flag` and the allowed
+    values. The CPU path is the one without a GPU."""
+    name = str(device).strip()
+    ok = name in ("cpu", "cuda") or (name.startswith("cuda:") and name[5:].isdigit())
+    if not ok:
+        raise ValueError(f"{flag} {device!r}: must be one of {', '.join(DEVICES)}")
+    if name == "cpu":
+        return name
+    import torch
+
+    n = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    index = int(name[5:]) if ":" in name else 0
+    if index >= n:
+        raise ValueError(f"{flag} {name}: this machine's torch sees {n} CUDA device(s); "
+                         "use --device cpu")  # fmt: skip
+    if not gsplat_backend.available():
+        raise ValueError(f"{flag} {name}: needs the gsplat package (pip install 'nhfd[gpu]')")
+    return name
+
+
+def _build_timed(manifest: dict, index: int, out_dir: str | Path, device: str = "cpu") -> dict:
     """Compute and write one shard; its path and the seconds each stage took."""
     _crash_hook(index)
     g = _scene(manifest)
@@ -230,7 +256,8 @@ def _build_timed(manifest: dict, index: int, out_dir: str | Path) -> dict:
     seed = example_seed(manifest["seed"], index)
     pose = poses[index]
     t0 = time.perf_counter()
-    ex = make_example(g, pose, np.array(manifest["center"]), _mapping(manifest), settings, seed)
+    ex = make_example(g, pose, np.array(manifest["center"]), _mapping(manifest), settings, seed,
+                      device=device)  # fmt: skip
     # Nothing that varies between runs (timings, hosts, dates) goes into a shard: a shard's bytes
     # are a function of the manifest and the index alone.
     meta = {
@@ -252,7 +279,7 @@ def _build_timed(manifest: dict, index: int, out_dir: str | Path) -> dict:
             **ex["timing"]}  # fmt: skip
 
 
-def build_example(manifest: dict, index: int, out_dir: str | Path) -> Path:
+def build_example(manifest: dict, index: int, out_dir: str | Path, device: str = "cpu") -> Path:
     """Build example `index` of a planned dataset (`plan_manifest`'s dict) and write its shard
     atomically into `out_dir`; returns the shard's path.
 
@@ -261,10 +288,10 @@ def build_example(manifest: dict, index: int, out_dir: str | Path) -> Path:
     `example_seed(manifest seed, index)`, never the worker or the order), so a retried or
     re-run example writes the same bytes. Each process loads the scene once; a process that
     has not built from this scene yet (a pool or Ray worker) sets torch and numba to one thread,
-    its share of the cores."""
+    its share of the cores. `device`: see `build`."""
     if not 0 <= index < len(manifest["poses"]):
         raise ValueError(f"index {index}: the dataset has examples 0..{len(manifest['poses']) - 1}")
-    return Path(_build_timed(manifest, index, out_dir)["path"])
+    return Path(_build_timed(manifest, index, out_dir, check_device(device))["path"])
 
 
 def _build_one(out_dir: str, manifest: dict, index: int) -> dict:
@@ -434,8 +461,16 @@ def build(
     executor: str = "local",
     address: str | None = None,
     threads: int | None = None,
+    device: str = "cpu",
 ) -> dict:
     """Build (or resume) a dataset; returns the final manifest.
+
+    `device` "cpu" (the default) renders with the CPU rasteriser and inverts with torch on the
+    CPU; "cuda" or "cuda:N" renders each example's light field with gsplat, several views per
+    call, and inverts and propagates on that GPU, in this process (`workers` 1, the local
+    executor). The depth pass that fixes the mapping runs on the CPU either way, so a CPU and a
+    GPU build of the same settings share one manifest (and key); their shards agree to float
+    rounding and the renderers' one residual difference (gsplat_backend: the alpha cap).
 
     `shard` (K, N) builds only part K of N (`shard_indices`); the manifest is completed by
     whichever part finds every shard present (or by `merge`), and until then this returns the
@@ -452,6 +487,15 @@ def build(
         raise ValueError(f"workers = {workers}: must be >= 1")
     if threads is not None and threads < 1:
         raise ValueError(f"threads = {threads}: must be >= 1")
+    device = check_device(device)
+    if device != "cpu" and (workers > 1 or executor != "local"):
+        raise ValueError(f"--device {device}: builds in this process on one GPU; use "
+                         "--workers 1 and the local executor (--shard K/N splits a build over "
+                         "GPUs)")  # fmt: skip
+    if device.startswith("cuda:"):
+        import torch
+
+        torch.cuda.set_device(device)  # the central view's render uses the current device
     scene_path, out_dir = Path(scene_path), Path(out_dir)
     g = load_scene(scene_path)
     center = np.median(g.means, axis=0) if len(g) else np.zeros(3)
@@ -502,7 +546,7 @@ def build(
         elif workers <= 1:
             _worker_init(str(scene_path), threads=threads or max(1, os.cpu_count() or 1))
             for i in todo:
-                record(_build_timed(manifest, i, out_dir))
+                record(_build_timed(manifest, i, out_dir, device))
         else:
             import multiprocessing as mp
 
@@ -526,6 +570,7 @@ def build(
             "median_invert_s": float(np.median([s["invert_s"] for s in stats])),
             "workers": workers,
             "executor": executor,
+            "device": device,
         }
     return manifest
 

@@ -121,8 +121,12 @@ def make_example(
     mapping: DepthMapping,
     settings: ExampleSettings,
     seed: int,
+    device: str = "cpu",
 ) -> dict:
     """Render the central view and compute the band-limited reference-plane hologram.
+
+    `device` "cuda" (or "cuda:N") renders with gsplat and inverts and propagates on that GPU;
+    the arrays returned are on the host either way.
 
     Returns a dict of arrays (`rgb` [3,H,W] sRGB, `depth`/`alpha` [H,W], `field` [3,H,W]
     complex64, `amp_samples` [n] float32: amplitudes of content pixels on the SLM plane, which the
@@ -134,7 +138,7 @@ def make_example(
     t0 = time.perf_counter()
     cam = settings.camera(pose, camera_distance(pose, center))
     raster = RasterSettings(antialias=settings.antialias)
-    central = render(g, cam, raster)
+    central = render(g, cam, raster, backend="cpu" if device == "cpu" else "gsplat")
     aperture = settings.aperture()
     sampling = colour_sampling(
         settings.wavelengths_m,
@@ -154,6 +158,7 @@ def make_example(
         seed=seed,
         shared_views=settings.shared_views,
         settings=raster,
+        device=device,
     )
     t1 = time.perf_counter()
     field = band_limit(holo.field, aperture)
@@ -167,13 +172,13 @@ def make_example(
     rng = np.random.default_rng(seed)
     n = min(settings.amplitude_samples, int(content.numel()))
     idx = rng.choice(int(content.numel()), n, replace=False) if n else np.zeros(0, np.int64)
-    samples = content[torch.from_numpy(idx)].numpy().astype(np.float32)
+    samples = content[torch.from_numpy(idx).to(content.device)].cpu().numpy().astype(np.float32)
     t2 = time.perf_counter()
     return {
         "rgb": central.rgb,
         "depth": central.depth,
         "alpha": central.alpha,
-        "field": field.numpy().astype(np.complex64),
+        "field": field.cpu().numpy().astype(np.complex64),
         "amp_samples": samples,
         "timing": {
             "render_s": holo.render_s + (t1 - t0 - holo.render_s - holo.invert_s),

@@ -19,9 +19,10 @@ from nhfd.holo.istft import InverseSTFT
 from nhfd.holo.phase import PhaseMode, hologram_depth, view_phase, view_spectrum
 from nhfd.holo.sampling import ColourSampling
 from nhfd.optics import Aperture, apply_aperture
+from nhfd.scene import gsplat_backend
 from nhfd.scene.cameras import Camera
 from nhfd.scene.gaussians import Gaussians
-from nhfd.scene.lightfield import DepthMapping, LightField, iter_views
+from nhfd.scene.lightfield import DepthMapping, LightField, iter_views, view_camera
 from nhfd.scene.raster import RasterSettings
 
 DEFAULT_RASTER = RasterSettings()
@@ -39,6 +40,7 @@ class ColourInverter:
         phase: "depth" (default), "zero" or "random"; seed: the random phase's base seed.
         skip: optional bool [Ky, Kx], True for views to leave out (e.g. outside a non-square
             aperture, see `sampling.inside_aperture`, inverted).
+        device: where the field accumulates (default the CPU; a CUDA device for GPU builds).
     """
 
     def __init__(
@@ -51,11 +53,13 @@ class ColourInverter:
         phase: PhaseMode = "depth",
         seed: int = 0,
         skip: np.ndarray | None = None,
+        device: torch.device | str | None = None,
     ) -> None:
         self.sampling, self.mapping, self.colour = sampling, mapping, int(colour)
         self.phase, self.seed, self.skip = phase, int(seed), skip
         self.shape_hw = (int(shape_hw[0]), int(shape_hw[1]))
-        self._istft = InverseSTFT(self.shape_hw, sampling.window, sampling.k, sampling.k)
+        self._istft = InverseSTFT(self.shape_hw, sampling.window, sampling.k, sampling.k,
+                                  device=device)  # fmt: skip
 
     def add_view(
         self,
@@ -81,6 +85,8 @@ class ColourInverter:
             tau_x=float(tau[ix]), tau_y=float(tau[iy]), z_h_m=z_h, seed=self.seed,
             key=(self.colour, iy, ix),
         )  # fmt: skip
+        if phi is not None and isinstance(channel, torch.Tensor):
+            phi = phi.to(channel.device)  # the random phase is drawn on the CPU
         self._istft.add(iy, ix, view_spectrum(channel, phi))
 
     def result(self) -> torch.Tensor:
@@ -132,16 +138,27 @@ def scene_hologram(
     shared_views: bool = False,
     settings: RasterSettings = DEFAULT_RASTER,
     progress: Callable[[int, int], None] | None = None,
+    device: str = "cpu",
+    batch_views: int = 16,
 ) -> Hologram:
     """Render each colour's light field view by view and invert it: `[C, H, W]` complex64.
 
     Colours with identical slopes share renders. With `shared_views`, every colour uses the views
     rendered with the longest wavelength's slopes (with `colour_sampling(..., shared=True)` the
-    others' own slopes differ from them by the rounding of W, a few percent; optics.md)."""
+    others' own slopes differ from them by the rounding of W, a few percent; optics.md).
+
+    `device` "cpu" renders with the CPU rasteriser and inverts on the CPU (the field is a CPU
+    tensor); "cuda" or "cuda:N" renders with gsplat, `batch_views` views per call, and inverts on
+    that GPU (the field stays there)."""
     shape = (int(cam.height_px), int(cam.width_px))
+    on_gpu = str(device) != "cpu"
+    if on_gpu:
+        gsplat_backend.require("a CUDA hologram")
     inverters = [
-        ColourInverter(shape, s, mapping, c, phase=phase, seed=seed) for c, s in enumerate(sampling)
-    ]
+        ColourInverter(shape, s, mapping, c, phase=phase, seed=seed,
+                       device=device if on_gpu else None)
+        for c, s in enumerate(sampling)
+    ]  # fmt: skip
     groups = _view_groups(sampling, shared_views)
     total = sum(max(sampling[c].n_views for c in grp) for grp in groups)
     done, render_s, invert_s = 0, 0.0, 0.0
@@ -151,7 +168,8 @@ def scene_hologram(
         # With shared views a colour uses the reference's views whose bin k it has (the same k
         # gives nearly the same slope, since W is proportional to lambda).
         maps = [(c, _bin_index(sampling[ref], sampling[c])) for c in grp]
-        views = iter(iter_views(g, cam, mapping, pitch_m, tau, tau, settings))
+        views = iter(_gpu_views(g, cam, mapping, pitch_m, tau, settings, device, batch_views)
+                     if on_gpu else iter_views(g, cam, mapping, pitch_m, tau, tau, settings))
         while True:
             t0 = time.perf_counter()
             item = next(views, None)
@@ -174,6 +192,23 @@ def scene_hologram(
     field = torch.stack([inv.result() for inv in inverters])
     invert_s += time.perf_counter() - t0
     return Hologram(field, render_s, invert_s, total)
+
+
+def _gpu_views(g: Gaussians, cam: Camera, mapping: DepthMapping, pitch_m: float,
+               tau: np.ndarray, settings: RasterSettings, device: str, batch: int):  # fmt: skip
+    """`iter_views`'s `(iy, ix, view)` rendered by gsplat, `batch` views per call: each view is
+    `view_camera`'s moved camera (the CPU path shifts the prepared means instead: the same
+    view). A view's rgb, depth and alpha are tensors on `device`."""
+    scene = gsplat_backend.GsplatScene(g, device)
+    index = [(iy, ix) for iy in range(len(tau)) for ix in range(len(tau))]
+    cams = [view_camera(cam, mapping, pitch_m, float(tau[ix]), float(tau[iy]))[1]
+            for iy, ix in index]  # fmt: skip
+    for start, views in gsplat_backend.iter_views_gsplat(
+        scene, cams, eps2d_px2=settings.eps2d_px2, antialias=settings.antialias, batch=batch
+    ):
+        for j in range(views.rgb.shape[0]):
+            iy, ix = index[start + j]
+            yield iy, ix, gsplat_backend.TorchViews(views.rgb[j], views.alpha[j], views.depth[j])
 
 
 def hologram_from_light_field(

@@ -73,10 +73,16 @@ class InverseSTFT:
 
     Feed each view's spectrum `S_k` ([H, W] complex, e.g. from `phase.view_spectrum`) once with
     `add(iy, ix, S)`, then call `result()`: complex64 [H, W]. A view never added counts as zero.
+    `device`: where the field accumulates (default the CPU); spectra are moved there.
     """
 
     def __init__(
-        self, shape_hw: tuple[int, int], window: int, k_x: Sequence[int], k_y: Sequence[int]
+        self,
+        shape_hw: tuple[int, int],
+        window: int,
+        k_x: Sequence[int],
+        k_y: Sequence[int],
+        device: torch.device | str | None = None,
     ) -> None:
         if window < 2 or window % 2:
             raise ValueError(f"hogel window W must be an even integer >= 2, got {window}")
@@ -88,7 +94,7 @@ class InverseSTFT:
         self._gx = [modulated_window(window, int(k)) / norm for k in k_x]
         self._gy = [modulated_window(window, int(k)) for k in k_y]
         self._n_x = len(self._gx)
-        self._out = torch.zeros(self.shape_hw, dtype=torch.complex64)
+        self._out = torch.zeros(self.shape_hw, dtype=torch.complex64, device=device)
         self._rows: dict[int, tuple[torch.Tensor, set[int]]] = {}
         self._done: set[tuple[int, int]] = set()
 
@@ -100,7 +106,7 @@ class InverseSTFT:
             raise ValueError(f"view ({iy}, {ix}) outside {len(self._gy)} x {self._n_x} directions")
         if tuple(spectrum.shape) != self.shape_hw:
             raise ValueError(f"view shape {tuple(spectrum.shape)} != {self.shape_hw}")
-        s = spectrum.to(torch.complex64)
+        s = spectrum.to(self._out.device, torch.complex64)
         if iy not in self._rows:
             self._rows[iy] = (torch.zeros_like(self._out), set())
         buf, seen = self._rows[iy]
