@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nhfd.models import evaluate as ev
 from nhfd.models.export import OnnxModel
 from nhfd.models.metadata import METADATA_KEY, NotAModel, parse_metadata
 from nhfd.models.quantise import output_nodes
@@ -193,8 +194,6 @@ def evaluate_emulated(half_path: str | Path, data_dir: str | Path, **kw) -> dict
     """`nhfd.models.evaluate.evaluate` of an fp16 model computed in float16 throughout
     (`emulate_fp16`); keywords as `evaluate`'s."""
     import warnings
-
-    from nhfd.models import evaluate as ev
 
     saved = ev.OnnxModel
     ev.OnnxModel = _EmulatedModel  # the one model this call loads

@@ -157,3 +157,36 @@ def test_a_foreign_onnx_file_is_refused(tmp_path):
     onnx.save(helper.make_model(g), str(tmp_path / "relu.onnx"))
     with pytest.raises(NotAModel, match="without nhfd metadata"):
         convert_fp16(tmp_path / "relu.onnx", tmp_path / "h.onnx")
+
+
+def test_the_tradeoff_table_says_when_the_gpu_column_is_not_measured(capsys):
+    import onnxruntime as ort
+    import torch
+
+    from nhfd.benchmarks.tradeoff import gpu_unavailable, print_table
+
+    cuda = torch.cuda.is_available() and "CUDAExecutionProvider" in ort.get_available_providers()
+    assert (gpu_unavailable() is None) == cuda
+    row = {"name": "w8", "parameters": 10, "onnxruntime_ms": 3.0, "torch_ms": 4.0,
+           "torch_over_onnxruntime": 4 / 3, "psnr_db": 20.0, "ssim": 0.5, "psnr_2d_db": 15.0,
+           "focus_bins_passed": "1/1", "pareto": True}  # fmt: skip
+    print_table([{**row, "gpu_fp16_ms": None}, {**row, "name": "w16", "gpu_fp16_ms": 0.731}])
+    lines = capsys.readouterr().out.splitlines()
+    assert "gpu fp16 ms" in lines[0]
+    assert "not measured" in lines[1] and "0.73" in lines[2] and "not measured" not in lines[2]
+
+
+def test_the_fp16_model_on_cuda_matches_the_float_model(pair):
+    import onnxruntime as ort
+    import torch
+
+    if not torch.cuda.is_available():
+        pytest.skip("needs CUDA")
+    if "CUDAExecutionProvider" not in ort.get_available_providers():
+        pytest.skip("needs onnxruntime's CUDA provider (onnxruntime-gpu)")
+    f, h = pair
+    x = np.random.default_rng(3).random((1, 3, 64, 96), dtype=np.float32)
+    fa, fp = OnnxModel(f).run_raw(x)
+    ga, gp = OnnxModel(h, providers=("CUDAExecutionProvider", "CPUExecutionProvider")).run_raw(x)
+    assert np.abs(ga - fa).max() <= REL_TOL * np.abs(fa).max()
+    assert np.abs(gp - fp).max() <= REL_TOL * max(np.pi, np.abs(fa).max())
