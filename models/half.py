@@ -21,9 +21,10 @@ onnxruntime's CPU provider runs the result, but not in float16: it computes floa
 that have no CPU kernel in float32 and drops the casts between them, so on the CPU only the
 weights' rounding shows (a float16 `1 + exp(30)` comes out finite there). `emulate_fp16` runs a
 model with onnx's reference evaluator instead, which computes every float16 operator in float16
-(numpy, accumulating in float16 too: harsher than a GPU's float32 accumulators), and
-`evaluate_emulated` is `nhfd eval`'s measure under it: what a GPU's fp16 kernels would give, from
-a machine without one (about 10 s per 512 x 288 view on 2 cores).
+(numpy: each result rounded to float16, a convolution's sums accumulated in float32 by its
+matrix product, as a GPU's fp16 kernels do), and `evaluate_emulated` is `nhfd eval`'s measure
+under it: what a GPU would give, from a machine without one (about 15 s per 512 x 288 view on 2
+cores).
 """
 
 from __future__ import annotations

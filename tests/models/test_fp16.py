@@ -138,6 +138,7 @@ def test_heldout_psnr_within_0_2_db(pair, tiny_data, tmp_path):
     (["export", "{f}"], "an .onnx source needs --fp16 OUT_FP16"),
     (["export", "{f}", "-o", "{tmp}/x.onnx", "--fp16", "{tmp}/h.onnx"], "is already exported"),
     (["export", "{tmp}/junk.onnx", "--fp16", "{tmp}/h.onnx"], "not a readable ONNX model"),
+    (["export", "{tmp}", "--fp16", "{tmp}/h.onnx"], "exporting a run folder needs -o OUT.onnx"),
 ])  # fmt: skip
 def test_bad_paths_are_named(argv, message, pair, tmp_path, capsys):
     (tmp_path / "junk.onnx").write_bytes(b"not a model")
@@ -190,3 +191,12 @@ def test_the_fp16_model_on_cuda_matches_the_float_model(pair):
     ga, gp = OnnxModel(h, providers=("CUDAExecutionProvider", "CPUExecutionProvider")).run_raw(x)
     assert np.abs(ga - fa).max() <= REL_TOL * np.abs(fa).max()
     assert np.abs(gp - fp).max() <= REL_TOL * max(np.pi, np.abs(fa).max())
+
+
+def test_export_of_a_run_writes_both_models(tiny_run, tmp_path, capsys):
+    f, h = tmp_path / "m.onnx", tmp_path / "m-fp16.onnx"
+    assert main(["export", str(tiny_run), "-o", str(f), "--fp16", str(h), "--no-check"]) == 0
+    report = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert report["fp16_path"] == str(h) and report["fp16_vs_float"]["finite"] is True
+    assert OnnxModel(f).metadata.get("precision", "fp32") == "fp32"
+    assert OnnxModel(h).metadata["precision"] == "fp16"
