@@ -51,10 +51,13 @@ FP16_MAX = float(np.finfo(np.float16).max)  # 65504
 PRECISION = "fp16"
 
 
-def convert_fp16(src: str | Path, dst: str | Path, *, keep_float: tuple[str, ...] = ()) -> Path:
+def convert_fp16(src: str | Path, dst: str | Path, *, keep_float: tuple[str, ...] = (),
+                 check: bool = True) -> Path:  # fmt: skip
     """Write `src` (an `nhfd export` model, float32) to `dst` as float16 weights and compute with
     float32 inputs and outputs; `keep_float`: more node names to keep in float32. Refuses a file
-    that is not an nhfd model, or one already converted."""
+    that is not an nhfd model, or one already converted. `check`: refuse (and remove) a result
+    that gives inf or NaN computed in float16 on a random input or the extreme ones
+    (`compare_fp16`)."""
     import onnx
 
     src, dst = Path(src), Path(dst)
@@ -79,6 +82,10 @@ def convert_fp16(src: str | Path, dst: str | Path, *, keep_float: tuple[str, ...
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = dst.with_name(dst.name + ".tmp")
     onnx.save(half, str(tmp))
+    if check and not compare_fp16(src, tmp, emulate=True)["finite"]:
+        tmp.unlink()
+        raise ValueError(f"{src}: its fp16 conversion gives inf or NaN (float16's range is "
+                         f"+-{FP16_MAX:g}); not written to {dst}")  # fmt: skip
     tmp.replace(dst)
     return dst
 

@@ -210,15 +210,12 @@ def run_export(args: argparse.Namespace) -> int:
         report = {"path": str(res.path), "max_abs_diff": res.max_abs_diff}
     float_path = source if res is None else res.path
     if args.fp16:
-        h = convert_fp16(float_path, Path(args.fp16))
-        d = compare_fp16(float_path, h)
-        print(f"{h}: fp16 ({h.stat().st_size} bytes against {float_path.stat().st_size}); vs "
-              f"float32: amplitude max abs difference {d['amplitude_max_abs_diff']:.3g} (of "
-              f"{d['amplitude_max']:.3g}), phase {d['phase_max_abs_diff']:.3g} rad; "
-              + ("finite on the extreme inputs" if d["finite"] else "NOT FINITE"))
-        if not d["finite"]:
-            h.unlink()
-            raise ValueError(f"--fp16 {h}: the fp16 model gave inf or NaN; not written")
+        h = convert_fp16(float_path, Path(args.fp16))  # refuses one that overflows
+        d = compare_fp16(float_path, h, emulate=True)
+        print(f"{h}: fp16 ({h.stat().st_size} bytes against {float_path.stat().st_size}); "
+              f"computed in float16 (emulated) vs float32: amplitude max abs difference "
+              f"{d['amplitude_max_abs_diff']:.3g} (of {d['amplitude_max']:.3g}), phase "
+              f"{d['phase_max_abs_diff']:.3g} rad; finite on the extreme inputs")  # fmt: skip
         report["fp16_path"] = str(h)
         report["fp16_vs_float"] = d
     if args.int8:

@@ -60,25 +60,38 @@ def test_edges_are_float32_and_the_weights_float16(pair):
     assert f.stat().st_size - h.stat().st_size >= 0.45 * before["float32"]
 
 
+def _scaled_amplitude_head(src, dst, factor: float):
+    """`src` with the amplitude head's weights times `factor`."""
+    from nhfd.models.quantise import output_nodes
+
+    model = onnx.load(str(src))
+    heads, _tail = output_nodes(model)
+    # the head that feeds the softplus (the phase head writes `phase` itself)
+    amp_head = next(n for n in model.graph.node if n.name in heads and "phase" not in n.output)
+    for t in model.graph.initializer:
+        if t.name == amp_head.input[1]:
+            w = onnx.numpy_helper.to_array(t) * factor
+            t.CopyFrom(onnx.numpy_helper.from_array(w.astype(np.float32), t.name))
+    onnx.save(model, str(dst))
+    return dst
+
+
+def test_a_model_beyond_float16s_range_is_refused(pair, tmp_path):
+    huge = _scaled_amplitude_head(pair[0], tmp_path / "huge.onnx", 1e6)
+    assert np.abs(OnnxModel(huge).run_raw(np.ones((1, 3, 64, 64), np.float32))[0]).max() > 7e4
+    with pytest.raises(ValueError, match=r"gives inf or NaN .* not written to"):
+        convert_fp16(huge, tmp_path / "huge-fp16.onnx")
+    assert not (tmp_path / "huge-fp16.onnx").exists()
+    assert not list(tmp_path.glob("*.tmp"))
+
+
 def test_the_softplus_computes_in_float32(pair, tmp_path):
     """Amplitudes whose softplus input is far above float16's exp limit (exp(11.1) = 65504)
     come out finite and right when every float16 operator computes in float16 (emulated: the CPU
     provider computes them in float32); a float16 `1 + exp(a)` would make them inf."""
-    f, _ = pair
-    model = onnx.load(str(f))
-    from nhfd.models.quantise import output_nodes
-
-    heads, _tail = output_nodes(model)
-    # the head that feeds the softplus (the phase head writes `phase` itself)
-    amp_head = next(n for n in model.graph.node if n.name in heads and "phase" not in n.output)
-    # scale the amplitude head so its outputs reach tens (still well inside float16's range)
-    for t in model.graph.initializer:
-        if t.name == amp_head.input[1]:
-            w = onnx.numpy_helper.to_array(t) * 200.0
-            t.CopyFrom(onnx.numpy_helper.from_array(w.astype(np.float32), t.name))
-    loud = tmp_path / "loud.onnx"
-    onnx.save(model, str(loud))
-    h = convert_fp16(loud, tmp_path / "loud-fp16.onnx")
+    # the amplitude head scaled so its outputs reach tens (still well inside float16's range)
+    loud = _scaled_amplitude_head(pair[0], tmp_path / "loud.onnx", 200.0)
+    h = convert_fp16(loud, tmp_path / "loud-fp16.onnx", check=False)
     x = np.random.default_rng(5).random((1, 3, 64, 64), dtype=np.float32)
     fa, _ = OnnxModel(loud).run_raw(x)
     ha, _ = emulate_fp16(OnnxModel(h)).run_raw(x)
