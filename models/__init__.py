@@ -21,6 +21,8 @@ Modules (import what you need; nothing heavy is imported here):
   record in its metadata, and the refusal of a frame window of another size;
 - `quantise`: static int8 export; `serving`: the graph the daemon runs; `vgg`: the optional
   perceptual loss's features;
+- `half`: `convert_fp16`, the fp16 export (float16 weights and compute, float32 inputs and
+  outputs, the softplus in float32), and `compare_fp16`, its check against the float model;
 - `build`: `run_build`, `nhfd model build`'s stages (scene to evaluated model, resumable);
   `contact_sheet`: its held-out focal-stack picture;
 - `synthetic`: a tiny dataset in the real format, for tests and smoke runs.

@@ -8,11 +8,11 @@ Stages, in order (`STAGES`), each writing under the output folder OUT:
 3. `dataset`: `nhfd.dataset.build` into `dataset/` (its own resume: shards already written are
    kept).
 4. `train`: `nhfd.models.train` into `run/` (its own resume: the checkpoint).
-5. `export`: `model.onnx` (float32, checked against torch), and a static int8 candidate in
-   `candidates/` when the recipe asks.
+5. `export`: `model.onnx` (float32, checked against torch), and a static int8 and an fp16
+   candidate (`nhfd.models.half`) in `candidates/` when the recipe asks.
 6. `eval`: `nhfd.models.evaluate` of each variant on the held-out views, next to the 2D-hologram
-   and black baselines, with the focus check -> `eval/<variant>/`; the int8 model is kept
-   (`model-int8.onnx`) only within `INT8_MAX_LOSS_DB` of the float one.
+   and black baselines, with the focus check -> `eval/<variant>/`; the int8 and fp16 models are
+   kept (`model-int8.onnx`, `model-fp16.onnx`) only within `INT8_MAX_LOSS_DB` of the float one.
 7. `report`: `report.json` (the figures) and `contact_sheet.png` (`nhfd.models.contact_sheet`).
 
 `build.json` records each stage as started, then finished, with the key of its inputs: a hash
@@ -49,6 +49,7 @@ from nhfd.models.contact_sheet import contact_sheet
 from nhfd.models.data import HoloData
 from nhfd.models.evaluate import evaluate
 from nhfd.models.export import OnnxModel, export_onnx
+from nhfd.models.half import convert_fp16
 from nhfd.models.quantise import INT8_MAX_LOSS_DB, quantise_int8, record_heldout_loss
 from nhfd.models.train import RESUMABLE_CHANGES, TrainOptions, train
 from nhfd.optics import quality_planes
@@ -60,6 +61,10 @@ STAGES = ("scene", "reduce", "dataset", "train", "export", "eval", "report")
 STATE = "build.json"
 FORMAT = "nhfd-model-build"
 FORMAT_VERSION = 1
+# The reduced-precision candidates, in the order they are built and evaluated; each is kept
+# only within INT8_MAX_LOSS_DB of the float model's held-out PSNR (quantise.py: the daemon's
+# int8 rule too).
+CANDIDATES = ("int8", "fp16")
 # Seconds per unit of work on this project's 2-core machine, the estimate before a stage has
 # run (then the measured rate of the finished stages scales what is left): the reduction per
 # pose-pixel (the donut's 130 poses at 1024 x 576, about 2 min), a dataset example per
@@ -67,7 +72,7 @@ FORMAT_VERSION = 1
 # pixel of the crop (257 ms at 384 x 224, the shipped run), an export with its check, an
 # evaluated view per pixel, and the report.
 PRIOR_S = {"reduce_per_px": 1.0e-6, "example": 7.0, "step_per_px": 0.257 / (384 * 224),
-           "export": 20.0, "int8": 10.0, "eval_per_px": 2.0 / (512 * 288),
+           "export": 20.0, "int8": 10.0, "fp16": 2.0, "eval_per_px": 2.0 / (512 * 288),
            "report": 10.0}  # fmt: skip
 SPEED_STAGES = ("dataset", "train", "eval")
 
@@ -90,6 +95,8 @@ class Recipe:
     sheet_views: int
     int8: bool
     train: TrainOptions = field(default_factory=TrainOptions)
+    # export an fp16 candidate too (`nhfd.models.half`), kept like the int8 one
+    fp16: bool = True
     # Reduce the scene to what the dataset's views can show (`nhfd.scene.cull.reduce_scene`)
     # within this many grey levels per pixel.
     reduce: bool = True
@@ -113,7 +120,8 @@ class Recipe:
         return Recipe(name, r.views, r.width_px, r.height_px, r.fov_x_deg,
                       tuple(r.azimuth_deg), tuple(r.elevation_deg), tuple(r.radius_scale),
                       r.phase, r.seed, r.eval_views, r.sheet_views, r.int8, options,
-                      reduce=r.reduce, reduce_grey_levels=r.reduce_grey_levels)  # fmt: skip
+                      reduce=r.reduce, reduce_grey_levels=r.reduce_grey_levels,
+                      fp16=r.fp16)  # fmt: skip
 
     def to_json(self) -> dict:
         """The recipe as its stages' keys see it: training options that change neither the
@@ -311,18 +319,23 @@ def _export(ctx: Context) -> dict:
                      "parameters": res.metadata["parameters"],
                      "bytes": ctx.path("model.onnx").stat().st_size},
            "outputs": ["model.onnx"]}  # fmt: skip
-    if ctx.recipe.int8:
+    makers = {
+        "int8": lambda tmp: quantise_int8(
+            res.path, tmp, HoloData(ctx.path("dataset"), max_views={"interp": 1, "extrap": 1}),
+            int(res.metadata["input_multiple"]), OnnxModel(res.path).inputs),
+        "fp16": lambda tmp: convert_fp16(res.path, tmp),
+    }  # fmt: skip
+    for name in CANDIDATES:
+        if not getattr(ctx.recipe, name):
+            continue
         cand = ctx.path("candidates")
         cand.mkdir(exist_ok=True)
-        data = HoloData(ctx.path("dataset"), max_views={"interp": 1, "extrap": 1})
-        tmp = cand / "model-int8.tmp.onnx"
-        quantise_int8(res.path, tmp, data, int(res.metadata["input_multiple"]),
-                      OnnxModel(res.path).inputs)  # fmt: skip
-        os.replace(tmp, cand / "model-int8.onnx")
-        out["int8"] = {"path": "candidates/model-int8.onnx",
-                       "bytes": (cand / "model-int8.onnx").stat().st_size}
-        out["outputs"].append("candidates/model-int8.onnx")
-    out["fp16"] = "not built: an fp16 export is issue 23's"
+        tmp = cand / f"model-{name}.tmp.onnx"
+        makers[name](tmp)
+        os.replace(tmp, cand / f"model-{name}.onnx")
+        out[name] = {"path": f"candidates/model-{name}.onnx",
+                     "bytes": (cand / f"model-{name}.onnx").stat().st_size}
+        out["outputs"].append(f"candidates/model-{name}.onnx")
     return out
 
 
@@ -336,8 +349,8 @@ def _eval(ctx: Context) -> dict:
                     max_views=({"interp": ctx.recipe.eval_views, "extrap": ctx.recipe.eval_views}
                                if ctx.recipe.eval_views else None))  # fmt: skip
     out: dict = {"variants": {}, "outputs": []}
-    for variant in ("float", "int8"):
-        if variant not in ex:
+    for variant in ("float", *CANDIDATES):
+        if not isinstance(ex.get(variant), dict):  # an older build's fp16 note
             continue
         folder = ctx.path("eval") / variant
         res = evaluate(ctx.path(ex[variant]["path"]), ctx.path("dataset"), data=data,
@@ -351,24 +364,26 @@ def _eval(ctx: Context) -> dict:
                                     "angle_reference": res["model"]["angle_reference"]}
         out["outputs"].append(f"eval/{variant}/eval.json")
     f = out["variants"]["float"]
-    if "int8" in out["variants"]:
-        q = out["variants"]["int8"]
+    for name in CANDIDATES:
+        if name not in out["variants"]:
+            continue
+        q = out["variants"][name]
         loss = f["model_psnr_db"] - q["model_psnr_db"]
         keep = loss <= INT8_MAX_LOSS_DB
         q["loss_vs_float_db"] = loss
         q["kept"] = keep
-        # The figures travel inside the int8 file too: the daemon serves it by them.
-        record_heldout_loss(ctx.path(ex["int8"]["path"]), ctx.path(ex["float"]["path"]),
-                            float_psnr_db=f["model_psnr_db"], int8_psnr_db=q["model_psnr_db"],
-                            views=int(q.get("views") or 0))  # fmt: skip
-        dst = ctx.path("model-int8.onnx")
+        if name == "int8":  # the figures travel inside the int8 file: the daemon serves by them
+            record_heldout_loss(ctx.path(ex["int8"]["path"]), ctx.path(ex["float"]["path"]),
+                                float_psnr_db=f["model_psnr_db"], int8_psnr_db=q["model_psnr_db"],
+                                views=int(q.get("views") or 0))  # fmt: skip
+        dst = ctx.path(f"model-{name}.onnx")
         if keep:
-            _copy_atomic(ctx.path(ex["int8"]["path"]), dst)
-            out["outputs"].append("model-int8.onnx")
+            _copy_atomic(ctx.path(ex[name]["path"]), dst)
+            out["outputs"].append(f"model-{name}.onnx")
         else:
             dst.unlink(missing_ok=True)
-        ctx.log(f"int8: {q['model_psnr_db']:.2f} dB against float {f['model_psnr_db']:.2f} dB "
-                f"({loss:+.2f} dB): " + ("kept, model-int8.onnx" if keep else
+        ctx.log(f"{name}: {q['model_psnr_db']:.2f} dB against float {f['model_psnr_db']:.2f} dB "
+                f"({loss:+.2f} dB): " + (f"kept, model-{name}.onnx" if keep else
                                          f"dropped (more than {INT8_MAX_LOSS_DB} dB)"))
     return out
 
@@ -409,10 +424,9 @@ def build_report(ctx: Context, sheet: dict | None = None) -> dict:
         "train": {k: v for k, v in res["train"].items() if k != "outputs"},
         "models": {
             "float": {**res["export"]["float"], "served": True},
-            **({"int8": {**res["export"]["int8"], "kept": ev["int8"]["kept"],
-                         "path": "model-int8.onnx" if ev["int8"]["kept"] else None}}
-               if "int8" in ev else {}),
-            "fp16": res["export"]["fp16"],
+            **{name: {**res["export"][name], "kept": ev[name]["kept"],
+                      "path": f"model-{name}.onnx" if ev[name]["kept"] else None}
+               for name in CANDIDATES if name in ev},
         },
         "heldout": {
             variant: {k: v[k] for k in (
@@ -421,7 +435,7 @@ def build_report(ctx: Context, sheet: dict | None = None) -> dict:
                 "focus_target_offset_mm", "focus_tolerance_mm", "splits", "psnr_vs_angle",
                 "angle_reference") if k in v} | (
                 {"loss_vs_float_db": v["loss_vs_float_db"], "kept": v["kept"]}
-                if variant == "int8" else {})
+                if variant in CANDIDATES else {})
             for variant, v in ev.items()
         },
         "checks": {
@@ -465,7 +479,7 @@ def _stage_params(ctx: Context, stage: str) -> Any:
     if stage == "train":
         return r.to_json()["train"]
     if stage == "export":
-        return {"int8": r.int8}
+        return {"int8": r.int8, "fp16": r.fp16}
     if stage == "eval":
         return {"views": r.eval_views, "int8_max_loss_db": INT8_MAX_LOSS_DB}
     return {"sheet_views": r.sheet_views}
@@ -486,9 +500,9 @@ def _work(ctx: Context, stage: str) -> float:
         scale = 0.1 if r.train.device.startswith("cuda") else 1.0
         return r.train.steps * PRIOR_S["step_per_px"] * crop * scale
     if stage == "export":
-        return PRIOR_S["export"] + PRIOR_S["int8"] * r.int8
+        return PRIOR_S["export"] + PRIOR_S["int8"] * r.int8 + PRIOR_S["fp16"] * r.fp16
     if stage == "eval":
-        return n_eval * (1 + r.int8) * PRIOR_S["eval_per_px"] * px
+        return n_eval * (1 + r.int8 + r.fp16) * PRIOR_S["eval_per_px"] * px
     if stage == "report":
         return PRIOR_S["report"]
     return 1.0

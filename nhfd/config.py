@@ -266,6 +266,8 @@ class BuildRecipe(_Section):
     eval_views: Annotated[int, Field(ge=0, le=100_000)] = 0
     sheet_views: Annotated[int, Field(ge=1, le=6)] = 3
     int8: bool = True
+    # export an fp16 candidate too (nhfd.models.half), kept by the same rule as the int8 one
+    fp16: bool = True
     # Reduce the scene to what the dataset's views can show before building it, within this
     # many grey levels per pixel (nhfd.scene.cull; 0 still drops the splats no view draws).
     reduce: bool = True

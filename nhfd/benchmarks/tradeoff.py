@@ -7,7 +7,10 @@ to ONNX, and measured: parameter count, onnxruntime and torch latency per frame 
 the end, the models taking turns in each of --repeats rounds), and held-out focal-stack PSNR/SSIM
 (`nhfd eval`'s measure). --int8 adds onnxruntime's static int8 quantisation of each variant (QDQ,
 per channel, the last layer kept in float32, calibrated on training views). Writes a table, a
-JSON file and a PNG of PSNR against latency with the Pareto front marked. Runs are kept under
+JSON file and a PNG of PSNR against latency with the Pareto front marked. Where torch sees a
+CUDA device and onnxruntime has its CUDA provider, each variant's fp16 model (`nhfd.models.half`)
+is also timed there (`gpu fp16 ms`, host copies included); elsewhere that column says not
+measured, and why. Runs are kept under
 OUT/runs and resume; exports and evaluations are kept under OUT/models next to the step they were
 made at, so a second call (on a quieter machine, say) only measures latency.
 """
@@ -28,6 +31,7 @@ from nhfd.config import GROWTH_RANGE, LEARNING_RATE_RULE, SKIPS, learning_rate_o
 from nhfd.models.data import HoloData
 from nhfd.models.evaluate import evaluate
 from nhfd.models.export import GRAPH_FORM, OnnxModel, export_onnx
+from nhfd.models.half import convert_fp16
 from nhfd.models.net import parameter_count
 from nhfd.models.quantise import quantise_int8
 from nhfd.models.train import CHECKPOINT, TRAIN_LOG, TrainOptions, changed_options, load_run, train
@@ -168,6 +172,21 @@ def interleaved_ms(fns: dict[str, Callable[[], object]], repeats: int,
     return {k: 1e3 * statistics.median(v) for k, v in times.items()}
 
 
+GPU_PROVIDERS = ("CUDAExecutionProvider", "CPUExecutionProvider")
+
+
+def gpu_unavailable() -> str | None:
+    """Why the GPU column is not measured here (None: it is)."""
+    import onnxruntime as ort
+    import torch
+
+    if not torch.cuda.is_available():
+        return "not measured: no CUDA device"
+    if GPU_PROVIDERS[0] not in ort.get_available_providers():
+        return "not measured: this onnxruntime has no CUDAExecutionProvider (onnxruntime-gpu)"
+    return None
+
+
 def finished_run(run_dir: Path, opts, manifest_key: str | None
                  ) -> tuple[int, float, str] | None:
     """(step, median ms per training step, note) of a run already trained to `opts.steps`,
@@ -251,6 +270,9 @@ def run(args: argparse.Namespace) -> int:
           f"learning rate {lr:g}; "
           f"latency at {w}x{h} on {args.threads} threads; {machine}", flush=True)
     rows, timed = [], {}
+    no_gpu = gpu_unavailable()
+    gpu_timed: dict[str, Callable[[], object]] = {}
+    print(f"GPU column: {no_gpu or 'fp16 on onnxruntime CUDA'}", flush=True)
     for name, profile, width, depth, unshuffle, growth, skip in todo:
         crop_kw = {"crop_width_px": crop[0], "crop_height_px": crop[1]} if crop else {}
         opts = TrainOptions.from_config(config, profile, width=width, depth=depth,
@@ -286,6 +308,11 @@ def run(args: argparse.Namespace) -> int:
                                             np.float32)  # fmt: skip
         xt = torch.from_numpy(x)
         timed[f"torch:{name}"] = lambda n=net, t=xt: n(t)
+        if no_gpu is None:
+            half = convert_fp16(out / "models" / f"{name}.onnx",
+                                out / "models" / f"{name}-fp16.onnx")  # fmt: skip
+            gpu_model = OnnxModel(half, providers=GPU_PROVIDERS)
+            gpu_timed[name] = lambda om=gpu_model, xx=x: om.run_raw(xx)
         for label, path, diff in models:
             if label not in kept["evals"]:
                 ev = evaluate(path, args.data, data=data, log=lambda _m: None)
@@ -310,8 +337,10 @@ def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(args.threads)
     with torch.no_grad():
         ms = interleaved_ms(timed, args.repeats)
+    gpu_ms = interleaved_ms(gpu_timed, args.repeats) if gpu_timed else {}
     for r in rows:
         r["onnxruntime_ms"], r["torch_ms"] = ms[r["name"]], ms[r.pop("torch_key")]
+        r["gpu_fp16_ms"] = gpu_ms.get(r["name"])  # None: not measured (see report["gpu"])
         r["torch_over_onnxruntime"] = r["torch_ms"] / r["onnxruntime_ms"]
         print(f"  {r['name']:<18} {r['parameters']:>8} params  ort {r['onnxruntime_ms']:7.1f} "
               f"ms  torch {r['torch_ms']:7.1f} ms  PSNR {r['psnr_db']:6.2f} dB  SSIM "
@@ -326,6 +355,7 @@ def run(args: argparse.Namespace) -> int:
     report = {"machine": machine, "budget_steps": args.steps, "learning_rate": lr,
               "size_wh": [w, h],
               "threads": args.threads, "data": str(Path(args.data).resolve()), "rows": rows,
+              "gpu": no_gpu or f"fp16 on onnxruntime CUDA, {torch.cuda.get_device_name()}",
               "fastest_within_db": {"db": WITHIN_DB, "name": near["name"]}}
     (out / "tradeoff.json").write_text(json.dumps(report, indent=1))
     plot(rows, out / "tradeoff.png", args.steps, (w, h), args.threads)
@@ -335,10 +365,13 @@ def run(args: argparse.Namespace) -> int:
 
 def print_table(rows: list[dict]) -> None:
     print(f"{'variant':<18}{'params':>9}{'ort ms':>9}{'torch ms':>10}{'torch/ort':>10}"
-          f"{'PSNR dB':>9}{'SSIM':>7}{'2D dB':>7}{'focus':>7}  pareto")  # fmt: skip
+          f"{'gpu fp16 ms':>14}{'PSNR dB':>9}{'SSIM':>7}{'2D dB':>7}{'focus':>7}"
+          "  pareto")  # fmt: skip
     for r in rows:
+        gpu = r.get("gpu_fp16_ms")
         print(f"{r['name']:<18}{r['parameters']:>9}{r['onnxruntime_ms']:>9.1f}"
-              f"{r['torch_ms']:>10.1f}{r['torch_over_onnxruntime']:>10.2f}{r['psnr_db']:>9.2f}"
+              f"{r['torch_ms']:>10.1f}{r['torch_over_onnxruntime']:>10.2f}"
+              f"{'not measured' if gpu is None else f'{gpu:.2f}':>14}{r['psnr_db']:>9.2f}"
               f"{r['ssim']:>7.3f}{r['psnr_2d_db']:>7.2f}{r['focus_bins_passed']:>7}  "
               f"{'*' if r['pareto'] else ''}")  # fmt: skip
 

@@ -17,6 +17,7 @@ from nhfd.config import GROWTH_RANGE, SKIPS, load_config
 from nhfd.models.data import HoloData
 from nhfd.models.evaluate import evaluate
 from nhfd.models.export import OnnxModel, export_onnx
+from nhfd.models.half import compare_fp16, convert_fp16
 from nhfd.models.quantise import quantise_int8
 from nhfd.models.train import TrainOptions, train
 
@@ -96,14 +97,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.set_defaults(handler=run_eval)
 
     x = sub.add_parser("export", help="export a run to ONNX (checked against torch)")
-    x.add_argument("run", help="run folder (nhfd train)")
-    x.add_argument("-o", "--out", required=True, help="the .onnx file to write")
+    x.add_argument("run", help="run folder (nhfd train), or an exported float .onnx to convert "
+                   "with --fp16 / --int8 (a shipped model has no run folder)")
+    x.add_argument("-o", "--out", help="the .onnx file to write (needed for a run folder)")
     x.add_argument("--opset", type=int, default=18, help="ONNX opset, 18 or newer (default 18)")
     x.add_argument("--no-check", action="store_true", help="skip the onnxruntime check")
     x.add_argument("--int8", metavar="OUT_INT8",
                    help="also write a static int8 model here (QDQ, per channel, the output "
                         "layers in float32), calibrated on --data's training views")
     x.add_argument("--data", help="dataset folder for --int8's calibration")
+    x.add_argument("--fp16", metavar="OUT_FP16",
+                   help="also write an fp16 model here (float16 weights and compute, float32 "
+                        "inputs and outputs, the softplus in float32; nhfd.models.half)")
     x.set_defaults(handler=run_export)
 
 
@@ -166,24 +171,57 @@ def run_eval(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     if args.opset < 18:
         raise ValueError(f"--opset {args.opset}: must be 18 or newer")
-    if not Path(args.run).is_dir():
-        raise FileNotFoundError(f"{args.run}: no such run folder")
+    source = Path(args.run)
+    from_onnx = source.suffix == ".onnx"
+    if from_onnx:
+        if not source.is_file():
+            raise FileNotFoundError(f"{source}: no such .onnx file")
+        if args.out:
+            raise ValueError(f"-o {args.out}: {source} is already exported; give --fp16 and/or "
+                             "--int8 to convert it")  # fmt: skip
+        if not (args.fp16 or args.int8):
+            raise ValueError(f"{source}: an .onnx source needs --fp16 OUT_FP16 and/or --int8 "
+                             "OUT_INT8")  # fmt: skip
+    elif not source.is_dir():
+        raise FileNotFoundError(f"{args.run}: no such run folder or .onnx file")
+    elif not args.out:
+        raise ValueError(f"{args.run}: exporting a run folder needs -o OUT.onnx")
     if args.int8 and not (args.data and Path(args.data).is_dir()):
         raise ValueError(f"--int8 needs --data: a dataset folder to calibrate on (got "
                          f"{args.data!r})")  # fmt: skip
+    if args.fp16 and Path(args.fp16).suffix != ".onnx":
+        raise ValueError(f"--fp16 {args.fp16}: the fp16 model's file name must end in .onnx")
+    if args.fp16 and Path(args.fp16).is_dir():
+        raise ValueError(f"--fp16 {args.fp16}: a folder; give the .onnx file to write")
 
-    res = export_onnx(args.run, args.out, opset=args.opset, check=not args.no_check)
-    m = res.metadata
-    print(f"{res.path}: profile {m['profile']}, {m['parameters']} parameters, input multiple "
-          f"{m['input_multiple']}, opset {m['opset']}")
-    if not args.no_check:
-        sizes = ", ".join(f"{w}x{h}" for h, w in res.checked_sizes)
-        print(f"onnxruntime vs torch: max abs difference {res.max_abs_diff:.3g} ({sizes})")
-    report = {"path": str(res.path), "max_abs_diff": res.max_abs_diff}
+    if from_onnx:
+        float_model = OnnxModel(source)  # refuses a file that is not an nhfd model
+        res = None
+        m = float_model.metadata
+        report: dict = {"path": str(source)}
+    else:
+        res = export_onnx(args.run, args.out, opset=args.opset, check=not args.no_check)
+        m = res.metadata
+        print(f"{res.path}: profile {m['profile']}, {m['parameters']} parameters, input "
+              f"multiple {m['input_multiple']}, opset {m['opset']}")  # fmt: skip
+        if not args.no_check:
+            sizes = ", ".join(f"{w}x{h}" for h, w in res.checked_sizes)
+            print(f"onnxruntime vs torch: max abs difference {res.max_abs_diff:.3g} ({sizes})")
+        report = {"path": str(res.path), "max_abs_diff": res.max_abs_diff}
+    float_path = source if res is None else res.path
+    if args.fp16:
+        h = convert_fp16(float_path, Path(args.fp16))  # refuses one that overflows
+        d = compare_fp16(float_path, h, emulate=True)
+        print(f"{h}: fp16 ({h.stat().st_size} bytes against {float_path.stat().st_size}); "
+              f"computed in float16 (emulated) vs float32: amplitude max abs difference "
+              f"{d['amplitude_max_abs_diff']:.3g} (of {d['amplitude_max']:.3g}), phase "
+              f"{d['phase_max_abs_diff']:.3g} rad; finite on the extreme inputs")  # fmt: skip
+        report["fp16_path"] = str(h)
+        report["fp16_vs_float"] = d
     if args.int8:
         data = HoloData(args.data, max_views={"interp": 1, "extrap": 1})
-        q = quantise_int8(res.path, Path(args.int8), data, int(m["input_multiple"]),
-                          OnnxModel(res.path).inputs)  # fmt: skip
+        q = quantise_int8(float_path, Path(args.int8), data, int(m["input_multiple"]),
+                          OnnxModel(float_path).inputs)  # fmt: skip
         print(f"{q}: static int8, calibrated on {args.data}")
         report["int8_path"] = str(q)
     json.dump(report, sys.stdout)
