@@ -221,3 +221,5 @@ def test_int8_checks_its_own_sizes_not_the_float_models(tiny_data, tiny_run, tmp
     assert [e["hw"] for e in int8_sizes] == [e["hw"] for e in float_sizes]
     assert all("torch" in e["against"] for e in float_sizes)
     assert all("torch" not in e["against"] and "tile" in e["against"] for e in int8_sizes)
+    # with the float model's receptive margin the int8 graph agrees with itself on tiles
+    assert all(e["ok"] for e in int8_sizes), int8_sizes
