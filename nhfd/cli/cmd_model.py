@@ -16,6 +16,7 @@ from pathlib import Path
 from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.daemon.paths import control_socket
 from nhfd.daemon.protocol import RpcError
 from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
 from nhfd.models.export import compare_with_torch
@@ -155,8 +156,11 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
     d = config.daemon
     model_dir = Path(args.model_dir or d.model_dirs[0])
     scene_dir = Path(args.scene_dir or d.scene_dirs[0])
-    with Client(args.socket, timeout_s=30.0) as c:  # no daemon: nothing is copied
+    socket = args.socket or str(control_socket(d.runtime_dir))  # as nhfctl finds it
+    with Client(socket, timeout_s=30.0) as c:  # no daemon: nothing is copied
         model = _place(out / "model.onnx", model_dir, model_name)
+        if (out / "model-int8.onnx").is_file():  # kept within 0.5 dB: the CPU serves it by default
+            _place(out / "model-int8.onnx", model_dir, f"{Path(model_name).stem}-int8.onnx")
         scene_file = _place(scene, scene_dir, scene.name)
         for method, path in (("load_scene", scene_file), ("load_model", model)):
             job = c.call(method, path=str(path))["job"]
@@ -174,8 +178,6 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
         c.call("set_view", orbit=orbit)
     print(f"serving {model.name} on {scene_file.name}; view: orbit {orbit['azimuth_deg']:.0f}, "
           f"{orbit['elevation_deg']:.0f}, {orbit['radius']:.3g} (inside the trained poses)")
-
-
 
 
 def run_check_sizes(args: argparse.Namespace) -> int:

@@ -252,7 +252,8 @@ def test_serve_loads_the_scene_and_the_model_into_a_running_daemon(built, tmp_pa
     config = bench_config(root, None)
     running = Running(config, root)
     try:
-        args = argparse.Namespace(model_dir=None, scene_dir=None, socket=str(running.socket))
+        # no --socket: the configured daemon's, as nhfctl finds it
+        args = argparse.Namespace(model_dir=None, scene_dir=None, socket=None)
         # relative folders are the daemon's (its base_dir is root): serve from there
         cwd = os.getcwd()
         os.chdir(root)
@@ -266,6 +267,10 @@ def test_serve_loads_the_scene_and_the_model_into_a_running_daemon(built, tmp_pa
         assert Path(status["model"]["path"]).name == "nhf-donut-crop-tiny.onnx"
         assert (root / "models" / "nhf-donut-crop-tiny.onnx").read_bytes() == \
             (out / "model.onnx").read_bytes()
+        # a kept int8 model goes beside it, and the CPU serves it by the figures it records
+        int8 = root / "models" / "nhf-donut-crop-tiny-int8.onnx"
+        assert int8.exists() == (out / "model-int8.onnx").exists()
+        assert status["model"]["variant"] == ("int8" if int8.exists() else "float")
         view = status["view"]["requested"]
         assert view["kind"] == "orbit" and view["azimuth_deg"] == 0.0  # middle of [-20, 20]
         assert view["elevation_deg"] == 20.0
