@@ -18,7 +18,7 @@ from nhfd.models.data import HoloData
 from nhfd.models.evaluate import evaluate
 from nhfd.models.export import OnnxModel, export_onnx
 from nhfd.models.half import compare_fp16, convert_fp16
-from nhfd.models.quantise import quantise_int8
+from nhfd.models.quantise import quantise_int8, record_heldout_loss
 from nhfd.models.train import TrainOptions, train
 
 TRAIN_HELP = """\
@@ -105,7 +105,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     x.add_argument("--int8", metavar="OUT_INT8",
                    help="also write a static int8 model here (QDQ, per channel, the output "
                         "layers in float32), calibrated on --data's training views")
-    x.add_argument("--data", help="dataset folder for --int8's calibration")
+    x.add_argument("--data", help="dataset folder for --int8's calibration (its training "
+                   "views) and its held-out loss (the interpolation and extrapolation views)")
+    x.add_argument("--int8-eval-views", type=int, default=None, metavar="N",
+                   help="held-out views per split the int8 model's loss is measured on and "
+                        "recorded in its file (default: all; 0: not measured, and the daemon "
+                        "then serves the float model)")
     x.add_argument("--fp16", metavar="OUT_FP16",
                    help="also write an fp16 model here (float16 weights and compute, float32 "
                         "inputs and outputs, the softplus in float32; nhfd.models.half)")
@@ -168,6 +173,31 @@ def run_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def _record_int8_loss(float_path: Path, int8_path: Path, data_dir: str,
+                      views: int | None) -> dict:
+    """Held-out PSNR of the float and the int8 model on `data_dir`'s interpolation and
+    extrapolation views (at most `views` per split; None: all), recorded in the int8 file
+    (`record_heldout_loss`): `daemon.int8 = "auto"` serves it on the CPU within 0.5 dB."""
+    data = HoloData(data_dir, splits=("interp", "extrap"),
+                    max_views={"interp": views, "extrap": views} if views else None)
+    if not len(data.splits["interp"]) + len(data.splits["extrap"]):
+        raise ValueError(f"--data {data_dir}: no held-out (interp, extrap) views to measure the "
+                         "int8 model's loss on; --int8-eval-views 0 skips the measurement")
+    quiet = lambda _line: None  # noqa: E731
+    psnr = {name: evaluate(path, data_dir, data=data, log=quiet)["summary"]["all"]
+            for name, path in (("float", float_path), ("int8", int8_path))}
+    record = record_heldout_loss(int8_path, float_path,
+                                 float_psnr_db=psnr["float"]["model_psnr_db"],
+                                 int8_psnr_db=psnr["int8"]["model_psnr_db"],
+                                 views=int(psnr["int8"]["views"]))  # fmt: skip
+    served = "served on the CPU by default" if record["loss_vs_float_db"] <= \
+        record["max_loss_db"] else f"more than {record['max_loss_db']} dB: the float one serves"
+    print(f"{int8_path}: held-out PSNR {record['int8_psnr_db']:.2f} dB against float "
+          f"{record['float_psnr_db']:.2f} dB on {record['views']} views "
+          f"({-record['loss_vs_float_db']:+.2f} dB; recorded in the file, {served})")
+    return record
+
+
 def run_export(args: argparse.Namespace) -> int:
     if args.opset < 18:
         raise ValueError(f"--opset {args.opset}: must be 18 or newer")
@@ -186,6 +216,9 @@ def run_export(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"{args.run}: no such run folder or .onnx file")
     elif not args.out:
         raise ValueError(f"{args.run}: exporting a run folder needs -o OUT.onnx")
+    if args.int8_eval_views is not None and args.int8_eval_views < 0:
+        raise ValueError(f"--int8-eval-views {args.int8_eval_views}: must be 0 (not measured) or "
+                         "a positive number of views per split")
     if args.int8 and not (args.data and Path(args.data).is_dir()):
         raise ValueError(f"--int8 needs --data: a dataset folder to calibrate on (got "
                          f"{args.data!r})")  # fmt: skip
@@ -224,6 +257,9 @@ def run_export(args: argparse.Namespace) -> int:
                           OnnxModel(float_path).inputs)  # fmt: skip
         print(f"{q}: static int8, calibrated on {args.data}")
         report["int8_path"] = str(q)
+        if args.int8_eval_views != 0:  # the figure the daemon serves int8 by, inside the file
+            report["int8_heldout"] = _record_int8_loss(float_path, q, args.data,
+                                                       args.int8_eval_views)
     json.dump(report, sys.stdout)
     print()
     return 0

@@ -180,7 +180,7 @@ def choose_variant(path: str, config: Any, int8_metadata: dict[str, Any] | None
     record = int8_metadata.get(HELDOUT_KEY)
     if not isinstance(record, dict) or "loss_vs_float_db" not in record:
         return "float", (f"{sibling} records no held-out loss against the float model (`nhfd "
-                         "model build` records it; `nhfd export --int8` does not)")
+                         "model build` and `nhfd export --int8 --data` record it)")
     if record.get("float_sha256") != file_sha256(path):
         return "float", (f"{sibling}'s held-out loss was measured against another float model "
                          "(SHA-256 differs): rebuild it")

@@ -26,8 +26,20 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     int8_path = tmp_path / "m-int8.onnx"
     assert main(["export", str(run), "-o", str(onnx_path), "--int8", str(int8_path),
                  "--data", str(tiny_data)]) == 0  # fmt: skip
-    assert "max abs difference" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "max abs difference" in out and "recorded in the file" in out
     _int8_is_quantised_and_close(onnx_path, int8_path)
+    # the held-out loss inside the int8 file is what `nhfd eval` measures of the two models
+    from nhfd.models.evaluate import evaluate
+    from nhfd.models.export import OnnxModel
+    from nhfd.models.quantise import HELDOUT_KEY, file_sha256
+
+    record = OnnxModel(int8_path).metadata[HELDOUT_KEY]
+    psnr = {p: evaluate(p, tiny_data, log=lambda _l: None)["summary"]["all"]["model_psnr_db"]
+            for p in (onnx_path, int8_path)}
+    assert record["float_sha256"] == file_sha256(onnx_path)
+    assert record["loss_vs_float_db"] == pytest.approx(psnr[onnx_path] - psnr[int8_path],
+                                                       abs=1e-9)
     assert main(["eval", str(onnx_path), "--data", str(tiny_data), "--out",
                  str(tmp_path / "ev")]) == 0  # fmt: skip
     out = capsys.readouterr().out
@@ -55,6 +67,7 @@ def _int8_is_quantised_and_close(float_path, int8_path):
     # the same metadata, except the sizes: the int8 graph's are checked on itself (tiles)
     q_meta, f_meta = dict(q.metadata), dict(f.metadata)
     q_sizes, f_sizes = q_meta.pop("checked_sizes"), f_meta.pop("checked_sizes")
+    q_meta.pop("int8_heldout")  # its held-out loss, checked by the caller
     assert q_meta == f_meta and q.inputs == f.inputs == "rgbd"
     assert [e["hw"] for e in q_sizes] == [e["hw"] for e in f_sizes]
     assert all(e["ok"] and "tiles" in e["against"] for e in q_sizes)
