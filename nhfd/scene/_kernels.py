@@ -117,6 +117,37 @@ def _floor_clamped(x, lo, hi):
 
 
 @njit(cache=True, inline="always")
+def row_span(u, v, a, b, c, smax, y, x0, w):
+    """Row `y`'s pixels (columns j0..j1 of the tile starting at `x0`, `w` wide) whose centres lie
+    inside a splat's ellipse q <= smax, and the row's offset dy from the splat's centre;
+    j1 < j0 when none. The span follows from the quadratic in dx."""
+    dy = y + 0.5 - v
+    disc = (b * dy) ** 2 - a * (c * dy * dy - 2.0 * smax)
+    if disc < 0:
+        return 0, -1, dy
+    sq = math.sqrt(disc)
+    j0 = max(-_floor_clamped(-(u + (-b * dy - sq) / a - 0.5 - x0), -w, 0), 0)
+    j1 = min(_floor_clamped(u + (-b * dy + sq) / a - 0.5 - x0, -1, w - 1), w - 1)
+    return j0, j1, dy
+
+
+@njit(cache=True, inline="always")
+def blend(trans, done, yy, xx, al):
+    """One splat's front-to-back step at a pixel: its weight alpha * T, with T updated (0.0
+    where the pixel is done or the splat too faint there), and 1 when this step spent the
+    pixel's transmittance (it is done from now on), else 0."""
+    if done[yy, xx] or al < ALPHA_MIN:
+        return 0.0, 0
+    tr = trans[yy, xx]
+    nt = tr * (1.0 - al)
+    if nt < T_MIN:
+        done[yy, xx] = True
+        return 0.0, 1
+    trans[yy, xx] = nt
+    return al * tr, 0
+
+
+@njit(cache=True, inline="always")
 def _tile_range(rec, tile, width, height):
     """Tiles whose pixel centres (j + 0.5) can fall inside the ellipse's bounding box."""
     nx = (width + tile - 1) // tile
@@ -300,13 +331,7 @@ def composite(rec, starts, gauss, tile, width, height, rgb, alpha, depth):
             col_r, col_g, col_b, zc = r[COL_R], r[COL_G], r[COL_B], r[Z]
             ea = math.exp(-a)
             for yy in range(h):
-                dy = y0 + yy + 0.5 - v
-                disc = (b * dy) ** 2 - a * (c * dy * dy - 2.0 * smax)
-                if disc < 0:
-                    continue
-                sq = math.sqrt(disc)
-                j0 = max(-_floor_clamped(-(u + (-b * dy - sq) / a - 0.5 - x0), -w, 0), 0)
-                j1 = min(_floor_clamped(u + (-b * dy + sq) / a - 0.5 - x0, -1, w - 1), w - 1)
+                j0, j1, dy = row_span(u, v, a, b, c, smax, y0 + yy, x0, w)
                 if j1 < j0:
                     continue
                 # Along a row q is quadratic in dx, so exp(-q) advances by a ratio that itself
@@ -325,20 +350,13 @@ def composite(rec, starts, gauss, tile, width, height, rgb, alpha, depth):
                     if incremental:
                         gval *= step
                         step *= ea
-                    if done[yy, xx] or al < ALPHA_MIN:
-                        continue
-                    tr = trans[yy, xx]
-                    nt = tr * (1.0 - al)
-                    if nt < T_MIN:
-                        done[yy, xx] = True
-                        n_done += 1
-                        continue
-                    wgt = al * tr
-                    acc[yy, xx, 0] += wgt * col_r
-                    acc[yy, xx, 1] += wgt * col_g
-                    acc[yy, xx, 2] += wgt * col_b
-                    acc[yy, xx, 3] += wgt * zc
-                    trans[yy, xx] = nt
+                    wgt, ended = blend(trans, done, yy, xx, al)
+                    n_done += ended
+                    if wgt > 0.0:
+                        acc[yy, xx, 0] += wgt * col_r
+                        acc[yy, xx, 1] += wgt * col_g
+                        acc[yy, xx, 2] += wgt * col_b
+                        acc[yy, xx, 3] += wgt * zc
         for yy in range(h):
             for xx in range(w):
                 al = 1.0 - trans[yy, xx]

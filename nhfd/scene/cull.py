@@ -195,8 +195,9 @@ def visible_anywhere(g: Gaussians, cameras: Sequence[Camera],
 
 @njit(parallel=True, fastmath=True, cache=True)
 def _max_weights_kernel(rec, starts, gauss, tile, width, height, out):
-    """`_kernels.composite`'s loop, recording each record's largest weight `alpha * T` instead of
-    accumulating colour. Tiles run in parallel, so each thread keeps its own maxima."""
+    """`_kernels.composite`'s loop (its row spans and blending step), recording each record's
+    largest weight `alpha * T` instead of accumulating colour. Tiles run in parallel, so each
+    thread keeps its own maxima."""
     nx = (width + tile - 1) // tile
     n_tiles = starts.shape[0] - 1
     n_threads = out.shape[0]
@@ -218,32 +219,17 @@ def _max_weights_kernel(rec, starts, gauss, tile, width, height, out):
                 u, v, a, b, c = r[k.U], r[k.V], r[k.CA], r[k.CB], r[k.CC]
                 op, smax = r[k.OP], r[k.SMAX]
                 for yy in range(h):
-                    dy = y0 + yy + 0.5 - v
-                    disc = (b * dy) ** 2 - a * (c * dy * dy - 2.0 * smax)
-                    if disc < 0:
-                        continue
-                    sq = math.sqrt(disc)
-                    j0 = max(-k._floor_clamped(-(u + (-b * dy - sq) / a - 0.5 - x0), -w, 0), 0)
-                    j1 = min(k._floor_clamped(u + (-b * dy + sq) / a - 0.5 - x0, -1, w - 1),
-                             w - 1)
+                    j0, j1, dy = k.row_span(u, v, a, b, c, smax, y0 + yy, x0, w)
                     for xx in range(j0, j1 + 1):
                         if done[yy, xx]:
                             continue
                         dx = x0 + xx + 0.5 - u
                         al = min(k.ALPHA_MAX,
                                  op * math.exp(-(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)))
-                        if al < k.ALPHA_MIN:
-                            continue
-                        tr = trans[yy, xx]
-                        nt = tr * (1.0 - al)
-                        if nt < k.T_MIN:
-                            done[yy, xx] = True
-                            n_done += 1
-                            continue
-                        wgt = al * tr
+                        wgt, ended = k.blend(trans, done, yy, xx, al)
+                        n_done += ended
                         if wgt > out[part, o]:
                             out[part, o] = wgt
-                        trans[yy, xx] = nt
 
 
 def max_weights(g: Gaussians, cameras: Sequence[Camera],
