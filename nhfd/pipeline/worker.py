@@ -29,6 +29,7 @@ applied in order, and a failed load leaves the previous model or scene in use.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import time
@@ -71,6 +72,13 @@ def _set_threads(threads: int) -> None:
     numba.set_num_threads(threads)
 
 
+@functools.cache
+def worker_device(value: str) -> tuple[torch.device, str]:
+    """`frame_device` for this process, resolved once per value (its torch and onnxruntime do
+    not change while it runs); an invalid value raises every time it is asked."""
+    return frame_device(value, ort.get_available_providers())
+
+
 def open_model(path: str, config: Any, threads: int) -> Any:
     """An `OnnxModel` checked against the configured optics, on the configured providers, with
     `threads` intra-op threads in pools that do not spin (`nhfd.models.export.session_options`)."""
@@ -80,7 +88,7 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     providers = check_providers(list(config.daemon.onnx_providers),
                                 ort.get_available_providers(), "daemon.onnx_providers")
     # A CUDA device torch lacks, or one named without its frame path installed: ValueError.
-    device, _ = frame_device(config.daemon.device, ort.get_available_providers())
+    device, _ = worker_device(config.daemon.device)
     if device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
         window_hw = frame_window_hw(config, read_model_metadata(path)[0])
         return load_model(path, config, threads=threads, providers=tuple(providers),
@@ -154,7 +162,7 @@ def int8_sibling(path: str | Path) -> Path:
 def cpu_path(config: Any) -> bool:
     """Whether the frames' inference runs on the CPU: onnxruntime's CPU provider first, and no
     CUDA device asked for (`daemon.device`, where this nhfd has it)."""
-    if frame_device(config.daemon.device, ort.get_available_providers())[0].type != "cpu":
+    if worker_device(config.daemon.device)[0].type != "cpu":
         return False
     return config.daemon.onnx_providers[0] == "CPUExecutionProvider"
 
@@ -268,7 +276,7 @@ class _WorkerState:
         self.encoders.clear()
         # recorded False: an older export, only its training window counts as checked
         checked, recorded = checked_sizes_hw(served.metadata)
-        device, device_why = frame_device(self.config.daemon.device, ort.get_available_providers())
+        device, device_why = worker_device(self.config.daemon.device)
         info = model_info(served, path)
         info.update(variant=variant, variant_reason=why,
                     served=str(sibling) if variant == "int8" else path,

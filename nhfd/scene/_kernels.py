@@ -117,6 +117,15 @@ def _floor_clamped(x, lo, hi):
 
 
 @njit(cache=True, inline="always")
+def tile_box(t, nx, tile, width, height):
+    """Tile `t`'s origin and size in pixels (x0, y0, w, h): row-major tiles of `tile` px, `nx`
+    per row, cut at the image's right and bottom edges."""
+    ty, tx = t // nx, t % nx
+    x0, y0 = tx * tile, ty * tile
+    return x0, y0, min(tile, width - x0), min(tile, height - y0)
+
+
+@njit(cache=True, inline="always")
 def row_span(u, v, a, b, c, smax, y, x0, w):
     """Row `y`'s pixels (columns j0..j1 of the tile starting at `x0`, `w` wide) whose centres lie
     inside a splat's ellipse q <= smax, and the row's offset dy from the splat's centre;
@@ -313,10 +322,7 @@ def composite(rec, starts, gauss, tile, width, height, rgb, alpha, depth):
             pos += 1
     for ti in prange(n_tiles):
         t = order[ti]
-        ty, tx = t // nx, t % nx
-        x0, y0 = tx * tile, ty * tile
-        w = min(tile, width - x0)
-        h = min(tile, height - y0)
+        x0, y0, w, h = tile_box(t, nx, tile, width, height)
         trans = np.ones((h, w))
         acc = np.zeros((h, w, 4))
         done = np.zeros((h, w), np.bool_)
@@ -352,11 +358,12 @@ def composite(rec, starts, gauss, tile, width, height, rgb, alpha, depth):
                         step *= ea
                     wgt, ended = blend(trans, done, yy, xx, al)
                     n_done += ended
-                    if wgt > 0.0:
-                        acc[yy, xx, 0] += wgt * col_r
-                        acc[yy, xx, 1] += wgt * col_g
-                        acc[yy, xx, 2] += wgt * col_b
-                        acc[yy, xx, 3] += wgt * zc
+                    if wgt == 0.0:  # done, too faint, or spent here
+                        continue
+                    acc[yy, xx, 0] += wgt * col_r
+                    acc[yy, xx, 1] += wgt * col_g
+                    acc[yy, xx, 2] += wgt * col_b
+                    acc[yy, xx, 3] += wgt * zc
         for yy in range(h):
             for xx in range(w):
                 al = 1.0 - trans[yy, xx]

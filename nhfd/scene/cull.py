@@ -195,7 +195,7 @@ def visible_anywhere(g: Gaussians, cameras: Sequence[Camera],
 
 @njit(parallel=True, fastmath=True, cache=True)
 def _max_weights_kernel(rec, starts, gauss, tile, width, height, out):
-    """`_kernels.composite`'s loop (its row spans and blending step), recording each record's
+    """`_kernels.composite`'s loop (its tiles, row spans and blending step), recording each record's
     largest weight `alpha * T` instead of accumulating colour. Tiles run in parallel, so each
     thread keeps its own maxima."""
     nx = (width + tile - 1) // tile
@@ -203,10 +203,7 @@ def _max_weights_kernel(rec, starts, gauss, tile, width, height, out):
     n_threads = out.shape[0]
     for part in prange(n_threads):
         for t in range(part, n_tiles, n_threads):
-            ty, tx = t // nx, t % nx
-            x0, y0 = tx * tile, ty * tile
-            w = min(tile, width - x0)
-            h = min(tile, height - y0)
+            x0, y0, w, h = k.tile_box(t, nx, tile, width, height)
             trans = np.ones((h, w))
             done = np.zeros((h, w), np.bool_)
             n_done = 0
