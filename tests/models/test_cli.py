@@ -91,6 +91,8 @@ def _int8_is_quantised_and_close(float_path, int8_path):
     (["export", "{tmp}", "-o", "{tmp}/m.onnx", "--opset", "17"], "--opset 17: must be 18"),
     (["export", "{tmp}", "-o", "{tmp}/m.onnx"], "not a training run"),
     (["export", "{tmp}", "-o", "{tmp}/m.onnx", "--int8", "{tmp}/q.onnx"], "--int8 needs --data"),
+    (["export", "{tmp}", "-o", "{tmp}/m.onnx", "--int8", "{tmp}/q.onnx", "--data", "{data}",
+      "--int8-eval-views", "-1"], "--int8-eval-views -1: must be 0 (not measured) or a positive"),
     (["train", "--data", "{data}", "--out", "{tmp}/r", "--device", "tpu"],
      "device = 'tpu': must be cpu, cuda or cuda:N"),
     (["eval", "{tmp}/none.onnx", "--data", "{data}"], "no such run folder or .onnx"),
