@@ -17,6 +17,8 @@ Modules (import what you need; nothing heavy is imported here):
 - `evaluate`: `evaluate` (optics.md quality vs the baselines, focus check, PNG);
 - `export`: `export_onnx`, `OnnxModel`, `load_model`; `metadata`: what a model records and the
   check that refuses a model for other optics;
+- `torch_model`: `TorchModel`, a model file's network rebuilt as a torch module (checked against
+  the file's own graph at load): inference on a GPU without onnxruntime-gpu;
 - `sizes`: the input sizes a model was checked at (against torch, or ONNX-only on tiles), their
   record in its metadata, and the refusal of a frame window of another size;
 - `quantise`: static int8 export; `serving`: the graph the daemon runs; `vgg`: the optional
