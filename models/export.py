@@ -339,6 +339,10 @@ class OnnxModel:
         # "rgb" (sRGB) or "rgbd" (sRGB + mapped depth): build inputs with
         # nhfd.models.inputs.network_input(..., self.inputs, ...).
         self.inputs: str = inputs[0]
+        # The graph's declared input shape (ints, or names for dynamic axes) and the providers
+        # running it: what the frame worker checks and reports (TorchModel has both too).
+        self.input_shape: list[Any] = list(self.session.get_inputs()[0].shape)
+        self.providers: list[str] = list(self.session.get_providers())
         self.channels = 3 + (self.inputs == "rgbd")
         self.multiple = int(self.metadata["input_multiple"])
         self.amplitude_scale = float(self.metadata["amplitude_scale"])

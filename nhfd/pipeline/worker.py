@@ -111,10 +111,9 @@ def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
     h, w = window_hw
     c, m = model.channels, model.multiple
     ph, pw = h + (-h) % m, w + (-w) % m
-    inp = model.session.get_inputs()[0]
-    declared = list(inp.shape)
-    want = f"[B, {c}, {ph}, {pw}] ({inp.name}, a {h} x {w} frame window padded to multiples " \
-           f"of {m})"
+    declared = list(model.input_shape)
+    want = f"[B, {c}, {ph}, {pw}] ({model.inputs}, a {h} x {w} frame window padded to " \
+           f"multiples of {m})"
     if len(declared) != 4:
         raise ModelUnfit(f"{path}: input shape: expected {want}, found {declared}")
     for what, expected, found in zip(("channels", "height", "width"), (c, ph, pw),
@@ -149,7 +148,7 @@ def model_info(model: Any, path: str) -> dict[str, Any]:
             "z0_m": m.get("z0_m"), "volume_m": m.get("volume_m"), "mapping": m.get("mapping"),
             "pose_envelope": m.get("pose_envelope"), "parameters": m.get("parameters"),
             "train_steps": m.get("train_steps"), "scene_sha256": m.get("scene_sha256"),
-            "providers": list(model.session.get_providers()), "loaded_s": time.time()}
+            "providers": list(model.providers), "loaded_s": time.time()}
 
 
 def int8_sibling(path: str | Path) -> Path:
