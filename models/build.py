@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from nhfd import __version__
+from nhfd.config import device_choice
 from nhfd.dataset.build import build as build_dataset
 from nhfd.dataset.build import sha256_file, write_json_atomic
 from nhfd.dataset.envelope import dataset_envelope
@@ -133,14 +134,12 @@ class Recipe:
 
 
 def resolve_device(name: str) -> str:
-    """`cpu`, `cuda`, `cuda:N`, or `auto` (CUDA when torch sees a device, else the CPU)."""
-    if name == "auto":
-        import torch
+    """`cpu`, `cuda`, `cuda:N`, or `auto` (CUDA when torch sees a device, else the CPU), as
+    "cpu" or "cuda:N"; a CUDA device torch does not see is refused (`device_choice`)."""
+    import torch
 
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name != "cpu" and not name.startswith("cuda"):
-        raise ValueError(f"--device {name!r}: must be cpu, cuda, cuda:N or auto")
-    return name
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    return device_choice(name, "--device", cuda_count=count)
 
 
 def _key(*parts: Any) -> str:

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from nhfd.config import device_choice
 from nhfd.dataset.build import sha256_file
 from nhfd.models.metadata import (
     METADATA_KEY,
@@ -212,13 +213,11 @@ def execution_providers(device: str, available: list[str], configured: Sequence[
     `engine_cache_dir` / `engine_cache_key(model_sha256, input_shape, gpu_name)`, a timing
     cache shared by that GPU's engines, and with `input_shape` a profile of exactly that shape
     (an engine optimised for the frames it serves)."""
-    dev = str(device)
-    kind, _, index_text = dev.partition(":")
-    if kind == "cpu":
+    # A resolved device ("auto" picked already); the name only: what torch sees is not asked.
+    dev = device_choice(device, device_setting, cuda_count=None, allowed=("cpu", "cuda", "cuda:N"))
+    if dev == "cpu":
         return check_providers(list(configured), available, setting)
-    if kind != "cuda":
-        raise ValueError(f"{device_setting} = {device!r}: expected cpu, cuda or cuda:N here")
-    index = int(index_text or 0)
+    index = int(dev.partition(":")[2])
     wanted = [p for p in configured if p in GPU_PROVIDERS]
     if wanted:
         check_providers(wanted, available, setting)
@@ -353,9 +352,8 @@ class OnnxModel:
                        device_setting: str) -> list[Provider]:
         """`execution_providers` for this file on this CUDA device (its hash, its padded input
         shape, the GPU's name)."""
-        device = f"cuda:{self.device.index or 0}"
-        if not torch.cuda.is_available() or (self.device.index or 0) >= torch.cuda.device_count():
-            raise ValueError(f"{device_setting} = {device!r}: torch sees no such CUDA device")
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        device = device_choice(f"cuda:{self.device.index or 0}", device_setting, cuda_count=count)
         shape = None
         name = "rgb"
         if input_hw is not None:

@@ -37,7 +37,7 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
 from nhfd import __version__
-from nhfd.config import LEARNING_RATE_RULE, ModelSettings, learning_rate_ok
+from nhfd.config import LEARNING_RATE_RULE, ModelSettings, device_choice, learning_rate_ok
 from nhfd.models.data import (
     HoloData,
     batch_views,
@@ -114,20 +114,14 @@ def float32_loss(
 
 
 def training_device(name: str, *, check_available: bool = False) -> torch.device:
-    """`cpu`, `cuda` or `cuda:N` as a torch device; with `check_available`, refuse a CUDA
-    device this machine does not have."""
-    try:
-        dev = torch.device(name)
-    except (RuntimeError, TypeError):
-        dev = None
-    if dev is None or dev.type not in ("cpu", "cuda"):
-        raise ValueError(f"device = {name!r}: must be cpu, cuda or cuda:N")
-    if check_available and dev.type == "cuda":
-        n = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if (dev.index or 0) >= n:
-            raise ValueError(f"device = {name!r}: this machine's torch sees {n} CUDA device(s)"
-                             f" (torch {torch.__version__})")  # fmt: skip
-    return dev
+    """`cpu`, `cuda`, `cuda:N` or `auto` (CUDA when torch sees a device, else the CPU) as a torch
+    device; with `check_available`, refuse a CUDA device this machine does not have
+    (`device_choice`'s messages)."""
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    chosen = device_choice(name, "device", cuda_count=count if check_available else None)
+    if chosen == "auto":  # the name alone was checked; "auto" still has to pick
+        chosen = device_choice(chosen, "device", cuda_count=count)
+    return torch.device(chosen)
 
 
 # The defaults of nhfd.toml's [model] section, held once in nhfd.config.

@@ -370,9 +370,56 @@ class WebSettings(_Section):
         return self
 
 
-# daemon.device's values (`nhfd.pipeline.device.resolve_device` turns one into a torch device).
+# The device names a setting or flag may take (daemon.device, --device, [model.train] device):
+# `device_choice` checks one, `nhfd.pipeline.device.resolve_device` turns one into a torch device.
 DEVICES = ("auto", "cpu", "cuda", "cuda:N")
 DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:[0-9]+)?)$")
+
+
+def device_choice(value: object, setting: str, *, cuda_count: int | None,
+                  allowed: tuple[str, ...] = DEVICES) -> str:
+    """`value` (stripped, lower-cased) as a device name: "cpu" or "cuda:N" ("cuda" is "cuda:0";
+    "auto" is "cuda:0" when torch sees a CUDA device, else "cpu"). `allowed`: the kinds of
+    `DEVICES` `setting` takes. `cuda_count`: how many CUDA devices torch sees (callers pass
+    `torch.cuda.device_count() if torch.cuda.is_available() else 0`); None checks the name only:
+    "auto" comes back as "auto" and a CUDA index is not checked.
+
+    The one place a device name is checked, so that every setting and flag says the same: a
+    ValueError names `setting`, the value, and the allowed values or the CUDA devices torch sees.
+    Torch-free (the configuration and control commands use it): the torch version in a message
+    is read from the installed package's metadata."""
+    text = str(value).strip().lower()
+    kind = ("cuda:N" if ":" in text else text) if DEVICE_PATTERN.fullmatch(text) else None
+    if kind not in allowed:
+        index_note = " (N: a CUDA device index)" if "cuda:N" in allowed else ""
+        raise ValueError(f"{setting} = {value!r}: must be one of {', '.join(allowed)}"
+                         f"{index_note}")
+    if kind == "cpu":
+        return "cpu"
+    if kind == "auto":
+        if cuda_count is None:
+            return "auto"
+        return "cuda:0" if cuda_count > 0 else "cpu"
+    index = int(text.partition(":")[2] or 0)
+    if cuda_count is not None and index >= cuda_count:
+        fallback = '"auto" or "cpu"' if "auto" in allowed else '"cpu"'
+        raise ValueError(f"{setting} = {value!r}: {_torch_sees(cuda_count)}; use {fallback}")
+    return f"cuda:{index}"
+
+
+def _torch_sees(cuda_count: int) -> str:
+    """What torch sees, with its version (a "+cpu" build says why there is no GPU)."""
+    from importlib import metadata
+
+    try:
+        torch = f"torch {metadata.version('torch')}"
+    except metadata.PackageNotFoundError:
+        torch = "torch"
+    if cuda_count <= 0:
+        return f"{torch} sees 0 CUDA devices (a CPU-only build, no GPU, or no driver)"
+    if cuda_count == 1:
+        return f"{torch} sees 1 CUDA device (index 0)"
+    return f"{torch} sees {cuda_count} CUDA devices (indices 0..{cuda_count - 1})"
 
 
 class DaemonSettings(_Section):
@@ -490,9 +537,7 @@ class DaemonSettings(_Section):
 
     @model_validator(mode="after")
     def _device_named(self) -> DaemonSettings:
-        if not DEVICE_PATTERN.match(self.device):
-            raise ValueError(f"device = {self.device!r}: must be one of {', '.join(DEVICES)} "
-                             "(N: a CUDA device index)")
+        device_choice(self.device, "device", cuda_count=None)  # the name; torch sees at load
         return self
 
     @model_validator(mode="after")

@@ -11,7 +11,15 @@ import numpy as np
 import pytest
 
 from nhfd.cli.main import main
-from nhfd.config import Config, ConfigError, check_file, default_text, load_config
+from nhfd.config import (
+    DEVICES,
+    Config,
+    ConfigError,
+    check_file,
+    default_text,
+    device_choice,
+    load_config,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -260,3 +268,67 @@ def test_serve_exits_2_on_a_cross_field_error(tmp_path, capsys, monkeypatch):
     err = capsys.readouterr().err
     assert err == (f"nhfd serve: error: {lab}: daemon.frame_size_px = [4096, 2160] does not fit "
                    "the panel 1920 x 1080 (slm.width_px x height_px)\n")
+
+
+# -- device names: the one check every setting and flag uses -----------------------------------
+
+ALL_DEVICES = "must be one of auto, cpu, cuda, cuda:N (N: a CUDA device index)"
+NO_AUTO = ("cpu", "cuda", "cuda:N")
+
+
+@pytest.mark.parametrize(
+    ("value", "cuda_count", "allowed", "name"),
+    [
+        ("cpu", 0, DEVICES, "cpu"),
+        (" CPU ", 0, DEVICES, "cpu"),
+        ("cpu", None, NO_AUTO, "cpu"),
+        ("cuda", 2, DEVICES, "cuda:0"),
+        ("cuda:1", 2, DEVICES, "cuda:1"),
+        ("CUDA:01", 2, NO_AUTO, "cuda:1"),
+        ("auto", 0, DEVICES, "cpu"),
+        ("auto", 2, DEVICES, "cuda:0"),
+        ("auto", None, DEVICES, "auto"),  # the name only: nothing to pick with
+        ("cuda:7", None, DEVICES, "cuda:7"),  # the name only: the index is not checked
+    ],
+)
+def test_device_choice_returns_the_normalised_name(value, cuda_count, allowed, name):
+    assert device_choice(value, "daemon.device", cuda_count=cuda_count, allowed=allowed) == name
+
+
+@pytest.mark.parametrize(
+    ("value", "cuda_count", "setting", "allowed", "message"),
+    [
+        *[(bad, count, "daemon.device", DEVICES, rf"daemon\.device = {re.escape(repr(bad))}: "
+           + re.escape(ALL_DEVICES))
+          for bad in ("gpu", "cuda:x", "cudaXYZ", "cuda:-1", "", "cuda:", "cpu:0", "auto:1")
+          for count in (None, 0, 2)],
+        ("cuda:2", 2, "--device", DEVICES,
+         r"--device = 'cuda:2': torch \S+ sees 2 CUDA devices \(indices 0\.\.1\); "
+         r"use \"auto\" or \"cpu\""),
+        ("cuda:1", 1, "device", DEVICES,
+         r"device = 'cuda:1': torch \S+ sees 1 CUDA device \(index 0\); use \"auto\" or \"cpu\""),
+        ("cuda", 0, "daemon.device", DEVICES,
+         r"daemon\.device = 'cuda': torch \S+ sees 0 CUDA devices \(a CPU-only build, no GPU, "
+         r"or no driver\); use \"auto\" or \"cpu\""),
+        # a setting that takes no "auto" lists what it takes, and offers only the CPU
+        ("auto", 2, "--device", NO_AUTO,
+         r"--device = 'auto': must be one of cpu, cuda, cuda:N \(N: a CUDA device index\)"),
+        ("cuda:0", 0, "--device", NO_AUTO,
+         r"--device = 'cuda:0': torch \S+ sees 0 CUDA devices .*; use \"cpu\""),
+        ("cuda:1", None, "x", ("auto", "cpu", "cuda"), r"x = 'cuda:1': must be one of auto, cpu, "
+         r"cuda"),
+    ],
+)
+def test_device_choice_refuses_naming_the_setting_the_value_and_what_is_allowed(
+        value, cuda_count, setting, allowed, message):
+    with pytest.raises(ValueError) as info:
+        device_choice(value, setting, cuda_count=cuda_count, allowed=allowed)
+    assert re.fullmatch(message, str(info.value)), str(info.value)
+
+
+def test_daemon_device_is_checked_by_name_when_the_file_is_read(tmp_path):
+    assert check_file(write(tmp_path, "[daemon]\ndevice = 'cuda:3'\n")).daemon.device == "cuda:3"
+    path = write(tmp_path, "[daemon]\ndevice = 'gpu'\n")
+    with pytest.raises(ConfigError) as info:
+        check_file(path)
+    assert str(info.value) == f"{path}: daemon.device = 'gpu': {ALL_DEVICES}"

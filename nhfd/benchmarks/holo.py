@@ -23,8 +23,8 @@ import numpy as np
 
 from nhfd.benchmarks.machine import describe
 from nhfd.cli.args import parse_wxh
-from nhfd.config import load_config
-from nhfd.dataset.build import DEVICES, check_device
+from nhfd.config import DEVICES, load_config
+from nhfd.dataset.build import check_device
 from nhfd.dataset.shard import ExampleSettings
 from nhfd.holo import band_limit, colour_sampling, scene_hologram, scene_mapping
 from nhfd.optics import Aperture, propagate
@@ -42,7 +42,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sizes", default="512x288,1024x576", help="comma-separated WxH list")
     p.add_argument("--out", default="out/bench/holo.json", help="JSON file to write")
     p.add_argument("--device", default="cpu", metavar="|".join(DEVICES),
-                   help="cpu (default), or cuda / cuda:N: gsplat renders and the GPU inverts")
+                   help="cpu (default), or cuda / cuda:N: gsplat renders and the GPU inverts; "
+                        "auto: the GPU where torch sees one and gsplat imports")
     p.set_defaults(handler=run)
 
 

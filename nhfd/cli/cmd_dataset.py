@@ -9,9 +9,8 @@ from pathlib import Path
 from tqdm import tqdm
 
 from nhfd.cli.args import parse_wxh
-from nhfd.config import load_config
+from nhfd.config import DEVICES, load_config
 from nhfd.dataset.build import (
-    DEVICES,
     EXECUTORS,
     build,
     check_device,
@@ -81,7 +80,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--device", default="cpu", metavar="|".join(DEVICES),
                    help="cpu (default): the CPU rasteriser and inversion; cuda or cuda:N: gsplat "
                         "renders the light fields, batched over views, and the inversion runs "
-                        "on that GPU (pip install 'nhfd[gpu]')")  # fmt: skip
+                        "on that GPU (pip install 'nhfd[gpu]'); auto: the GPU where torch sees "
+                        "one and gsplat imports, else the CPU")  # fmt: skip
     b.add_argument("--force", action="store_true", help="replace a dataset built differently")
     b.add_argument("--config", help="nhfd.toml to take the optics from")
     b.set_defaults(handler=run_build)

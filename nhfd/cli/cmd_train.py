@@ -80,7 +80,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--checkpoint-every", type=int, help="steps between checkpoints")
     t.add_argument("--val-views", type=int, help="held-out views per split validated per epoch")
     t.add_argument("--threads", type=int, help="torch threads (0: torch's default)")
-    t.add_argument("--device", help="torch device to train on: cpu (default), cuda or cuda:N")
+    t.add_argument("--device", help="torch device to train on: cpu (default), cuda, cuda:N or "
+                   "auto (CUDA if torch sees one)")
     t.add_argument("--force", action="store_true", help="start over in an existing run folder")
     t.add_argument("--no-progress", action="store_true", help="no progress bar")
     t.add_argument("--config", help="nhfd.toml to read [model] from")

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from nhfd import __version__
+from nhfd.config import device_choice
 from nhfd.dataset.poses import Pose, envelope
 from nhfd.dataset.shard import (
     FORMAT_VERSION,
@@ -222,27 +223,23 @@ def _crash_hook(index: int) -> None:
         os._exit(1)
 
 
-DEVICES = ("cpu", "cuda", "cuda:N")
-
-
 def check_device(device: str, flag: str = "--device") -> str:
-    """`device` if it names one this build can use: "cpu", or "cuda" / "cuda:N" on a machine
-    whose torch sees that GPU and has gsplat; else ValueError naming `flag` and the allowed
-    values. The CPU path is the one without a GPU."""
-    name = str(device).strip()
-    ok = name in ("cpu", "cuda") or (name.startswith("cuda:") and name[5:].isdigit())
-    if not ok:
-        raise ValueError(f"{flag} {device!r}: must be one of {', '.join(DEVICES)}")
+    """`device` as "cpu" or "cuda:N" if it names one this build can use: "cpu", "cuda" /
+    "cuda:N" on a machine whose torch sees that GPU and has gsplat, or "auto" (the first GPU
+    where torch sees one and gsplat imports, else the CPU); else ValueError naming `flag` and the
+    allowed values (`nhfd.config.device_choice`). The CPU path is the one without a GPU."""
+    name = device_choice(device, flag, cuda_count=None)
     if name == "cpu":
-        return name
+        return name  # without importing torch
     import torch
 
-    n = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    index = int(name[5:]) if ":" in name else 0
-    if index >= n:
-        raise ValueError(f"{flag} {name}: this machine's torch sees {n} CUDA device(s); "
-                         "use --device cpu")  # fmt: skip
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    name = device_choice(device, flag, cuda_count=count)
+    if name == "cpu":
+        return name
     if not gsplat_backend.available():
+        if str(device).strip().lower() == "auto":
+            return "cpu"  # a GPU without gsplat: "auto" builds on the CPU
         raise ValueError(f"{flag} {name}: needs the gsplat package (pip install 'nhfd[gpu]')")
     return name
 

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from nhfd.config import DEVICE_PATTERN, DEVICES
+from nhfd.config import device_choice
 from nhfd.scene import gsplat_backend
 
 SETTING = "daemon.device"
@@ -27,28 +27,12 @@ def resolve_device(value: str | torch.device, setting: str = SETTING, *,
                    cuda_count: int | None = None) -> torch.device:
     """The torch device `value` names; `cuda_count` (tests) stands in for what torch sees.
 
-    A ValueError names `setting`, the value, and the allowed values or the CUDA devices torch
-    sees."""
+    A ValueError (`nhfd.config.device_choice`'s) names `setting`, the value, and the allowed
+    values or the CUDA devices torch sees."""
     if isinstance(value, torch.device):
         value = str(value)
-    text = str(value).strip().lower()
-    if not DEVICE_PATTERN.match(text):
-        raise ValueError(f"{setting} = {value!r}: must be one of {', '.join(DEVICES)} "
-                         "(N: a CUDA device index)")
     count = _cuda_count() if cuda_count is None else int(cuda_count)
-    kind, _, index_text = text.partition(":")
-    if kind == "cpu":
-        return torch.device("cpu")
-    if kind == "auto":
-        return torch.device("cuda", 0) if count > 0 else torch.device("cpu")
-    index = int(index_text or 0)
-    if index >= count:
-        sees = (f"torch sees {count} CUDA device{'s' if count != 1 else ''} "
-                f"(indices 0..{count - 1})" if count else
-                f"torch {torch.__version__} sees no CUDA device (a CPU-only build, no GPU, or "
-                "no driver)")
-        raise ValueError(f"{setting} = {value!r}: {sees}; use \"auto\" or \"cpu\"")
-    return torch.device("cuda", index)
+    return torch.device(device_choice(value, setting, cuda_count=count))
 
 
 def check_cuda_frames(value: str, device: torch.device, onnx_providers: list[str],

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from nhfd.dataset.build import DEVICES, build, check_device, shard_name
+from nhfd.dataset.build import build, check_device, shard_name
 from nhfd.dataset.shard import read_shard
 from nhfd.holo import ColourInverter, colour_sampling
 from nhfd.holo.istft import InverseSTFT
@@ -22,12 +22,14 @@ from .test_dataset import SMALL, _poses, _tiny_scene
 NO_CUDA = not torch.cuda.is_available()
 
 
-@pytest.mark.parametrize("bad", ["tpu", "cuda:x", "", "CPU", "cuda:-1"])
+@pytest.mark.parametrize("bad", ["tpu", "cuda:x", "", "cudaXYZ", "cuda:-1"])
 def test_a_bad_device_names_the_flag_and_the_allowed_values(bad):
-    with pytest.raises(ValueError, match=rf"--device {bad!r}: must be one of cpu, cuda, cuda:N"):
+    with pytest.raises(ValueError, match=rf"--device = {bad!r}: must be one of auto, cpu, cuda, "
+                                         r"cuda:N \(N: a CUDA device index\)$"):
         check_device(bad)
-    assert DEVICES == ("cpu", "cuda", "cuda:N")
-    assert check_device("cpu") == "cpu"
+    assert check_device("cpu") == check_device(" CPU ") == "cpu"
+    # "auto": the GPU where torch sees one and gsplat imports, else the CPU
+    assert check_device("auto") == ("cuda:0" if gsplat_backend.available() else "cpu")
 
 
 @pytest.mark.parametrize("command", ["dataset", "bench"])
@@ -40,22 +42,24 @@ def test_the_cli_refuses_a_bad_device_before_doing_anything(tmp_path, capsys, co
     argv = (["dataset", "build", "--scene", str(scene), "--out", str(out)] if command == "dataset"
             else ["bench", "holo", "--scene", str(scene), "--out", str(out / "holo.json")])
     assert main([*argv, "--device", "gpu"]) == 2
-    assert "--device 'gpu': must be one of cpu, cuda, cuda:N" in capsys.readouterr().err
+    assert "--device = 'gpu': must be one of auto, cpu, cuda, cuda:N" in capsys.readouterr().err
     assert not out.exists()  # nothing was written
     if NO_CUDA:
         assert main([*argv, "--device", "cuda"]) == 2
         err = capsys.readouterr().err
-        assert "--device cuda: this machine's torch sees 0 CUDA device(s); use --device cpu" in err
+        assert "--device = 'cuda': torch " in err
+        assert ('sees 0 CUDA devices (a CPU-only build, no GPU, or no driver); use "auto" or '
+                '"cpu"') in err
         assert not out.exists()
 
 
 @pytest.mark.skipif(not NO_CUDA, reason="checks the refusal on a machine without CUDA")
 def test_cuda_without_a_gpu_is_a_clean_error(tmp_path):
-    with pytest.raises(ValueError, match=r"--device cuda:1: this machine's torch sees 0 CUDA"):
+    with pytest.raises(ValueError, match=r"--device = 'cuda:1': torch \S+ sees 0 CUDA devices"):
         check_device("cuda:1")
     scene = tmp_path / "tiny.ply"
     _tiny_scene(scene)
-    with pytest.raises(ValueError, match="--device cuda"):
+    with pytest.raises(ValueError, match="--device = 'cuda': torch "):
         build(scene, tmp_path / "ds", _poses()[:1], SMALL, seed=1, device="cuda")
     assert not (tmp_path / "ds").exists()
 
@@ -137,7 +141,7 @@ def test_cuda_build_matches_the_cpu_build_within_0p1_db(tmp_path):
     cpu = build(scene, tmp_path / "cpu", poses, SMALL, seed=1, device="cpu")
     gpu = build(scene, tmp_path / "gpu", poses, SMALL, seed=1, device="cuda")
     assert cpu["key"] == gpu["key"]
-    assert gpu["build_timing"]["device"] == "cuda"
+    assert gpu["build_timing"]["device"] == "cuda:0"  # check_device names the index
     rng = np.random.default_rng(0)
     for i in range(len(poses)):
         a = read_shard(tmp_path / "cpu" / shard_name(i))

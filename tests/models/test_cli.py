@@ -94,7 +94,7 @@ def _int8_is_quantised_and_close(float_path, int8_path):
     (["export", "{tmp}", "-o", "{tmp}/m.onnx", "--int8", "{tmp}/q.onnx", "--data", "{data}",
       "--int8-eval-views", "-1"], "--int8-eval-views -1: must be 0 (not measured) or a positive"),
     (["train", "--data", "{data}", "--out", "{tmp}/r", "--device", "tpu"],
-     "device = 'tpu': must be cpu, cuda or cuda:N"),
+     "device = 'tpu': must be one of auto, cpu, cuda, cuda:N (N: a CUDA device index)"),
     (["eval", "{tmp}/none.onnx", "--data", "{data}"], "no such run folder or .onnx"),
     (["eval", "{tmp}", "--data", "{data}", "--splits", "test"], "--splits 'test'"),
 ])  # fmt: skip

@@ -77,10 +77,11 @@ def test_resume_with_other_options_is_refused(tiny_data, tmp_path):
 
 def test_device_names_are_checked_before_training(tiny_data, tmp_path):
     for bad in ("tpu", "cuda:x", ""):
-        with pytest.raises(ValueError, match=f"device = {bad!r}: must be cpu, cuda or cuda:N"):
+        with pytest.raises(ValueError, match=rf"device = {bad!r}: must be one of auto, cpu, cuda, "
+                                             r"cuda:N"):
             tiny_options(device=bad)
     if not torch.cuda.is_available():
-        with pytest.raises(ValueError, match="sees 0 CUDA device"):
+        with pytest.raises(ValueError, match=r"device = 'cuda': torch \S+ sees 0 CUDA devices"):
             train(tiny_data, tmp_path / "r", tiny_options(device="cuda"), log=lambda _m: None)
         assert not (tmp_path / "r" / CHECKPOINT).exists()
 

@@ -14,7 +14,9 @@ import pytest
 import torch
 
 from nhfd.calibration import active_calibration
-from nhfd.config import Config, _overlay, default_text
+from nhfd.config import DEVICES, Config, _overlay, default_text, device_choice
+from nhfd.dataset.build import check_device
+from nhfd.models.build import resolve_device as build_resolve_device
 from nhfd.models.export import (
     CUDA,
     TENSORRT,
@@ -24,6 +26,7 @@ from nhfd.models.export import (
     load_model,
 )
 from nhfd.models.inputs import network_input
+from nhfd.models.train import TrainOptions, training_device
 from nhfd.optics import double_phase_grey
 from nhfd.pipeline.device import HostCopy, resolve_device
 from nhfd.pipeline.encoder import DEVICE_LUT_BINS, Encoder, device_curves, device_grey
@@ -57,18 +60,19 @@ def test_auto_picks_cuda_only_where_torch_sees_it():
 
 
 def test_a_cuda_device_torch_does_not_see_is_refused_naming_the_setting():
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:0': torch .* sees no CUDA "
-                                         r"device"):
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:0': torch \S+ sees 0 CUDA "
+                                         r"devices \(a CPU-only build, no GPU, or no driver\); "
+                                         r"use \"auto\" or \"cpu\"$"):
         resolve_device("cuda:0", cuda_count=0)
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:3': torch sees 2 CUDA devices "
-                                         r"\(indices 0\.\.1\)"):
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:3': torch \S+ sees 2 CUDA "
+                                         r"devices \(indices 0\.\.1\)"):
         resolve_device("cuda:3", cuda_count=2)
 
 
 @pytest.mark.parametrize("bad", ["gpu", "cuda:", "cpu:0", "cuda:-1", "auto:1", ""])
 def test_a_device_name_outside_the_allowed_ones_lists_them(bad):
     with pytest.raises(ValueError, match=rf"daemon\.device = {bad!r}: must be one of auto, cpu, "
-                                         r"cuda, cuda:N"):
+                                         r"cuda, cuda:N \(N: a CUDA device index\)$"):
         resolve_device(bad, cuda_count=1)
 
 
@@ -78,6 +82,44 @@ def test_the_configuration_checks_daemon_device():
     with pytest.raises(ValueError, match=r"device = 'gpu': must be one of auto, cpu, cuda, "
                                          r"cuda:N"):
         small_config(daemon={"device": "gpu"})
+
+
+# Every place a device name is checked, as (call, setting, allowed kinds, CUDA devices it asks
+# torch about; None: the name only). Each must raise `device_choice`'s own message, word for word.
+CUDA_COUNT = torch.cuda.device_count() if torch.cuda.is_available() else 0
+DEVICE_SITES = {
+    "daemon.device (pipeline)": (lambda v: resolve_device(v), "daemon.device", DEVICES,
+                                 CUDA_COUNT),
+    "bench pipeline --device": (lambda v: resolve_device(v, "--device"), "--device", DEVICES,
+                                CUDA_COUNT),
+    "model build --device": (build_resolve_device, "--device", DEVICES, CUDA_COUNT),
+    "train device": (lambda v: training_device(v, check_available=True), "device", DEVICES,
+                     CUDA_COUNT),
+    "train options": (lambda v: TrainOptions(device=v), "device", DEVICES, None),
+    "dataset build --device": (check_device, "--device", DEVICES, CUDA_COUNT),
+    "onnx providers": (lambda v: execution_providers(v, ["CPUExecutionProvider"],
+                                                     ["CPUExecutionProvider"]),
+                       "daemon.device", ("cpu", "cuda", "cuda:N"), None),
+}
+
+
+@pytest.mark.parametrize(("site", "bad"), [
+    (site, bad) for site in sorted(DEVICE_SITES) for bad in ("gpu", "cudaXYZ", "cuda:99")
+    if bad != "cuda:99" or DEVICE_SITES[site][3] is not None])  # an index, where torch is asked
+def test_every_device_check_raises_the_one_shared_message(site, bad):
+    call, setting, allowed, count = DEVICE_SITES[site]
+    with pytest.raises(ValueError) as shared:
+        device_choice(bad, setting, cuda_count=count, allowed=allowed)
+    with pytest.raises(ValueError) as info:
+        call(bad)
+    assert str(info.value) == str(shared.value)
+
+
+def test_auto_resolves_alike_wherever_it_is_taken():
+    cuda = torch.device("cuda", 0) if CUDA_COUNT else torch.device("cpu")
+    assert resolve_device("auto") == training_device("auto") == cuda
+    assert training_device("auto", check_available=True) == cuda
+    assert build_resolve_device(" AUTO ") == str(cuda)
 
 
 # -- providers and the TensorRT engine cache ----------------------------------------------------
@@ -295,7 +337,7 @@ def test_the_worker_refuses_a_cuda_device_torch_does_not_see(donut):
 
     config = Config.model_validate(_overlay(donut["config"].model_dump(),
                                             {"daemon": {"device": "cuda"}}))
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': torch .* sees no CUDA"):
+    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': torch \S+ sees 0 CUDA"):
         open_model(str(MODEL), config, 1)
 
 
@@ -306,7 +348,7 @@ def test_bench_pipeline_device_cuda_is_a_clean_error_without_cuda(capsys):
 
     assert main(["bench", "pipeline", "--device", "cuda", "--model", str(MODEL)]) == 2
     err = capsys.readouterr().err
-    assert "nhfd bench: error: --device = 'cuda': torch" in err and "sees no CUDA device" in err
+    assert "nhfd bench: error: --device = 'cuda': torch" in err and "sees 0 CUDA devices" in err
     assert main(["bench", "pipeline", "--device", "gpu", "--model", str(MODEL)]) == 2
     assert "--device = 'gpu': must be one of auto, cpu, cuda, cuda:N" in capsys.readouterr().err
 
