@@ -534,6 +534,10 @@ class DaemonSettings(_Section):
     # TensorRT engines built for the frame worker, one folder per model hash, input shape and GPU
     # ("" = $XDG_CACHE_HOME/nhfd/tensorrt, else ~/.cache/nhfd/tensorrt).
     engine_cache_dir: str = ""
+    # What runs the network (`nhfd.pipeline.device.inference_backend`): "onnxruntime", "torch"
+    # (the model file's network rebuilt as a torch module, `nhfd.models.torch_model`), or
+    # "auto": onnxruntime, except on a CUDA device whose onnxruntime has no CUDA provider.
+    inference: Literal["auto", "onnxruntime", "torch"] = "auto"
 
     @model_validator(mode="after")
     def _device_named(self) -> DaemonSettings:

@@ -6,7 +6,9 @@ torch sees one, else the CPU; a CUDA device torch does not see is a ValueError, 
 fall back to the CPU (a bench configured for the GPU that quietly ran 20x slower would say
 nothing of why). On CUDA every stage of a frame runs on the GPU and only the uint8 panel region
 (and the uint8 preview of the rendered view) crosses to the host: `HostCopy` copies it
-asynchronously into pinned memory and waits for that copy alone.
+asynchronously into pinned memory and waits for that copy alone. `inference_backend` says
+what runs the network there (`daemon.inference`: onnxruntime, or torch where onnxruntime has no
+CUDA provider).
 """
 
 from __future__ import annotations
@@ -35,37 +37,60 @@ def resolve_device(value: str | torch.device, setting: str = SETTING, *,
     return torch.device(device_choice(value, setting, cuda_count=count))
 
 
+INFERENCE_SETTING = "daemon.inference"
+CUDA_PROVIDER = "CUDAExecutionProvider"
+
+
+def inference_backend(inference: str, device: torch.device, onnx_providers: list[str],
+                      setting: str = SETTING) -> tuple[str, str]:
+    """("onnxruntime" | "torch", why): what runs the network on `device` for
+    `daemon.inference` = `inference`, given the providers this onnxruntime has.
+
+    "auto" is onnxruntime (on the CPU, 4x faster than torch for these networks) except on a CUDA
+    device whose onnxruntime has no CUDA provider (the CPU build beside a CUDA torch, or a bench
+    that cannot install onnxruntime-gpu): torch there, so the network runs on the GPU with the
+    other stages. "onnxruntime" on such a device is refused, naming both settings and the fix."""
+    if inference == "torch":
+        return "torch", f'{INFERENCE_SETTING} = "torch": the network in torch on {device}'
+    if device.type != "cuda" or CUDA_PROVIDER in onnx_providers:
+        return "onnxruntime", f'{INFERENCE_SETTING} = "{inference}": onnxruntime on {device}'
+    missing = (f"this onnxruntime has no {CUDA_PROVIDER} (available: "
+               f"{', '.join(onnx_providers)})")
+    if inference == "onnxruntime":
+        raise ValueError(f'{setting} = {device} with {INFERENCE_SETTING} = "onnxruntime": '
+                         f"{missing}; install onnxruntime-gpu in place of onnxruntime, or set "
+                         f'{INFERENCE_SETTING} to "auto" or "torch"')
+    return "torch", f'{INFERENCE_SETTING} = "auto": {missing}, so the network runs in torch on ' \
+                    f"{device}"
+
+
 def check_cuda_frames(value: str, device: torch.device, onnx_providers: list[str],
-                      setting: str = SETTING) -> None:
+                      setting: str = SETTING, inference: str = "auto") -> None:
     """Refuse, before a model loads, a CUDA device whose frames could not be computed: gsplat
-    absent (every frame would fail to render) or an onnxruntime without its CUDA provider (a
-    CPU-only build: `onnx_providers` is what it has). The message names `setting`, its value
-    (and what "auto" chose) and the fix."""
+    absent (every frame would fail to render), or `inference` = "onnxruntime" with an
+    onnxruntime without its CUDA provider (`inference_backend`). The message names `setting`,
+    its value (and what "auto" chose) and the fix."""
     if device.type != "cuda":
         return
     chose = f" (chose {device}: torch sees a GPU)" if str(value).strip() == "auto" else ""
-    fix = 'or set it to "cpu"'
-    if "CUDAExecutionProvider" not in onnx_providers:
-        raise ValueError(f"{setting} = {value!r}{chose}: this onnxruntime has no "
-                         f"CUDAExecutionProvider (available: {', '.join(onnx_providers)}); "
-                         f"install onnxruntime-gpu in place of onnxruntime, {fix}")
     if not gsplat_backend.available():
         raise ValueError(f"{setting} = {value!r}{chose}: CUDA frames render with gsplat, which "
-                         f"does not import here; pip install 'nhfd[gpu]', {fix}")
+                         "does not import here; pip install 'nhfd[gpu]', or set it to \"cpu\"")
+    inference_backend(inference, device, onnx_providers, setting)
 
 
-def frame_device(value: str, onnx_providers: list[str], setting: str = SETTING
-                 ) -> tuple[torch.device, str]:
-    """The device frames are computed on, and why. "auto" takes the GPU only where its whole
-    frame path is installed (gsplat and onnxruntime's CUDA provider): a workstation whose pip
-    torch has CUDA but whose onnxruntime is the CPU build keeps serving frames on the CPU, and
-    the reason says what is missing. A device named explicitly ("cuda", "cuda:N") that cannot
-    run frames is refused (`check_cuda_frames`): never a silent fall back."""
+def frame_device(value: str, onnx_providers: list[str], setting: str = SETTING,
+                 inference: str = "auto") -> tuple[torch.device, str]:
+    """The device frames are computed on, and why. "auto" takes the GPU only where its frame
+    path is installed (gsplat; and onnxruntime's CUDA provider where `inference` is
+    "onnxruntime"): otherwise it keeps serving frames on the CPU, and the reason says what is
+    missing. A device named explicitly ("cuda", "cuda:N") that cannot run frames is refused
+    (`check_cuda_frames`): never a silent fall back."""
     device = resolve_device(value, setting)
     if device.type != "cuda":
         return device, f"{setting} = {value!r}: the CPU"
     try:
-        check_cuda_frames(value, device, onnx_providers, setting)
+        check_cuda_frames(value, device, onnx_providers, setting, inference)
     except ValueError as e:
         if str(value).strip().lower() != "auto":
             raise

@@ -46,12 +46,13 @@ import torch
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
 from nhfd.models.export import check_providers, load_model, read_model_metadata
-from nhfd.models.metadata import checked_sizes_hw
+from nhfd.models.metadata import checked_sizes_hw, expected_from_config
 from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, file_sha256
 from nhfd.models.sizes import window_check
+from nhfd.models.torch_model import TorchModel
 from nhfd.scene.io import read_scene
 
-from .device import frame_device
+from .device import frame_device, inference_backend
 from .encoder import Encoder
 from .frame import compute_frame
 from .settings import frame_settings, frame_window_hw
@@ -73,22 +74,33 @@ def _set_threads(threads: int) -> None:
 
 
 @functools.cache
-def worker_device(value: str) -> tuple[torch.device, str]:
+def worker_device(value: str, inference: str = "auto") -> tuple[torch.device, str]:
     """`frame_device` for this process, resolved once per value (its torch and onnxruntime do
     not change while it runs); an invalid value raises every time it is asked."""
-    return frame_device(value, ort.get_available_providers())
+    return frame_device(value, ort.get_available_providers(), inference=inference)
+
+
+def worker_inference(config: Any) -> tuple[str, str]:
+    """`inference_backend` for the configured device and `daemon.inference`: ("onnxruntime" |
+    "torch", why)."""
+    device, _ = worker_device(config.daemon.device, config.daemon.inference)
+    return inference_backend(config.daemon.inference, device, ort.get_available_providers())
 
 
 def open_model(path: str, config: Any, threads: int) -> Any:
-    """An `OnnxModel` checked against the configured optics, on the configured providers, with
-    `threads` intra-op threads in pools that do not spin (`nhfd.models.export.session_options`)."""
+    """The model at `path` checked against the configured optics, on the configured device:
+    an `OnnxModel` on the configured providers, with `threads` intra-op threads in pools that
+    do not spin (`nhfd.models.export.session_options`), or a `TorchModel` where
+    `worker_inference` says torch."""
     # Checked here too, so the error names the setting to change. No silent fallback: a bench
     # configured for CUDA that quietly ran on the CPU would be 10x slower with nothing but a
     # warning to say why; the load fails instead and the previous model keeps running.
     providers = check_providers(list(config.daemon.onnx_providers),
                                 ort.get_available_providers(), "daemon.onnx_providers")
     # A CUDA device torch lacks, or one named without its frame path installed: ValueError.
-    device, _ = worker_device(config.daemon.device)
+    device, _ = worker_device(config.daemon.device, config.daemon.inference)
+    if worker_inference(config)[0] == "torch":
+        return TorchModel(path, expected=expected_from_config(config), device=device)
     if device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
         window_hw = frame_window_hw(config, read_model_metadata(path)[0])
         return load_model(path, config, threads=threads, providers=tuple(providers),
@@ -159,9 +171,11 @@ def int8_sibling(path: str | Path) -> Path:
 
 
 def cpu_path(config: Any) -> bool:
-    """Whether the frames' inference runs on the CPU: onnxruntime's CPU provider first, and no
-    CUDA device asked for (`daemon.device`, where this nhfd has it)."""
-    if worker_device(config.daemon.device)[0].type != "cpu":
+    """Whether the frames' inference runs in onnxruntime on the CPU: its CPU provider first, no
+    CUDA device asked for (`daemon.device`, where this nhfd has it), and not in torch."""
+    if worker_device(config.daemon.device, config.daemon.inference)[0].type != "cpu":
+        return False
+    if worker_inference(config)[0] != "onnxruntime":
         return False
     return config.daemon.onnx_providers[0] == "CPUExecutionProvider"
 
@@ -179,7 +193,8 @@ def choose_variant(path: str, config: Any, int8_metadata: dict[str, Any] | None
     if not cpu_path(config):
         return "float", (f"int8 serves only on the CPU path (daemon.onnx_providers = "
                          f"{list(config.daemon.onnx_providers)}, daemon.device = "
-                         f"{config.daemon.device!r})")
+                         f"{config.daemon.device!r}, daemon.inference = "
+                         f"{config.daemon.inference!r})")
     if int8_metadata is None:
         return "float", f"no int8 model beside it ({sibling})"
     if mode == "always":
@@ -275,8 +290,10 @@ class _WorkerState:
         self.encoders.clear()
         # recorded False: an older export, only its training window counts as checked
         checked, recorded = checked_sizes_hw(served.metadata)
-        device, device_why = worker_device(self.config.daemon.device)
+        device, device_why = worker_device(self.config.daemon.device,
+                                           self.config.daemon.inference)
         info = model_info(served, path)
+        info["inference"], info["inference_reason"] = worker_inference(self.config)
         info.update(variant=variant, variant_reason=why,
                     served=str(sibling) if variant == "int8" else path,
                     window_hw=list(window_hw), checked_sizes_hw=[list(hw) for hw in checked],

@@ -95,6 +95,7 @@ def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
         _load(link, pair["scene"], pair["float"])
         info = link.model_info
         assert info["variant"] == "int8" and info["served"] == str(pair["int8"].resolve())
+        assert info["inference"] == "onnxruntime"  # "auto" on the CPU
         assert "model-int8.onnx loses 0.30 dB" in info["variant_reason"]
         status = link.status()
         assert status["model_variant"] == "int8"
@@ -113,5 +114,29 @@ def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
         assert status["model_variant"] == "float"
         assert "loses 0.70 dB of held-out PSNR, more than 0.5 dB" in status["model_variant_reason"]
         assert link.model_info["served"] == str(pair["float"].resolve())
+    finally:
+        link.close()
+
+
+def test_torch_inference_serves_the_float_model_and_says_so(pair):
+    """daemon.inference = "torch": int8 arithmetic is onnxruntime's, so the float model serves
+    (frames and all), and the model's status names what runs the network and why."""
+    host = _Host(small_config(daemon={"frame_cache_frames": 0, "inference": "torch"}))
+    link = FrameLink(host)
+    try:
+        record_heldout_loss(pair["int8"], pair["float"], float_psnr_db=30.0, int8_psnr_db=29.9,
+                            views=4)
+        _load(link, pair["scene"], pair["float"])
+        info = link.model_info
+        assert (info["inference"], info["providers"]) == ("torch", ["torch"])
+        assert info["inference_reason"] == 'daemon.inference = "torch": the network in torch on cpu'
+        assert info["variant"] == "float" and info["served"] == str(pair["float"].resolve())
+        assert "daemon.inference = 'torch'" in info["variant_reason"]
+        seq = host.views.submit(FRONT_VIEW)
+        deadline = time.monotonic() + 30
+        while link.shown_seq < seq:
+            link.step()
+            assert not host.errors and time.monotonic() < deadline, host.errors
+            time.sleep(0.002)
     finally:
         link.close()

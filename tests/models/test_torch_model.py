@@ -176,3 +176,17 @@ def test_another_spec_rebuilds_too(tiny_data, tmp_path):
             m.inputs) == (1, "concat", 2.0, 1, "rgb")
     x = _inputs(3, (64, 96), seed=5)[0]
     assert _worst(m(x), ref(x)) <= TOL
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_on_a_gpu_the_outputs_stay_on_it_and_match(shipped):
+    """On CUDA, torch's convolutions may use TF32 (10-bit mantissa, its default for cuDNN
+    convolutions): the tolerance is fp16's (`tests/models/test_fp16.py`), relative to the
+    outputs' largest magnitude."""
+    m = TorchModel(shipped, device="cuda:0")
+    x = _inputs(4, (1080, 1920), seed=13)
+    amp, phase = m.run_on(torch.from_numpy(x).to("cuda:0"))
+    assert amp.device.type == phase.device.type == "cuda"
+    want = OnnxModel(shipped)(x)
+    for got, ref in zip((amp.cpu().numpy(), phase.cpu().numpy()), want, strict=True):
+        assert np.abs(got - ref).max() <= 5e-3 * np.abs(ref).max()

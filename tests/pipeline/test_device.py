@@ -330,6 +330,25 @@ def test_the_device_path_on_the_cpu_gives_the_cpu_paths_frame(donut):
                                   (np.clip(cpu.rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
 
 
+def test_inference_in_torch_gives_onnxruntimes_frames(donut):
+    """daemon.inference = "torch": the worker opens a TorchModel, and its frames, on the CPU path
+    and on the device path, are onnxruntime's (one grey level apart at most, where the network's
+    float32 rounding moves a phase across a level boundary)."""
+    from nhfd.models.torch_model import TorchModel
+    from nhfd.pipeline.worker import open_model
+
+    d = donut
+    config = Config.model_validate(_overlay(d["config"].model_dump(),
+                                            {"daemon": {"inference": "torch", "device": "cpu"}}))
+    model = open_model(str(MODEL), config, 1)
+    assert isinstance(model, TorchModel) and model.providers == ["torch"]
+    want = compute_frame(d["view"], d["scene"], d["model"], Encoder(d["settings"]))
+    for encoder in (Encoder(d["settings"]), Encoder(d["settings"], device_coding=True)):
+        got = compute_frame(d["view"], d["scene"], model, encoder)
+        diff = _circular_level_diff(got.grey, want.grey)
+        assert diff.max() <= 1 and (diff == 0).mean() > 0.999
+
+
 def test_the_worker_refuses_a_cuda_device_torch_does_not_see(donut):
     if torch.cuda.is_available():
         pytest.skip("torch sees a CUDA device here")
@@ -397,11 +416,18 @@ def test_cuda_frames_without_gsplat_or_onnxruntime_gpu_are_refused_before_a_mode
     from nhfd.pipeline import device as device_mod
 
     gpu = torch.device("cuda", 0)
-    with pytest.raises(ValueError, match=r"daemon\.device = 'auto' \(chose cuda:0: torch sees a "
-                                         r"GPU\): this onnxruntime has no CUDAExecutionProvider "
-                                         r"\(available: CPUExecutionProvider\); install "
-                                         r"onnxruntime-gpu"):
-        device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"])
+    monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
+    with pytest.raises(ValueError, match=r"daemon\.device = cuda:0 with daemon\.inference = "
+                                         r"\"onnxruntime\": this onnxruntime has no "
+                                         r"CUDAExecutionProvider \(available: "
+                                         r"CPUExecutionProvider\); install onnxruntime-gpu in "
+                                         r"place of onnxruntime, or set daemon\.inference to "
+                                         r"\"auto\" or \"torch\""):
+        device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"],
+                                     inference="onnxruntime")
+    # "auto" and "torch" inference need no CUDA provider: torch runs the network
+    device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"])
+    device_mod.check_cuda_frames("cuda", gpu, ["CPUExecutionProvider"], inference="torch")
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: False)
     with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': CUDA frames render with "
                                          r"gsplat, which does not import here; pip install "
@@ -410,20 +436,49 @@ def test_cuda_frames_without_gsplat_or_onnxruntime_gpu_are_refused_before_a_mode
     device_mod.check_cuda_frames("cpu", torch.device("cpu"), [])  # the CPU needs neither
 
 
+@pytest.mark.parametrize(("inference", "device", "providers", "backend"), [
+    ("auto", "cpu", ["CPUExecutionProvider"], "onnxruntime"),
+    ("auto", "cuda:0", CPU_CUDA_TRT, "onnxruntime"),
+    ("auto", "cuda:1", ["CPUExecutionProvider"], "torch"),  # a CPU onnxruntime beside CUDA torch
+    ("onnxruntime", "cpu", ["CPUExecutionProvider"], "onnxruntime"),
+    ("onnxruntime", "cuda:0", CPU_CUDA_TRT, "onnxruntime"),
+    ("torch", "cpu", ["CPUExecutionProvider"], "torch"),
+    ("torch", "cuda:0", CPU_CUDA_TRT, "torch"),
+])
+def test_what_runs_the_network(inference, device, providers, backend):
+    from nhfd.pipeline.device import inference_backend
+
+    got, why = inference_backend(inference, torch.device(device), providers)
+    assert got == backend
+    assert why.startswith(f'daemon.inference = "{inference}": ') and why.endswith(device)
+    if inference == "auto" and backend == "torch":
+        assert "this onnxruntime has no CUDAExecutionProvider" in why
+
+
 def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(monkeypatch):
-    """A workstation whose torch sees a GPU but whose onnxruntime is the CPU build: "auto" serves
-    frames on the CPU and says why; "cuda" named explicitly is refused."""
+    """A workstation whose torch sees a GPU but whose onnxruntime is the CPU build: "auto"
+    computes frames on the GPU with torch running the network, unless daemon.inference asks for
+    onnxruntime: then "auto" serves frames on the CPU and says why, and "cuda" named
+    explicitly is refused. Without gsplat, "auto" stays on the CPU."""
     from nhfd.pipeline import device as device_mod
 
     monkeypatch.setattr(device_mod, "_cuda_count", lambda: 1)
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
-    device, why = device_mod.frame_device("auto", ["CPUExecutionProvider"])
+    cpu_ort = ["CPUExecutionProvider"]
+    device, why = device_mod.frame_device("auto", cpu_ort)
+    assert device == torch.device("cuda", 0) and why == "daemon.device = 'auto': cuda:0"
+    device, why = device_mod.frame_device("auto", cpu_ort, inference="onnxruntime")
     assert device == torch.device("cpu")
     assert "no CUDAExecutionProvider" in why and why.endswith("computing frames on the CPU")
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': this onnxruntime has no "
+    with pytest.raises(ValueError, match=r"daemon\.device = cuda:0 with daemon\.inference = "
+                                         r"\"onnxruntime\": this onnxruntime has no "
                                          r"CUDAExecutionProvider"):
-        device_mod.frame_device("cuda", ["CPUExecutionProvider"])
+        device_mod.frame_device("cuda", cpu_ort, inference="onnxruntime")
     device, why = device_mod.frame_device("auto", CPU_CUDA_TRT)
     assert device == torch.device("cuda", 0) and why == "daemon.device = 'auto': cuda:0"
+    monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: False)
+    device, why = device_mod.frame_device("auto", CPU_CUDA_TRT)
+    assert device == torch.device("cpu") and "gsplat" in why
+    monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
     monkeypatch.setattr(device_mod, "_cuda_count", lambda: 0)
     assert device_mod.frame_device("auto", CPU_CUDA_TRT)[0] == torch.device("cpu")
