@@ -183,6 +183,7 @@ def _variant_config(config: Any, v: Variant) -> Config:
 
 
 def _check_fits(cfg: Any, model: Path, meta: dict[str, Any]) -> None:
+    """Refuse a frame window larger than the panel before a worker starts for it."""
     wh, ww = frame_window_hw(cfg, meta)
     if wh > cfg.slm.height_px or ww > cfg.slm.width_px:
         raise ValueError(f"{model}: trained at {ww} x {wh}, larger than the "
@@ -228,6 +229,7 @@ def _result(model: Path, meta: dict[str, Any], cfg: Any, rows: list[dict[str, fl
     return {"model": str(model), "profile": meta.get("profile"),
             "size_wh": list(cfg.daemon.frame_size_px) or [w, h],
             "transport": cfg.daemon.frame_transport, "int8": cfg.daemon.int8,
+            "worker_threads": cfg.daemon.worker_threads,
             "device_setting": cfg.daemon.device, "device": device,
             "device_reason": info.get("device_reason"), "gpu": _gpu(device),
             "onnx_providers": info.get("providers"),
@@ -366,10 +368,13 @@ def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: s
     """The README-ready figures: the machine, the command, one table row per result (the total
     median and p99, view to panel, then each stage's median)."""
     gpus = "; ".join(f"{d}: {n}" for d, n in (machine.get("cuda_devices") or {}).items())
+    # the CPU path's threads are the worker's (daemon.worker_threads), not the machine's cores
+    threads = sorted({r["worker_threads"] for r in results})
     lines = [f"Machine: {machine['cpu']}, {machine['cores']} cores; torch "
              f"{machine.get('torch', 'absent')}, onnxruntime {machine['onnxruntime']} "
              f"({', '.join(machine['onnx_providers_available'])})"
-             + (f"; {gpus}" if gpus else "") + f"; nhfd {__version__}.",
+             + (f"; {gpus}" if gpus else "") + f"; frame worker threads "
+             f"{', '.join(map(str, threads))} (daemon.worker_threads); nhfd {__version__}.",
              f"Command: `{command}`", "",
              "| " + " | ".join(TABLE_COLUMNS) + " |",
              "|" + "---|" * 5 + "---:|" * (len(TABLE_COLUMNS) - 5)]

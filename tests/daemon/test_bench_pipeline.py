@@ -95,3 +95,24 @@ def test_a_bad_device_in_the_list_is_refused_before_any_worker_starts(tiny, monk
     err = capsys.readouterr().err  # the flag and the bad item, however the message words them
     assert re.search(r"--device\b.*\bgpu\b", err), err
     assert started == []
+
+
+def test_a_cuda_result_is_named_by_its_gpu_in_the_header_the_table_and_the_machine(
+        bench, monkeypatch, capsys):
+    """The CUDA naming, on the CPU: torch made to see a GPU, a result whose worker reported
+    cuda:0 (the figures are the CPU run's, only the device fields changed)."""
+    h100 = "NVIDIA H100 80GB HBM3"
+    monkeypatch.setattr(pipeline.torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(pipeline, "gpu_name", lambda device: {"cuda:0": h100}[str(device)])
+    cpu_run, auto_run = bench["json"]["results"][:2]
+    assert pipeline._gpu("cpu") is None
+    gpu_run = {**auto_run, "device_setting": "cuda", "device": "cuda:0",
+               "gpu": pipeline._gpu("cuda:0")}
+    machine = pipeline._machine([cpu_run, gpu_run])
+    assert machine["cuda_devices"] == {"cuda:0": h100}
+    pipeline._print(gpu_run, pipeline.Config())
+    assert f"device cuda:0 ({h100}), 2 views" in capsys.readouterr().out
+    md = pipeline._markdown([cpu_run, gpu_run], machine, "nhfd bench pipeline")
+    assert f"cuda:0: {h100}" in md.splitlines()[0]
+    devices = [line.split("|")[3].strip() for line in md.splitlines()[-2:]]
+    assert devices == ["cpu", f"cuda:0 ({h100})"]
