@@ -5,7 +5,7 @@ TORCH ?= torch==2.13.0
 VENV := .venv
 STAMP := $(VENV)/.nhfd-installed
 
-.PHONY: demo test lint clean browser
+.PHONY: demo test lint clean browser gpu-check
 
 $(STAMP): pyproject.toml setup.py
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
@@ -35,3 +35,28 @@ browser:
 		echo "could not install chromium: the browser test will skip"; \
 	else echo "no chromium (install the chromium and chromium-driver packages): the browser \
 test will skip"; fi
+
+# On a GPU workstation (docs/gpu.md, "Checking a GPU workstation"): the CUDA tests with
+# NHFD_REQUIRE_CUDA=1 (a test skipped for want of CUDA fails), the frame pipeline on the CPU and
+# the GPU side by side at 1024 x 576 and 1920 x 1080, and the dataset bench on each; figures in
+# out/bench/. Every step runs and prints its command; the target fails if any step failed.
+# Uses .venv as it is (no reinstall: that would put the CPU onnxruntime back over onnxruntime-gpu).
+GPU_TESTS := tests/pipeline/test_device.py tests/scene/test_gsplat_conventions.py \
+	tests/models/test_fp16.py tests/models/test_amp.py tests/dataset/test_build_device.py \
+	tests/models/test_train.py::test_a_cuda_run_resumes_on_the_cpu_from_the_same_step
+GPU_BENCH_VIEWS ?= 50
+gpu-check:
+	@test -x $(VENV)/bin/nhfd || { echo "no $(VENV): run make test first (TORCH=... for a CUDA \
+torch), then see docs/gpu.md"; exit 2; }
+	@failed=""; step() { name=$$1; shift; echo "+ $$*"; "$$@" || failed="$$failed$${failed:+, }$$name"; }; \
+	step "CUDA tests" env NHFD_REQUIRE_CUDA=1 $(VENV)/bin/python -m pytest -q -rfs $(GPU_TESTS); \
+	step "bench pipeline" $(VENV)/bin/nhfd bench pipeline --device cpu,cuda \
+		--frame-size-px 1024 576 --frame-size-px 1920 1080 --views $(GPU_BENCH_VIEWS) \
+		--json out/bench/gpu_pipeline.json; \
+	step "bench holo cpu" $(VENV)/bin/nhfd bench holo --device cpu --scene models/scenes/donut.ply \
+		--out out/bench/gpu_holo_cpu.json; \
+	step "bench holo cuda" $(VENV)/bin/nhfd bench holo --device cuda \
+		--scene models/scenes/donut.ply --out out/bench/gpu_holo_cuda.json; \
+	if [ -n "$$failed" ]; then echo "gpu-check FAILED: $$failed"; exit 1; fi; \
+	echo "gpu-check passed: figures in out/bench/gpu_pipeline.md (README table), \
+out/bench/gpu_pipeline.json, out/bench/gpu_holo_cpu.json, out/bench/gpu_holo_cuda.json"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 from collections.abc import Iterator
@@ -14,6 +15,37 @@ from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
+
+
+# NHFD_REQUIRE_CUDA=1 (`make gpu-check`, on a GPU workstation): a test skipped because it needs
+# CUDA fails instead, so a run whose CUDA tests all skipped (a CPU-only torch, no driver, gsplat
+# or onnxruntime-gpu absent) cannot pass as a GPU check. The skip reasons the CUDA tests use:
+REQUIRE_CUDA_ENV = "NHFD_REQUIRE_CUDA"
+NEEDS_CUDA_REASONS = ("needs CUDA", "needs a CUDA device", "needs onnxruntime's CUDA provider")
+
+
+def _cuda_skip_reason(report: pytest.TestReport) -> str | None:
+    """The reason of a skip for want of CUDA (skipif marks and pytest.skip() alike), else None."""
+    if not report.skipped or not isinstance(report.longrepr, tuple):
+        return None
+    reason = str(report.longrepr[2]).removeprefix("Skipped: ")
+    return reason if any(r in reason for r in NEEDS_CUDA_REASONS) else None
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
+                              ) -> Iterator[None]:
+    report = yield
+    if os.environ.get(REQUIRE_CUDA_ENV, "") not in ("", "0"):
+        reason = _cuda_skip_reason(report)
+        if reason is not None:
+            report.outcome = "failed"
+            # A skipif mark skips in setup: reported as the test's own failure, not a fixture
+            # error.
+            report.when = "call"
+            report.longrepr = (f"{REQUIRE_CUDA_ENV}={os.environ[REQUIRE_CUDA_ENV]}: this test "
+                               f"must run on CUDA here, but it skipped: {reason}")
+    return report
 
 
 @pytest.fixture(autouse=True)

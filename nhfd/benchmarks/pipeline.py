@@ -10,9 +10,14 @@ and are not counted. The frame cache is off: every view is computed.
 --transport shm,pickle measures both ways frames cross from the worker in one run (shared-memory
 slots, the default, or the arrays pickled through the pipe), and --int8 never,auto the float model
 and the int8 sibling the daemon would serve (`daemon.int8`); each combination in its own worker,
-all given the same views in turn (a loaded machine loads them alike). The panel's refresh
+all given the same views in turn (a loaded machine loads them alike). --device cpu,cuda adds the
+device the same way (each result records the device its worker computed on, and the GPU's name),
+and --frame-size-px W H, repeated, measures each window size in turn. The panel's refresh
 pacing is off here (slm.refresh_hz at its maximum): the figure is the pipeline's, not the
 panel's.
+
+After the results, one markdown table (one row per result, also written as <json stem>.md beside
+the JSON) under a line naming the machine: the form the README quotes.
 """
 
 from __future__ import annotations
@@ -20,27 +25,40 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shlex
 import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
+import onnxruntime as ort
+import torch
 
 from nhfd import __version__
-from nhfd.config import Config, _overlay, load_config
+from nhfd.benchmarks.machine import describe
+from nhfd.config import DEVICES, Config, _overlay, load_config
 from nhfd.daemon.frame_link import FrameLink
 from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
 from nhfd.drivers.slm import SimulatedSLM
 from nhfd.models.export import OnnxModel
-from nhfd.pipeline.device import resolve_device
+from nhfd.pipeline.device import check_cuda_frames, gpu_name, resolve_device
 from nhfd.pipeline.settings import frame_window_hw
 
 # The stages status reports, in order: the frame pipeline's four (`nhfd.pipeline.frame`), then
 # the daemon's output (the region pasted into the panel and shown).
 STAGES = ("render", "inference", "propagation", "coding", "output")
+DEFAULT_MODEL = "models/nhf-donut-512.onnx"
+
+
+class Variant(NamedTuple):
+    """One worker's settings in a side-by-side run (None: the configuration's)."""
+
+    transport: str | None = None  # daemon.frame_transport
+    int8: str | None = None  # daemon.int8
+    device: str | None = None  # daemon.device
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -53,10 +71,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--views", type=int, default=12, help="views measured per model")
     p.add_argument("--warmup", type=int, default=3, help="views not counted")
     p.add_argument("--json", default="out/bench/pipeline.json", help="JSON results file")
-    p.add_argument("--device", help="where frames are computed: auto, cpu, cuda or cuda:N "
-                   "(default: daemon.device)")
-    p.add_argument("--frame-size-px", type=int, nargs=2, metavar=("W", "H"),
-                   help="hologram window (daemon.frame_size_px; default: the configuration's)")
+    p.add_argument("--device", help="comma list of devices to compare, each auto, cpu, cuda or "
+                   "cuda:N (default: daemon.device)")
+    p.add_argument("--frame-size-px", type=int, nargs=2, metavar=("W", "H"), action="append",
+                   help="hologram window (daemon.frame_size_px), repeatable: each size measured "
+                        "in turn (default: the configuration's)")
     p.add_argument("--transport", default="shm",
                    help="comma list of frame transports to compare: shm, pickle (default shm)")
     p.add_argument("--int8", default=None,
@@ -107,115 +126,188 @@ def _load(link: Any, scene: Path, model: Path) -> None:
 
 
 def measure(config: Any, model: Path, scene: Path, views: int, warmup: int, *,
-            transport: str | None = None, int8: str | None = None) -> dict[str, Any]:
-    """One model under one transport and int8 setting (`measure_side_by_side` of one)."""
-    return measure_side_by_side(config, model, scene, views, warmup, [(transport, int8)])[0]
+            transport: str | None = None, int8: str | None = None,
+            device: str | None = None) -> dict[str, Any]:
+    """One model under one transport, int8 setting and device (`measure_side_by_side` of one)."""
+    return measure_side_by_side(config, model, scene, views, warmup,
+                                [Variant(transport, int8, device)])[0]
 
 
 def measure_side_by_side(config: Any, model: Path, scene: Path, views: int, warmup: int,
-                         variants: list[tuple[str | None, str | None]]) -> list[dict[str, Any]]:
-    """`model` under each (transport, daemon.int8) of `variants` (None: the configuration's),
-    each in its own worker, all started first and then given the same views in turn, one frame
-    at a time (the order rotating per view): on a loaded machine the variants see the same load
-    and their medians compare."""
+                         variants: list[tuple[str | None, ...]]) -> list[dict[str, Any]]:
+    """`model` under each `Variant` (transport, daemon.int8[, daemon.device]; None: the
+    configuration's) of `variants`, each in its own worker, all started first and then given the
+    same views in turn, one frame at a time (the order rotating per view): on a loaded machine
+    the variants see the same load and their medians compare."""
     meta = OnnxModel(model).metadata
+    configs = [_variant_config(config, Variant(*v)) for v in variants]
+    for cfg in configs:  # before any worker starts
+        _check_fits(cfg, model, meta)
     runs = []
     try:
-        for transport, int8 in variants:
-            daemon: dict[str, Any] = {"frame_cache_frames": 0}
-            if transport is not None:
-                daemon["frame_transport"] = transport
-            if int8 is not None:
-                daemon["int8"] = int8
-            # No refresh pacing: the bench times the pipeline, not the panel.
-            overlay = {"daemon": daemon, "slm": {"refresh_hz": 1000.0}}
-            cfg = Config.model_validate(_overlay(config.model_dump(), overlay))
-            wh, ww = frame_window_hw(cfg, meta)
-            if wh > cfg.slm.height_px or ww > cfg.slm.width_px:
-                raise ValueError(f"{model}: trained at {ww} x {wh}, larger than the "
-                                 f"{cfg.slm.width_px} x {cfg.slm.height_px} panel; set "
-                                 f"daemon.frame_size_px to at most [{cfg.slm.width_px}, "
-                                 f"{cfg.slm.height_px}]")
+        for cfg in configs:
             host = _Host(cfg)
             link = FrameLink(host)
             runs.append((cfg, host, link, []))
+            link.ensure_started()  # the workers' imports overlap; loads follow one by one
+        for _cfg, _host, link, _rows in runs:
             _load(link, scene, model)
-        env = meta.get("pose_envelope") or {}
-        az = env.get("azimuth_deg") or [-20.0, 20.0]
-        el = env.get("elevation_deg") or [20.0, 20.0]
-        dist = env.get("distance") or [2.0, 2.0]
-        for i, a in enumerate(np.linspace(az[0], az[1], warmup + views)):
-            view = {"kind": "orbit", "azimuth_deg": float(a),
-                    "elevation_deg": 0.5 * (el[0] + el[1]),
-                    "radius": 0.5 * (dist[0] + dist[1]), "refocus_mm": 0.0}
+        for i, view in enumerate(_orbit(meta, warmup + views)):
             for k in range(len(runs)):
                 _cfg, host, link, rows = runs[(i + k) % len(runs)]
-                seq = host.views.submit(view)
-                t0 = time.perf_counter()
-                while link.shown_seq < seq:
-                    link.step()
-                    if host.errors:
-                        raise RuntimeError(host.errors[-1])
-                    time.sleep(0.0005)
-                total_ms = (time.perf_counter() - t0) * 1e3
+                total_ms = _show(host, link, view)
                 if i >= warmup:
                     t = link.timings or {}
-                    rows.append({**{k: t[f"{k}_ms"] for k in STAGES}, "total": total_ms})
+                    rows.append({**{s: t[f"{s}_ms"] for s in STAGES}, "total": total_ms,
+                                 "azimuth_deg": view["azimuth_deg"]})
         infos = [dict(link.model_info or {}) for _cfg, _host, link, _rows in runs]
     finally:
         for _cfg, _host, link, _rows in runs:
             link.close()
+    return [_result(model, meta, cfg, rows, info)
+            for (cfg, _host, _link, rows), info in zip(runs, infos, strict=True)]
+
+
+def _variant_config(config: Any, v: Variant) -> Config:
+    """The configuration one worker runs under: the variant's settings, no frame cache (every
+    view computed) and no refresh pacing (the bench times the pipeline, not the panel)."""
+    daemon: dict[str, Any] = {"frame_cache_frames": 0}
+    if v.transport is not None:
+        daemon["frame_transport"] = v.transport
+    if v.int8 is not None:
+        daemon["int8"] = v.int8
+    if v.device is not None:
+        daemon["device"] = v.device
+    overlay = {"daemon": daemon, "slm": {"refresh_hz": 1000.0}}
+    return Config.model_validate(_overlay(config.model_dump(), overlay))
+
+
+def _check_fits(cfg: Any, model: Path, meta: dict[str, Any]) -> None:
+    """Refuse a frame window larger than the panel before a worker starts for it."""
+    wh, ww = frame_window_hw(cfg, meta)
+    if wh > cfg.slm.height_px or ww > cfg.slm.width_px:
+        raise ValueError(f"{model}: trained at {ww} x {wh}, larger than the "
+                         f"{cfg.slm.width_px} x {cfg.slm.height_px} panel; set "
+                         f"daemon.frame_size_px to at most [{cfg.slm.width_px}, "
+                         f"{cfg.slm.height_px}]")
+
+
+def _orbit(meta: dict[str, Any], n: int) -> list[dict[str, Any]]:
+    """`n` views along the azimuth of the model's pose envelope, at its middle elevation and
+    distance."""
+    env = meta.get("pose_envelope") or {}
+    az = env.get("azimuth_deg") or [-20.0, 20.0]
+    el = env.get("elevation_deg") or [20.0, 20.0]
+    dist = env.get("distance") or [2.0, 2.0]
+    return [{"kind": "orbit", "azimuth_deg": float(a), "elevation_deg": 0.5 * (el[0] + el[1]),
+             "radius": 0.5 * (dist[0] + dist[1]), "refocus_mm": 0.0}
+            for a in np.linspace(az[0], az[1], n)]
+
+
+def _show(host: _Host, link: Any, view: dict[str, Any]) -> float:
+    """Milliseconds from sending `view` to its frame shown on the simulated SLM."""
+    seq = host.views.submit(view)
+    t0 = time.perf_counter()
+    while link.shown_seq < seq:
+        link.step()
+        if host.errors:
+            raise RuntimeError(host.errors[-1])
+        time.sleep(0.0005)
+    return (time.perf_counter() - t0) * 1e3
+
+
+def _result(model: Path, meta: dict[str, Any], cfg: Any, rows: list[dict[str, float]],
+            info: dict[str, Any]) -> dict[str, Any]:
+    """One worker's figures, with what it served and the device it computed on (its model
+    status: `device`, `device_reason`)."""
     h, w = (int(v) for v in meta["train_size_hw"])
-    out = []
-    for (cfg, _host, _link, rows), info in zip(runs, infos, strict=True):
-        size = list(cfg.daemon.frame_size_px) or [w, h]
-        summary = {k: {"median_ms": float(np.median([r[k] for r in rows])),
-                       "p90_ms": float(np.percentile([r[k] for r in rows], 90)),
-                       "p99_ms": float(np.percentile([r[k] for r in rows], 99))}
-                   for k in (*STAGES, "total")}
-        after = float(np.median([r["total"] - r["render"] for r in rows]))
-        out.append({"model": str(model), "profile": meta.get("profile"), "size_wh": size,
-                    "transport": cfg.daemon.frame_transport, "int8": cfg.daemon.int8,
-                    "served": info.get("served", str(model)), "variant": info.get("variant"),
-                    "variant_reason": info.get("variant_reason"),
-                    "views": len(rows), "stages": summary, "after_render_median_ms": after,
-                    "ipc_and_wait_median_ms": float(np.median(
-                        [r["total"] - sum(r[k] for k in STAGES) for r in rows])),
-                    "rows": rows})
-    return out
+    summary = {k: {"median_ms": float(np.median([r[k] for r in rows])),
+                   "p90_ms": float(np.percentile([r[k] for r in rows], 90)),
+                   "p99_ms": float(np.percentile([r[k] for r in rows], 99))}
+               for k in (*STAGES, "total")}
+    device = info.get("device")
+    return {"model": str(model), "profile": meta.get("profile"),
+            "size_wh": list(cfg.daemon.frame_size_px) or [w, h],
+            "transport": cfg.daemon.frame_transport, "int8": cfg.daemon.int8,
+            "worker_threads": cfg.daemon.worker_threads,
+            "device_setting": cfg.daemon.device, "device": device,
+            "device_reason": info.get("device_reason"), "gpu": _gpu(device),
+            "onnx_providers": info.get("providers"),
+            "served": info.get("served", str(model)), "variant": info.get("variant"),
+            "variant_reason": info.get("variant_reason"),
+            "views": len(rows), "stages": summary,
+            "after_render_median_ms": float(np.median([r["total"] - r["render"] for r in rows])),
+            "ipc_and_wait_median_ms": float(np.median(
+                [r["total"] - sum(r[k] for k in STAGES) for r in rows])),
+            "rows": rows}
+
+
+def _gpu(device: str | None) -> str | None:
+    """The GPU's name for a CUDA device the worker reported, None for the CPU."""
+    if not device or not device.startswith("cuda") or not torch.cuda.is_available():
+        return None
+    return gpu_name(torch.device(device))
 
 
 def run(args: argparse.Namespace) -> int:
     # load_config applies the cross-field rules: a frame larger than the panel is a
     # ConfigError (exit 2) before any worker starts.
     config = load_config(args.config).config
-    if getattr(args, "device", None):  # checked here: a clean error before any worker starts
-        resolve_device(args.device, "--device")
-        config = Config.model_validate(_overlay(config.model_dump(),
-                                                {"daemon": {"device": args.device}}))
-    models = [Path(m) for m in (args.model or ["models/nhf-donut-512.onnx"])]
+    # Every choice is checked here, before any worker starts: a clean error, not a late one.
+    devices = _devices(args.device) if getattr(args, "device", None) else [None]
+    transports = _choices("--transport", args.transport, ("shm", "pickle"))
+    int8s = _choices("--int8", args.int8, ("auto", "never", "always")) if args.int8 else [None]
+    configs = _size_configs(config, args.frame_size_px)
+    models = [Path(m) for m in (args.model or [DEFAULT_MODEL])]
     missing = [m for m in models if not m.is_file()]
     if missing:
         raise FileNotFoundError(f"{missing[0]}: no such model (see `nhfd demo` for how to build "
                                 "the default one)")
-    if args.frame_size_px:
-        config = Config.model_validate(_overlay(
-            config.model_dump(), {"daemon": {"frame_size_px": list(args.frame_size_px)}}))
-    transports = _choices("--transport", args.transport, ("shm", "pickle"))
-    int8s = _choices("--int8", args.int8, ("auto", "never", "always")) if args.int8 else [None]
+    variants = [Variant(t, q, d) for d in devices for q in int8s for t in transports]
     results = []
-    for model in models:
-        variants = [(t, q) for q in int8s for t in transports]
-        for r in measure_side_by_side(config, model, Path(args.scene), args.views, args.warmup,
-                                      variants):
-            results.append(r)
-            _print(r, config)
+    for cfg in configs:  # each size in turn, its variants side by side
+        for model in models:
+            for r in measure_side_by_side(cfg, model, Path(args.scene), args.views,
+                                          args.warmup, variants):
+                results.append(r)
+                _print(r, cfg)
+    machine = _machine(results)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps({"nhfd_version": __version__, "cpus": os.cpu_count(),
+                               "command": _command(args), "machine": machine,
                                "results": results}, indent=1))
-    print(f"wrote {out}")
+    table = _markdown(results, machine, _command(args))
+    md = out.with_suffix(".md")
+    md.write_text(table)
+    print()
+    print(table, end="")
+    print(f"wrote {out} and {md}")
     return 0
+
+
+def _devices(text: str) -> list[str]:
+    """--device's comma list, each item a device torch sees (`resolve_device`) and, for an
+    explicit CUDA device, one whose frame path is installed (gsplat, onnxruntime's CUDA
+    provider); "auto" is kept as it is, for the worker to choose as the daemon does."""
+    items = [t.strip() for t in text.split(",") if t.strip()]
+    if not items:
+        raise ValueError(f"--device {text!r}: give a comma list of {', '.join(DEVICES)}")
+    for item in items:
+        device = resolve_device(item, "--device")
+        if item.lower() != "auto":
+            check_cuda_frames(item, device, ort.get_available_providers(), "--device")
+    return [item.lower() for item in items]  # daemon.device's spelling
+
+
+def _size_configs(config: Any, sizes: list[list[int]] | None) -> list[Any]:
+    """One configuration per --frame-size-px W H (validated: a window larger than the panel is
+    refused here), or the configuration as it is."""
+    if not sizes:
+        return [config]
+    return [Config.model_validate(_overlay(config.model_dump(),
+                                           {"daemon": {"frame_size_px": list(size)}}))
+            for size in sizes]
 
 
 def _choices(flag: str, text: str, allowed: tuple[str, ...]) -> list[str]:
@@ -226,15 +318,87 @@ def _choices(flag: str, text: str, allowed: tuple[str, ...]) -> list[str]:
     return items
 
 
+def _machine(results: list[dict[str, Any]]) -> dict[str, Any]:
+    """The machine the figures are from: CPU model and cores (`describe`), torch and
+    onnxruntime with its providers, and, where torch sees CUDA, each CUDA device used by name."""
+    info: dict[str, Any] = {**describe(), "onnxruntime": ort.__version__,
+                            "onnx_providers_available": ort.get_available_providers()}
+    if torch.cuda.is_available():
+        info["cuda_devices"] = {r["device"]: r["gpu"] for r in results if r["gpu"]}
+    return info
+
+
+def _command(args: argparse.Namespace) -> str:
+    """The command line that gives these figures again (the README quotes it with them)."""
+    words = ["nhfd", "bench", "pipeline"]
+    for model in args.model or []:
+        words += ["--model", model]
+    if args.config:
+        words += ["--config", args.config]
+    if getattr(args, "device", None):
+        words += ["--device", args.device]
+    for w, h in args.frame_size_px or []:
+        words += ["--frame-size-px", str(w), str(h)]
+    if args.transport != "shm":
+        words += ["--transport", args.transport]
+    if args.int8:
+        words += ["--int8", args.int8]
+    words += ["--views", str(args.views), "--warmup", str(args.warmup), "--json", args.json]
+    return shlex.join(words)
+
+
+def _device_label(r: dict[str, Any]) -> str:
+    """The device computed on: "cpu", "cuda:0 (NVIDIA H100 80GB HBM3)"; "auto"'s choice says
+    so ("cpu (auto)"), else a cpu,auto run's two rows would read alike."""
+    notes = [n for n in (r.get("gpu"), "auto" if r.get("device_setting") == "auto" else None)
+             if n]
+    return f"{r['device']} ({', '.join(notes)})" if notes else str(r["device"])
+
+
+def _ms(value: float) -> str:
+    """Milliseconds for the table: two decimals below 10 ms (GPU stages), one above."""
+    return f"{value:.2f}" if abs(value) < 10 else f"{value:.1f}"
+
+
+TABLE_COLUMNS = ("model", "size", "device", "transport", "int8 (served)", "median ms",
+                 "p99 ms", *(f"{k} ms" for k in STAGES))
+
+
+def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: str) -> str:
+    """The README-ready figures: the machine, the command, one table row per result (the total
+    median and p99, view to panel, then each stage's median)."""
+    gpus = "; ".join(f"{d}: {n}" for d, n in (machine.get("cuda_devices") or {}).items())
+    # the CPU path's threads are the worker's (daemon.worker_threads), not the machine's cores
+    threads = sorted({r["worker_threads"] for r in results})
+    lines = [f"Machine: {machine['cpu']}, {machine['cores']} cores; torch "
+             f"{machine.get('torch', 'absent')}, onnxruntime {machine['onnxruntime']} "
+             f"({', '.join(machine['onnx_providers_available'])})"
+             + (f"; {gpus}" if gpus else "") + f"; frame worker threads "
+             f"{', '.join(map(str, threads))} (daemon.worker_threads); nhfd {__version__}.",
+             f"Command: `{command}`", "",
+             "| " + " | ".join(TABLE_COLUMNS) + " |",
+             "|" + "---|" * 5 + "---:|" * (len(TABLE_COLUMNS) - 5)]
+    for r in results:
+        s = r["stages"]
+        cells = [Path(r["model"]).name, f"{r['size_wh'][0]} x {r['size_wh'][1]}",
+                 _device_label(r), r["transport"], f"{r['int8']}: {r['variant']}",
+                 _ms(s["total"]["median_ms"]), _ms(s["total"]["p99_ms"]),
+                 *(_ms(s[k]["median_ms"]) for k in STAGES)]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines) + "\n"
+
+
 def _print(r: dict[str, Any], config: Any) -> None:
     s = r["stages"]
     print(f"{r['model']} ({r['profile']}, {r['size_wh'][0]} x {r['size_wh'][1]}), "
-          f"{r['views']} views, worker threads {config.daemon.worker_threads}, frames by "
-          f"{r['transport']}, serving {r['variant']} {r['served']} "
-          f"(daemon.int8 = {r['int8']}: {r['variant_reason']}):")
+          f"device {_device_label(r)}, {r['views']} views, worker threads "
+          f"{config.daemon.worker_threads}, frames by {r['transport']}, serving {r['variant']} "
+          f"{r['served']} (daemon.int8 = {r['int8']}: {r['variant_reason']}):")
+    if r["device_setting"] != r["device"]:  # "auto", or a fall back: say why
+        print(f"  device: {r['device_reason']}")
     print(f"  {'stage':<12} {'median ms':>10} {'p90 ms':>8} {'p99 ms':>8}")
     for k in (*STAGES, "total"):
-        print(f"  {k:<12} {s[k]['median_ms']:>10.1f} {s[k]['p90_ms']:>8.1f} "
-              f"{s[k]['p99_ms']:>8.1f}")
+        print(f"  {k:<12} {_ms(s[k]['median_ms']):>10} {_ms(s[k]['p90_ms']):>8} "
+              f"{_ms(s[k]['p99_ms']):>8}")
     print(f"  after rendering: {r['after_render_median_ms']:.1f} ms (goal <= 100 ms); "
           f"IPC and waiting: {r['ipc_and_wait_median_ms']:.1f} ms")
