@@ -43,6 +43,7 @@ test will skip"; fi
 # Uses .venv as it is (no reinstall: that would put the CPU onnxruntime back over onnxruntime-gpu).
 GPU_TESTS := tests/pipeline/test_device.py tests/scene/test_gsplat_conventions.py \
 	tests/models/test_fp16.py tests/models/test_amp.py tests/dataset/test_build_device.py \
+	tests/models/test_torch_model.py \
 	tests/models/test_train.py::test_a_cuda_run_resumes_on_the_cpu_from_the_same_step
 GPU_BENCH_VIEWS ?= 50
 gpu-check:
@@ -53,10 +54,12 @@ torch), then see docs/gpu.md"; exit 2; }
 	step "bench pipeline" $(VENV)/bin/nhfd bench pipeline --device cpu,cuda \
 		--frame-size-px 1024 576 --frame-size-px 1920 1080 --views $(GPU_BENCH_VIEWS) \
 		--json out/bench/gpu_pipeline.json; \
+	step "bench inference" $(VENV)/bin/nhfd bench pipeline --device cuda --inference auto,torch \
+		--frame-size-px 1920 1080 --views $(GPU_BENCH_VIEWS) --json out/bench/gpu_inference.json; \
 	step "bench holo cpu" $(VENV)/bin/nhfd bench holo --device cpu --scene models/scenes/donut.ply \
 		--out out/bench/gpu_holo_cpu.json; \
 	step "bench holo cuda" $(VENV)/bin/nhfd bench holo --device cuda \
 		--scene models/scenes/donut.ply --out out/bench/gpu_holo_cuda.json; \
 	if [ -n "$$failed" ]; then echo "gpu-check FAILED: $$failed"; exit 1; fi; \
 	echo "gpu-check passed: figures in out/bench/gpu_pipeline.md (README table), \
-out/bench/gpu_pipeline.json, out/bench/gpu_holo_cpu.json, out/bench/gpu_holo_cuda.json"
+out/bench/gpu_pipeline.json, out/bench/gpu_inference.md, out/bench/gpu_holo_cpu.json, out/bench/gpu_holo_cuda.json"

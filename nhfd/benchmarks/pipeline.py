@@ -59,6 +59,7 @@ class Variant(NamedTuple):
     transport: str | None = None  # daemon.frame_transport
     int8: str | None = None  # daemon.int8
     device: str | None = None  # daemon.device
+    inference: str | None = None  # daemon.inference
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -81,6 +82,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--int8", default=None,
                    help="comma list of daemon.int8 settings to compare: auto, never, always "
                         "(default: the configuration's)")
+    p.add_argument("--inference", default=None,
+                   help="comma list of what runs the network, to compare: auto, onnxruntime, "
+                        "torch (daemon.inference; default: the configuration's)")
     p.set_defaults(handler=run)
 
 
@@ -178,6 +182,8 @@ def _variant_config(config: Any, v: Variant) -> Config:
         daemon["int8"] = v.int8
     if v.device is not None:
         daemon["device"] = v.device
+    if v.inference is not None:
+        daemon["inference"] = v.inference
     overlay = {"daemon": daemon, "slm": {"refresh_hz": 1000.0}}
     return Config.model_validate(_overlay(config.model_dump(), overlay))
 
@@ -232,7 +238,8 @@ def _result(model: Path, meta: dict[str, Any], cfg: Any, rows: list[dict[str, fl
             "worker_threads": cfg.daemon.worker_threads,
             "device_setting": cfg.daemon.device, "device": device,
             "device_reason": info.get("device_reason"), "gpu": _gpu(device),
-            "onnx_providers": info.get("providers"),
+            "onnx_providers": info.get("providers"), "inference": info.get("inference"),
+            "inference_reason": info.get("inference_reason"),
             "served": info.get("served", str(model)), "variant": info.get("variant"),
             "variant_reason": info.get("variant_reason"),
             "views": len(rows), "stages": summary,
@@ -257,13 +264,16 @@ def run(args: argparse.Namespace) -> int:
     devices = _devices(args.device) if getattr(args, "device", None) else [None]
     transports = _choices("--transport", args.transport, ("shm", "pickle"))
     int8s = _choices("--int8", args.int8, ("auto", "never", "always")) if args.int8 else [None]
+    inferences = (_choices("--inference", args.inference, ("auto", "onnxruntime", "torch"))
+                  if getattr(args, "inference", None) else [None])
     configs = _size_configs(config, args.frame_size_px)
     models = [Path(m) for m in (args.model or [DEFAULT_MODEL])]
     missing = [m for m in models if not m.is_file()]
     if missing:
         raise FileNotFoundError(f"{missing[0]}: no such model (see `nhfd demo` for how to build "
                                 "the default one)")
-    variants = [Variant(t, q, d) for d in devices for q in int8s for t in transports]
+    variants = [Variant(t, q, d, n) for d in devices for n in inferences for q in int8s
+                for t in transports]
     results = []
     for cfg in configs:  # each size in turn, its variants side by side
         for model in models:
@@ -343,6 +353,8 @@ def _command(args: argparse.Namespace) -> str:
         words += ["--transport", args.transport]
     if args.int8:
         words += ["--int8", args.int8]
+    if getattr(args, "inference", None):
+        words += ["--inference", args.inference]
     words += ["--views", str(args.views), "--warmup", str(args.warmup), "--json", args.json]
     return shlex.join(words)
 
@@ -360,7 +372,8 @@ def _ms(value: float) -> str:
     return f"{value:.2f}" if abs(value) < 10 else f"{value:.1f}"
 
 
-TABLE_COLUMNS = ("model", "size", "device", "transport", "int8 (served)", "median ms",
+TABLE_COLUMNS = ("model", "size", "device", "network in", "transport", "int8 (served)",
+                 "median ms",
                  "p99 ms", *(f"{k} ms" for k in STAGES))
 
 
@@ -377,11 +390,12 @@ def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: s
              f"{', '.join(map(str, threads))} (daemon.worker_threads); nhfd {__version__}.",
              f"Command: `{command}`", "",
              "| " + " | ".join(TABLE_COLUMNS) + " |",
-             "|" + "---|" * 5 + "---:|" * (len(TABLE_COLUMNS) - 5)]
+             "|" + "---|" * 6 + "---:|" * (len(TABLE_COLUMNS) - 6)]
     for r in results:
         s = r["stages"]
         cells = [Path(r["model"]).name, f"{r['size_wh'][0]} x {r['size_wh'][1]}",
-                 _device_label(r), r["transport"], f"{r['int8']}: {r['variant']}",
+                 _device_label(r), str(r["inference"]), r["transport"],
+                 f"{r['int8']}: {r['variant']}",
                  _ms(s["total"]["median_ms"]), _ms(s["total"]["p99_ms"]),
                  *(_ms(s[k]["median_ms"]) for k in STAGES)]
         lines.append("| " + " | ".join(cells) + " |")
@@ -396,6 +410,7 @@ def _print(r: dict[str, Any], config: Any) -> None:
           f"{r['served']} (daemon.int8 = {r['int8']}: {r['variant_reason']}):")
     if r["device_setting"] != r["device"]:  # "auto", or a fall back: say why
         print(f"  device: {r['device_reason']}")
+    print(f"  network: {r['inference_reason']}")
     print(f"  {'stage':<12} {'median ms':>10} {'p90 ms':>8} {'p99 ms':>8}")
     for k in (*STAGES, "total"):
         print(f"  {k:<12} {_ms(s[k]['median_ms']):>10} {_ms(s[k]['p90_ms']):>8} "

@@ -79,6 +79,7 @@ def test_the_markdown_table_has_one_row_per_result_with_the_json_figures(bench):
         assert row["size"] == f"{r['size_wh'][0]} x {r['size_wh'][1]}"
         assert row["device"] == ("cpu (auto)" if r["device_setting"] == "auto" else "cpu")
         assert row["transport"] == "shm" and row["int8 (served)"] == f"{r['int8']}: float"
+        assert row["network in"] == r["inference"] == "onnxruntime"  # "auto" on the CPU
         wanted = {"median ms": r["stages"]["total"]["median_ms"],
                   "p99 ms": r["stages"]["total"]["p99_ms"],
                   **{f"{k} ms": r["stages"][k]["median_ms"] for k in pipeline.STAGES}}
@@ -116,3 +117,22 @@ def test_a_cuda_result_is_named_by_its_gpu_in_the_header_the_table_and_the_machi
     assert f"cuda:0: {h100}" in md.splitlines()[0]
     devices = [line.split("|")[3].strip() for line in md.splitlines()[-2:]]
     assert devices == ["cpu", f"cuda:0 ({h100})"]
+
+
+def test_what_runs_the_network_is_compared_side_by_side(tiny, tmp_path):
+    """--inference onnxruntime,torch: one worker each, on the same views; each result says what
+    ran its network, and torch's frames come from a TorchModel (its providers: ["torch"])."""
+    (tmp_path / "nhfd.toml").write_text(CONFIG)
+    out = tmp_path / "n.json"
+    assert main(["bench", "pipeline", "--config", str(tmp_path / "nhfd.toml"),
+                 "--model", str(tiny["model"]), "--scene", str(tiny["scene"]),
+                 "--inference", "onnxruntime,torch", "--views", "2", "--warmup", "1",
+                 "--json", str(out)]) == 0
+    results = json.loads(out.read_text())["results"]
+    assert [(r["inference"], r["onnx_providers"]) for r in results] == [
+        ("onnxruntime", ["CPUExecutionProvider"]), ("torch", ["torch"])]
+    assert results[1]["inference_reason"] == ('daemon.inference = "torch": the network in torch '
+                                              "on cpu")
+    assert [row["azimuth_deg"] for row in results[0]["rows"]] == [
+        row["azimuth_deg"] for row in results[1]["rows"]]
+    assert "--inference onnxruntime,torch" in out.with_suffix(".md").read_text().splitlines()[1]
