@@ -46,7 +46,7 @@ def inference_backend(inference: str, device: torch.device, onnx_providers: list
     """("onnxruntime" | "torch", why): what runs the network on `device` for
     `daemon.inference` = `inference`, given the providers this onnxruntime has.
 
-    "auto" is onnxruntime (on the CPU, 4x faster than torch for these networks) except on a CUDA
+    "auto" is onnxruntime (on the CPU, 2.4x faster than torch for these networks) except on a CUDA
     device whose onnxruntime has no CUDA provider (the CPU build beside a CUDA torch, or a bench
     that cannot install onnxruntime-gpu): torch there, so the network runs on the GPU with the
     other stages. "onnxruntime" on such a device is refused, naming both settings and the fix."""
