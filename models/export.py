@@ -308,7 +308,9 @@ class OnnxModel:
         import onnxruntime as ort
 
         self.path = Path(path)
-        self.device = torch.device(device)
+        # "cuda" as "cuda:0": tensors always carry an index, and run_on compares devices
+        self.device = torch.device(device_choice(str(device), "device", cuda_count=None,
+                                                 allowed=("cpu", "cuda", "cuda:N")))
         name = source or str(self.path)
         if not self.path.is_file():
             raise FileNotFoundError(f"{name}: no such model file")

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from nhfd.config import device_choice
 from nhfd.models.export import OnnxModel
 from nhfd.models.metadata import NotAModel
 from nhfd.models.net import NetSpec, build_net
@@ -63,7 +64,9 @@ class TorchModel:
         from onnx import numpy_helper
 
         self.path = Path(path)
-        self.device = torch.device(device)
+        # "cuda" as "cuda:0": tensors always carry an index, and run_on compares devices
+        self.device = torch.device(device_choice(str(device), "device", cuda_count=None,
+                                                 allowed=("cpu", "cuda", "cuda:N")))
         name = source or str(self.path)
         # onnxruntime reads the file first: its checks (not a model, not an nhfd model, wrong
         # inputs or outputs) and its messages are the ones OnnxModel gives.

@@ -190,3 +190,10 @@ def test_on_a_gpu_the_outputs_stay_on_it_and_match(shipped):
     want = OnnxModel(shipped)(x)
     for got, ref in zip((amp.cpu().numpy(), phase.cpu().numpy()), want, strict=True):
         assert np.abs(got - ref).max() <= 5e-3 * np.abs(ref).max()
+
+
+def test_a_device_name_is_checked_as_everywhere(shipped):
+    with pytest.raises(ValueError, match=r"^device = 'gpu': must be one of cpu, cuda, cuda:N "
+                                         r"\(N: a CUDA device index\)$"):
+        TorchModel(shipped, device="gpu")
+    assert TorchModel(shipped, device=" CPU ").device == torch.device("cpu")
