@@ -14,7 +14,7 @@ import json
 import os
 import re
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -403,23 +403,9 @@ class OnnxModel:
         return amp, phase
 
     def run_on(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """`__call__` on tensors on this model's device: `[C, H, W]` or `[B, C, H, W]` of any
-        size, padded with zeros to the multiple (as `__call__`'s black and reference-plane
-        depth) and cropped back; amplitude and phase tensors on the same device."""
-        given = tuple(x.shape)
-        single = x.dim() == 3
-        if single:
-            x = x[None]
-        if x.dim() != 4 or x.shape[1] != self.channels:
-            raise ValueError(f"{self.inputs} input {given}: expected [{self.channels}, H, W] or "
-                             f"[B, {self.channels}, H, W]")
-        h, w = x.shape[-2:]
-        ph, pw = (-h) % self.multiple, (-w) % self.multiple
-        if ph or pw:
-            x = torch.nn.functional.pad(x, (0, pw, 0, ph))
-        amp, phase = self.run_bound(x)
-        amp, phase = amp[..., :h, :w], phase[..., :h, :w]
-        return (amp[0], phase[0]) if single else (amp, phase)
+        """`__call__` on tensors on this model's device (`run_padded` around `run_bound`):
+        amplitude and phase tensors on the same device."""
+        return run_padded(self, x, self.run_bound)
 
     def __call__(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Amplitude (amplitude-scale units) and phase for inputs `[C, H, W]` or `[B, C, H, W]`
@@ -441,6 +427,29 @@ class OnnxModel:
         amp, phase = self.run_raw(np.ascontiguousarray(x))
         amp, phase = amp[..., :h, :w], phase[..., :h, :w]
         return (amp[0], phase[0]) if single else (amp, phase)
+
+
+def run_padded(model: Any, x: torch.Tensor,
+               run: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """`run` (`[B, C, H, W]` with H, W multiples of `model.multiple` -> amplitude, phase) on
+    `x` `[C, H, W]` or `[B, C, H, W]` of any size: padded with zeros to the multiple (as
+    `OnnxModel.__call__`'s black and reference-plane depth) and cropped back. `model`: its
+    `channels`, `inputs` and `multiple` (an `OnnxModel` or a `TorchModel`)."""
+    given = tuple(x.shape)
+    single = x.dim() == 3
+    if single:
+        x = x[None]
+    if x.dim() != 4 or x.shape[1] != model.channels:
+        raise ValueError(f"{model.inputs} input {given}: expected [{model.channels}, H, W] or "
+                         f"[B, {model.channels}, H, W]")
+    h, w = x.shape[-2:]
+    ph, pw = (-h) % model.multiple, (-w) % model.multiple
+    if ph or pw:
+        x = torch.nn.functional.pad(x, (0, pw, 0, ph))
+    amp, phase = run(x)
+    amp, phase = amp[..., :h, :w], phase[..., :h, :w]
+    return (amp[0], phase[0]) if single else (amp, phase)
 
 
 def load_model(path: str | Path, config=None, *, threads: int = 0,

@@ -30,7 +30,7 @@ import numpy as np
 import torch
 
 from nhfd.config import device_choice
-from nhfd.models.export import OnnxModel
+from nhfd.models.export import OnnxModel, run_padded
 from nhfd.models.metadata import NotAModel
 from nhfd.models.net import NetSpec, build_net
 from nhfd.models.serving import ServingNet
@@ -94,24 +94,14 @@ class TorchModel:
 
     def run_on(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Amplitude and phase for `x` `[C, H, W]` or `[B, C, H, W]` on this model's device, any
-        size: padded with zeros to the multiple (as `OnnxModel.run_on`) and cropped back."""
-        given = tuple(x.shape)
-        single = x.dim() == 3
-        if single:
-            x = x[None]
-        if x.dim() != 4 or x.shape[1] != self.channels:
-            raise ValueError(f"{self.inputs} input {given}: expected [{self.channels}, H, W] or "
-                             f"[B, {self.channels}, H, W]")
+        size (`nhfd.models.export.run_padded`, as `OnnxModel.run_on`)."""
+        return run_padded(self, x, self._run_module)
+
+    def _run_module(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         if x.device != self.device:
             raise ValueError(f"input on {x.device}: this model runs on {self.device}")
-        h, w = x.shape[-2:]
-        ph, pw = (-h) % self.multiple, (-w) % self.multiple
-        if ph or pw:
-            x = torch.nn.functional.pad(x, (0, pw, 0, ph))
         with torch.no_grad():
-            amp, phase = self.module(x.to(torch.float32))
-        amp, phase = amp[..., :h, :w], phase[..., :h, :w]
-        return (amp[0], phase[0]) if single else (amp, phase)
+            return self.module(x.to(torch.float32))
 
     def run_raw(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The graph as is on NumPy arrays: `[B, C, H, W]` float32, H and W multiples of

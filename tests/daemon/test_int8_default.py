@@ -29,6 +29,16 @@ def with_int8(config: Config, mode: str, **daemon) -> Config:
                                           {"daemon": {"int8": mode, **daemon}}))
 
 
+def show_a_frame(host, link, timeout_s: float = 30.0) -> None:
+    """Submit the front view and step the link until the panel shows it, with no error."""
+    seq = host.views.submit(FRONT_VIEW)
+    deadline = time.monotonic() + timeout_s
+    while link.shown_seq < seq:
+        link.step()
+        assert not host.errors and time.monotonic() < deadline, host.errors
+        time.sleep(0.002)
+
+
 def record(loss_db: float, float_path: Path) -> dict:
     from nhfd.models.quantise import file_sha256
 
@@ -99,13 +109,7 @@ def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
         assert "model-int8.onnx loses 0.30 dB" in info["variant_reason"]
         status = link.status()
         assert status["model_variant"] == "int8"
-        # It serves frames.
-        seq = host.views.submit(FRONT_VIEW)
-        deadline = time.monotonic() + 30
-        while link.shown_seq < seq:
-            link.step()
-            assert not host.errors and time.monotonic() < deadline, host.errors
-            time.sleep(0.002)
+        show_a_frame(host, link)
 
         record_heldout_loss(pair["int8"], pair["float"], float_psnr_db=30.0, int8_psnr_db=29.3,
                             views=4)
@@ -132,11 +136,6 @@ def test_torch_inference_serves_the_float_model_and_says_so(pair):
         assert info["inference_reason"] == 'daemon.inference = "torch": the network in torch on cpu'
         assert info["variant"] == "float" and info["served"] == str(pair["float"].resolve())
         assert "daemon.inference = 'torch'" in info["variant_reason"]
-        seq = host.views.submit(FRONT_VIEW)
-        deadline = time.monotonic() + 30
-        while link.shown_seq < seq:
-            link.step()
-            assert not host.errors and time.monotonic() < deadline, host.errors
-            time.sleep(0.002)
+        show_a_frame(host, link)
     finally:
         link.close()
