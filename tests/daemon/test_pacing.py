@@ -122,6 +122,14 @@ def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir):
         send(msg)
 
     link.worker.send = spy
+    show_starts: list[float] = []  # when each frame began to go out (what pacing schedules)
+    show = link._show
+
+    def timed_show(*args: Any) -> None:
+        show(*args)
+        show_starts.append(link.last_show_s)
+
+    link._show = timed_show
     try:
         start = time.monotonic()
         views = iter(range(1, 100000))
@@ -137,10 +145,14 @@ def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir):
         top, left, h, w = 36 // 4, 64 // 4, 36 // 2, 64 // 2
         assert np.all(host.slm.last_frame[:, top:top + h, left:left + w] == last % 256)
         # At most one frame per refresh: the shown count is bounded by the refreshes, and no two
-        # writes are closer than a refresh (less the loop's wake-up slack).
-        assert s["frames_shown"] == len(written) >= 5
+        # frames begin to go out closer than a refresh (less the loop's wake-up slack). The
+        # panel write follows after the region is pasted into the panel, whose time varies
+        # (0.7 ms once on an idle 2-core machine), so the writes are only checked to be far
+        # from back to back: unpaced, these requests would write every few ms.
+        assert s["frames_shown"] == len(written) == len(show_starts) >= 5
         assert s["frames_shown"] <= elapsed / period_s + 1
-        assert np.diff(written).min() >= period_s - frame_link.DUE_SLACK_S - 1e-4
+        assert np.diff(show_starts).min() >= period_s - frame_link.DUE_SLACK_S
+        assert np.diff(written).min() >= 0.9 * period_s
         # Every view is shown or dropped by latest wins (overtaken before it was computed):
         # views were requested ~500 times faster than the panel shows them.
         assert s["frames_shown"] + s["frames_dropped"] == last
