@@ -6,7 +6,8 @@ Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength e
   asm       band-limited angular spectrum propagation and its kernels
   aperture  the relay's Fourier aperture (square or circular iris)
   padding   how much to zero-pad before a propagation (to 5-smooth FFT sizes)
-  dpac      double-phase amplitude coding and the grey <-> phase curves
+  dpac      double-phase amplitude coding and the grey <-> phase curves (numba's fused
+            pass, `double_phase_grey`, and its torch twin for GPUs, `device_grey`)
   refplane  the window on the reference plane <-> the panel on the SLM plane
   region    a window's propagation to the region of the panel around it (the frame pipeline's)
   pupil     the relay's pupil phase (Zernike aberrations) on the Fourier plane
@@ -22,9 +23,12 @@ from nhfd.optics.asm import propagate, transfer_function, transfer_function_z
 from nhfd.optics.cache import KernelCache
 from nhfd.optics.color import linear_to_srgb, srgb_to_amplitude, srgb_to_linear
 from nhfd.optics.dpac import (
+    DeviceCurves,
     DoublePhase,
     PhaseCurve,
     checkerboard,
+    device_curves,
+    device_grey,
     double_phase,
     double_phase_grey,
     grey_to_phase,
@@ -51,6 +55,7 @@ from nhfd.optics.region import RegionPropagator, region_propagators
 
 __all__ = [
     "Aperture",
+    "DeviceCurves",
     "DoublePhase",
     "KernelCache",
     "PaddingPlan",
@@ -61,6 +66,8 @@ __all__ = [
     "apply_aperture",
     "checkerboard",
     "crop_window",
+    "device_curves",
+    "device_grey",
     "double_phase",
     "double_phase_grey",
     "fft",

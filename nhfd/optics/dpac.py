@@ -324,3 +324,94 @@ def double_phase_grey(
         raise _nonfinite(u, h, w, g, bad)
     fraction = clipped.reshape(n_c, h).sum(axis=1) / (h * w)
     return out, tuple(float(f) for f in fraction)
+
+
+# The torch twin of `double_phase_grey`, for frames coded on a GPU (`nhfd.pipeline.encoder`).
+# Bins of [0, 2 pi) in its table of a curve other than the default one: a phase within half a
+# bin (5e-5 rad) of a decision boundary may get the neighbouring level.
+DEVICE_LUT_BINS = 65536
+
+
+class DeviceCurves(NamedTuple):
+    """The phase -> grey curves as `device_grey` reads them, on one device: `lut` `[C, BINS]`
+    uint8 (None when every curve is the default one: rounding), and `zero` `[C, 2]` uint8, the
+    grey levels of amplitude 0 on even and odd pixels (`nhfd.spec.zero_grey`)."""
+
+    lut: torch.Tensor | None
+    zero: torch.Tensor
+
+
+@functools.lru_cache(maxsize=16)
+def device_curves(curves: tuple[PhaseCurve, ...], sign: int, invert: bool, n_colours: int,
+                  device: str) -> DeviceCurves:
+    """One curve per colour (a single curve serves all), as `DeviceCurves` on `device`: each
+    row of the table is `phase_to_grey` of its bins' centres."""
+    per = _curves_per_channel(curves, n_colours, sign)
+    zero = torch.from_numpy(zero_grey(per, sign, invert)).to(device)
+    if all(c.is_default for c in per):
+        return DeviceCurves(None, zero)
+    centres = (torch.arange(DEVICE_LUT_BINS, dtype=torch.float64) + 0.5) * (
+        TWO_PI / DEVICE_LUT_BINS)
+    lut = phase_to_grey(centres.expand(n_colours, 1, DEVICE_LUT_BINS), per, invert=invert)
+    return DeviceCurves(lut[:, 0].to(device), zero)
+
+
+def device_grey(field: torch.Tensor, amplitude_scale: float, curves: DeviceCurves, *,
+                sign: int = 1, invert: bool = False, zero_below: float = ZERO_BELOW,
+                gain: torch.Tensor | None = None
+                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`double_phase_grey` in torch on the field's device (elementwise passes, no
+    host synchronisation): field `[C, h, w]` complex64 (any strides) -> grey `[C, h, w]` uint8,
+    the clipped fraction per colour `[C]` float64 and the count of non-finite amplitudes `[]`.
+
+    The same definitions: |u| (x gain) / scale, its clipped count and zero_below test exactly;
+    the phase `arg(u e^{-i mean} (a +- i sqrt(1 - a^2)))`, + on even (row + column), the
+    circular mean from a complex128 sum rounded to float32; the default curve rounds, another
+    curve is looked up in `curves.lut`; a pixel below zero_below gets the zero pattern's level.
+    The phase is float32 here (float64 in numba's pass), so a pixel within ~1e-6 rad of a
+    decision boundary (or half a table bin of one) may differ by one level of the curve."""
+    if sign not in (1, -1):
+        raise ValueError(f"sign = {sign!r}: must be +1 or -1")
+    if field.dim() != 3:
+        raise ValueError(f"field has shape {tuple(field.shape)}: expected [C, H, W]")
+    if not amplitude_scale > 0 or not math.isfinite(amplitude_scale):
+        raise ValueError(f"amplitude_scale = {amplitude_scale!r}: must be finite and > 0")
+    u = field.to(torch.complex64)
+    c, h, w = u.shape
+    re, im = u.real, u.imag
+    if gain is not None:
+        if tuple(gain.shape) != (c, h, w):
+            raise ValueError(f"gain has shape {tuple(gain.shape)}: expected the field's "
+                             f"{(c, h, w)}")
+        re, im = re * gain, im * gain
+    # |u| as numba's pass (and torch.abs): sqrt in double of float32 squares, rounded to float32.
+    mag = torch.sqrt(re.double() ** 2 + im.double() ** 2).float()
+    amp = mag / torch.tensor(amplitude_scale, dtype=torch.float32)
+    finite = torch.isfinite(amp)
+    bad = (~finite).sum()
+    clipped = (amp > 1.0).sum(dim=(-2, -1)).double() / (h * w)
+    a = amp.clamp(0.0, AMPLITUDE_CEILING)
+    empty = (a < zero_below) | ~finite
+    a = torch.where(empty, torch.zeros_like(a), a)
+    # The circular mean phase per channel: complex128 sums, rounded to float32 as numba's is.
+    sums = torch.complex(re.double().sum(dim=(-2, -1)), im.double().sum(dim=(-2, -1)))
+    mean = torch.angle(sums).float().double()
+    rr, ri = torch.cos(mean).float()[:, None, None], (-torch.sin(mean)).float()[:, None, None]
+    wr = re * rr - im * ri
+    wi = re * ri + im * rr
+    rows = torch.arange(h, device=u.device)[:, None]
+    cols = torch.arange(w, device=u.device)[None, :]
+    parity = (rows + cols) % 2
+    s = torch.sqrt(1.0 - a * a) * (1.0 - 2.0 * parity.float())
+    p = torch.atan2(wi * a + wr * s, wr * a - wi * s) * float(sign)
+    p = torch.where(p < 0, p + TWO_PI, p)
+    if curves.lut is None:
+        g = torch.round(p / TWO_PI * GREY_LEVELS).long() % GREY_LEVELS
+        g = (GREY_LEVELS - 1 - g) if invert else g
+        grey = g.to(torch.uint8)
+    else:
+        bins = curves.lut.shape[1]
+        idx = (p * (bins / TWO_PI)).long().clamp(0, bins - 1)
+        grey = torch.gather(curves.lut, 1, idx.reshape(c, -1)).reshape(c, h, w)
+    zero = curves.zero[:, parity]  # [C, h, w]: the zero pattern's levels
+    return torch.where(empty, zero, grey), clipped, bad

@@ -4,27 +4,26 @@ on the window plus the kernel's reach, double-phase coding with the model's ampl
 
 On the CPU the coding is numba's fused pass (`nhfd.optics.double_phase_grey`). On a CUDA device
 (`Encoder(settings, device=...)`) the propagation runs there with its kernels and buffers, and the
-coding is `device_grey`: the same definitions in torch on the device, whose uint8 result alone is
-copied to the host (`nhfd.pipeline.device.HostCopy`)."""
+coding is `nhfd.optics.device_grey`: the same definitions in torch on the device, whose uint8
+result alone is copied to the host (`nhfd.pipeline.device.HostCopy`)."""
 
 from __future__ import annotations
-
-import functools
-import math
 
 import numpy as np
 import torch
 
-from nhfd.optics import KernelCache, RegionPropagator, double_phase_grey, region_propagators
-from nhfd.optics.dpac import AMPLITUDE_CEILING, _nearest_level
-from nhfd.spec import GREY_LEVELS, PhaseCurve, zero_grey
+from nhfd.optics import (
+    DeviceCurves,
+    KernelCache,
+    RegionPropagator,
+    device_curves,
+    device_grey,
+    double_phase_grey,
+    region_propagators,
+)
 
 from .device import HostCopy, resolve_device
 from .settings import FrameSettings, frame_region, zero_pattern
-
-# Bins of [0, 2 pi) in the device coder's table of a curve other than the default one: a phase
-# within half a bin (5e-5 rad) of a decision boundary may get the neighbouring level.
-DEVICE_LUT_BINS = 65536
 
 
 class Encoder:
@@ -155,100 +154,6 @@ class Encoder:
             self._curves_dev = device_curves(tuple(self.curves), s.phase_sign, s.grey_invert,
                                              len(s.wavelengths_m), str(self.device))
         return self._curves_dev
-
-
-class DeviceCurves:
-    """The phase -> grey curves as `device_grey` reads them, on one device: `lut` `[C, BINS]`
-    uint8 (None when every curve is the default one: rounding), and `zero` `[C, 2]` uint8, the
-    grey levels of amplitude 0 on even and odd pixels (`nhfd.spec.zero_grey`)."""
-
-    def __init__(self, lut: torch.Tensor | None, zero: torch.Tensor) -> None:
-        self.lut = lut
-        self.zero = zero
-
-
-@functools.lru_cache(maxsize=16)
-def device_curves(curves: tuple[PhaseCurve, ...], sign: int, invert: bool, n_colours: int,
-                  device: str) -> DeviceCurves:
-    """One curve per colour (a single curve serves all), as `DeviceCurves` on `device`."""
-    per = list(curves) * n_colours if len(curves) == 1 else list(curves)
-    if len(per) != n_colours:
-        raise ValueError(f"{len(curves)} phase curves for {n_colours} colour channels")
-    zero = torch.from_numpy(zero_grey(per, sign, invert)).to(device)
-    if all(c.is_default for c in per):
-        return DeviceCurves(None, zero)
-    centres = (torch.arange(DEVICE_LUT_BINS, dtype=torch.float64) + 0.5) * (
-        2 * math.pi / DEVICE_LUT_BINS)
-    rows = []
-    for c in per:
-        if c.is_default:
-            g = torch.round(centres / (2 * math.pi) * GREY_LEVELS).long() % GREY_LEVELS
-        else:
-            g = _nearest_level(centres, c)
-        rows.append(GREY_LEVELS - 1 - g if invert else g)
-    return DeviceCurves(torch.stack(rows).to(torch.uint8).to(device), zero)
-
-
-def device_grey(field: torch.Tensor, amplitude_scale: float, curves: DeviceCurves, *,
-                sign: int = 1, invert: bool = False, zero_below: float = 0.03,
-                gain: torch.Tensor | None = None
-                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """`nhfd.optics.double_phase_grey` in torch on the field's device (elementwise passes, no
-    host synchronisation): field `[C, h, w]` complex64 (any strides) -> grey `[C, h, w]` uint8,
-    the clipped fraction per colour `[C]` float64 and the count of non-finite amplitudes `[]`.
-
-    The same definitions: |u| (x gain) / scale, its clipped count and zero_below test exactly;
-    the phase `arg(u e^{-i mean} (a +- i sqrt(1 - a^2)))`, + on even (row + column), the
-    circular mean from a complex128 sum rounded to float32; the default curve rounds, another
-    curve is looked up in `curves.lut`; a pixel below zero_below gets the zero pattern's level.
-    The phase is float32 here (float64 in numba's pass), so a pixel within ~1e-6 rad of a
-    decision boundary (or half a table bin of one) may differ by one level of the curve."""
-    if sign not in (1, -1):
-        raise ValueError(f"sign = {sign!r}: must be +1 or -1")
-    if field.dim() != 3:
-        raise ValueError(f"field has shape {tuple(field.shape)}: expected [C, H, W]")
-    if not amplitude_scale > 0 or not math.isfinite(amplitude_scale):
-        raise ValueError(f"amplitude_scale = {amplitude_scale!r}: must be finite and > 0")
-    u = field.to(torch.complex64)
-    c, h, w = u.shape
-    re, im = u.real, u.imag
-    if gain is not None:
-        if tuple(gain.shape) != (c, h, w):
-            raise ValueError(f"gain has shape {tuple(gain.shape)}: expected the field's "
-                             f"{(c, h, w)}")
-        re, im = re * gain, im * gain
-    # |u| as numba's pass (and torch.abs): sqrt in double of float32 squares, rounded to float32.
-    mag = torch.sqrt(re.double() ** 2 + im.double() ** 2).float()
-    amp = mag / torch.tensor(amplitude_scale, dtype=torch.float32)
-    finite = torch.isfinite(amp)
-    bad = (~finite).sum()
-    clipped = (amp > 1.0).sum(dim=(-2, -1)).double() / (h * w)
-    a = amp.clamp(0.0, AMPLITUDE_CEILING)
-    empty = (a < zero_below) | ~finite
-    a = torch.where(empty, torch.zeros_like(a), a)
-    # The circular mean phase per channel: complex128 sums, rounded to float32 as numba's is.
-    sums = torch.complex(re.double().sum(dim=(-2, -1)), im.double().sum(dim=(-2, -1)))
-    mean = torch.angle(sums).float().double()
-    rr, ri = torch.cos(mean).float()[:, None, None], (-torch.sin(mean)).float()[:, None, None]
-    wr = re * rr - im * ri
-    wi = re * ri + im * rr
-    rows = torch.arange(h, device=u.device)[:, None]
-    cols = torch.arange(w, device=u.device)[None, :]
-    parity = (rows + cols) % 2
-    s = torch.sqrt(1.0 - a * a) * (1.0 - 2.0 * parity.float())
-    p = torch.atan2(wi * a + wr * s, wr * a - wi * s) * float(sign)
-    two_pi = 2 * math.pi
-    p = torch.where(p < 0, p + two_pi, p)
-    if curves.lut is None:
-        g = torch.round(p / two_pi * GREY_LEVELS).long() % GREY_LEVELS
-        g = (GREY_LEVELS - 1 - g) if invert else g
-        grey = g.to(torch.uint8)
-    else:
-        bins = curves.lut.shape[1]
-        idx = (p * (bins / two_pi)).long().clamp(0, bins - 1)
-        grey = torch.gather(curves.lut, 1, idx.reshape(c, -1)).reshape(c, h, w)
-    zero = curves.zero[:, parity]  # [C, h, w]: the zero pattern's levels
-    return torch.where(empty, zero, grey), clipped, bad
 
 
 def reference_field(amplitude: np.ndarray | torch.Tensor, phase: np.ndarray | torch.Tensor,

@@ -28,8 +28,9 @@ from nhfd.models.export import (
 from nhfd.models.inputs import network_input
 from nhfd.models.train import TrainOptions, training_device
 from nhfd.optics import double_phase_grey
+from nhfd.optics.dpac import DEVICE_LUT_BINS, device_curves, device_grey
 from nhfd.pipeline.device import HostCopy, resolve_device
-from nhfd.pipeline.encoder import DEVICE_LUT_BINS, Encoder, device_curves, device_grey
+from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.frame import compute_frame, network_input_on_device
 from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import Scene, scene_frame
