@@ -370,10 +370,15 @@ class WebSettings(_Section):
         return self
 
 
+# The values of daemon settings that benches and commands also take (one place for each list).
+INT8_MODES = ("auto", "never", "always")
+FRAME_TRANSPORTS = ("shm", "pickle")
+INFERENCES = ("auto", "onnxruntime", "torch")
+
 # The device names a setting or flag may take (daemon.device, --device, [model.train] device):
 # `device_choice` checks one, `nhfd.pipeline.device.resolve_device` turns one into a torch device.
 DEVICES = ("auto", "cpu", "cuda", "cuda:N")
-DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:[0-9]+)?)$")
+DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:[0-9]+)?")  # matched whole (fullmatch)
 
 
 def device_choice(value: object, setting: str, *, cuda_count: int | None,
@@ -507,10 +512,10 @@ class DaemonSettings(_Section):
     # The model's int8 sibling (<stem>-int8.onnx beside it) on the CPU path: "auto" serves it
     # where its metadata records a held-out loss within 0.5 dB of this float model, "never"
     # serves the float model, "always" the int8 one whenever it exists.
-    int8: Literal["auto", "never", "always"] = "auto"
+    int8: Literal[INT8_MODES] = "auto"
     # How frames cross from the frame worker: "shm" (shared-memory slots, only a small message
     # on the pipe) or "pickle" (the arrays pickled through the pipe; for comparison).
-    frame_transport: Literal["shm", "pickle"] = "shm"
+    frame_transport: Literal[FRAME_TRANSPORTS] = "shm"
     # Colour timing (hardware.md): "single" (daemon.single_colour's pattern in every channel,
     # only that diode may be on), "capture" (snapshots step through the colours: all off, the
     # colour's pattern, settle, that diode on, capture, off; clients only set powers) or
@@ -526,10 +531,10 @@ class DaemonSettings(_Section):
     # the whole sensor). A small region keeps simulated captures fast; real cameras ignore it.
     camera_roi_px: Annotated[list[Annotated[int, Field(ge=0, le=65536)]],
                              Field(max_length=4)] = []
-    # Where the frame worker computes frames: "auto" (the first CUDA device when torch sees one,
-    # else the CPU), "cpu", "cuda" or "cuda:N". On CUDA every stage runs on the GPU (gsplat,
-    # onnxruntime's TensorRT or CUDA provider, propagation, coding) and only the uint8 panel
-    # region crosses to the host; a CUDA device torch does not see fails the model load.
+    # Where the frame worker computes frames: "auto" (the first CUDA device when torch sees one
+    # and gsplat is installed, else the CPU), "cpu", "cuda" or "cuda:N". On CUDA every stage runs
+    # on the GPU (gsplat, the network as daemon.inference says, propagation, coding) and only the
+    # uint8 panel region crosses to the host; a CUDA device torch does not see fails the load.
     device: str = "auto"
     # TensorRT engines built for the frame worker, one folder per model hash, input shape and GPU
     # ("" = $XDG_CACHE_HOME/nhfd/tensorrt, else ~/.cache/nhfd/tensorrt).
@@ -537,7 +542,7 @@ class DaemonSettings(_Section):
     # What runs the network (`nhfd.pipeline.device.inference_backend`): "onnxruntime", "torch"
     # (the model file's network rebuilt as a torch module, `nhfd.models.torch_model`), or
     # "auto": onnxruntime, except on a CUDA device whose onnxruntime has no CUDA provider.
-    inference: Literal["auto", "onnxruntime", "torch"] = "auto"
+    inference: Literal[INFERENCES] = "auto"
 
     @model_validator(mode="after")
     def _device_named(self) -> DaemonSettings:

@@ -38,7 +38,15 @@ import torch
 
 from nhfd import __version__
 from nhfd.benchmarks.machine import describe
-from nhfd.config import DEVICES, Config, _overlay, load_config
+from nhfd.config import (
+    DEVICES,
+    FRAME_TRANSPORTS,
+    INFERENCES,
+    INT8_MODES,
+    Config,
+    _overlay,
+    load_config,
+)
 from nhfd.daemon.frame_link import FrameLink
 from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
@@ -189,13 +197,13 @@ def _variant_config(config: Any, v: Variant) -> Config:
 
 
 def _check_fits(cfg: Any, model: Path, meta: dict[str, Any]) -> None:
-    """Refuse a frame window larger than the panel before a worker starts for it."""
-    wh, ww = frame_window_hw(cfg, meta)
-    if wh > cfg.slm.height_px or ww > cfg.slm.width_px:
-        raise ValueError(f"{model}: trained at {ww} x {wh}, larger than the "
-                         f"{cfg.slm.width_px} x {cfg.slm.height_px} panel; set "
-                         f"daemon.frame_size_px to at most [{cfg.slm.width_px}, "
-                         f"{cfg.slm.height_px}]")
+    """Refuse a frame window larger than the panel before a worker starts for it (the
+    configuration checked daemon.frame_size_px; `frame_window_hw` checks the model's training
+    size that stands in for an empty one)."""
+    try:
+        frame_window_hw(cfg, meta)
+    except ValueError as exc:
+        raise ValueError(f"{model}: {exc}") from None
 
 
 def _orbit(meta: dict[str, Any], n: int) -> list[dict[str, Any]]:
@@ -262,9 +270,9 @@ def run(args: argparse.Namespace) -> int:
     config = load_config(args.config).config
     # Every choice is checked here, before any worker starts: a clean error, not a late one.
     devices = _devices(args.device) if getattr(args, "device", None) else [None]
-    transports = _choices("--transport", args.transport, ("shm", "pickle"))
-    int8s = _choices("--int8", args.int8, ("auto", "never", "always")) if args.int8 else [None]
-    inferences = (_choices("--inference", args.inference, ("auto", "onnxruntime", "torch"))
+    transports = _choices("--transport", args.transport, FRAME_TRANSPORTS)
+    int8s = _choices("--int8", args.int8, INT8_MODES) if args.int8 else [None]
+    inferences = (_choices("--inference", args.inference, INFERENCES)
                   if getattr(args, "inference", None) else [None])
     configs = _size_configs(config, args.frame_size_px)
     models = [Path(m) for m in (args.model or [DEFAULT_MODEL])]

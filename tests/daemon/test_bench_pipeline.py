@@ -136,3 +136,17 @@ def test_what_runs_the_network_is_compared_side_by_side(tiny, tmp_path):
     assert [row["azimuth_deg"] for row in results[0]["rows"]] == [
         row["azimuth_deg"] for row in results[1]["rows"]]
     assert "--inference onnxruntime,torch" in out.with_suffix(".md").read_text().splitlines()[1]
+
+
+def test_a_model_larger_than_the_panel_is_refused_before_any_worker_starts(tiny, tmp_path,
+                                                                           monkeypatch, capsys):
+    started = []
+    monkeypatch.setattr(pipeline, "FrameLink", lambda host: started.append(host))
+    (tmp_path / "nhfd.toml").write_text("[slm]\nwidth_px = 64\nheight_px = 48\n[optics]\n"
+                                        "hologram_width_px = 64\nhologram_height_px = 48\n")
+    assert main(["bench", "pipeline", "--config", str(tmp_path / "nhfd.toml"), "--model",
+                 str(tiny["model"]), "--scene", str(tiny["scene"]), "--views", "1"]) == 2
+    err = capsys.readouterr().err
+    assert (f"{tiny['model']}: frame window 96 x 64 (the model's training size: "
+            "daemon.frame_size_px is empty) does not fit the panel 64 x 48") in err, err
+    assert started == []

@@ -4,6 +4,7 @@ float file, the float model; status says which and why."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 import time
@@ -96,13 +97,23 @@ def test_the_record_travels_in_the_int8_files_metadata(pair):
     assert {k: v for k, v in meta.items() if k != HELDOUT_KEY} == json.loads(props[METADATA_KEY])
 
 
-def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
-    host = _Host(small_config(daemon={"frame_cache_frames": 0}))
+@contextlib.contextmanager
+def served(pair, int8_psnr_db: float, **daemon):
+    """A frame link serving the pair's float model (the int8 one beside it records a held-out
+    PSNR of `int8_psnr_db` against 30 dB), with `daemon` settings; closed after."""
+    host = _Host(small_config(daemon={"frame_cache_frames": 0, **daemon}))
     link = FrameLink(host)
     try:
-        record_heldout_loss(pair["int8"], pair["float"], float_psnr_db=30.0, int8_psnr_db=29.7,
-                            views=4)
+        record_heldout_loss(pair["int8"], pair["float"], float_psnr_db=30.0,
+                            int8_psnr_db=int8_psnr_db, views=4)
         _load(link, pair["scene"], pair["float"])
+        yield host, link
+    finally:
+        link.close()
+
+
+def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
+    with served(pair, 29.7) as (host, link):
         info = link.model_info
         assert info["variant"] == "int8" and info["served"] == str(pair["int8"].resolve())
         assert info["inference"] == "onnxruntime"  # "auto" on the CPU
@@ -118,24 +129,15 @@ def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
         assert status["model_variant"] == "float"
         assert "loses 0.70 dB of held-out PSNR, more than 0.5 dB" in status["model_variant_reason"]
         assert link.model_info["served"] == str(pair["float"].resolve())
-    finally:
-        link.close()
 
 
 def test_torch_inference_serves_the_float_model_and_says_so(pair):
     """daemon.inference = "torch": int8 arithmetic is onnxruntime's, so the float model serves
     (frames and all), and the model's status names what runs the network and why."""
-    host = _Host(small_config(daemon={"frame_cache_frames": 0, "inference": "torch"}))
-    link = FrameLink(host)
-    try:
-        record_heldout_loss(pair["int8"], pair["float"], float_psnr_db=30.0, int8_psnr_db=29.9,
-                            views=4)
-        _load(link, pair["scene"], pair["float"])
+    with served(pair, 29.9, inference="torch") as (host, link):
         info = link.model_info
         assert (info["inference"], info["providers"]) == ("torch", ["torch"])
         assert info["inference_reason"] == 'daemon.inference = "torch": the network in torch on cpu'
         assert info["variant"] == "float" and info["served"] == str(pair["float"].resolve())
         assert "daemon.inference = 'torch'" in info["variant_reason"]
         show_a_frame(host, link)
-    finally:
-        link.close()
