@@ -39,6 +39,7 @@ from nhfd.models import evaluate as ev
 from nhfd.models.export import OnnxModel
 from nhfd.models.metadata import METADATA_KEY, NotAModel, parse_metadata
 from nhfd.models.quantise import output_nodes
+from nhfd.models.sizes import recheck_derived
 
 # Operators safe to compute in float16 for this network: no exponentials or reductions, so no
 # intermediate leaves float16's range unless the float32 model's activations already near it.
@@ -48,6 +49,8 @@ FP16_OPS = frozenset({
     "DepthToSpace", "SpaceToDepth", "Pad", "Shape", "Max", "Min",
 })  # fmt: skip
 FP16_MAX = float(np.finfo(np.float16).max)  # 65504
+# The fp16 file's own record of `compare_fp16` against its float model (float16 emulated).
+CHECK_KEY = "fp16_vs_float"
 PRECISION = "fp16"
 
 
@@ -73,6 +76,8 @@ def convert_fp16(src: str | Path, dst: str | Path, *, keep_float: tuple[str, ...
     if meta.get("precision", "fp32") != "fp32":
         raise ValueError(f"{src}: precision {meta['precision']!r}; convert the float32 model")
     half = to_fp16(model, keep_float=keep_float)
+    # the float model's size checks are not this model's: checked again once it is written
+    checked = meta.pop("checked_sizes", None) or []
     for prop in half.metadata_props:
         if prop.key == METADATA_KEY:
             prop.value = json.dumps({**meta, "precision": PRECISION})
@@ -82,11 +87,19 @@ def convert_fp16(src: str | Path, dst: str | Path, *, keep_float: tuple[str, ...
     dst.parent.mkdir(parents=True, exist_ok=True)
     tmp = dst.with_name(dst.name + ".tmp")
     onnx.save(half, str(tmp))
-    if check and not compare_fp16(src, tmp, emulate=True)["finite"]:
-        tmp.unlink()
-        raise ValueError(f"{src}: its fp16 conversion gives inf or NaN (float16's range is "
-                         f"+-{FP16_MAX:g}); not written to {dst}")  # fmt: skip
+    if check:
+        d = compare_fp16(src, tmp, emulate=True)
+        if not d["finite"]:
+            tmp.unlink()
+            raise ValueError(f"{src}: its fp16 conversion gives inf or NaN (float16's range is "
+                             f"+-{FP16_MAX:g}); not written to {dst}")  # fmt: skip
+        # the comparison travels with the file (`nhfd export --fp16` prints it from there)
+        for prop in half.metadata_props:
+            if prop.key == METADATA_KEY:
+                prop.value = json.dumps({**meta, "precision": PRECISION, CHECK_KEY: d})
+        onnx.save(half, str(tmp))
     tmp.replace(dst)
+    recheck_derived(src, dst, checked)
     return dst
 
 

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from nhfd.models.metadata import METADATA_KEY
 from nhfd.models.net import pad_amounts
-from nhfd.models.sizes import check_and_record, measured_margin_px
+from nhfd.models.sizes import recheck_derived
 
 if TYPE_CHECKING:
     from nhfd.models.data import HoloData
@@ -100,10 +100,7 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
             checked = meta.pop("checked_sizes", None) or []
             copy.value = json.dumps(meta)
     onnx.save(q, str(dst))
-    if checked:  # the same sizes, checked on the int8 graph itself (full run against tiles),
-        # leaving the float model's receptive margin at tile edges (tile_check says why)
-        check_and_record(dst, [tuple(e["hw"]) for e in checked],
-                         margin_px=measured_margin_px(src))
+    recheck_derived(src, dst, checked)
     return dst
 
 

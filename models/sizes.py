@@ -134,6 +134,18 @@ def check_and_record(path: str | Path, sizes_hw: Sequence[tuple[int, int]],
     return record_checked_sizes(path, check_sizes(path, sizes_hw, compare, margin_px))
 
 
+def recheck_derived(source: str | Path, derived: str | Path,
+                    checked: Sequence[dict[str, Any]]) -> None:
+    """A model derived from the float model `source` (int8, fp16) carries none of its size
+    checks: `checked` (the float model's `checked_sizes` entries, taken out of the derived
+    file's metadata) are checked again on the derived graph itself, its full run against tiles
+    that leave the float model's receptive margin (`tile_check` says why: a rounded graph's far
+    reach is the float graph's, rounded into whole steps)."""
+    if checked:
+        check_and_record(derived, [tuple(e["hw"]) for e in checked],
+                         margin_px=measured_margin_px(source))
+
+
 def measured_margin_px(path: str | Path) -> int:
     """The receptive margin of the model at `path`, measured at its training window."""
     import onnxruntime as ort

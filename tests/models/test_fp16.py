@@ -13,6 +13,7 @@ import pytest
 from nhfd.cli.main import main
 from nhfd.models.export import OnnxModel, export_onnx, load_model
 from nhfd.models.half import (
+    CHECK_KEY,
     FP16_MAX,
     compare_fp16,
     convert_fp16,
@@ -20,7 +21,12 @@ from nhfd.models.half import (
     evaluate_emulated,
     half_initializer_bytes,
 )
-from nhfd.models.metadata import NotAModel, check_metadata, expected_from_manifest
+from nhfd.models.metadata import (
+    NotAModel,
+    check_metadata,
+    checked_size_entry,
+    expected_from_manifest,
+)
 
 FLOAT, HALF = onnx.TensorProto.FLOAT, onnx.TensorProto.FLOAT16
 # Tolerance of the fp16 model's outputs against the float model's on one seeded random input,
@@ -123,7 +129,9 @@ def test_metadata_survives_and_the_model_loads(pair, shipped_pair, tiny_data):
 
     f, h = pair
     mf, mh = OnnxModel(f).metadata, OnnxModel(h).metadata
+    check = mh.pop(CHECK_KEY)  # the conversion's own comparison, recorded in the file
     assert mh == {**mf, "precision": "fp16"}
+    assert check == compare_fp16(f, h, emulate=True)
     manifest = json.loads((tiny_data / "manifest.json").read_text())
     check_metadata(mh, expected_from_manifest(manifest), str(h))
     # the shipped model's fp16 copy is accepted for the default optics, as the daemon loads it
@@ -213,3 +221,20 @@ def test_export_of_a_run_writes_both_models(tiny_run, tmp_path, capsys):
     assert report["fp16_path"] == str(h) and report["fp16_vs_float"]["finite"] is True
     assert OnnxModel(f).metadata.get("precision", "fp32") == "fp32"
     assert OnnxModel(h).metadata["precision"] == "fp16"
+
+
+def test_the_float_models_size_checks_are_checked_again_on_the_fp16_graph(shipped_pair,
+                                                                          tmp_path):
+    """The fp16 file carries none of the float model's checks (as an int8 file): each size is
+    checked on its own graph (the full run against tiles)."""
+    import shutil
+
+    from nhfd.models.sizes import record_checked_sizes
+
+    f = shutil.copyfile(shipped_pair[0], tmp_path / "f.onnx")
+    record_checked_sizes(f, [checked_size_entry((576, 1024), 0.0, "the torch network of its run")])
+    h = convert_fp16(f, tmp_path / "h.onnx")
+    entries = {tuple(e["hw"]): e for e in OnnxModel(h).metadata["checked_sizes"]}
+    assert set(entries) == {tuple(e["hw"]) for e in OnnxModel(f).metadata["checked_sizes"]}
+    assert entries[(576, 1024)]["against"].startswith("the same graph on overlapping")
+    assert all(e["ok"] for e in entries.values())
