@@ -309,7 +309,7 @@ class OnnxModel:
 
         self.path = Path(path)
         # "cuda" as "cuda:0": tensors always carry an index, and run_on compares devices
-        self.device = torch.device(device_choice(str(device), "device", cuda_count=None,
+        self.device = torch.device(device_choice(str(device), device_setting, cuda_count=None,
                                                  allowed=("cpu", "cuda", "cuda:N")))
         name = source or str(self.path)
         if not self.path.is_file():

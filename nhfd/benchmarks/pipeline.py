@@ -43,6 +43,7 @@ from nhfd.config import (
     FRAME_TRANSPORTS,
     INFERENCES,
     INT8_MODES,
+    REFRESH_HZ_MAX,
     Config,
     _overlay,
     load_config,
@@ -86,13 +87,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="hologram window (daemon.frame_size_px), repeatable: each size measured "
                         "in turn (default: the configuration's)")
     p.add_argument("--transport", default="shm",
-                   help="comma list of frame transports to compare: shm, pickle (default shm)")
+                   help=f"comma list of frame transports to compare: {', '.join(FRAME_TRANSPORTS)} "
+                        "(default shm)")
     p.add_argument("--int8", default=None,
-                   help="comma list of daemon.int8 settings to compare: auto, never, always "
+                   help=f"comma list of daemon.int8 settings to compare: {', '.join(INT8_MODES)} "
                         "(default: the configuration's)")
     p.add_argument("--inference", default=None,
-                   help="comma list of what runs the network, to compare: auto, onnxruntime, "
-                        "torch (daemon.inference; default: the configuration's)")
+                   help=f"comma list of what runs the network, to compare: "
+                        f"{', '.join(INFERENCES)} (daemon.inference; default: the configuration's)")
     p.set_defaults(handler=run)
 
 
@@ -192,7 +194,7 @@ def _variant_config(config: Any, v: Variant) -> Config:
         daemon["device"] = v.device
     if v.inference is not None:
         daemon["inference"] = v.inference
-    overlay = {"daemon": daemon, "slm": {"refresh_hz": 1000.0}}
+    overlay = {"daemon": daemon, "slm": {"refresh_hz": REFRESH_HZ_MAX}}
     return Config.model_validate(_overlay(config.model_dump(), overlay))
 
 

@@ -138,7 +138,8 @@ def make_example(
     t0 = time.perf_counter()
     cam = settings.camera(pose, camera_distance(pose, center))
     raster = RasterSettings(antialias=settings.antialias)
-    central = render(g, cam, raster, backend="cpu" if device == "cpu" else "gsplat")
+    central = (render(g, cam, raster) if device == "cpu" else
+               render(g, cam, raster, backend="gsplat", device=device))
     aperture = settings.aperture()
     sampling = colour_sampling(
         settings.wavelengths_m,

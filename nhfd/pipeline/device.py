@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from nhfd.config import device_choice
+from nhfd.models.export import CUDA
 from nhfd.scene import gsplat_backend
 
 SETTING = "daemon.device"
@@ -38,7 +39,6 @@ def resolve_device(value: str | torch.device, setting: str = SETTING, *,
 
 
 INFERENCE_SETTING = "daemon.inference"
-CUDA_PROVIDER = "CUDAExecutionProvider"
 
 
 def inference_backend(inference: str, device: torch.device, onnx_providers: list[str],
@@ -52,9 +52,9 @@ def inference_backend(inference: str, device: torch.device, onnx_providers: list
     other stages. "onnxruntime" on such a device is refused, naming both settings and the fix."""
     if inference == "torch":
         return "torch", f'{INFERENCE_SETTING} = "torch": the network in torch on {device}'
-    if device.type != "cuda" or CUDA_PROVIDER in onnx_providers:
+    if device.type != "cuda" or CUDA in onnx_providers:
         return "onnxruntime", f'{INFERENCE_SETTING} = "{inference}": onnxruntime on {device}'
-    missing = (f"this onnxruntime has no {CUDA_PROVIDER} (available: "
+    missing = (f"this onnxruntime has no {CUDA} (available: "
                f"{', '.join(onnx_providers)})")
     if inference == "onnxruntime":
         raise ValueError(f'{setting} = {device} with {INFERENCE_SETTING} = "onnxruntime": '

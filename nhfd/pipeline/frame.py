@@ -32,7 +32,8 @@ import numpy as np
 import torch
 
 from nhfd.models.inputs import ALPHA_CONTENT, DEPTH_CLIP, input_channels, network_input
-from nhfd.scene.raster import Render, render
+from nhfd.scene import gsplat_backend
+from nhfd.scene.raster import RasterSettings, Render, render
 
 from .device import StageClock
 from .encoder import Encoder, reference_field
@@ -100,9 +101,7 @@ def compute_frame_on_device(view: dict[str, Any], scene: Scene, model: Any, enco
                          "for one device (daemon.device)")
     clock = StageClock(dev)
     with torch.no_grad():
-        rendered = render_view(view, scene, model.metadata, s.window_hw,
-                               backend="gsplat" if dev.type == "cuda" else "cpu")
-        rgb, depth, alpha = (_on(v, dev) for v in (rendered.rgb, rendered.depth, rendered.alpha))
+        rgb, depth, alpha = render_on_device(view, scene, model.metadata, s.window_hw, dev)
         clock.stage("render")
         meta = model.metadata
         x = network_input_on_device(rgb, model.inputs, depth=depth, alpha=alpha,
@@ -123,6 +122,24 @@ def compute_frame_on_device(view: dict[str, Any], scene: Scene, model: Any, enco
     fractions = encoder.check_coded(clipped, bad)
     return Frame(encoder.region, grey, clock.seconds, preview.astype(np.float32) / 255,
                  fractions)
+
+
+def render_on_device(view: dict[str, Any], scene: Scene, metadata: dict[str, Any],
+                     window_hw: tuple[int, int], device: torch.device
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """`render_view` as tensors on `device`: sRGB `[3, h, w]`, depth and alpha `[h, w]`. On CUDA
+    gsplat renders the scene uploaded once per device (`Scene.on_device`), and nothing crosses
+    to the host; elsewhere the CPU rasteriser's arrays are moved there."""
+    if device.type != "cuda":
+        r = render_view(view, scene, metadata, window_hw)
+        return _on(r.rgb, device), _on(r.depth, device), _on(r.alpha, device)
+    key = str(device)
+    if key not in scene.on_device:
+        scene.on_device[key] = gsplat_backend.GsplatScene(scene.gaussians, key)
+    raster = RasterSettings()  # render_view's (the CPU path's) settings
+    views = scene.on_device[key].render([render_camera(view, scene.frame, metadata, window_hw)],
+                                        raster.eps2d_px2, raster.antialias)
+    return views.rgb[0], views.depth[0], views.alpha[0]
 
 
 def _on(value: Any, device: torch.device) -> torch.Tensor:

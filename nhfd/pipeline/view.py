@@ -5,7 +5,7 @@ poses the model was trained on."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -30,10 +30,13 @@ class SceneFrame:
 
 @dataclass(frozen=True)
 class Scene:
-    """A loaded scene as frames use it: its Gaussians and the frame orbit views are relative to."""
+    """A loaded scene as frames use it: its Gaussians and the frame orbit views are relative to.
+    `on_device`: the Gaussians uploaded to a CUDA device for gsplat, once per device (keyed by
+    its name; filled by `nhfd.pipeline.frame`), not once per frame."""
 
     gaussians: Any
     frame: SceneFrame
+    on_device: dict[str, Any] = field(default_factory=dict, compare=False, repr=False)
 
 
 def scene_frame(g: Any, path: str | None = None) -> SceneFrame:

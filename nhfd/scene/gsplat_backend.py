@@ -240,10 +240,12 @@ class GsplatScene:
         return TorchViews(rgb, alpha, depth)
 
 
-def render_gsplat(g: Gaussians, cam: Camera, eps2d_px2: float, antialias: bool):
-    """Render one view with gsplat on the first CUDA device; returns numpy rgb, alpha, depth."""
+def render_gsplat(g: Gaussians, cam: Camera, eps2d_px2: float, antialias: bool,
+                  device: str = "cuda"):
+    """Render one view with gsplat on `device` (a scene rendered many times: `GsplatScene`);
+    returns numpy rgb, alpha, depth."""
     require()
-    views = GsplatScene(g).render([cam], eps2d_px2, antialias)
+    views = GsplatScene(g, device).render([cam], eps2d_px2, antialias)
     return (views.rgb[0].cpu().numpy(), views.alpha[0].cpu().numpy(),
             views.depth[0].cpu().numpy())  # fmt: skip
 

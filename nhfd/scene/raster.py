@@ -148,11 +148,13 @@ def render(
     cam: Camera,
     settings: RasterSettings = RasterSettings(),
     backend: str = "cpu",
+    device: str = "cuda",
 ) -> Render:
     """Render one view of `g` from `cam`.
 
     `backend`: "cpu" (this module), "gsplat" (CUDA; see gsplat_backend), or "auto" (gsplat when
-    CUDA and gsplat are present, else the CPU).
+    CUDA and gsplat are present, else the CPU). `device`: the CUDA device gsplat renders on
+    ("cuda": the current one, or "cuda:N").
     """
     if backend not in BACKENDS:
         raise ValueError(f"backend must be one of {BACKENDS}, got {backend!r}")
@@ -162,7 +164,7 @@ def render(
         if backend == "gsplat" or gsplat_backend.available():
             t0 = time.perf_counter()
             rgb, alpha, depth = gsplat_backend.render_gsplat(
-                g, cam, settings.eps2d_px2, settings.antialias
+                g, cam, settings.eps2d_px2, settings.antialias, device
             )
             return Render(
                 rgb,

@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -483,3 +484,40 @@ def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
     monkeypatch.setattr(device_mod, "_cuda_count", lambda: 0)
     assert device_mod.frame_device("auto", CPU_CUDA_TRT)[0] == torch.device("cpu")
+
+
+def test_a_cuda_frame_renders_the_scene_uploaded_once(donut, monkeypatch):
+    """On CUDA the scene goes to the GPU once per device, not once per frame (a 90,000-splat
+    scene is ~20 MB), and the render stays there: gsplat's tensors come back as they are. Faked
+    here: a GsplatScene stand-in records what it is built and asked for."""
+    from nhfd.pipeline import frame as frame_mod
+    from nhfd.pipeline.view import render_camera
+
+    built, asked = [], []
+
+    class FakeScene:
+        def __init__(self, g, device):
+            built.append((g, device))
+
+        def render(self, cams, eps2d_px2, antialias):
+            asked.append(cams)
+            h, w = cams[0].height_px, cams[0].width_px
+            return SimpleNamespace(rgb=torch.zeros(1, 3, h, w), depth=torch.ones(1, h, w),
+                                   alpha=torch.full((1, h, w), 0.5))
+
+    monkeypatch.setattr(frame_mod.gsplat_backend, "GsplatScene", FakeScene)
+    d = donut
+    scene = Scene(d["scene"].gaussians, d["scene"].frame)
+    hw = d["settings"].window_hw
+    for _ in range(3):
+        rgb, depth, alpha = frame_mod.render_on_device(d["view"], scene, d["model"].metadata, hw,
+                                                       torch.device("cuda", 1))
+    assert len(built) == 1 and built[0][0] is scene.gaussians and built[0][1] == "cuda:1"
+    want = render_camera(d["view"], scene.frame, d["model"].metadata, hw)
+    assert len(asked) == 3 and len(asked[0]) == 1
+    got = asked[0][0]
+    np.testing.assert_array_equal(got.R, want.R)
+    np.testing.assert_array_equal(got.t, want.t)
+    assert (got.fx, got.cx, got.cy, got.width_px, got.height_px) == (
+        want.fx, want.cx, want.cy, want.width_px, want.height_px)
+    assert rgb.shape == (3, *hw) and depth.shape == alpha.shape == hw
