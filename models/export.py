@@ -61,7 +61,7 @@ def export_onnx(
     `source_scene`: the file the dataset's scene was reduced from (`nhfd model build`), recorded
     as `source_scene_sha256` so that the original file serves the model too. `check_sizes_hw`:
     the input sizes recorded as `checked_sizes` besides the training window
-    (`nhfd.models.sizes.DEFAULT_SIZES_HW` unless given)."""
+    (`nhfd.models.sizes.default_sizes_hw` unless given)."""
     import onnx
 
     if opset < MIN_OPSET:

@@ -31,6 +31,7 @@ from typing import Any
 
 import numpy as np
 
+from nhfd.config import OpticsSettings, SLMSettings
 from nhfd.models.metadata import (
     METADATA_KEY,
     SIZE_TOLERANCE,
@@ -40,9 +41,6 @@ from nhfd.models.metadata import (
     parse_metadata,
 )
 
-# Sizes (h, w) every export is checked at besides its training window: the window the product
-# served so far (1024 x 576) and the whole 1920 x 1080 panel; rounded up to the input multiple.
-DEFAULT_SIZES_HW: tuple[tuple[int, int], ...] = ((576, 1024), (1080, 1920))
 # The setting that lets the daemon serve a window its model was not checked at.
 ALLOW_SETTING = "daemon.allow_unchecked_sizes"
 _SEED = 0
@@ -60,13 +58,21 @@ def wxh(hw: Sequence[int]) -> str:
     return f"{int(hw[1])} x {int(hw[0])}"
 
 
+def default_sizes_hw() -> list[tuple[int, int]]:
+    """Sizes (h, w) every export is checked at besides its training window, as the product
+    serves them: the default hologram window (nhfd.toml's [optics], 1024 x 576) and the default
+    panel, whole ([slm], 1920 x 1080)."""
+    optics, slm = OpticsSettings(), SLMSettings()
+    return [(optics.hologram_height_px, optics.hologram_width_px), (slm.height_px, slm.width_px)]
+
+
 def sizes_to_check(metadata: dict[str, Any], sizes_hw: Iterable[Sequence[int]] | None = None,
                    *, training: bool = True) -> list[tuple[int, int]]:
     """The training window (unless not `training`), then `sizes_hw` (default
-    `DEFAULT_SIZES_HW`), each rounded up to the model's input multiple, without repeats."""
+    `default_sizes_hw`), each rounded up to the model's input multiple, without repeats."""
     m = int(metadata["input_multiple"])
     wanted = [*([metadata["train_size_hw"]] if training else []),
-              *(DEFAULT_SIZES_HW if sizes_hw is None else sizes_hw)]
+              *(default_sizes_hw() if sizes_hw is None else sizes_hw)]
     out: list[tuple[int, int]] = []
     for hw in wanted:
         p = padded_hw((int(hw[0]), int(hw[1])), m)
@@ -284,6 +290,15 @@ def window_check(metadata: dict[str, Any], window_hw: tuple[int, int], source: s
     raise UncheckedSize(msg)
 
 
-__all__ = ["ALLOW_SETTING", "DEFAULT_SIZES_HW", "SIZE_TOLERANCE", "UncheckedSize",
-           "check_and_record", "check_sizes", "record_checked_sizes",
-           "sizes_to_check", "tile_check", "window_check"]
+__all__ = [
+    "ALLOW_SETTING",
+    "SIZE_TOLERANCE",
+    "UncheckedSize",
+    "check_and_record",
+    "check_sizes",
+    "default_sizes_hw",
+    "record_checked_sizes",
+    "sizes_to_check",
+    "tile_check",
+    "window_check",
+]
