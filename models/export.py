@@ -24,6 +24,7 @@ import torch
 
 from nhfd.config import device_choice
 from nhfd.dataset.build import sha256_file
+from nhfd.models.inputs import seeded_input
 from nhfd.models.metadata import (
     METADATA_KEY,
     NotAModel,
@@ -125,10 +126,9 @@ def compare_with_torch(net, onnx_path: str | Path, sizes_hw: list[tuple[int, int
 
     model = OnnxModel(onnx_path)
     m = net.spec.multiple
-    rng = np.random.default_rng(0)
     worst, sizes = 0.0, []
     for h, w in sizes_hw or [(hs * m, ws * m) for hs, ws in CHECK_SIZES_STRIDES]:
-        x = rng.random((1, net.spec.channels, h, w), dtype=np.float32)
+        x = seeded_input(net.spec.channels, (h, w), seed=0)
         with torch.no_grad():
             ta, tp = net(torch.from_numpy(x))
         oa, op = model.run_raw(x)

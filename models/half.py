@@ -37,6 +37,7 @@ import numpy as np
 
 from nhfd.models import evaluate as ev
 from nhfd.models.export import OnnxModel
+from nhfd.models.inputs import seeded_input
 from nhfd.models.metadata import METADATA_KEY, NotAModel, parse_metadata
 from nhfd.models.quantise import output_nodes
 from nhfd.models.sizes import recheck_derived
@@ -244,9 +245,7 @@ def compare_fp16(float_path: str | Path, half_path: str | Path, *, seed: int = 0
         emulate_fp16(h)
     m = h.multiple
     shape = (1, h.channels, size_strides[0] * m, size_strides[1] * m)
-    x = np.random.default_rng(seed).random(shape, dtype=np.float32)
-    if h.channels == 4:
-        x[:, 3] = 2 * x[:, 3] - 1  # the mapped depth spans [-1, 1]
+    x = seeded_input(h.channels, shape[2:], seed)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # numpy's overflow: checked below
         (fa, fp), (ha, hp) = f.run_raw(x), h.run_raw(x)

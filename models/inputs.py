@@ -87,3 +87,13 @@ def network_input(
     content = (np.asarray(alpha) >= ALPHA_CONTENT) & (d > 0) & np.isfinite(d)
     np.copyto(ch, 0.0, where=~content)
     return out
+
+
+def seeded_input(channels: int, hw: tuple[int, int], seed: int, batch: int = 1) -> np.ndarray:
+    """A seeded `[batch, channels, H, W]` float32 input as the daemon sends them, for checking
+    one graph against another: sRGB in [0, 1] and, for an rgbd model, the mapped depth spanning
+    the volume, [-1, 1]."""
+    x = np.random.default_rng(seed).random((batch, channels, *hw), dtype=np.float32)
+    if channels == 4:
+        x[:, 3] = 2 * x[:, 3] - 1
+    return x

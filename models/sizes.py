@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 
 from nhfd.config import OpticsSettings, SLMSettings
+from nhfd.models.inputs import seeded_input
 from nhfd.models.metadata import (
     METADATA_KEY,
     SIZE_TOLERANCE,
@@ -162,16 +163,6 @@ def measured_margin_px(path: str | Path) -> int:
     return receptive_margin_px(session, meta, padded_hw(probe, int(meta["input_multiple"])))
 
 
-def _inputs(meta: dict[str, Any], channels: int, hw: tuple[int, int]) -> np.ndarray:
-    """Seeded inputs as the daemon sends them: sRGB in [0, 1], an rgbd model's mapped depth in
-    [-1, 1]."""
-    rng = np.random.default_rng(_SEED)
-    x = rng.random((1, channels, *hw), dtype=np.float32)
-    if channels == 4:
-        x[:, 3] = 2 * x[:, 3] - 1
-    return x
-
-
 def _run(session: Any, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     amp, phase = session.run(["amplitude", "phase"], {session.get_inputs()[0].name: x})
     return amp, phase
@@ -185,7 +176,7 @@ def receptive_margin_px(session: Any, meta: dict[str, Any], probe_hw: tuple[int,
     largest on the guitar's model, 107 px away against 73 px at 1e-5), but an int8 graph rounds
     them into whole quantisation steps (0.02-0.04 at tile edges inside the smaller margin)."""
     m = int(meta["input_multiple"])
-    x = _inputs(meta, _channels(session), probe_hw)
+    x = seeded_input(_channels(session), probe_hw, _SEED)
     base = _run(session, x)
     ph, pw = probe_hw
     cy, cx = ph // 2 - (ph // 2) % m, pw // 2 - (pw // 2) % m
@@ -234,7 +225,7 @@ def tile_check(session: Any, meta: dict[str, Any], hw: tuple[int, int],
     change at all), so its check takes the margin of the float model it was quantised from."""
     m = int(meta["input_multiple"])
     h, w = hw
-    x = _inputs(meta, _channels(session), hw)
+    x = seeded_input(_channels(session), hw, _SEED)
     full = _run(session, x)
     colours = len(meta.get("wavelengths_m") or [0, 0, 0])
     if any(o.shape != (1, colours, h, w) or not np.isfinite(o).all() for o in full):

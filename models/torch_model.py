@@ -31,6 +31,7 @@ import torch
 
 from nhfd.config import device_choice
 from nhfd.models.export import OnnxModel, run_padded
+from nhfd.models.inputs import seeded_input
 from nhfd.models.metadata import NotAModel
 from nhfd.models.net import NetSpec, build_net
 from nhfd.models.serving import ServingNet
@@ -154,10 +155,7 @@ def _compare(module: ServingNet, reference: OnnxModel, channels: int, multiple: 
     """Largest absolute difference, amplitude and phase, between the module and the file's graph
     (onnxruntime) on one seeded input of 2 x 3 strides: sRGB in [0, 1] and, for rgbd, depths
     across the network's clipped range."""
-    rng = np.random.default_rng(2023)
-    x = rng.random((1, channels, 2 * multiple, 3 * multiple), dtype=np.float32)
-    if channels == 4:
-        x[:, 3] = 2 * x[:, 3] - 1
+    x = seeded_input(channels, (2 * multiple, 3 * multiple), seed=2023)
     with torch.no_grad():
         ta, tp = module(torch.from_numpy(x))
     oa, op = reference.run_raw(x)
