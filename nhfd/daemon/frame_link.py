@@ -484,11 +484,15 @@ class FrameLink:
     def _show(self, seq: int, payload: dict[str, Any], sent_at: float | None) -> None:
         t0 = time.perf_counter()
         self.last_show_s = time.monotonic()
+        # A frame that cannot be shown (a region off the panel, a malformed payload, the SLM
+        # refusing it) is an error in status, not an exception out of the control loop: the
+        # panel keeps the frame before it and the daemon keeps running.
         try:
-            panel, rgb = self._panel(payload)
-        finally:  # copied out (or refused): the worker may write the slot again
-            self.worker.release(payload.get("slot"))
-        try:  # the panel applies the colour mode, and holds the frame back during a capture
+            try:
+                panel, rgb = self._panel(payload)
+            finally:  # copied out (or refused): the worker may write the slot again
+                self.worker.release(payload.get("slot"))
+            # The panel applies the colour mode, and holds the frame back during a capture.
             frame = self.d.panel.show_view(panel, seq)
         except Exception as exc:
             self.d._error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")

@@ -34,7 +34,8 @@ REFRESH_HZ = 10.0  # a slow panel: a loaded test machine keeps to its refreshes 
 def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
                 slots: dict[str, Any] | None = None) -> None:
     """A frame worker whose frames take no time: grey = the view's seq (mod 256) in a region of
-    half the panel; a view with "crash" kills the process."""
+    half the panel; a view with "crash" kills the process; a view's "payload" replaces fields of
+    the frame's payload and its "drop" removes some (a bad frame)."""
     from multiprocessing import shared_memory
 
     shms = [shared_memory.SharedMemory(name=n) for n in slots["names"]]
@@ -55,11 +56,15 @@ def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
         if view.get("crash"):
             os._exit(3)
         np.ndarray((3, h, w), np.uint8, buffer=shms[slot].buf)[...] = seq % 256
-        conn.send(("frame", seq, {
+        payload = {
             "slot": slot, "grey_shape": [3, h, w], "rgb_shape": None,
             "region": [h // 2, w // 2, h, w, 0, 0], "timings_s": {"render": 0.0},
             "clipped_fraction": [0.0, 0.0, 0.0], "warnings": [], "cached": False,
-            "ready_s": time.monotonic()}))
+            "ready_s": time.monotonic()}
+        payload.update(view.get("payload", {}))
+        for key in view.get("drop", ()):
+            del payload[key]
+        conn.send(("frame", seq, payload))
 
 
 class Host:
@@ -184,6 +189,43 @@ def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slo
         assert len(second) == frame_link.SLOTS and not set(second) & set(first)
         seq = host.views.submit({"kind": "orbit"})
         wait_until(lambda: (link.step(), link.shown_seq == seq)[1], 10, "a frame after it")
+    finally:
+        link.close()
+    assert our_segments() == []
+
+
+def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(short_dir):
+    # Each bad frame reaches `_show` through the real pipe and slot: its region runs off the
+    # panel (PanelBuffer's paste raises ValueError), or its payload lacks the region (KeyError).
+    # Either must land in status as an "slm" error naming the view, give the slot back and
+    # leave the panel as it was, with the control loop's step returning normally.
+    host, link = running_link(short_dir)
+    panel_h, panel_w = host.config.slm.height_px, host.config.slm.width_px
+    try:
+        good = host.views.submit({"kind": "orbit", "azimuth_deg": 1.0})
+        wait_until(lambda: (link.step(), link.shown_seq == good)[1], 10, "the first frame")
+        before = host.slm.last_frame
+        count = host.slm.count
+        bad_frames = [({"payload": {"region": [panel_h - 2, panel_w - 2, 0, 0, 0, 0]}},
+                       "ValueError"),
+                      ({"drop": ["region"]}, "KeyError")]
+        for bad, raised in bad_frames:
+            bad_seq = host.views.submit({"kind": "orbit", "azimuth_deg": 2.0, **bad})
+            wait_until(lambda s=bad_seq: (link.step(), link.sent_seq == s
+                                          and link.inflight is None and link.pending is None)[1],
+                       10, f"view {bad_seq} tried")
+            errors = [e for e in host.errors if f"view {bad_seq}" in e]
+            assert len(errors) == 1 and errors[0].startswith(
+                f"slm: showing view {bad_seq}: {raised}"), host.errors
+            assert link.worker.free_slots == list(range(frame_link.SLOTS))
+            assert link.shown_seq == good and host.slm.count == count
+            assert np.array_equal(host.slm.last_frame, before)
+            assert link.state == "running"
+            good = host.views.submit({"kind": "orbit", "azimuth_deg": 3.0})
+            wait_until(lambda s=good: (link.step(), link.shown_seq == s)[1], 10, "a good frame")
+            top, left = panel_h // 4, panel_w // 4
+            assert np.all(host.slm.last_frame[:, top, left] == good % 256)
+            before, count = host.slm.last_frame, host.slm.count
     finally:
         link.close()
     assert our_segments() == []
