@@ -263,7 +263,7 @@ def test_framebuffer_waits_for_the_vertical_blank_before_each_write_where_offere
     monkeypatch.setattr(framebuffer.fcntl, "ioctl", ioctl)
     settings = fake_framebuffer(tmp_path, 4, 2)
     with FramebufferSLM(4, 2, settings) as slm:
-        assert slm.vsync and "waits for the vertical blank" in slm.vsync_detail
+        assert "waits for the vertical blank" in slm.vsync_detail
         slm.show(np.full((2, 4), 7, np.uint8))
         slm.show(np.full((2, 4), 9, np.uint8))
     # Asked once at open, then before each write (the panel still showing the previous frame),
@@ -273,12 +273,17 @@ def test_framebuffer_waits_for_the_vertical_blank_before_each_write_where_offere
     assert fb.read_bytes()[:4] == bytes([9, 9, 9, 0xFF])
 
 
-def test_a_framebuffer_without_fbio_waitforvsync_falls_back_and_says_so(tmp_path):
+def test_a_framebuffer_without_fbio_waitforvsync_falls_back_and_says_so(tmp_path, monkeypatch):
     # A regular file stands in for /dev/fb1: the ioctl fails with ENOTTY, as on fbdev drivers
     # that do not implement it.
+    asked: list[int] = []
+    ioctl = framebuffer.fcntl.ioctl
+    monkeypatch.setattr(framebuffer.fcntl, "ioctl",
+                        lambda fd, request, arg: (asked.append(request), ioctl(fd, request, arg)))
     settings = fake_framebuffer(tmp_path, 4, 2)
     with FramebufferSLM(4, 2, settings) as slm:
-        assert not slm.vsync
         assert "has no FBIO_WAITFORVSYNC (ENOTTY)" in slm.vsync_detail
         slm.show(np.full((2, 4), 5, np.uint8))
+        slm.show(np.full((2, 4), 5, np.uint8))
+    assert asked == [FBIO_WAITFORVSYNC]  # once, at open: the writes do not ask again
     assert (tmp_path / "dev" / "fb1").read_bytes()[:4] == bytes([5, 5, 5, 0xFF])
