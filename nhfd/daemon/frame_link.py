@@ -293,8 +293,8 @@ class FrameLink:
         self.model_path: str | None = None
         self.model_info: dict[str, Any] | None = None
         self.scene_path: str | None = None
-        # (seq, sent at perf_counter, its slot, sent at monotonic)
-        self.inflight: tuple[int, float, int | None, float] | None = None
+        # (seq, sent at (monotonic), its slot): the view the worker is computing
+        self.inflight: tuple[int, float, int | None] | None = None
         self.sent_seq = 0
         self.shown_seq = 0
         self.timings: dict[str, Any] | None = None
@@ -442,7 +442,7 @@ class FrameLink:
             seq, payload = msg[1], msg[2]
             sent_at = self.inflight[1] if self.inflight and self.inflight[0] == seq else None
             if sent_at is not None and payload.get("ready_s") is not None:
-                took = max(0.0, float(payload["ready_s"]) - self.inflight[3])
+                took = max(0.0, float(payload["ready_s"]) - sent_at)
                 self.compute_s = took if self.compute_s is None else (
                     0.7 * self.compute_s + 0.3 * took)
             self.inflight = None
@@ -475,15 +475,15 @@ class FrameLink:
         except LookupError:  # every slot still held: cannot happen with one frame at a time
             return
         self.worker.send(("frame", seq, view, shm_slot))
-        self.inflight = (seq, time.perf_counter(), shm_slot, time.monotonic())
+        self.inflight = (seq, time.monotonic(), shm_slot)
         self.sent_seq = seq
         if self._view_seq and seq > self._view_seq + 1:
             self.frames_dropped += seq - self._view_seq - 1  # overtaken, never computed
         self._view_seq = max(self._view_seq, seq)
 
     def _show(self, seq: int, payload: dict[str, Any], sent_at: float | None) -> None:
-        t0 = time.perf_counter()
-        self.last_show_s = time.monotonic()
+        # One clock (monotonic) for all: the worker's ready_s is CLOCK_MONOTONIC, as is sent_at.
+        t0 = self.last_show_s = time.monotonic()
         # A frame that cannot be shown (a region off the panel, a malformed payload, the SLM
         # refusing it) is an error in status, not an exception out of the control loop: the
         # panel keeps the frame before it and the daemon keeps running.
@@ -499,9 +499,9 @@ class FrameLink:
             if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
                 self.d.bench.note_slm_lost(str(exc))
             return
-        done = time.perf_counter()
+        done = time.monotonic()
         if payload.get("ready_s") is not None:
-            age = time.monotonic() - float(payload["ready_s"])
+            age = done - float(payload["ready_s"])
             self.last_age_s, self.max_age_s = age, max(self.max_age_s, age)
             self.frames_late += age > self.refresh_s
         stages = dict(payload["timings_s"])
