@@ -13,10 +13,10 @@ pipeline, the models or torch. `FrameLink` never blocks on the pipe: it polls it
 control-loop tick, and it shows the frames it gets (the "output" stage: the coded region pasted
 into the blank frame, `PanelBuffer`).
 
-Frames cross in shared memory (docs/frames.md): `FrameWorker` creates `SLOTS` segments named
-`nhfd-<pid>-<n>-<slot>` in /dev/shm, each sized for the whole panel (a grey region and its
+Frames cross in shared memory (docs/frames.md): `FrameWorker` creates `SLOTS` (one) segment
+named `nhfd-<pid>-<n>-<slot>` in /dev/shm, sized for the whole panel (a grey region and its
 render can never be larger, so a model, scene or refocus that changes the window needs no new
-slot), and unlinks them whenever the worker is closed: stop, crash, restart. A slot is named in
+slot), and unlinks it whenever the worker is closed: stop, crash, restart. The slot is named in
 each frame request; the worker writes only that one, and the daemon names it again only after
 it has copied the frame out, so no slot is overwritten while the daemon reads it.
 
@@ -57,9 +57,10 @@ RESTART_BACKOFF_S = 2.0
 # The worker process's module: the spawned interpreter imports it by this name and runs its
 # `worker_main(conn, config_data, calibration)`.
 WORKER_MODULE = "nhfd.pipeline.worker"
-# Shared-memory slots per worker: one the worker writes while the daemon may still hold the
-# other (a frame waiting for its refresh).
-SLOTS = 2
+# Shared-memory slots per worker. One is all the pacing can use: the link holds at most one
+# frame at a time (in the worker, or waiting for its refresh), and sends the next view only once
+# that frame is on the panel and its slot is free. (~12.4 MB at 1920 x 1080, per worker.)
+SLOTS = 1
 # The /dev/shm names of the slots start with this (then the daemon's pid, a counter, the slot).
 SHM_PREFIX = "nhfd-"
 # A frame is shown when its refresh is due within this (s): the control loop's select may wake
@@ -208,8 +209,8 @@ class FrameWorker:
         return {"names": [shm.name for shm in self.shms], "bytes": nbytes}
 
     def take_slot(self) -> int | None:
-        """A slot the worker may write (None: pickled transport); raises LookupError if none is
-        free."""
+        """A slot the worker may write (None: pickled transport). LookupError if none is free:
+        the link never asks while it holds one (`FrameLink._send_next`)."""
         if self.transport != "shm":
             return None
         if not self.free_slots:
@@ -302,9 +303,9 @@ class FrameLink:
         self.last_rgb: np.ndarray | None = None
         self.last_frame: np.ndarray | None = None
         self.frames_shown = 0
-        # Computed frames superseded before being shown, plus views never computed because a
-        # newer one overtook them (latest wins); shown more than one refresh after the worker
-        # finished them (docs/frames.md).
+        # Views never computed because a newer one overtook them (latest wins), plus a frame
+        # waiting for its refresh when the worker crashed; frames shown more than one refresh
+        # after the worker finished them (docs/frames.md).
         self.frames_dropped = 0
         self.frames_late = 0
         self.refresh_s = 1.0 / float(daemon.config.slm.refresh_hz)
@@ -422,8 +423,7 @@ class FrameLink:
         views = self.d.views
         if (self.state == "running" and self.worker.ready and self.inflight is None
                 and self.model_path is not None and self.scene_path is not None
-                and views.view is not None and views.seq > self.sent_seq
-                and (self.worker.transport != "shm" or self.worker.free_slots)):
+                and views.view is not None and views.seq > self.sent_seq):
             return self.send_at_s  # the step then sends it (_send_next's conditions hold)
         return math.inf
 
@@ -446,10 +446,7 @@ class FrameLink:
                 self.compute_s = took if self.compute_s is None else (
                     0.7 * self.compute_s + 0.3 * took)
             self.inflight = None
-            if self.pending is not None:  # superseded before its refresh came
-                self.frames_dropped += 1
-                self.worker.release(self.pending[1].get("slot"))
-            self.pending = (seq, payload, sent_at)
+            self.pending = (seq, payload, sent_at)  # none before it: one frame at a time
         elif kind == "frame_error":
             seq, message = msg[1], msg[2]
             if self.inflight is not None:
@@ -470,10 +467,7 @@ class FrameLink:
         if time.monotonic() < self.send_at_s:
             return  # the loop wakes at send_at_s (wake_s)
         seq, view = slot.seq, slot.view
-        try:
-            shm_slot = self.worker.take_slot()
-        except LookupError:  # every slot still held: cannot happen with one frame at a time
-            return
+        shm_slot = self.worker.take_slot()  # free: no frame of ours is out or waiting
         self.worker.send(("frame", seq, view, shm_slot))
         self.inflight = (seq, time.monotonic(), shm_slot)
         self.sent_seq = seq
