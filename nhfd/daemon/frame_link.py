@@ -210,7 +210,7 @@ class FrameWorker:
 
     def take_slot(self) -> int | None:
         """A slot the worker may write (None: pickled transport). LookupError if none is free:
-        the link never asks while it holds one (`FrameLink._send_next`)."""
+        the link never asks while it holds one (`FrameLink._ready_to_send`)."""
         if self.transport != "shm":
             return None
         if not self.free_slots:
@@ -341,6 +341,8 @@ class FrameLink:
 
     def close(self) -> None:
         self.state = "stopped"
+        # A frame waiting for its refresh, or in the worker: its slot goes with the worker.
+        self.pending = self.inflight = None
         self.worker.close()
 
     def _track(self, pending: Pending, kind: str, path: str) -> Pending:
@@ -420,12 +422,21 @@ class FrameLink:
         frame waiting for its refresh, or a newer view waiting for its time to go out."""
         if self.pending is not None:
             return self.due_s
-        views = self.d.views
-        if (self.state == "running" and self.worker.ready and self.inflight is None
-                and self.model_path is not None and self.scene_path is not None
-                and views.view is not None and views.seq > self.sent_seq):
-            return self.send_at_s  # the step then sends it (_send_next's conditions hold)
+        if self._ready_to_send():
+            return self.send_at_s  # the step then sends it (_send_next)
         return math.inf
+
+    def _ready_to_send(self) -> bool:
+        """Whether the newest view may go to the worker, its time (`send_at_s`) aside: the worker
+        runs with a model and a scene, it computes nothing of ours and no frame waits for its
+        refresh (one frame at a time: the next view is taken only once the frame before it is on
+        the panel, so what the worker computes is the newest view then, and the slot is free),
+        and a view newer than the last sent is waiting."""
+        views = self.d.views
+        return (self.state == "running" and self.worker.ready
+                and self.inflight is None and self.pending is None
+                and self.model_path is not None and self.scene_path is not None
+                and views.view is not None and views.seq > self.sent_seq)
 
     def _handle(self, msg: tuple) -> None:
         kind = msg[0]
@@ -455,18 +466,9 @@ class FrameLink:
             self.d._error("frame worker", f"view {seq}: {message}")
 
     def _send_next(self) -> None:
-        # One frame at a time, computed or waiting: the next view is taken only once the frame
-        # before it is on the panel, so what the worker computes is the newest view then.
-        if self.inflight is not None or self.pending is not None or not self.worker.ready:
-            return
-        if self.model_path is None or self.scene_path is None:
-            return
-        slot = self.d.views
-        if slot.view is None or slot.seq <= self.sent_seq:
-            return
-        if time.monotonic() < self.send_at_s:
+        if not self._ready_to_send() or time.monotonic() < self.send_at_s:
             return  # the loop wakes at send_at_s (wake_s)
-        seq, view = slot.seq, slot.view
+        seq, view = self.d.views.seq, self.d.views.view
         shm_slot = self.worker.take_slot()  # free: no frame of ours is out or waiting
         self.worker.send(("frame", seq, view, shm_slot))
         self.inflight = (seq, time.monotonic(), shm_slot)

@@ -8,6 +8,7 @@ and slots, without torch. Its frames are instant and filled with their view's se
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from pathlib import Path
@@ -230,6 +231,24 @@ def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(shor
             before, count = host.slm.last_frame, host.slm.count
     finally:
         link.close()
+    assert our_segments() == []
+
+
+def test_closing_forgets_a_frame_waiting_for_its_refresh(short_dir, monkeypatch):
+    # A view sent well before its refresh (a wide send margin): its frame waits as `pending`.
+    # Its slot is unlinked with the worker on close, so the link must not keep it, nor wake
+    # the loop for it.
+    monkeypatch.setattr(frame_link, "SEND_MARGIN_S", 0.08)
+    host, link = running_link(short_dir)
+    try:
+        first = host.views.submit({"kind": "orbit", "azimuth_deg": 1.0})
+        wait_until(lambda: (link.step(), link.shown_seq == first)[1], 10, "the first frame")
+        waiting = host.views.submit({"kind": "orbit", "azimuth_deg": 2.0})
+        wait_until(lambda: (link.step(), link.pending is not None)[1], 10, "a waiting frame")
+        assert link.pending[0] == waiting and link.wake_s < math.inf
+    finally:
+        link.close()
+    assert link.pending is None and link.wake_s == math.inf
     assert our_segments() == []
 
 
