@@ -6,8 +6,10 @@ configured root, so a test can point both the device and sysfs at files). Pixels
 after each row is left alone. 16 bpp is refused: it cannot carry 8-bit grey levels.
 
 Pacing: where the driver offers the FBIO_WAITFORVSYNC ioctl (asked once, at open), each write
-waits for the vertical blank first, so frames change between scans, at most one per refresh
-(the wait blocks the caller for up to one refresh, as the window backend's vsync flip does).
+waits for the vertical blank first (`_before_write`: before `SLM.show` stamps the frame written
+for a trigger line, and outside the camera_exposure line's lock), so frames change between
+scans, at most one per refresh (the wait blocks the caller for up to one refresh, as the window
+backend's vsync flip does).
 Where it does not (ENOTTY, EINVAL: many fbdev drivers), writes go at once and the daemon's
 timer at `slm.refresh_hz` paces view frames (`nhfd.daemon.frame_link`); `vsync_detail` says
 which, for `status`.
@@ -70,7 +72,7 @@ class FramebufferSLM(SLM):
         self._fd: int | None = None
         self._map: mmap.mmap | None = None
         self._watched: list[Path] = []
-        self.vsync = False
+        self._vsync = False  # whether each write waits for the vertical blank
         self.vsync_detail = ""
 
     @property
@@ -115,7 +117,7 @@ class FramebufferSLM(SLM):
             os.close(fd)
             raise FramebufferError(f"cannot map {size} bytes of {self.device}: {exc}") from None
         self._fd = fd
-        self.vsync, self.vsync_detail = self._detect_vsync(fd)
+        self._vsync, self.vsync_detail = self._detect_vsync(fd)
 
     def _detect_vsync(self, fd: int) -> tuple[bool, str]:
         """Once, at open: does the driver offer FBIO_WAITFORVSYNC? (One wait, at most a
@@ -137,15 +139,17 @@ class FramebufferSLM(SLM):
                 os.close(self._fd)
             self._fd = None
 
-    def _write(self, rgb: np.ndarray) -> None:
-        assert self._map is not None
-        if self.vsync and self._fd is not None:
+    def _before_write(self) -> None:
+        if self._vsync and self._fd is not None:
             try:
                 wait_for_vsync(self._fd)
             except OSError as exc:  # it worked at open: say so once and stop asking
-                self.vsync = False
+                self._vsync = False
                 self.vsync_detail = (f"{self.device}: FBIO_WAITFORVSYNC failed ({exc}); writes "
                                      "are no longer synchronised to the vertical blank")
+
+    def _write(self, rgb: np.ndarray) -> None:
+        assert self._map is not None
         bytes_pp = self.bits_per_pixel // 8
         rows = np.ndarray((self.height_px, self.stride_bytes), np.uint8, buffer=self._map)
         pixels = rows[:, : self.width_px * bytes_pp].reshape(self.height_px, self.width_px,

@@ -8,7 +8,8 @@ before writing (a framebuffer write does not fail on an unplugged cable), keeps 
 and knows when the liquid crystal has settled.
 
 A backend implements `_write(rgb)` with rgb a C-contiguous uint8 array [H, W, 3] in R, G, B
-order, plus `_health()` and optionally the `Device` hooks `_do_open()` / `_do_close()`.
+order, plus `_health()` and optionally `_before_write()` (a wait for the vertical blank) and the
+`Device` hooks `_do_open()` / `_do_close()`.
 """
 
 from __future__ import annotations
@@ -79,9 +80,8 @@ def to_rgb(frame: Any, height_px: int, width_px: int) -> np.ndarray:
 class SLM(Device, ABC):
     """A phase SLM of width_px x height_px driven with 8-bit grey levels per colour channel."""
 
-    # Whether a write waits for the vertical blank, and what `status` says of it ("": the
-    # backend does not say; the framebuffer asks its driver for FBIO_WAITFORVSYNC at open).
-    vsync: bool = False
+    # What `status` says of the backend's vertical-blank synchronisation ("": the backend does
+    # not say; the framebuffer asks its driver for FBIO_WAITFORVSYNC at open).
     vsync_detail: str = ""
 
     def __init__(
@@ -142,6 +142,10 @@ class SLM(Device, ABC):
         health = self.health()
         if not health.ok:
             raise SLMOutputLost(f"{self.name}: output lost: {health.detail}")
+        # Before the written stamp and the exposure gate: the vertical blank waited for here
+        # is the old frame's (a flip stamped as the new frame's would start a flip-triggered
+        # exposure on the old one), and the camera's exposure is not held off while it waits.
+        self._before_write()
         if self.trigger is not None and self.trigger.exposure_gates_write:
             # The camera's exposure-active line: no frame changes while the sensor integrates
             # (TriggerTimeout when the line stays high).
@@ -185,6 +189,10 @@ class SLM(Device, ABC):
         return self._health()
 
     # -- backend hooks -------------------------------------------------------------------------
+
+    def _before_write(self) -> None:
+        """Called by `show` just before the frame is stamped written and `_write` runs: where a
+        backend waits for the vertical blank. Nothing by default."""
 
     @abstractmethod
     def _write(self, rgb: np.ndarray) -> None:

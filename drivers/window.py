@@ -109,7 +109,7 @@ class WindowSLM(SLM):
                               f"{self.width_px}x{self.height_px} (desktop scaling?)")
         window.set_mouse_visible(False)
         # The flip waits for the vertical blank (vsync=True above): status's pacing says so.
-        self.vsync, self.vsync_detail = True, "the window's flip waits for vsync"
+        self.vsync_detail = "the window's flip waits for vsync"
         pyglet.gl.glDisable(pyglet.gl.GL_DITHER)
         self._pyglet, self._window = pyglet, window
 

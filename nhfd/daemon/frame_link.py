@@ -13,10 +13,10 @@ pipeline, the models or torch. `FrameLink` never blocks on the pipe: it polls it
 control-loop tick, and it shows the frames it gets (the "output" stage: the coded region pasted
 into the blank frame, `PanelBuffer`).
 
-Frames cross in shared memory (docs/frames.md): `FrameWorker` creates `SLOTS` segments named
-`nhfd-<pid>-<n>-<slot>` in /dev/shm, each sized for the whole panel (a grey region and its
+Frames cross in shared memory (docs/frames.md): `FrameWorker` creates `SLOTS` (one) segment
+named `nhfd-<pid>-<n>-<slot>` in /dev/shm, sized for the whole panel (a grey region and its
 render can never be larger, so a model, scene or refocus that changes the window needs no new
-slot), and unlinks them whenever the worker is closed: stop, crash, restart. A slot is named in
+slot), and unlinks it whenever the worker is closed: stop, crash, restart. The slot is named in
 each frame request; the worker writes only that one, and the daemon names it again only after
 it has copied the frame out, so no slot is overwritten while the daemon reads it.
 
@@ -57,9 +57,10 @@ RESTART_BACKOFF_S = 2.0
 # The worker process's module: the spawned interpreter imports it by this name and runs its
 # `worker_main(conn, config_data, calibration)`.
 WORKER_MODULE = "nhfd.pipeline.worker"
-# Shared-memory slots per worker: one the worker writes while the daemon may still hold the
-# other (a frame waiting for its refresh).
-SLOTS = 2
+# Shared-memory slots per worker. One is all the pacing can use: the link holds at most one
+# frame at a time (in the worker, or waiting for its refresh), and sends the next view only once
+# that frame is on the panel and its slot is free. (~12.4 MB at 1920 x 1080, per worker.)
+SLOTS = 1
 # The /dev/shm names of the slots start with this (then the daemon's pid, a counter, the slot).
 SHM_PREFIX = "nhfd-"
 # A frame is shown when its refresh is due within this (s): the control loop's select may wake
@@ -208,8 +209,8 @@ class FrameWorker:
         return {"names": [shm.name for shm in self.shms], "bytes": nbytes}
 
     def take_slot(self) -> int | None:
-        """A slot the worker may write (None: pickled transport); raises LookupError if none is
-        free."""
+        """A slot the worker may write (None: pickled transport). LookupError if none is free:
+        the link never asks while it holds one (`FrameLink._ready_to_send`)."""
         if self.transport != "shm":
             return None
         if not self.free_slots:
@@ -293,8 +294,8 @@ class FrameLink:
         self.model_path: str | None = None
         self.model_info: dict[str, Any] | None = None
         self.scene_path: str | None = None
-        # (seq, sent at perf_counter, its slot, sent at monotonic)
-        self.inflight: tuple[int, float, int | None, float] | None = None
+        # (seq, sent at (monotonic), its slot): the view the worker is computing
+        self.inflight: tuple[int, float, int | None] | None = None
         self.sent_seq = 0
         self.shown_seq = 0
         self.timings: dict[str, Any] | None = None
@@ -302,9 +303,9 @@ class FrameLink:
         self.last_rgb: np.ndarray | None = None
         self.last_frame: np.ndarray | None = None
         self.frames_shown = 0
-        # Computed frames superseded before being shown, plus views never computed because a
-        # newer one overtook them (latest wins); shown more than one refresh after the worker
-        # finished them (docs/frames.md).
+        # Views never computed because a newer one overtook them (latest wins), plus a frame
+        # waiting for its refresh when the worker crashed; frames shown more than one refresh
+        # after the worker finished them (docs/frames.md).
         self.frames_dropped = 0
         self.frames_late = 0
         self.refresh_s = 1.0 / float(daemon.config.slm.refresh_hz)
@@ -340,6 +341,8 @@ class FrameLink:
 
     def close(self) -> None:
         self.state = "stopped"
+        # A frame waiting for its refresh, or in the worker: its slot goes with the worker.
+        self.pending = self.inflight = None
         self.worker.close()
 
     def _track(self, pending: Pending, kind: str, path: str) -> Pending:
@@ -419,13 +422,21 @@ class FrameLink:
         frame waiting for its refresh, or a newer view waiting for its time to go out."""
         if self.pending is not None:
             return self.due_s
-        views = self.d.views
-        if (self.state == "running" and self.worker.ready and self.inflight is None
-                and self.model_path is not None and self.scene_path is not None
-                and views.view is not None and views.seq > self.sent_seq
-                and (self.worker.transport != "shm" or self.worker.free_slots)):
-            return self.send_at_s  # the step then sends it (_send_next's conditions hold)
+        if self._ready_to_send():
+            return self.send_at_s  # the step then sends it (_send_next)
         return math.inf
+
+    def _ready_to_send(self) -> bool:
+        """Whether the newest view may go to the worker, its time (`send_at_s`) aside: the worker
+        runs with a model and a scene, it computes nothing of ours and no frame waits for its
+        refresh (one frame at a time: the next view is taken only once the frame before it is on
+        the panel, so what the worker computes is the newest view then, and the slot is free),
+        and a view newer than the last sent is waiting."""
+        views = self.d.views
+        return (self.state == "running" and self.worker.ready
+                and self.inflight is None and self.pending is None
+                and self.model_path is not None and self.scene_path is not None
+                and views.view is not None and views.seq > self.sent_seq)
 
     def _handle(self, msg: tuple) -> None:
         kind = msg[0]
@@ -442,14 +453,11 @@ class FrameLink:
             seq, payload = msg[1], msg[2]
             sent_at = self.inflight[1] if self.inflight and self.inflight[0] == seq else None
             if sent_at is not None and payload.get("ready_s") is not None:
-                took = max(0.0, float(payload["ready_s"]) - self.inflight[3])
+                took = max(0.0, float(payload["ready_s"]) - sent_at)
                 self.compute_s = took if self.compute_s is None else (
                     0.7 * self.compute_s + 0.3 * took)
             self.inflight = None
-            if self.pending is not None:  # superseded before its refresh came
-                self.frames_dropped += 1
-                self.worker.release(self.pending[1].get("slot"))
-            self.pending = (seq, payload, sent_at)
+            self.pending = (seq, payload, sent_at)  # none before it: one frame at a time
         elif kind == "frame_error":
             seq, message = msg[1], msg[2]
             if self.inflight is not None:
@@ -458,46 +466,38 @@ class FrameLink:
             self.d._error("frame worker", f"view {seq}: {message}")
 
     def _send_next(self) -> None:
-        # One frame at a time, computed or waiting: the next view is taken only once the frame
-        # before it is on the panel, so what the worker computes is the newest view then.
-        if self.inflight is not None or self.pending is not None or not self.worker.ready:
-            return
-        if self.model_path is None or self.scene_path is None:
-            return
-        slot = self.d.views
-        if slot.view is None or slot.seq <= self.sent_seq:
-            return
-        if time.monotonic() < self.send_at_s:
+        if not self._ready_to_send() or time.monotonic() < self.send_at_s:
             return  # the loop wakes at send_at_s (wake_s)
-        seq, view = slot.seq, slot.view
-        try:
-            shm_slot = self.worker.take_slot()
-        except LookupError:  # every slot still held: cannot happen with one frame at a time
-            return
+        seq, view = self.d.views.seq, self.d.views.view
+        shm_slot = self.worker.take_slot()  # free: no frame of ours is out or waiting
         self.worker.send(("frame", seq, view, shm_slot))
-        self.inflight = (seq, time.perf_counter(), shm_slot, time.monotonic())
+        self.inflight = (seq, time.monotonic(), shm_slot)
         self.sent_seq = seq
         if self._view_seq and seq > self._view_seq + 1:
             self.frames_dropped += seq - self._view_seq - 1  # overtaken, never computed
         self._view_seq = max(self._view_seq, seq)
 
     def _show(self, seq: int, payload: dict[str, Any], sent_at: float | None) -> None:
-        t0 = time.perf_counter()
-        self.last_show_s = time.monotonic()
+        # One clock (monotonic) for all: the worker's ready_s is CLOCK_MONOTONIC, as is sent_at.
+        t0 = self.last_show_s = time.monotonic()
+        # A frame that cannot be shown (a region off the panel, a malformed payload, the SLM
+        # refusing it) is an error in status, not an exception out of the control loop: the
+        # panel keeps the frame before it and the daemon keeps running.
         try:
-            panel, rgb = self._panel(payload)
-        finally:  # copied out (or refused): the worker may write the slot again
-            self.worker.release(payload.get("slot"))
-        try:  # the panel applies the colour mode, and holds the frame back during a capture
+            try:
+                panel, rgb = self._panel(payload)
+            finally:  # copied out (or refused): the worker may write the slot again
+                self.worker.release(payload.get("slot"))
+            # The panel applies the colour mode, and holds the frame back during a capture.
             frame = self.d.panel.show_view(panel, seq)
         except Exception as exc:
             self.d._error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
             if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
                 self.d.bench.note_slm_lost(str(exc))
             return
-        done = time.perf_counter()
+        done = time.monotonic()
         if payload.get("ready_s") is not None:
-            age = time.monotonic() - float(payload["ready_s"])
+            age = done - float(payload["ready_s"])
             self.last_age_s, self.max_age_s = age, max(self.max_age_s, age)
             self.frames_late += age > self.refresh_s
         stages = dict(payload["timings_s"])

@@ -8,6 +8,7 @@ and slots, without torch. Its frames are instant and filled with their view's se
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from pathlib import Path
@@ -34,7 +35,8 @@ REFRESH_HZ = 10.0  # a slow panel: a loaded test machine keeps to its refreshes 
 def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
                 slots: dict[str, Any] | None = None) -> None:
     """A frame worker whose frames take no time: grey = the view's seq (mod 256) in a region of
-    half the panel; a view with "crash" kills the process."""
+    half the panel; a view with "crash" kills the process; a view's "payload" replaces fields of
+    the frame's payload and its "drop" removes some (a bad frame)."""
     from multiprocessing import shared_memory
 
     shms = [shared_memory.SharedMemory(name=n) for n in slots["names"]]
@@ -55,11 +57,15 @@ def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
         if view.get("crash"):
             os._exit(3)
         np.ndarray((3, h, w), np.uint8, buffer=shms[slot].buf)[...] = seq % 256
-        conn.send(("frame", seq, {
+        payload = {
             "slot": slot, "grey_shape": [3, h, w], "rgb_shape": None,
             "region": [h // 2, w // 2, h, w, 0, 0], "timings_s": {"render": 0.0},
             "clipped_fraction": [0.0, 0.0, 0.0], "warnings": [], "cached": False,
-            "ready_s": time.monotonic()}))
+            "ready_s": time.monotonic()}
+        payload.update(view.get("payload", {}))
+        for key in view.get("drop", ()):
+            del payload[key]
+        conn.send(("frame", seq, payload))
 
 
 class Host:
@@ -174,7 +180,9 @@ def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slo
     host, link = running_link(short_dir)
     try:
         first = our_segments()
-        assert len(first) == frame_link.SLOTS
+        # One slot: the link holds one frame at a time (in the worker or waiting for its
+        # refresh), so a second would never be needed (each is the panel's size).
+        assert len(first) == frame_link.SLOTS == 1
         host.views.submit({"crash": True})
         wait_until(lambda: (link.step(), link.state == "crashed")[1], 10, "the crash")
         assert our_segments() == []  # unlinked with the crashed worker
@@ -186,6 +194,61 @@ def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slo
         wait_until(lambda: (link.step(), link.shown_seq == seq)[1], 10, "a frame after it")
     finally:
         link.close()
+    assert our_segments() == []
+
+
+def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(short_dir):
+    # Each bad frame reaches `_show` through the real pipe and slot: its region runs off the
+    # panel (PanelBuffer's paste raises ValueError), or its payload lacks the region (KeyError).
+    # Either must land in status as an "slm" error naming the view, give the slot back and
+    # leave the panel as it was, with the control loop's step returning normally.
+    host, link = running_link(short_dir)
+    panel_h, panel_w = host.config.slm.height_px, host.config.slm.width_px
+    try:
+        good = host.views.submit({"kind": "orbit", "azimuth_deg": 1.0})
+        wait_until(lambda: (link.step(), link.shown_seq == good)[1], 10, "the first frame")
+        before = host.slm.last_frame
+        count = host.slm.count
+        bad_frames = [({"payload": {"region": [panel_h - 2, panel_w - 2, 0, 0, 0, 0]}},
+                       "ValueError"),
+                      ({"drop": ["region"]}, "KeyError")]
+        for bad, raised in bad_frames:
+            bad_seq = host.views.submit({"kind": "orbit", "azimuth_deg": 2.0, **bad})
+            wait_until(lambda s=bad_seq: (link.step(), link.sent_seq == s
+                                          and link.inflight is None and link.pending is None)[1],
+                       10, f"view {bad_seq} tried")
+            errors = [e for e in host.errors if f"view {bad_seq}" in e]
+            assert len(errors) == 1 and errors[0].startswith(
+                f"slm: showing view {bad_seq}: {raised}"), host.errors
+            assert link.worker.free_slots == list(range(frame_link.SLOTS))
+            assert link.shown_seq == good and host.slm.count == count
+            assert np.array_equal(host.slm.last_frame, before)
+            assert link.state == "running"
+            good = host.views.submit({"kind": "orbit", "azimuth_deg": 3.0})
+            wait_until(lambda s=good: (link.step(), link.shown_seq == s)[1], 10, "a good frame")
+            top, left = panel_h // 4, panel_w // 4
+            assert np.all(host.slm.last_frame[:, top, left] == good % 256)
+            before, count = host.slm.last_frame, host.slm.count
+    finally:
+        link.close()
+    assert our_segments() == []
+
+
+def test_closing_forgets_a_frame_waiting_for_its_refresh(short_dir, monkeypatch):
+    # A view sent well before its refresh (a wide send margin): its frame waits as `pending`.
+    # Its slot is unlinked with the worker on close, so the link must not keep it, nor wake
+    # the loop for it.
+    monkeypatch.setattr(frame_link, "SEND_MARGIN_S", 0.08)
+    host, link = running_link(short_dir)
+    try:
+        first = host.views.submit({"kind": "orbit", "azimuth_deg": 1.0})
+        wait_until(lambda: (link.step(), link.shown_seq == first)[1], 10, "the first frame")
+        waiting = host.views.submit({"kind": "orbit", "azimuth_deg": 2.0})
+        wait_until(lambda: (link.step(), link.pending is not None)[1], 10, "a waiting frame")
+        assert link.pending[0] == waiting and link.wake_s < math.inf
+    finally:
+        link.close()
+    assert link.pending is None and link.wake_s == math.inf
     assert our_segments() == []
 
 
@@ -221,7 +284,7 @@ def test_framebuffer_waits_for_the_vertical_blank_before_each_write_where_offere
     monkeypatch.setattr(framebuffer.fcntl, "ioctl", ioctl)
     settings = fake_framebuffer(tmp_path, 4, 2)
     with FramebufferSLM(4, 2, settings) as slm:
-        assert slm.vsync and "waits for the vertical blank" in slm.vsync_detail
+        assert "waits for the vertical blank" in slm.vsync_detail
         slm.show(np.full((2, 4), 7, np.uint8))
         slm.show(np.full((2, 4), 9, np.uint8))
     # Asked once at open, then before each write (the panel still showing the previous frame),
@@ -231,12 +294,17 @@ def test_framebuffer_waits_for_the_vertical_blank_before_each_write_where_offere
     assert fb.read_bytes()[:4] == bytes([9, 9, 9, 0xFF])
 
 
-def test_a_framebuffer_without_fbio_waitforvsync_falls_back_and_says_so(tmp_path):
+def test_a_framebuffer_without_fbio_waitforvsync_falls_back_and_says_so(tmp_path, monkeypatch):
     # A regular file stands in for /dev/fb1: the ioctl fails with ENOTTY, as on fbdev drivers
     # that do not implement it.
+    asked: list[int] = []
+    ioctl = framebuffer.fcntl.ioctl
+    monkeypatch.setattr(framebuffer.fcntl, "ioctl",
+                        lambda fd, request, arg: (asked.append(request), ioctl(fd, request, arg)))
     settings = fake_framebuffer(tmp_path, 4, 2)
     with FramebufferSLM(4, 2, settings) as slm:
-        assert not slm.vsync
         assert "has no FBIO_WAITFORVSYNC (ENOTTY)" in slm.vsync_detail
         slm.show(np.full((2, 4), 5, np.uint8))
+        slm.show(np.full((2, 4), 5, np.uint8))
+    assert asked == [FBIO_WAITFORVSYNC]  # once, at open: the writes do not ask again
     assert (tmp_path / "dev" / "fb1").read_bytes()[:4] == bytes([5, 5, 5, 0xFF])

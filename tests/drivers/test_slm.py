@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+
 import numpy as np
 import pytest
 
 from nhfd.device_settings import SLMOutputSettings
+from nhfd.drivers import framebuffer
 from nhfd.drivers.framebuffer import FramebufferError, FramebufferSLM
 from nhfd.drivers.slm import SimulatedSLM, SLMOutputLost, to_rgb
+from nhfd.drivers.trigger import TriggerLine
 from nhfd.drivers.twins.clock import ManualClock
 
 from .conftest import fake_framebuffer
@@ -100,6 +105,44 @@ def test_framebuffer_24_bpp_and_rgb_order(tmp_path):
     row = bytes([1, 2, 3] * W) + b"\xab"
     # Only the panel's rows are written; a taller virtual screen keeps its extra row.
     assert data == row * H + b"\xab" * (W * 3 + 1)
+
+
+@pytest.mark.parametrize("source", ["slm_flip", "camera_exposure"])
+def test_framebuffer_waits_for_the_vertical_blank_before_the_frame_is_stamped_written(
+        tmp_path, monkeypatch, source):
+    # The blank waited for ends the old frame's scan: a flip during the wait is the old frame's.
+    # slm_flip: the written stamp must follow the wait, or a flip-triggered exposure would start
+    # on the old frame. camera_exposure: the wait must come before the write gate (which holds
+    # the line's lock), or the camera's exposure callbacks would block for up to a refresh.
+    fb = tmp_path / "dev" / "fb1"
+    events: list[tuple[str, int]] = []  # (what, the first pixel's byte then)
+    monkeypatch.setattr(framebuffer.fcntl, "ioctl",
+                        lambda fd, request, arg: events.append(("vsync", fb.read_bytes()[0])))
+    settings = fake_framebuffer(tmp_path, width=W, height=H, bpp=32, stride=W * 4)
+    line = TriggerLine(source)
+    written, gate = line.written, line.frame_write
+
+    def spy_written(at_s: float) -> None:
+        events.append(("written", fb.read_bytes()[0]))
+        written(at_s)
+
+    @contextmanager
+    def spy_gate() -> Iterator[float]:
+        events.append(("gate", fb.read_bytes()[0]))
+        with gate() as low_s:
+            yield low_s
+
+    line.written, line.frame_write = spy_written, spy_gate
+    with FramebufferSLM(W, H, settings) as slm:
+        slm.attach_trigger(line)
+        del events[:]  # the probe at open
+        slm.show(np.full((H, W), 7, np.uint8))
+        slm.show(np.full((H, W), 9, np.uint8))
+    gated = source == "camera_exposure"
+    expected = [[("vsync", old)] + [("gate", old)] * gated + [("written", old)]
+                for old in (0xAB, 7)]  # each before its frame's pixels are written
+    assert events == expected[0] + expected[1]
+    assert fb.read_bytes()[:4] == bytes([9, 9, 9, 0xFF])
 
 
 def test_framebuffer_refuses_16_bpp_and_a_wrong_geometry(tmp_path):
