@@ -13,12 +13,12 @@ int8 sibling by that record (`daemon.int8`, docs/frames.md).
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from nhfd.dataset.build import sha256_file
 from nhfd.models.metadata import METADATA_KEY
 from nhfd.models.net import pad_amounts
 from nhfd.models.sizes import recheck_derived
@@ -104,11 +104,6 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
     return dst
 
 
-def file_sha256(path: str | Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
 def record_heldout_loss(int8_path: str | Path, float_path: str | Path, *, float_psnr_db: float,
                         int8_psnr_db: float, views: int) -> dict[str, Any]:
     """Write into the int8 model's own nhfd metadata what `nhfd eval` measured of it and of its
@@ -119,7 +114,7 @@ def record_heldout_loss(int8_path: str | Path, float_path: str | Path, *, float_
 
     record = {"float_psnr_db": float(float_psnr_db), "int8_psnr_db": float(int8_psnr_db),
               "loss_vs_float_db": float(float_psnr_db) - float(int8_psnr_db),
-              "views": int(views), "float_sha256": file_sha256(float_path),
+              "views": int(views), "float_sha256": sha256_file(Path(float_path)),
               "max_loss_db": INT8_MAX_LOSS_DB}  # fmt: skip
     model = onnx.load(str(int8_path))
     for prop in model.metadata_props:

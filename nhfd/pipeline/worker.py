@@ -45,9 +45,10 @@ import torch
 
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
+from nhfd.dataset.build import sha256_file
 from nhfd.models.export import check_providers, load_model, read_model_metadata
 from nhfd.models.metadata import checked_sizes_hw, expected_from_config
-from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, file_sha256
+from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB
 from nhfd.models.sizes import window_check
 from nhfd.models.torch_model import TorchModel
 from nhfd.scene.io import read_scene
@@ -203,7 +204,7 @@ def choose_variant(path: str, config: Any, int8_metadata: dict[str, Any] | None
     if not isinstance(record, dict) or "loss_vs_float_db" not in record:
         return "float", (f"{sibling} records no held-out loss against the float model (`nhfd "
                          "model build` and `nhfd export --int8 --data` record it)")
-    if record.get("float_sha256") != file_sha256(path):
+    if record.get("float_sha256") != sha256_file(Path(path)):
         return "float", (f"{sibling}'s held-out loss was measured against another float model "
                          "(SHA-256 differs): rebuild it")
     loss = float(record["loss_vs_float_db"])

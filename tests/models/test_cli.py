@@ -30,14 +30,15 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     assert "max abs difference" in out and "recorded in the file" in out
     _int8_is_quantised_and_close(onnx_path, int8_path)
     # the held-out loss inside the int8 file is what `nhfd eval` measures of the two models
+    from nhfd.dataset.build import sha256_file
     from nhfd.models.evaluate import evaluate
     from nhfd.models.export import OnnxModel
-    from nhfd.models.quantise import HELDOUT_KEY, file_sha256
+    from nhfd.models.quantise import HELDOUT_KEY
 
     record = OnnxModel(int8_path).metadata[HELDOUT_KEY]
     psnr = {p: evaluate(p, tiny_data, log=lambda _l: None)["summary"]["all"]["model_psnr_db"]
             for p in (onnx_path, int8_path)}
-    assert record["float_sha256"] == file_sha256(onnx_path)
+    assert record["float_sha256"] == sha256_file(onnx_path)
     assert record["loss_vs_float_db"] == pytest.approx(psnr[onnx_path] - psnr[int8_path],
                                                        abs=1e-9)
     assert main(["eval", str(onnx_path), "--data", str(tiny_data), "--out",

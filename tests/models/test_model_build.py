@@ -111,12 +111,13 @@ def test_the_build_writes_the_model_the_report_and_the_contact_sheet(built):
     assert q["kept"] == (q["loss_vs_float_db"] <= mb.INT8_MAX_LOSS_DB)
     assert (out / "model-int8.onnx").exists() == q["kept"]
     # the daemon serves int8 by the figures inside the file, measured against this float model
-    from nhfd.models.quantise import HELDOUT_KEY, file_sha256
+    from nhfd.dataset.build import sha256_file
+    from nhfd.models.quantise import HELDOUT_KEY
     from nhfd.models.sizes import read_metadata
 
     record = read_metadata(out / "candidates" / "model-int8.onnx")[HELDOUT_KEY]
     assert record["loss_vs_float_db"] == pytest.approx(q["loss_vs_float_db"], abs=1e-9)
-    assert record["float_sha256"] == file_sha256(out / "model.onnx")
+    assert record["float_sha256"] == sha256_file(out / "model.onnx")
     h = report["heldout"]["fp16"]
     assert h["kept"] == (h["loss_vs_float_db"] <= mb.INT8_MAX_LOSS_DB)
     assert (out / "model-fp16.onnx").exists() == h["kept"]
