@@ -14,6 +14,7 @@ int8 sibling by that record (`daemon.int8`, docs/frames.md).
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,6 +32,12 @@ if TYPE_CHECKING:
 INT8_MAX_LOSS_DB = 0.5
 # The key of the held-out record in an int8 model's nhfd metadata (`record_heldout_loss`).
 HELDOUT_KEY = "int8_heldout"
+
+
+def int8_within_loss(loss_db: float) -> bool:
+    """Whether a reduced-precision model that loses `loss_db` of held-out PSNR against its float
+    model is kept and served: finite and at most INT8_MAX_LOSS_DB (NaN or inf is not)."""
+    return math.isfinite(loss_db) and loss_db <= INT8_MAX_LOSS_DB
 
 
 def output_nodes(model) -> tuple[list[str], list[str]]:

@@ -21,6 +21,7 @@ from nhfd.daemon.protocol import RpcError
 from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
 from nhfd.models.export import compare_with_torch
 from nhfd.models.metadata import SIZE_TOLERANCE
+from nhfd.models.quantise import INT8_MAX_LOSS_DB
 from nhfd.models.sizes import (
     check_sizes,
     read_metadata,
@@ -28,11 +29,13 @@ from nhfd.models.sizes import (
     sizes_to_check,
 )
 from nhfd.models.train import load_run, training_device
+from nhfd.pipeline.worker import int8_sibling
 from nhfd.scene.cameras import parse_axis
 
 BUILD_HELP = f"""\
 Choose the poses around the scene, reduce the scene to what they can show (nhfd scene reduce),
-build the dataset, train, export (float32, and int8 where it stays within 0.5 dB of it),
+build the dataset, train, export (float32, and int8 where it stays within {INT8_MAX_LOSS_DB:g} dB of
+it),
 evaluate the held-out views against the 2D-hologram and black baselines with the focus check,
 and write OUT/report.json and OUT/contact_sheet.png.
 Stages: {", ".join(STAGES)}.
@@ -159,8 +162,9 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
     socket = args.socket or str(control_socket(d.runtime_dir))  # as nhfctl finds it
     with Client(socket, timeout_s=30.0) as c:  # no daemon: nothing is copied
         model = _place(out / "model.onnx", model_dir, model_name)
-        if (out / "model-int8.onnx").is_file():  # kept within 0.5 dB: the CPU serves it by default
-            _place(out / "model-int8.onnx", model_dir, f"{Path(model_name).stem}-int8.onnx")
+        # kept within INT8_MAX_LOSS_DB: the CPU serves it by default, found beside the float one
+        if (out / "model-int8.onnx").is_file():
+            _place(out / "model-int8.onnx", model_dir, int8_sibling(model_name).name)
         scene_file = _place(scene, scene_dir, scene.name)
         for method, path in (("load_scene", scene_file), ("load_model", model)):
             job = c.call(method, path=str(path))["job"]

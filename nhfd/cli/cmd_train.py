@@ -19,7 +19,12 @@ from nhfd.models.evaluate import evaluate
 from nhfd.models.export import OnnxModel, export_onnx
 from nhfd.models.half import CHECK_KEY as FP16_CHECK_KEY
 from nhfd.models.half import convert_fp16
-from nhfd.models.quantise import quantise_int8, record_heldout_loss
+from nhfd.models.quantise import (
+    INT8_MAX_LOSS_DB,
+    int8_within_loss,
+    quantise_int8,
+    record_heldout_loss,
+)
 from nhfd.models.train import TrainOptions, train
 
 TRAIN_HELP = """\
@@ -179,7 +184,8 @@ def _record_int8_loss(float_path: Path, int8_path: Path, data_dir: str,
                       views: int | None) -> dict:
     """Held-out PSNR of the float and the int8 model on `data_dir`'s interpolation and
     extrapolation views (at most `views` per split; None: all), recorded in the int8 file
-    (`record_heldout_loss`): `daemon.int8 = "auto"` serves it on the CPU within 0.5 dB."""
+    (`record_heldout_loss`): `daemon.int8 = "auto"` serves it on the CPU within
+    INT8_MAX_LOSS_DB (`int8_within_loss`)."""
     data = HoloData(data_dir, splits=("interp", "extrap"),
                     max_views={"interp": views, "extrap": views} if views else None)
     if not len(data.splits["interp"]) + len(data.splits["extrap"]):
@@ -192,8 +198,8 @@ def _record_int8_loss(float_path: Path, int8_path: Path, data_dir: str,
                                  float_psnr_db=psnr["float"]["model_psnr_db"],
                                  int8_psnr_db=psnr["int8"]["model_psnr_db"],
                                  views=int(psnr["int8"]["views"]))  # fmt: skip
-    served = "served on the CPU by default" if record["loss_vs_float_db"] <= \
-        record["max_loss_db"] else f"more than {record['max_loss_db']} dB: the float one serves"
+    served = ("served on the CPU by default" if int8_within_loss(record["loss_vs_float_db"])
+              else f"more than {INT8_MAX_LOSS_DB:g} dB: the float one serves")
     print(f"{int8_path}: held-out PSNR {record['int8_psnr_db']:.2f} dB against float "
           f"{record['float_psnr_db']:.2f} dB on {record['views']} views "
           f"({-record['loss_vs_float_db']:+.2f} dB; recorded in the file, {served})")

@@ -106,3 +106,14 @@ def test_bad_values_are_named(argv, message, tiny_data, tmp_path, capsys):
     err = capsys.readouterr().err
     assert message.format(**fill) in err, err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_the_int8_keep_rule_is_finite_and_within_the_limit():
+    """One rule keeps (`nhfd model build`), reports (`nhfd export --int8`) and serves (the frame
+    worker's `choose_variant`) a reduced-precision model."""
+    from nhfd.models.quantise import INT8_MAX_LOSS_DB, int8_within_loss
+
+    assert INT8_MAX_LOSS_DB == 0.5
+    kept = [0.0, -0.3, 0.5, 0.49]
+    dropped = [0.5001, 3.0, float("nan"), float("inf"), float("-inf")]
+    assert [int8_within_loss(x) for x in kept + dropped] == [True] * 4 + [False] * 5
