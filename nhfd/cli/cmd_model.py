@@ -31,6 +31,7 @@ from nhfd.models.sizes import (
 from nhfd.models.train import load_run, training_device
 from nhfd.pipeline.worker import int8_sibling
 from nhfd.scene.cameras import parse_axis
+from nhfd.scene.io import SCENE_SUFFIXES
 
 BUILD_HELP = f"""\
 Choose the poses around the scene, reduce the scene to what they can show (nhfd scene reduce),
@@ -136,7 +137,7 @@ def run_model_build(args: argparse.Namespace) -> int:
 
 def _stem(scene: Path) -> str:
     name = scene.name
-    for suffix in (".compressed.ply", ".ply", ".splat", ".spz", ".glb", ".gltf", ".sog"):
+    for suffix in (".compressed.ply", *SCENE_SUFFIXES):  # the double suffix first
         if name.endswith(suffix):
             return name[: -len(suffix)] or "scene"
     return scene.stem or "scene"
