@@ -51,7 +51,12 @@ from nhfd.models.data import HoloData
 from nhfd.models.evaluate import evaluate
 from nhfd.models.export import OnnxModel, export_onnx
 from nhfd.models.half import convert_fp16
-from nhfd.models.quantise import INT8_MAX_LOSS_DB, quantise_int8, record_heldout_loss
+from nhfd.models.quantise import (
+    INT8_MAX_LOSS_DB,
+    int8_within_loss,
+    quantise_int8,
+    record_heldout_loss,
+)
 from nhfd.models.train import RESUMABLE_CHANGES, TrainOptions, train
 from nhfd.optics import quality_planes
 from nhfd.scene.cull import reduce_scene
@@ -368,7 +373,7 @@ def _eval(ctx: Context) -> dict:
             continue
         q = out["variants"][name]
         loss = f["model_psnr_db"] - q["model_psnr_db"]
-        keep = loss <= INT8_MAX_LOSS_DB
+        keep = int8_within_loss(loss)
         q["loss_vs_float_db"] = loss
         q["kept"] = keep
         if name == "int8":  # the figures travel inside the int8 file: the daemon serves by them

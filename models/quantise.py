@@ -13,12 +13,13 @@ int8 sibling by that record (`daemon.int8`, docs/frames.md).
 
 from __future__ import annotations
 
-import hashlib
 import json
+import math
 import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from nhfd.dataset.build import sha256_file
 from nhfd.models.metadata import METADATA_KEY
 from nhfd.models.net import pad_amounts
 from nhfd.models.sizes import recheck_derived
@@ -31,6 +32,12 @@ if TYPE_CHECKING:
 INT8_MAX_LOSS_DB = 0.5
 # The key of the held-out record in an int8 model's nhfd metadata (`record_heldout_loss`).
 HELDOUT_KEY = "int8_heldout"
+
+
+def int8_within_loss(loss_db: float) -> bool:
+    """Whether a reduced-precision model that loses `loss_db` of held-out PSNR against its float
+    model is kept and served: finite and at most INT8_MAX_LOSS_DB (NaN or inf is not)."""
+    return math.isfinite(loss_db) and loss_db <= INT8_MAX_LOSS_DB
 
 
 def output_nodes(model) -> tuple[list[str], list[str]]:
@@ -104,11 +111,6 @@ def quantise_int8(src: Path, dst: Path, data: HoloData, multiple: int, inputs: s
     return dst
 
 
-def file_sha256(path: str | Path) -> str:
-    with open(path, "rb") as f:
-        return hashlib.file_digest(f, "sha256").hexdigest()
-
-
 def record_heldout_loss(int8_path: str | Path, float_path: str | Path, *, float_psnr_db: float,
                         int8_psnr_db: float, views: int) -> dict[str, Any]:
     """Write into the int8 model's own nhfd metadata what `nhfd eval` measured of it and of its
@@ -119,7 +121,7 @@ def record_heldout_loss(int8_path: str | Path, float_path: str | Path, *, float_
 
     record = {"float_psnr_db": float(float_psnr_db), "int8_psnr_db": float(int8_psnr_db),
               "loss_vs_float_db": float(float_psnr_db) - float(int8_psnr_db),
-              "views": int(views), "float_sha256": file_sha256(float_path),
+              "views": int(views), "float_sha256": sha256_file(Path(float_path)),
               "max_loss_db": INT8_MAX_LOSS_DB}  # fmt: skip
     model = onnx.load(str(int8_path))
     for prop in model.metadata_props:

@@ -26,6 +26,7 @@ import os
 import random
 import sys
 import time
+import typing
 from collections.abc import Callable, Sequence
 from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, fields, replace
@@ -37,7 +38,13 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 
 from nhfd import __version__
-from nhfd.config import LEARNING_RATE_RULE, ModelSettings, device_choice, learning_rate_ok
+from nhfd.config import (
+    LEARNING_RATE_RULE,
+    ModelSettings,
+    TrainSettings,
+    device_choice,
+    learning_rate_ok,
+)
 from nhfd.models.data import (
     HoloData,
     batch_views,
@@ -64,7 +71,15 @@ LR_FLOOR = 0.05
 # So does mixed precision (`amp`): it changes the forward pass's rounding, not what it computes.
 RESUMABLE_CHANGES = ("steps", "checkpoint_every", "val_views", "threads", "device", "progress",
                      "amp")  # fmt: skip
-AMP_MODES = ("auto", "off", "bf16", "fp16")
+# `[model.train] amp`'s values, as the configuration declares them.
+AMP_MODES: tuple[str, ...] = typing.get_args(TrainSettings.model_fields["amp"].annotation)
+
+
+def check_amp(amp: str) -> str:
+    """`amp` if it is one of AMP_MODES, else ValueError naming it and the allowed values."""
+    if amp not in AMP_MODES:
+        raise ValueError(f"amp = {amp!r}: must be one of {', '.join(AMP_MODES)}")
+    return amp
 
 
 def amp_dtype(amp: str, device: torch.device) -> torch.dtype | None:
@@ -72,8 +87,7 @@ def amp_dtype(amp: str, device: torch.device) -> torch.dtype | None:
     float32). "auto": on CUDA bf16 where the GPU supports it, else fp16; off on the CPU (bf16
     autocast there is slower than float32 on most CPUs). "bf16" runs on the CPU or CUDA; "fp16"
     needs CUDA (a gradient scaler keeps its small gradients)."""
-    if amp not in AMP_MODES:
-        raise ValueError(f"amp = {amp!r}: must be one of {', '.join(AMP_MODES)}")
+    check_amp(amp)
     if amp == "off" or (amp == "auto" and device.type != "cuda"):
         return None
     if amp == "auto":
@@ -170,8 +184,7 @@ class TrainOptions:
     def __post_init__(self) -> None:
         _ = self.spec  # NetSpec validates the network's shape
         training_device(self.device)  # validates the name; availability is checked at start
-        if self.amp not in AMP_MODES:
-            raise ValueError(f"amp = {self.amp!r}: must be one of {', '.join(AMP_MODES)}")
+        check_amp(self.amp)
         checks = {
             "steps": (self.steps >= 1, "must be at least 1"),
             "batch": (self.batch >= 1, "must be at least 1"),

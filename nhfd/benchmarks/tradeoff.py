@@ -30,7 +30,7 @@ from nhfd.cli.args import parse_wxh
 from nhfd.config import GROWTH_RANGE, LEARNING_RATE_RULE, SKIPS, learning_rate_ok, load_config
 from nhfd.models.data import HoloData
 from nhfd.models.evaluate import evaluate
-from nhfd.models.export import GRAPH_FORM, OnnxModel, export_onnx
+from nhfd.models.export import CPU_ONLY, CUDA, GRAPH_FORM, OnnxModel, export_onnx
 from nhfd.models.half import convert_fp16
 from nhfd.models.net import parameter_count
 from nhfd.models.quantise import quantise_int8
@@ -172,7 +172,7 @@ def interleaved_ms(fns: dict[str, Callable[[], object]], repeats: int,
     return {k: 1e3 * statistics.median(v) for k, v in times.items()}
 
 
-GPU_PROVIDERS = ("CUDAExecutionProvider", "CPUExecutionProvider")
+GPU_PROVIDERS = (CUDA, *CPU_ONLY)
 
 
 def gpu_unavailable() -> str | None:
@@ -185,6 +185,16 @@ def gpu_unavailable() -> str | None:
     if GPU_PROVIDERS[0] not in ort.get_available_providers():
         return "not measured: this onnxruntime has no CUDAExecutionProvider (onnxruntime-gpu)"
     return None
+
+
+def fp16_model(float_path: Path, exported_now: bool) -> Path:
+    """The fp16 conversion of `float_path` beside it (`{stem}-fp16.onnx`), made (with its slow
+    emulated check) only when it is missing or the float model was exported again in this call:
+    a second call only measures latency."""
+    half = float_path.with_name(f"{float_path.stem}-fp16.onnx")
+    if exported_now or not half.is_file():
+        convert_fp16(float_path, half)
+    return half
 
 
 def finished_run(run_dir: Path, opts, manifest_key: str | None
@@ -294,7 +304,8 @@ def run(args: argparse.Namespace) -> int:
         stamp = {"step": step, "eval_views": args.eval_views, "graph": GRAPH_FORM}
         kept = _kept(out / "models" / f"{name}.json", stamp)
         files = [out / "models" / f"{name}{tag}.onnx" for tag in ("", "-int8")[: 1 + args.int8]]
-        if kept is None or not all(f.is_file() for f in files):
+        exported_now = kept is None or not all(f.is_file() for f in files)
+        if exported_now:
             exported = export_onnx(run_dir, out / "models" / f"{name}.onnx")
             kept = {**stamp, "max_abs_diff": exported.max_abs_diff, "evals": {}}
             if args.int8:
@@ -309,8 +320,7 @@ def run(args: argparse.Namespace) -> int:
         xt = torch.from_numpy(x)
         timed[f"torch:{name}"] = lambda n=net, t=xt: n(t)
         if no_gpu is None:
-            half = convert_fp16(out / "models" / f"{name}.onnx",
-                                out / "models" / f"{name}-fp16.onnx")  # fmt: skip
+            half = fp16_model(out / "models" / f"{name}.onnx", exported_now)
             gpu_model = OnnxModel(half, providers=GPU_PROVIDERS)
             gpu_timed[name] = lambda om=gpu_model, xx=x: om.run_raw(xx)
         for label, path, diff in models:

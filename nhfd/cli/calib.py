@@ -29,7 +29,7 @@ from nhfd.calibration import Calibration
 from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config
 from nhfd.daemon.client import Client
-from nhfd.daemon.paths import control_socket
+from nhfd.daemon.paths import socket_path
 from nhfd.drivers.simcamera import TrueBench
 
 
@@ -104,7 +104,7 @@ def _capture_direct(args: argparse.Namespace) -> int:
 
 def _capture_daemon(args: argparse.Namespace) -> int:
     config = load_config(args.config).config
-    sock = args.socket or str(control_socket(config.daemon.runtime_dir))
+    sock = socket_path(args.socket, config)
     pitch_um = args.camera_pitch_um or config.devices.camera_settings.pixel_pitch_um
     out = Path(args.out)
     with Client(sock, timeout_s=30.0) as client:

@@ -115,6 +115,8 @@ def run_build(args: argparse.Namespace) -> int:
     if args.threads is not None and args.threads < 1:
         raise ValueError(f"--threads {args.threads}: must be >= 1")
     part = parse_shard(args.shard) if args.shard is not None else None
+    # build() checks it too (its other callers), but only after this loads the scene, samples
+    # the poses and draws the progress bar: a bad --device is refused here before any of it.
     device = check_device(args.device)
     if args.address and args.executor != "ray":
         raise ValueError(f"--address {args.address!r}: only with --executor ray")

@@ -16,11 +16,12 @@ from pathlib import Path
 from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
-from nhfd.daemon.paths import control_socket
+from nhfd.daemon.paths import socket_path
 from nhfd.daemon.protocol import RpcError
 from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
 from nhfd.models.export import compare_with_torch
 from nhfd.models.metadata import SIZE_TOLERANCE
+from nhfd.models.quantise import INT8_MAX_LOSS_DB
 from nhfd.models.sizes import (
     check_sizes,
     read_metadata,
@@ -28,11 +29,14 @@ from nhfd.models.sizes import (
     sizes_to_check,
 )
 from nhfd.models.train import load_run, training_device
+from nhfd.pipeline.worker import int8_sibling
 from nhfd.scene.cameras import parse_axis
+from nhfd.scene.io import SCENE_SUFFIXES
 
 BUILD_HELP = f"""\
 Choose the poses around the scene, reduce the scene to what they can show (nhfd scene reduce),
-build the dataset, train, export (float32, and int8 where it stays within 0.5 dB of it),
+build the dataset, train, export (float32, and int8 where it stays within {INT8_MAX_LOSS_DB:g} dB of
+it),
 evaluate the held-out views against the 2D-hologram and black baselines with the focus check,
 and write OUT/report.json and OUT/contact_sheet.png.
 Stages: {", ".join(STAGES)}.
@@ -43,6 +47,9 @@ another scene, recipe or settings is refused unless --force. Recipes: nhfd.toml
 With --serve, the scene and the model are loaded into the running daemon (`nhfd serve`).
 """
 
+
+# How long --serve waits for the daemon to load the scene, then the model.
+LOAD_TIMEOUT_S = 600.0
 
 CHECK_SIZES_HELP = """\
 Run the model at each size and record the result in its metadata (checked_sizes), which the
@@ -130,7 +137,7 @@ def run_model_build(args: argparse.Namespace) -> int:
 
 def _stem(scene: Path) -> str:
     name = scene.name
-    for suffix in (".compressed.ply", ".ply", ".splat", ".spz", ".glb", ".gltf", ".sog"):
+    for suffix in (".compressed.ply", *SCENE_SUFFIXES):  # the double suffix first
         if name.endswith(suffix):
             return name[: -len(suffix)] or "scene"
     return scene.stem or "scene"
@@ -156,19 +163,15 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
     d = config.daemon
     model_dir = Path(args.model_dir or d.model_dirs[0])
     scene_dir = Path(args.scene_dir or d.scene_dirs[0])
-    socket = args.socket or str(control_socket(d.runtime_dir))  # as nhfctl finds it
+    socket = socket_path(args.socket, config)  # as nhfctl finds it
     with Client(socket, timeout_s=30.0) as c:  # no daemon: nothing is copied
         model = _place(out / "model.onnx", model_dir, model_name)
-        if (out / "model-int8.onnx").is_file():  # kept within 0.5 dB: the CPU serves it by default
-            _place(out / "model-int8.onnx", model_dir, f"{Path(model_name).stem}-int8.onnx")
+        # kept within INT8_MAX_LOSS_DB: the CPU serves it by default, found beside the float one
+        if (out / "model-int8.onnx").is_file():
+            _place(out / "model-int8.onnx", model_dir, int8_sibling(model_name).name)
         scene_file = _place(scene, scene_dir, scene.name)
         for method, path in (("load_scene", scene_file), ("load_model", model)):
-            job = c.call(method, path=str(path))["job"]
-            state = c.wait_job(job)
-            if state["state"] != "done":
-                raise RuntimeError(f"{method} {path}: {state.get('error') or state['state']}"
-                                   " (the daemon reads files only inside daemon.scene_dirs and "
-                                   "daemon.model_dirs: see --scene-dir, --model-dir)")
+            _load(c, method, path, LOAD_TIMEOUT_S)
             print(f"{method}: {path}", file=sys.stderr)
         report = json.loads((out / "report.json").read_text())
         r = report["recipe"]
@@ -178,6 +181,21 @@ def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namesp
         c.call("set_view", orbit=orbit)
     print(f"serving {model.name} on {scene_file.name}; view: orbit {orbit['azimuth_deg']:.0f}, "
           f"{orbit['elevation_deg']:.0f}, {orbit['radius']:.3g} (inside the trained poses)")
+
+
+def _load(client: Client, method: str, path: Path, timeout_s: float) -> None:
+    """Run the daemon's `method` ("load_scene" or "load_model") on `path` and wait for its job:
+    RuntimeError if it failed (most often a file outside the daemon's folders) or is still
+    queued or running after `timeout_s`."""
+    job = client.call(method, path=str(path))["job"]
+    state = client.wait_job(job, timeout_s)
+    if state["state"] in ("queued", "running"):
+        raise RuntimeError(f"{method} {path}: job {job} still {state['state']} after "
+                           f"{timeout_s:g} s (`nhfctl job {job}` follows it)")
+    if state["state"] != "done":
+        raise RuntimeError(f"{method} {path}: {state.get('error') or state['state']}"
+                           " (the daemon reads files only inside daemon.scene_dirs and "
+                           "daemon.model_dirs: see --scene-dir, --model-dir)")
 
 
 def run_check_sizes(args: argparse.Namespace) -> int:

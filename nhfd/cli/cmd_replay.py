@@ -16,7 +16,7 @@ from pathlib import Path
 
 from nhfd.config import load_config
 from nhfd.daemon.client import Client
-from nhfd.daemon.paths import control_socket
+from nhfd.daemon.paths import socket_path
 from nhfd.daemon.recording import read_session, replay
 
 
@@ -39,10 +39,7 @@ def _replay(args: argparse.Namespace) -> int:
     if args.speed < 0:
         raise ValueError(f"--speed {args.speed:g}: must be >= 0")
     entries = read_session(Path(args.file))
-    if args.socket:
-        sock = args.socket
-    else:
-        sock = str(control_socket(load_config(args.config).config.daemon.runtime_dir))
+    sock = socket_path(args.socket, lambda: load_config(args.config).config)
     failed = 0
     with Client(sock, timeout_s=30.0) as c:
         for entry, result in replay(entries, c.call, speed=args.speed,

@@ -19,7 +19,14 @@ from nhfd.models.evaluate import evaluate
 from nhfd.models.export import OnnxModel, export_onnx
 from nhfd.models.half import CHECK_KEY as FP16_CHECK_KEY
 from nhfd.models.half import convert_fp16
-from nhfd.models.quantise import quantise_int8, record_heldout_loss
+from nhfd.models.quantise import (
+    HELDOUT_KEY,
+    INT8_MAX_LOSS_DB,
+    int8_within_loss,
+    quantise_int8,
+    record_heldout_loss,
+)
+from nhfd.models.torch_model import QUANTISED_OPS
 from nhfd.models.train import TrainOptions, train
 
 TRAIN_HELP = """\
@@ -179,7 +186,8 @@ def _record_int8_loss(float_path: Path, int8_path: Path, data_dir: str,
                       views: int | None) -> dict:
     """Held-out PSNR of the float and the int8 model on `data_dir`'s interpolation and
     extrapolation views (at most `views` per split; None: all), recorded in the int8 file
-    (`record_heldout_loss`): `daemon.int8 = "auto"` serves it on the CPU within 0.5 dB."""
+    (`record_heldout_loss`): `daemon.int8 = "auto"` serves it on the CPU within
+    INT8_MAX_LOSS_DB (`int8_within_loss`)."""
     data = HoloData(data_dir, splits=("interp", "extrap"),
                     max_views={"interp": views, "extrap": views} if views else None)
     if not len(data.splits["interp"]) + len(data.splits["extrap"]):
@@ -192,12 +200,31 @@ def _record_int8_loss(float_path: Path, int8_path: Path, data_dir: str,
                                  float_psnr_db=psnr["float"]["model_psnr_db"],
                                  int8_psnr_db=psnr["int8"]["model_psnr_db"],
                                  views=int(psnr["int8"]["views"]))  # fmt: skip
-    served = "served on the CPU by default" if record["loss_vs_float_db"] <= \
-        record["max_loss_db"] else f"more than {record['max_loss_db']} dB: the float one serves"
+    served = ("served on the CPU by default" if int8_within_loss(record["loss_vs_float_db"])
+              else f"more than {INT8_MAX_LOSS_DB:g} dB: the float one serves")
     print(f"{int8_path}: held-out PSNR {record['int8_psnr_db']:.2f} dB against float "
           f"{record['float_psnr_db']:.2f} dB on {record['views']} views "
           f"({-record['loss_vs_float_db']:+.2f} dB; recorded in the file, {served})")
     return record
+
+
+def _refuse_reduced(source: Path, metadata: dict) -> None:
+    """ValueError unless the .onnx `source` is a float32 model: --fp16 and --int8 convert only
+    that. An fp16 file says so in its metadata; an int8 one carries its float model's metadata
+    (precision fp32), so it is known by its held-out record or its quantised operators."""
+    import onnx
+
+    precision = metadata.get("precision", "fp32")
+    if precision != "fp32":
+        raise ValueError(f"{source}: precision {precision!r}, not fp32; give the float32 model "
+                         "to convert")
+    graph = onnx.load(str(source), load_external_data=False).graph
+    why = sorted({n.op_type for n in graph.node} & QUANTISED_OPS)
+    if HELDOUT_KEY in metadata:
+        why.append(f"metadata {HELDOUT_KEY}")
+    if why:
+        raise ValueError(f"{source}: an int8 model ({', '.join(why)}); give the float32 model "
+                         "to convert")
 
 
 def run_export(args: argparse.Namespace) -> int:
@@ -231,12 +258,15 @@ def run_export(args: argparse.Namespace) -> int:
 
     if from_onnx:
         float_model = OnnxModel(source)  # refuses a file that is not an nhfd model
+        _refuse_reduced(source, float_model.metadata)  # before anything is written
         res = None
         m = float_model.metadata
+        inputs = float_model.inputs
         report: dict = {"path": str(source)}
     else:
         res = export_onnx(args.run, args.out, opset=args.opset, check=not args.no_check)
         m = res.metadata
+        inputs = next(iter(m["inputs"]))  # the graph's input name ("rgb" or "rgbd") and its note
         print(f"{res.path}: profile {m['profile']}, {m['parameters']} parameters, input "
               f"multiple {m['input_multiple']}, opset {m['opset']}")  # fmt: skip
         if not args.no_check:
@@ -255,8 +285,7 @@ def run_export(args: argparse.Namespace) -> int:
         report["fp16_vs_float"] = d
     if args.int8:
         data = HoloData(args.data, max_views={"interp": 1, "extrap": 1})
-        q = quantise_int8(float_path, Path(args.int8), data, int(m["input_multiple"]),
-                          OnnxModel(float_path).inputs)  # fmt: skip
+        q = quantise_int8(float_path, Path(args.int8), data, int(m["input_multiple"]), inputs)
         print(f"{q}: static int8, calibrated on {args.data}")
         report["int8_path"] = str(q)
         if args.int8_eval_views != 0:  # the figure the daemon serves int8 by, inside the file

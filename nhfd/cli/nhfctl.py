@@ -17,7 +17,7 @@ from typing import Any
 
 from nhfd.config import load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
-from nhfd.daemon.paths import control_socket
+from nhfd.daemon.paths import socket_path
 from nhfd.daemon.protocol import RpcError, describe_codes
 
 
@@ -147,11 +147,9 @@ def _request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     return cmd.replace("-", "_"), {}
 
 
-def _socket(args: argparse.Namespace) -> str | None:
-    if args.socket:
-        return args.socket
+def _socket(args: argparse.Namespace) -> str:
     # Same rules as the daemon: the configuration is read only when no --socket is given.
-    return str(control_socket(load_config(args.config).config.daemon.runtime_dir))
+    return socket_path(args.socket, lambda: load_config(args.config).config)
 
 
 def _connect(args: argparse.Namespace) -> Client:

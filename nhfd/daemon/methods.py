@@ -55,7 +55,7 @@ import numpy as np
 from nhfd.calibration import CalibrationFileError
 from nhfd.config import Config
 from nhfd.device_settings import COLOURS
-from nhfd.scene.io import SCENE_SUFFIXES, is_sog_folder, read_scene
+from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES, is_sog_folder, read_scene
 
 from .audit import AuditLog
 from .bench import Bench
@@ -417,9 +417,18 @@ def _capture(d: Host, conn: Connection, p: Params) -> Any:
 
 def _checked_file(field: str, raw: str, dirs: list[Any], base: Any,
                   suffixes: tuple[str, ...]) -> Any:
-    path = inside(field, raw, dirs, base)
-    if path.suffix.lower() not in suffixes and path.name.lower() not in suffixes:
-        raise bad_param(field, f"{raw!r} has the wrong suffix", " or ".join(suffixes))
+    """`raw` resolved inside `dirs`: a readable file whose suffix is one of `suffixes`."""
+    return _with_suffix(field, raw, inside(field, raw, dirs, base), suffixes)
+
+
+def _with_suffix(field: str, raw: str, path: Any, suffixes: tuple[str, ...],
+                 allowed: str | None = None) -> Any:
+    if path.suffix.lower() not in suffixes:
+        raise bad_param(field, f"{raw!r} has the wrong suffix", allowed or " or ".join(suffixes))
+    return _readable_file(field, path)
+
+
+def _readable_file(field: str, path: Any) -> Any:
     if not path.is_file():
         raise RpcError(INVALID_FILE, f"{field}: {path} is not a readable file",
                        {"field": field})
@@ -430,9 +439,13 @@ def _load_scene(d: Host, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
     path = inside("path", raw, d.scene_dirs, d.base_dir)
-    if not is_sog_folder(path):  # a SOG scene may be a folder; anything else is one file
-        path = _checked_file("path", raw, d.scene_dirs, d.base_dir,
-                             (*SCENE_SUFFIXES, "meta.json"))
+    # A SOG scene may be a folder, or named by its meta.json; anything else is one file with a
+    # scene suffix. Only scenes have such names: _checked_file (models, patterns) is suffix-only.
+    if path.name.lower() in SCENE_NAMES:
+        _readable_file("path", path)
+    elif not is_sog_folder(path):
+        _with_suffix("path", raw, path, SCENE_SUFFIXES,
+                     " or ".join((*SCENE_SUFFIXES, *SCENE_NAMES, "a SOG folder")))
 
     def run(job: Job) -> dict[str, Any]:
         # Refuses a file that is not a plausible scene (SceneFileError names the rule) before

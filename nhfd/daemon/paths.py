@@ -6,8 +6,9 @@ Standard library only: the client resolves the socket path with the same rules, 
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
+from typing import Any
 
 from nhfd.drivers.rundir import UnsafeDirectory, check_private_dir, make_private_dir, runtime_dir
 
@@ -23,6 +24,18 @@ TOKEN_NAME = "tcp.token"
 def control_socket(configured_runtime_dir: str = "",
                    env: Mapping[str, str] | None = None) -> Path:
     return runtime_dir(configured_runtime_dir, env) / SOCKET_NAME
+
+
+def socket_path(socket_arg: str | None, config: Any | Callable[[], Any]) -> str:
+    """The control socket a command talks to: its `--socket` when given, else the configured
+    daemon's (`config.daemon.runtime_dir`, by the daemon's own rules). `config` may be a function
+    that loads the configuration: it is then called only when no `--socket` is given, so a
+    command given one reads no configuration."""
+    if socket_arg:
+        return str(socket_arg)
+    if callable(config):
+        config = config()
+    return str(control_socket(config.daemon.runtime_dir))
 
 
 def resolve_dirs(dirs: Sequence[str], base: Path) -> list[Path]:

@@ -431,9 +431,13 @@ def _wait(cond: Any, timeout_s: float, what: str, client: Any) -> None:
 
 
 def _job(client: Any, job_id: int, timeout_s: float) -> dict[str, Any]:
-    _wait(lambda: client.call("job", id=job_id)["state"] in ("done", "failed", "cancelled"),
-          timeout_s, f"job {job_id}", client)
-    job = client.call("job", id=job_id)
+    """The job once done (`Client.wait_job`); TimeoutError, with the daemon's last errors, when
+    it is still queued or running after `timeout_s`; RuntimeError when it failed."""
+    job = client.wait_job(job_id, timeout_s)
+    if job["state"] in ("queued", "running"):
+        errors = client.status()["errors"]
+        raise TimeoutError(f"timed out after {timeout_s:g} s waiting for job {job_id} (still "
+                           f"{job['state']}); daemon errors: {errors[-3:]}")
     if job["state"] != "done":
         raise RuntimeError(f"{job['kind']} job {job_id} {job['state']}: {job['error']}")
     return job

@@ -165,9 +165,8 @@ def _kernels_precompensated(hw: tuple[int, int], pitch_m: float, lams: tuple[flo
             ph = pupil_phase(padded_hw, cutoffs[c], zernike_rad, lam_ref / lam)
             return (k * torch.polar(torch.ones_like(ph), -ph).to(k.dtype)).to(device)
 
-        key = ("asm-pupil", plan.padded_hw, pitch_m, lam, z, ap, zernike_rad, lam_ref)
-        if device.type != "cpu":  # the CPU's key as it always was
-            key += (str(device),)
+        key = ("asm-pupil", plan.padded_hw, pitch_m, lam, z, ap, zernike_rad, lam_ref,
+               str(device))  # fmt: skip
         out.append((slice(c, c + 1), plan.padded_hw, cache.get(key, kernel)[None]))
     return out
 

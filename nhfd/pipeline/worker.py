@@ -45,9 +45,10 @@ import torch
 
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
+from nhfd.dataset.build import sha256_file
 from nhfd.models.export import check_providers, load_model, read_model_metadata
 from nhfd.models.metadata import checked_sizes_hw, expected_from_config
-from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, file_sha256
+from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, int8_within_loss
 from nhfd.models.sizes import window_check
 from nhfd.models.torch_model import TorchModel
 from nhfd.scene.io import read_scene
@@ -185,7 +186,7 @@ def choose_variant(path: str, config: Any, int8_metadata: dict[str, Any] | None
     """("int8" | "float", why) for the float model at `path` whose int8 sibling has the nhfd
     metadata `int8_metadata` (None: no sibling). `daemon.int8`: "never", "always" (whenever the
     sibling exists), "auto": the sibling's own metadata must record a held-out loss against
-    this very float file (its SHA-256) within INT8_MAX_LOSS_DB."""
+    this very float file (its SHA-256) within INT8_MAX_LOSS_DB (`int8_within_loss`)."""
     mode = config.daemon.int8
     sibling = int8_sibling(path).name
     if mode == "never":
@@ -203,11 +204,11 @@ def choose_variant(path: str, config: Any, int8_metadata: dict[str, Any] | None
     if not isinstance(record, dict) or "loss_vs_float_db" not in record:
         return "float", (f"{sibling} records no held-out loss against the float model (`nhfd "
                          "model build` and `nhfd export --int8 --data` record it)")
-    if record.get("float_sha256") != file_sha256(path):
+    if record.get("float_sha256") != sha256_file(Path(path)):
         return "float", (f"{sibling}'s held-out loss was measured against another float model "
                          "(SHA-256 differs): rebuild it")
     loss = float(record["loss_vs_float_db"])
-    if not np.isfinite(loss) or loss > INT8_MAX_LOSS_DB:
+    if not int8_within_loss(loss):
         return "float", (f"{sibling} loses {loss:.2f} dB of held-out PSNR, more than "
                          f"{INT8_MAX_LOSS_DB} dB")
     return "int8", (f"{sibling} loses {loss:.2f} dB of held-out PSNR (within "

@@ -192,13 +192,27 @@ def check_plausible(path: PathLike, load: SceneLoad) -> None:
 Arrays = dict[str, np.ndarray]
 
 
+# The file at the heart of a SOG scene (beside its WebP images, in a folder or a .sog zip).
+SOG_META = "meta.json"
+# The names scenes are read from: a file with one of these suffixes, a file of one of these whole
+# names (a SOG scene's meta.json), or a SOG scene's folder. The daemon's load_scene and the CLI
+# accept these.
+SCENE_SUFFIXES = (".ply", ".splat", ".spz", ".glb", ".gltf", ".sog")
+SCENE_NAMES = (SOG_META,)
+
+
+def is_sog_folder(path: PathLike) -> bool:
+    """A folder holding a SOG scene's meta.json (and its WebP images)."""
+    path = Path(path)
+    return path.is_dir() and (path / SOG_META).is_file()
+
+
 def scene_format(path: PathLike) -> str | None:
     """The file's format from its header (its name only where the format has no magic):
     'ply', 'compressed' (PlayCanvas .ply), 'splat', 'spz', 'gltf', 'sog', or None when it is
     none of these or unreadable (`load_scene` says why)."""
     path = Path(path)
-    if path.suffix.lower() == ".sog" or path.name.lower() == "meta.json" or (
-            path / "meta.json").is_file():  # fmt: skip
+    if path.suffix.lower() == ".sog" or path.name.lower() in SCENE_NAMES or is_sog_folder(path):
         return "sog"
     try:
         with path.open("rb") as f:
@@ -216,17 +230,6 @@ def scene_format(path: PathLike) -> str | None:
     if path.suffix.lower() == ".splat":
         return "splat"
     return None
-
-
-# The names scenes are read from: a file with one of these suffixes, or a SOG scene's folder (or
-# its meta.json). The daemon's load_scene and the CLI accept these.
-SCENE_SUFFIXES = (".ply", ".splat", ".spz", ".glb", ".gltf", ".sog")
-
-
-def is_sog_folder(path: PathLike) -> bool:
-    """A folder holding a SOG scene's meta.json (and its WebP images)."""
-    path = Path(path)
-    return path.is_dir() and (path / "meta.json").is_file()
 
 
 # Formats a name promises, and how their files start: a file that breaks the promise says so.

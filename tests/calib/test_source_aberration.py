@@ -64,8 +64,10 @@ def test_precompensation_undoes_the_bench_pupil() -> None:
         err_wrong = float((seen_wrong - plain[c : c + 1]).abs().max()) / peak
         assert err < 0.02, f"colour {c}: {err:.3%}"
         assert err_wrong > 10 * err
-    # The kernels are cached under keys that name the aberration.
-    assert all(key[0] == "asm-pupil" and key[6] == z for key in enc.cache._items)
+    # The kernels are cached under keys that name the aberration and, as every ASM kernel's, the
+    # device (the CPU's too).
+    assert all(key[0] == "asm-pupil" and key[6] == z and key[-1] == "cpu"
+               for key in enc.cache._items)
 
 
 def test_amplitude_compensation_lifts_the_beam_edge() -> None:

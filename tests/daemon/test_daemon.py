@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import shutil
 import socket
 import threading
@@ -303,3 +304,14 @@ def test_the_daemon_loads_every_scene_format_nhfd_reads(running, short_dir):
         assert c.status()["scene"]["gaussians"] == gaussians, path
     with pytest.raises(RpcError, match="wrong suffix"):
         c.call("load_scene", path="empty.d")
+    # a SOG scene named by its meta.json loads too: the one whole name a scene file may have
+    job = c.wait_job(c.call("load_scene", path="tiny-sh.sog.d/meta.json")["job"], timeout_s=60.0)
+    assert job["state"] == "done", job["error"]
+    assert c.status()["scene"]["gaussians"] == 64
+    # models (and patterns) are checked by their suffix alone: neither meta.json nor a file
+    # whose whole name is the suffix (a dot file, no suffix) is a model
+    for name in ("meta.json", ".onnx"):
+        (short_dir / "models" / name).write_bytes(b"not a model")
+        with pytest.raises(RpcError, match=rf"path: '{re.escape(name)}' has the wrong suffix; "
+                                           r"allowed: \.onnx"):
+            c.call("load_model", path=name)

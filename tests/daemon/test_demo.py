@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from nhfd.cli.main import main
+from nhfd.daemon.client import Client
 from nhfd.daemon.png import write_png16
 from nhfd.demos.serve import focus_command_mm, read_png16
 
@@ -66,3 +67,29 @@ def test_depth_regions_are_the_nearest_and_farthest_quarter_of_the_content():
     assert not (near | far)[np.isnan(zh)].any()
     with pytest.raises(ValueError, match="no content"):
         depth_regions(np.full((4, 4), np.nan))
+
+
+class _ScriptedClient(Client):
+    """The real `Client.wait_job` over a scripted `job` method (no daemon, no socket)."""
+
+    def __init__(self, states: list[str]) -> None:
+        self.states = states
+
+    def call(self, method: str, **params):
+        assert method == "job" and params == {"id": 7}
+        state = self.states.pop(0) if len(self.states) > 1 else self.states[0]
+        return {"id": 7, "kind": "focus", "state": state, "error": "stage stalled"}
+
+    def status(self):
+        return {"errors": ["e1", "e2", "e3", "e4"]}
+
+
+def test_the_demo_waits_on_a_job_as_the_client_does():
+    from nhfd.demos.serve import _job
+
+    assert _job(_ScriptedClient(["queued", "running", "done"]), 7, 5.0)["state"] == "done"
+    with pytest.raises(RuntimeError, match="focus job 7 failed: stage stalled"):
+        _job(_ScriptedClient(["running", "failed"]), 7, 5.0)
+    with pytest.raises(TimeoutError, match=r"after 0.2 s waiting for job 7 \(still running\); "
+                       r"daemon errors: \['e2', 'e3', 'e4'\]"):
+        _job(_ScriptedClient(["running"]), 7, 0.2)

@@ -41,9 +41,9 @@ def show_a_frame(host, link, timeout_s: float = 30.0) -> None:
 
 
 def record(loss_db: float, float_path: Path) -> dict:
-    from nhfd.models.quantise import file_sha256
+    from nhfd.dataset.build import sha256_file
 
-    return {HELDOUT_KEY: {"loss_vs_float_db": loss_db, "float_sha256": file_sha256(float_path),
+    return {HELDOUT_KEY: {"loss_vs_float_db": loss_db, "float_sha256": sha256_file(float_path),
                           "views": 4}}
 
 

@@ -103,3 +103,22 @@ def test_status_prints_the_model_as_one_line(running: Running, capsys, monkeypat
     assert ("model    fast-v3.onnx (profile fast; trained 1024 x 576 px; CUDAExecutionProvider, "
             "CPUExecutionProvider; checked at 1024 x 576 px, 1920 x 1080 px)\n"
             in capsys.readouterr().out)
+
+
+def test_the_socket_is_the_given_one_else_the_configured_daemons(tmp_path):
+    """`socket_path`, which nhfctl, nhfd replay, nhfd calib capture and nhfd model build --serve
+    share: a --socket wins and no configuration is read; without one, the configured runtime
+    directory's control socket (a loaded configuration or a function that loads it)."""
+    from types import SimpleNamespace
+
+    from nhfd.daemon.paths import SOCKET_NAME, socket_path
+
+    loads = []
+
+    def load():
+        loads.append(1)
+        return SimpleNamespace(daemon=SimpleNamespace(runtime_dir=str(tmp_path / "rt")))
+
+    assert socket_path("/elsewhere/c.sock", load) == "/elsewhere/c.sock" and loads == []
+    assert socket_path(None, load) == str(tmp_path / "rt" / SOCKET_NAME) and loads == [1]
+    assert socket_path("", load()) == str(tmp_path / "rt" / SOCKET_NAME)

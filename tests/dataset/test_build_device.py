@@ -42,7 +42,9 @@ def test_the_cli_refuses_a_bad_device_before_doing_anything(tmp_path, capsys, co
     argv = (["dataset", "build", "--scene", str(scene), "--out", str(out)] if command == "dataset"
             else ["bench", "holo", "--scene", str(scene), "--out", str(out / "holo.json")])
     assert main([*argv, "--device", "gpu"]) == 2
-    assert "--device = 'gpu': must be one of auto, cpu, cuda, cuda:N" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "--device = 'gpu': must be one of auto, cpu, cuda, cuda:N" in err
+    assert len(err.strip().splitlines()) == 1, err  # before the scene loads and the bar is drawn
     assert not out.exists()  # nothing was written
     if NO_CUDA:
         assert main([*argv, "--device", "cuda"]) == 2

@@ -30,14 +30,15 @@ def test_train_export_eval_round_trip(tiny_data, tmp_path, capsys):
     assert "max abs difference" in out and "recorded in the file" in out
     _int8_is_quantised_and_close(onnx_path, int8_path)
     # the held-out loss inside the int8 file is what `nhfd eval` measures of the two models
+    from nhfd.dataset.build import sha256_file
     from nhfd.models.evaluate import evaluate
     from nhfd.models.export import OnnxModel
-    from nhfd.models.quantise import HELDOUT_KEY, file_sha256
+    from nhfd.models.quantise import HELDOUT_KEY
 
     record = OnnxModel(int8_path).metadata[HELDOUT_KEY]
     psnr = {p: evaluate(p, tiny_data, log=lambda _l: None)["summary"]["all"]["model_psnr_db"]
             for p in (onnx_path, int8_path)}
-    assert record["float_sha256"] == file_sha256(onnx_path)
+    assert record["float_sha256"] == sha256_file(onnx_path)
     assert record["loss_vs_float_db"] == pytest.approx(psnr[onnx_path] - psnr[int8_path],
                                                        abs=1e-9)
     assert main(["eval", str(onnx_path), "--data", str(tiny_data), "--out",
@@ -105,3 +106,14 @@ def test_bad_values_are_named(argv, message, tiny_data, tmp_path, capsys):
     err = capsys.readouterr().err
     assert message.format(**fill) in err, err
     assert len(err.strip().splitlines()) == 1
+
+
+def test_the_int8_keep_rule_is_finite_and_within_the_limit():
+    """One rule keeps (`nhfd model build`), reports (`nhfd export --int8`) and serves (the frame
+    worker's `choose_variant`) a reduced-precision model."""
+    from nhfd.models.quantise import INT8_MAX_LOSS_DB, int8_within_loss
+
+    assert INT8_MAX_LOSS_DB == 0.5
+    kept = [0.0, -0.3, 0.5, 0.49]
+    dropped = [0.5001, 3.0, float("nan"), float("inf"), float("-inf")]
+    assert [int8_within_loss(x) for x in kept + dropped] == [True] * 4 + [False] * 5

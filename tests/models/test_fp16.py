@@ -11,6 +11,7 @@ import onnx
 import pytest
 
 from nhfd.cli.main import main
+from nhfd.models.data import HoloData
 from nhfd.models.export import OnnxModel, export_onnx, load_model
 from nhfd.models.half import (
     CHECK_KEY,
@@ -155,7 +156,7 @@ def test_heldout_psnr_within_0_2_db(pair, tiny_data, tmp_path):
     (["export", "{tmp}/none.onnx", "--fp16", "{tmp}/h.onnx"], "{tmp}/none.onnx: no such .onnx"),
     (["export", "{f}", "--fp16", "{tmp}/h.txt"], "--fp16 {tmp}/h.txt: the fp16 model's file name"),
     (["export", "{f}", "--fp16", "{f}"], "must not overwrite its source"),
-    (["export", "{h}", "--fp16", "{tmp}/hh.onnx"], "precision 'fp16'; convert the float32 model"),
+    (["export", "{h}", "--fp16", "{tmp}/hh.onnx"], "{h}: precision 'fp16', not fp32"),
     (["export", "{f}"], "an .onnx source needs --fp16 OUT_FP16"),
     (["export", "{f}", "-o", "{tmp}/x.onnx", "--fp16", "{tmp}/h.onnx"], "is already exported"),
     (["export", "{tmp}/junk.onnx", "--fp16", "{tmp}/h.onnx"], "not a readable ONNX model"),
@@ -168,6 +169,35 @@ def test_bad_paths_are_named(argv, message, pair, tmp_path, capsys):
     err = capsys.readouterr().err
     assert message.format(**fill) in err, err
     assert not (tmp_path / "h.onnx").exists()
+
+
+def test_only_a_float32_source_is_converted(pair, tiny_data, tmp_path, capsys):
+    """`nhfd export X.onnx --fp16/--int8` refuses an fp16 or an int8 source before writing
+    anything: quantising an fp16 file, or converting an int8 one again (its metadata reads fp32,
+    carried over from its float model), would make a model nothing checked."""
+    import shutil
+
+    from nhfd.models.quantise import HELDOUT_KEY, quantise_int8, record_heldout_loss
+
+    f, h = pair
+    # an int8 file as `nhfd export --int8 --int8-eval-views 0` leaves it: known by its operators
+    q = quantise_int8(f, tmp_path / "q.onnx", HoloData(tiny_data), OnnxModel(f).multiple,
+                      OnnxModel(f).inputs, n_calib=1)  # fmt: skip
+    assert HELDOUT_KEY not in OnnxModel(q).metadata
+    assert OnnxModel(q).metadata.get("precision", "fp32") == "fp32"
+    # one known only by its held-out record (a float graph under an int8 file's metadata)
+    r = shutil.copyfile(f, tmp_path / "r.onnx")
+    record_heldout_loss(r, f, float_psnr_db=20.0, int8_psnr_db=19.9, views=2)
+    out = {"--fp16": tmp_path / "out-fp16.onnx", "--int8": tmp_path / "out-int8.onnx"}
+    for source, why in ((h, "precision 'fp16', not fp32"),
+                        (q, "an int8 model (DequantizeLinear, QuantizeLinear)"),
+                        (r, f"an int8 model (metadata {HELDOUT_KEY})")):  # fmt: skip
+        for flag, dst in out.items():
+            argv = ["export", str(source), flag, str(dst), "--data", str(tiny_data)]
+            assert main(argv) == 2
+            err = capsys.readouterr().err
+            assert f"{source}: {why}; give the float32 model to convert" in err, err
+            assert not dst.exists()
 
 
 def test_a_foreign_onnx_file_is_refused(tmp_path):

@@ -111,12 +111,13 @@ def test_the_build_writes_the_model_the_report_and_the_contact_sheet(built):
     assert q["kept"] == (q["loss_vs_float_db"] <= mb.INT8_MAX_LOSS_DB)
     assert (out / "model-int8.onnx").exists() == q["kept"]
     # the daemon serves int8 by the figures inside the file, measured against this float model
-    from nhfd.models.quantise import HELDOUT_KEY, file_sha256
+    from nhfd.dataset.build import sha256_file
+    from nhfd.models.quantise import HELDOUT_KEY
     from nhfd.models.sizes import read_metadata
 
     record = read_metadata(out / "candidates" / "model-int8.onnx")[HELDOUT_KEY]
     assert record["loss_vs_float_db"] == pytest.approx(q["loss_vs_float_db"], abs=1e-9)
-    assert record["float_sha256"] == file_sha256(out / "model.onnx")
+    assert record["float_sha256"] == sha256_file(out / "model.onnx")
     h = report["heldout"]["fp16"]
     assert h["kept"] == (h["loss_vs_float_db"] <= mb.INT8_MAX_LOSS_DB)
     assert (out / "model-fp16.onnx").exists() == h["kept"]
@@ -237,6 +238,32 @@ def test_cli_refuses_a_bad_device_and_a_bad_profile(tmp_path, capsys):
         err = capsys.readouterr().err
         assert "--device = 'cuda': torch " in err and "sees 0 CUDA devices" in err
     assert not os.path.exists(tmp_path / "o")
+
+
+def test_serve_tells_a_load_that_timed_out_from_one_that_failed():
+    """A load still running when --serve stops waiting is not blamed on the daemon's folders."""
+    from nhfd.cli.cmd_model import _load
+    from nhfd.daemon.client import Client
+
+    class Scripted(Client):  # the real wait_job over scripted job states (no daemon)
+        def __init__(self, state: str, error: str | None = None) -> None:
+            self.state, self.error = state, error
+
+        def call(self, method, **params):
+            if method == "load_model":
+                return {"job": 3}
+            return {"id": 3, "state": self.state, "error": self.error}
+
+    m = Path("/models/m.onnx")
+    _load(Scripted("done"), "load_model", m, 0.1)
+    with pytest.raises(RuntimeError) as e:
+        _load(Scripted("running"), "load_model", m, 0.1)
+    assert str(e.value) == ("load_model /models/m.onnx: job 3 still running after 0.1 s "
+                            "(`nhfctl job 3` follows it)")
+    with pytest.raises(RuntimeError) as e:
+        _load(Scripted("failed", "path = 'm.onnx' resolves outside"), "load_model", m, 0.1)
+    assert str(e.value).startswith("load_model /models/m.onnx: path = 'm.onnx' resolves outside "
+                                   "(the daemon reads files only inside daemon.scene_dirs")
 
 
 def test_serve_loads_the_scene_and_the_model_into_a_running_daemon(built, tmp_path_factory):

@@ -81,6 +81,29 @@ def test_a_finished_run_is_reused_and_another_network_or_recipe_is_refused(tiny_
     assert json.loads((run / "run.json").read_text())["options"]["device"] == "cpu"
 
 
+def test_the_fp16_model_is_converted_again_only_after_a_new_export(tmp_path, monkeypatch):
+    """The conversion (and its slow emulated check) runs when the fp16 file is missing or the
+    float model was just exported again, not on a call that only measures latency."""
+    import nhfd.benchmarks.tradeoff as tradeoff
+
+    made = []
+
+    def convert(src, dst):
+        made.append((src, dst))
+        dst.write_bytes(b"fp16 of " + src.read_bytes())
+        return dst
+
+    monkeypatch.setattr(tradeoff, "convert_fp16", convert)
+    f = tmp_path / "w8.onnx"
+    f.write_bytes(b"float")
+    half = tmp_path / "w8-fp16.onnx"
+    assert tradeoff.fp16_model(f, exported_now=False) == half and made == [(f, half)]
+    assert tradeoff.fp16_model(f, exported_now=False) == half and len(made) == 1  # kept
+    f.write_bytes(b"float, exported again")
+    assert tradeoff.fp16_model(f, exported_now=True) == half and len(made) == 2
+    assert half.read_bytes() == b"fp16 of float, exported again"
+
+
 def test_pareto_front_keeps_only_undominated_points():
     points = [(10.0, 20.0), (20.0, 25.0), (15.0, 19.0), (30.0, 25.0), (5.0, 18.0)]
     assert pareto(points) == [4, 0, 1]  # in order of latency
