@@ -34,6 +34,13 @@ INT8_MAX_LOSS_DB = 0.5
 HELDOUT_KEY = "int8_heldout"
 
 
+def int8_sibling(path: str | Path) -> Path:
+    """Where the int8 model of a float model lies: `<stem>-int8.onnx` beside it (`nhfd model
+    build` writes model.onnx and model-int8.onnx)."""
+    p = Path(path)
+    return p.with_name(f"{p.stem}-int8{p.suffix}")
+
+
 def int8_within_loss(loss_db: float) -> bool:
     """Whether a reduced-precision model that loses `loss_db` of held-out PSNR against its float
     model is kept and served: finite and at most INT8_MAX_LOSS_DB (NaN or inf is not)."""

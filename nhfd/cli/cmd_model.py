@@ -21,7 +21,7 @@ from nhfd.daemon.protocol import RpcError
 from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
 from nhfd.models.export import compare_with_torch
 from nhfd.models.metadata import SIZE_TOLERANCE
-from nhfd.models.quantise import INT8_MAX_LOSS_DB
+from nhfd.models.quantise import INT8_MAX_LOSS_DB, int8_sibling
 from nhfd.models.sizes import (
     check_sizes,
     read_metadata,
@@ -29,7 +29,6 @@ from nhfd.models.sizes import (
     sizes_to_check,
 )
 from nhfd.models.train import load_run, training_device
-from nhfd.pipeline.worker import int8_sibling
 from nhfd.scene.cameras import parse_axis
 from nhfd.scene.io import SCENE_SUFFIXES
 

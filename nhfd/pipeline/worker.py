@@ -48,7 +48,7 @@ from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
 from nhfd.models.export import check_providers, load_model, read_model_metadata
 from nhfd.models.metadata import checked_sizes_hw, expected_from_config
-from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, int8_within_loss
+from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, int8_sibling, int8_within_loss
 from nhfd.models.sizes import window_check
 from nhfd.models.torch_model import TorchModel
 from nhfd.scene.io import read_scene
@@ -162,13 +162,6 @@ def model_info(model: Any, path: str) -> dict[str, Any]:
             "pose_envelope": m.get("pose_envelope"), "parameters": m.get("parameters"),
             "train_steps": m.get("train_steps"), "scene_sha256": m.get("scene_sha256"),
             "providers": list(model.providers), "loaded_s": time.time()}
-
-
-def int8_sibling(path: str | Path) -> Path:
-    """Where the int8 model of a float model lies: `<stem>-int8.onnx` beside it (`nhfd model
-    build` writes model.onnx and model-int8.onnx)."""
-    p = Path(path)
-    return p.with_name(f"{p.stem}-int8{p.suffix}")
 
 
 def cpu_path(config: Any) -> bool:

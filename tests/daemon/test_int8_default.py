@@ -19,8 +19,8 @@ from nhfd.daemon.frame_link import FrameLink
 from nhfd.models.data import HoloData
 from nhfd.models.export import OnnxModel
 from nhfd.models.metadata import METADATA_KEY
-from nhfd.models.quantise import HELDOUT_KEY, quantise_int8, record_heldout_loss
-from nhfd.pipeline.worker import choose_variant, int8_sibling
+from nhfd.models.quantise import HELDOUT_KEY, int8_sibling, quantise_int8, record_heldout_loss
+from nhfd.pipeline.worker import choose_variant
 
 from .test_frames import FRONT_VIEW, small_config
 
