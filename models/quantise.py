@@ -34,6 +34,12 @@ INT8_MAX_LOSS_DB = 0.5
 HELDOUT_KEY = "int8_heldout"
 
 
+# Operators of a quantised graph (what tells an int8 file from a float one: it carries its float
+# model's metadata): its arithmetic is integer, which no float rebuild reproduces.
+QUANTISED_OPS = frozenset({"QuantizeLinear", "DequantizeLinear", "QLinearConv", "ConvInteger",
+                           "MatMulInteger", "DynamicQuantizeLinear", "QLinearAdd"})
+
+
 def int8_sibling(path: str | Path) -> Path:
     """Where the int8 model of a float model lies: `<stem>-int8.onnx` beside it (`nhfd model
     build` writes model.onnx and model-int8.onnx)."""

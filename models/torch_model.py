@@ -34,6 +34,7 @@ from nhfd.models.export import OnnxModel, run_padded
 from nhfd.models.inputs import seeded_input
 from nhfd.models.metadata import NotAModel
 from nhfd.models.net import NetSpec, build_net
+from nhfd.models.quantise import QUANTISED_OPS
 from nhfd.models.serving import ServingNet
 
 # What `providers` reports for a TorchModel (status shows it where onnxruntime's list would be).
@@ -44,9 +45,6 @@ TORCH_PROVIDER = "torch"
 # fp16 file computes in float16 where onnxruntime has float16 kernels (float16 rounds at 2^-11
 # relative): the shipped model's fp16 file differs from its float32 rebuild by 5.4e-4.
 REBUILD_TOL = {"fp32": 1e-4, "fp16": 1e-2}
-# Operators of a quantised graph: its arithmetic is integer, which the float module is not.
-QUANTISED_OPS = frozenset({"QuantizeLinear", "DequantizeLinear", "QLinearConv", "ConvInteger",
-                           "MatMulInteger", "DynamicQuantizeLinear", "QLinearAdd"})
 # Parameters the exported graph does not hold: ServingNet folds the head into its output
 # transposed convolutions (`amplitude`, `phase`), so the head's own are unused.
 FOLDED = frozenset({"net.head.weight", "net.head.bias"})

@@ -22,11 +22,11 @@ from nhfd.models.half import convert_fp16
 from nhfd.models.quantise import (
     HELDOUT_KEY,
     INT8_MAX_LOSS_DB,
+    QUANTISED_OPS,
     int8_within_loss,
     quantise_int8,
     record_heldout_loss,
 )
-from nhfd.models.torch_model import QUANTISED_OPS
 from nhfd.models.train import TrainOptions, train
 
 TRAIN_HELP = """\
