@@ -489,10 +489,6 @@ def build(
         raise ValueError(f"--device {device}: builds in this process on one GPU; use "
                          "--workers 1 and the local executor (--shard K/N splits a build over "
                          "GPUs)")  # fmt: skip
-    if device.startswith("cuda:"):
-        import torch
-
-        torch.cuda.set_device(device)  # the central view's render uses the current device
     scene_path, out_dir = Path(scene_path), Path(out_dir)
     g = load_scene(scene_path)
     center = np.median(g.means, axis=0) if len(g) else np.zeros(3)
