@@ -1,4 +1,5 @@
-"""Shared fixtures. Tests that need ../shared/data skip with a reason when it is absent."""
+"""Shared fixtures. Tests that need ../shared/data skip with a reason when it is absent
+($NHFD_SHARED_DATA names another copy: a GPU machine gets the scenes inside the working tree)."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ import torch
 from nhfd.drivers.twins.mecom_twin import MecomTwin
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = REPO.parent / "shared" / "data"
+SHARED_DATA = Path(os.environ.get("NHFD_SHARED_DATA") or REPO.parent / "shared" / "data")
 
 
 # NHFD_REQUIRE_CUDA=1 (`make gpu-check`, on a GPU workstation): a test skipped because it needs

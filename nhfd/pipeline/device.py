@@ -146,42 +146,47 @@ class HostCopy:
         return self.wait(self.start(*tensors))
 
 
+class WallMark:
+    """A reading of the host's clock with the part of `torch.cuda.Event`'s interface that
+    `StageClock` uses, so that the CPU and CUDA clocks share one code path."""
+
+    def __init__(self) -> None:
+        self.t_s = time.perf_counter()
+
+    def synchronize(self) -> None:
+        """Nothing to wait for: the reading was taken when the mark was made."""
+
+    def elapsed_time(self, end: WallMark) -> float:
+        """Milliseconds from this mark to `end` (torch.cuda.Event's unit)."""
+        return (end.t_s - self.t_s) * 1e3
+
+
 class StageClock:
     """Seconds per stage: each `stage(name)` ends the stage that began at the previous one.
 
-    On the CPU, wall-clock time. On CUDA, events recorded on the stream (no synchronisation
-    between stages: the frame is queued as fast as the host can); `seconds` reads them after
-    the frame's host copy has waited for the last one."""
+    On the CPU, wall-clock marks. On CUDA, events recorded on the device's stream (no
+    synchronisation between stages: the frame is queued as fast as the host can); `seconds`
+    reads them after the last one has completed. Both go through the same marks: N stages are
+    N + 1 marks, each stage the span between two neighbours."""
 
     def __init__(self, device: torch.device | None = None) -> None:
-        self._perf = time.perf_counter
-        self._device = torch.device(device) if device is not None else torch.device("cpu")
-        self._cuda = self._device.type == "cuda"
+        dev = torch.device(device) if device is not None else torch.device("cpu")
+        self._new_mark = (lambda: _cuda_mark(dev)) if dev.type == "cuda" else WallMark
         self._names: list[str] = []
-        self._wall: dict[str, float] = {}
-        if self._cuda:
-            self._events = [self._event()]
-        else:
-            self._t = self._perf()
-
-    def _event(self) -> Any:
-        e = torch.cuda.Event(enable_timing=True)
-        e.record(torch.cuda.current_stream(self._device))
-        return e
+        self._marks = [self._new_mark()]
 
     def stage(self, name: str) -> None:
-        if self._cuda:
-            self._names.append(name)
-            self._events.append(self._event())
-            return
-        now = self._perf()
-        self._wall[name] = now - self._t
-        self._t = now
+        self._names.append(name)
+        self._marks.append(self._new_mark())
 
     @property
     def seconds(self) -> dict[str, float]:
-        if not self._cuda:
-            return self._wall
-        self._events[-1].synchronize()
+        self._marks[-1].synchronize()
         return {n: 1e-3 * a.elapsed_time(b)
-                for n, a, b in zip(self._names, self._events, self._events[1:], strict=True)}
+                for n, a, b in zip(self._names, self._marks[:-1], self._marks[1:], strict=True)}
+
+
+def _cuda_mark(device: torch.device) -> Any:
+    e = torch.cuda.Event(enable_timing=True)
+    e.record(torch.cuda.current_stream(device))
+    return e

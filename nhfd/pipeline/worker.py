@@ -328,11 +328,10 @@ class _WorkerState:
             return hit
         frame = compute_frame(view, self.scene, self.model, self.encoder(refocus_m))
         r = frame.region
-        rgb = frame.rgb
         payload = {
             "region": [r.top, r.left, r.height, r.width, r.window_top, r.window_left],
             "grey": frame.grey,
-            "rgb": (np.clip(rgb, 0, 1) * 255 + 0.5).astype(np.uint8) if rgb is not None else None,
+            "rgb": frame.preview,
             "timings_s": frame.timings_s,
             "clipped_fraction": frame.clipped_fraction,
             "warnings": envelope_warnings(view, self.scene.frame,

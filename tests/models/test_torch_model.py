@@ -180,16 +180,16 @@ def test_another_spec_rebuilds_too(tiny_data, tmp_path):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 def test_on_a_gpu_the_outputs_stay_on_it_and_match(shipped):
-    """On CUDA, torch's convolutions may use TF32 (10-bit mantissa, its default for cuDNN
-    convolutions): the tolerance is fp16's (`tests/models/test_fp16.py`), relative to the
-    outputs' largest magnitude."""
+    """On CUDA the convolutions run in float32 (TorchModel turns cuDNN's default TF32 off: with
+    it an H200 gave 5e-4 relative), so the full panel's outputs are onnxruntime's on the CPU
+    to float32 rounding of the sums, relative to the outputs' largest magnitude."""
     m = TorchModel(shipped, device="cuda:0")
     x = _inputs(4, (1080, 1920), seed=13)
     amp, phase = m.run_on(torch.from_numpy(x).to("cuda:0"))
     assert amp.device.type == phase.device.type == "cuda"
     want = OnnxModel(shipped)(x)
     for got, ref in zip((amp.cpu().numpy(), phase.cpu().numpy()), want, strict=True):
-        assert np.abs(got - ref).max() <= 5e-3 * np.abs(ref).max()
+        assert np.abs(got - ref).max() <= 1e-4 * np.abs(ref).max()
 
 
 def test_a_device_name_is_checked_as_everywhere(shipped):

@@ -31,7 +31,7 @@ from nhfd.models.train import TrainOptions, training_device
 from nhfd.optics import double_phase_grey
 from nhfd.optics.dpac import DEVICE_LUT_BINS, device_curves, device_grey
 from nhfd.pipeline.device import HostCopy, resolve_device
-from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.encoder import Encoder, reference_field
 from nhfd.pipeline.frame import compute_frame, network_input_on_device
 from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import Scene, scene_frame
@@ -327,9 +327,12 @@ def test_the_device_path_on_the_cpu_gives_the_cpu_paths_frame(donut):
     assert diff.max() <= 1 and (diff == 0).mean() > 0.999
     assert dev.clipped_fraction == pytest.approx(cpu.clipped_fraction, abs=0)
     assert set(dev.timings_s) == {"render", "inference", "propagation", "coding"}
-    # The preview is the rendered view quantised as the worker sends it.
-    np.testing.assert_array_equal((np.clip(dev.rgb, 0, 1) * 255 + 0.5).astype(np.uint8),
-                                  (np.clip(cpu.rgb, 0, 1) * 255 + 0.5).astype(np.uint8))
+    # The preview is the rendered view quantised as the worker sends it: the device computes
+    # it on its own (its frame brings back no float view), the CPU path from its float view.
+    assert dev.rgb is None and dev.preview.dtype == np.uint8
+    np.testing.assert_array_equal(dev.preview, (np.clip(cpu.rgb, 0, 1) * 255 + 0.5
+                                                ).astype(np.uint8))  # fmt: skip
+    np.testing.assert_array_equal(cpu.preview, dev.preview)
 
 
 def test_inference_in_torch_gives_onnxruntimes_frames(donut):
@@ -374,6 +377,33 @@ def test_bench_pipeline_device_cuda_is_a_clean_error_without_cuda(capsys):
     assert "--device = 'gpu': must be one of auto, cpu, cuda, cuda:N" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("device", ["cpu", "cuda:0"])
+def test_stage_times_are_the_spans_between_marks(device, monkeypatch):
+    """N stages are N + 1 marks. On CUDA the marks are events (here the wall-clock mark stands
+    in for one, through the same code path): the first GPU run found `seconds` pairing N names
+    with N + 1 marks and raising."""
+    import time
+
+    from nhfd.pipeline import device as device_mod
+
+    made = []
+
+    def fake_cuda_mark(dev):
+        made.append(dev)
+        return device_mod.WallMark()
+
+    monkeypatch.setattr(device_mod, "_cuda_mark", fake_cuda_mark)
+    clock = device_mod.StageClock(torch.device(device))
+    for name, pause_s in (("render", 0.02), ("inference", 0.0), ("coding", 0.01)):
+        time.sleep(pause_s)
+        clock.stage(name)
+    seconds = clock.seconds
+    assert list(seconds) == ["render", "inference", "coding"]
+    assert seconds["render"] >= 0.02 and seconds["coding"] >= 0.01
+    assert 0 <= seconds["inference"] < 0.01
+    assert len(made) == (4 if device.startswith("cuda") else 0)
+
+
 def test_host_copy_on_the_cpu_hands_back_the_tensors_memory():
     t = torch.arange(6, dtype=torch.uint8).reshape(2, 3)
     (a, none) = HostCopy("cpu").fetch(t, None)
@@ -382,27 +412,120 @@ def test_host_copy_on_the_cpu_hands_back_the_tensors_memory():
 
 # -- CUDA only ----------------------------------------------------------------------------------
 
+def _cuda_config(config: Config) -> Config:
+    """`config` with frames on cuda:0 and the network in what "auto" picks there: onnxruntime's
+    CUDA or TensorRT provider where the installed onnxruntime has one, else torch."""
+    return Config.model_validate(_overlay(config.model_dump(), {"daemon": {"device": "cuda:0"}}))
+
+
+# Below this amplitude (of the coding's full scale) a pixel's double-phase pair sums to almost
+# nothing whatever its phase, and that phase is ill-conditioned: a field error of 1e-3 of the
+# scale turns it by up to 1e-3 / a rad, a whole grey level (2 pi / 256) at a = 0.04, and any
+# number of levels where a crosses coding.zero_below. The first GPU run (H200) saw one pixel of
+# 48,384 at 65 levels there.
+PHASE_CARRYING_AMPLITUDE = 0.05
+
+
+def _phase_carrying(d: dict) -> np.ndarray:
+    """[3, h, w] True where the CPU path's SLM-plane amplitude carries the phase."""
+    from nhfd.pipeline.frame import infer, render_view
+
+    s = d["settings"]
+    rendered = render_view(d["view"], d["scene"], d["model"].metadata, s.window_hw)
+    field = Encoder(s).to_slm(reference_field(*infer(d["model"], rendered), s.amplitude_scale))
+    carrying = (field.abs() / s.amplitude_scale).numpy() >= PHASE_CARRYING_AMPLITUDE
+    assert carrying.mean() > 0.5, "the view codes mostly near-zero amplitudes: a poor check"
+    return carrying
+
+
+def _gpu_frame(d: dict, monkeypatch: pytest.MonkeyPatch | None = None):
+    """The frame on cuda:0 with what "auto" serves there; with `monkeypatch`, from the CPU
+    rasteriser's render (moved to the GPU) instead of gsplat's."""
+    from nhfd.pipeline import frame as frame_mod
+    from nhfd.pipeline.worker import open_model
+
+    if monkeypatch is not None:
+        def cpu_render(view, scene, metadata, window_hw, device):
+            r = frame_mod.render_view(view, scene, metadata, window_hw)
+            return tuple(torch.from_numpy(v).to(device) for v in (r.rgb, r.depth, r.alpha))
+
+        monkeypatch.setattr(frame_mod, "render_on_device", cpu_render)
+    model = open_model(str(MODEL), _cuda_config(d["config"]), 1)
+    return compute_frame(d["view"], d["scene"], model, Encoder(d["settings"], device="cuda:0"))
+
+
 @needs_cuda
-def test_the_cuda_frame_is_the_cpu_frame_within_one_grey_level(donut):
+def test_the_cuda_stages_after_rendering_give_the_cpu_frame(donut, monkeypatch,
+                                                           record_property):
+    """The device arithmetic alone (the network on the GPU, cuFFT, the torch coder, the host
+    copy), fed the CPU rasteriser's render: the CPU frame, up to a phase on a level's edge,
+    wherever the amplitude carries the phase (on the CPU, the same coders agree to 99.9 %:
+    test_the_device_path_on_the_cpu_gives_the_cpu_paths_frame)."""
     d = donut
     cpu = compute_frame(d["view"], d["scene"], d["model"], Encoder(d["settings"]))
-    model = load_model(MODEL, d["config"], threads=1, device="cuda:0", input_hw=(64, 96))
-    gpu = compute_frame(d["view"], d["scene"], model, Encoder(d["settings"], device="cuda:0"))
+    carrying = _phase_carrying(d)
+    gpu = _gpu_frame(d, monkeypatch)
     diff = _circular_level_diff(gpu.grey, cpu.grey)
-    # gsplat's render and the GPU's network and FFTs differ from the CPU's in rounding.
-    assert (diff <= 1).mean() > 0.98, f"{(diff <= 1).mean():.4f} within one level"
+    identical = float((diff[carrying] == 0).mean())
+    record_property("identical_where_carrying", identical)
+    assert diff[carrying].max() <= 1, f"{(diff[carrying] > 1).sum()} pixels > 1 level apart"
+    assert identical >= 0.999, f"{identical:.5f} identical where the amplitude carries the phase"
+
+
+# gsplat and numba render the donut 82 dB apart (docs/gpu.md), which moves the network's output
+# and so the phase of a few pixels across a level's edge: on an H200 the whole path gave 99.56 %
+# of the phase-carrying pixels identical (and 99.71 % of all), the rest one level apart. A wrong
+# stage (a sign, a kernel, a curve) moves nearly every pixel, so 99 % still catches it.
+END_TO_END_IDENTICAL = 0.99
+
+
+@needs_cuda
+def test_the_cuda_frame_is_the_cpu_frame_within_one_grey_level(donut, record_property):
+    """The whole device path (gsplat, the network on the GPU, cuFFT, the torch coder) against
+    the CPU path (numba, onnxruntime's CPU provider, the numba coder): wherever the amplitude
+    carries the phase, at most one level apart."""
+    d = donut
+    cpu = compute_frame(d["view"], d["scene"], d["model"], Encoder(d["settings"]))
+    carrying = _phase_carrying(d)
+    gpu = _gpu_frame(d)
+    diff = _circular_level_diff(gpu.grey, cpu.grey)
+    identical = float((diff[carrying] == 0).mean())
+    record_property("identical_where_carrying", identical)
+    record_property("identical_everywhere", float((diff == 0).mean()))
+    assert diff[carrying].max() <= 1, f"{(diff[carrying] > 1).sum()} pixels > 1 level apart"
+    assert identical >= END_TO_END_IDENTICAL, f"{identical:.5f} identical where carrying"
     assert set(gpu.timings_s) == {"render", "inference", "propagation", "coding"}
 
 
 @needs_cuda
-def test_cuda_inference_binds_device_memory(donut):
-    model = load_model(MODEL, donut["config"], threads=1, device="cuda:0", input_hw=(64, 96))
-    assert model.session.get_providers()[0] in (TENSORRT, CUDA)
+def test_cuda_inference_keeps_device_memory(donut):
+    """What runs the network on the GPU ("auto": onnxruntime's GPU provider with I/O binding,
+    or torch where this onnxruntime has none) takes device memory and leaves its outputs there,
+    and they are the CPU's (TF32 convolutions: fp16's tolerance, tests/models/test_fp16.py)."""
+    from nhfd.models.torch_model import TorchModel
+    from nhfd.pipeline.worker import open_model
+
+    model = open_model(str(MODEL), _cuda_config(donut["config"]), 1)
+    if isinstance(model, TorchModel):
+        assert "CUDAExecutionProvider" not in ort_providers()
+    else:
+        assert model.session.get_providers()[0] in (TENSORRT, CUDA)
     x = torch.rand(model.channels, 64, 96, device="cuda:0")
     amp, phase = model.run_on(x)
     assert amp.device == x.device and phase.device == x.device
-    want_a, _want_p = donut["model"](x.cpu().numpy())
-    np.testing.assert_allclose(amp.cpu().numpy(), want_a, atol=1e-3)
+    want_a, want_p = donut["model"](x.cpu().numpy())
+    assert np.abs(amp.cpu().numpy() - want_a).max() <= 5e-3 * np.abs(want_a).max()
+    assert _circular_phase_diff(phase.cpu().numpy(), want_p).max() <= 5e-3 * math.pi
+
+
+def ort_providers() -> list[str]:
+    import onnxruntime as ort
+
+    return ort.get_available_providers()
+
+
+def _circular_phase_diff(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.abs(np.angle(np.exp(1j * (a.astype(np.float64) - b))))
 
 
 @needs_cuda

@@ -300,6 +300,16 @@ def test_near_plane_culls_the_same_centres() -> None:
 # --- CUDA: gsplat's images against the CPU renderer ------------------------------------------
 
 
+# A splat whose alpha sits at the 1/255 cut-off is drawn by one renderer and not the other
+# (gsplat's kernels are built with -use_fast_math: its exp rounds otherwise than numba's). Such a
+# flip moves that pixel's expected depth by (1/255) T |z_k - D| / alpha, far above the rounding
+# gate. Seen on an H200: tiny-sh at 512 x 288, one pixel of 11,470 at 1.7e-4 relative, every
+# other one below 2e-7. The gate holds for all but `DEPTH_FLIP_FRACTION` of the pixels; those
+# stay within `DEPTH_FLIP_REL` (2/255 of a 13 % depth step behind alpha >= 0.5).
+DEPTH_FLIP_FRACTION = 1e-3
+DEPTH_FLIP_REL = 1e-3
+
+
 def assert_matches_cpu(g: Gaussians, cam: Camera, settings: RasterSettings, what: str,
                       depth_rel: float = 1e-4, depth_rel_p99: float = 1e-4) -> None:  # fmt: skip
     cpu = render(g, cam, settings, backend="cpu")
@@ -310,7 +320,11 @@ def assert_matches_cpu(g: Gaussians, cam: Camera, settings: RasterSettings, what
     assert p >= 45.0, f"{what}: RGB PSNR {p:.1f} dB"
     sel = (cpu.alpha > 0.5) & (gpu.alpha > 0.5)
     rel = np.abs(gpu.depth[sel].astype(np.float64) - cpu.depth[sel]) / cpu.depth[sel]
-    assert rel.max() <= depth_rel, f"{what}: depth off by {rel.max():.2e} relative"
+    beyond = float((rel > depth_rel).mean())
+    assert beyond <= DEPTH_FLIP_FRACTION, (
+        f"{what}: depth off by more than {depth_rel:g} relative at {beyond:.2%} of the pixels")
+    worst = max(depth_rel, DEPTH_FLIP_REL)
+    assert rel.max() <= worst, f"{what}: depth off by {rel.max():.2e} relative"
     p99 = float(np.quantile(rel, 0.99))
     assert p99 <= depth_rel_p99, f"{what}: depth off by {p99:.2e} relative at the 99th percentile"
     np.testing.assert_array_equal(gpu.depth[gpu.alpha == 0], 0.0)
