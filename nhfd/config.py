@@ -365,6 +365,11 @@ class WebSettings(_Section):
     # How often the page's state and thumbnails are pushed (s), and the thumbnails' longest side.
     push_interval_s: Annotated[float, Field(ge=0.05, le=10)] = 0.5
     thumbnail_px: Annotated[int, Field(ge=16, le=2048)] = 320
+    # Connections at once (page loads and WebSockets); messages a WebSocket may send per second
+    # (a burst of as many allowed), and the longest message (bytes).
+    max_connections: Annotated[int, Field(ge=1, le=4096)] = 32
+    messages_per_s: Annotated[float, Field(gt=0, le=10000)] = 20.0
+    max_message_bytes: Annotated[int, Field(ge=256, le=16_777_216)] = 65536
 
     @model_validator(mode="after")
     def _tls_elsewhere(self) -> WebSettings:
@@ -455,10 +460,42 @@ class DaemonSettings(_Section):
     tls_key: str = ""
     # The live web view (nhfd.web), off by default.
     web: WebSettings = WebSettings()
-    # Longest request line accepted (bytes); clients connected at once; requests in one batch.
+    # Longest request line accepted (bytes); Unix-socket clients connected at once (remote
+    # peers never take these slots); requests in one batch.
     max_line_bytes: Annotated[int, Field(ge=1024, le=16_777_216)] = 65536
     max_clients: Annotated[int, Field(ge=1, le=4096)] = 64
     max_batch: Annotated[int, Field(ge=0, le=1024)] = 32
+    # TCP clients connected at once; of them, those still in the TLS handshake or before `auth`,
+    # each dropped auth_timeout_s after it connected unless it has authenticated.
+    max_tcp_clients: Annotated[int, Field(ge=1, le=4096)] = 16
+    max_unauthenticated: Annotated[int, Field(ge=1, le=1024)] = 4
+    auth_timeout_s: Annotated[float, Field(ge=0.1, le=600)] = 5.0
+    # Per connection: bytes received but not yet handled, and lines handled per control-loop
+    # pass (empty lines count). A peer past the first is dropped.
+    max_buffered_bytes: Annotated[int, Field(ge=4096, le=1 << 30)] = 1 << 20
+    lines_per_poll: Annotated[int, Field(ge=1, le=4096)] = 64
+    # The most time one control-loop pass spends serving clients before the heartbeat (s).
+    tick_budget_s: Annotated[float, Field(ge=0.005, le=1.0)] = 0.05
+    # The soft limit on open files is raised to this at start (or to the hard limit, if lower).
+    open_files: Annotated[int, Field(ge=256, le=1 << 20)] = 8192
+    # Who may arm the lasers, from the kernel's word on the Unix-socket peer (SO_PEERCRED): user
+    # names, and groups whose members may ([] and [] = the daemon's own user only). Never over
+    # TCP or the web view.
+    arm_users: list[str] = []
+    arm_groups: list[str] = []
+    # A person at the bench confirms each arm: "none", "spacemouse" (a button of the configured
+    # navigator) or "serial" (a key switch on arm_confirm_port's CTS or DSR line), within
+    # arm_confirm_timeout_s of the request.
+    arm_confirm: Literal["none", "spacemouse", "serial"] = "none"
+    arm_confirm_timeout_s: Annotated[float, Field(ge=1, le=120)] = 10.0
+    arm_confirm_port: str = ""
+    arm_confirm_line: Literal["cts", "dsr"] = "cts"
+    # Scenes: the most Gaussians a scene may declare, and the memory a scene load may take (MB).
+    max_gaussians: Annotated[int, Field(ge=1, le=1_000_000_000)] = 20_000_000
+    scene_memory_mb: Annotated[int, Field(ge=64, le=1 << 20)] = 8192
+    # Models: the memory a candidate model's first session may take (MB); more is refused and
+    # the serving model stays.
+    model_memory_mb: Annotated[int, Field(ge=64, le=1 << 20)] = 4096
     # Heartbeat period (s): the control loop sends the laser guardian's heartbeat this often and
     # sleeps otherwise until an event; at most a quarter of the guardian's heartbeat timeout.
     tick_s: Annotated[float, Field(ge=0.005, le=0.25)] = 0.1
