@@ -113,15 +113,43 @@ def _no_duplicates(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
     return out
 
 
+# Deepest nesting of arrays and objects a message may have. Requests need a handful of levels;
+# the parser itself stops near the interpreter's recursion limit, but what handles a message
+# afterwards (sanitising, the audit log's compact copy) recurses with fewer frames to spare, so
+# a line of a few hundred brackets would otherwise raise RecursionError after parsing.
+MAX_NESTING = 32
+
+
+def _nesting(value: Any) -> int:
+    """How deeply arrays and objects nest in `value` (a scalar: 0), without recursion."""
+    deepest = 0
+    stack = [(value, 1)]
+    while stack:
+        item, depth = stack.pop()
+        children = (item.values() if isinstance(item, dict)
+                    else item if isinstance(item, list) else None)
+        if children is None:
+            continue
+        deepest = max(deepest, depth)
+        if depth <= MAX_NESTING:  # one level past the cap is enough to refuse it
+            stack.extend((child, depth + 1) for child in children)
+    return deepest
+
+
 def loads(line: bytes | str) -> Any:
-    """Parse one line; RpcError(PARSE_ERROR) on anything that is not finite, strict JSON."""
+    """Parse one line; RpcError(PARSE_ERROR) on anything that is not finite, strict JSON, or
+    nests arrays and objects more than MAX_NESTING deep."""
     try:
         text = line.decode("utf-8") if isinstance(line, bytes) else line
-        return json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float,
-                          object_pairs_hook=_no_duplicates)
+        value = json.loads(text, parse_constant=_refuse_constant, parse_float=_finite_float,
+                           object_pairs_hook=_no_duplicates)
     except (ValueError, RecursionError) as exc:  # JSONDecodeError and UnicodeError are these
         reason = "nested too deeply" if isinstance(exc, RecursionError) else str(exc)
         raise RpcError(PARSE_ERROR, f"parse error: {reason[:200]}") from None
+    if _nesting(value) > MAX_NESTING:
+        raise RpcError(PARSE_ERROR, f"parse error: nested too deeply (more than {MAX_NESTING} "
+                       "levels of arrays and objects)")
+    return value
 
 
 def _valid_id(value: Any) -> bool:

@@ -2,40 +2,70 @@
 
 Single-threaded and non-blocking, driven by the control loop's `poll()`, so request handling and
 the laser heartbeat share one thread: if handling hangs, the heartbeat stops and the guardian
-switches the lasers off. Each connection gets at most `lines_per_poll` requests per poll, so one
-flooding client cannot starve the others or the heartbeat. A line over the size cap is answered
-with an error and skipped up to its newline; a client that stops reading its replies is dropped
-once `max_pending_bytes` are waiting.
+switches the lasers off. So no peer may hold the loop, and none may lock the bench's own user
+out:
+
+- Slots. Unix-socket clients count against `max_clients` alone: no remote peer takes a local
+  slot. TCP clients count against `max_tcp_clients`; of them, those still in the TLS handshake
+  or before `auth` count against `max_unauthenticated` too, and each is dropped `auth_timeout_s`
+  after it connected unless it has authenticated. A refused connection gets a JSON-RPC `busy`
+  error in its own protocol (inside TLS once the handshake is done; see `_accept`).
+- Input. At most `max_buffered_bytes` received and not yet handled per connection (a peer past
+  it is dropped; drops are logged with the peer, summarised); at most `lines_per_poll` lines per
+  connection per poll, empty lines counted; and `tick_budget_s` of serving per poll, after which
+  the rest waits, in turn, for the next poll: the control loop sends its heartbeat in between.
+  A line over `max_line_bytes` is answered with an error and skipped up to its newline; a
+  client that stops reading its replies is dropped once `max_pending_bytes` are waiting.
+- Descriptors. `accept` failing for want of file descriptors (EMFILE, ENFILE) pauses that
+  listener for `ACCEPT_BACKOFF_S` (logged once per episode); existing clients are still served.
 
 The TCP port listens on loopback unless `daemon.tcp_host` says otherwise, and then only with TLS
 (`daemon.tls_cert`, `daemon.tls_key`): a token never crosses a network in clear. The TLS handshake
-runs non-blocking in the same loop, so a slow or silent peer holds a client slot, never the loop.
+runs non-blocking in the same loop, so a slow or silent peer holds an unauthenticated slot until
+its deadline, never the loop.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import grp
 import logging
 import os
 import pwd
+import resource
 import selectors
 import socket
 import ssl
 import stat
 import struct
+import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from . import protocol
-from .protocol import INVALID_REQUEST, RpcError
+from .protocol import BUSY, INTERNAL_ERROR, INVALID_REQUEST, RpcError
 
 log = logging.getLogger("nhfd.daemon.server")
 
 LOOPBACK = "127.0.0.1"
 LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
+
+# One recv per connection per poll reads at most this much: a fast sender cannot make a single
+# poll copy megabytes.
+RECV_CHUNK_BYTES = 65536
+# How long a listener whose accept failed for want of descriptors stays out of the selector. Its
+# socket stays readable while connections wait in the kernel's backlog, so without the pause the
+# loop would spin on EMFILE; a quarter second lets closing clients free descriptors first.
+ACCEPT_BACKOFF_S = 0.25
+# accept's errors that mean "no descriptor or memory for it now", not "this one peer failed".
+FD_EXHAUSTED = frozenset({errno.EMFILE, errno.ENFILE, errno.ENOBUFS, errno.ENOMEM})
+# Refusals and drops are logged with the peer's identity the first time, then summarised at most
+# this often: a peer that reconnects in a loop must not flood the journal.
+REFUSAL_LOG_EVERY_S = 60.0
 
 
 def server_tls_context(cert_path: str | os.PathLike[str], key_path: str | os.PathLike[str],
@@ -53,6 +83,22 @@ def server_tls_context(cert_path: str | os.PathLike[str], key_path: str | os.Pat
     return ctx
 
 
+def raise_open_files(wanted: int) -> tuple[int, int]:
+    """Raise this process's soft limit on open files (RLIMIT_NOFILE) to `wanted`, or to the hard
+    limit if that is lower; never lower it. Returns the (soft, hard) limits now in effect
+    (resource.RLIM_INFINITY for "unlimited")."""
+    if wanted < 1:
+        raise ValueError(f"open files wanted = {wanted}: must be at least 1")
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    target = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
+    if soft != resource.RLIM_INFINITY and soft < target:
+        try:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (target, hard))
+        except (ValueError, OSError) as exc:  # a sandbox may refuse even within the hard limit
+            log.warning("cannot raise the open-files limit from %d to %d: %s", soft, target, exc)
+    return resource.getrlimit(resource.RLIMIT_NOFILE)
+
+
 @dataclass
 class Connection:
     sock: socket.socket
@@ -64,6 +110,10 @@ class Connection:
     authed: bool = False
     closing: bool = False
     handshaking: bool = False  # TLS: the handshake is not finished yet
+    accepted_s: float = 0.0  # the server's clock at accept: the auth deadline counts from it
+    # TLS over a cap: this busy error goes out once the handshake is done, then the connection
+    # closes (a plaintext reply would reach the client as a TLS protocol error).
+    refusal: RpcError | None = None
 
     @property
     def who(self) -> dict[str, Any]:
@@ -74,8 +124,10 @@ Handler = Callable[[Connection, bytes], bytes | None]
 
 
 def peer_credentials(sock: socket.socket) -> dict[str, Any]:
-    """uid, gid and pid of a Unix-socket peer from the kernel (SO_PEERCRED): not forgeable; and
-    the peer's process name, which says when the socket is forwarded through SSH (`sshd`)."""
+    """uid, gid and pid of a Unix-socket peer from the kernel (SO_PEERCRED, taken at connect):
+    not forgeable, and the uid is what arming authority rests on (`arming.arm_refusal`). Also the
+    user's name and the peer's process name (/proc/<pid>/comm), for the audit log and the
+    `forwarded_by_ssh` heuristic only: a process chooses its own name."""
     pid, uid, gid = struct.unpack("3i", sock.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED,
                                                         struct.calcsize("3i")))
     try:
@@ -84,22 +136,34 @@ def peer_credentials(sock: socket.socket) -> dict[str, Any]:
         user = None
     try:
         process: str | None = Path(f"/proc/{pid}/comm").read_text().strip()
-    except OSError:
+    except OSError:  # gone already, or no descriptor free to read it (EMFILE)
         process = None
     return {"uid": uid, "gid": gid, "pid": pid, "user": user, "process": process}
 
 
 def forwarded_by_ssh(peer: dict[str, Any]) -> bool:
-    """The Unix-socket peer is sshd (`ssh -L local.sock:control.sock`, OpenSSH's session process
-    `sshd` or, from 9.8, `sshd-session`): a person on another machine, not at the bench."""
+    """The Unix-socket peer calls itself sshd (`ssh -L local.sock:control.sock`, OpenSSH's session
+    process `sshd` or, from 9.8, `sshd-session`): most likely a person on another machine.
+    Defence in depth only (it can refuse an arm, never allow one): any relay with another
+    name passes, so no guarantee rests on it."""
     return str(peer.get("process") or "").startswith("sshd")
+
+
+def busy_error(setting: str, limit: int, what: str, extra: str = "") -> RpcError:
+    """The `busy` refusal of a connection over a cap, naming the setting and its value."""
+    return RpcError(BUSY, f"too many {what} (daemon.{setting} = {limit}){extra}; retry later",
+                    {"field": f"daemon.{setting}", "allowed": f"at most {limit} at once"})
 
 
 class LineServer:
     def __init__(self, handler: Handler, *, unix_path: Path, socket_group: str = "",
                  tcp_port: int = 0, tcp_host: str = LOOPBACK, tls: ssl.SSLContext | None = None,
                  max_line_bytes: int = 65536, max_clients: int = 64,
-                 lines_per_poll: int = 64, max_pending_bytes: int = 4 << 20) -> None:
+                 max_tcp_clients: int = 16, max_unauthenticated: int = 4,
+                 auth_timeout_s: float = 5.0, max_buffered_bytes: int = 1 << 20,
+                 lines_per_poll: int = 64, tick_budget_s: float = 0.05,
+                 max_pending_bytes: int = 4 << 20,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         if tcp_port and tcp_host not in LOOPBACK_HOSTS and tls is None:
             raise ValueError(f"daemon.tcp_host = {tcp_host!r} is not loopback: listening "
                              "elsewhere needs TLS, set daemon.tls_cert and daemon.tls_key")
@@ -110,14 +174,35 @@ class LineServer:
         self.tcp_host = tcp_host
         self.tls = tls
         self.max_line_bytes = max_line_bytes
-        self.max_clients = max_clients
+        self.max_clients = max_clients  # Unix-socket clients only
+        self.max_tcp_clients = max_tcp_clients
+        self.max_unauthenticated = max_unauthenticated
+        self.auth_timeout_s = auth_timeout_s
+        self.max_buffered_bytes = max_buffered_bytes
+        # One line of the allowed length always fits, whatever the two settings say, so a peer
+        # sending one is answered ("line longer than ...") rather than dropped.
+        self._inbuf_cap = max(max_buffered_bytes, max_line_bytes + 1)
         self.lines_per_poll = lines_per_poll
+        self.tick_budget_s = tick_budget_s
         self.max_pending_bytes = max_pending_bytes
+        self.clock = clock  # the deadlines' clock (tests may step it)
         self.selector = selectors.DefaultSelector()
         self._listeners: dict[int, tuple[socket.socket, str]] = {}
+        self._paused: dict[int, float] = {}  # listener fd -> clock time it is watched again
+        self._accept_failing: set[str] = set()  # transports in an EMFILE episode (logged once)
         self.connections: dict[int, Connection] = {}
-        self._backlog: set[int] = set()  # connections with complete lines still unhandled
+        self._counts: Counter[str] = Counter()  # served connections per transport
+        self._unauthenticated: dict[int, Connection] = {}  # TCP, handshake or before auth
+        self._refusing: dict[int, Connection] = {}  # TLS handshakes that end in `busy`
+        # Connections with complete lines still unhandled, in the order they are served next.
+        self._backlog: dict[int, None] = {}
+        self._deadline_s = 0.0  # this poll's serving ends at this clock time
         self.tcp_address: tuple[str, int] | None = None
+        # Refusals and drops by reason (busy, auth timeout, input over the cap, accept failed).
+        self.refused: Counter[str] = Counter()
+        self._logged: dict[str, tuple[float, int]] = {}  # reason -> (clock, count) last logged
+        # The most bytes one connection has held received and unhandled (never above the cap).
+        self.peak_buffered_bytes = 0
 
     # -- listening -----------------------------------------------------------------------------
 
@@ -161,34 +246,57 @@ class LineServer:
             self._flush(conn)
             self._drop(conn)
         for sock, transport in self._listeners.values():
-            self.selector.unregister(sock)
+            with contextlib.suppress(KeyError, ValueError):  # a paused one is not registered
+                self.selector.unregister(sock)
             sock.close()
             if transport == "unix":
                 with contextlib.suppress(FileNotFoundError):
                     self.unix_path.unlink()
         self._listeners.clear()
+        self._paused.clear()
 
     # -- loop ----------------------------------------------------------------------------------
 
     def poll(self, timeout_s: float) -> list[Any]:
-        """Serve ready sockets; returns the data of other registered files that are ready."""
+        """Serve ready sockets for at most `tick_budget_s`; returns the data of other registered
+        files that are ready (those are never held back by the budget)."""
         others = []
-        for key, _ in self.selector.select(0 if self._backlog else timeout_s):
+        self._resume_listeners(self.clock())
+        events = self.selector.select(0 if self._backlog else timeout_s)
+        now = self.clock()
+        self._deadline_s = now + self.tick_budget_s
+        self._expire(now)
+        self._summarise(now)
+        served: set[int] = set()
+        for key, mask in events:
             kind = key.data[0] if isinstance(key.data, tuple) else None
             if kind == "listen":
-                self._accept(key.fileobj, key.data[1])  # type: ignore[arg-type]
+                # Past the budget a ready socket is left for the next poll: select reports it
+                # again at once (level-triggered), so nothing is lost.
+                if not self._over_budget():
+                    self._accept(key.fileobj, key.data[1])  # type: ignore[arg-type]
             elif kind == "conn":
                 conn = key.data[1]
-                if key.fd in self.connections:
-                    self._service(conn, key.events)
+                if key.fd in self.connections and not self._over_budget():
+                    served.add(key.fd)
+                    self._service(conn, mask)
             else:
                 others.append(key.data)
+        # The backlog in turn: a connection whose lines were cut short by the budget keeps its
+        # place; one served above already had its lines_per_poll for this poll.
         for fd in list(self._backlog):
+            if self._over_budget():
+                break
+            if fd in served:
+                continue
+            self._backlog.pop(fd, None)
             conn = self.connections.get(fd)
-            self._backlog.discard(fd)
             if conn is not None:
                 self._handle_lines(conn)
         return others
+
+    def _over_budget(self) -> bool:
+        return self.clock() >= self._deadline_s
 
     def watch(self, fd: int, data: Any) -> None:
         """Wake `poll` when another file (the frame worker's pipe) is readable; `poll` returns
@@ -204,23 +312,56 @@ class LineServer:
         for conn in list(self.connections.values()):
             self._flush(conn)
 
+    def buffered_bytes(self) -> int:
+        """Bytes received from all connections and not yet handled."""
+        return sum(len(c.inbuf) for c in self.connections.values())
+
+    def client_counts(self) -> dict[str, int]:
+        """Connections now: served per transport, and TCP ones before `auth` or being refused."""
+        return {"unix": self._counts["unix"], "tcp": self._counts["tcp"],
+                "unauthenticated": len(self._unauthenticated), "refusing": len(self._refusing)}
+
+    # -- accepting -----------------------------------------------------------------------------
+
     def _accept(self, listener: socket.socket, transport: str) -> None:
         try:
             sock, address = listener.accept()
         except (BlockingIOError, InterruptedError):
             return
-        if len(self.connections) >= self.max_clients:
+        except OSError as exc:
+            if exc.errno in FD_EXHAUSTED:
+                self._back_off(listener, transport, exc)
+            else:  # this one peer's trouble (ECONNABORTED, EPROTO...): the next may be fine
+                log.debug("%s accept failed: %s", transport, exc)
+            return
+        if transport in self._accept_failing:
+            self._accept_failing.discard(transport)
+            log.info("%s listener: accepting connections again", transport)
+        sock.setblocking(False)
+        now = self.clock()
+        if transport == "unix":
+            peer = peer_credentials(sock)
+            refusal = (busy_error("max_clients", self.max_clients, "clients on the Unix socket")
+                       if self._counts["unix"] >= self.max_clients else None)
+        else:
+            peer = {"address": f"{address[0]}:{address[1]}"}
+            refusal = self._tcp_refusal()
+        if refusal is not None and not (transport == "tcp" and self.tls is not None):
+            # Plain text: the busy line is the connection's own protocol.
+            self._note(f"{transport} connection refused (busy)", {"transport": transport,
+                                                                 **peer})
             with contextlib.suppress(OSError):
-                sock.sendall(protocol.dumps(protocol.error_reply(None, RpcError(
-                    protocol.BUSY, f"too many clients (daemon.max_clients = "
-                    f"{self.max_clients})"))))
+                sock.send(protocol.dumps(protocol.error_reply(None, refusal)))
             sock.close()
             return
-        sock.setblocking(False)
-        peer = (peer_credentials(sock) if transport == "unix"
-                else {"address": f"{address[0]}:{address[1]}"})
         handshaking = False
         if transport == "tcp" and self.tls is not None:
+            if refusal is not None and len(self._refusing) >= self.max_unauthenticated:
+                # Even the handshakes that would carry `busy` are at their cap: close at once.
+                # The client sees the connection closed during its handshake, never plaintext.
+                self._note("tls connection closed unanswered (busy)", peer)
+                sock.close()
+                return
             try:
                 sock = self.tls.wrap_socket(sock, server_side=True,
                                             do_handshake_on_connect=False)
@@ -229,15 +370,87 @@ class LineServer:
                 return
             peer["tls"] = True
             handshaking = True
-        conn = Connection(sock, transport, peer, handshaking=handshaking)
-        self.connections[sock.fileno()] = conn
+        conn = Connection(sock, transport, peer, handshaking=handshaking, accepted_s=now,
+                          refusal=refusal)
+        fd = sock.fileno()
+        self.connections[fd] = conn
+        if refusal is not None:
+            self._note("tls connection refused (busy)", peer)
+            self._refusing[fd] = conn
+        else:
+            self._counts[transport] += 1
+            if transport == "tcp":
+                self._unauthenticated[fd] = conn
         self.selector.register(sock, selectors.EVENT_READ, ("conn", conn))
         if handshaking:
             self._handshake(conn)
 
+    def _tcp_refusal(self) -> RpcError | None:
+        if self._counts["tcp"] >= self.max_tcp_clients:
+            return busy_error("max_tcp_clients", self.max_tcp_clients, "TCP clients")
+        if len(self._unauthenticated) >= self.max_unauthenticated:
+            return busy_error("max_unauthenticated", self.max_unauthenticated,
+                              "TCP connections waiting to authenticate",
+                              f", each dropped after daemon.auth_timeout_s = "
+                              f"{self.auth_timeout_s:g} s")
+        return None
+
+    def _expire(self, now: float) -> None:
+        """Forget connections that have authenticated; drop those past their deadline."""
+        for pool in (self._unauthenticated, self._refusing):
+            for fd, conn in list(pool.items()):
+                if conn.authed:
+                    del pool[fd]
+                elif now - conn.accepted_s >= self.auth_timeout_s:
+                    self._note(f"dropped: no auth within daemon.auth_timeout_s = "
+                               f"{self.auth_timeout_s:g} s", conn.who)
+                    self._drop(conn)
+
+    def _back_off(self, listener: socket.socket, transport: str, exc: OSError) -> None:
+        """Out of descriptors: stop watching this listener for ACCEPT_BACKOFF_S. Connections
+        wait in the kernel's backlog (or are refused by it); the served ones go on."""
+        with contextlib.suppress(KeyError, ValueError):
+            self.selector.unregister(listener)
+        self._paused[listener.fileno()] = self.clock() + ACCEPT_BACKOFF_S
+        self.refused[f"{transport} accept failed"] += 1
+        if transport not in self._accept_failing:
+            self._accept_failing.add(transport)
+            log.warning("%s listener: accept failed (%s); not accepting for %g s at a time "
+                        "until descriptors are free; connected clients are still served",
+                        transport, exc.strerror or exc, ACCEPT_BACKOFF_S)
+
+    def _resume_listeners(self, now: float) -> None:
+        for fd, until in list(self._paused.items()):
+            if now >= until and fd in self._listeners:
+                del self._paused[fd]
+                sock, transport = self._listeners[fd]
+                self.selector.register(sock, selectors.EVENT_READ, ("listen", transport))
+
+    def _note(self, reason: str, who: dict[str, Any]) -> None:
+        """Count a refusal or drop; log it with the peer the first time, then at most once per
+        REFUSAL_LOG_EVERY_S (the others are counted, and summed up by `_summarise`)."""
+        self.refused[reason] += 1
+        now = self.clock()
+        last = self._logged.get(reason)
+        if last is not None and now - last[0] < REFUSAL_LOG_EVERY_S:
+            return
+        since = self.refused[reason] - (last[1] if last else 0) - 1
+        log.warning("%s: %s%s", reason, who,
+                    f" ({since} more like this before it)" if since else "")
+        self._logged[reason] = (now, self.refused[reason])
+
+    def _summarise(self, now: float) -> None:
+        """One line per reason whose window has passed with refusals not yet logged."""
+        for reason, (when, count) in list(self._logged.items()):
+            if now - when >= REFUSAL_LOG_EVERY_S and self.refused[reason] > count:
+                log.warning("%s: %d more in the last %.0f s", reason,
+                            self.refused[reason] - count, now - when)
+                self._logged[reason] = (now, self.refused[reason])
+
     def _handshake(self, conn: Connection) -> bool:
         """Advance a TLS handshake; True once it is done. A failed one (a plain-text client, an
-        untrusted certificate on the client's side) drops the connection."""
+        untrusted certificate on the client's side) drops the connection; so does a done one
+        that was accepted over a cap, after its `busy` reply."""
         want = selectors.EVENT_READ
         try:
             conn.sock.do_handshake()  # type: ignore[attr-defined]
@@ -253,33 +466,53 @@ class LineServer:
             self._drop(conn)
             return False
         conn.handshaking = False
+        if conn.refusal is not None:
+            # The reply, then close_notify: the client reads an RPC error, then a clean end.
+            conn.outbuf += protocol.dumps(protocol.error_reply(None, conn.refusal))
+            self._flush(conn)
+            with contextlib.suppress(OSError, ValueError):
+                conn.sock.unwrap()  # type: ignore[attr-defined]  # sends close_notify
+            self._drop(conn)
+            return False
         with contextlib.suppress(KeyError, ValueError):
             self.selector.modify(conn.sock, want, ("conn", conn))
         return True
+
+    # -- reading and handling ------------------------------------------------------------------
 
     def _service(self, conn: Connection, events: int) -> None:
         if conn.handshaking and not self._handshake(conn):
             return
         if events & selectors.EVENT_WRITE:
             self._flush(conn)
+            if conn.sock.fileno() < 0:
+                return
         if events & selectors.EVENT_READ:
-            data = self._receive(conn)
+            # One byte more than fits tells a peer that sent more than may wait from one that
+            # merely filled the buffer; reading no more than that keeps the copy bounded.
+            data = self._receive(conn, self._inbuf_cap - len(conn.inbuf) + 1)
             if data is None:
                 return
             if not data:
                 self._drop(conn)
                 return
             conn.inbuf += data
+            pending = getattr(conn.sock, "pending", None)
+            if len(conn.inbuf) > self._inbuf_cap or (
+                    pending is not None and pending() and len(conn.inbuf) >= self._inbuf_cap):
+                self._overflow(conn)  # (TLS: more already decrypted than fits)
+                return
+            self.peak_buffered_bytes = max(self.peak_buffered_bytes, len(conn.inbuf))
             self._handle_lines(conn)
 
-    def _receive(self, conn: Connection) -> bytes | None:
-        """What the peer sent (b"" when it hung up), None when nothing is there yet. TLS hands
-        out one record per recv and may hold more already decrypted, which select cannot see:
-        that is read too."""
+    def _receive(self, conn: Connection, limit: int) -> bytes | None:
+        """At most `limit` bytes of what the peer sent (b"" when it hung up), None when nothing
+        is there yet. TLS hands out one record per recv and may hold more already decrypted,
+        which select cannot see: that is read too, up to the limit."""
         data = bytearray()
         try:
-            while True:
-                chunk = conn.sock.recv(65536)
+            while len(data) < limit:
+                chunk = conn.sock.recv(min(RECV_CHUNK_BYTES, limit - len(data)))
                 if not chunk:
                     break
                 data += chunk
@@ -293,10 +526,17 @@ class LineServer:
             pass
         return bytes(data)
 
+    def _overflow(self, conn: Connection) -> None:
+        self._note(f"dropped: more than daemon.max_buffered_bytes = {self._inbuf_cap} bytes "
+                   "received and not yet handled", conn.who)
+        self._drop(conn)
+
     def _handle_lines(self, conn: Connection) -> None:
-        for _ in range(self.lines_per_poll):
+        for _ in range(self.lines_per_poll):  # empty lines and skipped tails count too
             if conn.sock.fileno() < 0:
                 return
+            if self._over_budget():
+                break
             end = conn.inbuf.find(b"\n")
             if end < 0:
                 if conn.discarding:
@@ -316,15 +556,25 @@ class LineServer:
                 continue
             if not line.strip():
                 continue
-            reply = self.handler(conn, line)
+            try:
+                reply = self.handler(conn, line)
+            except RecursionError:
+                # Parsing already refuses deep nesting; whatever else recursion breaks on, one
+                # request must not end the loop (and with it the daemon).
+                log.error("request from %s: nested too deeply for its handler", conn.who)
+                reply = protocol.dumps(protocol.error_reply(None, RpcError(
+                    INTERNAL_ERROR, "request nested too deeply; not applied")))
             if reply:
                 self._send(conn, reply)
             if conn.closing:
                 self._flush(conn)
                 self._drop(conn)
                 return
-        if b"\n" in conn.inbuf:
-            self._backlog.add(conn.sock.fileno())
+        fd = conn.sock.fileno()
+        if fd >= 0:
+            self._backlog.pop(fd, None)
+            if b"\n" in conn.inbuf:
+                self._backlog[fd] = None  # to the back of the queue
 
     def _oversize(self, conn: Connection) -> None:
         err = RpcError(INVALID_REQUEST, f"line longer than {self.max_line_bytes} bytes "
@@ -332,11 +582,13 @@ class LineServer:
                        {"field": "line", "allowed": f"at most {self.max_line_bytes} bytes"})
         self._send(conn, protocol.dumps(protocol.error_reply(None, err)))
 
+    # -- writing and closing -------------------------------------------------------------------
+
     def _send(self, conn: Connection, data: bytes) -> None:
         conn.outbuf += data
         self._flush(conn)
         if len(conn.outbuf) > self.max_pending_bytes:
-            log.warning("dropping a client that does not read its replies: %s", conn.who)
+            self._note("dropped: does not read its replies", conn.who)
             self._drop(conn)
 
     def _flush(self, conn: Connection) -> None:
@@ -360,6 +612,9 @@ class LineServer:
         if fd >= 0:
             with contextlib.suppress(KeyError, ValueError):
                 self.selector.unregister(conn.sock)
-            self.connections.pop(fd, None)
-            self._backlog.discard(fd)
+            if self.connections.pop(fd, None) is not None and conn.refusal is None:
+                self._counts[conn.transport] -= 1
+            self._unauthenticated.pop(fd, None)
+            self._refusing.pop(fd, None)
+            self._backlog.pop(fd, None)
             conn.sock.close()
