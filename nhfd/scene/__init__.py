@@ -4,6 +4,8 @@
   io              every scene format's loader and saver, and the format sniffing
   axes            axis conventions of splat formats, into the project's frame
   spz, sog, gltf_splat   Niantic .spz, PlayCanvas SOG, glTF KHR_gaussian_splatting
+  limits          what a hostile file cannot make a reader do: the Gaussian count limit, regular
+                  files only, references kept in the scene's folder, capped reads and inflation
   cameras         pinhole cameras and poses (OpenCV conventions), look-at, orbit, 6-DoF
   suggest         what a file does not state: which way is up, a camera that frames it
   raster          the tile rasteriser (numba kernels in _kernels; gsplat_backend on CUDA)

@@ -17,7 +17,8 @@ Facts (KhronosGroup/glTF extensions/2.0/Khronos/KHR_gaussian_splatting/README.md
   project's RDF frame by negating x and y, so glTF's up (+y) becomes -y.
 * `.glb`: 12-byte header `<I magic 'glTF', I version 2, I length>`, then chunks `<I length,
   I type>`: JSON (0x4E4F534A) first, then an optional BIN (0x004E4942) that is buffer 0.
-  `.gltf`: the JSON alone, buffers by `uri` (a relative file or a base64 `data:` URI).
+  `.gltf`: the JSON alone, buffers by `uri` (a relative file or a base64 `data:` URI). Here a
+  file must be a regular file inside the scene file's folder (`nhfd.scene.limits`).
 
 Not supported (a clear error): node transforms other than identity, sparse accessors, and
 required compression extensions.
@@ -27,15 +28,25 @@ from __future__ import annotations
 
 import base64
 import json
+import os
 import struct
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 from urllib.parse import unquote
 
 import numpy as np
 
 from nhfd.scene.axes import flip_axes, signs_from_letters
 from nhfd.scene.gaussians import SH_C0, SceneFileError, malformed_as_scene_error
+from nhfd.scene.limits import (
+    MAX_GAUSSIANS,
+    MAX_JSON_BYTES,
+    check_count,
+    check_max_gaussians,
+    contained,
+    open_regular,
+)
 
 __all__ = ["GLB_MAGIC", "read_gltf"]
 
@@ -50,21 +61,43 @@ _COMPONENTS = {5120: ("i1", 127.0), 5121: ("u1", 255.0), 5122: ("<i2", 32767.0),
                5123: ("<u2", 65535.0), 5125: ("<u4", None), 5126: ("<f4", None)}
 _WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
 _BANDS = (1, 3, 5, 7)  # SH coefficients per degree
+# Chunks a .glb may have before its BIN chunk (the JSON chunk and unknown ones, which are
+# skipped): glTF 2.0 defines two kinds, so a long run of chunks is not a real file.
+_MAX_CHUNKS = 16
+# Attributes a splat primitive's accessors are checked for (with every KHR_gaussian_splatting:*)
+_ATTRIBUTES = ("POSITION", "COLOR_0")
 _IDENTITY = {"matrix": [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1],
              "translation": [0, 0, 0], "rotation": [0, 0, 0, 1], "scale": [1, 1, 1]}
 
 
-def read_gltf(path: Path) -> dict[str, np.ndarray]:
-    """Activated arrays (means, quats wxyz, scales, opacities, sh) in the project's frame."""
-    data = path.read_bytes()
-    doc, bin_chunk = _parse_glb(path, data) if data[:4] == GLB_MAGIC else (_json(path, data), None)
-    with malformed_as_scene_error(path, "glTF"):
-        return _read_doc(path, doc, bin_chunk)
+def read_gltf(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> dict[str, np.ndarray]:
+    """Activated arrays (means, quats wxyz, scales, opacities, sh) in the project's frame.
+
+    Bounded before any buffer is read: the splat primitives may hold at most `max_gaussians`
+    Gaussians together, every accessor must lie inside its bufferView and every bufferView
+    inside its buffer's byteLength (byteStride from the element size to glTF's 252), and only
+    the bytes those accessors span are read. A buffer `uri` must name a regular file inside
+    the scene file's folder (or be a `data:` URI, bounded with the JSON by MAX_JSON_BYTES)."""
+    check_max_gaussians(max_gaussians)
+    with open_regular(path, path, "the scene file") as f:
+        if f.read(4) == GLB_MAGIC:
+            f.seek(0)
+            doc, bin_chunk = _parse_glb(path, f)
+        else:
+            f.seek(0)
+            doc, bin_chunk = _json(path, _read_json(path, f, "glTF JSON")), None
+        with malformed_as_scene_error(path, "glTF"):
+            return _read_doc(path, doc, bin_chunk, max_gaussians)
 
 
-def _read_doc(path: Path, doc: dict[str, Any], bin_chunk: bytes | None) -> dict[str, np.ndarray]:
-    reader = _Buffers(path, doc, bin_chunk)
-    parts = [_primitive(path, doc, reader, p) for p in _splat_primitives(path, doc)]
+def _read_doc(path: Path, doc: dict[str, Any], bin_chunk: _Chunk | None,
+              max_gaussians: int) -> dict[str, np.ndarray]:
+    reader = _Buffers(path, doc, bin_chunk, max_gaussians)
+    prims = [(p, reader.plan(p)) for p in _splat_primitives(path, doc)]
+    # Every accessor is checked and the count known before anything is read or allocated.
+    check_count(path, "the splat primitives (POSITION counts, together)",
+                sum(n for _, n in prims), max_gaussians)
+    parts = [_primitive(path, reader, p) for p, _ in prims]
     k = max(p["sh"].shape[1] for p in parts)
     for p in parts:  # pad lower-degree primitives with zero bands so they concatenate
         p["sh"] = np.pad(p["sh"], ((0, 0), (0, k - p["sh"].shape[1]), (0, 0)))
@@ -73,10 +106,18 @@ def _read_doc(path: Path, doc: dict[str, Any], bin_chunk: bytes | None) -> dict[
     return arrays
 
 
+def _read_json(path: Path, f: BinaryIO, what: str) -> bytes:
+    raw = f.read(MAX_JSON_BYTES + 1)
+    if len(raw) > MAX_JSON_BYTES:
+        raise SceneFileError(f"{path}: {what} is more than the {MAX_JSON_BYTES:,} bytes allowed "
+                             "(MAX_JSON_BYTES)")
+    return raw
+
+
 def _json(path: Path, raw: bytes) -> dict[str, Any]:
     try:
         doc = json.loads(raw)
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
         raise SceneFileError(f"{path}: unreadable glTF JSON ({e})") from e
     asset = doc.get("asset") if isinstance(doc, dict) else None
     if not isinstance(asset, dict) or not str(asset.get("version", "")).startswith("2."):
@@ -84,28 +125,57 @@ def _json(path: Path, raw: bytes) -> dict[str, Any]:
     return doc
 
 
-def _parse_glb(path: Path, data: bytes) -> tuple[dict[str, Any], bytes | None]:
-    if len(data) < _GLB_HEADER.size + _CHUNK.size:
-        raise SceneFileError(f"{path}: truncated .glb header ({len(data)} bytes)")
-    _, version, length = _GLB_HEADER.unpack_from(data)
+@dataclass(frozen=True)
+class _Chunk:
+    """A .glb BIN chunk: read from the open file where needed, not held whole."""
+
+    file: BinaryIO
+    offset: int  # in the file
+    length: int
+
+    def read(self, n: int) -> bytes:
+        self.file.seek(self.offset)
+        return self.file.read(min(n, self.length))
+
+
+def _parse_glb(path: Path, f: BinaryIO) -> tuple[dict[str, Any], _Chunk | None]:
+    file_bytes = os.fstat(f.fileno()).st_size
+    if file_bytes < _GLB_HEADER.size + _CHUNK.size:
+        raise SceneFileError(f"{path}: truncated .glb header ({file_bytes} bytes)")
+    _, version, length = _GLB_HEADER.unpack(f.read(_GLB_HEADER.size))
     if version != 2:
         raise SceneFileError(f"{path}: unsupported .glb version {version} (supported: 2)")
-    if length > len(data):
+    if length > file_bytes:
         raise SceneFileError(
             f"{path}: truncated .glb data: the header declares {length} bytes, the file has "
-            f"{len(data)}"
+            f"{file_bytes}"
         )
-    chunks, at = [], _GLB_HEADER.size
-    while at + _CHUNK.size <= length:
-        size, kind = _CHUNK.unpack_from(data, at)
+    doc, at = None, _GLB_HEADER.size
+    # Walk the chunk headers (seeking, not reading, past what is not JSON) up to the first BIN
+    # chunk, the only one read as buffer 0; a bounded number, so a file of empty chunks ends.
+    for _ in range(_MAX_CHUNKS):
+        if at + _CHUNK.size > length:
+            break
+        f.seek(at)
+        size, kind = _CHUNK.unpack(f.read(_CHUNK.size))
         if at + _CHUNK.size + size > length:
             raise SceneFileError(f"{path}: truncated .glb data (chunk at byte {at} is cut off)")
-        chunks.append((kind, data[at + _CHUNK.size : at + _CHUNK.size + size]))
+        if doc is None:
+            if kind != _JSON:
+                break
+            if size > MAX_JSON_BYTES:
+                raise SceneFileError(f"{path}: .glb JSON chunk is {size:,} bytes, more than the "
+                                     f"{MAX_JSON_BYTES:,} allowed (MAX_JSON_BYTES)")
+            doc = _json(path, f.read(size))
+        elif kind == _BIN:
+            return doc, _Chunk(f, at + _CHUNK.size, size)
         at += _CHUNK.size + size
-    if not chunks or chunks[0][0] != _JSON:
+    else:
+        raise SceneFileError(f"{path}: .glb has more than {_MAX_CHUNKS} chunks before its BIN "
+                             "chunk (glTF 2.0 defines two)")
+    if doc is None:
         raise SceneFileError(f"{path}: .glb does not start with a JSON chunk")
-    bins = [c for kind, c in chunks[1:] if kind == _BIN]
-    return _json(path, chunks[0][1]), (bins[0] if bins else None)
+    return doc, None
 
 
 def _splat_primitives(path: Path, doc: dict[str, Any]) -> list[dict[str, Any]]:
@@ -126,63 +196,153 @@ def _splat_primitives(path: Path, doc: dict[str, Any]) -> list[dict[str, Any]]:
     return found
 
 
-class _Buffers:
-    """Resolves accessors to arrays, loading each buffer once."""
+@dataclass(frozen=True)
+class _Access:
+    """An accessor, checked against its bufferView and buffer: where its elements lie."""
 
-    def __init__(self, path: Path, doc: dict[str, Any], bin_chunk: bytes | None) -> None:
-        self.path, self.doc, self.bin_chunk, self.cache = path, doc, bin_chunk, {}
+    dtype: str
+    divisor: float | None  # for `normalized` integers
+    width: int  # components per element
+    count: int
+    buffer: int
+    start: int  # byte offset of element 0 in the buffer
+    stride: int
+    item: int  # bytes per element
+
+    @property
+    def end(self) -> int:
+        """One past the last byte of the last element, in the buffer."""
+        return self.start + (self.stride * (self.count - 1) + self.item if self.count else 0)
+
+
+def _index(path: Path, doc: dict[str, Any], key: str, index: object, what: str) -> Any:
+    """doc[key][index] for a non-negative int index (Python would take -1 as the last)."""
+    items = doc.get(key)
+    if (isinstance(index, bool) or not isinstance(index, int) or not isinstance(items, list)
+            or not 0 <= index < len(items) or not isinstance(items[index], dict)):
+        raise SceneFileError(f"{path}: {what}: {key}[{index!r}] does not exist")
+    return items[index]
+
+
+def _size(path: Path, spec: dict[str, Any], field: str, what: str, default: int | None) -> int:
+    """A byte offset or length of the document: a non-negative int."""
+    value = spec.get(field, default)
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise SceneFileError(f"{path}: {what}: {field} is {value!r}; allowed: an integer >= 0")
+    return value
+
+
+class _Buffers:
+    """Checks accessors against their bufferViews and buffers (`plan`), then reads of each
+    buffer only the bytes the checked accessors span, once."""
+
+    def __init__(self, path: Path, doc: dict[str, Any], bin_chunk: _Chunk | None,
+                 max_gaussians: int) -> None:
+        self.path, self.doc, self.bin_chunk = path, doc, bin_chunk
+        self.max_gaussians = max_gaussians
+        self.access: dict[int, _Access] = {}
+        self.needed: dict[int, int] = {}  # buffer -> bytes the planned accessors span
+        self.cache: dict[int, bytes] = {}
+
+    def plan(self, prim: dict[str, Any]) -> int:
+        """Check every attribute accessor of a splat primitive; its Gaussian count."""
+        attrs = prim.get("attributes", {})
+        if not isinstance(attrs, dict):
+            raise SceneFileError(f"{self.path}: a splat primitive's attributes are not an object")
+        if "POSITION" not in attrs:
+            raise SceneFileError(f"{self.path}: splat primitive lacks the required attribute "
+                                 "POSITION")
+        counts = {name: self.check(index, name).count for name, index in attrs.items()
+                  if name in _ATTRIBUTES or name.startswith(f"{EXTENSION}:")}
+        n = counts.get("POSITION", 0)
+        for name, count in counts.items():
+            if count != n:
+                raise SceneFileError(f"{self.path}: {name} has {count} elements, POSITION has {n}")
+        return n
+
+    def check(self, index: object, name: str) -> _Access:
+        if isinstance(index, int) and index in self.access:
+            return self.access[index]
+        path, doc = self.path, self.doc
+        acc = _index(path, doc, "accessors", index, name)
+        if "sparse" in acc:
+            raise SceneFileError(f"{path}: {name}: sparse accessors are not supported")
+        try:
+            dtype, divisor = _COMPONENTS[acc["componentType"]]
+            width = _WIDTH[acc["type"]]
+        except (KeyError, TypeError) as e:
+            raise SceneFileError(f"{path}: {name}: malformed accessor {index} ({e!r})") from e
+        count = check_count(path, f"{name} (accessor {index}) count", acc.get("count"),
+                            self.max_gaussians)
+        view_index = acc.get("bufferView")
+        view = _index(path, doc, "bufferViews", view_index, name)
+        buffer_index = view.get("buffer")
+        buffer = _index(path, doc, "buffers", buffer_index, name)
+        item = np.dtype(dtype).itemsize * width
+        stride = view.get("byteStride", item)
+        if isinstance(stride, bool) or not isinstance(stride, int) or not item <= stride <= 252:
+            raise SceneFileError(
+                f"{path}: {name}: bufferView {view_index} byteStride is {stride!r}; allowed: "
+                f"{item} (its element's size) to 252 (glTF 2.0's maximum)"
+            )
+        what = f"{name} (accessor {index}, bufferView {view_index})"
+        view_offset = _size(path, view, "byteOffset", what, 0)
+        view_length = _size(path, view, "byteLength", what, None)
+        buffer_length = _size(path, buffer, "byteLength", f"buffer {buffer_index}", None)
+        access = _Access(dtype, divisor, width, count, buffer_index,
+                         view_offset + _size(path, acc, "byteOffset", what, 0), stride, item)
+        if access.end > view_offset + view_length or view_offset + view_length > buffer_length:
+            raise SceneFileError(f"{path}: truncated data: {name} runs past its buffer")
+        self.needed[buffer_index] = max(self.needed.get(buffer_index, 0), access.end)
+        self.access[index] = access
+        return access
 
     def buffer(self, index: int) -> bytes:
         if index not in self.cache:
             spec = self.doc["buffers"][index]
+            declared, needed = spec["byteLength"], self.needed[index]
             uri = spec.get("uri")
             if uri is None:
                 if self.bin_chunk is None:
                     raise SceneFileError(f"{self.path}: buffer {index} has no uri and no BIN chunk")
-                blob = self.bin_chunk
-            elif uri.startswith("data:"):
+                available = self.bin_chunk.length
+                blob = self.bin_chunk.read(needed) if available >= declared else b""
+            elif not isinstance(uri, str):
+                raise SceneFileError(f"{self.path}: buffer {index} uri is {uri!r}, not a string")
+            elif uri.startswith("data:"):  # in the JSON, so within MAX_JSON_BYTES already
                 blob = base64.b64decode(uri.split(",", 1)[1])
+                available = len(blob)
             else:
+                what = f"glTF buffer {index} uri"
+                target = contained(self.path.parent, unquote(uri), self.path, what)
                 try:
-                    blob = (self.path.parent / unquote(uri)).read_bytes()
+                    with open_regular(target, self.path, f"{what} {uri!r}") as f:
+                        available = os.fstat(f.fileno()).st_size
+                        blob = f.read(needed) if available >= declared else b""
                 except OSError as e:
                     raise SceneFileError(f"{self.path}: cannot read buffer {uri!r} ({e})") from e
-            if len(blob) < spec.get("byteLength", 0):
+            if available < declared or len(blob) < needed:
                 raise SceneFileError(
-                    f"{self.path}: truncated buffer {index}: {len(blob)} of "
-                    f"{spec['byteLength']} bytes"
+                    f"{self.path}: truncated buffer {index}: {min(available, len(blob))} of "
+                    f"{declared} bytes"
                 )
-            self.cache[index] = blob
+            self.cache[index] = blob[:needed]
         return self.cache[index]
 
     def accessor(self, index: int, name: str) -> np.ndarray:
         """[count, width] float64, normalised integers scaled as glTF 2.0 section 3.11 says."""
-        try:
-            acc = self.doc["accessors"][index]
-            if "sparse" in acc:
-                raise SceneFileError(f"{self.path}: {name}: sparse accessors are not supported")
-            dtype, divisor = _COMPONENTS[acc["componentType"]]
-            width, count = _WIDTH[acc["type"]], int(acc["count"])
-            view = self.doc["bufferViews"][acc["bufferView"]]
-            blob = self.buffer(view["buffer"])
-        except (KeyError, IndexError, TypeError) as e:
-            raise SceneFileError(f"{self.path}: {name}: malformed accessor {index} ({e!r})") from e
-        item = np.dtype(dtype).itemsize * width
-        stride = view.get("byteStride", item)
-        start = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
-        end = start + (stride * (count - 1) + item if count else 0)
-        if end > min(len(blob), view.get("byteOffset", 0) + view["byteLength"]):
-            raise SceneFileError(f"{self.path}: truncated data: {name} runs past its buffer")
-        raw = np.frombuffer(blob, np.uint8, end - start, start) if count else np.zeros(0, np.uint8)
-        rows = np.lib.stride_tricks.as_strided(raw, (count, item), (stride, 1)) if count else raw
-        out = np.ascontiguousarray(rows).view(dtype).reshape(count, width).astype(np.float64)
-        if acc.get("normalized") and divisor:
-            out = np.maximum(out / divisor, -1.0)
+        a = self.check(index, name)
+        if not a.count:
+            return np.zeros((0, a.width))
+        raw = np.frombuffer(self.buffer(a.buffer), np.uint8, a.end - a.start, a.start)
+        rows = np.lib.stride_tricks.as_strided(raw, (a.count, a.item), (a.stride, 1))
+        out = np.ascontiguousarray(rows).view(a.dtype).reshape(a.count, a.width).astype(np.float64)
+        if self.doc["accessors"][index].get("normalized") and a.divisor:
+            out = np.maximum(out / a.divisor, -1.0)
         return out
 
 
-def _primitive(path: Path, doc: dict[str, Any], buffers: _Buffers,
-               prim: dict[str, Any]) -> dict[str, np.ndarray]:
+def _primitive(path: Path, buffers: _Buffers, prim: dict[str, Any]) -> dict[str, np.ndarray]:
     attrs = prim.get("attributes", {})
 
     def get(name: str, width: int) -> np.ndarray:
@@ -214,10 +374,6 @@ def _primitive(path: Path, doc: dict[str, Any], buffers: _Buffers,
     else:
         sh = np.stack([get(f"{prefix}SH_DEGREE_{d}_COEF_{c}", 3)
                        for d in range(degree + 1) for c in range(_BANDS[d])], axis=1)
-    n = means.shape[0]
-    arrays = dict(means=means, quats=xyzw[:, [3, 0, 1, 2]], scales=scales,
-                  opacities=get(prefix + "OPACITY", 1)[:, 0], sh=sh)
-    for name, arr in arrays.items():
-        if arr.shape[0] != n:
-            raise SceneFileError(f"{path}: {name} has {arr.shape[0]} elements, POSITION has {n}")
-    return arrays
+    # Every attribute has POSITION's count (`_Buffers.plan` checked it before reading).
+    return dict(means=means, quats=xyzw[:, [3, 0, 1, 2]], scales=scales,
+                opacities=get(prefix + "OPACITY", 1)[:, 0], sh=sh)

@@ -19,7 +19,10 @@ Writers: `save_ply` (INRIA float, the exact inverse of the loader), `save_splat`
 `save_compressed_ply` (both lossy; see their docstrings for the quantisation).
 
 Every problem with a file is a `SceneFileError` whose message starts with the path; a file that
-decodes but is not a plausible scene (`check_plausible`) is one too.
+decodes but is not a plausible scene (`check_plausible`) is one too. Files are untrusted input:
+every reader refuses more than `max_gaussians` Gaussians (default MAX_GAUSSIANS) before it
+allocates for them, reads only regular files, reads and inflates no more than the declared
+count needs, and keeps a scene's references inside its folder (`nhfd.scene.limits`).
 """
 
 from __future__ import annotations
@@ -30,7 +33,7 @@ import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import plyfile
@@ -43,8 +46,16 @@ from nhfd.scene.gaussians import (
     SceneFileError,
     make_gaussians,
 )
+from nhfd.scene.limits import (
+    MAX_GAUSSIANS,
+    check_count,
+    check_max_gaussians,
+    open_regular,
+    read_capped,
+)
 
 __all__ = [
+    "MAX_GAUSSIANS",
     "SceneLoad",
     "check_plausible",
     "load_scene",
@@ -117,15 +128,18 @@ class SceneLoad:
                 "dropped": self.dropped, "dropped_reason": self.dropped_reason}
 
 
-def read_scene(path: PathLike) -> SceneLoad:
-    """Load a splat scene (INRIA .ply, compressed .ply or .splat) as activated float32 Gaussians,
+def read_scene(path: PathLike, max_gaussians: int = MAX_GAUSSIANS) -> SceneLoad:
+    """Load a splat scene (any format `scene_format` names) as activated float32 Gaussians,
     with the count of those dropped for non-finite or degenerate values.
 
-    Raises `SceneFileError` naming the file and the problem for anything unreadable, and for a
-    file whose content is not a plausible scene (`check_plausible`).
+    Raises `SceneFileError` naming the file and the problem for anything unreadable, for a file
+    declaring more than `max_gaussians` Gaussians (default MAX_GAUSSIANS, the default of
+    `[daemon] max_gaussians`), and for a file whose content is not a plausible scene
+    (`check_plausible`); ValueError for a `max_gaussians` outside [1, 1e9]. Every reader bounds
+    what it reads and decompresses by the declared count (`nhfd.scene.limits`).
     """
     path = Path(path)
-    arrays = _read_arrays(path)
+    arrays = _read_arrays(path, check_max_gaussians(max_gaussians))
     n = arrays["means"].shape[0]
     if n == 0:  # a file that declares no Gaussians is a valid, empty scene
         return SceneLoad(Gaussians.empty(SH_DEGREE_FOR_K[arrays["sh"].shape[1]]), 0, 0)
@@ -143,10 +157,10 @@ def read_scene(path: PathLike) -> SceneLoad:
     return load
 
 
-def load_scene(path: PathLike) -> Gaussians:
+def load_scene(path: PathLike, max_gaussians: int = MAX_GAUSSIANS) -> Gaussians:
     """`read_scene`'s Gaussians; the dropped ones are reported with one warning giving the count,
     at the caller's line."""
-    load = read_scene(path)
+    load = read_scene(path, max_gaussians)
     if load.dropped:
         warnings.warn(load.dropped_reason, UserWarning, stacklevel=2)
     return load.gaussians
@@ -214,10 +228,10 @@ def scene_format(path: PathLike) -> str | None:
     path = Path(path)
     if path.suffix.lower() == ".sog" or path.name.lower() in SCENE_NAMES or is_sog_folder(path):
         return "sog"
-    try:
-        with path.open("rb") as f:
+    try:  # a FIFO would block open() and a device never end: only regular files are read
+        with open_regular(path, path, "the scene file") as f:
             head = f.read(4096)
-    except OSError:
+    except (OSError, SceneFileError):
         return None
     if head.startswith(b"ply"):
         return "compressed" if b"element chunk" in head.split(b"end_header", 1)[0] else "ply"
@@ -237,21 +251,23 @@ _MAGIC_OF = {".ply": ("PLY", "'ply'"), ".spz": (".spz", "gzip data or 'NGSP'"),
              ".glb": (".glb", "'glTF'")}
 
 
-def _read_arrays(path: Path) -> Arrays:
-    if not path.is_dir():
-        with path.open("rb"):  # a missing or unreadable file raises here, as open() words it
+def _read_arrays(path: Path, max_gaussians: int) -> Arrays:
+    if not is_sog_folder(path):
+        # A missing or unreadable file raises OSError here, as open() words it; a FIFO, a
+        # device or a directory is a SceneFileError naming its kind.
+        with open_regular(path, path, "the scene file"):
             pass
     fmt = scene_format(path)
     if fmt in ("ply", "compressed"):
-        return _load_ply(path)
+        return _load_ply(path, max_gaussians)
     if fmt == "splat":
-        return _load_splat(path)
+        return _load_splat(path, max_gaussians)
     if fmt == "spz":
-        return spz.read_spz(path)
+        return spz.read_spz(path, max_gaussians)
     if fmt == "gltf":
-        return gltf_splat.read_gltf(path)
+        return gltf_splat.read_gltf(path, max_gaussians)
     if fmt == "sog":
-        return sog.read_sog(path)
+        return sog.read_sog(path, max_gaussians)
     suffix = path.suffix.lower()
     if suffix in _MAGIC_OF:
         name, magic = _MAGIC_OF[suffix]
@@ -261,9 +277,64 @@ def _read_arrays(path: Path) -> Arrays:
     )
 
 
-def _load_ply(path: Path) -> Arrays:
+# Bytes a binary PLY value of each type takes (the PLY spec's names and plyfile's aliases).
+_PLY_TYPE_BYTES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2,
+                   "int16": 2, "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4,
+                   "float": 4, "float32": 4, "double": 8, "float64": 8}
+# A PLY header names a few dozen properties (INRIA's, 62 lines); longer is not a scene's.
+MAX_PLY_HEADER_BYTES = 1 << 16
+
+
+def _check_ply_header(path: Path, f: BinaryIO, max_gaussians: int) -> None:
+    """Refuse, before plyfile allocates an array per element, an element declaring more rows
+    than `max_gaussians`, and a file too short for the rows its header declares: binary rows
+    take their properties' bytes (a list at least its length field), ASCII rows at least two
+    characters a value. A header this cannot parse is left to plyfile, which says what is
+    wrong with it."""
+    head = f.read(MAX_PLY_HEADER_BYTES)
+    end = re.search(rb"(?m)^end_header[ \t]*\r?\n", head)
+    if end is None:
+        if len(head) == MAX_PLY_HEADER_BYTES:
+            raise SceneFileError(f"{path}: PLY header longer than {MAX_PLY_HEADER_BYTES:,} "
+                                 "bytes (no end_header within them)")
+        return
+    fmt, elements = "", []  # [name, rows, bytes a binary row, values a row]
+    for line in head[: end.start()].decode("ascii", "replace").splitlines():
+        words = line.split()
+        if len(words) >= 2 and words[0] == "format":
+            fmt = words[1]
+        elif len(words) == 3 and words[0] == "element":
+            if not re.fullmatch(r"\d+", words[2]):
+                return
+            elements.append([words[1], int(words[2]), 0, 0])
+        elif len(words) >= 3 and words[0] == "property" and elements:
+            kind = words[2] if words[1] == "list" else words[1]  # a list: its length field
+            if kind not in _PLY_TYPE_BYTES:
+                return
+            elements[-1][2] += _PLY_TYPE_BYTES[kind]
+            elements[-1][3] += 1
+    for name, rows, _, _ in elements:
+        check_count(path, f"PLY element '{name}'", rows, max_gaussians,
+                    unit="Gaussians" if name == "vertex" else "rows")
+    if fmt == "ascii":
+        need = max(0, sum(rows * 2 * values for _, rows, _, values in elements) - 1)
+    else:
+        need = sum(rows * row_bytes for _, rows, row_bytes, _ in elements)
+    have = os.fstat(f.fileno()).st_size - end.end()
+    if need > have:
+        raise SceneFileError(
+            f"{path}: truncated data, the file is shorter than its header declares: its "
+            f"{', '.join(f'{rows:,} {name}' for name, rows, _, _ in elements)} rows need at "
+            f"least {need:,} bytes after the header, the file has {have:,}"
+        )
+
+
+def _load_ply(path: Path, max_gaussians: int) -> Arrays:
     try:
-        ply = plyfile.PlyData.read(str(path))
+        with open_regular(path, path, "the scene file") as f:
+            _check_ply_header(path, f, max_gaussians)
+            f.seek(0)
+            ply = plyfile.PlyData.read(f)
     except plyfile.PlyElementParseError as e:
         if "end-of-file" in str(e):
             raise SceneFileError(
@@ -290,8 +361,8 @@ def _require(path: Path, element: plyfile.PlyElement, names: tuple[str, ...]) ->
         )
 
 
-def _column(element: plyfile.PlyElement, name: str) -> np.ndarray:
-    return np.asarray(element[name], dtype=np.float64)
+def _column(element: plyfile.PlyElement, name: str, dtype: type = np.float64) -> np.ndarray:
+    return np.asarray(element[name], dtype=dtype)
 
 
 def _f_rest_names(path: Path, element: plyfile.PlyElement) -> list[str]:
@@ -324,18 +395,23 @@ def _decode_inria(path: Path, v: plyfile.PlyElement) -> Arrays:
     rest_names = _f_rest_names(path, v)
     n = v.count
 
-    def stack(names: list[str] | tuple[str, ...]) -> np.ndarray:
+    def stack(names: list[str] | tuple[str, ...], dtype: type = np.float64) -> np.ndarray:
         if not names:
-            return np.zeros((n, 0))
-        return np.stack([_column(v, name) for name in names], axis=1)
+            return np.zeros((n, 0), dtype)
+        return np.stack([_column(v, name, dtype) for name in names], axis=1)
 
+    # Values make_gaussians only casts to float32 are read as float32 (the same single
+    # rounding, half the memory: SH are 48 of a Gaussian's 62 values); exp and the sigmoid are
+    # computed in float64 first.
+    f32 = np.float32
     with np.errstate(over="ignore", invalid="ignore"):  # bad values are dropped by load_scene
         return dict(
-            means=stack(("x", "y", "z")),
-            quats=stack(("rot_0", "rot_1", "rot_2", "rot_3")),
+            means=stack(("x", "y", "z"), f32),
+            quats=stack(("rot_0", "rot_1", "rot_2", "rot_3"), f32),
             scales=np.exp(stack(("scale_0", "scale_1", "scale_2"))),
             opacities=_sigmoid(_column(v, "opacity")),
-            sh=_sh_from_columns(stack(("f_dc_0", "f_dc_1", "f_dc_2")), stack(rest_names)),
+            sh=_sh_from_columns(stack(("f_dc_0", "f_dc_1", "f_dc_2"), f32),
+                                stack(rest_names, f32)),
         )
 
 
@@ -442,8 +518,12 @@ def _decode_compressed(path: Path, ply: plyfile.PlyData) -> Arrays:
 # --- antimatter15 .splat -------------------------------------------------------------------
 
 
-def _load_splat(path: Path) -> Arrays:
-    data = path.read_bytes()
+def _load_splat(path: Path, max_gaussians: int) -> Arrays:
+    size_bytes = os.stat(path).st_size
+    check_count(path, f".splat file of {size_bytes:,} bytes", size_bytes // SPLAT_RECORD.itemsize,
+                max_gaussians)
+    data = read_capped(path, path, "the scene file", max_gaussians * SPLAT_RECORD.itemsize,
+                       "max_gaussians records of 32 bytes")
     if len(data) == 0:
         raise SceneFileError(f"{path}: empty .splat file")
     if len(data) % SPLAT_RECORD.itemsize:

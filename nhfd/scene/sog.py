@@ -26,13 +26,25 @@ from __future__ import annotations
 import io
 import json
 import math
+import os
+import struct
 import zipfile
+import zlib
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 
 from nhfd.scene.gaussians import SceneFileError, malformed_as_scene_error
+from nhfd.scene.limits import (
+    MARGIN_BYTES,
+    MAX_GAUSSIANS,
+    check_count,
+    check_max_gaussians,
+    contained,
+    open_regular,
+    read_capped,
+)
 
 __all__ = ["ZIP_MAGIC", "read_sog"]
 
@@ -40,15 +52,41 @@ ZIP_MAGIC = b"PK\x03\x04"
 _SH_COEFFS = {1: 3, 2: 8, 3: 15}
 # For the index of the largest component (w x y z), the slots the three stored values fill.
 _OTHERS = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+SOG_META = "meta.json"
+# meta.json holds three 256-entry codebooks and a few names (about 10 KB).
+_MAX_META_BYTES = 1 << 20
+# A lossless WebP file of random pixels is about 4 bytes a pixel; more than 5 is not an image
+# of the size its header states.
+_BYTES_PER_PIXEL = 5
+# A bundle's zip directory: about 8 members, under a kilobyte (a directory of millions of
+# entries would cost gigabytes as zipfile's objects before any member is read).
+_MAX_ZIP_DIRECTORY_BYTES = 1 << 20
+_EOCD = struct.Struct("<4s4H2LH")  # end of central directory record
+_ZIP64_LOCATOR = struct.Struct("<4sLQL")
+_ZIP64_END = struct.Struct("<4sQ2H2L4Q")
 
 
-def read_sog(path: Path) -> dict[str, np.ndarray]:
+def read_sog(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> dict[str, np.ndarray]:
     """Activated arrays (means, quats wxyz, scales, opacities, sh) from a SOG folder, its
-    `meta.json`, or a `.sog` zip bundle."""
+    `meta.json`, or a `.sog` zip bundle.
+
+    Bounded: a count above `max_gaussians` is refused before any image is read; meta.json may
+    hold _MAX_META_BYTES; an image may hold the pixels the count needs plus the writers'
+    padding (checked from its header, before it is decoded) and its file five bytes a pixel; a
+    zip member is inflated no further than that, whatever size it declares. A folder's images
+    are regular files inside the folder."""
+    check_max_gaussians(max_gaussians)
     files = _Files(path)
     try:
-        meta = json.loads(files.read("meta.json"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        return _read(path, files, max_gaussians)
+    finally:
+        files.close()
+
+
+def _read(path: Path, files: _Files, max_gaussians: int) -> dict[str, np.ndarray]:
+    try:
+        meta = json.loads(files.read(SOG_META, _MAX_META_BYTES))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:
         raise SceneFileError(f"{path}: unreadable SOG meta.json ({e})") from e
     if not isinstance(meta, dict):
         raise SceneFileError(f"{path}: SOG meta.json is not a JSON object")
@@ -59,7 +97,36 @@ def read_sog(path: Path) -> dict[str, np.ndarray]:
             "'version' is the deprecated version 1)"
         )
     with malformed_as_scene_error(path, "SOG meta.json"):
-        return _decode(path, files, meta)
+        return _decode(path, files, meta, max_gaussians)
+
+
+def _pixels_for(count: int) -> int:
+    """The most pixels an image of `count` Gaussians may hold: the count, rows and columns of
+    padding (splat-transform rounds both sides up to multiples of 4, at most 4 sqrt(count) + 16
+    pixels more) and a small image's worth."""
+    return count + 8 * math.isqrt(count) + 4096
+
+
+def _zip_directory_bytes(f: BinaryIO) -> int | None:
+    """The central directory's size from the end records (zip64 included), or None where no
+    end record is found (zipfile then says what is wrong)."""
+    size = os.fstat(f.fileno()).st_size
+    tail_bytes = min(size, _EOCD.size + 0xFFFF)  # the record and the longest comment
+    f.seek(size - tail_bytes)
+    tail = f.read(tail_bytes)
+    at = tail.rfind(b"PK\x05\x06")
+    if at < 0 or at + _EOCD.size > len(tail):
+        return None
+    *_, entries, directory, _offset, _comment = _EOCD.unpack_from(tail, at)
+    locator = at - _ZIP64_LOCATOR.size
+    if (entries == 0xFFFF or directory == 0xFFFFFFFF) and locator >= 0:
+        sig, _disk, record_at, _disks = _ZIP64_LOCATOR.unpack_from(tail, locator)
+        if sig == b"PK\x06\x07" and record_at + _ZIP64_END.size <= size:
+            f.seek(record_at)
+            record = f.read(_ZIP64_END.size)
+            if record[:4] == b"PK\x06\x06":
+                directory = _ZIP64_END.unpack(record)[-2]
+    return directory
 
 
 class _Files:
@@ -67,40 +134,84 @@ class _Files:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        self.zip = None
+        self.zip: zipfile.ZipFile | None = None
+        self.file: BinaryIO | None = None
+        self.folder = path
         if path.is_dir():
             self.folder = path
-        elif path.name.lower() == "meta.json":
+        elif path.name.lower() == SOG_META:
             self.folder = path.parent
         else:
+            self.file = open_regular(path, path, "the scene file")
+            directory = _zip_directory_bytes(self.file)
+            if directory is not None and directory > _MAX_ZIP_DIRECTORY_BYTES:
+                self.file.close()
+                raise SceneFileError(
+                    f"{path}: SOG zip directory is {directory:,} bytes, more than the "
+                    f"{_MAX_ZIP_DIRECTORY_BYTES:,} allowed (a bundle holds about 8 members)"
+                )
             try:
-                self.zip = zipfile.ZipFile(path)
+                self.zip = zipfile.ZipFile(self.file)
             except (zipfile.BadZipFile, OSError) as e:
+                self.file.close()
                 raise SceneFileError(f"{path}: unreadable SOG zip bundle ({e})") from e
 
-    def read(self, name: str) -> bytes:
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
+
+    def read(self, name: str, cap_bytes: int) -> bytes:
+        """Member `name`, at most `cap_bytes` long (SceneFileError naming both if longer)."""
+        if not isinstance(name, str):
+            raise SceneFileError(f"{self.path}: SOG file name {name!r} is not a string")
+        what = f"SOG member {name}"
         try:
-            if self.zip is not None:
-                return self.zip.read(name)
-            return (self.folder / name).read_bytes()
+            if self.zip is None:
+                if self.folder is not self.path and name == SOG_META:
+                    target = self.path  # the scene file itself, named by its meta.json
+                else:
+                    target = contained(self.folder, name, self.path, "SOG file name")
+                return read_capped(target, self.path, what, cap_bytes)
+            info = self.zip.getinfo(name)
+            if info.file_size > cap_bytes:
+                raise SceneFileError(
+                    f"{self.path}: {what} declares {info.file_size:,} bytes, more than the "
+                    f"{cap_bytes:,} bytes allowed"
+                )
+            # Streamed with a cap as well: the declared size is what the file says, not what
+            # the data inflates to.
+            with self.zip.open(info) as member:
+                data = member.read(cap_bytes + 1)
+            if len(data) > cap_bytes:
+                raise SceneFileError(f"{self.path}: {what} inflates to more than the "
+                                     f"{cap_bytes:,} bytes allowed")
+            return data
         except (KeyError, FileNotFoundError) as e:
             raise SceneFileError(f"{self.path}: SOG bundle has no {name}") from e
-        except (OSError, zipfile.BadZipFile, EOFError) as e:
+        except (OSError, zipfile.BadZipFile, EOFError, zlib.error) as e:
             raise SceneFileError(f"{self.path}: cannot read SOG member {name} ({e})") from e
 
-    def picture(self, name: str) -> np.ndarray:
-        """[H, W, 4] uint8 RGBA (WebP decoded by Pillow; lossless, so the bytes written)."""
+    def picture(self, name: str, max_pixels: int) -> np.ndarray:
+        """[H, W, 4] uint8 RGBA (WebP decoded by Pillow; lossless, so the bytes written), of at
+        most `max_pixels` pixels: the size is checked from the header, before decoding."""
         from PIL import Image, UnidentifiedImageError
 
+        data = self.read(name, _BYTES_PER_PIXEL * max_pixels + MARGIN_BYTES)
         try:
-            with Image.open(io.BytesIO(self.read(name))) as im:
+            with Image.open(io.BytesIO(data), formats=["WEBP"]) as im:
+                width, height = im.size
+                if width * height > max_pixels:
+                    raise SceneFileError(
+                        f"{self.path}: SOG image {name} is {width}x{height} pixels, more than "
+                        f"the {max_pixels:,} its Gaussians can need"
+                    )
                 return np.asarray(im.convert("RGBA"))
-        except (UnidentifiedImageError, OSError) as e:
+        except (UnidentifiedImageError, OSError, Image.DecompressionBombError) as e:
             raise SceneFileError(f"{self.path}: unreadable SOG image {name} ({e})") from e
 
     def image(self, name: str, count: int) -> np.ndarray:
         """[count, 4] uint8 RGBA, the first `count` pixels in row-major order."""
-        rgba = self.picture(name).reshape(-1, 4)
+        rgba = self.picture(name, _pixels_for(count)).reshape(-1, 4)
         if rgba.shape[0] < count:
             raise SceneFileError(
                 f"{self.path}: SOG image {name} has {rgba.shape[0]} pixels for {count} Gaussians"
@@ -115,10 +226,9 @@ def _codebook(path: Path, meta: dict[str, Any], key: str) -> np.ndarray:
     return book
 
 
-def _decode(path: Path, files: _Files, meta: dict[str, Any]) -> dict[str, np.ndarray]:
-    n = int(meta["count"])
-    if n < 0:
-        raise SceneFileError(f"{path}: SOG count is {n}; it must be >= 0")
+def _decode(path: Path, files: _Files, meta: dict[str, Any],
+            max_gaussians: int) -> dict[str, np.ndarray]:
+    n = check_count(path, "SOG meta.json count", meta["count"], max_gaussians)
     lo = files.image(meta["means"]["files"][0], n)[:, :3].astype(np.float64)
     hi = files.image(meta["means"]["files"][1], n)[:, :3].astype(np.float64)
     mins, maxs = (np.asarray(meta["means"][k], np.float64).reshape(3) for k in ("mins", "maxs"))
@@ -150,12 +260,15 @@ def _rest(path: Path, files: _Files, meta: dict[str, Any], n: int) -> np.ndarray
     bands = sh_n["bands"]
     if bands not in _SH_COEFFS:
         raise SceneFileError(f"{path}: SOG shN.bands is {bands!r}, expected 1, 2 or 3")
-    c, entries = _SH_COEFFS[bands], int(sh_n["count"])
+    c, entries = _SH_COEFFS[bands], sh_n["count"]
+    if isinstance(entries, bool) or not isinstance(entries, int) or not 1 <= entries <= 1 << 16:
+        raise SceneFileError(f"{path}: SOG shN.count is {entries!r}; allowed: 1 to 65536 "
+                             "(the labels are 16-bit)")
     labels = files.image(sh_n["files"][1], n)
     label = labels[:, 0].astype(np.int64) + 256 * labels[:, 1].astype(np.int64)
     if (label >= entries).any():
         raise SceneFileError(f"{path}: SOG shN label {label.max()} is past the palette ({entries})")
-    centroids = files.picture(sh_n["files"][0])
+    centroids = files.picture(sh_n["files"][0], 64 * c * math.ceil(entries / 64))
     if centroids.shape[1] != 64 * c or centroids.shape[0] < math.ceil(entries / 64):
         raise SceneFileError(
             f"{path}: SOG centroids image is {centroids.shape[1]}x{centroids.shape[0]}; "

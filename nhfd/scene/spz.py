@@ -35,14 +35,25 @@ from __future__ import annotations
 import gzip
 import itertools
 import math
+import os
 import struct
 import zlib
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 
 from nhfd.scene.axes import RUB, flip_axes, signs_from_letters
 from nhfd.scene.gaussians import Gaussians, SceneFileError
+from nhfd.scene.limits import (
+    MARGIN_BYTES,
+    MAX_GAUSSIANS,
+    GzipStream,
+    check_count,
+    check_max_gaussians,
+    open_regular,
+    read_zstd,
+)
 
 __all__ = ["SPZ_MAGIC", "read_spz", "save_spz"]
 
@@ -60,6 +71,9 @@ _MAX_DEGREE = 3  # Gaussians holds SH up to degree 3; .spz allows 4
 # The reference packer rounds SH bytes to buckets of 8 (degree 1) and 16 (degree 2, 3) so the
 # gzip/zstd streams compress better (PackOptions sh1Bits = 5, shRestBits = 4).
 _SH_BUCKET = {1: 8, 2: 16, 3: 16}
+# Room for a v4 file's extension records (the coordinate system's is 12 bytes): the file may
+# be no larger than its streams need plus this and MARGIN_BYTES.
+_MAX_EXTENSION_BYTES = 1 << 20
 
 
 def _block_sizes(n: int, degree: int, version: int) -> list[int]:
@@ -67,30 +81,56 @@ def _block_sizes(n: int, degree: int, version: int) -> list[int]:
     return [9 * n, n, 3 * n, 3 * n, (3 if version == 2 else 4) * n, 3 * rest * n]
 
 
-def read_spz(path: Path) -> dict[str, np.ndarray]:
-    """Activated arrays (means, quats wxyz, scales, opacities, sh) in the project's frame."""
-    data = path.read_bytes()
-    if data[:4] == SPZ_MAGIC:
-        return _read_v4(path, data)
+def read_spz(path: Path, max_gaussians: int = MAX_GAUSSIANS) -> dict[str, np.ndarray]:
+    """Activated arrays (means, quats wxyz, scales, opacities, sh) in the project's frame.
+
+    Bounded by the header: a count above `max_gaussians` is refused before any data is
+    inflated, and no more is read or inflated than the declared Gaussians need plus
+    MARGIN_BYTES (a gzip or zstd bomb is cut off there and refused)."""
+    check_max_gaussians(max_gaussians)
+    with open_regular(path, path, "the scene file") as f:
+        if f.read(4) == SPZ_MAGIC:
+            f.seek(0)
+            return _read_v4(path, f, max_gaussians)
+        f.seek(0)
+        return _read_gzip(path, f, max_gaussians)
+
+
+def _read_gzip(path: Path, f: BinaryIO, max_gaussians: int) -> dict[str, np.ndarray]:
+    stream = GzipStream(f, path)
     try:
-        raw = gzip.decompress(data)
+        head = stream.take(_LEGACY.size)
+        if len(head) < _LEGACY.size:
+            raise SceneFileError(f"{path}: truncated .spz header ({len(head)} of 16 bytes)")
+        magic, version, n, degree, frac, _flags, _ = _LEGACY.unpack_from(head)
+        _check_header(path, magic, version, degree, frac, allowed=(2, 3))
+        check_count(path, "the .spz header", n, max_gaussians)
+        sizes = _block_sizes(n, degree, version)
+        need = _LEGACY.size + sum(sizes)
+        # Deflate stores data it cannot shrink with 5 bytes a 64 KiB block; gzip adds a header
+        # and a trailer: more compressed input than this cannot be an honest stream.
+        stream.max_input = need + need // 64 + MARGIN_BYTES
+        body = stream.take(need - _LEGACY.size)
+        if _LEGACY.size + len(body) < need:
+            raise SceneFileError(
+                f"{path}: truncated .spz data: {n} Gaussians need {need} bytes, the stream "
+                f"holds {_LEGACY.size + len(body)}"
+            )
+        # Read on to the stream's end (its CRC is checked there), but no further than a margin.
+        extra = len(stream.take(MARGIN_BYTES + 1))
     except EOFError as e:
         raise SceneFileError(f"{path}: truncated .spz data (gzip stream ends early: {e})") from e
-    except (gzip.BadGzipFile, zlib.error) as e:
+    except zlib.error as e:
         raise SceneFileError(f"{path}: corrupt .spz gzip stream ({e})") from e
-    if len(raw) < _LEGACY.size:
-        raise SceneFileError(f"{path}: truncated .spz header ({len(raw)} of 16 bytes)")
-    magic, version, n, degree, frac, _flags, _ = _LEGACY.unpack_from(raw)
-    _check_header(path, magic, version, degree, frac, allowed=(2, 3))
-    sizes = _block_sizes(n, degree, version)
-    if len(raw) < _LEGACY.size + sum(sizes):
+    if extra > MARGIN_BYTES:
         raise SceneFileError(
-            f"{path}: truncated .spz data: {n} Gaussians need {_LEGACY.size + sum(sizes)} bytes, "
-            f"the stream holds {len(raw)}"
+            f"{path}: the .spz gzip stream inflates to more than the {need:,} bytes its {n:,} "
+            f"Gaussians need plus {MARGIN_BYTES:,} (a decompression bomb, or not an .spz file)"
         )
-    offsets = np.cumsum([_LEGACY.size, *sizes])
-    blocks = [raw[a:b] for a, b in itertools.pairwise(offsets)]
-    return _decode(blocks, n, degree, frac, version, RUB)
+    offsets = np.cumsum([0, *sizes])
+    view = memoryview(body)  # the blocks as views: no second copy of the data
+    return _decode([view[a:b] for a, b in itertools.pairwise(offsets)], n, degree, frac, version,
+                   RUB)
 
 
 def _check_header(path: Path, magic: bytes, version: int, degree: int, frac: int,
@@ -109,23 +149,37 @@ def _check_header(path: Path, magic: bytes, version: int, degree: int, frac: int
         raise SceneFileError(f"{path}: .spz fractional_bits {frac} out of range (0-23)")
 
 
-def _read_v4(path: Path, data: bytes) -> dict[str, np.ndarray]:
-    import zstandard
+def _read_v4(path: Path, f: BinaryIO, max_gaussians: int) -> dict[str, np.ndarray]:
+    import zstandard  # for its error type; only v4 needs zstd
 
-    if len(data) < _V4.size:
-        raise SceneFileError(f"{path}: truncated .spz header ({len(data)} of 32 bytes)")
-    magic, version, n, degree, frac, _flags, n_streams, toc = _V4.unpack_from(data)
+    head = f.read(_V4.size)
+    if len(head) < _V4.size:
+        raise SceneFileError(f"{path}: truncated .spz header ({len(head)} of 32 bytes)")
+    magic, version, n, degree, frac, _flags, n_streams, toc = _V4.unpack_from(head)
     _check_header(path, magic, version, degree, frac, allowed=(4,))
+    check_count(path, "the .spz header", n, max_gaussians)
     sizes = _block_sizes(n, degree, version)[: 6 if degree else 5]  # no SH stream at degree 0
     if n_streams != len(sizes):
         raise SceneFileError(
             f"{path}: .spz declares {n_streams} streams; SH degree {degree} needs {len(sizes)}"
+        )
+    # The header, extension records, the table of streams, then streams no longer than their
+    # data (zstd stores blocks it cannot shrink with 3 bytes a 128 KiB block) and a margin.
+    cap = (_V4.size + _MAX_EXTENSION_BYTES + n_streams * _TOC_ENTRY.size + sum(sizes)
+           + sum(sizes) // 64 + MARGIN_BYTES)
+    file_bytes = os.fstat(f.fileno()).st_size
+    data = head + f.read(cap + 1 - _V4.size) if file_bytes <= cap else b""
+    if file_bytes > cap or len(data) > cap:
+        raise SceneFileError(
+            f"{path}: .spz file is {max(file_bytes, len(data)):,} bytes, more than the {cap:,} its "
+            f"{n:,} Gaussians can need"
         )
     signs = _declared_frame(path, data[_V4.size : toc])
     offset = toc + n_streams * _TOC_ENTRY.size
     if toc < _V4.size or offset > len(data):
         raise SceneFileError(f"{path}: truncated .spz data (table of streams at {toc} is cut off)")
     blocks = []
+    view = memoryview(data)
     for i, size in enumerate(sizes):
         packed, unpacked = _TOC_ENTRY.unpack_from(data, toc + i * _TOC_ENTRY.size)
         if unpacked != size:
@@ -135,14 +189,13 @@ def _read_v4(path: Path, data: bytes) -> dict[str, np.ndarray]:
         if offset + packed > len(data):
             raise SceneFileError(f"{path}: truncated .spz data (stream {i} is cut off)")
         try:
-            block = zstandard.ZstdDecompressor().decompress(
-                data[offset : offset + packed], max_output_size=size
-            )
+            block = read_zstd(view[offset : offset + packed], size)
         except zstandard.ZstdError as e:
             raise SceneFileError(f"{path}: corrupt .spz zstd stream {i} ({e})") from e
         if len(block) != size:
             raise SceneFileError(
-                f"{path}: .spz stream {i} unpacks to {len(block)} bytes, not {size}"
+                f"{path}: .spz stream {i} unpacks to {'more than ' if len(block) > size else ''}"
+                f"{len(block)} bytes, not {size}"
             )
         blocks.append(block)
         offset += packed
@@ -168,16 +221,19 @@ def _declared_frame(path: Path, ext: bytes) -> tuple[float, float, float]:
     return signs
 
 
-def _decode(blocks: list[bytes], n: int, degree: int, frac: int, version: int,
+def _decode(blocks: list[bytes] | list[memoryview], n: int, degree: int, frac: int, version: int,
             signs: tuple[float, float, float]) -> dict[str, np.ndarray]:
     pos_b, alpha_b, colour_b, scale_b, rot_b, sh_b = (np.frombuffer(b, np.uint8) for b in blocks)
     p = pos_b.reshape(n, 3, 3).astype(np.int32)
     fixed = p[..., 0] | (p[..., 1] << 8) | (p[..., 2] << 16)
     fixed = fixed - ((fixed & 0x800000) << 1)  # sign-extend 24 bits
     k = (degree + 1) ** 2
-    sh = np.zeros((n, k, 3))
+    # float32, as make_gaussians keeps them: (byte - 128) / 128 is exact in it, and the DC,
+    # computed in float64, is rounded once either way. Half the memory of float64: the SH
+    # are most of a Gaussian's values.
+    sh = np.zeros((n, k, 3), np.float32)
     sh[:, 0] = (colour_b.reshape(n, 3) / 255.0 - 0.5) / _COLOUR_SCALE
-    sh[:, 1:] = (sh_b.reshape(n, k - 1, 3).astype(np.float64) - 128.0) / 128.0
+    sh[:, 1:] = (sh_b.reshape(n, k - 1, 3).astype(np.float32) - 128.0) / 128.0
     arrays = dict(
         means=fixed / float(1 << frac),
         quats=_unpack_quats(rot_b, n, version),
