@@ -15,8 +15,10 @@ Modules (import what you need; nothing heavy is imported here):
 - `data`: `HoloData` (a dataset in memory), deterministic `batch_views`, `step_rng`, crops;
 - `train`: `TrainOptions`, `train` (seeded, resumable), `load_run`;
 - `evaluate`: `evaluate` (optics.md quality vs the baselines, focus check, PNG);
-- `export`: `export_onnx`, `OnnxModel`, `load_model`; `metadata`: what a model records and the
-  check that refuses a model for other optics;
+- `export`: `export_onnx`, `OnnxModel`, `load_model`, and `probe_model` (a candidate's first
+  session and test run in a child process under a memory budget); `metadata`: what a model
+  records, every field checked at parse (finite, in range, typed: `InvalidMetadata` names the
+  field), and the check that refuses a model for other optics;
 - `torch_model`: `TorchModel`, a model file's network rebuilt as a torch module (checked against
   the file's own graph at load): inference on a GPU without onnxruntime-gpu;
 - `sizes`: the input sizes a model was checked at (against torch, or ONNX-only on tiles), their

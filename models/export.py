@@ -11,8 +11,13 @@ and crops back, and refuses a model trained for optics other than the configured
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
+import signal
+import stat
+import subprocess
+import sys
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -251,20 +256,228 @@ def execution_providers(device: str, available: list[str], configured: Sequence[
     return out
 
 
-def read_model_metadata(path: str | Path) -> tuple[dict, str]:
-    """A model file's metadata and its input's name ("rgb" or "rgbd"), read with onnx (no
-    session): what a GPU session's options depend on before it exists."""
+def read_model_file(path: str | Path, *, max_bytes: int | None = None,
+                    setting: str = "max_bytes") -> Any:
+    """The ONNX model at `path` (onnx's `ModelProto`), parsed without a session. Refused
+    (`NotAModel`, or `ModelOverBudget` naming `setting`) unless it is a regular file of at most
+    `max_bytes` (None: any size) that keeps every tensor inside itself: an nhfd export never
+    uses external data (`external_data=False`), and a reference to another file could name any
+    file at any length (/dev/zero). The size is read from the open file, and no more than
+    `max_bytes` + 1 bytes are read, so a file swapped or grown meanwhile is refused too."""
     import onnx
 
     name = str(path)
     try:
-        model = onnx.load(name, load_external_data=False)
+        # O_NONBLOCK: a FIFO put where a model was expected must not block the open
+        fd = os.open(name, os.O_RDONLY | os.O_NONBLOCK | os.O_CLOEXEC)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{name}: no such model file") from None
+    except OSError as exc:
+        raise NotAModel(f"{name}: cannot be opened ({exc.strerror})") from None
+    with os.fdopen(fd, "rb") as f:
+        info = os.fstat(f.fileno())
+        if not stat.S_ISREG(info.st_mode):
+            raise NotAModel(f"{name}: not a regular file (a model is read only from one)")
+        if max_bytes is not None and info.st_size > max_bytes:
+            raise ModelOverBudget(f"{name}: {info.st_size / 2**20:.1f} MB, more than {setting} "
+                                  f"= {max_bytes / 2**20:g} MB (its weights alone would not fit)")
+        data = f.read() if max_bytes is None else f.read(max_bytes + 1)
+    if max_bytes is not None and len(data) > max_bytes:
+        raise ModelOverBudget(f"{name}: grew past {setting} = {max_bytes / 2**20:g} MB while "
+                              "being read")
+    try:
+        model = onnx.load_model_from_string(data)
     except Exception as exc:  # onnx's own types for a file that is not a model
         raise NotAModel(f"{name}: not a readable ONNX model ({str(exc)[:200]})") from None
+    outside = _external_tensor(model)
+    if outside is not None:
+        raise NotAModel(f"{name}: tensor {outside[:80]!r} is stored outside the model file "
+                        "(external data); nhfd models keep their weights inside it")
+    return model
+
+
+def _external_tensor(model: Any) -> str | None:
+    """The name of the first tensor of `model` stored as external data (initialisers, sparse
+    ones, node attributes, subgraphs and functions included), or None."""
+    from onnx import AttributeProto, TensorProto
+
+    def external(t: Any) -> bool:
+        return t.data_location == TensorProto.EXTERNAL or len(t.external_data) > 0
+
+    graphs, nodes = [model.graph], [n for fn in model.functions for n in fn.node]
+    while graphs or nodes:
+        if graphs:
+            g = graphs.pop()
+            tensors = [*g.initializer, *(t for s in g.sparse_initializer
+                                         for t in (s.values, s.indices))]
+            for t in tensors:
+                if external(t):
+                    return t.name or "(unnamed)"
+            nodes.extend(g.node)
+            continue
+        for a in nodes.pop().attribute:
+            attr_tensors = [*([a.t] if a.type == AttributeProto.TENSOR else []), *a.tensors]
+            if a.type == AttributeProto.SPARSE_TENSOR:
+                attr_tensors += [a.sparse_tensor.values, a.sparse_tensor.indices]
+            for t in attr_tensors:
+                if external(t):
+                    return t.name or a.name
+            graphs.extend([*([a.g] if a.type == AttributeProto.GRAPH else []), *a.graphs])
+    return None
+
+
+def read_model_metadata(path: str | Path, *, max_bytes: int | None = None,
+                        setting: str = "max_bytes") -> tuple[dict, str]:
+    """A model file's metadata (checked, `nhfd.models.metadata.validate_metadata`) and its
+    input's name ("rgb" or "rgbd"), read with onnx (no session; `read_model_file`'s bounds):
+    what a GPU session's options, and the memory probe's input, depend on before a session
+    exists."""
+    model = read_model_file(path, max_bytes=max_bytes, setting=setting)
+    name = str(path)
     props = {p.key: p.value for p in model.metadata_props}
     initialisers = {i.name for i in model.graph.initializer}
     inputs = [i.name for i in model.graph.input if i.name not in initialisers]
-    return parse_metadata(props, name), (inputs[0] if inputs else "")
+    return parse_metadata(props, name, inputs[0] if len(inputs) == 1 else None), \
+        (inputs[0] if inputs else "")
+
+
+class ModelOverBudget(ValueError):
+    """A model whose file, first session or test inference needs more memory than the budget
+    it may take at load (`probe_model`), or more time than the probe allows; the message names
+    the budget."""
+
+
+# The memory probe. A model's first session can allocate far more than its file holds:
+# onnxruntime folds constant subgraphs when it creates a session (a 250 KB file with a
+# ConstantOfShape of [32768, 32768] took 4.9 GB there, issue 32), and a first run allocates every
+# intermediate at the input's size. `probe_model` creates the session and runs it once in a child
+# process: a fresh interpreter that imports NumPy and onnxruntime only (not nhfd, not torch: a
+# small address space, 0.2 s to start), whose address space is then limited (RLIMIT_AS) to what
+# it has plus the budget. An allocation past it fails in that child (onnxruntime reports
+# "Failed to allocate memory"; constant folding that cannot allocate is skipped and fails at the
+# run instead), never in the caller; the caller opens the model only once the child has shown
+# its session and first run fit. The child runs on onnxruntime's CPU provider, whatever serves
+# the model afterwards: RLIMIT_AS cannot bound a CUDA process (the driver reserves address
+# space by the tens of GB), and the CPU session folds the same constants and allocates the same
+# intermediates (in host memory) that a GPU session would (in device memory).
+PROBE_SCRIPT = r"""
+import json, resource, sys
+spec = json.loads(sys.argv[1])
+
+def status_kb(key):
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    return 0
+
+import numpy as np
+import onnxruntime as ort
+
+out = {"stage": "session", "skipped": []}
+rss_kb = status_kb("VmRSS")
+hard = resource.getrlimit(resource.RLIMIT_AS)[1]
+limit = status_kb("VmSize") * 1024 + spec["budget_bytes"]
+unlimited = resource.RLIM_INFINITY
+resource.setrlimit(resource.RLIMIT_AS, (limit if hard == unlimited else min(limit, hard), hard))
+cpu_hard = resource.getrlimit(resource.RLIMIT_CPU)[1]
+cpu = spec["cpu_s"] if cpu_hard == unlimited else min(spec["cpu_s"], cpu_hard)
+resource.setrlimit(resource.RLIMIT_CPU, (cpu, cpu_hard))
+try:
+    opts = ort.SessionOptions()
+    opts.log_severity_level = 4
+    if spec["threads"]:
+        opts.intra_op_num_threads = spec["threads"]
+        opts.inter_op_num_threads = 1
+        opts.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        opts.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    session = ort.InferenceSession(spec["path"], sess_options=opts,
+                                   providers=["CPUExecutionProvider"])
+    out["stage"] = "run"
+    inputs = session.get_inputs()
+    for shape in spec["shapes"]:
+        declared = list(inputs[0].shape) if len(inputs) == 1 else []
+        if len(declared) != 4 or any(isinstance(d, int) and d != s
+                                     for d, s in zip(declared[1:], shape[1:])):
+            out["skipped"].append(shape)
+            continue
+        x = np.full(shape, spec["fill"], np.float32)
+        if shape[1] == 4:
+            x[:, 3] = 0.0
+        session.run(None, {inputs[0].name: x})
+    out["stage"] = "done"
+except BaseException as exc:
+    out["error"] = type(exc).__name__ + ": " + str(exc)[:600]
+# VmHWM: the peak of this program's own memory (ru_maxrss would count the parent's, forked)
+out["peak_mb"] = (status_kb("VmHWM") - rss_kb) / 1024
+print("\n" + json.dumps(out), flush=True)
+"""
+# Wall-clock seconds the probe may take: a CPU session and one run at up to the whole panel
+# (1920 x 1080) take under 2 s for the shipped profiles on 2 cores; a graph that computes for
+# minutes would hold the frame worker as long.
+PROBE_TIMEOUT_S = 120.0
+# How onnxruntime, the C++ runtime and Python word a failed allocation.
+MEMORY_FAILURES = ("Failed to allocate memory", "bad_alloc", "bad allocation",
+                   "Cannot allocate memory", "out of memory", "MemoryError")
+
+
+def probe_model(path: str | Path, memory_mb: int, input_shapes: Sequence[Sequence[int]], *,
+                threads: int = 0, fill: float = 0.5, timeout_s: float = PROBE_TIMEOUT_S,
+                setting: str = "memory_mb", source: str | None = None) -> dict[str, Any]:
+    """Create `path`'s onnxruntime session and run it once per input shape (`[1, C, H, W]`,
+    float32 `fill`, an rgbd model's depth 0) in a child process whose address space may grow by
+    at most `memory_mb` MB (see PROBE_SCRIPT's comment), with `threads` intra-op threads as
+    `session_options` sets them. Returns {"peak_mb": the child's peak resident memory above its
+    start (MB), "run_error": the first run's error when it failed otherwise than for memory,
+    else None, "skipped": shapes the graph's declared input cannot take (not run)}.
+
+    Refused, naming `setting` = `memory_mb`: a session or run that failed for memory, a child
+    that ended by a signal, or one that ran past `timeout_s` (`ModelOverBudget`); a session that
+    failed otherwise is `NotAModel` (the file is not one onnxruntime reads)."""
+    name = source or str(path)
+    budget = f"{setting} = {memory_mb} MB"
+    spec = {"path": str(path), "budget_bytes": int(memory_mb) << 20, "threads": int(threads),
+            "fill": float(fill), "shapes": [[int(v) for v in s] for s in input_shapes],
+            # CPU seconds, every thread's: a bound even on a child whose parent died
+            "cpu_s": math.ceil(timeout_s) * max(1, threads or os.cpu_count() or 1) + 5}
+    # One malloc arena: glibc reserves 64 MB of address space per thread's arena, which would
+    # count against the budget without being used.
+    env = dict(os.environ, MALLOC_ARENA_MAX="1")
+    try:
+        done = subprocess.run([sys.executable, "-I", "-c", PROBE_SCRIPT, json.dumps(spec)],
+                              capture_output=True, text=True, timeout=timeout_s, env=env,
+                              stdin=subprocess.DEVNULL, check=False)
+    except subprocess.TimeoutExpired:  # run() has killed it
+        raise ModelOverBudget(f"{name}: loading and test-running it took more than "
+                              f"{timeout_s:g} s (refused; the memory probe under {budget} "
+                              "was stopped)") from None
+    lines = done.stdout.strip().splitlines()
+    try:
+        out = json.loads(lines[-1]) if lines else None
+    except json.JSONDecodeError:
+        out = None
+    if not isinstance(out, dict):
+        how = (f"signal {signal.Signals(-done.returncode).name}" if done.returncode < 0
+               else f"exit status {done.returncode}")
+        tail = (done.stderr.strip().splitlines() or [""])[-1][:200]
+        raise ModelOverBudget(f"{name}: its session, created in a child process limited to "
+                              f"{budget}, ended with {how} before it could report (a session "
+                              "that needs more memory than that can end so)"
+                              + (f": {tail}" if tail else ""))
+    error = str(out.get("error") or "")
+    first = (error.strip().splitlines() or [""])[0][:300]
+    failure = next((m for m in MEMORY_FAILURES if m in error), None)
+    if failure:
+        what = "session" if out["stage"] == "session" else "test inference"
+        # onnxruntime's message buries the operator and the size in source paths: keep those
+        node = re.search(r"running (\w+) node", error)
+        said = error[error.index(failure):].splitlines()[0][:120]
+        raise ModelOverBudget(f"{name}: its {what} needs more memory than {budget} allows "
+                              f"(refused: {node.group(1) + ' node: ' if node else ''}{said})")
+    if error and out["stage"] == "session":
+        raise NotAModel(f"{name}: not a readable ONNX model ({first[:200]})")
+    return {"peak_mb": float(out.get("peak_mb") or 0.0), "run_error": first or None,
+            "skipped": out.get("skipped") or []}
 
 
 def session_options(threads: int = 0) -> Any:
@@ -329,8 +542,9 @@ class OnnxModel:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
             raise NotAModel(f"{name}: not a readable ONNX model ({first[:200]})") from None
         props = dict(self.session.get_modelmeta().custom_metadata_map)
-        self.metadata = parse_metadata(props, name)
         inputs = [i.name for i in self.session.get_inputs()]
+        # checked field by field: a value the frame path cannot use is refused here, by name
+        self.metadata = parse_metadata(props, name, inputs[0] if len(inputs) == 1 else None)
         outputs = [o.name for o in self.session.get_outputs()]
         if inputs not in (["rgb"], ["rgbd"]) or outputs != ["amplitude", "phase"]:
             raise NotAModel(f"{name}: inputs {inputs} / outputs {outputs} are not rgb or rgbd -> "

@@ -36,6 +36,36 @@ class NotAModel(ValueError):
     """A file that is not a readable ONNX model exported by `nhfd export`."""
 
 
+class InvalidMetadata(NotAModel):
+    """A model whose nhfd metadata holds a value of the wrong type or outside its range; the
+    message names the field, the value and what is allowed. The frame path reads these values on
+    every frame, so a model that passed the load with one of them (a NaN amplitude scale, a zero
+    input multiple) would fail, or show garbage, on every frame after it."""
+
+
+# The ranges `validate_metadata` allows, in the metadata's units. The optics are the
+# configuration's own ranges (nhfd.config: wavelengths 200-2000 nm, pitch (0, 1000) um, z0 (0,
+# 1000] mm, cutoffs (0, 0.5] cycles/px, three colours, the aperture shapes), so a model the
+# configuration could not describe is refused even where no configuration is given (offline).
+COLOURS = 3
+WAVELENGTH_RANGE_M = (200e-9, 2000e-9)
+PITCH_MAX_M = 1e-3
+Z0_MAX_M = 1.0
+CUTOFF_MAX_PER_PX = 0.5
+APERTURE_SHAPES = ("square", "circle", "diamond")
+# nhfd.config's pixel counts (slm and hologram sizes: 1..32768).
+PIXELS_MAX = 32768
+# The input multiple is unshuffle (1, 2, 4 or 8) x 2^depth (depth 0..nhfd.config.DEPTH_MAX = 6):
+# a power of two up to 8 x 2^6.
+INPUT_MULTIPLE_MAX = 8 * 2**6
+# Amplitude scales are a dataset's high percentile of SLM-plane amplitudes of sRGB renders: O(1)
+# (2.96 for the shipped model). Twelve orders of magnitude either way keeps amplitude x scale
+# and the propagation's sums over millions of pixels far inside float32 (3.4e38).
+AMPLITUDE_SCALE_RANGE = (1e-12, 1e12)
+# A JSON value this long is shown cut in a refusal: a hostile file chooses its own values.
+SHOWN_CHARS = 80
+
+
 def manifest_sha256(data_dir: str | Path) -> str | None:
     path = Path(data_dir) / "manifest.json"
     return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else None
@@ -185,21 +215,271 @@ def check_metadata(metadata: dict, expected: dict, source: str) -> None:
         )
 
 
-def parse_metadata(props: dict[str, str], source: str) -> dict:
-    """The nhfd metadata from an ONNX model's metadata map, or `NotAModel`."""
+def parse_metadata(props: dict[str, str], source: str, graph_input: str | None = None) -> dict:
+    """The nhfd metadata from an ONNX model's metadata map, checked field by field
+    (`validate_metadata`; `graph_input`: the graph's input name where known), or `NotAModel`
+    (`InvalidMetadata` for a value of the wrong type or out of its range)."""
     if METADATA_KEY not in props:
         raise NotAModel(
             f"{source}: an ONNX model without nhfd metadata (not exported by `nhfd export`)"
         )
     try:
         meta = json.loads(props[METADATA_KEY])
-    except json.JSONDecodeError as exc:
-        raise NotAModel(f"{source}: nhfd metadata is not valid JSON ({exc})") from None
+    except ValueError as exc:  # JSONDecodeError, and an integer past Python's 4300 digits
+        raise NotAModel(f"{source}: nhfd metadata is not valid JSON ({str(exc)[:200]})") from None
+    except RecursionError:  # json's decoder recurses once per nested array or object
+        raise NotAModel(f"{source}: nhfd metadata is nested too deeply to read") from None
     if not isinstance(meta, dict) or meta.get("format") != FORMAT:
         raise NotAModel(f"{source}: nhfd metadata has no format {FORMAT!r}")
-    if int(meta.get("format_version", -1)) > FORMAT_VERSION:
+    version = meta.get("format_version")
+    if _is_int(version) and version > FORMAT_VERSION:
         raise NotAModel(
-            f"{source}: model format {meta.get('format_version')} is newer than this nhfd reads "
+            f"{source}: model format {version} is newer than this nhfd reads "
             f"({FORMAT_VERSION}); upgrade nhfd"
         )
+    validate_metadata(meta, source, graph_input)
     return meta
+
+
+def _is_number(value: Any) -> bool:
+    # bool is an int to Python, never a number here: `true` for a scale is a broken file
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _shown(value: Any) -> str:
+    try:
+        text = json.dumps(value) if not isinstance(value, float) else repr(value)
+    except (RecursionError, ValueError, TypeError):  # nested past the encoder's depth
+        text = f"<a nested {type(value).__name__}>"
+    return text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "..."
+
+
+class _Fields:
+    """Checks of one model's metadata fields; each refusal names the source, the field, the
+    value and what is allowed."""
+
+    def __init__(self, source: str) -> None:
+        self.source = source
+
+    def refuse(self, field: str, value: Any, allowed: str) -> None:
+        raise InvalidMetadata(f"{self.source}: metadata {field} = {_shown(value)}: expected "
+                              f"{allowed}")
+
+    def number(self, field: str, value: Any, lo: float, hi: float, unit: str, *,
+               open_lo: bool = False, open_hi: bool = False) -> float:
+        """`value` as a float when it is a finite number in the interval (open or closed at
+        each end), else the refusal."""
+        ok = _is_number(value) and math.isfinite(value)
+        ok = ok and (value > lo if open_lo else value >= lo)
+        ok = ok and (value < hi if open_hi else value <= hi)
+        if not ok:
+            self.refuse(field, value, f"a finite number{_span(lo, hi, open_lo, open_hi)}"
+                        + (f" ({unit})" if unit else ""))
+        return float(value)
+
+    def integer(self, field: str, value: Any, lo: int, hi: int, what: str = "") -> int:
+        if not (_is_int(value) and lo <= value <= hi):
+            self.refuse(field, value, f"an integer in {lo}..{hi}" + (f" ({what})" if what else ""))
+        return int(value)
+
+    def numbers(self, field: str, value: Any, count: int, lo: float, hi: float, unit: str,
+                **bounds: bool) -> list[float]:
+        if not isinstance(value, list) or len(value) != count:
+            self.refuse(field, value, f"a list of {count} numbers" + (f" ({unit})" if unit else ""))
+        return [self.number(f"{field}[{i}]", v, lo, hi, unit, **bounds)
+                for i, v in enumerate(value)]
+
+    def pair(self, field: str, value: Any, lo: float, hi: float, unit: str) -> list[float]:
+        """[low, high], finite, low <= high, both in [lo, hi]."""
+        a, b = self.numbers(field, value, 2, lo, hi, unit)
+        if not a <= b:
+            self.refuse(field, value, f"[low, high] with low <= high ({unit})")
+        return [a, b]
+
+    def hw(self, field: str, value: Any) -> list[int]:
+        if not isinstance(value, list) or len(value) != 2:
+            self.refuse(field, value, f"[height, width], integers in 1..{PIXELS_MAX} px")
+        return [self.integer(f"{field}[{i}]", v, 1, PIXELS_MAX, "px") for i, v in enumerate(value)]
+
+
+def _span(lo: float, hi: float, open_lo: bool, open_hi: bool) -> str:
+    """The allowed interval as text: ' in [lo, hi]' (with its open ends), ' > lo' where the
+    upper end is infinite, nothing where both are."""
+    if math.isinf(lo) and math.isinf(hi):
+        return ""
+    if math.isinf(hi):
+        return f" {'>' if open_lo else '>='} {lo:g}"
+    return f" in {'(' if open_lo else '['}{lo:g}, {hi:g}{')' if open_hi else ']'}"
+
+
+def _first_non_finite(value: Any, path: str) -> tuple[str, Any] | None:
+    """The first float in `value` (a parsed JSON tree) that is NaN or infinite, with its path;
+    iterative, so no nesting depth the decoder accepted can overflow the stack here."""
+    stack = [(path, value)]
+    while stack:
+        where, v = stack.pop()
+        if isinstance(v, float) and not math.isfinite(v):
+            return where, v
+        if isinstance(v, dict):
+            stack.extend((f"{where}.{str(k)[:SHOWN_CHARS]}", x) for k, x in v.items())
+        elif isinstance(v, list):
+            stack.extend((f"{where}[{i}]", x) for i, x in enumerate(v))
+    return None
+
+
+def validate_metadata(meta: dict[str, Any], source: str, graph_input: str | None = None) -> None:
+    """Refuse, with `InvalidMetadata` naming the field, metadata whose values the frame path,
+    `status` or the size checks could not use: every field they read is of its type and in its
+    range (the optics as `nhfd.config` allows them, a positive amplitude scale and focal length,
+    a power-of-two input multiple, [near, far] volumes and envelopes in order, sizes in pixels),
+    a model fed depth (`graph_input` "rgbd", else the metadata's own `inputs`) has its scene
+    mapping, and no number anywhere is NaN or infinite (JSON from Python writes them) except a
+    failed size check's difference (`checked_size_entry` records NaN there, with ok false)."""
+    f = _Fields(source)
+    version = meta.get("format_version")
+    f.integer("format_version", version, 1, FORMAT_VERSION)
+    # The optics: what the frame path propagates and codes with.
+    f.numbers("wavelengths_m", meta.get("wavelengths_m"), COLOURS, *WAVELENGTH_RANGE_M, "m")
+    f.number("pitch_m", meta.get("pitch_m"), 0.0, PITCH_MAX_M, "m", open_lo=True, open_hi=True)
+    if meta.get("aperture_shape") not in APERTURE_SHAPES:
+        f.refuse("aperture_shape", meta.get("aperture_shape"),
+                 f"one of {', '.join(APERTURE_SHAPES)}")
+    f.numbers("cutoff_per_px", meta.get("cutoff_per_px"), COLOURS, 0.0, CUTOFF_MAX_PER_PX,
+              "cycles/px", open_lo=True)
+    z0 = f.number("z0_m", meta.get("z0_m"), 0.0, Z0_MAX_M, "m", open_lo=True)
+    volume = meta.get("volume_m")
+    near, far = f.numbers("volume_m", volume, 2, -math.inf, math.inf, "m", open_lo=True,
+                          open_hi=True)
+    if not near < far:
+        f.refuse("volume_m", volume, "[near, far] in metres from the reference plane with near "
+                                     "< far")
+    if not z0 + near > 0:
+        f.refuse("volume_m", volume, f"a near end in front of the SLM (z0_m + near > 0, z0_m = "
+                                     f"{z0:g})")
+    panel = meta.get("panel_hw")
+    if panel not in (None, []):
+        f.hw("panel_hw", panel)
+    f.number("amplitude_scale", meta.get("amplitude_scale"), *AMPLITUDE_SCALE_RANGE, "")
+    # The camera: the render's focal lengths (None: from fov_x_deg, as older exports).
+    for key in ("fx", "fy"):
+        if meta.get(key) is not None:
+            f.number(key, meta[key], 0.0, math.inf, "px", open_lo=True, open_hi=True)
+    if meta.get("fov_x_deg") is not None:
+        f.number("fov_x_deg", meta["fov_x_deg"], 0.0, 180.0, "deg", open_lo=True,
+                 open_hi=True)
+    # Sizes: the frame window and the graph's padding.
+    f.hw("train_size_hw", meta.get("train_size_hw"))
+    if meta.get("train_crop_hw") is not None:
+        f.hw("train_crop_hw", meta["train_crop_hw"])
+    multiple = meta.get("input_multiple")
+    if not (_is_int(multiple) and 1 <= multiple <= INPUT_MULTIPLE_MAX
+            and multiple & (multiple - 1) == 0):
+        f.refuse("input_multiple", multiple, f"a power of two in 1..{INPUT_MULTIPLE_MAX} "
+                                             "(unshuffle x 2^depth)")
+    net = meta.get("net")
+    if net is not None and not isinstance(net, dict):
+        f.refuse("net", net, "an object (the network spec)")
+    if net and _is_int(net.get("unshuffle")) and _is_int(net.get("depth")) \
+            and 0 <= net["depth"] <= 16 and multiple != net["unshuffle"] * 2 ** net["depth"]:
+        f.refuse("input_multiple", multiple, f"net.unshuffle x 2^net.depth = "
+                                             f"{net['unshuffle'] * 2 ** net['depth']}")
+    _check_mapping(f, meta, graph_input)
+    _check_envelope(f, meta.get("pose_envelope"))
+    _check_train_poses(f, meta.get("train_poses"))
+    _check_sizes(f, meta.get("checked_sizes"))
+    for key in ("parameters", "train_steps", "opset"):  # status reports them as numbers
+        if meta.get(key) is not None and not _is_int(meta[key]):
+            f.refuse(key, meta[key], "an integer or null")
+    for key in ("profile", "scene_sha256", "precision", "nhfd_version"):
+        if meta.get(key) is not None and not isinstance(meta[key], str):
+            f.refuse(key, meta[key], "a string or null")
+    rest = {k: v for k, v in meta.items() if k != "checked_sizes"}
+    bad = _first_non_finite(rest, "")
+    if bad is not None:
+        raise InvalidMetadata(f"{source}: metadata {bad[0][1:]} = {bad[1]!r}: expected a finite "
+                              "number (no NaN or infinity anywhere in the metadata)")
+
+
+def _check_mapping(f: _Fields, meta: dict[str, Any], graph_input: str | None) -> None:
+    """The scene mapping `z_h = a_m + b_m / d`: an rgbd model feeds it every frame."""
+    declared = meta.get("inputs")
+    rgbd = graph_input == "rgbd" if graph_input is not None else (
+        isinstance(declared, dict) and "rgbd" in declared)
+    mapping = meta.get("mapping")
+    if mapping is None and not rgbd:
+        return
+    if not isinstance(mapping, dict):
+        f.refuse("mapping", mapping, "an object with a_m and b_m (the scene's depth mapping"
+                 + (", which a model fed depth needs)" if rgbd else ")"))
+    for key in ("a_m", "b_m"):
+        if key in mapping or rgbd:
+            f.number(f"mapping.{key}", mapping.get(key), -math.inf, math.inf, "m",
+                     open_lo=True, open_hi=True)
+    for key in ("d_near", "d_far"):
+        if mapping.get(key) is not None:
+            f.number(f"mapping.{key}", mapping[key], 0.0, math.inf, "scene units",
+                     open_lo=True, open_hi=True)
+
+
+def _check_envelope(f: _Fields, env: Any) -> None:
+    """The pose envelope (`nhfd.dataset.poses.envelope`): each view's warnings compare with it."""
+    if env is None:
+        return
+    if not isinstance(env, dict):
+        f.refuse("pose_envelope", env, "an object or null")
+    if env.get("n") is not None:
+        f.integer("pose_envelope.n", env["n"], 0, 1 << 40)
+    inf = math.inf
+    if env.get("distance"):
+        f.pair("pose_envelope.distance", env["distance"], 0.0, inf, "scene units")
+    for key, lo, hi in (("azimuth_deg", -360.0, 360.0), ("elevation_deg", -90.0, 90.0)):
+        if env.get(key):
+            f.pair(f"pose_envelope.{key}", env[key], lo, hi, "deg")
+    lo3, hi3 = env.get("position_min"), env.get("position_max")
+    if lo3 or hi3:
+        a = f.numbers("pose_envelope.position_min", lo3, 3, -inf, inf, "scene units",
+                      open_lo=True, open_hi=True)
+        b = f.numbers("pose_envelope.position_max", hi3, 3, -inf, inf, "scene units",
+                      open_lo=True, open_hi=True)
+        if not all(x <= y for x, y in zip(a, b, strict=True)):
+            f.refuse("pose_envelope.position_max", hi3, f"at least position_min = {_shown(lo3)} "
+                                                        "in each coordinate")
+
+
+def _check_train_poses(f: _Fields, poses: Any) -> None:
+    """`training_poses`: `nhfd eval` measures view angles against them."""
+    if poses is None:
+        return
+    if not isinstance(poses, dict) or not isinstance(poses.get("positions"), list):
+        f.refuse("train_poses", poses, "an object with center and positions, or null")
+    inf = math.inf
+    f.numbers("train_poses.center", poses.get("center"), 3, -inf, inf, "scene units",
+              open_lo=True, open_hi=True)
+    for i, p in enumerate(poses["positions"]):
+        f.numbers(f"train_poses.positions[{i}]", p, 3, -inf, inf, "scene units",
+                  open_lo=True, open_hi=True)
+
+
+def _check_sizes(f: _Fields, sizes: Any) -> None:
+    """`checked_sizes` (entries of `checked_size_entry`): the frame worker serves a window only
+    at a size listed ok, so an entry may not claim ok without a difference within tolerance."""
+    if sizes is None:
+        return
+    if not isinstance(sizes, list):
+        f.refuse("checked_sizes", sizes, "a list of size check entries")
+    for i, e in enumerate(sizes):
+        where = f"checked_sizes[{i}]"
+        if not isinstance(e, dict) or not isinstance(e.get("ok"), bool):
+            f.refuse(where, e, "an object with hw, max_abs_diff, ok (true or false), against")
+        f.hw(f"{where}.hw", e.get("hw"))
+        diff = e.get("max_abs_diff")
+        if e["ok"]:
+            f.number(f"{where}.max_abs_diff", diff, 0.0, SIZE_TOLERANCE, "ok is true")
+        elif not _is_number(diff):  # NaN or infinite: a failed check, recorded as failed
+            f.refuse(f"{where}.max_abs_diff", diff, "a number")
+        if not isinstance(e.get("against", ""), str):
+            f.refuse(f"{where}.against", e.get("against"), "a string")

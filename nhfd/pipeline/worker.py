@@ -46,7 +46,12 @@ import torch
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
-from nhfd.models.export import check_providers, load_model, read_model_metadata
+from nhfd.models.export import (
+    check_providers,
+    load_model,
+    probe_model,
+    read_model_metadata,
+)
 from nhfd.models.metadata import checked_sizes_hw, expected_from_config
 from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, int8_sibling, int8_within_loss
 from nhfd.models.sizes import window_check
@@ -64,6 +69,8 @@ MAX_ENCODERS = 8
 # The test inference's input: mid-grey sRGB everywhere and, for an rgbd model, the reference
 # plane's depth (0): a frame the daemon could send, so a model that fails it fails real frames.
 TEST_GREY = 0.5
+# The setting a model's load memory is bounded by (`open_model`), named in its refusals.
+MEMORY_SETTING = "daemon.model_memory_mb"
 
 
 def _set_threads(threads: int) -> None:
@@ -92,7 +99,14 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     """The model at `path` checked against the configured optics, on the configured device:
     an `OnnxModel` on the configured providers, with `threads` intra-op threads in pools that
     do not spin (`nhfd.models.export.session_options`), or a `TorchModel` where
-    `worker_inference` says torch."""
+    `worker_inference` says torch.
+
+    Before this process creates a session, the file is read within `daemon.model_memory_mb`
+    (a regular file no larger, no external data), its metadata checked field by field, and its
+    session created and test-run on the frame window in a child process limited to that memory
+    (`nhfd.models.export.probe_model`): a model that needs more is refused (`ModelOverBudget`)
+    without this process allocating it. `load_memory_mb` on the model: what the child's session
+    and run took."""
     # Checked here too, so the error names the setting to change. No silent fallback: a bench
     # configured for CUDA that quietly ran on the CPU would be 10x slower with nothing but a
     # warning to say why; the load fails instead and the previous model keeps running.
@@ -100,15 +114,33 @@ def open_model(path: str, config: Any, threads: int) -> Any:
                                 ort.get_available_providers(), "daemon.onnx_providers")
     # A CUDA device torch lacks, or one named without its frame path installed: ValueError.
     device, _ = worker_device(config.daemon.device, config.daemon.inference)
-    if worker_inference(config)[0] == "torch":
-        return TorchModel(path, expected=expected_from_config(config), device=device)
-    if device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
-        window_hw = frame_window_hw(config, read_model_metadata(path)[0])
-        return load_model(path, config, threads=threads, providers=tuple(providers),
-                          device=device, input_hw=window_hw,
-                          engine_cache_dir=config.daemon.engine_cache_dir or None)
-    # validates; raises ModelMismatch etc.
-    return load_model(path, config, threads=threads, providers=tuple(providers))
+    memory_mb = int(config.daemon.model_memory_mb)
+    meta, input_name = read_model_metadata(path, max_bytes=memory_mb << 20,
+                                           setting=MEMORY_SETTING)
+    window_hw = frame_window_hw(config, meta)
+    torch_inference = worker_inference(config)[0] == "torch"
+    shape, want = trial_input(4 if input_name == "rgbd" else 3, int(meta["input_multiple"]),
+                             window_hw)
+    shapes = [shape]
+    if torch_inference:  # TorchModel's own check runs the file's graph at 2 x 3 strides
+        m = int(meta["input_multiple"])
+        shapes.append((1, shape[1], 2 * m, 3 * m))
+    probe = probe_model(path, memory_mb, shapes, threads=threads, fill=TEST_GREY,
+                        setting=MEMORY_SETTING)
+    if probe["run_error"]:  # not memory (that is refused in probe_model): the model is unfit
+        raise ModelUnfit(f"{path}: a test inference on a {want} input failed: "
+                         f"{probe['run_error']}")
+    if torch_inference:
+        model = TorchModel(path, expected=expected_from_config(config), device=device)
+    elif device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
+        model = load_model(path, config, threads=threads, providers=tuple(providers),
+                           device=device, input_hw=window_hw,
+                           engine_cache_dir=config.daemon.engine_cache_dir or None)
+    else:  # validates; raises ModelMismatch etc.
+        model = load_model(path, config, threads=threads, providers=tuple(providers))
+    # reported in status (model_info): what to compare daemon.model_memory_mb with
+    model.load_memory_mb = round(probe["peak_mb"], 1)
+    return model
 
 
 class ModelUnfit(ValueError):
@@ -116,17 +148,25 @@ class ModelUnfit(ValueError):
     outputs of another shape or non-finite values; the message names the file and what differs."""
 
 
+def trial_input(channels: int, multiple: int, window_hw: tuple[int, int]
+               ) -> tuple[tuple[int, int, int, int], str]:
+    """The test inference's input shape for a `window_hw` frame window, padded to `multiple`
+    as frames are ([1, C, H, W]), and how refusals describe it."""
+    h, w = window_hw
+    ph, pw = h + (-h) % multiple, w + (-w) % multiple
+    name = "rgbd" if channels == 4 else "rgb"
+    return (1, channels, ph, pw), (f"[B, {channels}, {ph}, {pw}] ({name}, a {h} x {w} frame "
+                                   f"window padded to multiples of {multiple})")
+
+
 def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
     """Run `model` once on a frame of `window_hw` (padded to its input multiple, as frames are)
     and refuse it, with `ModelUnfit`, unless it takes that input and returns finite amplitude
     and phase of [1, colours, H, W]. Before the swap: a model that passes the metadata check
     but cannot serve frames must not replace a working one."""
-    h, w = window_hw
     c, m = model.channels, model.multiple
-    ph, pw = h + (-h) % m, w + (-w) % m
+    (_, _, ph, pw), want = trial_input(c, m, window_hw)
     declared = list(model.input_shape)
-    want = f"[B, {c}, {ph}, {pw}] ({model.inputs}, a {h} x {w} frame window padded to " \
-           f"multiples of {m})"
     if len(declared) != 4:
         raise ModelUnfit(f"{path}: input shape: expected {want}, found {declared}")
     for what, expected, found in zip(("channels", "height", "width"), (c, ph, pw),
@@ -161,7 +201,9 @@ def model_info(model: Any, path: str) -> dict[str, Any]:
             "z0_m": m.get("z0_m"), "volume_m": m.get("volume_m"), "mapping": m.get("mapping"),
             "pose_envelope": m.get("pose_envelope"), "parameters": m.get("parameters"),
             "train_steps": m.get("train_steps"), "scene_sha256": m.get("scene_sha256"),
-            "providers": list(model.providers), "loaded_s": time.time()}
+            "providers": list(model.providers), "loaded_s": time.time(),
+            # the memory its session and test run took in the load's probe (open_model)
+            "load_memory_mb": getattr(model, "load_memory_mb", None)}
 
 
 def cpu_path(config: Any) -> bool:
@@ -297,7 +339,7 @@ class _WorkerState:
         return info
 
     def load_scene(self, path: str) -> dict[str, Any]:
-        load = read_scene(path)
+        load = read_scene(path, self.config.daemon.max_gaussians)
         frame = scene_frame(load.gaussians, path)
         self.scene = Scene(load.gaussians, frame)
         self.scene_id += 1
