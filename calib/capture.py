@@ -141,9 +141,11 @@ class DaemonBenchIO:
                                + (f" ({exc.data})" if exc.data else "")) from None
 
     def _wait(self, method: str, **params: Any) -> dict[str, Any]:
+        return self._wait_job(method, self._call(method, **params)["job"])
+
+    def _wait_job(self, method: str, job_id: int) -> dict[str, Any]:
         import time
 
-        job_id = self._call(method, **params)["job"]
         end = time.monotonic() + self.job_timeout_s
         while True:
             job = self._call("job", id=job_id)
@@ -191,7 +193,10 @@ class DaemonBenchIO:
                 if self.arm_s is None:
                     raise CaptureError("the lasers are not armed: arm them (nhfctl laser arm) "
                                        "or pass --arm SECONDS")
-                self._call("laser", action="arm", duration_s=float(self.arm_s))
+                reply = self._call("laser", action="arm", duration_s=float(self.arm_s))
+                if reply.get("pending"):  # daemon.arm_confirm: a person confirms at the bench
+                    print(reply.get("prompt", "confirm the arm at the bench"), flush=True)
+                    self._wait_job("laser arm", reply["job"])
         for c, (name, pw) in enumerate(zip(names, powers, strict=True)):
             if pw > 0:
                 reply = self._call("laser", action="power", channel=name, power_pct=100.0 * pw)

@@ -29,8 +29,10 @@ device is opened (hidapi and pyusb are dependencies; slmsuite is the `slmsuite` 
                and its simulated timing
   simcamera    SimulatedCamera and its TrueBench (imports torch and nhfd.optics)
   navigator    SpaceMouse HID parsing, SpaceMouseNavigator (hidapi), SimulatedNavigator
+  keyswitch    a key switch on a serial port's CTS or DSR line (the arm confirmation)
   mecom, apt   protocol frames, every constant in one place
-  twins        MecomTwin and AptTwin: protocol peers on pseudo-terminals, with faults
+  twins        MecomTwin and AptTwin: protocol peers on pseudo-terminals, with faults; and
+               KeySwitchTwin, the simulated key switch
   factory      [devices] -> drivers (a simulated laser / stage = the real driver + its twin),
                and make_bench: the one call that builds and opens a wired bench
   discovery    what is plugged in and which [devices] entry would use it (`nhfd devices`)

@@ -7,11 +7,17 @@ id 1. Other ids (battery, LEDs) are ignored. Devices are matched by vendor AND p
 
 `Navigator.read()` returns velocities: each raw axis through a dead zone, scaled linearly from the
 dead-zone edge to full deflection, times the configured maximum.
+
+`presses` counts button presses (a button going down) report by report, so a press and release
+that arrive between two reads still count: the daemon's arm confirmation
+(`daemon.arm_confirm = "spacemouse"`) waits for it to grow. The simulated navigator is pressed by
+`press()`.
 """
 
 from __future__ import annotations
 
 import struct
+import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Sequence
@@ -105,6 +111,14 @@ class Navigator(Device, ABC):
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.settings = settings or NavigatorSettings()
         self._clock = clock
+        self.presses = 0  # buttons gone down, counted per report (read by other threads)
+        self._buttons_seen = 0
+
+    def _count_presses(self, buttons: int) -> None:
+        """Count a press for each report in which a button goes down."""
+        if buttons & ~self._buttons_seen:
+            self.presses += 1
+        self._buttons_seen = buttons
 
     def read(self) -> NavigatorReading:
         """The current velocities and buttons (consumes every report waiting)."""
@@ -163,6 +177,7 @@ class SpaceMouseNavigator(Navigator):
                 time.sleep(0.001)
                 continue
             self._state = parse_report(report, self._state)
+            self._count_presses(self._state.buttons)
         return self._state
 
 
@@ -187,15 +202,31 @@ class SimulatedNavigator(Navigator):
         if times != sorted(times):
             raise ValueError("waypoints must be in time order")
         self._t0 = clock()
+        self._pressed: list[int] = []  # press() not yet seen by a read
+        self._press_lock = threading.Lock()
 
     def _do_open(self) -> None:
         self._t0 = self._clock()
 
+    def press(self, button: int = 0) -> None:
+        """A person presses and releases `button` (test-only: the bench's hand); the next read
+        sees it go down and up, as two HID reports between reads would show it."""
+        if not 0 <= button < 32:
+            raise ValueError(f"button: {button!r}; allowed: 0 to 31")
+        with self._press_lock:
+            self._pressed.append(button)
+
     def _poll(self) -> RawState:
+        with self._press_lock:
+            pressed, self._pressed = self._pressed, []
+        for button in pressed:
+            self._count_presses(self._buttons_seen | 1 << button)
+            self._count_presses(self._buttons_seen & ~(1 << button))
         t = self._clock() - self._t0
         state = RawState()
         for w in self.trajectory:
             if w.t_s > t:
                 break
             state = RawState(w.axes_counts, w.buttons)
+        self._count_presses(state.buttons)
         return state

@@ -9,6 +9,8 @@ the service manager's stop hook runs.
 
 The emergency path stays light: this module imports the vocabulary and the laser drivers only
 (no torch, numba or numpy compute), and `nhfd` imports it only for these two commands.
+`nhfctl laser off` and `laser disarm` use the same path (`laser_settings`, `switch_all_off`)
+whenever the daemon does not switch the lasers off itself.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import argparse
 import logging
 import os
 import sys
+from dataclasses import dataclass
 from typing import Any
 
 from nhfd.config import load_config
@@ -73,28 +76,35 @@ def _common(p: argparse.ArgumentParser) -> None:
 
 
 def _settings(args: argparse.Namespace) -> tuple[Any, Any]:
-    """LaserSettings from the configuration's [devices.readybeam], with the command line's port
-    and socket on top, and the [daemon] section (runtime directory, socket group; None when
-    the configuration could not be read). A broken configuration file must not stop an emergency
-    off, so it is reported and the defaults are used."""
+    return laser_settings(args.config, port=args.port or "", usb_serial=args.usb_serial or "",
+                          guardian_socket=args.socket or "", prog=f"nhfd {args.command}")
+
+
+def laser_settings(config: str | None = None, *, port: str = "", usb_serial: str = "",
+                   guardian_socket: str = "", prog: str = "nhfd laser-off") -> tuple[Any, Any]:
+    """LaserSettings from the configuration's [devices.readybeam], with a port and guardian
+    socket given on the command line on top, and the [daemon] section (runtime directory, socket
+    group; None when the configuration could not be read). A broken configuration file must not
+    stop an emergency off, so it is reported (as `prog`) and the defaults are used."""
 
     settings, daemon = LaserSettings(), None
     try:
-        config = load_config(args.config).config
-        settings, daemon = config.devices.readybeam, config.daemon
+        loaded = load_config(config).config
+        settings, daemon = loaded.devices.readybeam, loaded.daemon
     except Exception as exc:
-        print(f"nhfd {args.command}: warning: configuration not used: {exc}", file=sys.stderr)
+        print(f"{prog}: warning: configuration not used: {exc}", file=sys.stderr)
     update: dict[str, Any] = {}
-    if args.port:
-        update.update(port=args.port, usb_serial="")
-    if args.usb_serial:
-        update.update(usb_serial=args.usb_serial, port="")
-    if args.socket:
-        update["guardian"] = settings.guardian.model_copy(update={"socket_path": args.socket})
+    if port:
+        update.update(port=port, usb_serial="")
+    if usb_serial:
+        update.update(usb_serial=usb_serial, port="")
+    if guardian_socket:
+        update["guardian"] = settings.guardian.model_copy(update={"socket_path": guardian_socket})
     return (settings.model_copy(update=update) if update else settings), daemon
 
 
-def _off_through_guardian(settings: Any, path: Any, group_ok: bool, timeout_s: float) -> str:
+def _off_through_guardian(settings: Any, path: Any, group_ok: bool, timeout_s: float,
+                          prog: str = "nhfd laser-off") -> str:
     """All off through a guardian this command can trust; returns what it did. Raises
     GuardianUnavailable (none answers; a hung one of ours is killed first) or GuardianRefused."""
 
@@ -122,7 +132,7 @@ def _off_through_guardian(settings: Any, path: Any, group_ok: bool, timeout_s: f
         port = guardian_port(pid) if pid is not None else ""
         if pid is None or not kill_guardian(pid):
             raise GuardianRefused(f"{exc}, and no nhfd guardian of this user to end") from None
-        print(f"nhfd laser-off: {exc}: killed the hung guardian, pid {pid}", file=sys.stderr)
+        print(f"{prog}: {exc}: killed the hung guardian, pid {pid}", file=sys.stderr)
         raise _HungGuardianKilled(f"{exc}; hung guardian pid {pid} killed", port) from None
 
 
@@ -134,7 +144,7 @@ class _HungGuardianKilled(Exception):
         self.port = port
 
 
-def _end_guardian_holding(port: str) -> bool:
+def _end_guardian_holding(port: str, prog: str = "nhfd laser-off") -> bool:
     """An nhfd guardian of this user holds `port` but did not answer on the socket asked (hung,
     or serving another socket): SIGKILL it (verified in /proc), which frees the port."""
 
@@ -143,19 +153,40 @@ def _end_guardian_holding(port: str) -> bool:
     pids = [pid for pid in port_holders(port) if pid != os.getpid() and is_our_guardian(pid)]
     for pid in pids:
         kill_guardian(pid)
-        print(f"nhfd laser-off: killed nhfd guardian pid {pid}, which held {port}",
-              file=sys.stderr)
+        print(f"{prog}: killed nhfd guardian pid {pid}, which held {port}", file=sys.stderr)
     return bool(pids)
+
+
+@dataclass(frozen=True)
+class OffOutcome:
+    """What `switch_all_off` achieved."""
+
+    confirmed: bool  # every channel read back off, by a guardian it trusts or on the port itself
+    how: str  # what read them back off, or why they are not confirmed off
 
 
 def _laser_off(args: argparse.Namespace) -> int:
     settings, daemon = _settings(args)
     path = socket_path_for(settings, runtime_dir(daemon.runtime_dir if daemon else ""))
+    outcome = switch_all_off(settings, path, daemon, timeout_s=args.timeout_s)
+    if outcome.confirmed:
+        print(f"all laser channels off ({outcome.how})")
+        return 0
+    print(f"nhfd laser-off: error: {outcome.how}", file=sys.stderr)
+    return 1
+
+
+def switch_all_off(settings: Any, path: Any, daemon: Any, *, timeout_s: float = 3.0,
+                   prog: str = "nhfd laser-off",
+                   port_hint: str = "--port or --usb-serial") -> OffOutcome:
+    """Every laser channel off without the daemon: through the guardian at `path` if it can be
+    trusted, else directly on the configured port (a hung nhfd guardian of this user is killed
+    first, which frees it). Notes on the way go to stderr as `prog`; `port_hint` says where a
+    port would be given when none is configured."""
     group_ok = bool(daemon and daemon.socket_group)
     try:
-        how = _off_through_guardian(settings, path, group_ok, args.timeout_s)
-        print(f"all laser channels off ({how})")
-        return 0
+        return OffOutcome(True, _off_through_guardian(settings, path, group_ok, timeout_s,
+                                                      prog))
     except _HungGuardianKilled as exc:
         reason = str(exc)
         if not (settings.port or settings.usb_serial) and exc.port:
@@ -164,33 +195,27 @@ def _laser_off(args: argparse.Namespace) -> int:
         reason = str(exc)
     except GuardianRefused as exc:
         reason = f"refused: {exc}"
-        print(f"nhfd laser-off: {reason}", file=sys.stderr)
+        print(f"{prog}: {reason}", file=sys.stderr)
     except GuardianError as exc:
-        print(f"nhfd laser-off: error: {exc}", file=sys.stderr)
-        return 1
+        return OffOutcome(False, str(exc))
     if not (settings.port or settings.usb_serial):
-        print(f"nhfd laser-off: error: {reason}, and no laser port is configured "
-              "(--port or --usb-serial)", file=sys.stderr)
-        return 1
+        return OffOutcome(False, f"{reason}, and no laser port is configured ({port_hint})")
     laser = MecomLaser(settings)
     try:
         try:
             laser.open()  # identifies, then switches every channel off and reads it back
         except PortBusy:
-            if not _end_guardian_holding(settings.port):
+            if not _end_guardian_holding(settings.port, prog):
                 raise
             laser.open()
         laser.close()
     except PortBusy as exc:
-        print(f"nhfd laser-off: error: {reason}; {exc} (not an nhfd guardian of this user: "
-              "stop it, then retry)", file=sys.stderr)
-        return 1
+        return OffOutcome(False, f"{reason}; {exc} (not an nhfd guardian of this user: stop "
+                          "it, then retry)")
     except DeviceError as exc:
-        print(f"nhfd laser-off: error: {exc}", file=sys.stderr)
-        return 1
-    print(f"all laser channels off (read back on {settings.port or settings.usb_serial}; "
-          f"no guardian used: {reason})")
-    return 0
+        return OffOutcome(False, str(exc))
+    return OffOutcome(True, f"read back on {settings.port or settings.usb_serial}; no guardian "
+                      f"used: {reason}")
 
 
 def _guardian(args: argparse.Namespace) -> int:

@@ -3,6 +3,12 @@
 Human output by default, `--json` for scripts. Exit codes: 0 ok, 1 the daemon refused (one line:
 the error's name and message), 2 usage, 3 no daemon answers. This module must never import torch,
 numba or onnxruntime (a test checks `sys.modules`): a control command answers at once.
+
+`laser off` and `laser disarm` never depend on the daemon alone: when it cannot be reached, is
+busy, refuses or does not answer within a second, they switch the lasers off through the laser
+guardian (or on the port), as `nhfd laser-off` does, and say which path did it. They exit 0 only
+when every channel was read back off. `laser arm` with a confirmation configured
+(`daemon.arm_confirm`) prints what the person at the bench must do and waits for the arm's job.
 """
 
 from __future__ import annotations
@@ -15,10 +21,17 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from nhfd.cli.cmd_laser import laser_settings, switch_all_off
 from nhfd.config import load_config
-from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.daemon.client import LOOPBACK_HOSTS, Client, DaemonUnavailable
 from nhfd.daemon.paths import socket_path
 from nhfd.daemon.protocol import RpcError, describe_codes
+from nhfd.drivers.guardian import socket_path_for
+from nhfd.drivers.rundir import runtime_dir
+
+# How long `laser off` / `disarm` waits for the daemon before going to the guardian: a healthy
+# daemon answers in milliseconds, and one a second late has missed its heartbeats already.
+OFF_DAEMON_TIMEOUT_S = 1.0
 
 
 def _floats(n: int, what: str):  # argparse type factory
@@ -73,6 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
     la.add_argument("channel", nargs="?", choices=("red", "green", "blue"))
     la.add_argument("power_pct", nargs="?", type=float)
     la.add_argument("--duration-s", type=float, default=60.0, help="arming time (default 60)")
+    la.add_argument("--guardian-socket", metavar="PATH",
+                    help="off / disarm: the laser guardian's socket, used when the daemon does not "
+                    "switch the lasers off (default: devices.readybeam.guardian.socket_path, else "
+                    "laser.sock beside the control socket)")
 
     sub.add_parser("status", help="devices, laser, scene, model, view, errors, jobs")
     sn = sub.add_parser("snapshot", help="capture the camera to a PNG")
@@ -248,9 +265,82 @@ def _human(cmd: str, result: Any) -> str:
     return str(result)
 
 
+def _remote(args: argparse.Namespace) -> bool:
+    """A daemon on another machine (--tcp beyond loopback): its guardian is not reachable here."""
+    return bool(args.tcp) and args.tcp.rpartition(":")[0].strip("[]") not in LOOPBACK_HOSTS
+
+
+def _guardian_socket(args: argparse.Namespace, settings: Any, daemon: Any) -> Path:
+    """--guardian-socket; else the configured guardian socket; else laser.sock in the daemon's
+    runtime directory (the one --socket lies in, or the configured one)."""
+    if args.guardian_socket:
+        return Path(args.guardian_socket)
+    if args.socket:
+        return socket_path_for(settings, Path(args.socket).parent)
+    return socket_path_for(settings, runtime_dir(daemon.runtime_dir if daemon else ""))
+
+
+def _laser_off(args: argparse.Namespace) -> int:
+    """`laser off` / `laser disarm`: through the daemon, else through the guardian (or the
+    port). 0 only when the lasers were read back off; the output says which path did it."""
+    cmd = f"nhfctl laser {args.action}"
+    args.timeout_s = min(args.timeout_s, OFF_DAEMON_TIMEOUT_S)
+    unavailable = False
+    try:
+        with _connect(args) as client:
+            result = client.call("laser", action=args.action)
+            where = client.where
+        # The daemon's guardian switched every channel off and read it back, or this raised.
+        print(json.dumps({**result, "switched_off_by": "daemon"}) if args.json else
+              f"all laser channels off (through the daemon at {where}, read back by its laser "
+              "guardian)")
+        return 0
+    except RpcError as exc:
+        reason = f"the daemon refused: {exc.name}: {exc.message}"
+    except DaemonUnavailable as exc:
+        reason, unavailable = str(exc), True
+    except (OSError, ValueError) as exc:
+        reason, unavailable = str(exc), True
+    if _remote(args):
+        print(f"{cmd}: error: lasers NOT confirmed off: {reason}; the laser guardian is on the "
+              "bench's machine: run `nhfd laser-off` there", file=sys.stderr)
+        return 3 if unavailable else 1
+    print(f"{cmd}: the daemon did not switch the lasers off ({reason}); switching them off "
+          "through the laser guardian", file=sys.stderr, flush=True)
+    settings, daemon = laser_settings(args.config, prog=cmd)
+    path = _guardian_socket(args, settings, daemon)
+    outcome = switch_all_off(settings, path, daemon, timeout_s=3.0, prog=cmd,
+                             port_hint="devices.readybeam.port, or nhfd laser-off --port")
+    if not outcome.confirmed:
+        print(f"{cmd}: error: lasers NOT confirmed off: {outcome.how}", file=sys.stderr)
+        return 3 if unavailable else 1
+    by = "guardian" if outcome.how.startswith("read back by the guardian") else "port"
+    print(json.dumps({"armed": False, "all_off": True, "switched_off_by": by,
+                      "how": outcome.how, "daemon": reason}) if args.json else
+          f"all laser channels off (without the daemon, {outcome.how})")
+    return 0
+
+
+def _wait_for_arm(client: Client, result: dict[str, Any]) -> tuple[int, Any]:
+    """A `laser arm` that waits for a person at the bench: say what to do, wait for its job."""
+    print(f"nhfctl laser arm: waiting for the person at the bench to {result['prompt']} "
+          f"(job {result['job']})", file=sys.stderr, flush=True)
+    job = client.wait_job(int(result["job"]))
+    if job["state"] != "done":
+        why = job["error"] or "still waiting after the wait"
+        print(f"nhfctl laser arm: error: job {job['id']} {job['state']}: {why}", file=sys.stderr)
+        return 1, job
+    return 0, job["result"]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cmd = args.command
+    if cmd == "laser" and args.action in ("off", "disarm"):
+        try:
+            return _laser_off(args)
+        except KeyboardInterrupt:
+            return 130
     try:
         method, params = _request(args)
         with _connect(args) as client:
@@ -264,6 +354,10 @@ def main(argv: Sequence[str] | None = None) -> int:
                         return 0
                     time.sleep(args.interval_s)
             result = client.call(method, **params)
+            if cmd == "laser" and isinstance(result, dict) and result.get("pending"):
+                code, result = _wait_for_arm(client, result)
+                if code:
+                    return code
             if getattr(args, "wait", False) and isinstance(result, dict) and "job" in result:
                 result = client.wait_job(int(result["job"]))
                 if result["state"] != "done":
