@@ -19,7 +19,32 @@ function connect() {
     const msg = JSON.parse(event.data);
     if (msg.type === "state") showState(msg);
     else if (msg.type === "reply") showReply(msg);
+    else if (msg.type === "refused") showError(`${msg.count} sent too fast: ${msg.error.message}`);
   };
+}
+
+// The server takes at most daemon.web.messages_per_s messages a second from a page (20 by
+// default) and drops the rest unanswered: a dragged slider sends its position at most every
+// VIEW_INTERVAL_MS, and always the last one.
+const VIEW_INTERVAL_MS = 100;
+let viewTimer = null;
+let viewDue = 0;
+function sendView() {
+  if (viewTimer !== null) return;  // the pending send reads the slider when it goes
+  const wait = viewDue - Date.now();
+  if (wait > 0) {
+    viewTimer = setTimeout(() => { viewTimer = null; sendView(); }, wait);
+    return;
+  }
+  viewDue = Date.now() + VIEW_INTERVAL_MS;
+  send("view", { orbit: orbitNow() });
+}
+
+function showError(message) {
+  const li = document.createElement("li");
+  li.className = "bad";
+  li.textContent = message;
+  $("errors").prepend(li);
 }
 
 function send(op, params) {
@@ -129,10 +154,10 @@ $("focus").addEventListener("change", () => send("focus", { z_mm: +$("focus").va
 for (const id of ["azimuth", "elevation"]) {
   $(id).addEventListener("input", () => {
     text(id === "azimuth" ? "az-value" : "el-value", $(id).value);
-    send("view", { orbit: orbitNow() });
+    sendView();
   });
 }
-$("radius").addEventListener("change", () => send("view", { orbit: orbitNow() }));
+$("radius").addEventListener("change", sendView);
 for (const b of document.querySelectorAll("[data-orbit]")) {
   b.addEventListener("click", () => {
     const [da, de, dr] = b.dataset.orbit.split(",").map(Number);
