@@ -484,8 +484,8 @@ class DaemonSettings(_Section):
     arm_users: list[str] = []
     arm_groups: list[str] = []
     # A person at the bench confirms each arm: "none", "spacemouse" (a button of the configured
-    # navigator) or "serial" (a key switch on arm_confirm_port's CTS or DSR line), within
-    # arm_confirm_timeout_s of the request.
+    # navigator) or "serial" (a key switch on arm_confirm_port's CTS or DSR line; the port
+    # "simulated" hosts a twin), within arm_confirm_timeout_s of the request.
     arm_confirm: Literal["none", "spacemouse", "serial"] = "none"
     arm_confirm_timeout_s: Annotated[float, Field(ge=1, le=120)] = 10.0
     arm_confirm_port: str = ""

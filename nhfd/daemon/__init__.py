@@ -8,7 +8,12 @@ pipeline as a separate, spawned process and talks to it over a pipe.
             request dispatch, `status`
   methods   the RPC methods, each against the narrow `Host` Protocol of the daemon it uses
   protocol  JSON-RPC 2.0 framing, parameter validation and THE table of error codes
-  server    the Unix-socket (and optional loopback TCP) line server
+  server    the Unix-socket (and optional loopback TCP) line server, with its bounds: slots,
+            deadlines, buffered bytes, lines and time per pass
+  arming    who may arm (the kernel's uid against daemon.arm_users / arm_groups) and the
+            optional confirmation at the bench (a key switch or a navigator button)
+  scene_check  a scene file read in a child process under daemon.scene_memory_mb before the
+            frame worker loads it
   client    the reference Python client (standard library only: `nhfctl` uses it)
   panel     what the SLM shows: view frames, the blank (zero-amplitude) pattern, calibration
             patterns, the capture hold; every change of the panel goes through it

@@ -31,6 +31,9 @@ so a bad request changes nothing.
                                                          uint8 pixels (base64, [H, W, C]), for
                                                          the web view's thumbnails
   auth         {token}                                -> TCP connections only
+  web_client   {address, tls?, token_file?}           -> the web view (this process only) names
+                                                         the web client its next requests on
+                                                         this connection come from (audit)
   shutdown     {}                                     -> lasers off, devices closed, exit
 
 `stop`, `blank` and laser `off`/`disarm` act on the control loop directly: they never wait
@@ -42,6 +45,7 @@ from __future__ import annotations
 import base64
 import hmac
 import math
+import os
 import queue
 import time
 import weakref
@@ -55,8 +59,9 @@ import numpy as np
 from nhfd.calibration import CalibrationFileError
 from nhfd.config import Config
 from nhfd.device_settings import COLOURS
-from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES, is_sog_folder, read_scene
+from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES, is_sog_folder
 
+from .arming import ArmingGate
 from .audit import AuditLog
 from .bench import Bench
 from .colour import ShownViews, capture_colours, check_laser_command
@@ -78,7 +83,8 @@ from .protocol import (
     RpcError,
     bad_param,
 )
-from .server import Connection, forwarded_by_ssh
+from .scene_check import read_scene_counts
+from .server import Connection
 from .views import ViewSlot, parse_view
 
 
@@ -101,6 +107,8 @@ class Host(Protocol):
     pattern_dirs: list[Path]
     tcp_token: str | None
     audit: AuditLog
+    arming: ArmingGate
+    navigation: Any
     laser: LaserLink
     bench: Bench
     views: ViewSlot
@@ -200,21 +208,16 @@ def _laser(d: Host, conn: Connection, p: Params) -> Any:
         cap_s = link.settings.arm_max_s
         duration_s = p.number("duration_s", 0.0, cap_s, low_open=True)
         p.done()
-        if conn.transport != "unix":
-            # A person arms from the bench's machine, identified by uid; never over the network.
-            raise RpcError(FORBIDDEN, "arming is accepted only over the Unix socket",
-                           {"field": "action", "allowed": "arm over the Unix socket only"})
-        if forwarded_by_ssh(conn.peer):  # the socket reached from elsewhere through SSH
-            raise RpcError(FORBIDDEN, "arming is refused through an SSH tunnel: a person arms "
-                           "on the bench's machine", {"field": "action", "allowed":
-                                                      "arm over the Unix socket only"})
-        reply = link.arm(duration_s)
-        return {"armed": True, "armed_remaining_s": reply.get("armed_remaining_s"),
-                "by_uid": conn.peer.get("uid")}
+        # Who may arm (the kernel's uid, daemon.arm_users / arm_groups; never over TCP) and the
+        # optional confirmation at the bench (a pending job): nhfd/daemon/arming.py.
+        return d.arming.arm(d, conn, duration_s)
     if action in ("disarm", "off"):
         p.done()
+        # First, so that an arm still waiting for its confirmation can never land after this.
+        cancelled = d.arming.cancel()
         link.disarm() if action == "disarm" else link.off()
-        return {"armed": False, "all_off": True}
+        return {"armed": False, "all_off": True,
+                **({"cancelled_arm_job": cancelled} if cancelled is not None else {})}
     channel = p.choice("channel", COLOURS)
     if action == "power":
         power_pct = p.number("power_pct", 0.0, 100.0)
@@ -448,11 +451,14 @@ def _load_scene(d: Host, conn: Connection, p: Params) -> Any:
                      " or ".join((*SCENE_SUFFIXES, *SCENE_NAMES, "a SOG folder")))
 
     def run(job: Job) -> dict[str, Any]:
-        # Refuses a file that is not a plausible scene (SceneFileError names the rule) before
-        # the worker is asked: the old scene keeps rendering.
-        load = read_scene(path)
+        # Refuses a file that is not a plausible scene (SceneFileError names the rule), holds
+        # more than daemon.max_gaussians or needs more than daemon.scene_memory_mb before the
+        # worker is asked: the old scene keeps rendering. Read in a child process (scene_check
+        # says why), so neither the daemon's memory nor its control loop pays for the file.
+        counts = read_scene_counts(path, d.config.daemon.max_gaussians,
+                                   d.config.daemon.scene_memory_mb, job.check)
         job.check()
-        info = {"path": str(path), **load.counts(), "loaded_s": time.time()}
+        info = {"path": str(path), **counts, "loaded_s": time.time()}
         # The frame worker loads its own copy (it renders in another process).
         info.update(d.frames.load_scene(str(path)), loaded_s=time.time())
         d.scene = info  # replaced only now: on failure the old scene keeps running
@@ -533,6 +539,26 @@ def _auth(d: Host, conn: Connection, p: Params) -> Any:
     return {"authenticated": True}
 
 
+def _web_client(d: Host, conn: Connection, p: Params) -> Any:
+    """The web view runs on a thread of this daemon and reaches it over the Unix socket, so
+    without this its requests read in the audit log as the daemon's own. It names the web
+    client (address, TLS, the token file it signed in with) that the next requests on this
+    connection come from. Only this process may say so: the kernel vouches for the peer's pid
+    (SO_PEERCRED); from anyone else it would be a claim nobody can check."""
+    address = p.string("address", max_len=100)
+    tls = p.boolean("tls", False)
+    token_file = p.string("token_file", None, max_len=1024)
+    p.done()
+    if conn.transport != "unix" or conn.peer.get("pid") != os.getpid():
+        raise RpcError(FORBIDDEN, "web_client is accepted only from the daemon's own web view",
+                       {"field": "method", "allowed": "the daemon's own process, over the Unix "
+                                                      "socket"})
+    client = {"via": "web view", "address": address, "tls": tls,
+              **({"token_file": token_file} if token_file else {})}
+    conn.peer["web_client"] = client  # in `conn.who` from now on
+    return {"web_client": client}
+
+
 def _shutdown(d: Host, conn: Connection, p: Params) -> Any:
     p.done()
     d.request_shutdown(f"shutdown requested by {conn.who}")
@@ -555,5 +581,6 @@ METHODS: dict[str, Method] = {
     "job": Method(_job, audited=False, while_stopping=True),
     "preview": Method(_preview, audited=False),
     "auth": Method(_auth, audited=False, while_stopping=True),
+    "web_client": Method(_web_client, audited=False, while_stopping=True),
     "shutdown": Method(_shutdown, audited=True, while_stopping=True),
 }

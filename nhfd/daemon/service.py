@@ -27,6 +27,7 @@ import json
 import logging
 import os
 import queue
+import resource
 import secrets
 import signal
 import socket
@@ -42,6 +43,7 @@ from nhfd.calibration import active_calibration, calibration_refusal, new_refusa
 from nhfd.config import ConfigError, cross_field_problems
 
 from . import protocol
+from .arming import ArmingGate
 from .audit import AuditLog, compact_params
 from .bench import Bench, focus_stage_mm
 from .frame_link import FrameLink, apply_camera_roi
@@ -64,7 +66,7 @@ from .protocol import (
     RpcError,
 )
 from .recording import SessionRecorder, view_params
-from .server import Connection, LineServer, server_tls_context
+from .server import Connection, LineServer, raise_open_files, server_tls_context
 from .views import ViewSlot
 
 log = logging.getLogger("nhfd.daemon")
@@ -129,6 +131,8 @@ class Daemon:
         self.views = ViewSlot()
         self.frames = FrameLink(self)  # the spawned render/inference worker, started on demand
         self.navigation = NavigatorInput(self)
+        # Who may arm and the bench's confirmation (a ConfigError here names the missing input).
+        self.arming = ArmingGate(c, config.devices.navigator)
         self.recorder: SessionRecorder | None = None  # daemon.record / serve --record
         self.scene: dict[str, Any] | None = None
         self.errors: deque[dict[str, Any]] = deque(maxlen=20)
@@ -170,6 +174,7 @@ class Daemon:
         if problems:
             raise ConfigError("; ".join(problems))
         active_calibration(self.config)  # a configured but unreadable file stops the start here
+        self._raise_open_files()  # before anything opens sockets or devices
         # Another user could have made /tmp/nhfd-<uid> first, with a fake guardian in it.
         make_private_dir(self.runtime_dir, group_writable_ok=bool(c.socket_group), mode=0o750)
         self._take_lock()
@@ -202,7 +207,12 @@ class Daemon:
         self.server = LineServer(self.handle_line, unix_path=self.socket_path,
                                  socket_group=c.socket_group, tcp_port=c.tcp_port,
                                  tcp_host=c.tcp_host, tls=tls,
-                                 max_line_bytes=c.max_line_bytes, max_clients=c.max_clients)
+                                 max_line_bytes=c.max_line_bytes, max_clients=c.max_clients,
+                                 max_tcp_clients=c.max_tcp_clients,
+                                 max_unauthenticated=c.max_unauthenticated,
+                                 auth_timeout_s=c.auth_timeout_s,
+                                 max_buffered_bytes=c.max_buffered_bytes,
+                                 lines_per_poll=c.lines_per_poll, tick_budget_s=c.tick_budget_s)
         self.server.listen()
         if self.handle_signals:
             signal.signal(signal.SIGTERM, self._on_signal)
@@ -213,6 +223,19 @@ class Daemon:
         log.info("ready: lasers off (read back); devices: %s; socket %s", devices or "none",
                  self.socket_path)
         self.notifier.ready(f"ready: lasers off; devices: {devices or 'none'}")
+
+    def _raise_open_files(self) -> None:
+        """The soft limit on open files up to daemon.open_files (the hard limit caps it):
+        a distribution's default soft limit of 1024 is what 1,100 idle connections once hit."""
+        wanted = self.config.daemon.open_files
+        soft, hard = raise_open_files(wanted)
+        shown = "unlimited" if hard == resource.RLIM_INFINITY else str(hard)
+        if soft != resource.RLIM_INFINITY and soft < wanted:
+            log.warning("open files: soft limit %d, below daemon.open_files = %d (the hard limit "
+                        "is %s; raise it, e.g. LimitNOFILE= in the unit)", soft, wanted, shown)
+        else:
+            log.info("open files: soft limit %s (daemon.open_files = %d, hard limit %s)",
+                     "unlimited" if soft == resource.RLIM_INFINITY else soft, wanted, shown)
 
     def _take_lock(self) -> None:
         path = self.runtime_dir / LOCK_NAME
@@ -393,6 +416,7 @@ class Daemon:
         self.notifier.stopping()
         if self.server is not None:
             self.server.flush_all()  # the shutdown caller hears its reply
+        self.arming.close()  # an arm still waiting for its confirmation never lands after this
         how = self.laser.close()
         confirmed = how != "not confirmed"
         with contextlib.suppress(Exception):
