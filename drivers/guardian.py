@@ -138,6 +138,12 @@ class Guardian:
         self.token = secrets.token_urlsafe(32)
         self.stopped = False
         self._last_heartbeat: float | None = None
+        # Why the guardian last disarmed by itself, and how often it has: the daemon reads both
+        # in each heartbeat reply, so its audit says "no heartbeat for 0.5 s" rather than
+        # guessing between an expiry and a fault.
+        self.trips = 0
+        self.last_trip: dict[str, Any] | None = None
+        self._expiries_seen = laser.expiries
         self._sel = selectors.DefaultSelector()
         self._server: socket.socket | None = None
         self._clients: dict[int, _Client] = {}
@@ -245,17 +251,31 @@ class Guardian:
         if not laser.connected:
             self._retry_link()
             return
-        try:
-            laser.service()
-        except DeviceError as exc:
-            log.error("guardian: arming expiry: %s", exc)
+        self._service_laser()
         last = self._last_heartbeat
         if last is not None and time.monotonic() - last > self.heartbeat_timeout_s:
             self._trip(f"no heartbeat for {self.heartbeat_timeout_s:g} s")
 
+    def _service_laser(self) -> None:
+        """Enforce arming expiry now, recording an arming that ran out (here or in a command's
+        own `service()`) as a trip."""
+        try:
+            self.laser.service()
+        except DeviceError as exc:
+            log.error("guardian: arming expiry: %s", exc)
+        if self.laser.expiries != self._expiries_seen:
+            self._expiries_seen = self.laser.expiries
+            self._record_trip("arming expired")
+
+    def _record_trip(self, reason: str) -> None:
+        self.trips += 1
+        self.last_trip = {"reason": reason, "at_s": time.time()}
+
     def _trip(self, reason: str) -> None:
         """Session over: disarm, all off with read-back."""
         self._last_heartbeat = None
+        if self.laser.armed:
+            self._record_trip(reason)
         log.warning("guardian: %s: disarming, all channels off", reason)
         try:
             self.laser.disarm()
@@ -319,8 +339,11 @@ class Guardian:
         if op == "heartbeat":
             client.controller = True
             self._last_heartbeat = time.monotonic()
+            if laser.connected:  # the reply tells an arming that just ran out as a trip
+                self._service_laser()
             return {"armed": laser.armed, "armed_remaining_s": laser.armed_remaining_s,
-                    "fault": laser.fault, "connected": laser.connected}
+                    "fault": laser.fault, "connected": laser.connected, "trips": self.trips,
+                    "last_trip": self.last_trip}
         if op == "off":
             # Raises (and the client hears why) unless every channel read back off.
             if laser.connected:

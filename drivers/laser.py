@@ -131,6 +131,7 @@ class Laser(Device, ABC):
         self._lock = threading.RLock()
         self._connected = False
         self._armed_until: float | None = None
+        self.expiries = 0  # armings that ran out (`service`), for the guardian's trip record
         self._fault: str | None = None
         self.device_type: int | None = None
         # The unit's serial number where the device reports one (the guardian's identity).
@@ -240,6 +241,7 @@ class Laser(Device, ABC):
         with self._lock:
             if self._armed_until is not None and self._clock() >= self._armed_until:
                 self._armed_until = None
+                self.expiries += 1
                 log.warning("%s: arming expired, all channels off", self.name)
                 if self._connected:
                     self.all_off()

@@ -84,6 +84,11 @@ class LaserLink:
         self.replaced = 0  # hung guardians killed and replaced
         self.error: str | None = None
         self._beat: dict[str, Any] = {}
+        # The control loop's heartbeats as the daemon sent them: a gap past half the guardian's
+        # timeout is logged (the loop stalled), and counted for `status`.
+        self._beat_sent_at: float | None = None
+        self.late_heartbeats = 0
+        self.max_heartbeat_gap_s = 0.0
         self._channels: dict[str, Any] = {}
         self._read_at = 0.0
         self._next_reconnect = 0.0
@@ -280,6 +285,7 @@ class LaserLink:
         if self.client is None:
             self._reconnect(now)
             return
+        gap_s = self._heartbeat_gap(time.monotonic())  # `now` predates waiting for the lock
         try:
             beat = self.client.heartbeat(timeout_s=self.heartbeat_timeout_s)
         except GuardianError as exc:
@@ -287,12 +293,33 @@ class LaserLink:
             self._reconnect(now)  # at once: a hung guardian may be holding the lasers on
             return
         if self._beat.get("armed") and not beat["armed"]:
-            self.audit.write(SYSTEM, "laser disarmed by the guardian (expiry or fault)",
-                             fault=beat.get("fault"))
+            # The guardian says why (an older one does not: then it was an expiry or a fault).
+            new_trip = beat.get("trips", 0) > self._beat.get("trips", 0)
+            reason = (beat.get("last_trip") or {}).get("reason") if new_trip else None
+            self.audit.write(SYSTEM, f"laser disarmed by the guardian: "
+                             f"{reason or 'arming expiry or a fault'}", fault=beat.get("fault"),
+                             heartbeat_gap_ms=round(gap_s * 1e3, 1))
         self._beat = beat
         self.error = None
         if now - self._read_at >= self.refresh_s:
             self.refresh(now)
+
+    def _heartbeat_gap(self, now: float) -> float:
+        """Seconds since the previous heartbeat was sent (`now`: monotonic, when this one is
+        sent; 0 for the first); a gap past half
+        the guardian's timeout is logged: the control loop stalled, and the guardian disarms
+        once a gap reaches its timeout."""
+        last, self._beat_sent_at = self._beat_sent_at, now
+        if last is None:
+            return 0.0
+        gap_s = now - last
+        self.max_heartbeat_gap_s = max(self.max_heartbeat_gap_s, gap_s)
+        timeout_s = float(self.identity.get("heartbeat_timeout_s") or 0.0)
+        if timeout_s and gap_s > timeout_s / 2:
+            self.late_heartbeats += 1
+            log.warning("heartbeat %.0f ms after the previous one (the guardian disarms at "
+                        "%.0f ms): the control loop stalled", gap_s * 1e3, timeout_s * 1e3)
+        return gap_s
 
     def refresh(self, now: float | None = None) -> None:
         with self._lock:
@@ -423,7 +450,9 @@ class LaserLink:
                          "spawned_pid": self.proc.pid if self.proc else None,
                          "port": self.identity.get("port"),
                          "serial_number": self.identity.get("serial_number"),
-                         "replaced": self.replaced},
+                         "replaced": self.replaced,
+                         "late_heartbeats": self.late_heartbeats,
+                         "max_heartbeat_gap_ms": round(self.max_heartbeat_gap_s * 1e3, 1)},
             "state": "read back through the guardian" if self.client is not None else UNKNOWN,
             "armed": bool(self._beat.get("armed", False)),
             "armed_remaining_s": self._beat.get("armed_remaining_s", 0.0),

@@ -130,6 +130,31 @@ def test_emission_needs_a_live_heartbeat(mecom_twin, short_dir):
     assert mecom_twin.max_emitted_pct() == 0.0
 
 
+def test_each_self_disarm_is_counted_and_its_reason_told_in_the_heartbeat(mecom_twin,
+                                                                          short_dir):
+    """The daemon audits what the guardian says here (issue 32): a lapsed heartbeat and an
+    arming that ran out are told apart; a heartbeat lapse while disarmed is no disarm."""
+    sock = short_dir / "laser.sock"
+    guardian = spawn_guardian(guardian_settings(sock), port=mecom_twin.port_path,
+                              stderr=subprocess.DEVNULL)
+    with reaped(guardian), controller(sock) as client:
+        beat = client.heartbeat()
+        assert (beat["trips"], beat["last_trip"]) == (0, None)
+        time.sleep(0.7)  # lapses while disarmed: nothing to disarm, nothing counted
+        assert client.heartbeat()["trips"] == 0
+        client.arm(30)
+        time.sleep(0.7)
+        beat = client.heartbeat()
+        assert not beat["armed"] and beat["trips"] == 1
+        assert beat["last_trip"]["reason"] == "no heartbeat for 0.5 s"
+        client.arm(0.2)
+        deadline = time.monotonic() + 3.0
+        while (beat := client.heartbeat())["armed"]:
+            assert time.monotonic() < deadline, "arming never ran out"
+            time.sleep(0.05)
+        assert beat["trips"] == 2 and beat["last_trip"]["reason"] == "arming expired"
+
+
 def test_nhfd_laser_off_through_the_guardian(mecom_twin, short_dir, capsys):
     sock = short_dir / "laser.sock"
     guardian = spawn_guardian(guardian_settings(sock, heartbeat_timeout_s=5.0),
