@@ -31,6 +31,7 @@ import os
 import resource
 import shutil
 import sys
+import threading
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, replace
@@ -42,7 +43,7 @@ import numpy as np
 from nhfd import __version__
 from nhfd.config import device_choice
 from nhfd.dataset.build import build as build_dataset
-from nhfd.dataset.build import sha256_file, write_json_atomic
+from nhfd.dataset.build import sha256_file, shard_name, write_json_atomic
 from nhfd.dataset.envelope import dataset_envelope
 from nhfd.dataset.poses import EXTRAP_SHARE, INTERP_SHARE, PoseSampler, orbit_sampler
 from nhfd.dataset.shard import ExampleSettings
@@ -65,6 +66,8 @@ from nhfd.scene.suggest import detect_up_axis, format_hint
 
 STAGES = ("scene", "reduce", "dataset", "train", "export", "eval", "report")
 STATE = "build.json"
+# How often a running stage's time so far is written into STATE (a killed attempt loses less).
+ATTEMPT_RECORD_S = 10.0
 FORMAT = "nhfd-model-build"
 FORMAT_VERSION = 1
 # The reduced-precision candidates, in the order they are built and evaluated; each is kept
@@ -155,6 +158,74 @@ def _copy_atomic(src: Path, dst: Path) -> None:
     tmp = dst.with_name(dst.name + ".tmp")
     shutil.copyfile(src, tmp)
     os.replace(tmp, dst)
+
+
+def _stat_key(path: Path) -> list[int]:
+    st = path.stat()
+    return [st.st_size, st.st_mtime_ns]
+
+
+def record_outputs(out: Path, entry: dict) -> None:
+    """Record the sha256 (and size and mtime) of each of a finished stage's outputs (paths
+    relative to OUT). Called when it finishes and again after every later stage, which may
+    legitimately rewrite an earlier stage's file (eval writes its record into the models): only
+    files whose size or mtime moved are hashed again."""
+    hashes, stats = entry.setdefault("output_sha256", {}), entry.setdefault("output_stat", {})
+    for o in entry.get("result", {}).get("outputs", []):
+        path = out / o
+        if not path.is_file():
+            continue
+        key = _stat_key(path)
+        if stats.get(o) != key or o not in hashes:
+            hashes[o], stats[o] = sha256_file(path), key
+
+
+def changed_outputs(out: Path, entry: dict) -> list[str]:
+    """The outputs of a finished stage that are missing or whose bytes changed since it
+    finished (a build recorded before the hashes were: existence only). Empty: still done."""
+    outputs = entry.get("result", {}).get("outputs", [])
+    hashes = entry.get("output_sha256", {})
+    return [o for o in outputs if not (out / o).is_file()
+            or (o in hashes and sha256_file(out / o) != hashes[o])]
+
+
+def carried_time(entry: dict | None) -> dict[str, float]:
+    """Seconds and CPU seconds of the earlier attempts at an unfinished stage: those that
+    ended by an exception (`partial`) and the one that was killed (its `attempt`, as last
+    written by `AttemptClock`)."""
+    entry = entry or {}
+    parts = [entry.get("partial") or {}, entry.get("attempt") or {}]
+    return {k: float(sum(p.get(k, 0.0) for p in parts)) for k in ("seconds", "cpu_s")}
+
+
+class AttemptClock:
+    """While a stage runs, hands its attempt's time so far to `record` every `every_s` (from a
+    thread; `record` writes it into the build state), so an attempt that is killed (SIGKILL,
+    out of memory, a power cut) still counts towards the stage's time on resume, to within
+    `every_s`. Leaving the block hands `record` None: the attempt ended in this process."""
+
+    def __init__(self, record: Callable[[dict[str, float] | None], None],
+                 every_s: float = 10.0) -> None:
+        self.record, self.every_s = record, every_s
+        self.t0, self.cpu0 = time.perf_counter(), _cpu_s()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="attempt-clock")
+
+    def elapsed(self) -> dict[str, float]:
+        return {"seconds": time.perf_counter() - self.t0, "cpu_s": _cpu_s() - self.cpu0}
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.every_s):
+            self.record(self.elapsed())
+
+    def __enter__(self) -> AttemptClock:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self.record(None)
 
 
 def _reset_peak_rss() -> bool:
@@ -305,7 +376,9 @@ def _dataset(ctx: Context) -> dict:
             "sampling": manifest["sampling"], "splits": {k: len(v) for k, v in
                                                          manifest["splits"].items()},
             "envelope": manifest["envelope"], "build_timing": manifest.get("build_timing"),
-            "outputs": ["dataset/manifest.json"]}  # fmt: skip
+            # Every shard, so that a shard changed after the build is seen (its hash) on resume.
+            "outputs": ["dataset/manifest.json",
+                        *(f"dataset/{shard_name(i)}" for i in range(len(poses)))]}  # fmt: skip
 
 
 def _train(ctx: Context) -> dict:
@@ -585,50 +658,79 @@ def run_build(
     estimate = {s: _work(ctx, s) for s in STAGES}
     speed = 1.0  # measured / estimated over the stages run so far
     ran, skipped = [], []
+    lock = threading.Lock()  # the attempt clock's thread writes the state file too
+
+    def save() -> None:
+        with lock:
+            write_json_atomic(out / STATE, state)
+
     for i, stage in enumerate(STAGES, 1):
         entry = state["stages"].get(stage)
-        outputs_ok = entry is not None and all((out / o).exists() for o in
-                                               entry.get("result", {}).get("outputs", []))
+        finished = bool(entry and entry.get("done") and entry["key"] == keys[stage])
+        changed = changed_outputs(out, entry) if finished and not ran else []
         # Once a stage runs, every stage after it runs too: its inputs were rewritten.
-        if not ran and entry and entry.get("done") and entry["key"] == keys[stage] and outputs_ok:
+        if finished and not ran and not changed:
             ctx.results[stage] = entry["result"]
             entry["skipped"] = True
             skipped.append(stage)
             say(f"[{i}/{len(STAGES)}] {stage}: skipped (done, inputs unchanged)")
             continue
+        if changed:
+            # Outputs changed after the stage finished (a corrupted shard, an edited file): they
+            # go, and the stage continues from what is intact, as an interrupted one does.
+            say(f"[{i}/{len(STAGES)}] {stage}: {len(changed)} output(s) changed since it "
+                f"finished ({', '.join(changed[:3])}{', ...' if len(changed) > 3 else ''}); "
+                "rebuilding them")
+            for o in changed:
+                (out / o).unlink(missing_ok=True)
+            entry["done"] = False
         left = sum(estimate[s] for s in STAGES[i - 1:] if s not in ctx.results) * speed
         say(f"[{i}/{len(STAGES)}] {stage}: about {_fmt_s(estimate[stage] * speed)}; "
             f"{_fmt_s(time.perf_counter() - t_all)} elapsed, about {_fmt_s(left)} left")
         # An unfinished stage with the same inputs continues (the dataset's shards, the
         # training checkpoint); one whose inputs changed, or that is redone, starts over.
         ctx.force_stage = bool(entry) and (entry["key"] != keys[stage] or entry.get("done"))
-        # Time spent by interrupted attempts at the same stage counts toward its time.
-        before = (entry or {}).get("partial", {"seconds": 0.0, "cpu_s": 0.0}) \
-            if not ctx.force_stage else {"seconds": 0.0, "cpu_s": 0.0}
+        # Time spent by earlier attempts at the same stage (failed or killed) counts toward
+        # its time.
+        before = carried_time(None if ctx.force_stage or changed else entry)
         state["stages"][stage] = {"key": keys[stage], "done": False, "started": time.time(),
                                   "partial": before}  # fmt: skip
-        write_json_atomic(out / STATE, state)
+        save()
         reset = _reset_peak_rss()
         children0 = _children_peak_mb()
-        t0, cpu0 = time.perf_counter(), _cpu_s()
+
+        def record(spent: dict[str, float] | None, entry: dict = state["stages"][stage]) -> None:
+            with lock:
+                if spent is None:
+                    entry.pop("attempt", None)
+                else:
+                    entry["attempt"] = spent
+                write_json_atomic(out / STATE, state)
+
+        clock = AttemptClock(record, ATTEMPT_RECORD_S)
         try:
-            result = STAGE_FUNCS[stage](ctx)
+            with clock:
+                result = STAGE_FUNCS[stage](ctx)
         except BaseException:
-            state["stages"][stage]["partial"] = {
-                "seconds": before["seconds"] + time.perf_counter() - t0,
-                "cpu_s": before["cpu_s"] + _cpu_s() - cpu0}
-            write_json_atomic(out / STATE, state)
+            spent = clock.elapsed()
+            with lock:
+                state["stages"][stage]["partial"] = {k: before[k] + spent[k] for k in spent}
+            save()
             raise
-        seconds = before["seconds"] + time.perf_counter() - t0
-        cpu_s = before["cpu_s"] + _cpu_s() - cpu0
+        spent = clock.elapsed()
+        seconds, cpu_s = before["seconds"] + spent["seconds"], before["cpu_s"] + spent["cpu_s"]
         ctx.results[stage] = result
         children = _children_peak_mb()
-        state["stages"][stage].update(
-            done=True, result=result, seconds=seconds, cpu_s=cpu_s,
-            peak_rss_mb=_peak_rss_mb() if reset else None,
-            children_peak_rss_mb=children if children > children0 else None, skipped=False,
-        )  # fmt: skip
-        write_json_atomic(out / STATE, state)
+        with lock:
+            state["stages"][stage].update(
+                done=True, result=result, seconds=seconds, cpu_s=cpu_s,
+                peak_rss_mb=_peak_rss_mb() if reset else None,
+                children_peak_rss_mb=children if children > children0 else None, skipped=False,
+            )  # fmt: skip
+            for e in state["stages"].values():  # this stage's, and what it rewrote of others'
+                if e.get("done"):
+                    record_outputs(out, e)
+        save()
         ran.append(stage)
         # The machine's speed against the estimates, from the long stages only (a stage of a
         # second or two says nothing about the rest).
@@ -637,9 +739,10 @@ def run_build(
             speed = (sum(state["stages"][s]["seconds"] for s in timed)
                      / max(sum(estimate[s] for s in timed), 1e-9))
         say(f"[{i}/{len(STAGES)}] {stage}: done in {_fmt_s(seconds)} ({cpu_s:.0f} CPU s)")
-    write_json_atomic(out / STATE, state)
     if ran:  # the report's stage table then has every stage's time, its own included
         write_json_atomic(out / "report.json", build_report(ctx, ctx.results["report"]["sheet"]))
+        record_outputs(out, state["stages"]["report"])  # rewritten just now, by the build
+    write_json_atomic(out / STATE, state)
     report = json.loads((out / "report.json").read_text())
     return BuildResult(out, report, ran, skipped)
 

@@ -161,6 +161,86 @@ def test_a_rerun_skips_every_stage_and_touches_no_file(built):
     assert _fingerprints(out) == before
 
 
+LATE_STAGES = ("train", "export", "eval", "report")
+
+
+@pytest.fixture
+def early_build(tmp_path, monkeypatch):
+    """A build whose stages after the dataset are stand-ins (fast: what they return is all the
+    tests below read), built once; returns (OUT, a rerun function, the run's log)."""
+    for stage in LATE_STAGES:
+        monkeypatch.setitem(mb.STAGE_FUNCS, stage, lambda ctx: {"sheet": None, "outputs": []})
+    monkeypatch.setattr(mb, "build_report", lambda ctx, sheet: {"stand-in": True})
+    out, logs = tmp_path / "early", []
+
+    def rerun():
+        logs.clear()
+        return run_build(SCENE, out, tiny_recipe(views=6), Config(), workers=1,
+                         log=logs.append, progress=False)  # fmt: skip
+
+    rerun()
+    return out, rerun, logs
+
+
+def test_a_shard_changed_after_the_build_is_rebuilt_on_resume(early_build):
+    """A finished dataset counts as done only while its shards hash as they did (issue 32):
+    the changed shard is rebuilt, the intact ones kept, and the stages after it run again."""
+    out, rerun, logs = early_build
+    state = json.loads((out / mb.STATE).read_text())
+    entry = state["stages"]["dataset"]
+    shards = sorted(p.name for p in (out / "dataset").glob("view_*.npz"))
+    assert len(shards) == 6
+    assert set(entry["output_sha256"]) == {"dataset/manifest.json",
+                                           *(f"dataset/{n}" for n in shards)}
+    victim = out / "dataset" / shards[3]
+    data = bytearray(victim.read_bytes())
+    data[len(data) // 2] ^= 0xFF  # one flipped byte, the zip still opens
+    victim.write_bytes(bytes(data))
+    assert mb.changed_outputs(out, entry) == [f"dataset/{shards[3]}"]
+    assert all(mb.changed_outputs(out, state["stages"][s]) == [] for s in STAGES if s != "dataset")
+    kept = {n: (out / "dataset" / n).stat().st_mtime_ns for n in shards if n != shards[3]}
+    res = rerun()
+    assert res.skipped == ["scene", "reduce"] and res.ran == list(STAGES[2:])
+    assert f"[3/7] dataset: 1 output(s) changed since it finished (dataset/{shards[3]}); " \
+           "rebuilding them" in logs
+    assert {n: (out / "dataset" / n).stat().st_mtime_ns for n in kept} == kept
+    after = json.loads((out / mb.STATE).read_text())["stages"]["dataset"]
+    assert mb.changed_outputs(out, after) == []
+    assert after["output_sha256"][f"dataset/{shards[3]}"] == mb.sha256_file(victim)
+    assert rerun().ran == []  # and now it is done again
+
+
+def test_a_killed_attempts_time_counts_towards_its_stage(early_build):
+    """An attempt killed outright (nothing of it ran its except) left its time in `attempt`,
+    written while it ran; the resumed stage's seconds include it and the failed attempts'."""
+    out, rerun, _ = early_build
+    state = json.loads((out / mb.STATE).read_text())
+    report = state["stages"]["report"]
+    state["stages"]["report"] = {"key": report["key"], "done": False, "started": 0.0,
+                                 "partial": {"seconds": 5.0, "cpu_s": 1.0},
+                                 "attempt": {"seconds": 30.0, "cpu_s": 4.0}}
+    (out / mb.STATE).write_text(json.dumps(state))
+    assert rerun().ran == ["report"]
+    done = json.loads((out / mb.STATE).read_text())["stages"]["report"]
+    assert done["done"] and "attempt" not in done
+    assert 35.0 <= done["seconds"] < 35.0 + 60 and done["cpu_s"] >= 5.0
+
+
+def test_the_attempt_clock_records_while_the_stage_runs_and_clears_at_the_end():
+    import time
+
+    seen: list = []
+    with mb.AttemptClock(seen.append, every_s=0.02):
+        time.sleep(0.2)
+    assert seen[-1] is None and len(seen) >= 3
+    running = [s["seconds"] for s in seen[:-1]]
+    assert running == sorted(running) and 0 < running[0] < running[-1] <= 0.25
+    assert mb.carried_time({"partial": {"seconds": 2.0}, "attempt": {"seconds": 3.0,
+                                                                      "cpu_s": 1.0}}) == \
+        {"seconds": 5.0, "cpu_s": 1.0}
+    assert mb.carried_time(None) == {"seconds": 0.0, "cpu_s": 0.0}
+
+
 def test_another_recipe_or_scene_is_refused_without_force(built, tmp_path):
     out, *_ = built
     before = _fingerprints(out)
