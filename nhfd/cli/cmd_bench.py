@@ -23,6 +23,8 @@ BENCHES: tuple[Command, ...] = (
     Command("pipeline", "nhfd.benchmarks.pipeline", "view-change-to-SLM latency per stage"),
     Command("load", "nhfd.benchmarks.load", "status latency and memory under a set_view storm"),
     Command("safety", "nhfd.benchmarks.safety", "time from each fault to every laser off"),
+    Command("hostile", "nhfd.benchmarks.hostile",
+            "attacks on a lit daemon: status, disarms, memory, laser off"),
     Command("triggers", "nhfd.benchmarks.triggers",
             "calibration capture time with and without hardware triggers"),
     Command("distributed", "nhfd.benchmarks.distributed",
