@@ -24,7 +24,8 @@ from typing import Protocol
 import serial
 
 from .device import Device
-from .errors import DeviceError, PortBusy, PortNotFound, PortVanished, TransportError
+from .errors import DeviceError, PortVanished, TransportError
+from .transport import open_serial
 
 LINES = ("cts", "dsr")
 
@@ -48,15 +49,7 @@ LinesOpener = Callable[[], ModemLines]
 def open_serial_lines(port: str) -> ModemLines:
     """`port` opened exclusively through pyserial, without hardware flow control (which would
     take the lines read here), its DTR and RTS asserted by the open."""
-    try:
-        return serial.Serial(port=port, timeout=0, exclusive=True, rtscts=False, dsrdtr=False)
-    except serial.SerialException as exc:
-        text = str(exc)
-        if "exclusively lock" in text:
-            raise PortBusy(f"{port}: another process holds this port") from None
-        if isinstance(exc.__context__, FileNotFoundError) or "No such file" in text:
-            raise PortNotFound(f"{port}: no such port") from None
-        raise TransportError(f"{port}: cannot open: {text}") from None
+    return open_serial(port, rtscts=False, dsrdtr=False)
 
 
 class KeySwitch(Device):

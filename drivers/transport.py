@@ -27,6 +27,7 @@ from abc import ABC, abstractmethod
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from .errors import PortBusy, PortNotFound, PortVanished, ReplyTimeout, TransportError
 
@@ -293,6 +294,23 @@ def find_serial_port(usb_serial: str, vid: int | None = None, pid: int | None = 
     raise PortNotFound(f"USB serial number {usb_serial!r} matches several ports: {matches}")
 
 
+def open_serial(port: str, **settings: Any) -> Any:
+    """`port` opened exclusively through pyserial, non-blocking (`timeout=0`) with `settings`
+    (baud rate, flow control, ...); its errors as the drivers' own, naming the port: PortBusy,
+    PortNotFound or TransportError."""
+    import serial
+
+    try:
+        return serial.Serial(port=port, timeout=0, exclusive=True, **settings)
+    except serial.SerialException as exc:
+        text = str(exc)
+        if "exclusively lock" in text:
+            raise PortBusy(f"{port}: another process holds this port") from None
+        if isinstance(exc.__context__, FileNotFoundError) or "No such file" in text:
+            raise PortNotFound(f"{port}: no such port") from None
+        raise TransportError(f"{port}: cannot open: {text}") from None
+
+
 class SerialTransport(Transport):
     """A pyserial port, opened exclusively, 8N1."""
 
@@ -309,25 +327,9 @@ class SerialTransport(Transport):
 
         super().__init__(port)
         self._sysfs_root = sysfs_root
-        try:
-            self._ser = serial.Serial(
-                port=port,
-                baudrate=baud,
-                bytesize=serial.EIGHTBITS,
-                parity=serial.PARITY_NONE,
-                stopbits=serial.STOPBITS_ONE,
-                rtscts=rtscts,
-                timeout=0,
-                write_timeout=write_timeout_s,
-                exclusive=True,
-            )
-        except serial.SerialException as exc:
-            text = str(exc)
-            if "exclusively lock" in text:
-                raise PortBusy(f"{port}: another process holds this port") from None
-            if isinstance(exc.__context__, FileNotFoundError) or "No such file" in text:
-                raise PortNotFound(f"{port}: no such port") from None
-            raise TransportError(f"{port}: cannot open: {text}") from None
+        self._ser = open_serial(port, baudrate=baud, bytesize=serial.EIGHTBITS,
+                                parity=serial.PARITY_NONE, stopbits=serial.STOPBITS_ONE,
+                                rtscts=rtscts, write_timeout=write_timeout_s)
 
     def line_control(self, control: LineControl) -> None:
         self._check_open()

@@ -613,17 +613,20 @@ class Peers(Attack):
         return counts
 
 
-class TcpLockout(Peers):
+class HeldConnections(Peers):
+    """Many connections opened and held silent on one port, reopened when closed; a refusal
+    reads `refusal` (the busy error's code, or the 503 status line)."""
+
     flood = True
 
-    def __init__(self, bench: HostileBench) -> None:
-        super().__init__({"tcp": (hold_connections, (bench.tcp_port, TCP_CONNECTIONS,
-                                                      b"1001"))})
+    def __init__(self, port: int, count: int, refusal: bytes, refused_as: str) -> None:
+        super().__init__({"held": (hold_connections, (port, count, refusal))})
+        self.refused_as = refused_as
 
     def summary(self, counts: dict[str, Any]) -> tuple[str, int]:
-        c = counts["tcp"]
+        c = counts["held"]
         refused = c.get("refused", 0) + c.get("closed_unanswered", 0)
-        return (f"{c.get('opened', 0)} connects: {c.get('refused', 0)} busy replies, "
+        return (f"{c.get('opened', 0)} connects: {c.get('refused', 0)} {self.refused_as}, "
                 f"{c.get('closed_unanswered', 0)} closed unanswered, at most "
                 f"{c.get('open_max', 0)} open at once", refused)
 
@@ -665,21 +668,6 @@ class DeepJson(Peers):
             if c.get("results") else []
 
 
-class WebConnections(Peers):
-    flood = True
-
-    def __init__(self, bench: HostileBench) -> None:
-        super().__init__({"web": (hold_connections, (bench.web_port, WEB_CONNECTIONS,
-                                                      b" 503 "))})
-
-    def summary(self, counts: dict[str, Any]) -> tuple[str, int]:
-        c = counts["web"]
-        refused = c.get("refused", 0) + c.get("closed_unanswered", 0)
-        return (f"{c.get('opened', 0)} connects: {c.get('refused', 0)} got 503, "
-                f"{c.get('closed_unanswered', 0)} closed unanswered, at most "
-                f"{c.get('open_max', 0)} open at once", refused)
-
-
 class WebFlood(Peers):
     flood = True
 
@@ -715,8 +703,9 @@ class HostileFile:
     path: Path = field(default=Path())
 
 
-def _gzip_of(head: bytes, zeros: int) -> bytes:
-    """A gzip stream of `head` then `zeros` zero bytes, compressed piece by piece."""
+def gzip_of(head: bytes, zeros: int) -> bytes:
+    """A gzip stream of `head` then `zeros` zero bytes, compressed piece by piece (never holding
+    the inflated data: tests/scene/test_hostile_files.py builds its bombs with it too)."""
     co = zlib.compressobj(9, zlib.DEFLATED, 16 + zlib.MAX_WBITS)
     out = [co.compress(head)]
     piece = bytes(1 << 20)
@@ -726,8 +715,9 @@ def _gzip_of(head: bytes, zeros: int) -> bytes:
     return b"".join(out) + co.flush()
 
 
-def _zstd_zeros(n: int) -> bytes:
-    """One zstd frame of n zero bytes that states its size in its header."""
+def zstd_zeros(n: int) -> bytes:
+    """One zstd frame of n zero bytes whose header states its size (as the reference packer's
+    frames do), compressed piece by piece."""
     buf = io.BytesIO()
     with zstandard.ZstdCompressor().stream_writer(buf, size=n, closefd=False) as w:
         for _ in range(n >> 20):
@@ -788,12 +778,12 @@ def build_hostile_scenes(folder: Path, bomb_bytes: int) -> list[HostileFile]:
 
     # .spz v3 declaring one Gaussian (45 bytes of SH degree 1, all zero), then bomb_bytes more.
     head = struct.pack("<4sIIBBBB", b"NGSP", 3, 1, 1, 12, 0, 0)
-    add("bomb.spz", _gzip_of(head + bytes(45), bomb_bytes),
+    add("bomb.spz", gzip_of(head + bytes(45), bomb_bytes),
         f".spz gzip bomb (inflates to {bomb_bytes >> 20} MiB)", "inflates to more than")
     # .spz v4 (zstd) declaring 2^28 points: each stream a 1 MiB frame, the table the sizes 2^28
     # points need.
     sizes = [9 * HUGE, HUGE, 3 * HUGE, 3 * HUGE, 4 * HUGE]
-    frame = _zstd_zeros(1 << 20)
+    frame = zstd_zeros(1 << 20)
     spz4 = struct.pack("<4sIIBBBBI12x", b"NGSP", 4, HUGE, 0, 12, 0, len(sizes), 32)
     spz4 += b"".join(struct.pack("<QQ", len(frame), u) for u in sizes) + frame * len(sizes)
     add("zstd-2e28.spz", spz4, "zstd .spz declaring 2^28 points", f"declares {HUGE:,} Gaussians")
@@ -999,12 +989,14 @@ class Scenario:
 SCENARIOS: tuple[Scenario, ...] = (
     Scenario("idle", "idle", lambda b, a: Attack()),
     Scenario("tcp-lockout", "tcp lock-out (100 silent TCP connections)",
-             lambda b, a: TcpLockout(b), tcp=True),
+             lambda b, a: HeldConnections(b.tcp_port, TCP_CONNECTIONS, b"1001", "busy replies"),
+             tcp=True),
     Scenario("newline-flood", "newline flood (TCP unauthenticated + Unix)",
              lambda b, a: NewlineFlood(b), tcp=True),
     Scenario("deep-json", "deep JSON (30,000 and 600 levels)", lambda b, a: DeepJson(b)),
     Scenario("web-connections", "web connections (1,100 idle)",
-             lambda b, a: WebConnections(b), web=True),
+             lambda b, a: HeldConnections(b.web_port, WEB_CONNECTIONS, b" 503 ", "got 503"),
+             web=True),
     Scenario("web-flood", "web message flood (one token holder)",
              lambda b, a: WebFlood(b), web=True),
     Scenario("hostile-scenes", "hostile scenes",

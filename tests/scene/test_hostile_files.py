@@ -23,15 +23,14 @@ import struct
 import threading
 import tracemalloc
 import zipfile
-import zlib
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
-import zstandard
 from PIL import Image
 
+from nhfd.benchmarks.hostile import gzip_of, zstd_zeros
 from nhfd.config import Config
 from nhfd.daemon.jobs import JobRunner
 from nhfd.daemon.methods import METHODS
@@ -72,29 +71,6 @@ def refused(path: Path, match: str, **kwargs: int) -> int:
     with peak_bytes() as peak, pytest.raises(SceneFileError, match=match):
         read_scene(path, **kwargs)
     return peak[0]
-
-
-def gzip_of(head: bytes, zeros: int) -> bytes:
-    """A gzip stream of `head` then `zeros` zero bytes, compressed piece by piece (the test
-    never holds the inflated data)."""
-    co = zlib.compressobj(9, zlib.DEFLATED, 16 + zlib.MAX_WBITS)
-    out = [co.compress(head)]
-    piece = bytes(1 << 20)
-    for _ in range(zeros >> 20):
-        out.append(co.compress(piece))
-    out.append(co.compress(bytes(zeros & ((1 << 20) - 1))))
-    return b"".join(out) + co.flush()
-
-
-def zstd_zeros(n: int) -> bytes:
-    """One zstd frame of n zero bytes whose header states its size (as the reference packer's
-    frames do), compressed piece by piece."""
-    buf = io.BytesIO()
-    with zstandard.ZstdCompressor().stream_writer(buf, size=n, closefd=False) as w:
-        for _ in range(n >> 20):
-            w.write(bytes(1 << 20))
-        w.write(bytes(n & ((1 << 20) - 1)))
-    return buf.getvalue()
 
 
 def spz_v4(n: int, streams: list[bytes], unpacked: list[int]) -> bytes:
