@@ -5,17 +5,16 @@ slider sets the daemon's view, the snapshot button saves a capture, an arming at
 page's WebSocket is refused (the lasers stay disarmed), and a wrong or missing token is refused
 by the page and by the WebSocket.
 
-NHFD_UPDATE_DOCS=1 also writes the page's screenshot to docs/figures/web_view.png (README)."""
+The README's picture of the page comes from scripts/web_screenshot.py (the demo bench at the
+whole panel with a scene and a model loaded), not from this test's small bench."""
 
 from __future__ import annotations
 
 import base64
 import http.client
-import io
 import os
 import shutil
 import tempfile
-import time
 from pathlib import Path
 from urllib.parse import urlsplit
 
@@ -210,18 +209,3 @@ def test_the_page_shows_the_bench_and_steers_it_but_never_arms(bench, browser):
 
     c.call("laser", action="off")
     wait.until(lambda d: d.find_element(By.ID, "armed").text == "not armed")
-    if os.environ.get("NHFD_UPDATE_DOCS") == "1":  # the README's picture: a lit bench
-        c.call("show_pattern", path="rings.npy")
-        c.call("laser", action="arm", duration_s=120.0)
-        c.call("laser", action="power", channel="green", power_pct=20.0)
-        c.call("laser", action="enable", channel="green")
-        wait.until(lambda d: "ARMED" in d.find_element(By.ID, "armed").text)
-        browser.find_element(By.ID, "snapshot").click()
-        wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, "#snapshot-result a")
-                   and d.find_element(By.CSS_SELECTOR, "#snapshot-result a").text != name)
-        wait.until(lambda d: "calibration pattern" in d.find_element(By.ID, "display").text)
-        time.sleep(0.5)  # the next push: the new capture's thumbnail
-        out = REPO / "docs" / "figures" / "web_view.png"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        Image.open(io.BytesIO(browser.get_screenshot_as_png())).save(out, optimize=True)
-        c.call("laser", action="off")
