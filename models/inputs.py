@@ -1,7 +1,5 @@
 """What the network sees: sRGB alone (`rgb`) or sRGB plus the view's mapped depth (`rgbd`).
 
-NumPy only, so the daemon's worker builds exactly the input training used without torch.
-
 Why a depth channel: from sRGB alone a small U-Net has to guess each pixel's depth from local
 appearance, and the depth decides the phase curvature the hologram needs. Measured on the donut
 scene (README, "RGB or RGB-D"), sRGB-only networks kept drifting their focus toward the reference
@@ -10,6 +8,17 @@ plane. The renderer computes the depth anyway, at no extra cost per frame.
 The depth channel is the hologram depth `z_h = a + b / d` (the scene's mapping, optics.md) scaled
 so the volume spans [-1, 1]: `(z_h - centre) / half_depth`, clipped to [-DEPTH_CLIP, DEPTH_CLIP];
 background (coverage below ALPHA_CONTENT) is 0, the reference plane's depth.
+
+One formula, three places, all here:
+
+- `depth_channel(mapped_depth(...))`: float64, step by step; training's path (`HoloData`).
+- `network_input` (NumPy, float32, in place): the definition of the frame's input. The CPU frame
+  worker uses it; it agrees with training's float64 path to about 1e-6.
+- `network_input_torch`: the same float32 arithmetic in torch, on the tensors' device (the
+  device frame path, `nhfd.pipeline.frame`). Bit for bit `network_input`
+  (tests/models/test_inputs_torch.py, at the full 1920 x 1080 panel). It is not used on the CPU
+  path: at 1920 x 1080 NumPy took 11.5 ms against torch's 14-16 ms on one thread and up to
+  120 ms on two threads of a loaded 2-core machine.
 """
 
 from __future__ import annotations
@@ -17,6 +26,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+import torch
 
 INPUTS = ("rgb", "rgbd")
 # Pixels with less coverage than this are background (no mapped depth).
@@ -57,22 +67,37 @@ def depth_channel(zh_m: np.ndarray, volume_m: Sequence[float]) -> np.ndarray:
     return np.clip(np.nan_to_num(x, nan=0.0), -DEPTH_CLIP, DEPTH_CLIP).astype(np.float32)
 
 
-def network_input(
-    rgb: np.ndarray, inputs: str, *, depth: np.ndarray | None = None,
-    alpha: np.ndarray | None = None, mapping: dict | None = None,
-    volume_m: Sequence[float] | None = None,
-) -> np.ndarray:  # fmt: skip
-    """The network input `[C, H, W]` float32 for one render: `rgb` `[3, H, W]` sRGB, and for
-    "rgbd" the render's `depth` and `alpha` `[H, W]`, the scene `mapping` ({"a_m", "b_m"}, from
-    the model's metadata) and the model's `volume_m`."""
-    rgb = np.asarray(rgb, np.float32)
-    if input_channels(inputs) == 3:
-        return rgb
+def _depth_coefficients(depth: object, alpha: object, mapping: dict | None,
+                        volume_m: Sequence[float] | None) -> tuple[np.float32, np.float32]:
+    """The depth channel's `(b / half, (a - centre) / half)`, each rounded once to float32, so
+    the channel is `clip(scale / d + offset, -DEPTH_CLIP, DEPTH_CLIP)`; refuses an "rgbd" call
+    without what it needs."""
     if depth is None or alpha is None or mapping is None or volume_m is None:
         raise ValueError("an rgbd model needs the render's depth and alpha, the scene mapping "
                          "and the volume")  # fmt: skip
     centre, half = _centre_half(volume_m)
     a_m, b_m = float(mapping["a_m"]), float(mapping["b_m"])
+    return np.float32(b_m / half), np.float32((a_m - centre) / half)
+
+
+def network_input(
+    rgb: np.ndarray, inputs: str, *, depth: np.ndarray | None = None,
+    alpha: np.ndarray | None = None, mapping: dict | None = None,
+    volume_m: Sequence[float] | None = None,
+) -> np.ndarray:  # fmt: skip
+    """The network input `[C, H, W]` float32 for one render (C = 3 for "rgb", 4 for "rgbd"):
+    `rgb` `[3, H, W]` sRGB in [0, 1], and for "rgbd" the render's `depth` `[H, W]` (scene
+    units, > 0 on content) and `alpha` `[H, W]` (coverage in [0, 1]), the scene `mapping`
+    ({"a_m", "b_m"} in metres, from the model's metadata) and the model's `volume_m`
+    ([near, far] hologram depths in metres).
+
+    The depth channel, in float32: `clip((b / half) / d + (a - centre) / half, -DEPTH_CLIP,
+    DEPTH_CLIP)`, 0 where the coverage is below ALPHA_CONTENT or the depth is not a positive
+    finite number. The reference for `network_input_torch` (the same, bit for bit)."""
+    rgb = np.asarray(rgb, np.float32)
+    if input_channels(inputs) == 3:
+        return rgb
+    scale, offset = _depth_coefficients(depth, alpha, mapping, volume_m)
     out = np.empty((4, *rgb.shape[-2:]), np.float32)
     out[:3] = rgb
     # depth_channel(mapped_depth(...)) in float32 and in place: (a + b / d - centre) / half. It
@@ -81,12 +106,34 @@ def network_input(
     d = np.asarray(depth, np.float32)
     ch = out[3]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        np.divide(np.float32(b_m / half), d, out=ch)
-    ch += np.float32((a_m - centre) / half)
+        np.divide(scale, d, out=ch)
+    ch += offset
     np.clip(ch, -DEPTH_CLIP, DEPTH_CLIP, out=ch)
     content = (np.asarray(alpha) >= ALPHA_CONTENT) & (d > 0) & np.isfinite(d)
     np.copyto(ch, 0.0, where=~content)
     return out
+
+
+def network_input_torch(
+    rgb: torch.Tensor, inputs: str, *, depth: torch.Tensor | None = None,
+    alpha: torch.Tensor | None = None, mapping: dict | None = None,
+    volume_m: Sequence[float] | None = None,
+) -> torch.Tensor:  # fmt: skip
+    """`network_input` in torch on the tensors' device (the device frame path): `[C, H, W]`
+    float32 from `rgb` `[3, H, W]`, `depth` and `alpha` `[H, W]` (units as there). The same
+    float32 operations in the same order (the two coefficients rounded to float32 once, as
+    0-d tensors: a Python scalar divided by a tensor would be a reciprocal and a product), so
+    the result is `network_input`'s bit for bit."""
+    rgb = rgb.to(torch.float32)
+    if input_channels(inputs) == 3:
+        return rgb
+    scale, offset = _depth_coefficients(depth, alpha, mapping, volume_m)
+    d = depth.to(torch.float32)
+    ch = torch.tensor(scale, device=d.device) / d
+    ch = (ch + torch.tensor(offset, device=d.device)).clamp(-DEPTH_CLIP, DEPTH_CLIP)
+    content = (alpha >= ALPHA_CONTENT) & (d > 0) & torch.isfinite(d)
+    ch = torch.where(content, ch, torch.zeros_like(ch))
+    return torch.cat([rgb, ch[None]])
 
 
 def seeded_input(channels: int, hw: tuple[int, int], seed: int, batch: int = 1) -> np.ndarray:

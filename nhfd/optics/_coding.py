@@ -3,8 +3,10 @@
 One pass sums each channel's field (its circular mean phase), a second codes every pixel:
 amplitude gain, amplitude / scale with the clipped count, the clamp and zero_below, the phase
 relative to the mean plus or minus acos(a) on the checkerboard, the sign and the grey level, written
-as uint8; a pixel below zero_below gets the zero pattern's grey level (`nhfd.spec.zero_grey`, the
-blank frame's). Same definitions as `double_phase` + `phase_to_grey` (torch), computed differently:
+as uint8; a pixel below zero_below (or of amplitude 0: `dpac.empty_below`) gets the zero pattern's
+grey level (`nhfd.spec.zero_grey`, the blank frame's). Same definitions as the reference,
+`dpac.double_phase_grey_reference` (`double_phase` + `phase_to_grey` in float64;
+tests/optics/test_coders_against_reference.py), computed differently:
 
 - The amplitude is computed exactly as torch does it (hypotf is sqrt((double) re^2 + im^2)
   rounded to float32, divided by the float32 scale), so the clipped count and the zero_below test
@@ -13,7 +15,8 @@ blank frame's). Same definitions as `double_phase` + `phase_to_grey` (torch), co
   one atan2 (a Cephes-style polynomial, branch-free so the loop vectorises; libm's scalar atan2f
   and acosf cost ~40 ns a pixel, more than the whole torch path) in float64 instead of three
   float32 roundings. Grey levels therefore agree with the torch path except within ~1e-6 rad of a
-  decision boundary, where they differ by one step of the curve (tests/optics/test_coding.py).
+  decision boundary, where they differ by one step of the curve (tests/optics/test_coding.py;
+  against the float64 reference, tests/optics/test_coders_against_reference.py).
 - Grey levels: the default curve rounds like `phase_to_grey`; any other curve is the nearest level
   on the circle through a 4096-bin table (`dpac.LevelTables`): a bin holding one decision boundary
   makes `_nearest_level`'s own comparison between the boundary's two levels, one holding none

@@ -4,6 +4,21 @@ A complex field `a exp(i phi)` (a <= 1) equals the mean of `exp(i (phi + acos a)
 `exp(i (phi - acos a))`. Writing the two on a pixel checkerboard leaves the wanted field plus an
 error term moved to the corners of the band, which the Fourier aperture removes; so the target must
 be band-limited (the aperture's own band) for the coding to be accurate.
+
+The definition and its two fast paths (gsplat's way: the plain reference beside the fast code):
+
+- `double_phase_grey_reference`: THE REFERENCE. Field `[C, H, W]` -> grey levels, in float64 and
+  plain torch operations: `double_phase` (the coding) then `phase_to_grey` (the curves' lookup,
+  the sign, the inversion), the zero pattern on empty pixels and the clipped fraction. Slow;
+  used by tests and for checking.
+- `double_phase_grey`: the CPU coder (numba, `nhfd.optics._coding`), one fused pass.
+- `device_grey`: the device coder (torch elementwise passes on the field's device, a lookup table
+  for calibrated curves).
+
+tests/optics/test_coders_against_reference.py checks both fast coders against the reference at
+the full panel and at the extremes; there the criterion and the measured agreement are stated.
+`double_phase` alone (the coded phase, float32 for a complex64 field) serves the demos and the
+calibration patterns.
 """
 
 from __future__ import annotations
@@ -22,14 +37,27 @@ from nhfd.optics._coding import LUT_BINS
 from nhfd.optics.aperture import Aperture, apply_aperture
 from nhfd.spec import GREY_LEVELS, TWO_PI, PhaseCurve, zero_grey
 
-# acos has an infinite gradient at 1; amplitudes are clamped just below it.
-AMPLITUDE_CEILING = 1.0 - 1e-6
+# acos has an infinite gradient at 1; amplitudes are clamped just below it. The float32 number
+# nearest 1 - 1e-6 (1 - 1.0133e-6), so that the float32 coders and the float64 reference clamp
+# at the same amplitude (1 - 1e-6 itself gave clipped pixels phases 9.4e-6 rad apart).
+AMPLITUDE_CEILING = float(np.float32(1.0 - 1e-6))
 # Amplitudes below this fraction of the scale are coded as exact zeros. Their phase is noise (FFT
 # round-off, propagation tails, speckle near-zeros); coded as is, it makes the checkerboard term
 # full-band and it leaks through the aperture as haze over the whole window. Measured on the demo
 # target (focal-stack intensity error of the phase-only display vs the complex field): 507% with
 # no threshold, 73% at 1e-3, 26% at 1e-2, 21% at 3e-2, 23% at 1e-1.
 ZERO_BELOW = 0.03
+# Amplitudes (relative to the scale) below float32's smallest normal number are coded as zeros
+# whatever zero_below says (also at zero_below = 0): amplitude 0 has no phase, and the coders
+# used to give such a pixel phase 0 on both parities (a flat mirror, whose light passes the
+# aperture) instead of the zero pattern.
+AMPLITUDE_FLOOR = float(np.finfo(np.float32).tiny)
+
+
+def empty_below(zero_below: float) -> float:
+    """The amplitude (relative to the scale) below which a pixel is coded as zero amplitude:
+    `zero_below`, or AMPLITUDE_FLOOR when that is larger."""
+    return max(float(zero_below), AMPLITUDE_FLOOR)
 
 
 @dataclass(frozen=True)
@@ -77,19 +105,37 @@ def double_phase(
     u = _validate.field("field", field)
     if antialias is not None:
         u = apply_aperture(u, antialias)
-    amp = u.abs() / scale
-    clipped = (amp > 1.0).flatten(-2).float().mean(-1)
+    phase, over, _ = _double_phase_core(u, scale, zero_below)
+    clipped = over.flatten(-2).float().mean(-1)
     while clipped.dim() > 1:
         clipped = clipped.mean(0)
+    return DoublePhase(phase, clipped)
+
+
+def _double_phase_core(u: torch.Tensor, scale: float, zero_below: float
+                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The coding's formula, in `u`'s precision (complex64: float32, complex128: float64).
+
+    `u` `[..., C, H, W]` (finite), `scale` the amplitude of full modulation. Returns the coded
+    phase `[..., C, H, W]` (rad, in [-pi, pi)), `over` (amplitude / scale > 1: clipped) and
+    `empty` (coded as zero amplitude), both `[..., C, H, W]` bool:
+
+        a     = clamp(|u| / scale, 0, AMPLITUDE_CEILING)
+        empty = a < max(zero_below, AMPLITUDE_FLOOR); there a = 0 and the phase is 0
+        phase = wrap(arg(u) - arg(sum of u over the channel) + acos(a) * (+1 on (row + col)
+                even, -1 on odd))
+    """
+    amp = u.abs() / scale
+    over = amp > 1.0
     amp = amp.clamp(0.0, AMPLITUDE_CEILING)
     # Circular mean phase per channel (amplitude-weighted: zero-amplitude pixels carry no phase).
     mean = torch.angle(u.sum(dim=(-2, -1), keepdim=True))
-    empty = amp < zero_below
+    empty = amp < empty_below(zero_below)
     amp = torch.where(empty, torch.zeros_like(amp), amp)
     phi = torch.where(empty, torch.zeros_like(amp), torch.angle(u) - mean)
     offset = torch.acos(amp) * checkerboard(tuple(u.shape[-2:]), u.device)
     real = torch.float64 if u.dtype == torch.complex128 else torch.float32
-    return DoublePhase(wrap_phase((phi + offset).to(real)), clipped)
+    return wrap_phase((phi + offset).to(real)), over, empty
 
 
 def _nearest_level(phase: torch.Tensor, curve: PhaseCurve) -> torch.Tensor:
@@ -168,6 +214,92 @@ def grey_to_phase(
         out[..., c, :, :] = (table[g] * sign).float()
     return out
 
+
+class ReferenceCoding(NamedTuple):
+    """What `double_phase_grey_reference` returns (all on the CPU):
+
+    grey: `[C, H, W]` uint8, the grey levels the panel shows.
+    clipped_fraction: `[C]` float64, per colour the fraction of pixels whose amplitude exceeded
+        the scale (exact: the count / (H W)).
+    phase_rad: `[C, H, W]` float64, the coded phase before the sign and the curve (rad, in
+        [-pi, pi); +-pi/2 on empty pixels): for telling a pixel next to a decision boundary from
+        a wrong one.
+    amplitude: `[C, H, W]` float64, |u x gain| / scale before the clamp (unitless).
+    """
+
+    grey: torch.Tensor
+    clipped_fraction: torch.Tensor
+    phase_rad: torch.Tensor
+    amplitude: torch.Tensor
+
+
+def double_phase_grey_reference(
+    field: torch.Tensor | np.ndarray,
+    amplitude_scale: float,
+    curves: Sequence[PhaseCurve],
+    *,
+    sign: int = 1,
+    invert: bool = False,
+    zero_below: float = ZERO_BELOW,
+    gain: torch.Tensor | np.ndarray | None = None,
+) -> ReferenceCoding:
+    """THE REFERENCE of double-phase coding to grey levels, for checking the fast coders
+    (`double_phase_grey`, `device_grey`): the same arguments, written for clarity in float64
+    with plain torch operations, on the CPU.
+
+    Args:
+        field: `[C, H, W]` complex (any dtype; taken to complex128), the field on the SLM plane.
+        amplitude_scale: the amplitude of full modulation (the field's units).
+        curves: the phase -> grey curves, one per colour (or one for all).
+        sign: +1, or -1 to write the conjugate.
+        invert: write `255 - grey` (through the curve's level numbers).
+        zero_below: amplitudes (relative to the scale) below this are coded as zero amplitude.
+        gain: `[C, H, W]` real factors on the field (None: 1).
+
+    The steps:
+
+    1. u = field x gain (complex128); a NaN or Inf sample is a ValueError (the fast coders'
+       message).
+    2. `double_phase` of u (`_double_phase_core`, float64): amplitude a = |u| / scale, clipped
+       where a > 1, clamped to [0, AMPLITUDE_CEILING]; empty where a < zero_below (or below
+       AMPLITUDE_FLOOR); phase = wrap(arg(u) - circular mean phase of the channel + acos(a) on
+       even (row + column), - acos(a) on odd).
+    3. `phase_to_grey` (float64): x sign, wrapped to [0, 2 pi); the default curve rounds
+       (`round(p / 2 pi * 256) mod 256`), another curve takes the level nearest on the circle
+       (`_nearest_level`); inverted when asked.
+    4. Empty pixels show the zero pattern (`nhfd.spec.zero_grey`, on the pixel's parity).
+
+    The fast coders compute in float32 where this computes in float64 (the amplitude, the
+    scale, zero_below and AMPLITUDE_CEILING rounded to float32; the phase in float32 on the
+    device), so they may differ from it next to a decision: see
+    tests/optics/test_coders_against_reference.py for the criterion and what was measured.
+    Amplitudes past float32's range (|u x gain| / scale > 3.4e38), which the fast coders count
+    as non-finite, are outside its domain.
+    """
+    scale = _validate.positive("amplitude_scale", amplitude_scale)
+    u = torch.as_tensor(field).detach().cpu().to(torch.complex128)
+    if u.dim() != 3 or min(u.shape) < 1:
+        raise ValueError(f"field has shape {tuple(u.shape)}: expected [C, H, W] with C, H, W >= 1")
+    n_c, h, w = u.shape
+    per_channel = _curves_per_channel(curves, n_c, sign)
+    if gain is not None:
+        g = torch.as_tensor(gain).detach().cpu().to(torch.float64)
+        if tuple(g.shape) != (n_c, h, w):
+            raise ValueError(f"gain has shape {tuple(g.shape)}: expected the field's "
+                             f"{(n_c, h, w)}")
+        u = u * g
+    u = _validate.field("field", u)
+    amplitude = u.abs() / scale
+    phase, over, empty = _double_phase_core(u, scale, zero_below)
+    grey = phase_to_grey(phase, per_channel, sign=sign, invert=invert)
+    zero = torch.from_numpy(zero_grey(per_channel, sign, invert))  # [C, 2]: even, odd pixels
+    parity = (torch.arange(h)[:, None] + torch.arange(w)[None, :]) % 2  # [H, W]
+    grey = torch.where(empty, zero[:, parity], grey)
+    clipped = over.sum(dim=(-2, -1)).to(torch.float64) / (h * w)
+    return ReferenceCoding(grey, clipped, phase, amplitude)
+
+
+# -- the CPU coder (numba) ----------------------------------------------------------------------
 
 def _rows_base(field: torch.Tensor | np.ndarray) -> tuple[np.ndarray, int, int]:
     """A C-contiguous complex64 array whose `[:, :h, :w]` is the field `[C, h, w]`: the field
@@ -289,9 +421,10 @@ def double_phase_grey(
     """`double_phase` then `phase_to_grey` in one pass: a field `[C, H, W]` (complex64; any
     strides) -> grey levels `[C, H, W]` uint8 and the clipped fraction per channel.
 
-    `gain` (`[C, H, W]` float32, or None) multiplies the field first. The grey levels are the
-    torch path's except within ~1e-6 rad of a decision boundary, where they differ by one step
-    of the curve; the clipped fractions and the zero_below decisions are the same. A field with
+    `gain` (`[C, H, W]` float32, or None) multiplies the field first. The grey levels are
+    `double_phase_grey_reference`'s except where float32 rounding of the amplitude moves a pixel
+    across zero_below, or its phase across a decision boundary (then by one step of the curve;
+    measured: 2e-6 of the pixels, tests/optics/test_coders_against_reference.py). A field with
     NaN or Inf is a ValueError. A top-left crop of a contiguous complex64 tensor (a padded
     propagation's output) is read in place; numba's threads (`numba.set_num_threads`) share the
     rows.
@@ -317,7 +450,8 @@ def double_phase_grey(
     out = np.empty((n_c, h, w), np.uint8)
     clipped = np.empty(n_c * h, np.int64)
     bad = np.empty(n_c * h, np.int64)
-    _coding.code_rows(u, h, w, g, gain is not None, np.float32(scale), np.float32(zero_below),
+    _coding.code_rows(u, h, w, g, gain is not None, np.float32(scale),
+                      np.float32(empty_below(zero_below)),
                       np.float32(AMPLITUDE_CEILING), rot, float(sign), tables, bool(invert),
                       zero_grey(per_channel, sign, invert), out, clipped, bad)
     if bad.any():
@@ -325,6 +459,8 @@ def double_phase_grey(
     fraction = clipped.reshape(n_c, h).sum(axis=1) / (h * w)
     return out, tuple(float(f) for f in fraction)
 
+
+# -- the device coder (torch) -------------------------------------------------------------------
 
 # The torch twin of `double_phase_grey`, for frames coded on a GPU (`nhfd.pipeline.encoder`).
 # Bins of [0, 2 pi) in its table of a curve other than the default one: a phase within half a
@@ -368,8 +504,10 @@ def device_grey(field: torch.Tensor, amplitude_scale: float, curves: DeviceCurve
     the phase `arg(u e^{-i mean} (a +- i sqrt(1 - a^2)))`, + on even (row + column), the
     circular mean from a complex128 sum rounded to float32; the default curve rounds, another
     curve is looked up in `curves.lut`; a pixel below zero_below gets the zero pattern's level.
-    The phase is float32 here (float64 in numba's pass), so a pixel within ~1e-6 rad of a
-    decision boundary (or half a table bin of one) may differ by one level of the curve."""
+    The phase is float32 here (float64 in numba's pass), so a pixel within ~2e-6 rad of a
+    decision boundary (or half a table bin of one) may differ from `double_phase_grey_reference`
+    by one level of the curve (measured: 5e-6 of the pixels with the default curve, 8e-4 with a
+    calibrated one; tests/optics/test_coders_against_reference.py)."""
     if sign not in (1, -1):
         raise ValueError(f"sign = {sign!r}: must be +1 or -1")
     if field.dim() != 3:
@@ -391,7 +529,7 @@ def device_grey(field: torch.Tensor, amplitude_scale: float, curves: DeviceCurve
     bad = (~finite).sum()
     clipped = (amp > 1.0).sum(dim=(-2, -1)).double() / (h * w)
     a = amp.clamp(0.0, AMPLITUDE_CEILING)
-    empty = (a < zero_below) | ~finite
+    empty = (a < empty_below(zero_below)) | ~finite
     a = torch.where(empty, torch.zeros_like(a), a)
     # The circular mean phase per channel: complex128 sums, rounded to float32 as numba's is.
     sums = torch.complex(re.double().sum(dim=(-2, -1)), im.double().sum(dim=(-2, -1)))
