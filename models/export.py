@@ -29,6 +29,7 @@ import torch
 
 from nhfd.config import device_choice
 from nhfd.dataset.build import sha256_file
+from nhfd.model_info import ModelInfo
 from nhfd.models.inputs import seeded_input
 from nhfd.models.metadata import (
     METADATA_KEY,
@@ -37,6 +38,7 @@ from nhfd.models.metadata import (
     check_metadata,
     expected_from_config,
     parse_metadata,
+    parse_model_info,
     training_poses,
 )
 from nhfd.models.serving import ServingNet
@@ -554,14 +556,16 @@ class OnnxModel:
         # "rgb" (sRGB) or "rgbd" (sRGB + mapped depth): build inputs with
         # nhfd.models.inputs.network_input(..., self.inputs, ...).
         self.inputs: str = inputs[0]
+        # The metadata typed, parsed once: what the frame path reads (by name, never by key).
+        self.info: ModelInfo = parse_model_info(self.metadata, name, self.inputs)
         # The graph's declared input shape (ints, or names for dynamic axes) and the providers
         # running it: what the frame worker checks and reports (TorchModel has both too).
         self.input_shape: list[Any] = list(self.session.get_inputs()[0].shape)
         self.providers: list[str] = list(self.session.get_providers())
-        self.channels = 3 + (self.inputs == "rgbd")
-        self.multiple = int(self.metadata["input_multiple"])
-        self.amplitude_scale = float(self.metadata["amplitude_scale"])
-        self.colours = len(self.metadata["wavelengths_m"])
+        self.channels = self.info.channels
+        self.multiple = self.info.input_multiple
+        self.amplitude_scale = self.info.amplitude_scale
+        self.colours = self.info.colours
 
     def _gpu_providers(self, configured: list[str], available: list[str],
                        input_hw: tuple[int, int] | None, engine_cache_dir: str | Path | None,
@@ -574,7 +578,7 @@ class OnnxModel:
         name = "rgb"
         if input_hw is not None:
             meta, name = read_model_metadata(self.path)
-            m = int(meta["input_multiple"])
+            m = parse_model_info(meta, str(self.path), name).input_multiple
             h, w = (int(v) for v in input_hw)
             shape = (1, 3 + (name == "rgbd"), h + (-h) % m, w + (-w) % m)
         return execution_providers(

@@ -14,6 +14,23 @@ import math
 from pathlib import Path
 from typing import Any
 
+from nhfd.model_info import (
+    AMPLITUDE_SCALE_RANGE,
+    APERTURE_SHAPES,
+    COLOURS,
+    CUTOFF_MAX_PER_PX,
+    INPUT_MULTIPLE_MAX,
+    PITCH_MAX_M,
+    PIXELS_MAX,
+    WAVELENGTH_RANGE_M,
+    Z0_MAX_M,
+    CheckedSize,
+    DepthMapping,
+    ModelInfo,
+    PoseEnvelope,
+)
+from nhfd.model_info import padded_hw as padded_hw
+
 METADATA_KEY = "nhfd"
 FORMAT = "nhfd-model"
 FORMAT_VERSION = 1
@@ -43,25 +60,8 @@ class InvalidMetadata(NotAModel):
     input multiple) would fail, or show garbage, on every frame after it."""
 
 
-# The ranges `validate_metadata` allows, in the metadata's units. The optics are the
-# configuration's own ranges (nhfd.config: wavelengths 200-2000 nm, pitch (0, 1000) um, z0 (0,
-# 1000] mm, cutoffs (0, 0.5] cycles/px, three colours, the aperture shapes), so a model the
-# configuration could not describe is refused even where no configuration is given (offline).
-COLOURS = 3
-WAVELENGTH_RANGE_M = (200e-9, 2000e-9)
-PITCH_MAX_M = 1e-3
-Z0_MAX_M = 1.0
-CUTOFF_MAX_PER_PX = 0.5
-APERTURE_SHAPES = ("square", "circle", "diamond")
-# nhfd.config's pixel counts (slm and hologram sizes: 1..32768).
-PIXELS_MAX = 32768
-# The input multiple is unshuffle (1, 2, 4 or 8) x 2^depth (depth 0..nhfd.config.DEPTH_MAX = 6):
-# a power of two up to 8 x 2^6.
-INPUT_MULTIPLE_MAX = 8 * 2**6
-# Amplitude scales are a dataset's high percentile of SLM-plane amplitudes of sRGB renders: O(1)
-# (2.96 for the shipped model). Twelve orders of magnitude either way keeps amplitude x scale
-# and the propagation's sums over millions of pixels far inside float32 (3.4e38).
-AMPLITUDE_SCALE_RANGE = (1e-12, 1e12)
+# The ranges `validate_metadata` allows, in the metadata's units: `nhfd.model_info`'s (one
+# definition: the file's check here, the value's constructor there).
 # A JSON value this long is shown cut in a refusal: a hostile file chooses its own values.
 SHOWN_CHARS = 80
 
@@ -152,24 +152,6 @@ def checked_size_entry(hw: tuple[int, int], max_abs_diff: float, against: str) -
             "against": against}
 
 
-def padded_hw(hw: tuple[int, int], multiple: int) -> tuple[int, int]:
-    """A window's size rounded up to the input multiple (what the graph runs at)."""
-    h, w = int(hw[0]), int(hw[1])
-    return h + (-h) % multiple, w + (-w) % multiple
-
-
-def checked_sizes_hw(metadata: dict[str, Any]) -> tuple[list[tuple[int, int]], bool]:
-    """The graph input sizes (h, w) a model passed its size checks at, and whether they come
-    from its metadata. A model without `checked_sizes` (exported before they were recorded, or
-    with --no-check) counts only its training window (padded to the multiple) as checked: the
-    size it was trained and evaluated at; False says so."""
-    m = int(metadata.get("input_multiple") or 1)
-    if "checked_sizes" not in metadata:
-        return [padded_hw(metadata["train_size_hw"], m)], False
-    return [(int(e["hw"][0]), int(e["hw"][1])) for e in metadata["checked_sizes"]
-            if e.get("ok")], True
-
-
 def expected_from_config(config) -> dict[str, Any]:
     """The optics a validated `nhfd.config.Config` asks for, in the metadata's keys and units."""
     o = config.optics
@@ -241,6 +223,69 @@ def parse_metadata(props: dict[str, str], source: str, graph_input: str | None =
     return meta
 
 
+def parse_model_info(meta: dict[str, Any], source: str, graph_input: str | None = None
+                     ) -> ModelInfo:
+    """The `ModelInfo` of metadata `validate_metadata` has passed (`parse_metadata`'s result):
+    the fields the frame path, the size checks and `status` read, typed. `graph_input`: the
+    graph's input name ("rgb" or "rgbd") where known, else the metadata's declared `inputs`.
+    A value the constructors refuse is `InvalidMetadata` naming `source`."""
+    declared = meta.get("inputs")
+    if graph_input in ("rgb", "rgbd"):
+        inputs = graph_input
+    else:
+        inputs = "rgbd" if isinstance(declared, dict) and "rgbd" in declared else "rgb"
+    mapping = meta.get("mapping")
+    env = meta.get("pose_envelope")
+    sizes = meta.get("checked_sizes")
+    try:
+        return ModelInfo(
+            inputs=inputs,
+            wavelengths_m=tuple(float(v) for v in meta["wavelengths_m"]),
+            pitch_m=float(meta["pitch_m"]),
+            aperture_shape=str(meta["aperture_shape"]),
+            cutoff_per_px=tuple(float(v) for v in meta["cutoff_per_px"]),
+            z0_m=float(meta["z0_m"]),
+            volume_m=(float(meta["volume_m"][0]), float(meta["volume_m"][1])),
+            amplitude_scale=float(meta["amplitude_scale"]),
+            train_size_hw=(int(meta["train_size_hw"][0]), int(meta["train_size_hw"][1])),
+            input_multiple=int(meta["input_multiple"]),
+            fx_px=None if meta.get("fx") is None else float(meta["fx"]),
+            fy_px=None if meta.get("fy") is None else float(meta["fy"]),
+            fov_x_deg=None if meta.get("fov_x_deg") is None else float(meta["fov_x_deg"]),
+            # an rgb model may record a partial mapping (it never feeds one)
+            mapping=(DepthMapping(float(mapping["a_m"]), float(mapping["b_m"]),
+                                  mapping.get("d_near"), mapping.get("d_far"))
+                     if isinstance(mapping, dict) and "a_m" in mapping and "b_m" in mapping
+                     else None),
+            pose_envelope=_envelope(env) if env else None,
+            checked_sizes=None if sizes is None else tuple(
+                CheckedSize((int(e["hw"][0]), int(e["hw"][1])), float(e["max_abs_diff"]),
+                            bool(e["ok"]), str(e.get("against", ""))) for e in sizes),
+            profile=meta.get("profile"),
+            parameters=meta.get("parameters"),
+            train_steps=meta.get("train_steps"),
+            scene_sha256=meta.get("scene_sha256"),
+            precision=meta.get("precision"),
+        )
+    except ValueError as exc:  # validate_metadata passed: a check of the value's own
+        raise InvalidMetadata(f"{source}: {exc}") from None
+
+
+def _envelope(env: dict[str, Any]) -> PoseEnvelope:
+    """`pose_envelope` (checked by `_check_envelope`) typed: an empty range is not recorded."""
+    def span(key: str) -> tuple[float, ...] | None:
+        value = env.get(key)
+        return tuple(float(v) for v in value) if value else None
+
+    lo, hi = span("position_min"), span("position_max")
+    both = lo is not None and hi is not None  # the warnings use the box only when both are
+    return PoseEnvelope(distance=span("distance"), azimuth_deg=span("azimuth_deg"),  # type: ignore[arg-type]
+                        elevation_deg=span("elevation_deg"),  # type: ignore[arg-type]
+                        position_min=lo if both else None,  # type: ignore[arg-type]
+                        position_max=hi if both else None,  # type: ignore[arg-type]
+                        n=env.get("n"))
+
+
 def _is_number(value: Any) -> bool:
     # bool is an int to Python, never a number here: `true` for a scale is a broken file
     return isinstance(value, int | float) and not isinstance(value, bool)
@@ -258,6 +303,16 @@ def _shown(value: Any) -> str:
     return text if len(text) <= SHOWN_CHARS else text[:SHOWN_CHARS] + "..."
 
 
+class _Missing:
+    """A required field the metadata lacks (refusals say "is missing", not a value)."""
+
+    def __repr__(self) -> str:
+        return "<missing>"
+
+
+MISSING: Any = _Missing()
+
+
 class _Fields:
     """Checks of one model's metadata fields; each refusal names the source, the field, the
     value and what is allowed."""
@@ -266,6 +321,9 @@ class _Fields:
         self.source = source
 
     def refuse(self, field: str, value: Any, allowed: str) -> None:
+        if value is MISSING:  # an incomplete file: say which field it lacks
+            raise InvalidMetadata(f"{self.source}: metadata {field} is missing: expected "
+                                  f"{allowed}")
         raise InvalidMetadata(f"{self.source}: metadata {field} = {_shown(value)}: expected "
                               f"{allowed}")
 
@@ -340,18 +398,21 @@ def validate_metadata(meta: dict[str, Any], source: str, graph_input: str | None
     mapping, and no number anywhere is NaN or infinite (JSON from Python writes them) except a
     failed size check's difference (`checked_size_entry` records NaN there, with ok false)."""
     f = _Fields(source)
-    version = meta.get("format_version")
+    version = meta.get("format_version", MISSING)
     f.integer("format_version", version, 1, FORMAT_VERSION)
     # The optics: what the frame path propagates and codes with.
-    f.numbers("wavelengths_m", meta.get("wavelengths_m"), COLOURS, *WAVELENGTH_RANGE_M, "m")
-    f.number("pitch_m", meta.get("pitch_m"), 0.0, PITCH_MAX_M, "m", open_lo=True, open_hi=True)
+    f.numbers("wavelengths_m", meta.get("wavelengths_m", MISSING), COLOURS, *WAVELENGTH_RANGE_M,
+              "m")
+    f.number("pitch_m", meta.get("pitch_m", MISSING), 0.0, PITCH_MAX_M, "m", open_lo=True,
+             open_hi=True)
     if meta.get("aperture_shape") not in APERTURE_SHAPES:
-        f.refuse("aperture_shape", meta.get("aperture_shape"),
+        f.refuse("aperture_shape", meta.get("aperture_shape", MISSING),
                  f"one of {', '.join(APERTURE_SHAPES)}")
-    f.numbers("cutoff_per_px", meta.get("cutoff_per_px"), COLOURS, 0.0, CUTOFF_MAX_PER_PX,
+    f.numbers("cutoff_per_px", meta.get("cutoff_per_px", MISSING), COLOURS, 0.0,
+              CUTOFF_MAX_PER_PX,
               "cycles/px", open_lo=True)
-    z0 = f.number("z0_m", meta.get("z0_m"), 0.0, Z0_MAX_M, "m", open_lo=True)
-    volume = meta.get("volume_m")
+    z0 = f.number("z0_m", meta.get("z0_m", MISSING), 0.0, Z0_MAX_M, "m", open_lo=True)
+    volume = meta.get("volume_m", MISSING)
     near, far = f.numbers("volume_m", volume, 2, -math.inf, math.inf, "m", open_lo=True,
                           open_hi=True)
     if not near < far:
@@ -363,7 +424,8 @@ def validate_metadata(meta: dict[str, Any], source: str, graph_input: str | None
     panel = meta.get("panel_hw")
     if panel not in (None, []):
         f.hw("panel_hw", panel)
-    f.number("amplitude_scale", meta.get("amplitude_scale"), *AMPLITUDE_SCALE_RANGE, "")
+    f.number("amplitude_scale", meta.get("amplitude_scale", MISSING), *AMPLITUDE_SCALE_RANGE,
+             "")
     # The camera: the render's focal lengths (None: from fov_x_deg, as older exports).
     for key in ("fx", "fy"):
         if meta.get(key) is not None:
@@ -371,11 +433,16 @@ def validate_metadata(meta: dict[str, Any], source: str, graph_input: str | None
     if meta.get("fov_x_deg") is not None:
         f.number("fov_x_deg", meta["fov_x_deg"], 0.0, 180.0, "deg", open_lo=True,
                  open_hi=True)
+    if meta.get("fx") is None and meta.get("fov_x_deg") is None:
+        # The render needs one or the other: without both, every frame would be drawn at a
+        # focal length the model was not trained at.
+        f.refuse("fx", meta.get("fx", MISSING), "the render's focal length, a finite number > 0 "
+                 "(px) (or fov_x_deg, as older exports record it)")
     # Sizes: the frame window and the graph's padding.
-    f.hw("train_size_hw", meta.get("train_size_hw"))
+    f.hw("train_size_hw", meta.get("train_size_hw", MISSING))
     if meta.get("train_crop_hw") is not None:
         f.hw("train_crop_hw", meta["train_crop_hw"])
-    multiple = meta.get("input_multiple")
+    multiple = meta.get("input_multiple", MISSING)
     if not (_is_int(multiple) and 1 <= multiple <= INPUT_MULTIPLE_MAX
             and multiple & (multiple - 1) == 0):
         f.refuse("input_multiple", multiple, f"a power of two in 1..{INPUT_MULTIPLE_MAX} "
@@ -409,7 +476,7 @@ def _check_mapping(f: _Fields, meta: dict[str, Any], graph_input: str | None) ->
     declared = meta.get("inputs")
     rgbd = graph_input == "rgbd" if graph_input is not None else (
         isinstance(declared, dict) and "rgbd" in declared)
-    mapping = meta.get("mapping")
+    mapping = meta.get("mapping", MISSING if rgbd else None)
     if mapping is None and not rgbd:
         return
     if not isinstance(mapping, dict):
@@ -417,7 +484,7 @@ def _check_mapping(f: _Fields, meta: dict[str, Any], graph_input: str | None) ->
                  + (", which a model fed depth needs)" if rgbd else ")"))
     for key in ("a_m", "b_m"):
         if key in mapping or rgbd:
-            f.number(f"mapping.{key}", mapping.get(key), -math.inf, math.inf, "m",
+            f.number(f"mapping.{key}", mapping.get(key, MISSING), -math.inf, math.inf, "m",
                      open_lo=True, open_hi=True)
     for key in ("d_near", "d_far"):
         if mapping.get(key) is not None:

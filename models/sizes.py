@@ -32,12 +32,12 @@ from typing import Any
 import numpy as np
 
 from nhfd.config import OpticsSettings, SLMSettings
+from nhfd.model_info import ModelInfo
 from nhfd.models.inputs import seeded_input
 from nhfd.models.metadata import (
     METADATA_KEY,
     SIZE_TOLERANCE,
     checked_size_entry,
-    checked_sizes_hw,
     padded_hw,
     parse_metadata,
 )
@@ -257,14 +257,15 @@ def tile_check(session: Any, meta: dict[str, Any], hw: tuple[int, int],
                    "(ONNX only: no run folder)")
 
 
-def window_check(metadata: dict[str, Any], window_hw: tuple[int, int], source: str, *,
+def window_check(info: ModelInfo, window_hw: tuple[int, int], source: str, *,
                  allow: bool) -> str | None:
-    """None when the frame window (padded to the input multiple) is a checked size; otherwise
-    the reason: raised as `UncheckedSize` unless `allow` (`daemon.allow_unchecked_sizes`), then
-    returned as a warning."""
-    m = int(metadata.get("input_multiple") or 1)
+    """None when the frame window (h, w px; padded to the model's input multiple) is a size the
+    model `info` was checked at (`ModelInfo.checked_sizes_hw`); otherwise the reason: raised as
+    `UncheckedSize` unless `allow` (`daemon.allow_unchecked_sizes`), then returned as a
+    warning."""
+    m = info.input_multiple
     run_hw = padded_hw(window_hw, m)
-    sizes, recorded = checked_sizes_hw(metadata)
+    sizes, recorded = info.checked_sizes_hw()
     if run_hw in sizes:
         return None
     padded = f" (run at {wxh(run_hw)}, padded to multiples of {m})" if run_hw != tuple(

@@ -16,7 +16,7 @@ their float16 weights (exact in float32): within 1e-3 of onnxruntime's own run o
 model's fp16 file, which rounds some operators to float16. int8 files are refused: their integer
 arithmetic is onnxruntime's.
 
-`TorchModel` has `OnnxModel`'s serving interface (`metadata`, `inputs`, `channels`,
+`TorchModel` has `OnnxModel`'s serving interface (`metadata`, `info`, `inputs`, `channels`,
 `multiple`, `amplitude_scale`, `colours`, `device`, `input_shape`, `providers`, `run_raw`,
 `run_on`, `__call__`), so the frame path does not ask which one it has.
 """
@@ -70,7 +70,7 @@ class TorchModel:
         # onnxruntime reads the file first: its checks (not a model, not an nhfd model, wrong
         # inputs or outputs) and its messages are the ones OnnxModel gives.
         reference = OnnxModel(self.path, expected=expected, source=name)
-        self.metadata = reference.metadata
+        self.metadata, self.info = reference.metadata, reference.info
         self.inputs, self.channels = reference.inputs, reference.channels
         self.multiple, self.colours = reference.multiple, reference.colours
         self.amplitude_scale = reference.amplitude_scale
@@ -82,7 +82,7 @@ class TorchModel:
         weights = {i.name: numpy_helper.to_array(i) for i in graph.initializer}
         self.module = _rebuild(self.metadata, weights, name)
         worst = _compare(self.module, reference, self.channels, self.multiple)
-        tol = REBUILD_TOL["fp16" if self.metadata.get("precision") == "fp16" else "fp32"]
+        tol = REBUILD_TOL["fp16" if self.info.precision == "fp16" else "fp32"]
         if not worst <= tol:  # NaN fails too
             raise NotAModel(f"{name}: rebuilt as a torch module, it differs from the file's own "
                             f"graph by {worst:.3g} (at most {tol:g} allowed): serve it with "

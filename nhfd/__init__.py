@@ -3,8 +3,10 @@
 The package is layered; a module imports only from its own layer or below (tests/test_layers.py
 enforces it, docs/architecture.md explains it):
 
-  L0 vocabulary    config, spec, calibration, device_settings (torch-free: the daemon, the laser
-                   guardian and `nhfctl` load these and nothing heavier)
+  L0 vocabulary    config, spec, calibration, device_settings, and the values the frame path
+                   passes: views (`View`), model_info (`ModelInfo`), frame_message
+                   (`FrameMessage`, `Region`) (torch-free: the daemon, the laser guardian and
+                   `nhfctl` load these and nothing heavier)
   L1 compute       optics (the wave-optics core), scene (splats, cameras, rasteriser),
      and devices   drivers (installed from the repository's drivers/ folder)
   L2 data          holo (wavefront inversion), dataset (poses, shards, the builder)

@@ -235,17 +235,17 @@ def _frame_parts(w: int, h: int, device: str) -> dict[str, Any]:
     from nhfd.pipeline.view import Scene, scene_frame
     from nhfd.pipeline.worker import open_model
     from nhfd.scene.io import read_scene
+    from nhfd.views import Orbit, View
 
     config = Config.model_validate(_overlay(tomllib.loads(default_text()), {
         "daemon": {"frame_size_px": [w, h], "device": device}}))
     model = open_model(str(MODEL), config, 2)
     load = read_scene(SCENE)
     scene = Scene(load.gaussians, scene_frame(load.gaussians, str(SCENE)))
-    env = model.metadata["pose_envelope"]
-    view = {"kind": "orbit", "azimuth_deg": float(np.mean(env["azimuth_deg"])),
-            "elevation_deg": float(np.mean(env["elevation_deg"])),
-            "radius": float(np.mean(env["distance"])), "refocus_mm": 0.0}
-    settings = frame_settings(config, model.metadata, active_calibration(config))
+    env = model.info.pose_envelope
+    view = View(Orbit(float(np.mean(env.azimuth_deg)), float(np.mean(env.elevation_deg)),
+                      float(np.mean(env.distance))), refocus_mm=0.0)
+    settings = frame_settings(config, model.info, active_calibration(config))
     return {"model": model, "scene": scene, "view": view,
             "encoder": Encoder(settings, device=device)}
 

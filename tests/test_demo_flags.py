@@ -54,13 +54,13 @@ def test_the_flags_reach_the_daemon_configuration(tmp_path, captured):
                  str(tmp_path / "out")]) == 0
     call = captured[0]
     assert (call["model"], call["scene"]) == (model, scene)
-    cfg, _, meta = demo.demo_config(call["config"], model=call["model"], scene=call["scene"],
+    cfg, _, info = demo.demo_config(call["config"], model=call["model"], scene=call["scene"],
                                     runtime=tmp_path / "rt", captures=tmp_path / "cap")
     assert cfg.daemon.model == str(model.resolve())
     assert cfg.daemon.scene == str(scene.resolve())
     assert str(scene.parent.resolve()) in cfg.daemon.scene_dirs
     assert str(model.parent.resolve()) in cfg.daemon.model_dirs
-    assert meta["train_size_hw"] == [288, 512]
+    assert info.train_size_hw == (288, 512)
 
 
 def test_a_model_trained_on_another_scene_is_refused_naming_both(tmp_path, captured, capsys):

@@ -19,6 +19,7 @@ ROOTS = {"nhfd": REPO / "nhfd", "nhfd.drivers": REPO / "drivers", "nhfd.models":
          "nhfd.calib": REPO / "calib"}
 LAYERS = {
     "nhfd": 0, "nhfd.config": 0, "nhfd.spec": 0, "nhfd.calibration": 0, "nhfd.device_settings": 0,
+    "nhfd.views": 0, "nhfd.model_info": 0, "nhfd.frame_message": 0,
     "nhfd.optics": 1, "nhfd.scene": 1, "nhfd.drivers": 1,
     "nhfd.holo": 2, "nhfd.dataset": 2,
     "nhfd.models": 3,

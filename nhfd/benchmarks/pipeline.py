@@ -48,13 +48,15 @@ from nhfd.config import (
     _overlay,
     load_config,
 )
-from nhfd.daemon.frame_link import FrameLink
+from nhfd.daemon.frame_link import WORKER_MODULE, FrameEvents, FrameLink
 from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
 from nhfd.drivers.slm import SimulatedSLM
+from nhfd.model_info import ModelInfo
 from nhfd.models.export import OnnxModel
 from nhfd.pipeline.device import check_cuda_frames, gpu_name, resolve_device
 from nhfd.pipeline.settings import frame_window_hw
+from nhfd.views import Orbit, View
 
 # The stages status reports, in order: the frame pipeline's four (`nhfd.pipeline.frame`), then
 # the daemon's output (the region pasted into the panel and shown).
@@ -99,23 +101,26 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 class _Host:
-    """The slice of the daemon a FrameLink needs (`FrameHost`): views, the panel on a simulated
-    SLM, the error list."""
+    """The slice of the daemon a FrameLink needs: the view slot, the panel on a simulated SLM,
+    the error list its events feed (`frame_link`)."""
 
     def __init__(self, config: Any) -> None:
         self.config = config
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
         self.errors: list[str] = []
-        self.bench = self  # where a lost SLM is noted
         self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}))
-        self.laser = None  # no lasers here (FrameLink switches them off if the worker dies)
 
-    def note_slm_lost(self, detail: str) -> None:
-        self._error("slm", detail)
-
-    def _error(self, source: str, message: str) -> None:
+    def error(self, source: str, message: str) -> None:
         self.errors.append(f"{source}: {message}")
+
+    def frame_link(self, worker_module: str = WORKER_MODULE) -> FrameLink:
+        """A frame link on this host: shown views marked applied, errors, a crash (no lasers
+        here to switch off) and a lost SLM output all into `errors`."""
+        return FrameLink(self.config, self.views, lambda: self.panel, FrameEvents(
+            shown=self.views.mark_applied, error=self.error,
+            crashed=lambda message: self.error("frame worker", message),
+            slm_lost=lambda detail: self.error("slm", detail)), worker_module)
 
 
 def _load(link: Any, scene: Path, model: Path) -> None:
@@ -153,33 +158,33 @@ def measure_side_by_side(config: Any, model: Path, scene: Path, views: int, warm
     configuration's) of `variants`, each in its own worker, all started first and then given the
     same views in turn, one frame at a time (the order rotating per view): on a loaded machine
     the variants see the same load and their medians compare."""
-    meta = OnnxModel(model).metadata
+    info = OnnxModel(model).info
     configs = [_variant_config(config, Variant(*v)) for v in variants]
     for cfg in configs:  # before any worker starts
-        _check_fits(cfg, model, meta)
+        _check_fits(cfg, model, info)
     runs = []
     try:
         for cfg in configs:
             host = _Host(cfg)
-            link = FrameLink(host)
+            link = host.frame_link()
             runs.append((cfg, host, link, []))
             link.ensure_started()  # the workers' imports overlap; loads follow one by one
         for _cfg, _host, link, _rows in runs:
             _load(link, scene, model)
-        for i, view in enumerate(_orbit(meta, warmup + views)):
+        for i, view in enumerate(_orbit(info, warmup + views)):
             for k in range(len(runs)):
                 _cfg, host, link, rows = runs[(i + k) % len(runs)]
                 total_ms = _show(host, link, view)
                 if i >= warmup:
                     t = link.timings or {}
                     rows.append({**{s: t[f"{s}_ms"] for s in STAGES}, "total": total_ms,
-                                 "azimuth_deg": view["azimuth_deg"]})
-        infos = [dict(link.model_info or {}) for _cfg, _host, link, _rows in runs]
+                                 "azimuth_deg": view.camera.azimuth_deg})  # type: ignore[union-attr]
+        reports = [dict(link.model_info or {}) for _cfg, _host, link, _rows in runs]
     finally:
         for _cfg, _host, link, _rows in runs:
             link.close()
-    return [_result(model, meta, cfg, rows, info)
-            for (cfg, _host, _link, rows), info in zip(runs, infos, strict=True)]
+    return [_result(model, info, cfg, rows, report)
+            for (cfg, _host, _link, rows), report in zip(runs, reports, strict=True)]
 
 
 def _variant_config(config: Any, v: Variant) -> Config:
@@ -198,29 +203,29 @@ def _variant_config(config: Any, v: Variant) -> Config:
     return Config.model_validate(_overlay(config.model_dump(), overlay))
 
 
-def _check_fits(cfg: Any, model: Path, meta: dict[str, Any]) -> None:
+def _check_fits(cfg: Any, model: Path, info: ModelInfo) -> None:
     """Refuse a frame window larger than the panel before a worker starts for it (the
     configuration checked daemon.frame_size_px; `frame_window_hw` checks the model's training
     size that stands in for an empty one)."""
     try:
-        frame_window_hw(cfg, meta)
+        frame_window_hw(cfg, info)
     except ValueError as exc:
         raise ValueError(f"{model}: {exc}") from None
 
 
-def _orbit(meta: dict[str, Any], n: int) -> list[dict[str, Any]]:
+def _orbit(info: ModelInfo, n: int) -> list[View]:
     """`n` views along the azimuth of the model's pose envelope, at its middle elevation and
-    distance."""
-    env = meta.get("pose_envelope") or {}
-    az = env.get("azimuth_deg") or [-20.0, 20.0]
-    el = env.get("elevation_deg") or [20.0, 20.0]
-    dist = env.get("distance") or [2.0, 2.0]
-    return [{"kind": "orbit", "azimuth_deg": float(a), "elevation_deg": 0.5 * (el[0] + el[1]),
-             "radius": 0.5 * (dist[0] + dist[1]), "refocus_mm": 0.0}
+    distance (a range the envelope lacks: azimuth [-20, 20] deg, elevation 20 deg, distance 2
+    scene units)."""
+    env = info.pose_envelope
+    az = (env and env.azimuth_deg) or (-20.0, 20.0)
+    el = (env and env.elevation_deg) or (20.0, 20.0)
+    dist = (env and env.distance) or (2.0, 2.0)
+    return [View(Orbit(float(a), 0.5 * (el[0] + el[1]), 0.5 * (dist[0] + dist[1])), 0.0)
             for a in np.linspace(az[0], az[1], n)]
 
 
-def _show(host: _Host, link: Any, view: dict[str, Any]) -> float:
+def _show(host: _Host, link: Any, view: View) -> float:
     """Milliseconds from sending `view` to its frame shown on the simulated SLM."""
     seq = host.views.submit(view)
     t0 = time.perf_counter()
@@ -232,17 +237,17 @@ def _show(host: _Host, link: Any, view: dict[str, Any]) -> float:
     return (time.perf_counter() - t0) * 1e3
 
 
-def _result(model: Path, meta: dict[str, Any], cfg: Any, rows: list[dict[str, float]],
+def _result(model: Path, model_info: ModelInfo, cfg: Any, rows: list[dict[str, float]],
             info: dict[str, Any]) -> dict[str, Any]:
     """One worker's figures, with what it served and the device it computed on (its model
     status: `device`, `device_reason`)."""
-    h, w = (int(v) for v in meta["train_size_hw"])
+    h, w = model_info.train_size_hw
     summary = {k: {"median_ms": float(np.median([r[k] for r in rows])),
                    "p90_ms": float(np.percentile([r[k] for r in rows], 90)),
                    "p99_ms": float(np.percentile([r[k] for r in rows], 99))}
                for k in (*STAGES, "total")}
     device = info.get("device")
-    return {"model": str(model), "profile": meta.get("profile"),
+    return {"model": str(model), "profile": model_info.profile,
             "size_wh": list(cfg.daemon.frame_size_px) or [w, h],
             "transport": cfg.daemon.frame_transport, "int8": cfg.daemon.int8,
             "worker_threads": cfg.daemon.worker_threads,

@@ -8,10 +8,19 @@ the already-initialised thread pools of torch/OpenMP in whatever state they are 
 interpreter gets its thread counts in its environment before any pool exists.
 
 The daemon spawns the worker by its module's name (`WORKER_MODULE`) and learns everything of
-the model (its metadata, why one was refused) as data over the pipe: nothing here imports the
-pipeline, the models or torch. `FrameLink` never blocks on the pipe: it polls it once per
-control-loop tick, and it shows the frames it gets (the "output" stage: the coded region pasted
-into the blank frame, `PanelBuffer`).
+the model (what status reports of it, why one was refused) as data over the pipe: nothing here
+imports the pipeline, the models or torch. Views go out as `nhfd.views.View` and frames come
+back as `nhfd.frame_message.FrameMessage` (L0 values both sides import, read by name).
+`FrameLink` never blocks on the pipe: it polls it once per control-loop tick, and it shows the
+frames it gets (the "output" stage: the coded region pasted into the blank frame,
+`PanelBuffer`).
+
+`FrameLink` knows nothing of the daemon: it gets its configuration, the view slot, a getter of
+the panel and its `FrameEvents` (shown, error, crashed, SLM lost) at construction. Its state is
+a `LinkState`; the view in the worker an `InFlight`, a frame waiting for its refresh a
+`WaitingFrame`. Load jobs' threads only queue a `LoadRequest` and wait on it: the control loop
+sends it, and on the worker's answer updates the link and finishes the request, so no field
+is written from two threads.
 
 Frames cross in shared memory (docs/frames.md): `FrameWorker` creates `SLOTS` (one) segment
 named `nhfd-<pid>-<n>-<slot>` in /dev/shm, sized for the whole panel (a grey region and its
@@ -35,8 +44,12 @@ import logging
 import math
 import multiprocessing as mp
 import os
+import queue
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from enum import StrEnum
 from multiprocessing import shared_memory
 from types import SimpleNamespace
 from typing import Any, Protocol
@@ -46,11 +59,16 @@ import numpy as np
 from nhfd.calibration import active_calibration
 from nhfd.drivers import factory
 from nhfd.drivers.slm import SLMOutputLost
+from nhfd.frame_message import FrameMessage
+from nhfd.views import View
 
 log = logging.getLogger("nhfd.daemon.frame_link")
 
 # How long a load may take in the worker before the load job gives up waiting (s).
 LOAD_TIMEOUT_S = 120.0
+# How often a waiting load job looks whether the link has stopped (s): a load queued just as the
+# daemon closes is answered by no control loop.
+WAIT_POLL_S = 0.1
 # A crashed worker is restarted at most this often (s), so a worker that dies at start-up does
 # not spin.
 RESTART_BACKOFF_S = 2.0
@@ -84,37 +102,11 @@ class PanelView(Protocol):
     def blank(self) -> None: ...
 
 
-class SLMFaults(Protocol):
-    """Where an SLM whose output is lost is reported (`nhfd.daemon.bench.Bench`)."""
-
-    def note_slm_lost(self, detail: str) -> None: ...
-
-
 class ViewSource(Protocol):
-    """The newest view requested (`nhfd.daemon.views.ViewSlot`)."""
+    """The newest view requested and its sequence number (`nhfd.daemon.views.ViewSlot`)."""
 
     seq: int
-    view: dict[str, Any] | None
-
-    def mark_applied(self, seq: int) -> None: ...
-
-
-class LaserSwitch(Protocol):
-    def off(self) -> None: ...
-
-
-class FrameHost(Protocol):
-    """What `FrameLink` uses of the daemon (`nhfd.daemon.service.Daemon`): its configuration,
-    the views, the panel (view frames and the blank), the lasers (off when the worker crashes)
-    and the error list of `status`."""
-
-    config: Any  # nhfd.config.Config
-    panel: PanelView
-    bench: SLMFaults
-    views: ViewSource
-    laser: LaserSwitch
-
-    def _error(self, source: str, message: str) -> None: ...
+    view: View | None
 
 
 # -- the worker process, seen from the daemon --------------------------------------------------
@@ -141,17 +133,33 @@ def run_by_name(module: str, env: dict[str, str], *args: Any) -> None:
     importlib.import_module(module).worker_main(*args)
 
 
-class Pending:
-    """A load sent to the worker; the control loop fills in its outcome."""
+@dataclass
+class LoadRequest:
+    """A model or scene load: queued by a load job (or by a restart, `reload`), sent by the
+    control loop, which fills in its outcome (`finish`) and sets `done`; the job's thread only
+    waits for that."""
 
-    def __init__(self) -> None:
-        self.done = threading.Event()
-        self.ok = False
-        self.result: Any = None
+    kind: str  # "model" | "scene"
+    path: str
+    reload: bool = False  # a restarted worker's: nobody waits, a failure is an error in status
+    done: threading.Event = field(default_factory=threading.Event)
+    ok: bool = False
+    result: Any = None
 
-    def wait(self, timeout_s: float) -> Any:
-        if not self.done.wait(timeout_s):
-            raise TimeoutError(f"the frame worker did not answer within {timeout_s:g} s")
+    def finish(self, ok: bool, result: Any) -> None:
+        self.ok, self.result = ok, result
+        self.done.set()  # publishes ok and result to the waiting thread
+
+    def wait(self, timeout_s: float, stopped: Callable[[], bool] = lambda: False) -> Any:
+        """The worker's report of the load, or ValueError with its reason (TimeoutError when
+        it did not answer within `timeout_s`; ValueError at once when `stopped()` turns true:
+        no control loop will answer then)."""
+        deadline = time.monotonic() + timeout_s
+        while not self.done.wait(min(WAIT_POLL_S, max(0.0, deadline - time.monotonic()))):
+            if stopped():
+                raise ValueError("the frame worker stopped")
+            if time.monotonic() >= deadline:
+                raise TimeoutError(f"the frame worker did not answer within {timeout_s:g} s")
         if not self.ok:
             raise ValueError(str(self.result))
         return self.result
@@ -170,8 +178,9 @@ class FrameWorker:
         self.conn: Any = None
         self.pid: int | None = None
         self.ready = False
-        self._send_lock = threading.Lock()  # load jobs send from their own thread
-        self.pending: dict[int, Pending] = {}
+        # Loads sent, by request id, until the worker answers. Only the control loop sends:
+        # load jobs hand their loads to it (`FrameLink._load`), so the pipe needs no lock.
+        self.pending: dict[int, LoadRequest] = {}
         self.transport = str(config.daemon.frame_transport)
         self.shms: list[shared_memory.SharedMemory] = []
         self.free_slots: list[int] = []
@@ -221,17 +230,17 @@ class FrameWorker:
         if slot is not None and slot not in self.free_slots and slot < len(self.shms):
             self.free_slots.append(slot)
 
-    def arrays(self, payload: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
-        """A frame's grey region and render: views into its slot (copy before releasing it),
-        or the arrays pickled in the payload."""
-        slot = payload.get("slot")
-        if slot is None:
-            return payload["grey"], payload.get("rgb")
-        buf = self.shms[slot].buf
-        grey = np.ndarray(tuple(payload["grey_shape"]), np.uint8, buffer=buf)
-        rgb_shape = payload.get("rgb_shape")
-        rgb = (np.ndarray(tuple(rgb_shape), np.uint8, buffer=buf, offset=grey.nbytes)
-               if rgb_shape else None)
+    def arrays(self, message: FrameMessage) -> tuple[np.ndarray, np.ndarray | None]:
+        """A frame's grey region `[3, h, w]` and render `[3, H, W]` (or None), uint8: views into
+        its slot (copy before releasing it), or the arrays pickled in the message."""
+        if message.slot is None:
+            if message.grey is None:
+                raise ValueError("a frame message with neither a slot nor its grey region")
+            return message.grey, message.rgb
+        buf = self.shms[message.slot].buf
+        grey = np.ndarray(message.grey_shape, np.uint8, buffer=buf)
+        rgb = (np.ndarray(message.rgb_shape, np.uint8, buffer=buf, offset=grey.nbytes)
+               if message.rgb_shape else None)
         return grey, rgb
 
     @property
@@ -239,14 +248,13 @@ class FrameWorker:
         return self.process is not None and self.process.is_alive()
 
     def send(self, msg: tuple) -> None:
-        with self._send_lock:
-            self.conn.send(msg)
+        self.conn.send(msg)
 
-    def request(self, kind: str, path: str) -> Pending:
+    def request(self, request: LoadRequest) -> None:
+        """Send a load; its answer finishes it (`FrameLink._handle`), or the worker's end."""
         req_id = next(self._ids)
-        pending = self.pending[req_id] = Pending()
-        self.send((kind, req_id, path))
-        return pending
+        self.pending[req_id] = request
+        self.send((request.kind, req_id, request.path))
 
     def receive(self) -> list[tuple]:
         """Every message waiting on the pipe (never blocks); EOFError when the worker is gone."""
@@ -255,9 +263,11 @@ class FrameWorker:
             out.append(self.conn.recv())
         return out
 
-    def close(self, timeout_s: float = 2.0) -> None:
+    def close(self, timeout_s: float = 2.0) -> list[LoadRequest]:
+        """Stop the worker (asked, then killed after `timeout_s`) and unlink its slots; the
+        loads it had not answered fail ("the frame worker stopped") and are returned."""
         if self.process is None:
-            return
+            return []
         with contextlib.suppress(Exception):
             self.send(("stop",))
         self.process.join(timeout_s)
@@ -267,10 +277,11 @@ class FrameWorker:
         with contextlib.suppress(Exception):
             self.conn.close()
         self._unlink()
-        for p in self.pending.values():
-            p.ok, p.result = False, "the frame worker stopped"
-            p.done.set()
+        failed = list(self.pending.values())
+        for request in failed:
+            request.finish(False, "the frame worker stopped")
         self.pending.clear()
+        return failed
 
     def _unlink(self) -> None:
         """Remove the slots from /dev/shm (the worker is gone: nothing else maps them)."""
@@ -282,106 +293,231 @@ class FrameWorker:
         self.shms, self.free_slots = [], []
 
 
+class LinkState(StrEnum):
+    """Where the frame link stands with its worker (`status.frames.state` shows the value)."""
+
+    IDLE = "idle"  # no worker yet: it starts with the first load
+    STARTING = "starting"  # spawned, its "ready" not yet received
+    RUNNING = "running"
+    CRASHED = "crashed"  # died: restarted RESTART_BACKOFF_S later, with the same model and scene
+    STOPPED = "stopped"  # closed for good
+
+
+@dataclass(frozen=True)
+class InFlight:
+    """The view the worker is computing: its sequence number, when it went out (monotonic s)
+    and the shared-memory slot the worker may write (None: the pickled transport)."""
+
+    seq: int
+    sent_s: float
+    slot: int | None
+
+
+@dataclass(frozen=True)
+class WaitingFrame:
+    """A frame back from the worker, waiting for its refresh: its view's sequence number, the
+    worker's message, and when the view went out (monotonic s; None when it was not the one in
+    flight)."""
+
+    seq: int
+    message: FrameMessage
+    sent_s: float | None
+
+
+@dataclass
+class FrameCounts:
+    """What `status.frames` counts (docs/frames.md): frames shown; views never computed because
+    a newer one overtook them (latest wins), plus a frame waiting for its refresh when the
+    worker crashed; frames shown more than one refresh after the worker finished them; and the
+    ages (s, from the frame whole in its slot to the end of the panel write)."""
+
+    shown: int = 0
+    dropped: int = 0
+    late: int = 0
+    last_age_s: float | None = None
+    max_age_s: float = 0.0
+
+    def showed(self, age_s: float | None, refresh_s: float) -> None:
+        """One more frame on the panel, `age_s` old (None: its age is unknown)."""
+        self.shown += 1
+        if age_s is not None:
+            self.last_age_s, self.max_age_s = age_s, max(self.max_age_s, age_s)
+            self.late += age_s > refresh_s
+
+
+@dataclass(frozen=True)
+class FrameEvents:
+    """How a `FrameLink` reports to its owner (the daemon), given at construction: it calls
+    these on the control loop's thread and never reaches into the owner otherwise.
+
+    shown     (seq): view `seq`'s frame is on the panel
+    error     (source, message): a line for `status`'s errors ("frame worker", "slm")
+    crashed   (message): the worker died ("frame worker (pid P) died with exit code C"); the
+              owner makes the bench safe (lasers off, panel blanked) and records the error. The
+              link restarts the worker after RESTART_BACKOFF_S.
+    slm_lost  (detail): the SLM refused a frame because its output is lost (`SLMOutputLost`)
+    """
+
+    shown: Callable[[int], None]
+    error: Callable[[str, str], None]
+    crashed: Callable[[str], None]
+    slm_lost: Callable[[str], None]
+
+
 class FrameLink:
     """The daemon's use of the worker: send the newest view when the worker is free, show the
-    frames it returns, load models and scenes, and turn a worker crash into lasers off plus an
-    error in `status` (then restart it with the same model and scene)."""
+    frames it returns, load models and scenes, and report a worker crash (then restart it with
+    the same model and scene).
 
-    def __init__(self, daemon: FrameHost, worker_module: str = WORKER_MODULE) -> None:
-        self.d = daemon
-        # `worker_module`: another worker speaking the same protocol (tests use a fake one).
-        self.worker = FrameWorker(daemon.config, worker_module)
+    One thread owns it: the control loop's, which calls `step`, `close`, `status` and reads its
+    counters. Load jobs run on threads of their own: `load_model` and `load_scene` only queue a
+    `LoadRequest` and wait for the control loop to fill in its outcome, so every field here is
+    written by the control loop alone. A queued load goes out at the loop's next step (within
+    `daemon.tick_s`)."""
+
+    def __init__(self, config: Any, views: ViewSource, panel: Callable[[], PanelView],
+                 events: FrameEvents, worker_module: str = WORKER_MODULE) -> None:
+        """`config`: the daemon's (`nhfd.config.Config`: slm.refresh_hz, the worker's
+        settings). `views`: the newest view requested (read only: `events.shown` marks it
+        applied). `panel`: the panel in use now (a getter: the daemon's bench, and its panel,
+        are replaced when it starts). `worker_module`: another worker speaking the same
+        protocol (tests use a fake one)."""
+        self.config = config
+        self.views = views
+        self.panel = panel
+        self.events = events
+        self.worker = FrameWorker(config, worker_module)
         self.model_path: str | None = None
-        self.model_info: dict[str, Any] | None = None
+        self.model_info: dict[str, Any] | None = None  # what the worker reported at the load
         self.scene_path: str | None = None
-        # (seq, sent at (monotonic), its slot): the view the worker is computing
-        self.inflight: tuple[int, float, int | None] | None = None
-        self.sent_seq = 0
+        self.state = LinkState.IDLE
+        self.inflight: InFlight | None = None
+        self.waiting: WaitingFrame | None = None
+        self.sent_seq = 0  # the newest view sent to a worker
         self.shown_seq = 0
+        # The current view again (a new model or scene, a restarted worker, an SLM output back)
+        self._resend = False
         self.timings: dict[str, Any] | None = None
         self.warnings: list[str] = []
         self.last_rgb: np.ndarray | None = None
         self.last_frame: np.ndarray | None = None
-        self.frames_shown = 0
-        # Views never computed because a newer one overtook them (latest wins), plus a frame
-        # waiting for its refresh when the worker crashed; frames shown more than one refresh
-        # after the worker finished them (docs/frames.md).
-        self.frames_dropped = 0
-        self.frames_late = 0
-        self.refresh_s = 1.0 / float(daemon.config.slm.refresh_hz)
-        self.pending: tuple[int, dict[str, Any], float | None] | None = None  # waits its refresh
+        self.counts = FrameCounts()
+        self.refresh_s = 1.0 / float(config.slm.refresh_hz)
         self.last_show_s = -math.inf  # monotonic, when the last view frame went to the panel
-        self.last_age_s: float | None = None
-        self.max_age_s = 0.0
-        self._view_seq = 0  # the newest view sent to a worker (never reset: skipped views)
         self.compute_s: float | None = None  # the worker's recent frame time, request to ready
         self.crashes = 0
-        self.state = "idle"
-        self._start_lock = threading.Lock()
+        # Loads queued by load jobs' threads (the one thing they touch), and those taken from
+        # it that wait for a worker to send them to.
+        self._requests: queue.SimpleQueue[LoadRequest] = queue.SimpleQueue()
+        self._unsent: list[LoadRequest] = []
         self._zero: PanelBuffer | None = None  # of the blank frame `_zero_of`, built on use
         self._zero_of: np.ndarray | None = None
         self._restart_at = 0.0
 
-    # -- lifecycle -----------------------------------------------------------------------------
+    # -- lifecycle (the control loop's thread) -------------------------------------------------
 
     def start(self) -> None:
+        """Spawn the worker; the model and scene it had (after a crash) load again."""
         self.worker.start()
-        self.state = "starting"
+        self.state = LinkState.STARTING
         if self.scene_path:
-            self._track(self.worker.request("scene", self.scene_path), "scene", self.scene_path)
+            self._unsent.insert(0, LoadRequest("scene", self.scene_path, reload=True))
         if self.model_path:
-            self._track(self.worker.request("model", self.model_path), "model", self.model_path)
+            self._unsent.insert(int(bool(self.scene_path)),
+                                LoadRequest("model", self.model_path, reload=True))
+        self._send_loads()
 
     def ensure_started(self) -> None:
-        """The worker starts with the first load: a daemon with no model or scene (most tests,
-        a bench used only for captures) never pays for a process that imports torch."""
-        with self._start_lock:
-            if self.state == "idle":
-                self.start()
+        """Start the worker unless it runs (the first load does this too): a daemon with no
+        model or scene (most tests, a bench used only for captures) never pays for a process
+        that imports torch. The control loop's thread only."""
+        if self.state == LinkState.IDLE:
+            self.start()
 
     def close(self) -> None:
-        self.state = "stopped"
+        self.state = LinkState.STOPPED
         # A frame waiting for its refresh, or in the worker: its slot goes with the worker.
-        self.pending = self.inflight = None
-        self.worker.close()
-
-    def _track(self, pending: Pending, kind: str, path: str) -> Pending:
-        """Restarts reload in the background: their outcome only matters if it failed."""
-        def watch() -> None:
-            pending.done.wait(LOAD_TIMEOUT_S)
-            if pending.done.is_set() and not pending.ok:
-                self.d._error("frame worker", f"reloading {kind} {path}: {pending.result}")
-        threading.Thread(target=watch, daemon=True, name="nhfd-reload-watch").start()
-        return pending
+        self.waiting = self.inflight = None
+        self._report_failed_reloads(self.worker.close())
+        self._take_requests()  # nothing queued may wait for a worker that will not come
+        for request in self._unsent:
+            request.finish(False, "the frame worker stopped")
+        self._unsent.clear()
 
     # -- loads (from load jobs' threads) --------------------------------------------------------
 
     def load_model(self, path: str) -> dict[str, Any]:
         """Blocks the calling job until the worker has the model, or raises with the worker's
         reason (a ModelMismatch names the field); on failure the old model keeps running."""
-        self.ensure_started()
-        info = self.worker.request("model", path).wait(LOAD_TIMEOUT_S)
-        self.model_path, self.model_info = path, info
-        self.sent_seq = 0  # the current view again, with the new model
-        return info
+        return self._load(LoadRequest("model", path))
 
     def load_scene(self, path: str) -> dict[str, Any]:
-        self.ensure_started()
-        info = self.worker.request("scene", path).wait(LOAD_TIMEOUT_S)
-        self.scene_path = path
-        self.sent_seq = 0
-        return info
+        """Blocks the calling job until the worker has the scene (its counts, centre, up axis),
+        or raises with the worker's reason; on failure the old scene keeps rendering."""
+        return self._load(LoadRequest("scene", path))
+
+    def _load(self, request: LoadRequest) -> dict[str, Any]:
+        # Only the queue is touched from this thread (the state is read, never written); the
+        # control loop sends the load, and on the worker's answer records the new model or
+        # scene and finishes the request.
+        if self.state == LinkState.STOPPED:
+            raise ValueError("the frame worker stopped")
+        self._requests.put(request)
+        return request.wait(LOAD_TIMEOUT_S, lambda: self.state == LinkState.STOPPED)
+
+    def _take_requests(self) -> None:
+        while True:
+            try:
+                self._unsent.append(self._requests.get_nowait())
+            except queue.Empty:
+                return
+
+    def _send_loads(self) -> None:
+        """Queued loads to the worker, starting it for the first; held while it restarts."""
+        self._take_requests()
+        if self._unsent and self.state == LinkState.IDLE:
+            self.start()  # sends them
+            return
+        if self.state not in (LinkState.STARTING, LinkState.RUNNING):
+            return
+        for request in self._unsent:
+            self.worker.request(request)
+        self._unsent.clear()
+
+    def _loaded(self, request: LoadRequest, ok: bool, result: Any) -> None:
+        """The worker's answer to a load: on success the link serves the new model or scene
+        (and the current view again with it); a restart's reload that failed is an error in
+        status (no job waits for it)."""
+        if ok:
+            if request.kind == "model":
+                self.model_path, self.model_info = request.path, result
+            else:
+                self.scene_path = request.path
+            self._resend = True
+        request.finish(ok, result)
+        self._report_failed_reloads([request] if not ok else [])
+
+    def _report_failed_reloads(self, requests: list[LoadRequest]) -> None:
+        for r in requests:
+            if r.reload:
+                self.events.error("frame worker", f"reloading {r.kind} {r.path}: {r.result}")
+
+    def resend(self) -> None:
+        """Send the current view again at the next step (the panel lost it: an SLM output
+        back). The control loop's thread only."""
+        self._resend = True
 
     # -- the control loop's part ---------------------------------------------------------------
 
     def step(self) -> None:
-        """Once per tick: collect what the worker sent, show the newest frame when its refresh
-        is due, send the newest view."""
-        if self.state in ("idle", "stopped"):
+        """Once per tick: take queued loads, collect what the worker sent, show the newest frame
+        when its refresh is due, send the newest view."""
+        self._send_loads()
+        if self.state in (LinkState.IDLE, LinkState.STOPPED):
             return
-        if self.state == "crashed":
+        if self.state == LinkState.CRASHED:
             if time.monotonic() >= self._restart_at:
-                self.worker = FrameWorker(self.d.config, self.worker.module)
+                self.worker = FrameWorker(self.config, self.worker.module)
                 self.inflight = None
                 self.start()
             return
@@ -394,10 +530,9 @@ class FrameLink:
             return
         for msg in msgs:
             self._handle(msg)
-        if self.pending is not None and time.monotonic() >= self.due_s - DUE_SLACK_S:
-            seq, payload, sent_at = self.pending
-            self.pending = None
-            self._show(seq, payload, sent_at)
+        if self.waiting is not None and time.monotonic() >= self.due_s - DUE_SLACK_S:
+            waiting, self.waiting = self.waiting, None
+            self._show(waiting)
         self._send_next()
 
     @property
@@ -420,7 +555,7 @@ class FrameLink:
     def wake_s(self) -> float:
         """When the control loop must step again (monotonic; inf: nothing is waiting): for a
         frame waiting for its refresh, or a newer view waiting for its time to go out."""
-        if self.pending is not None:
+        if self.waiting is not None:
             return self.due_s
         if self._ready_to_send():
             return self.send_at_s  # the step then sends it (_send_next)
@@ -431,98 +566,99 @@ class FrameLink:
         runs with a model and a scene, it computes nothing of ours and no frame waits for its
         refresh (one frame at a time: the next view is taken only once the frame before it is on
         the panel, so what the worker computes is the newest view then, and the slot is free),
-        and a view newer than the last sent is waiting."""
-        views = self.d.views
-        return (self.state == "running" and self.worker.ready
-                and self.inflight is None and self.pending is None
+        and a view newer than the last sent is waiting (or the current one is to go again)."""
+        views = self.views
+        return (self.state == LinkState.RUNNING and self.worker.ready
+                and self.inflight is None and self.waiting is None
                 and self.model_path is not None and self.scene_path is not None
-                and views.view is not None and views.seq > self.sent_seq)
+                and views.view is not None and (views.seq > self.sent_seq or self._resend))
 
     def _handle(self, msg: tuple) -> None:
         kind = msg[0]
         if kind == "ready":
             self.worker.ready = True
-            self.state = "running"
+            self.state = LinkState.RUNNING
         elif kind in ("model", "scene"):
             _, req_id, ok, result = msg
-            pending = self.worker.pending.pop(req_id, None)
-            if pending is not None:
-                pending.ok, pending.result = ok, result
-                pending.done.set()
+            request = self.worker.pending.pop(req_id, None)
+            if request is not None:
+                self._loaded(request, ok, result)
         elif kind == "frame":
-            seq, payload = msg[1], msg[2]
-            sent_at = self.inflight[1] if self.inflight and self.inflight[0] == seq else None
-            if sent_at is not None and payload.get("ready_s") is not None:
-                took = max(0.0, float(payload["ready_s"]) - sent_at)
+            seq, message = msg[1], msg[2]
+            inflight, self.inflight = self.inflight, None
+            if not isinstance(message, FrameMessage):  # a worker speaking another protocol
+                if inflight is not None:
+                    self.worker.release(inflight.slot)
+                self.events.error("frame worker", f"view {seq}: not a frame message: "
+                                                  f"{type(message).__name__}")
+                return
+            sent_s = inflight.sent_s if inflight is not None and inflight.seq == seq else None
+            if sent_s is not None and message.ready_s is not None:
+                took = max(0.0, message.ready_s - sent_s)
                 self.compute_s = took if self.compute_s is None else (
                     0.7 * self.compute_s + 0.3 * took)
-            self.inflight = None
-            self.pending = (seq, payload, sent_at)  # none before it: one frame at a time
+            self.waiting = WaitingFrame(seq, message, sent_s)  # one frame at a time
         elif kind == "frame_error":
             seq, message = msg[1], msg[2]
             if self.inflight is not None:
-                self.worker.release(self.inflight[2])
+                self.worker.release(self.inflight.slot)
             self.inflight = None
-            self.d._error("frame worker", f"view {seq}: {message}")
+            self.events.error("frame worker", f"view {seq}: {message}")
 
     def _send_next(self) -> None:
         if not self._ready_to_send() or time.monotonic() < self.send_at_s:
             return  # the loop wakes at send_at_s (wake_s)
-        seq, view = self.d.views.seq, self.d.views.view
+        seq, view = self.views.seq, self.views.view
         shm_slot = self.worker.take_slot()  # free: no frame of ours is out or waiting
         self.worker.send(("frame", seq, view, shm_slot))
-        self.inflight = (seq, time.monotonic(), shm_slot)
-        self.sent_seq = seq
-        if self._view_seq and seq > self._view_seq + 1:
-            self.frames_dropped += seq - self._view_seq - 1  # overtaken, never computed
-        self._view_seq = max(self._view_seq, seq)
+        self.inflight = InFlight(seq, time.monotonic(), shm_slot)
+        if self.sent_seq and seq > self.sent_seq + 1:
+            self.counts.dropped += seq - self.sent_seq - 1  # overtaken, never computed
+        self.sent_seq = max(self.sent_seq, seq)
+        self._resend = False
 
-    def _show(self, seq: int, payload: dict[str, Any], sent_at: float | None) -> None:
-        # One clock (monotonic) for all: the worker's ready_s is CLOCK_MONOTONIC, as is sent_at.
+    def _show(self, waiting: WaitingFrame) -> None:
+        seq, message = waiting.seq, waiting.message
+        # One clock (monotonic) for all: the worker's ready_s is CLOCK_MONOTONIC, as is sent_s.
         t0 = self.last_show_s = time.monotonic()
-        # A frame that cannot be shown (a region off the panel, a malformed payload, the SLM
-        # refusing it) is an error in status, not an exception out of the control loop: the
-        # panel keeps the frame before it and the daemon keeps running.
+        # A frame that cannot be shown (a region off the panel, arrays that do not fit the
+        # slot, the SLM refusing it) is an error in status, not an exception out of the control
+        # loop: the panel keeps the frame before it and the daemon keeps running.
         try:
             try:
-                panel, rgb = self._panel(payload)
+                panel, rgb = self._panel(message)
             finally:  # copied out (or refused): the worker may write the slot again
-                self.worker.release(payload.get("slot"))
+                self.worker.release(message.slot)
             # The panel applies the colour mode, and holds the frame back during a capture.
-            frame = self.d.panel.show_view(panel, seq)
+            frame = self.panel().show_view(panel, seq)
         except Exception as exc:
-            self.d._error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
+            self.events.error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
             if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
-                self.d.bench.note_slm_lost(str(exc))
+                self.events.slm_lost(str(exc))
             return
         done = time.monotonic()
-        if payload.get("ready_s") is not None:
-            age = done - float(payload["ready_s"])
-            self.last_age_s, self.max_age_s = age, max(self.max_age_s, age)
-            self.frames_late += age > self.refresh_s
-        stages = dict(payload["timings_s"])
-        stages["output"] = done - t0
-        timings = {f"{k}_ms": round(v * 1e3, 3) for k, v in stages.items()}
-        if sent_at is not None:
-            timings["view_to_slm_ms"] = round((done - sent_at) * 1e3, 3)
-        timings.update(seq=seq, cached=payload["cached"],
-                       clipped_fraction=list(payload["clipped_fraction"]))
+        self.counts.showed(None if message.ready_s is None else done - message.ready_s,
+                           self.refresh_s)
+        stages = {**message.timings.seconds(), "output": done - t0}
+        timings: dict[str, Any] = {f"{k}_ms": round(v * 1e3, 3) for k, v in stages.items()}
+        if waiting.sent_s is not None:
+            timings["view_to_slm_ms"] = round((done - waiting.sent_s) * 1e3, 3)
+        timings.update(seq=seq, cached=message.cached,
+                       clipped_fraction=list(message.clipped_fraction))
         self.timings = timings
-        self.warnings = list(payload["warnings"])
+        self.warnings = list(message.warnings)
         self.last_rgb, self.last_frame = rgb, frame
         self.shown_seq = seq
-        self.frames_shown += 1
-        self.d.views.mark_applied(seq)
+        self.events.shown(seq)
 
-    def _panel(self, payload: dict[str, Any]) -> tuple[np.ndarray, np.ndarray | None]:
+    def _panel(self, message: FrameMessage) -> tuple[np.ndarray, np.ndarray | None]:
         """The full panel: the blank frame (the zero pattern of the coding in use) outside the
         coded region; and a copy of the render. Both copied out of the frame's slot."""
-        blank = self.d.panel.blank_frame()
+        blank = self.panel().blank_frame()
         if self._zero is None or self._zero_of is not blank:
             self._zero, self._zero_of = PanelBuffer(blank), blank
-        top, left = payload["region"][:2]
-        grey, rgb = self.worker.arrays(payload)
-        panel = self._zero.frame(top, left, grey)
+        grey, rgb = self.worker.arrays(message)
+        panel = self._zero.frame(message.region.top, message.region.left, grey)
         rgb = None if rgb is None else rgb.copy()
         del grey  # no view into the slot outlives this call
         return panel, rgb
@@ -533,39 +669,33 @@ class FrameLink:
         message = f"frame worker (pid {self.worker.pid}) died with exit code {code}"
         log.error("%s; lasers off, SLM blanked, restarting", message)
         # The panel may hold a half-updated or stale frame the daemon no longer controls: the
-        # light path is affected, so the lasers go off first.
-        try:
-            self.d.laser.off()
-            message += "; lasers switched off"
-        except Exception as exc:
-            message += f"; lasers off FAILED: {exc}"
-        with contextlib.suppress(Exception):
-            self.d.panel.blank()
-        self.d._error("frame worker", message)
-        if self.pending is not None:  # its slot goes with the worker: never shown
-            self.frames_dropped += 1
-            self.pending = None
-        self.worker.close(timeout_s=0.5)
-        self.state = "crashed"
-        self.sent_seq = 0
+        # owner switches the lasers off and blanks the panel (`FrameEvents.crashed`).
+        self.events.crashed(message)
+        if self.waiting is not None:  # its slot goes with the worker: never shown
+            self.counts.dropped += 1
+            self.waiting = None
+        self._report_failed_reloads(self.worker.close(timeout_s=0.5))
+        self.state = LinkState.CRASHED
+        self._resend = True
         self._restart_at = time.monotonic() + RESTART_BACKOFF_S
 
     def status(self) -> dict[str, Any]:
-        info = self.model_info or {}
-        slm = getattr(getattr(self.d.panel, "devices", None), "slm", None)
+        """`status.frames`: the worker, what it serves, the sequence numbers, the counts and
+        the pacing."""
+        info, c = self.model_info or {}, self.counts
+        slm = getattr(getattr(self.panel(), "devices", None), "slm", None)
         pacing = f"timer: one frame per refresh at {1 / self.refresh_s:g} Hz (slm.refresh_hz)"
         if getattr(slm, "vsync_detail", ""):  # the framebuffer's FBIO_WAITFORVSYNC, or why not
             pacing += f"; {slm.vsync_detail}"
-        return {"state": self.state, "pid": self.worker.pid, "alive": self.worker.alive,
+        return {"state": str(self.state), "pid": self.worker.pid, "alive": self.worker.alive,
                 "model": self.model_path, "scene": self.scene_path,
                 "model_variant": info.get("variant"),
                 "model_variant_reason": info.get("variant_reason"),
                 "sent_seq": self.sent_seq, "shown_seq": self.shown_seq,
-                "frames_shown": self.frames_shown, "frames_dropped": self.frames_dropped,
-                "frames_late": self.frames_late,
-                "last_frame_age_ms": (None if self.last_age_s is None
-                                      else round(self.last_age_s * 1e3, 3)),
-                "max_frame_age_ms": round(self.max_age_s * 1e3, 3),
+                "frames_shown": c.shown, "frames_dropped": c.dropped, "frames_late": c.late,
+                "last_frame_age_ms": (None if c.last_age_s is None
+                                      else round(c.last_age_s * 1e3, 3)),
+                "max_frame_age_ms": round(c.max_age_s * 1e3, 3),
                 "refresh_hz": round(1 / self.refresh_s, 6), "pacing": pacing,
                 "transport": self.worker.transport, "crashes": self.crashes,
                 "pose_warnings": self.warnings}

@@ -126,7 +126,6 @@ class Host(Protocol):
     def request_shutdown(self, reason: str) -> None: ...
 
 
-REFOCUS_MM = (-10.0, 10.0)
 MODEL_SUFFIXES = (".onnx",)
 PATTERN_SUFFIXES = (".npy",)
 
@@ -149,18 +148,14 @@ def _status(d: Host, conn: Connection, p: Params) -> Any:
 
 
 def _set_view(d: Host, conn: Connection, p: Params) -> Any:
-    current = d.views.view
-    # Digital refocus (mm, + toward the viewer) travels with the view; it stays as it was when
-    # not given.
-    refocus = p.number("refocus_mm", *REFOCUS_MM, default=None)
-    view = parse_view(p, current)
-    view["refocus_mm"] = refocus if refocus is not None else (
-        current.get("refocus_mm", 0.0) if current else 0.0)
+    # Parsed once, here: a View from now on (digital refocus included, kept when not given).
+    view = parse_view(p, d.views.view)
     if d.panel.pattern is not None:  # a calibration pattern gives the panel back to the view
         _end_pattern(d)
     seq = d.views.submit(view)
-    d.audit.view(conn.who, seq, view)
-    return {"seq": seq, "view": view}
+    shown = view.to_json()  # the reply, the audit log and the recording show the plain form
+    d.audit.view(conn.who, seq, shown)
+    return {"seq": seq, "view": shown}
 
 
 def _focus(d: Host, conn: Connection, p: Params) -> Any:

@@ -21,6 +21,7 @@ from typing import Any, Protocol
 from nhfd.config import Config
 from nhfd.drivers import factory
 from nhfd.drivers.navigator import Waypoint
+from nhfd.views import Orbit, View
 
 from .audit import AuditLog
 from .protocol import Params, RpcError
@@ -40,18 +41,19 @@ SIMULATED_SCRIPT = (
 )
 
 
-def relative_move(view: dict[str, Any], reading: Any, dt_s: float) -> dict[str, Any] | None:
+def relative_move(view: View, reading: Any, dt_s: float) -> dict[str, Any] | None:
     """The `relative` parameters that move `view` by the reading's velocities over dt_s (None
     when the puck rests)."""
     t = [v * dt_s for v in reading.translation_m_s]
     r = [v * dt_s for v in reading.rotation_deg_s]
     if not any(t) and not any(r):
         return None
-    if view["kind"] == "orbit":
+    cam = view.camera
+    if isinstance(cam, Orbit):
         # Keep inside the elevation range rather than refuse the whole move at the pole.
-        elevation = min(max(view["elevation_deg"] + r[0], ELEVATION_DEG[0]), ELEVATION_DEG[1])
-        d_radius = max(t[2], -0.5 * view["radius"])  # never through the centre
-        return {"d_azimuth_deg": r[1], "d_elevation_deg": elevation - view["elevation_deg"],
+        elevation = min(max(cam.elevation_deg + r[0], ELEVATION_DEG[0]), ELEVATION_DEG[1])
+        d_radius = max(t[2], -0.5 * cam.radius)  # never through the centre
+        return {"d_azimuth_deg": r[1], "d_elevation_deg": elevation - cam.elevation_deg,
                 "d_radius": d_radius}
     return {"translate": t, "rotate_deg": r}
 
@@ -121,14 +123,14 @@ class NavigatorInput:
         if rel is None:
             return
         try:
-            view = parse_view(Params({"relative": rel}), current)
+            view = parse_view(Params({"relative": rel}), current)  # keeps the refocus
         except RpcError as exc:  # e.g. a pose that would leave the coordinate range
             self.error = f"move refused: {exc.message}"
             return
-        view["refocus_mm"] = current.get("refocus_mm", 0.0)
         seq = self.d.views.submit(view)
-        self.d.audit.view(WHO, seq, view)
-        self.d.record("set_view", {}, WHO, {"view": view})
+        shown = view.to_json()
+        self.d.audit.view(WHO, seq, shown)
+        self.d.record("set_view", {}, WHO, {"view": shown})
         self.moves += 1
         self.last_seq = seq
 

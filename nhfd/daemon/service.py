@@ -46,7 +46,7 @@ from . import protocol
 from .arming import ArmingGate
 from .audit import AuditLog, compact_params
 from .bench import Bench, focus_stage_mm
-from .frame_link import FrameLink, apply_camera_roi
+from .frame_link import FrameEvents, FrameLink, apply_camera_roi
 from .guardian_link import LaserLink
 from .jobs import Job, JobRunner
 from .methods import METHODS
@@ -129,7 +129,12 @@ class Daemon:
                                           socket_group=c.socket_group)
         self.bench = Bench(config)
         self.views = ViewSlot()
-        self.frames = FrameLink(self)  # the spawned render/inference worker, started on demand
+        # The spawned render/inference worker, started on demand. Its events come back here;
+        # the bench (and so the panel) is replaced at start, hence the getters.
+        self.frames = FrameLink(config, self.views, lambda: self.panel, FrameEvents(
+            shown=self.views.mark_applied, error=self._error,
+            crashed=self._frame_worker_crashed,
+            slm_lost=lambda detail: self.bench.note_slm_lost(detail)))
         self.navigation = NavigatorInput(self)
         # Who may arm and the bench's confirmation (a ConfigError here names the missing input).
         self.arming = ArmingGate(c, config.devices.navigator)
@@ -391,7 +396,7 @@ class Daemon:
                 except Exception as exc:
                     self._error(device, f"output back, but blank failed: {exc}")
                     continue
-                self.frames.sent_seq = 0  # the current view again (a frame cache hit)
+                self.frames.resend()  # the current view again (a frame cache hit)
                 log.warning("%s: output back (%s); blank, then the current view; lasers stay "
                             "off until turned on", device, detail)
                 self.audit.write({"who": "daemon"}, "slm output back", detail=detail)
@@ -573,6 +578,19 @@ class Daemon:
 
     def _error(self, source: str, message: str) -> None:
         self.errors.append({"time_s": time.time(), "source": source, "message": message})
+
+    def _frame_worker_crashed(self, message: str) -> None:
+        """The frame worker died (`FrameEvents.crashed`): the panel may hold a half-updated or
+        stale frame the daemon no longer controls, so the lasers go off first, then the panel
+        shows the blank pattern; status says what happened."""
+        try:
+            self.laser.off()
+            message += "; lasers switched off"
+        except Exception as exc:
+            message += f"; lasers off FAILED: {exc}"
+        with contextlib.suppress(Exception):
+            self.panel.blank()
+        self._error("frame worker", message)
 
     def _calibration_status(self) -> dict[str, Any]:
         c = self.config.daemon

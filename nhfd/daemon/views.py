@@ -1,11 +1,15 @@
-"""View requests: validation into a normalised view, relative moves, latest-wins coalescing.
+"""View requests: parsing into a `nhfd.views.View` (the RPC edge: every value checked here, with
+the messages clients see), relative moves, latest-wins coalescing.
 
-A view is one of
-  {"kind": "orbit", "azimuth_deg", "elevation_deg", "radius"}   about the scene's centre
-  {"kind": "pose", "position": [x, y, z], "quaternion_wxyz": [w, x, y, z]}
-in scene units, OpenCV camera axes, the quaternion being camera-to-world (as in
-`nhfd.scene.cameras.pose_from_quaternion`). A relative move changes the current view in its own
-kind: orbit deltas for an orbit, a camera-frame translation and rotation for a pose.
+A request gives one of
+  orbit    {azimuth_deg, elevation_deg, radius}          about the scene's centre
+  pose     {position: [x, y, z], quaternion_wxyz: [w, x, y, z]}
+  relative {d_azimuth_deg, d_elevation_deg, d_radius} or {translate, rotate_deg}
+and optionally refocus_mm, in scene units, OpenCV camera axes, the quaternion being
+camera-to-world (as in `nhfd.scene.cameras.pose_from_quaternion`). A relative move changes the
+current view in its own kind: orbit deltas for an orbit, a camera-frame translation and rotation
+for a pose. The result is a `View` (frozen): the daemon, the frame link and the frame worker use
+it typed; `View.to_json` is what `status`, the audit log and `set_view`'s reply show.
 
 `ViewSlot` keeps only the newest request: the frame worker (later) takes the latest and skips
 whatever was overtaken, so a burst of requests costs one frame, and the sequence number tells a
@@ -18,12 +22,13 @@ import math
 import threading
 from typing import Any
 
+from nhfd.views import AZIMUTH_DEG, COORD, ELEVATION_DEG, RADIUS, REFOCUS_MM, Orbit, Pose, View
+
 from .protocol import Params, bad_param
 
-AZIMUTH_DEG = (-360.0, 360.0)
-ELEVATION_DEG = (-89.9, 89.9)
-RADIUS = (0.0, 1e6)  # scene units; open at 0
-COORD = (-1e6, 1e6)
+__all__ = ["AZIMUTH_DEG", "COORD", "ELEVATION_DEG", "RADIUS", "REFOCUS_MM", "ROTATE_DEG",
+           "ViewSlot", "parse_view"]
+
 ROTATE_DEG = (-360.0, 360.0)
 
 
@@ -66,8 +71,12 @@ def _normalised(name: str, q: list[float]) -> list[float]:
     return [c / norm for c in q]
 
 
-def parse_view(params: Params, current: dict[str, Any] | None) -> dict[str, Any]:
-    """Exactly one of `orbit`, `pose`, `relative`; returns the normalised absolute view."""
+def parse_view(params: Params, current: View | None) -> View:
+    """Exactly one of `orbit`, `pose`, `relative`, and `refocus_mm` (mm, + toward the viewer;
+    absent: the current view's, or 0): the absolute view, azimuth wrapped into (-180, 180] and
+    quaternions normalised. RpcError (invalid params) naming the parameter otherwise."""
+    # Read first: its error comes before the view's, as when set_view read it itself.
+    refocus = params.number("refocus_mm", *REFOCUS_MM, default=None)
     given = [k for k in ("orbit", "pose", "relative") if params.has(k)]
     if len(given) != 1:
         raise bad_param("orbit|pose|relative", f"got {len(given)} of them",
@@ -76,44 +85,46 @@ def parse_view(params: Params, current: dict[str, Any] | None) -> dict[str, Any]
     sub = params.obj(kind)
     assert sub is not None
     if kind == "orbit":
-        view = {"kind": "orbit",
-                "azimuth_deg": _wrap_deg(sub.number("azimuth_deg", *AZIMUTH_DEG)),
-                "elevation_deg": sub.number("elevation_deg", *ELEVATION_DEG),
-                "radius": sub.number("radius", *RADIUS, low_open=True)}
+        camera: Orbit | Pose = Orbit(_wrap_deg(sub.number("azimuth_deg", *AZIMUTH_DEG)),
+                                     sub.number("elevation_deg", *ELEVATION_DEG),
+                                     sub.number("radius", *RADIUS, low_open=True))
     elif kind == "pose":
         position = sub.vector("position", 3, *COORD)
         q = _normalised("pose.quaternion_wxyz", sub.vector("quaternion_wxyz", 4, -2.0, 2.0))
-        view = {"kind": "pose", "position": position, "quaternion_wxyz": q}
+        camera = Pose(tuple(position), tuple(q))  # type: ignore[arg-type]
     else:
-        view = _relative(sub, current)
+        camera = _relative(sub, current)
     sub.done()
     params.done()
-    return view
+    # Digital refocus travels with the view; it stays as it was when not given.
+    if refocus is None:
+        refocus = current.refocus_mm if current is not None else 0.0
+    return View(camera, refocus)
 
 
-def _relative(sub: Params, current: dict[str, Any] | None) -> dict[str, Any]:
+def _relative(sub: Params, current: View | None) -> Orbit | Pose:
     if current is None:
         raise bad_param("relative", "there is no current view to move from",
                         "an absolute orbit or pose first")
-    if current["kind"] == "orbit":
+    cam = current.camera
+    if isinstance(cam, Orbit):
         d_az = sub.number("d_azimuth_deg", *AZIMUTH_DEG, default=0.0)
         d_el = sub.number("d_elevation_deg", -180.0, 180.0, default=0.0)
         d_r = sub.number("d_radius", -RADIUS[1], RADIUS[1], default=0.0)
-        elevation = current["elevation_deg"] + d_el
-        radius = current["radius"] + d_r
+        elevation = cam.elevation_deg + d_el
+        radius = cam.radius + d_r
         if not ELEVATION_DEG[0] <= elevation <= ELEVATION_DEG[1]:
             raise bad_param("relative.d_elevation_deg", f"would give elevation {elevation:g}",
-                            f"[{ELEVATION_DEG[0] - current['elevation_deg']:g}, "
-                            f"{ELEVATION_DEG[1] - current['elevation_deg']:g}] from here")
+                            f"[{ELEVATION_DEG[0] - cam.elevation_deg:g}, "
+                            f"{ELEVATION_DEG[1] - cam.elevation_deg:g}] from here")
         if not 0 < radius <= RADIUS[1]:
             raise bad_param("relative.d_radius", f"would give radius {radius:g}",
-                            f"(-{current['radius']:g}, {RADIUS[1] - current['radius']:g}]")
-        return {"kind": "orbit", "azimuth_deg": _wrap_deg(current["azimuth_deg"] + d_az),
-                "elevation_deg": elevation, "radius": radius}
+                            f"(-{cam.radius:g}, {RADIUS[1] - cam.radius:g}]")
+        return Orbit(_wrap_deg(cam.azimuth_deg + d_az), elevation, radius)
     translate = sub.vector("translate", 3, *COORD, default=[0.0, 0.0, 0.0])
     rotate = sub.vector("rotate_deg", 3, *ROTATE_DEG, default=[0.0, 0.0, 0.0])
-    q = list(current["quaternion_wxyz"])
-    position = [p + d for p, d in zip(current["position"], _qrotate(q, translate), strict=True)]
+    q = list(cam.quaternion_wxyz)
+    position = [p + d for p, d in zip(cam.position, _qrotate(q, translate), strict=True)]
     # Camera-frame rotation: pitch about x, yaw about y (down), roll about z (forward).
     for axis, angle in enumerate(rotate):
         if angle:
@@ -121,8 +132,7 @@ def _relative(sub: Params, current: dict[str, Any] | None) -> dict[str, Any]:
     if any(not COORD[0] <= p <= COORD[1] for p in position):
         raise bad_param("relative.translate", "would leave the scene's coordinate range",
                         f"positions in [{COORD[0]:g}, {COORD[1]:g}]")
-    return {"kind": "pose", "position": position,
-            "quaternion_wxyz": _normalised("relative.rotate_deg", q)}
+    return Pose(tuple(position), tuple(_normalised("relative.rotate_deg", q)))  # type: ignore[arg-type]
 
 
 class ViewSlot:
@@ -131,11 +141,11 @@ class ViewSlot:
     def __init__(self) -> None:
         self._cond = threading.Condition()
         self.seq = 0
-        self.view: dict[str, Any] | None = None
+        self.view: View | None = None
         self.applied_seq: int | None = None  # set by the frame worker once shown
         self.overtaken = 0  # requests replaced before any worker took them
 
-    def submit(self, view: dict[str, Any]) -> int:
+    def submit(self, view: View) -> int:
         with self._cond:
             if self.view is not None and (self.applied_seq or 0) < self.seq:
                 self.overtaken += 1
@@ -144,7 +154,7 @@ class ViewSlot:
             self._cond.notify_all()
             return self.seq
 
-    def latest_after(self, seq: int, timeout_s: float) -> tuple[int, dict[str, Any]] | None:
+    def latest_after(self, seq: int, timeout_s: float) -> tuple[int, View] | None:
         """For the frame worker: the newest view with a sequence number above `seq`."""
         with self._cond:
             if not self._cond.wait_for(lambda: self.seq > seq, timeout_s) or self.view is None:
@@ -157,5 +167,6 @@ class ViewSlot:
 
     def snapshot(self) -> dict[str, Any]:
         with self._cond:
-            return {"seq": self.seq, "requested": self.view, "applied_seq": self.applied_seq,
-                    "overtaken": self.overtaken}
+            return {"seq": self.seq,
+                    "requested": None if self.view is None else self.view.to_json(),
+                    "applied_seq": self.applied_seq, "overtaken": self.overtaken}

@@ -39,6 +39,7 @@ from nhfd.daemon.client import Client
 from nhfd.daemon.service import Daemon
 from nhfd.dataset.build import sha256_file
 from nhfd.drivers.simcamera import TrueBench
+from nhfd.model_info import ModelInfo
 from nhfd.models.export import OnnxModel, load_model
 from nhfd.models.inputs import mapped_depth
 from nhfd.optics.color import srgb_to_linear
@@ -47,6 +48,7 @@ from nhfd.pipeline.frame import render_view
 from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import Scene, scene_frame
 from nhfd.scene.io import load_scene
+from nhfd.views import View, view_from_json
 
 # Shipped as package data of nhfd.models (the repo's models/ folder): found the same way from
 # a checkout, an editable install or a wheel.
@@ -133,11 +135,12 @@ def check_model_and_scene(model: Path, scene: Path, config: Any) -> dict[str, An
 def demo_config(base: Any, *, model: Path, scene: Path, runtime: Path, captures: Path) -> Any:
     """The user's configuration with the bench forced to the simulated devices, the demo's model,
     scene and folders, a camera region around the hologram window and the focus mapping of the
-    simulated relay."""
-    meta = OnnxModel(model).metadata  # the window and z0 the camera region must cover
-    h, w = (int(v) for v in meta["train_size_hw"])
+    simulated relay. Returns the configuration, the simulated bench's truth and the model's
+    `ModelInfo`."""
+    info = OnnxModel(model).info  # the window and z0 the camera region must cover
+    h, w = info.train_size_hw
     truth = TrueBench()
-    z0_m = float(meta["z0_m"])
+    z0_m = info.z0_m
     roi = truth.roi_for_panel((h + 64, w + 64), margin_px=16)
     user = {
         "devices": {"slm": "simulated", "laser": "simulated", "stage": "simulated",
@@ -154,7 +157,7 @@ def demo_config(base: Any, *, model: Path, scene: Path, runtime: Path, captures:
                    # The stage reading that focuses the camera on the reference plane (green).
                    "stage_at_reference_mm": round(truth.stage_mm_for(z0_m, 1), 6)},
     }
-    return Config.model_validate(_overlay(base.model_dump(), user)), truth, meta
+    return Config.model_validate(_overlay(base.model_dump(), user)), truth, info
 
 
 def focus_command_mm(z_h_m: float, truth: Any) -> float:
@@ -183,7 +186,7 @@ def _run(out: Path, runtime: Path, *, config: Any, model: Path, scene: Path, log
          t_start: float) -> dict[str, Any]:
     import matplotlib.pyplot as plt
 
-    cfg, truth, meta = demo_config(config, model=model, scene=scene, runtime=runtime,
+    cfg, truth, info = demo_config(config, model=model, scene=scene, runtime=runtime,
                                    captures=out / "captures")
     daemon = Daemon(cfg, base_dir=Path.cwd(), env={}, handle_signals=False)
     daemon.start()
@@ -198,10 +201,10 @@ def _run(out: Path, runtime: Path, *, config: Any, model: Path, scene: Path, log
                        and c.status()["model"] != "none loaded"
                        and (c.status()["scene"] or {}).get("center") is not None),
               120, "the frame worker with the model and the scene", c)
-        env = meta.get("pose_envelope") or {}
-        az = env.get("azimuth_deg") or [-20.0, 20.0]
-        el = env.get("elevation_deg") or [20.0, 20.0]
-        dist = env.get("distance") or [2.0, 2.0]
+        env = info.pose_envelope
+        az = (env and env.azimuth_deg) or (-20.0, 20.0)
+        el = (env and env.elevation_deg) or (20.0, 20.0)
+        dist = (env and env.distance) or (2.0, 2.0)
         elevation = 0.5 * (el[0] + el[1])
         radius = 0.5 * (dist[0] + dist[1])
         azimuths = np.linspace(az[0] + 0.25 * (az[1] - az[0]), az[1] - 0.25 * (az[1] - az[0]),
@@ -228,8 +231,8 @@ def _run(out: Path, runtime: Path, *, config: Any, model: Path, scene: Path, log
                                            "radius": radius})  # fmt: skip
         seq = placed["seq"]
         _wait(lambda: c.status()["view"]["applied_seq"] == seq, 60, "the middle view", c)
-        settings = frame_settings(cfg, meta, active_calibration(cfg))
-        rgb, zh = view_depth(placed["view"], scene, meta, settings.window_hw)
+        settings = frame_settings(cfg, info, active_calibration(cfg))
+        rgb, zh = view_depth(view_from_json(placed["view"]), scene, info, settings.window_hw)
         sweep_m = np.linspace(*np.nanpercentile(zh, SWEEP_PERCENTILES), FOCUS_PLANES)
         cap = cfg.devices.readybeam.max_power_pct[1]
         c.call("laser", action="arm", duration_s=300.0)
@@ -273,14 +276,17 @@ def _run(out: Path, runtime: Path, *, config: Any, model: Path, scene: Path, log
     return summary
 
 
-def view_depth(view: dict[str, Any], scene: Path, meta: dict[str, Any],
-               window_hw: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+def view_depth(view: View, scene: Path, info: ModelInfo, window_hw: tuple[int, int]
+               ) -> tuple[np.ndarray, np.ndarray]:
     """The view rendered as the frame worker renders it: sRGB `[3, H, W]` and the mapped
-    hologram depth `z_h` `[H, W]` (m, NaN off content)."""
+    hologram depth `z_h` `[H, W]` (m, NaN off content; the model's depth mapping, which an rgbd
+    model such as the demo's always has)."""
     g = load_scene(scene)
-    r = render_view(view, Scene(g, scene_frame(g, str(scene))), meta, window_hw)
-    m = meta["mapping"]
-    return r.rgb, mapped_depth(r.depth, r.alpha, float(m["a_m"]), float(m["b_m"]))
+    r = render_view(view, Scene(g, scene_frame(g, str(scene))), info, window_hw)
+    if info.mapping is None:
+        raise ValueError("the model records no depth mapping: the demo's focus sweep needs one")
+    m = info.mapping
+    return r.rgb, mapped_depth(r.depth, r.alpha, m.a_m, m.b_m)
 
 
 def depth_regions(zh_m: np.ndarray, fraction: float = REGION_FRACTION

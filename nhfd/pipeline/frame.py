@@ -31,13 +31,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from nhfd.models.inputs import ALPHA_CONTENT, DEPTH_CLIP, input_channels, network_input
+from nhfd.frame_message import Region
+from nhfd.model_info import ModelInfo
+from nhfd.models.inputs import network_input, network_input_torch
 from nhfd.scene import gsplat_backend
 from nhfd.scene.raster import RasterSettings, Render, render
+from nhfd.views import View
 
 from .device import StageClock
 from .encoder import Encoder, reference_field
-from .settings import Region
 from .view import Scene, render_camera
 
 
@@ -73,8 +75,9 @@ class Frame:
         return self.preview_u8
 
 
-def compute_frame(view: dict[str, Any], scene: Scene, model: Any, encoder: Encoder) -> Frame:
-    """A normalised view (`nhfd.daemon.views`) -> the frame the SLM shows for it.
+def compute_frame(view: View, scene: Scene, model: Any, encoder: Encoder) -> Frame:
+    """A view (`nhfd.views.View`; its refocus is the encoder's, `Encoder(frame_settings(...,
+    refocus_m=view.refocus_m))`) -> the frame the SLM shows for it.
 
     render       view -> sRGB `[3, h, w]` float32 (with depth, alpha `[h, w]`), `(h, w)` the
                  frame window (`encoder.settings.window_hw`)
@@ -84,14 +87,14 @@ def compute_frame(view: dict[str, Any], scene: Scene, model: Any, encoder: Encod
                  -> the SLM-plane field `[3, Hr, Wr]` complex64 on `encoder.region`
     coding       -> grey `[3, Hr, Wr]` uint8 and the clipped fraction per colour
 
-    `model`: an `nhfd.models.export.OnnxModel` (or anything with its `metadata`, `inputs` and
+    `model`: an `nhfd.models.export.OnnxModel` (or anything with its `info`, `inputs` and
     call; with `run_on` too on a device path). Not thread-safe: the encoder keeps scratch
     buffers."""
     if encoder.device_coding:
         return compute_frame_on_device(view, scene, model, encoder)
     s = encoder.settings
     clock = StageClock()
-    rendered = render_view(view, scene, model.metadata, s.window_hw)
+    rendered = render_view(view, scene, model.info, s.window_hw)
     clock.stage("render")
     amplitude, phase = infer(model, rendered)
     clock.stage("inference")
@@ -103,15 +106,15 @@ def compute_frame(view: dict[str, Any], scene: Scene, model: Any, encoder: Encod
     return Frame(encoder.region, grey, clock.seconds, rendered.rgb, clipped)
 
 
-def render_view(view: dict[str, Any], scene: Scene, metadata: dict[str, Any],
-                window_hw: tuple[int, int], backend: str = "cpu") -> Render:
-    """The view rendered through the model's camera (`render_camera`) on the frame window."""
-    return render(scene.gaussians, render_camera(view, scene.frame, metadata, window_hw),
+def render_view(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[int, int],
+                backend: str = "cpu") -> Render:
+    """The view rendered through the model's camera (`render_camera`) on the frame window
+    (h, w px): sRGB `[3, h, w]`, depth and alpha `[h, w]`."""
+    return render(scene.gaussians, render_camera(view, scene.frame, info, window_hw),
                   backend=backend)
 
 
-def compute_frame_on_device(view: dict[str, Any], scene: Scene, model: Any, encoder: Encoder
-                            ) -> Frame:
+def compute_frame_on_device(view: View, scene: Scene, model: Any, encoder: Encoder) -> Frame:
     """`compute_frame` with every stage on `encoder.device`; see the module's docstring."""
     s, dev = encoder.settings, encoder.device
     model_device = getattr(model, "device", None)
@@ -120,7 +123,7 @@ def compute_frame_on_device(view: dict[str, Any], scene: Scene, model: Any, enco
                          "for one device (daemon.device)")
     clock = StageClock(dev)
     with torch.no_grad():
-        rgb, depth, alpha = render_on_device(view, scene, model.metadata, s.window_hw, dev)
+        rgb, depth, alpha = render_on_device(view, scene, model.info, s.window_hw, dev)
         clock.stage("render")
         meta = model.metadata
         x = network_input_on_device(rgb, model.inputs, depth=depth, alpha=alpha,
@@ -143,20 +146,19 @@ def compute_frame_on_device(view: dict[str, Any], scene: Scene, model: Any, enco
     return Frame(encoder.region, grey, clock.seconds, None, fractions, preview)
 
 
-def render_on_device(view: dict[str, Any], scene: Scene, metadata: dict[str, Any],
-                     window_hw: tuple[int, int], device: torch.device
-                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def render_on_device(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[int, int],
+                     device: torch.device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """`render_view` as tensors on `device`: sRGB `[3, h, w]`, depth and alpha `[h, w]`. On CUDA
     gsplat renders the scene uploaded once per device (`Scene.on_device`), and nothing crosses
     to the host; elsewhere the CPU rasteriser's arrays are moved there."""
     if device.type != "cuda":
-        r = render_view(view, scene, metadata, window_hw)
+        r = render_view(view, scene, info, window_hw)
         return _on(r.rgb, device), _on(r.depth, device), _on(r.alpha, device)
     key = str(device)
     if key not in scene.on_device:
         scene.on_device[key] = gsplat_backend.GsplatScene(scene.gaussians, key)
     raster = RasterSettings()  # render_view's (the CPU path's) settings
-    views = scene.on_device[key].render([render_camera(view, scene.frame, metadata, window_hw)],
+    views = scene.on_device[key].render([render_camera(view, scene.frame, info, window_hw)],
                                         raster.eps2d_px2, raster.antialias)
     return views.rgb[0], views.depth[0], views.alpha[0]
 
@@ -168,38 +170,17 @@ def _on(value: Any, device: torch.device) -> torch.Tensor:
     return torch.from_numpy(np.ascontiguousarray(value)).to(device)
 
 
-def network_input_on_device(rgb: torch.Tensor, inputs: str, *, depth: torch.Tensor | None = None,
-                            alpha: torch.Tensor | None = None, mapping: dict | None = None,
-                            volume_m: Any = None) -> torch.Tensor:
-    """`nhfd.models.inputs.network_input` in torch on the tensors' device: `[C, H, W]` float32,
-    the same float32 arithmetic (the depth channel `(b / half) / d + (a - centre) / half`,
-    clipped to +-DEPTH_CLIP, 0 where coverage is below ALPHA_CONTENT or the depth is not a
-    positive finite number)."""
-    rgb = rgb.to(torch.float32)
-    if input_channels(inputs) == 3:
-        return rgb
-    if depth is None or alpha is None or mapping is None or volume_m is None:
-        raise ValueError("an rgbd model needs the render's depth and alpha, the scene mapping "
-                         "and the volume")
-    lo, hi = float(volume_m[0]), float(volume_m[1])
-    if not hi > lo:
-        raise ValueError(f"volume_m = {list(volume_m)}: the far end must lie beyond the near end")
-    centre, half = (lo + hi) / 2, (hi - lo) / 2
-    a_m, b_m = float(mapping["a_m"]), float(mapping["b_m"])
-    d = depth.to(torch.float32)
-    f32 = np.float32
-    ch = torch.tensor(f32(b_m / half), device=d.device) / d
-    ch = (ch + torch.tensor(f32((a_m - centre) / half), device=d.device)).clamp(-DEPTH_CLIP,
-                                                                               DEPTH_CLIP)
-    content = (alpha >= ALPHA_CONTENT) & (d > 0) & torch.isfinite(d)
-    ch = torch.where(content, ch, torch.zeros_like(ch))
-    return torch.cat([rgb, ch[None]])
+# The network input on the device path, defined once in `nhfd.models.inputs` (bit for
+# bit `network_input`, which the CPU path uses); this name is the call site's.
+network_input_on_device = network_input_torch
 
 
 def infer(model: Any, rendered: Render) -> tuple[np.ndarray, np.ndarray]:
     """The network's amplitude and phase for a render, fed as training fed it (an rgbd model
-    gets the render's mapped depth)."""
-    meta = model.metadata
+    gets the render's mapped depth): amplitude (the model's units) and phase (rad), each
+    `[3, h, w]` float32."""
+    info = model.info
     x = network_input(rendered.rgb, model.inputs, depth=rendered.depth, alpha=rendered.alpha,
-                      mapping=meta.get("mapping"), volume_m=meta.get("volume_m"))
+                      mapping=None if info.mapping is None else info.mapping.as_dict(),
+                      volume_m=info.volume_m)
     return model(x)

@@ -1,6 +1,6 @@
 """What a frame depends on besides the view, the scene and the network's weights: the frame
 settings (optics of the model, the configured coding, the calibration), and the region of the
-panel a frame changes."""
+panel a frame changes (`Region`, a value of `nhfd.frame_message`: the daemon reads it too)."""
 
 from __future__ import annotations
 
@@ -11,6 +11,8 @@ import numpy as np
 
 from nhfd import spec
 from nhfd.calibration import Calibration, panel_coding
+from nhfd.frame_message import Region
+from nhfd.model_info import ModelInfo
 from nhfd.optics import Aperture
 from nhfd.optics.refplane import margin_px, window_offset
 from nhfd.spec import PhaseCurve
@@ -74,29 +76,9 @@ class FrameSettings:
         return spec.phase_curves(self.phase_stroke_rad, self.phase_tables_rad)
 
 
-@dataclass(frozen=True)
-class Region:
-    """The part of the panel a frame changes: the window plus the kernel's reach, with an even
-    top-left corner so its checkerboard lines up with the zero pattern's."""
-
-    top: int
-    left: int
-    height: int
-    width: int
-    # Where the window sits inside the region.
-    window_top: int
-    window_left: int
-
-    @property
-    def rows(self) -> slice:
-        return slice(self.top, self.top + self.height)
-
-    @property
-    def cols(self) -> slice:
-        return slice(self.left, self.left + self.width)
-
-
 def frame_region(s: FrameSettings) -> Region:
+    """The region of the panel a frame with settings `s` changes: the window plus the reach of
+    the propagation kernel (`margin_px`), clipped to the panel, its corner even."""
     ph, pw = s.panel_hw
     wh, ww = s.window_hw
     top, left = window_offset(s.panel_hw, s.window_hw)
@@ -114,14 +96,14 @@ def zero_pattern(s: FrameSettings) -> np.ndarray:
     return spec.zero_pattern(s.panel_hw, s.curves(), s.phase_sign, s.grey_invert)
 
 
-def frame_window_hw(config: Any, metadata: dict[str, Any]) -> tuple[int, int]:
+def frame_window_hw(config: Any, info: ModelInfo) -> tuple[int, int]:
     """The frames' window (height, width): `daemon.frame_size_px` [W, H], or the model's
     training size when that is empty; any size up to the panel, the whole panel included (the
     frame worker then refuses a size the model was not checked at: `nhfd.models.sizes`)."""
     size = list(config.daemon.frame_size_px)
     if size:  # the configuration checked it fits the panel
         return int(size[1]), int(size[0])
-    h, w = (int(v) for v in metadata["train_size_hw"])
+    h, w = info.train_size_hw
     ph, pw = config.slm.height_px, config.slm.width_px
     if h > ph or w > pw:
         raise ValueError(f"frame window {w} x {h} (the model's training size: "
@@ -131,7 +113,7 @@ def frame_window_hw(config: Any, metadata: dict[str, Any]) -> tuple[int, int]:
     return h, w
 
 
-def frame_settings(config: Any, metadata: dict[str, Any], calibration: Calibration | None, *,
+def frame_settings(config: Any, info: ModelInfo, calibration: Calibration | None, *,
                    refocus_m: float = 0.0) -> FrameSettings:
     """The settings of frames for a model under a configuration and a calibration (None: the
     configured curves and sign; else its measured curves, sign, focus offsets, source profile
@@ -139,19 +121,19 @@ def frame_settings(config: Any, metadata: dict[str, Any], calibration: Calibrati
     one). The optics (z0, aperture, wavelengths, pitch) are the model's: `load_model` has
     already checked they match the configuration. The window is the model's training size
     unless `daemon.frame_size_px` says otherwise (the trained fx is kept either way)."""
-    window_hw = frame_window_hw(config, metadata)
+    window_hw = frame_window_hw(config, info)
     s = config.slm
     cal = calibration
     _, sign, invert = panel_coding(s, cal)
     return FrameSettings(
         panel_hw=(s.height_px, s.width_px),
         window_hw=window_hw,
-        pitch_m=float(metadata["pitch_m"]),
-        wavelengths_m=tuple(float(v) for v in metadata["wavelengths_m"]),
-        z0_m=float(metadata["z0_m"]),
-        aperture_shape=str(metadata["aperture_shape"]),
-        cutoff_per_px=tuple(float(v) for v in metadata["cutoff_per_px"]),
-        amplitude_scale=float(metadata["amplitude_scale"]),
+        pitch_m=info.pitch_m,
+        wavelengths_m=info.wavelengths_m,
+        z0_m=info.z0_m,
+        aperture_shape=info.aperture_shape,
+        cutoff_per_px=info.cutoff_per_px,
+        amplitude_scale=info.amplitude_scale,
         zero_below=float(config.coding.zero_below),
         phase_stroke_rad=tuple(float(v) for v in s.phase_stroke_rad),
         phase_sign=sign,

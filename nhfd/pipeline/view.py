@@ -1,17 +1,18 @@
-"""A view of the scene -> the render camera: orbit and pose views (`nhfd.daemon.views`
-normalises them), the scene's frame they are relative to, and whether a view lies inside the
-poses the model was trained on."""
+"""A view of the scene -> the render camera: orbit and pose views (`nhfd.views.View`, parsed at
+the daemon's edge), the scene's frame they are relative to, and whether a view lies inside the
+poses the model was trained on (`nhfd.model_info.PoseEnvelope`)."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from nhfd.model_info import ModelInfo, PoseEnvelope
 from nhfd.scene.cameras import Camera, orbit, pose_from_quaternion
 from nhfd.scene.suggest import detect_up_axis, format_hint
+from nhfd.views import Orbit, View
 
 # Envelope checks allow this much beyond the trained range before warning (a view at the edge of
 # the training poses is still a trained view).
@@ -45,58 +46,56 @@ def scene_frame(g: Any, path: str | None = None) -> SceneFrame:
     return SceneFrame(tuple(float(v) for v in center), up)  # type: ignore[arg-type]
 
 
-def view_pose(view: dict[str, Any], frame: SceneFrame) -> tuple[np.ndarray, np.ndarray]:
-    """World-to-camera `(R, t)` of a normalised view (see `nhfd.daemon.views`)."""
-    if view["kind"] == "orbit":
-        return orbit(np.array(frame.center), view["azimuth_deg"], view["elevation_deg"],
-                     view["radius"], frame.up)
-    return pose_from_quaternion(np.array(view["position"]), np.array(view["quaternion_wxyz"]))
+def view_pose(view: View, frame: SceneFrame) -> tuple[np.ndarray, np.ndarray]:
+    """World-to-camera `(R [3, 3], t [3])` of a view, in scene units: an orbit about the
+    scene frame's centre and up axis, or the pose as given."""
+    cam = view.camera
+    if isinstance(cam, Orbit):
+        return orbit(np.array(frame.center), cam.azimuth_deg, cam.elevation_deg, cam.radius,
+                     frame.up)
+    return pose_from_quaternion(np.array(cam.position), np.array(cam.quaternion_wxyz))
 
 
-def render_camera(view: dict[str, Any], frame: SceneFrame, metadata: dict[str, Any],
-                  window_hw: tuple[int, int]) -> Camera:
-    """The central camera: the model's trained fx, fy (a pixel subtends the angle it was trained
-    on), centred on the window; the near plane at 1% of the distance to the centre, as the
-    dataset builder sets it."""
+def render_camera(view: View, frame: SceneFrame, info: ModelInfo, window_hw: tuple[int, int]
+                  ) -> Camera:
+    """The central camera for a `window_hw` (h, w px) window: the model's trained focal lengths
+    (`ModelInfo.focal_px`: a pixel subtends the angle it was trained on), centred on the window;
+    the near plane at 1% of the distance to the centre, as the dataset builder sets it."""
     r, t = view_pose(view, frame)
     h, w = window_hw
-    fx = float(metadata.get("fx") or 0.0)
-    fy = float(metadata.get("fy") or fx)
-    if not fx > 0:
-        _th, tw = metadata["train_size_hw"]
-        fov = float(metadata.get("fov_x_deg") or 40.0)
-        fx = fy = 0.5 * tw / math.tan(math.radians(fov) / 2)
+    fx, fy = info.focal_px()
     position = -r.T @ t
     distance = float(np.linalg.norm(position - np.array(frame.center)))
     return Camera(r, t, fx, fy, w / 2, h / 2, w, h, near=max(0.01 * distance, 1e-9))
 
 
-def envelope_warnings(view: dict[str, Any], frame: SceneFrame, envelope: dict[str, Any] | None
+def envelope_warnings(view: View, frame: SceneFrame, envelope: PoseEnvelope | None
                       ) -> list[str]:
     """Why a view lies outside the model's pose envelope (empty when inside or unknown)."""
-    if not envelope:
+    if envelope is None:
         return []
     out: list[str] = []
     r, t = view_pose(view, frame)
     position = -r.T @ t
     distance = float(np.linalg.norm(position - np.array(frame.center)))
 
-    def check(name: str, value: float, bounds: Any, slack: float, unit: str) -> None:
+    def check(name: str, value: float, bounds: tuple[float, float] | None, slack: float,
+              unit: str) -> None:
         if bounds and not bounds[0] - slack <= value <= bounds[1] + slack:
             out.append(f"{name} {value:.3g}{unit} is outside the model's trained range "
                        f"[{bounds[0]:.3g}, {bounds[1]:.3g}]{unit}")
 
-    if view["kind"] == "orbit":
-        check("azimuth", view["azimuth_deg"], envelope.get("azimuth_deg"), ENVELOPE_SLACK_DEG,
+    cam = view.camera
+    if isinstance(cam, Orbit):
+        check("azimuth", cam.azimuth_deg, envelope.azimuth_deg, ENVELOPE_SLACK_DEG, " deg")
+        check("elevation", cam.elevation_deg, envelope.elevation_deg, ENVELOPE_SLACK_DEG,
               " deg")
-        check("elevation", view["elevation_deg"], envelope.get("elevation_deg"),
-              ENVELOPE_SLACK_DEG, " deg")
-    dist = envelope.get("distance")
+    dist = envelope.distance
     if dist:
         check("distance to the scene centre", distance, dist,
               ENVELOPE_SLACK_FRACTION * dist[1], "")
-    lo, hi = envelope.get("position_min"), envelope.get("position_max")
-    if view["kind"] == "pose" and lo and hi:
+    lo, hi = envelope.position_min, envelope.position_max
+    if not isinstance(cam, Orbit) and lo and hi:
         span = max(float(np.max(np.subtract(hi, lo))), 1e-12)
         slack = ENVELOPE_SLACK_FRACTION * span
         if any(not a - slack <= p <= b + slack for p, a, b in zip(position, lo, hi, strict=True)):

@@ -12,25 +12,27 @@ Protocol (tuples over one duplex `multiprocessing` pipe):
                      ("frame", seq, view, slot) ("stop",)
   worker -> daemon   ("ready", pid)
                      ("model" | "scene", req_id, ok, info | error message)
-                     ("frame", seq, payload)    ("frame_error", seq, message)
+                     ("frame", seq, message)    ("frame_error", seq, message)
+
+The view is an `nhfd.views.View` and a frame's message an `nhfd.frame_message.FrameMessage`:
+L0 values both processes import, read by name.
 
 Frames cross in shared memory (`daemon.frame_transport = "shm"`): the daemon creates the slots
 (`multiprocessing.shared_memory`, each sized for the whole panel, so any region fits), names
 them to the worker at spawn, and names the slot each frame request may write; the worker owns
-that slot until its reply, the daemon from then until it has copied the frame out. The payload
+that slot until its reply, the daemon from then until it has copied the frame out. The message
 then says where the arrays are (`slot`, `grey_shape`, `rgb_shape`) and carries no array. With
-slot None (`"pickle"`) the arrays travel in the payload, pickled, as before.
+slot None (`"pickle"`) the arrays travel in the message, pickled, as before.
 
-Everything the daemon learns of the model (its metadata, why it was refused: `ModelUnfit`,
-`ModelMismatch`) crosses the pipe as data: the daemon never imports the model code. The worker
-drains its pipe before each frame and computes only the newest view (latest wins); loads are
-applied in order, and a failed load leaves the previous model or scene in use.
+Everything the daemon learns of the model (what `status` reports of it, why it was refused:
+`ModelUnfit`, `ModelMismatch`) crosses the pipe as data: the daemon never imports the model
+code. The worker drains its pipe before each frame and computes only the newest view (latest
+wins); loads are applied in order, and a failed load leaves the previous model or scene in use.
 """
 
 from __future__ import annotations
 
 import functools
-import json
 import os
 import time
 from collections import OrderedDict
@@ -46,17 +48,19 @@ import torch
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
+from nhfd.frame_message import FrameMessage, StageTimes
 from nhfd.models.export import (
     check_providers,
     load_model,
     probe_model,
     read_model_metadata,
 )
-from nhfd.models.metadata import checked_sizes_hw, expected_from_config
+from nhfd.models.metadata import expected_from_config, parse_model_info
 from nhfd.models.quantise import HELDOUT_KEY, INT8_MAX_LOSS_DB, int8_sibling, int8_within_loss
 from nhfd.models.sizes import window_check
 from nhfd.models.torch_model import TorchModel
 from nhfd.scene.io import read_scene
+from nhfd.views import View
 
 from .device import frame_device, inference_backend
 from .encoder import Encoder
@@ -117,13 +121,13 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     memory_mb = int(config.daemon.model_memory_mb)
     meta, input_name = read_model_metadata(path, max_bytes=memory_mb << 20,
                                            setting=MEMORY_SETTING)
-    window_hw = frame_window_hw(config, meta)
+    info = parse_model_info(meta, path, input_name)
+    window_hw = frame_window_hw(config, info)
     torch_inference = worker_inference(config)[0] == "torch"
-    shape, want = trial_input(4 if input_name == "rgbd" else 3, int(meta["input_multiple"]),
-                             window_hw)
+    m = info.input_multiple
+    shape, want = trial_input(4 if input_name == "rgbd" else 3, m, window_hw)
     shapes = [shape]
     if torch_inference:  # TorchModel's own check runs the file's graph at 2 x 3 strides
-        m = int(meta["input_multiple"])
         shapes.append((1, shape[1], 2 * m, 3 * m))
     probe = probe_model(path, memory_mb, shapes, threads=threads, fill=TEST_GREY,
                         setting=MEMORY_SETTING)
@@ -182,7 +186,7 @@ def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
     except Exception as exc:  # onnxruntime's own types: the first line says what
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:300]
         raise ModelUnfit(f"{path}: a test inference on a {want} input failed: {first}") from None
-    colours = len(model.metadata["wavelengths_m"])
+    colours = model.info.colours
     for name, out in zip(("amplitude", "phase"), outputs, strict=True):
         if list(out.shape) != [1, colours, ph, pw]:
             raise ModelUnfit(f"{path}: output {name} shape: expected [1, {colours}, {ph}, {pw}], "
@@ -194,13 +198,9 @@ def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
 
 
 def model_info(model: Any, path: str) -> dict[str, Any]:
-    """What the daemon reports of a loaded model (its `status`'s "model"): plain data."""
-    m = model.metadata
-    return {"path": path, "profile": m.get("profile"), "train_size_hw": m.get("train_size_hw"),
-            "fx": m.get("fx"), "amplitude_scale": m.get("amplitude_scale"),
-            "z0_m": m.get("z0_m"), "volume_m": m.get("volume_m"), "mapping": m.get("mapping"),
-            "pose_envelope": m.get("pose_envelope"), "parameters": m.get("parameters"),
-            "train_steps": m.get("train_steps"), "scene_sha256": m.get("scene_sha256"),
+    """What the daemon reports of a loaded model (its `status`'s "model"): plain data, from the
+    model's `ModelInfo` (`ModelInfo.status_json`) and its session."""
+    return {"path": path, **model.info.status_json(),
             "providers": list(model.providers), "loaded_s": time.time(),
             # the memory its session and test run took in the load's probe (open_model)
             "load_memory_mb": getattr(model, "load_memory_mb", None)}
@@ -263,9 +263,11 @@ class FrameSlots:
             # unlinks nothing; the daemon unlinks its slots when it closes the worker.
             self.shms.append(shared_memory.SharedMemory(name=name))
 
-    def write(self, slot: int, payload: dict[str, Any]) -> dict[str, Any]:
-        """The payload with its arrays copied into `slot`, replaced by their shapes."""
-        grey, rgb = payload["grey"], payload.get("rgb")
+    def write(self, slot: int, message: FrameMessage) -> FrameMessage:
+        """The message with its arrays (grey `[3, h, w]`, the preview `[3, H, W]` or None,
+        uint8) copied into `slot`, which it then names instead of carrying them."""
+        grey, rgb = message.grey, message.rgb
+        assert grey is not None  # a computed frame holds its grey region
         need = grey.nbytes + (rgb.nbytes if rgb is not None else 0)
         if need > self.slot_bytes:
             raise ValueError(f"frame of {need} bytes (grey {list(grey.shape)}, rgb "
@@ -275,10 +277,7 @@ class FrameSlots:
         np.ndarray(grey.shape, np.uint8, buffer=buf)[...] = grey
         if rgb is not None:
             np.ndarray(rgb.shape, np.uint8, buffer=buf, offset=grey.nbytes)[...] = rgb
-        out = {k: v for k, v in payload.items() if k not in ("grey", "rgb")}
-        out.update(slot=slot, grey_shape=list(grey.shape),
-                   rgb_shape=None if rgb is None else list(rgb.shape))
-        return out
+        return message.in_slot(slot)
 
     def close(self) -> None:
         for shm in self.shms:
@@ -294,17 +293,19 @@ class _WorkerState:
         self.scene: Scene | None = None
         self.scene_id = 0
         self.encoders: dict[float, Encoder] = {}  # refocus_m -> Encoder (each its own kernels)
-        self.cache: OrderedDict[str, dict[str, Any]] = OrderedDict()
+        # (view, model id, scene id) -> the frame with its arrays: a view is a frozen value, so
+        # it keys the cache itself (equal views, equal keys)
+        self.cache: OrderedDict[tuple[View, int, int], FrameMessage] = OrderedDict()
         self.cache_size = int(config.daemon.frame_cache_frames)
 
     def load_model(self, path: str) -> dict[str, Any]:
         """The float model at `path`, or its int8 sibling where `choose_variant` says so (an
         int8 model that fails to load or to infer falls back to the float one, saying why)."""
         model = open_model(path, self.config, self.threads)
-        window_hw = frame_window_hw(self.config, model.metadata)
+        window_hw = frame_window_hw(self.config, model.info)
         allow = self.config.daemon.allow_unchecked_sizes
         # UncheckedSize names the size, the checked ones and daemon.allow_unchecked_sizes
-        warning = window_check(model.metadata, window_hw, path, allow=allow)
+        warning = window_check(model.info, window_hw, path, allow=allow)
         check_inference(model, window_hw, path)
         served, variant, why = model, "float", ""
         sibling = int8_sibling(path)
@@ -315,7 +316,7 @@ class _WorkerState:
                 q = open_model(str(sibling), self.config, self.threads)
                 variant, why = choose_variant(path, self.config, q.metadata)
                 if variant == "int8":
-                    window_check(q.metadata, window_hw, str(sibling), allow=allow)
+                    window_check(q.info, window_hw, str(sibling), allow=allow)
                     check_inference(q, window_hw, str(sibling))
                     served = q
             except Exception as exc:  # the float model serves; status says why
@@ -325,7 +326,7 @@ class _WorkerState:
         self.model, self.model_id = served, self.model_id + 1
         self.encoders.clear()
         # recorded False: an older export, only its training window counts as checked
-        checked, recorded = checked_sizes_hw(served.metadata)
+        checked, recorded = served.info.checked_sizes_hw()
         device, device_why = worker_device(self.config.daemon.device,
                                            self.config.daemon.inference)
         info = model_info(served, path)
@@ -350,41 +351,31 @@ class _WorkerState:
         if refocus_m not in self.encoders:
             if len(self.encoders) >= MAX_ENCODERS:
                 self.encoders.clear()
-            settings = frame_settings(self.config, self.model.metadata,
+            settings = frame_settings(self.config, self.model.info,
                                       active_calibration(self.config), refocus_m=refocus_m)
             self.encoders[refocus_m] = Encoder(settings, device=self.model.device)
         return self.encoders[refocus_m]
 
-    def frame(self, view: dict[str, Any]) -> dict[str, Any]:
+    def frame(self, view: View) -> FrameMessage:
+        """The frame for `view`, holding its arrays (computed, or from the frame cache)."""
         if self.model is None:
             raise RuntimeError("no model loaded (load_model, or daemon.model)")
         if self.scene is None:
             raise RuntimeError("no scene loaded (load_scene, or daemon.scene)")
-        refocus_m = float(view.get("refocus_mm", 0.0)) * 1e-3
-        key = json.dumps([view, self.model_id, self.scene_id], sort_keys=True)
+        key = (view, self.model_id, self.scene_id)
         if key in self.cache:
             self.cache.move_to_end(key)
-            hit = dict(self.cache[key])
-            hit["cached"] = True
-            hit["timings_s"] = {k: 0.0 for k in hit["timings_s"]}
-            return hit
-        frame = compute_frame(view, self.scene, self.model, self.encoder(refocus_m))
-        r = frame.region
-        payload = {
-            "region": [r.top, r.left, r.height, r.width, r.window_top, r.window_left],
-            "grey": frame.grey,
-            "rgb": frame.preview,
-            "timings_s": frame.timings_s,
-            "clipped_fraction": frame.clipped_fraction,
-            "warnings": envelope_warnings(view, self.scene.frame,
-                                          self.model.metadata.get("pose_envelope")),
-            "cached": False,
-        }
+            return self.cache[key].from_cache()
+        frame = compute_frame(view, self.scene, self.model, self.encoder(view.refocus_m))
+        message = FrameMessage.of_arrays(
+            frame.region, frame.grey, frame.preview, StageTimes.from_seconds(frame.timings_s),
+            frame.clipped_fraction,
+            envelope_warnings(view, self.scene.frame, self.model.info.pose_envelope))
         if self.cache_size:
-            self.cache[key] = payload
+            self.cache[key] = message
             while len(self.cache) > self.cache_size:
                 self.cache.popitem(last=False)
-        return payload
+        return message
 
 
 def worker_main(conn: Any, config_data: dict[str, Any],
@@ -431,12 +422,11 @@ def _serve(conn: Any, state: _WorkerState, shm: FrameSlots | None) -> None:
         if latest is not None:
             seq, view, slot = latest[1], latest[2], latest[3] if len(latest) > 3 else None
             try:
-                payload = state.frame(view)
+                message = state.frame(view)
                 if slot is not None and shm is not None:
-                    payload = shm.write(slot, payload)
+                    message = shm.write(slot, message)
                 # When the frame was whole in its slot (CLOCK_MONOTONIC, shared by both
                 # processes): the daemon's "late" counts from here.
-                payload["ready_s"] = time.monotonic()
-                conn.send(("frame", seq, payload))
+                conn.send(("frame", seq, message.ready(time.monotonic())))
             except Exception as exc:
                 conn.send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))

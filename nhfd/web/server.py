@@ -608,6 +608,10 @@ class WebView:
                                if self.tls is not None else {})
         try:
             await loop.connect_accepted_socket(self._runner.server, sock, **tls)
+            # aiohttp counts it from here on: out of the handshakes now, not in the task's done
+            # callback a loop turn later, or it counts twice meanwhile and a connection within
+            # max_connections is refused (seen in tests under load)
+            self._handshakes.discard(asyncio.current_task())
         except asyncio.CancelledError:
             sock.close()
             raise

@@ -12,6 +12,7 @@ import pytest
 from nhfd.calibration import CalibrationFileError, active_calibration
 from nhfd.config import Config
 from nhfd.drivers.simcamera import TrueBench
+from nhfd.model_info import ModelInfo
 from nhfd.pipeline.settings import frame_settings
 
 from .twin_stack import (
@@ -25,9 +26,10 @@ from .twin_stack import (
     target_stack,
 )
 
-METADATA = {"train_size_hw": [64, 64], "pitch_m": 8e-6, "wavelengths_m": [6.6e-7, 5.2e-7, 4.5e-7],
-            "z0_m": 4e-3, "aperture_shape": "square", "cutoff_per_px": [0.25] * 3,
-            "amplitude_scale": 1.0}
+METADATA = ModelInfo(inputs="rgb", train_size_hw=(64, 64), pitch_m=8e-6,
+                     wavelengths_m=(6.6e-7, 5.2e-7, 4.5e-7), z0_m=4e-3, aperture_shape="square",
+                     cutoff_per_px=(0.25,) * 3, volume_m=(-3e-3, 3e-3), amplitude_scale=1.0,
+                     input_multiple=16, fov_x_deg=40.0)
 
 
 def test_frames_use_calibration(fitted, tmp_path: Path) -> None:
@@ -69,7 +71,7 @@ def test_per_colour_focus_offsets_applied(bench: TrueBench, fitted, tmp_path: Pa
     with_offsets = _settings_with(dataclasses.replace(fitted, z_offset_m=offsets), tmp_path,
                                   "offsets.toml")
     assert with_offsets.colour_propagation_z_m == pytest.approx(
-        tuple(-(METADATA["z0_m"] + o) for o in offsets))
+        tuple(-(METADATA.z0_m + o) for o in offsets))
     ignored = dataclasses.replace(with_offsets, colour_offset_m=())
     field = spot_field(with_offsets)
     amp = amplitude_for(with_offsets, field)

@@ -142,6 +142,6 @@ def _compile_frame_kernels(tiny: dict[str, Path]) -> None:
 
     config = small_config()
     model = load_model(tiny["model"], config)
-    encoder = Encoder(frame_settings(config, model.metadata, active_calibration(config)))
+    encoder = Encoder(frame_settings(config, model.info, active_calibration(config)))
     scene = Scene(load_scene(tiny["scene"]), SceneFrame((0.0, 0.0, 0.0), "-y"))
     compute_frame(FRONT_VIEW, scene, model, encoder)

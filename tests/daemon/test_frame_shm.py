@@ -4,6 +4,7 @@ region changing size (a refocus) needs no new slot; the daemon's stop leaves /de
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import pickle
 import time
@@ -14,7 +15,7 @@ import numpy as np
 
 from nhfd.benchmarks.pipeline import _Host, _load
 from nhfd.calibration import active_calibration
-from nhfd.daemon.frame_link import SHM_PREFIX, SLOTS, FrameLink, PanelBuffer
+from nhfd.daemon.frame_link import SHM_PREFIX, SLOTS, PanelBuffer
 from nhfd.models.export import load_model
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.frame import compute_frame
@@ -35,6 +36,9 @@ def arrays_in(obj: Any) -> list[str]:
         return [type(obj).__name__]
     if isinstance(obj, dict):
         return [f"{k}.{p}" for k, v in obj.items() for p in arrays_in(v)]
+    if dataclasses.is_dataclass(obj):  # a FrameMessage, its Region and StageTimes
+        return [f"{f.name}.{p}" for f in dataclasses.fields(obj)
+                for p in arrays_in(getattr(obj, f.name))]
     if isinstance(obj, list | tuple):
         return [f"{i}.{p}" for i, v in enumerate(obj) for p in arrays_in(v)]
     return []
@@ -43,7 +47,7 @@ def arrays_in(obj: Any) -> list[str]:
 def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny):
     config = small_config(daemon={"frame_cache_frames": 0})
     host = _Host(config)
-    link = FrameLink(host)
+    link = host.frame_link()
     received: list[tuple] = []
     receive = link.worker.receive
 
@@ -61,7 +65,7 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny):
         _load(link, tiny["scene"], tiny["model"])
         assert len(our_segments()) == SLOTS
         for refocus_mm in (0.0, 3.0):  # a refocus widens the coded region
-            view = dict(FRONT_VIEW, refocus_mm=refocus_mm)
+            view = FRONT_VIEW.with_refocus(refocus_mm)
             seq = host.views.submit(view)
             deadline = time.monotonic() + 30
             while link.shown_seq < seq:
@@ -73,21 +77,21 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny):
             # The pipe message says where the frame is; the arrays are not in it.
             assert arrays_in(msg) == []
             assert len(pickle.dumps(msg)) < 2000
-            payload = msg[2]
-            assert payload["slot"] in range(SLOTS)
+            message = msg[2]
+            assert message.slot in range(SLOTS) and message.grey is None
 
-            settings = frame_settings(config, model.metadata, active_calibration(config),
+            settings = frame_settings(config, model.info, active_calibration(config),
                                       refocus_m=refocus_mm * 1e-3)
             expected = compute_frame(view, scene, model, Encoder(settings))
             r = expected.region
-            assert payload["grey_shape"] == list(expected.grey.shape) == [3, r.height, r.width]
-            assert payload["region"][:4] == [r.top, r.left, r.height, r.width]
+            assert message.grey_shape == expected.grey.shape == (3, r.height, r.width)
+            assert message.region == r  # the worker's region, by name
             panel = PanelBuffer(host.panel.blank_frame()).frame(r.top, r.left, expected.grey)
             shown = host.slm.last_frame
             assert shown.tobytes() == panel.tobytes()  # byte-identical, blank around it
             assert np.array_equal(link.last_rgb, (np.clip(expected.rgb, 0, 1) * 255 + 0.5
                                                   ).astype(np.uint8))
-            shapes.append(payload["grey_shape"])
+            shapes.append(message.grey_shape)
         assert shapes[0] != shapes[1]
         assert len(our_segments()) == SLOTS  # the same slots served both sizes
     finally:
@@ -100,7 +104,7 @@ def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny):
     segments, the grey in the message."""
     config = small_config(daemon={"frame_cache_frames": 0, "frame_transport": "pickle"})
     host = _Host(config)
-    link = FrameLink(host)
+    link = host.frame_link()
     received: list[tuple] = []
     receive = link.worker.receive
     link.worker.receive = lambda: (msgs := receive(), received.extend(msgs))[0]
@@ -114,9 +118,9 @@ def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny):
             assert time.monotonic() < deadline, "no frame"
             time.sleep(0.002)
         msg = next(m for m in received if m[0] == "frame")
-        assert "2.grey.ndarray" in arrays_in(msg) and msg[2].get("slot") is None
-        r = msg[2]["region"]
-        shown = host.slm.last_frame[:, r[0]:r[0] + r[2], r[1]:r[1] + r[3]]
-        assert np.array_equal(shown, msg[2]["grey"])
+        assert arrays_in(msg) == ["2.grey.ndarray", "2.rgb.ndarray"] and msg[2].slot is None
+        r = msg[2].region
+        shown = host.slm.last_frame[:, r.rows, r.cols]
+        assert np.array_equal(shown, msg[2].grey)
     finally:
         link.close()

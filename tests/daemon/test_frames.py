@@ -26,6 +26,7 @@ from nhfd.pipeline.encoder import Encoder, reference_field
 from nhfd.pipeline.frame import compute_frame
 from nhfd.pipeline.settings import frame_settings, zero_pattern
 from nhfd.pipeline.view import Scene, SceneFrame
+from nhfd.views import Pose, View
 
 # A 64 x 96 window on a 128 x 192 panel: the window plus the propagation margin (24 px at
 # z0 = 6 mm) fits with room to spare, so "outside the region" is a real part of the panel.
@@ -36,9 +37,10 @@ SMALL = {
 # Double-phase coding of a field smooth at the pixel scale, 8-bit grey levels and amplitudes below
 # coding.zero_below coded as zeros: measured 2.0 / 2.8 / 2.3 % (R, G, B) relative L2 error here.
 TOLERANCE = 0.05
-# The view the synthetic dataset's poses look from: 2 units in front of the origin, looking +z.
-FRONT_VIEW = {"kind": "pose", "position": [0.0, 0.0, -2.0], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0],
-              "refocus_mm": 0.0}
+# The view the synthetic dataset's poses look from: 2 units in front of the origin, looking +z;
+# as set_view's `pose` parameters and as the view they give.
+FRONT_POSE = {"position": [0.0, 0.0, -2.0], "quaternion_wxyz": [1.0, 0.0, 0.0, 0.0]}
+FRONT_VIEW = View(Pose((0.0, 0.0, -2.0), (1.0, 0.0, 0.0, 0.0)), refocus_mm=0.0)
 
 
 def small_config(**sections: Any) -> Config:
@@ -117,7 +119,7 @@ def test_frame_reconstructs_the_predicted_field_and_leaves_the_rest_zero(tiny):
 
     config = small_config()
     model = load_model(tiny["model"], config)
-    settings = frame_settings(config, model.metadata, active_calibration(config))
+    settings = frame_settings(config, model.info, active_calibration(config))
     assert settings.window_hw == (64, 96) and settings.panel_hw == (128, 192)
     encoder = Encoder(settings)
     scene = Scene(load_scene(tiny["scene"]), SceneFrame((0.0, 0.0, 0.0), "-y"))
@@ -155,7 +157,7 @@ def test_frame_reconstructs_the_predicted_field_and_leaves_the_rest_zero(tiny):
     # Digital refocus is part of the kernel: refocused by 3 mm, the same prediction is shown on a
     # reference plane 3 mm nearer the viewer: it matches there, and no longer at z0.
     refocus_m = 3e-3
-    refocused = Encoder(frame_settings(config, model.metadata, active_calibration(config),
+    refocused = Encoder(frame_settings(config, model.info, active_calibration(config),
                                        refocus_m=refocus_m))
     moved_frame = compute_frame(FRONT_VIEW, scene, model, refocused)
     moved = PanelBuffer(refocused.zero).frame(moved_frame.region.top, moved_frame.region.left,
@@ -215,8 +217,7 @@ def test_worker_process_latest_wins_envelope_and_model_swap(short_dir, mecom_twi
         # Latest wins: a burst of requests ends on the last sequence number, in fewer frames.
         last = 0
         for i in range(40):
-            view = dict(FRONT_VIEW, position=[0.01 * i, 0.0, -2.0])
-            del view["kind"], view["refocus_mm"]
+            view = dict(FRONT_POSE, position=[0.01 * i, 0.0, -2.0])
             last = c.call("set_view", pose=view)["seq"]
         wait_until(lambda: c.status()["view"]["applied_seq"] == last, 20, "the last view")
         status = c.status()

@@ -15,7 +15,6 @@ import pytest
 
 from nhfd.benchmarks.pipeline import _Host, _load
 from nhfd.config import Config, _overlay
-from nhfd.daemon.frame_link import FrameLink
 from nhfd.models.data import HoloData
 from nhfd.models.export import OnnxModel
 from nhfd.models.metadata import METADATA_KEY
@@ -102,7 +101,7 @@ def served(pair, int8_psnr_db: float, **daemon):
     """A frame link serving the pair's float model (the int8 one beside it records a held-out
     PSNR of `int8_psnr_db` against 30 dB), with `daemon` settings; closed after."""
     host = _Host(small_config(daemon={"frame_cache_frames": 0, **daemon}))
-    link = FrameLink(host)
+    link = host.frame_link()
     try:
         record_heldout_loss(pair["int8"], pair["float"], float_psnr_db=30.0,
                             int8_psnr_db=int8_psnr_db, views=4)

@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 from nhfd.daemon.navigation import relative_move
+from nhfd.views import Orbit, Pose, View
 
 from .conftest import Running, bench_config, wait_until
 
@@ -42,13 +43,13 @@ def test_simulated_navigator_moves_the_view_and_advances_the_sequence(short_dir,
 
 def test_relative_move_from_velocities():
     still = SimpleNamespace(translation_m_s=(0, 0, 0), rotation_deg_s=(0, 0, 0))
-    orbit = {"kind": "orbit", "azimuth_deg": 0.0, "elevation_deg": 89.0, "radius": 1.0}
+    orbit = View(Orbit(0.0, 89.0, 1.0))
     assert relative_move(orbit, still, 0.1) is None
     up = SimpleNamespace(translation_m_s=(0, 0, -20.0), rotation_deg_s=(30.0, 10.0, 0))
     rel = relative_move(orbit, up, 0.1)
     assert rel["d_azimuth_deg"] == 1.0
     assert 89.0 + rel["d_elevation_deg"] == 89.9  # clamped at the pole, not refused
     assert rel["d_radius"] == -0.5  # never through the centre
-    pose = {"kind": "pose", "position": [0, 0, 0], "quaternion_wxyz": [1, 0, 0, 0]}
+    pose = View(Pose((0, 0, 0), (1, 0, 0, 0)))
     assert relative_move(pose, up, 0.5) == {"translate": [0, 0, -10.0],
                                             "rotate_deg": [15.0, 5.0, 0]}

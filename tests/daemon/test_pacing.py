@@ -19,24 +19,33 @@ import numpy as np
 
 from nhfd.config import Config, _overlay
 from nhfd.daemon import frame_link
-from nhfd.daemon.frame_link import SHM_PREFIX, FrameLink
+from nhfd.daemon.frame_link import SHM_PREFIX, FrameEvents, FrameLink, LinkState
 from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
 from nhfd.device_settings import SLMOutputSettings
 from nhfd.drivers import framebuffer
 from nhfd.drivers.framebuffer import FBIO_WAITFORVSYNC, FramebufferSLM
 from nhfd.drivers.slm import SimulatedSLM
+from nhfd.frame_message import FrameMessage, Region, StageTimes
+from nhfd.views import Orbit, View
 
 from .conftest import bench_config, wait_until
 
 REFRESH_HZ = 10.0  # a slow panel: a loaded test machine keeps to its refreshes with room
+# Views the fake worker treats otherwise, by their azimuth: it dies (exit code 3); its frame's
+# region runs off the panel (the paste fails); its frame is larger than the slot.
+CRASH_DEG, OFF_PANEL_DEG, TOO_BIG_DEG = -111.0, -112.0, -113.0
+
+
+def orbit(azimuth_deg: float) -> View:
+    return View(Orbit(azimuth_deg, 0.0, 1.0))
 
 
 def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
                 slots: dict[str, Any] | None = None) -> None:
     """A frame worker whose frames take no time: grey = the view's seq (mod 256) in a region of
-    half the panel; a view with "crash" kills the process; a view's "payload" replaces fields of
-    the frame's payload and its "drop" removes some (a bad frame)."""
+    half the panel, centred; the azimuths CRASH_DEG, OFF_PANEL_DEG and TOO_BIG_DEG make it die or
+    send a frame that cannot be shown."""
     from multiprocessing import shared_memory
 
     shms = [shared_memory.SharedMemory(name=n) for n in slots["names"]]
@@ -54,18 +63,18 @@ def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
             conn.send((msg[0], msg[1], True, {"path": msg[2]}))
             continue
         _, seq, view, slot = msg
-        if view.get("crash"):
+        azimuth = view.camera.azimuth_deg
+        if azimuth == CRASH_DEG:
             os._exit(3)
         np.ndarray((3, h, w), np.uint8, buffer=shms[slot].buf)[...] = seq % 256
-        payload = {
-            "slot": slot, "grey_shape": [3, h, w], "rgb_shape": None,
-            "region": [h // 2, w // 2, h, w, 0, 0], "timings_s": {"render": 0.0},
-            "clipped_fraction": [0.0, 0.0, 0.0], "warnings": [], "cached": False,
-            "ready_s": time.monotonic()}
-        payload.update(view.get("payload", {}))
-        for key in view.get("drop", ()):
-            del payload[key]
-        conn.send(("frame", seq, payload))
+        region = Region(h // 2, w // 2, h, w, 0, 0)
+        if azimuth == OFF_PANEL_DEG:
+            region = Region(panel_h - 2, panel_w - 2, h, w, 0, 0)
+        elif azimuth == TOO_BIG_DEG:
+            region = Region(0, 0, 4 * panel_h, 4 * panel_w, 0, 0)
+        message = FrameMessage(region, (3, region.height, region.width), None, StageTimes(),
+                               (0.0, 0.0, 0.0), slot=slot, ready_s=time.monotonic())
+        conn.send(("frame", seq, message))
 
 
 class Host:
@@ -77,26 +86,27 @@ class Host:
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px,
                                 SLMOutputSettings(history_frames=10000)).open()
         self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}))
-        self.bench = self
-        self.laser = SimpleNamespace(off=lambda: None)
         self.errors: list[str] = []
 
-    def note_slm_lost(self, detail: str) -> None:
-        self._error("slm", detail)
-
-    def _error(self, source: str, message: str) -> None:
+    def error(self, source: str, message: str) -> None:
         self.errors.append(f"{source}: {message}")
+
+    def events(self) -> FrameEvents:
+        return FrameEvents(shown=self.views.mark_applied, error=self.error,
+                           crashed=lambda message: self.error("frame worker", message),
+                           slm_lost=lambda detail: self.error("slm", detail))
 
 
 def running_link(root: Path) -> tuple[Host, FrameLink]:
     base = bench_config(root, None)
     config = Config.model_validate(_overlay(base.model_dump(), {"slm": {"refresh_hz": REFRESH_HZ}}))
     host = Host(config)
-    link = FrameLink(host, worker_module=__name__)
+    link = FrameLink(config, host.views, lambda: host.panel, host.events(),
+                     worker_module=__name__)
     link.model_path, link.scene_path = "fake.onnx", "fake.ply"
     link.start()
     deadline = time.monotonic() + 20
-    while link.state != "running":
+    while link.state != LinkState.RUNNING:
         link.step()
         time.sleep(0.01)
         assert time.monotonic() < deadline, "the fake worker did not start"
@@ -124,7 +134,7 @@ def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir):
 
     def spy(msg: tuple) -> None:
         if msg[0] == "frame":
-            sent.append((msg[3], None if link.pending is None else link.pending[1]["slot"]))
+            sent.append((msg[3], None if link.waiting is None else link.waiting.message.slot))
         send(msg)
 
     link.worker.send = spy
@@ -140,7 +150,7 @@ def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir):
         start = time.monotonic()
         views = iter(range(1, 100000))
         step_until(link, start + 1.2,
-                   lambda: host.views.submit({"kind": "orbit", "azimuth_deg": float(next(views))}))
+                   lambda: host.views.submit(orbit(float(next(views) % 360))))
         last = host.views.seq
         step_until(link, time.monotonic() + 3 * period_s)
         elapsed = time.monotonic() - start
@@ -183,14 +193,14 @@ def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slo
         # One slot: the link holds one frame at a time (in the worker or waiting for its
         # refresh), so a second would never be needed (each is the panel's size).
         assert len(first) == frame_link.SLOTS == 1
-        host.views.submit({"crash": True})
-        wait_until(lambda: (link.step(), link.state == "crashed")[1], 10, "the crash")
+        host.views.submit(orbit(CRASH_DEG))
+        wait_until(lambda: (link.step(), link.state == LinkState.CRASHED)[1], 10, "the crash")
         assert our_segments() == []  # unlinked with the crashed worker
         assert any("died with exit code 3" in e for e in host.errors)
-        wait_until(lambda: (link.step(), link.state == "running")[1], 20, "the restart")
+        wait_until(lambda: (link.step(), link.state == LinkState.RUNNING)[1], 20, "the restart")
         second = our_segments()
         assert len(second) == frame_link.SLOTS and not set(second) & set(first)
-        seq = host.views.submit({"kind": "orbit"})
+        seq = host.views.submit(orbit(0.0))
         wait_until(lambda: (link.step(), link.shown_seq == seq)[1], 10, "a frame after it")
     finally:
         link.close()
@@ -199,23 +209,21 @@ def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slo
 
 def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(short_dir):
     # Each bad frame reaches `_show` through the real pipe and slot: its region runs off the
-    # panel (PanelBuffer's paste raises ValueError), or its payload lacks the region (KeyError).
-    # Either must land in status as an "slm" error naming the view, give the slot back and
-    # leave the panel as it was, with the control loop's step returning normally.
+    # panel (PanelBuffer's paste raises ValueError), or its arrays are larger than the slot
+    # (reading them out raises TypeError). Either must land in status as an "slm" error naming
+    # the view, give the slot back and leave the panel as it was, with the control loop's step
+    # returning normally.
     host, link = running_link(short_dir)
     panel_h, panel_w = host.config.slm.height_px, host.config.slm.width_px
     try:
-        good = host.views.submit({"kind": "orbit", "azimuth_deg": 1.0})
+        good = host.views.submit(orbit(1.0))
         wait_until(lambda: (link.step(), link.shown_seq == good)[1], 10, "the first frame")
         before = host.slm.last_frame
         count = host.slm.count
-        bad_frames = [({"payload": {"region": [panel_h - 2, panel_w - 2, 0, 0, 0, 0]}},
-                       "ValueError"),
-                      ({"drop": ["region"]}, "KeyError")]
-        for bad, raised in bad_frames:
-            bad_seq = host.views.submit({"kind": "orbit", "azimuth_deg": 2.0, **bad})
+        for bad, raised in ((OFF_PANEL_DEG, "ValueError"), (TOO_BIG_DEG, "TypeError")):
+            bad_seq = host.views.submit(orbit(bad))
             wait_until(lambda s=bad_seq: (link.step(), link.sent_seq == s
-                                          and link.inflight is None and link.pending is None)[1],
+                                          and link.inflight is None and link.waiting is None)[1],
                        10, f"view {bad_seq} tried")
             errors = [e for e in host.errors if f"view {bad_seq}" in e]
             assert len(errors) == 1 and errors[0].startswith(
@@ -223,8 +231,8 @@ def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(shor
             assert link.worker.free_slots == list(range(frame_link.SLOTS))
             assert link.shown_seq == good and host.slm.count == count
             assert np.array_equal(host.slm.last_frame, before)
-            assert link.state == "running"
-            good = host.views.submit({"kind": "orbit", "azimuth_deg": 3.0})
+            assert link.state == LinkState.RUNNING
+            good = host.views.submit(orbit(3.0))
             wait_until(lambda s=good: (link.step(), link.shown_seq == s)[1], 10, "a good frame")
             top, left = panel_h // 4, panel_w // 4
             assert np.all(host.slm.last_frame[:, top, left] == good % 256)
@@ -235,20 +243,20 @@ def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(shor
 
 
 def test_closing_forgets_a_frame_waiting_for_its_refresh(short_dir, monkeypatch):
-    # A view sent well before its refresh (a wide send margin): its frame waits as `pending`.
+    # A view sent well before its refresh (a wide send margin): its frame waits as `waiting`.
     # Its slot is unlinked with the worker on close, so the link must not keep it, nor wake
     # the loop for it.
     monkeypatch.setattr(frame_link, "SEND_MARGIN_S", 0.08)
     host, link = running_link(short_dir)
     try:
-        first = host.views.submit({"kind": "orbit", "azimuth_deg": 1.0})
+        first = host.views.submit(orbit(1.0))
         wait_until(lambda: (link.step(), link.shown_seq == first)[1], 10, "the first frame")
-        waiting = host.views.submit({"kind": "orbit", "azimuth_deg": 2.0})
-        wait_until(lambda: (link.step(), link.pending is not None)[1], 10, "a waiting frame")
-        assert link.pending[0] == waiting and link.wake_s < math.inf
+        waiting = host.views.submit(orbit(2.0))
+        wait_until(lambda: (link.step(), link.waiting is not None)[1], 10, "a waiting frame")
+        assert link.waiting.seq == waiting and link.wake_s < math.inf
     finally:
         link.close()
-    assert link.pending is None and link.wake_s == math.inf
+    assert link.waiting is None and link.wake_s == math.inf
     assert our_segments() == []
 
 

@@ -20,7 +20,7 @@ from nhfd.models.export import load_model
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.settings import frame_region, frame_settings
 
-from .test_frames import FRONT_VIEW, daemon_config, wait_for_frames
+from .test_frames import FRONT_POSE, daemon_config, wait_for_frames
 
 # Measured-looking curves: strokes other than 2 pi and a gamma, a different one per colour.
 STROKES_RAD = (2.15 * np.pi, 1.9 * np.pi, 2.4 * np.pi)
@@ -73,8 +73,7 @@ def test_blank_surround_and_coded_zero_are_one_pattern_under_a_calibration(
         c = r.client()
         wait_for_frames(c)
         slm = r.daemon.bench.slm
-        view = {k: v for k, v in FRONT_VIEW.items() if k not in ("kind", "refocus_mm")}
-        seq = c.call("set_view", pose=view)["seq"]
+        seq = c.call("set_view", pose=FRONT_POSE)["seq"]
         wait_until(lambda: c.status()["view"]["applied_seq"] == seq, 20, "the view")
         shown = slm.last_frame.copy()
         c.call("blank")
@@ -85,7 +84,7 @@ def test_blank_surround_and_coded_zero_are_one_pattern_under_a_calibration(
 
     # The coder the frame worker runs, on an all-zero field of the coded region.
     model = load_model(short_dir / "models" / "tiny.onnx", config)
-    settings = frame_settings(config, model.metadata, active_calibration(config))
+    settings = frame_settings(config, model.info, active_calibration(config))
     assert settings.phase_sign == -1 and not any(cv.is_default for cv in settings.curves())
     encoder = Encoder(settings)
     region = frame_region(settings)

@@ -12,7 +12,7 @@ import pytest
 
 from nhfd.config import Config
 from nhfd.models.export import OnnxModel, export_onnx
-from nhfd.models.metadata import SIZE_TOLERANCE, checked_sizes_hw
+from nhfd.models.metadata import SIZE_TOLERANCE, parse_model_info
 from nhfd.models.sizes import (
     UncheckedSize,
     check_sizes,
@@ -55,31 +55,34 @@ def test_export_records_the_training_window_1024x576_and_the_panel_against_torch
     assert [e["hw"] for e in entries] == [[64, 64], [576, 1024], [1080, 1920]]
     for e in entries:
         assert e["ok"] and 0 <= e["max_abs_diff"] < 1e-4 and e["against"].startswith("the torch")
-    assert checked_sizes_hw(meta) == ([(64, 64), (576, 1024), (1080, 1920)], True)
+    info = OnnxModel(exported.path).info
+    assert info.checked_sizes_hw() == ([(64, 64), (576, 1024), (1080, 1920)], True)
     assert exported.metadata["checked_sizes"] == entries  # what export_onnx returns, as written
 
 
 def test_a_model_without_checked_sizes_counts_its_training_window_only_and_says_so(unchecked):
     meta = read_metadata(unchecked)
     assert "checked_sizes" not in meta
-    assert checked_sizes_hw(meta) == ([(64, 64)], False)
-    assert window_check(meta, (64, 64), "old.onnx", allow=False) is None
+    info = parse_model_info(meta, "old.onnx")
+    assert info.checked_sizes is None
+    assert info.checked_sizes_hw() == ([(64, 64)], False)
+    assert window_check(info, (64, 64), "old.onnx", allow=False) is None
     with pytest.raises(UncheckedSize) as err:
-        window_check(meta, (1080, 1920), "old.onnx", allow=False)
+        window_check(info, (1080, 1920), "old.onnx", allow=False)
     msg = str(err.value)
     assert msg.startswith("old.onnx: frame window 1920 x 1080 is not a size this model was "
                           "checked at; checked: 64 x 64 (its metadata has no checked_sizes")
     assert "allow_unchecked_sizes = true" in msg and "--sizes 1920x1080" in msg
     # allowed: the same reason comes back as a warning instead
-    assert window_check(meta, (1080, 1920), "old.onnx", allow=True) == msg
+    assert window_check(info, (1080, 1920), "old.onnx", allow=True) == msg
 
 
 def test_a_window_is_checked_by_its_padded_size(exported):
-    meta = OnnxModel(exported.path).metadata
-    assert window_check(meta, (1078, 1917), "m", allow=False) is None  # runs at 1080 x 1920
+    info = OnnxModel(exported.path).info
+    assert window_check(info, (1078, 1917), "m", allow=False) is None  # runs at 1080 x 1920
     with pytest.raises(UncheckedSize, match=r"frame window 1918 x 1082 \(run at 1920 x 1084, "
                                             r"padded to multiples of 4\)"):
-        window_check(meta, (1082, 1918), "m", allow=False)
+        window_check(info, (1082, 1918), "m", allow=False)
 
 
 class _WrongAt:

@@ -37,6 +37,7 @@ from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import Scene, scene_frame
 from nhfd.scene.io import read_scene
 from nhfd.spec import PhaseCurve
+from nhfd.views import Orbit, View
 from tests.daemon.test_frames import small_config
 from tests.pipeline.test_encoder import SETTINGS
 
@@ -292,11 +293,10 @@ def donut() -> dict:
     model = load_model(MODEL, config, threads=1)
     load = read_scene(SCENE)
     scene = Scene(load.gaussians, scene_frame(load.gaussians, str(SCENE)))
-    env = model.metadata["pose_envelope"]
-    view = {"kind": "orbit", "azimuth_deg": float(np.mean(env["azimuth_deg"])),
-            "elevation_deg": float(np.mean(env["elevation_deg"])),
-            "radius": float(np.mean(env["distance"])), "refocus_mm": 0.0}
-    settings = frame_settings(config, model.metadata, active_calibration(config))
+    env = model.info.pose_envelope
+    view = View(Orbit(float(np.mean(env.azimuth_deg)), float(np.mean(env.elevation_deg)),
+                      float(np.mean(env.distance))), refocus_mm=0.0)
+    settings = frame_settings(config, model.info, active_calibration(config))
     return {"config": config, "model": model, "scene": scene, "view": view,
             "settings": settings}
 
@@ -431,7 +431,7 @@ def _phase_carrying(d: dict) -> np.ndarray:
     from nhfd.pipeline.frame import infer, render_view
 
     s = d["settings"]
-    rendered = render_view(d["view"], d["scene"], d["model"].metadata, s.window_hw)
+    rendered = render_view(d["view"], d["scene"], d["model"].info, s.window_hw)
     field = Encoder(s).to_slm(reference_field(*infer(d["model"], rendered), s.amplitude_scale))
     carrying = (field.abs() / s.amplitude_scale).numpy() >= PHASE_CARRYING_AMPLITUDE
     assert carrying.mean() > 0.5, "the view codes mostly near-zero amplitudes: a poor check"
@@ -445,8 +445,8 @@ def _gpu_frame(d: dict, monkeypatch: pytest.MonkeyPatch | None = None):
     from nhfd.pipeline.worker import open_model
 
     if monkeypatch is not None:
-        def cpu_render(view, scene, metadata, window_hw, device):
-            r = frame_mod.render_view(view, scene, metadata, window_hw)
+        def cpu_render(view, scene, info, window_hw, device):
+            r = frame_mod.render_view(view, scene, info, window_hw)
             return tuple(torch.from_numpy(v).to(device) for v in (r.rgb, r.depth, r.alpha))
 
         monkeypatch.setattr(frame_mod, "render_on_device", cpu_render)
@@ -633,10 +633,10 @@ def test_a_cuda_frame_renders_the_scene_uploaded_once(donut, monkeypatch):
     scene = Scene(d["scene"].gaussians, d["scene"].frame)
     hw = d["settings"].window_hw
     for _ in range(3):
-        rgb, depth, alpha = frame_mod.render_on_device(d["view"], scene, d["model"].metadata, hw,
+        rgb, depth, alpha = frame_mod.render_on_device(d["view"], scene, d["model"].info, hw,
                                                        torch.device("cuda", 1))
     assert len(built) == 1 and built[0][0] is scene.gaussians and built[0][1] == "cuda:1"
-    want = render_camera(d["view"], scene.frame, d["model"].metadata, hw)
+    want = render_camera(d["view"], scene.frame, d["model"].info, hw)
     assert len(asked) == 3 and len(asked[0]) == 1
     got = asked[0][0]
     np.testing.assert_array_equal(got.R, want.R)

@@ -19,7 +19,7 @@ import pytest
 import torch
 
 from nhfd.config import Config
-from nhfd.models.export import load_model
+from nhfd.models.export import OnnxModel, load_model
 from nhfd.optics import double_phase_grey
 from nhfd.optics.refplane import reference_to_slm
 from nhfd.pipeline.encoder import Encoder, reference_field
@@ -27,6 +27,7 @@ from nhfd.pipeline.frame import compute_frame, infer, render_view
 from nhfd.pipeline.settings import Region, frame_settings, zero_pattern
 from nhfd.pipeline.view import Scene, scene_frame
 from nhfd.scene.io import read_scene
+from nhfd.views import Orbit, View
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "nhf-donut-512.onnx"
@@ -38,16 +39,16 @@ PANEL_HW = (1080, 1920)
 def panel():
     config = Config.model_validate({"daemon": {"frame_size_px": [PANEL_HW[1], PANEL_HW[0]]}})
     model = load_model(MODEL, config)
-    settings = frame_settings(config, model.metadata, None)
+    settings = frame_settings(config, model.info, None)
     encoder = Encoder(settings)
     load = read_scene(SCENE)
     scene = Scene(load.gaussians, scene_frame(load.gaussians, str(SCENE)))
-    env = model.metadata["pose_envelope"]  # a view in the middle of the trained ones
-    view = {"kind": "orbit", "azimuth_deg": sum(env["azimuth_deg"]) / 2,
-            "elevation_deg": sum(env["elevation_deg"]) / 2, "radius": sum(env["distance"]) / 2}
+    env = model.info.pose_envelope  # a view in the middle of the trained ones
+    view = View(Orbit(sum(env.azimuth_deg) / 2, sum(env.elevation_deg) / 2,
+                      sum(env.distance) / 2))
     frame = compute_frame(view, scene, model, encoder)
     # The frame's stages again, to look inside it: its reference-plane field.
-    amplitude, phase = infer(model, render_view(view, scene, model.metadata, settings.window_hw))
+    amplitude, phase = infer(model, render_view(view, scene, model.info, settings.window_hw))
     reference = reference_field(amplitude, phase, settings.amplitude_scale)
     return SimpleNamespace(settings=settings, encoder=encoder, frame=frame, amplitude=amplitude,
                            phase=phase, reference=reference)
@@ -138,7 +139,8 @@ def test_the_frame_is_the_coding_of_the_optics_cores_whole_panel_propagation(pan
 def test_the_window_is_any_size_up_to_the_panel_and_a_larger_training_size_is_refused():
     from nhfd.pipeline.settings import frame_window_hw
 
-    meta = {"train_size_hw": [288, 512]}
+    meta = OnnxModel(MODEL).info  # trained at 512 x 288
+    assert meta.train_size_hw == (288, 512)
     whole = Config.model_validate({"daemon": {"frame_size_px": [1920, 1080]}})
     assert frame_window_hw(whole, meta) == PANEL_HW
     assert frame_window_hw(Config(), meta) == (288, 512)  # empty: the training size

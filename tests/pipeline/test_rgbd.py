@@ -20,7 +20,7 @@ class Spy:
     """The model, recording what the pipeline feeds it."""
 
     def __init__(self, model) -> None:
-        self.model, self.metadata, self.inputs = model, model.metadata, model.inputs
+        self.model, self.info, self.inputs = model, model.info, model.inputs
         self.seen: list[np.ndarray] = []
 
     def __call__(self, x: np.ndarray):
@@ -34,15 +34,14 @@ def test_an_rgbd_model_gets_the_renders_mapped_depth(tmp_path):
     assert model.inputs == "rgbd"
     scene = Scene(load_scene(make_tiny_scene(tmp_path / "cloud.ply")),
                   SceneFrame((0.0, 0.0, 0.0), "-y"))
-    encoder = Encoder(frame_settings(config, model.metadata, active_calibration(config)))
+    encoder = Encoder(frame_settings(config, model.info, active_calibration(config)))
     frame = compute_frame(FRONT_VIEW, scene, model, encoder)
     (x,) = model.seen
     assert x.shape == (4, 64, 96)
     np.testing.assert_array_equal(x[:3], frame.rgb)
 
-    again = render(scene.gaussians, render_camera(FRONT_VIEW, scene.frame, model.metadata,
-                                                  (64, 96)))
-    m = model.metadata
+    again = render(scene.gaussians, render_camera(FRONT_VIEW, scene.frame, model.info, (64, 96)))
+    m = model.model.metadata  # the file's own record, not the info parsed from it
     want = depth_channel(mapped_depth(again.depth, again.alpha, m["mapping"]["a_m"],
                                       m["mapping"]["b_m"]), m["volume_m"])  # fmt: skip
     np.testing.assert_allclose(x[3], want, atol=1e-6)

@@ -1,0 +1,165 @@
+"""A computed frame as it crosses the pipe from the frame worker to the daemon (layer L0).
+
+The worker (`nhfd.pipeline.worker`) sends `("frame", seq, FrameMessage)`; the daemon's frame link
+(`nhfd.daemon.frame_link`) reads it by name: where the coded region goes on the panel
+(`Region`), where its arrays are (a shared-memory slot and their shapes, or the arrays
+themselves with the pickled transport), the stage times (`StageTimes`), the clipped fractions,
+the pose warnings, whether it came from the frame cache, and when it was whole in its slot.
+Both processes import this module (NumPy and the standard library only), so the message's form
+is defined once: no positional lists, no keys to agree on.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Any
+
+import numpy as np
+
+# The frame pipeline's stages, in order (`nhfd.pipeline.frame.compute_frame`); the daemon adds
+# "output" (the region pasted into the panel and shown).
+STAGES = ("render", "inference", "propagation", "coding")
+
+
+def _count(name: str, value: Any) -> int:
+    if not (isinstance(value, int | np.integer) and not isinstance(value, bool) and value >= 0):
+        raise ValueError(f"region {name} = {value!r}: expected an integer >= 0 (px)")
+    return int(value)
+
+
+@dataclass(frozen=True)
+class Region:
+    """The part of the panel a frame changes (px): the window plus the kernel's reach, with an
+    even top-left corner so its checkerboard lines up with the zero pattern's; and where the
+    window sits inside it."""
+
+    top: int
+    left: int
+    height: int
+    width: int
+    window_top: int
+    window_left: int
+
+    def __post_init__(self) -> None:
+        for name in ("top", "left", "height", "width", "window_top", "window_left"):
+            object.__setattr__(self, name, _count(name, getattr(self, name)))
+
+    @property
+    def rows(self) -> slice:
+        """The region's panel rows."""
+        return slice(self.top, self.top + self.height)
+
+    @property
+    def cols(self) -> slice:
+        """The region's panel columns."""
+        return slice(self.left, self.left + self.width)
+
+
+@dataclass(frozen=True)
+class StageTimes:
+    """Seconds each stage of a frame took in the worker (0 for a frame from its cache)."""
+
+    render_s: float = 0.0
+    inference_s: float = 0.0
+    propagation_s: float = 0.0
+    coding_s: float = 0.0
+
+    def __post_init__(self) -> None:
+        for stage in STAGES:
+            v = getattr(self, f"{stage}_s")
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ValueError(f"stage time {stage}_s = {v!r}: expected a finite number "
+                                 ">= 0 (s)")
+
+    @classmethod
+    def from_seconds(cls, seconds: dict[str, float]) -> StageTimes:
+        """From the pipeline's clock (`{stage: seconds}`, `nhfd.pipeline.device.StageClock`);
+        ValueError naming a stage it does not know."""
+        unknown = sorted(set(seconds) - set(STAGES))
+        if unknown:
+            raise ValueError(f"stage times {unknown}: expected stages among {', '.join(STAGES)}")
+        return cls(**{f"{k}_s": float(v) for k, v in seconds.items()})
+
+    def seconds(self) -> dict[str, float]:
+        """{stage: seconds} in the pipeline's order."""
+        return {stage: getattr(self, f"{stage}_s") for stage in STAGES}
+
+
+@dataclass(frozen=True, eq=False)
+class FrameMessage:
+    """One frame, as the worker reports it.
+
+    region            where the grey region goes on the panel
+    grey_shape        the coded region's shape `[3, h, w]` (uint8 grey levels; h, w = the
+                      region's height and width)
+    rgb_shape         the view's preview `[3, H, W]` uint8, or None (none sent)
+    timings           the worker's stage times
+    clipped_fraction  per colour, the fraction of pixels whose amplitude double-phase coding
+                      clipped
+    warnings          why the view lies outside the model's pose envelope (empty: inside)
+    cached            whether it came from the worker's frame cache
+    slot              the shared-memory slot holding the arrays, or None: `grey` and `rgb` are
+                      in the message (the pickled transport), or not yet written (`in_slot`)
+    ready_s           when the frame was whole in its slot (CLOCK_MONOTONIC, shared by both
+                      processes), set just before sending
+    """
+
+    region: Region
+    grey_shape: tuple[int, int, int]
+    rgb_shape: tuple[int, int, int] | None
+    timings: StageTimes
+    clipped_fraction: tuple[float, ...] = ()
+    warnings: tuple[str, ...] = ()
+    cached: bool = False
+    slot: int | None = None
+    ready_s: float | None = None
+    grey: np.ndarray | None = None
+    rgb: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.region, Region):
+            raise ValueError(f"frame region = {self.region!r}: expected a Region")
+        if not isinstance(self.timings, StageTimes):
+            raise ValueError(f"frame timings = {self.timings!r}: expected StageTimes")
+        object.__setattr__(self, "grey_shape", _shape("grey_shape", self.grey_shape))
+        r = self.region
+        if self.grey_shape[1:] != (r.height, r.width):
+            raise ValueError(f"frame grey_shape = {list(self.grey_shape)}: expected [C, "
+                             f"{r.height}, {r.width}] (the region's height and width)")
+        if self.rgb_shape is not None:
+            object.__setattr__(self, "rgb_shape", _shape("rgb_shape", self.rgb_shape))
+        object.__setattr__(self, "clipped_fraction",
+                           tuple(float(f) for f in self.clipped_fraction))
+        object.__setattr__(self, "warnings", tuple(str(w) for w in self.warnings))
+        if self.slot is not None and not (isinstance(self.slot, int) and self.slot >= 0):
+            raise ValueError(f"frame slot = {self.slot!r}: expected a slot index >= 0 or None")
+
+    @classmethod
+    def of_arrays(cls, region: Region, grey: np.ndarray, rgb: np.ndarray | None,
+                  timings: StageTimes, clipped_fraction: tuple[float, ...] = (),
+                  warnings: tuple[str, ...] | list[str] = ()) -> FrameMessage:
+        """A frame holding its arrays (grey `[3, h, w]` uint8, the preview `[3, H, W]` uint8 or
+        None), the shapes taken from them."""
+        return cls(region, tuple(grey.shape), None if rgb is None else tuple(rgb.shape),
+                   timings, tuple(clipped_fraction), tuple(warnings), grey=grey, rgb=rgb)
+
+    def in_slot(self, slot: int) -> FrameMessage:
+        """This frame with its arrays written to shared-memory `slot` (by the caller): the
+        message then carries their shapes only."""
+        return replace(self, slot=slot, grey=None, rgb=None)
+
+    def ready(self, ready_s: float) -> FrameMessage:
+        """This frame, whole in its slot at `ready_s` (CLOCK_MONOTONIC, s)."""
+        return replace(self, ready_s=ready_s)
+
+    def from_cache(self) -> FrameMessage:
+        """This frame served again from the worker's cache: no stage ran."""
+        return replace(self, cached=True, timings=StageTimes())
+
+
+def _shape(name: str, shape: Any) -> tuple[int, int, int]:
+    dims = tuple(shape)
+    if len(dims) != 3 or not all(isinstance(d, int | np.integer) and d >= 0 for d in dims):
+        raise ValueError(f"frame {name} = {list(dims)}: expected [3, h, w], integers >= 0")
+    return tuple(int(d) for d in dims)  # type: ignore[return-value]
