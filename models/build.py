@@ -41,7 +41,7 @@ from typing import Any
 import numpy as np
 
 from nhfd import __version__
-from nhfd.config import device_choice
+from nhfd.config import ModelSettings, OpticsSettings, SLMSettings, device_choice
 from nhfd.dataset.build import build as build_dataset
 from nhfd.dataset.build import sha256_file, shard_name, write_json_atomic
 from nhfd.dataset.envelope import dataset_envelope
@@ -112,17 +112,18 @@ class Recipe:
     reduce_grey_levels: float = 1.0
 
     @staticmethod
-    def from_config(config, name: str | None = None, *, device: str = "cpu",
+    def from_config(model: ModelSettings, name: str | None = None, *, device: str = "cpu",
                     progress: bool = True) -> Recipe:  # fmt: skip
-        """The recipe `name` (default [model.build].profile) of a validated Config."""
-        b = config.model.build
+        """The recipe `name` (default [model.build].profile) of a configuration's `[model]`
+        section, its training options from the same section (`TrainOptions.from_config`)."""
+        b = model.build
         name = name or b.profile
         if name not in b.profiles:
             raise ValueError(f"--profile {name!r}: not one of the recipes "
                              f"{', '.join(sorted(b.profiles))} ([model.build.profiles])")
         r = b.profiles[name]
         options = TrainOptions.from_config(
-            config, r.network or None, steps=r.steps or None,
+            model, r.network or None, steps=r.steps or None,
             crop_width_px=r.crop_width_px or None, crop_height_px=r.crop_height_px or None,
             device=device, progress=progress,
         )  # fmt: skip
@@ -270,13 +271,15 @@ def _fmt_s(seconds: float) -> str:
 
 @dataclass
 class Context:
-    """What the stages share: the scene, the output folder, the recipe and the settings, the
-    finished stages' results, and where progress goes."""
+    """What the stages share: the scene, the output folder, the recipe and the configuration's
+    `[optics]` and `[slm]` sections (the bench the dataset is made for), the finished stages'
+    results, and where progress goes."""
 
     scene: Path
     out: Path
     recipe: Recipe
-    config: Any
+    optics: OpticsSettings
+    slm: SLMSettings
     up: str | None
     workers: int
     log: Callable[[str], None]
@@ -346,8 +349,9 @@ def _poses(ctx: Context):
 
 def _example_settings(ctx: Context) -> ExampleSettings:
     r = ctx.recipe
-    return ExampleSettings.from_config(ctx.config, width_px=r.width_px, height_px=r.height_px,
-                                       fov_x_deg=r.fov_x_deg, phase=r.phase)  # fmt: skip
+    return ExampleSettings.from_config(ctx.optics, ctx.slm, width_px=r.width_px,
+                                       height_px=r.height_px, fov_x_deg=r.fov_x_deg,
+                                       phase=r.phase)  # fmt: skip
 
 
 def _dataset(ctx: Context) -> dict:
@@ -532,7 +536,7 @@ def build_report(ctx: Context, sheet: dict | None = None) -> dict:
 
 
 def _quality_planes(ctx: Context) -> tuple[float, ...]:
-    v = ctx.config.optics.volume_mm
+    v = ctx.optics.volume_mm
     return quality_planes((v[0] * 1e-3, v[1] * 1e-3))
 
 
@@ -607,7 +611,8 @@ def run_build(
     scene: str | Path,
     out: str | Path,
     recipe: Recipe,
-    config,
+    optics: OpticsSettings,
+    slm: SLMSettings,
     *,
     force: bool = False,
     up: str | None = None,
@@ -615,7 +620,9 @@ def run_build(
     log: Callable[[str], None] | None = None,
     progress: bool = True,
 ) -> BuildResult:
-    """Build (or resume) the model of `scene` into the folder `out` (see the module docstring)."""
+    """Build (or resume) the model of `scene` into the folder `out` (see the module docstring),
+    for the bench of a configuration's `[optics]` and `[slm]` sections (the dataset's optics,
+    panel and pitch)."""
     say = log or (lambda msg: print(msg, file=sys.stderr))
     scene, out = Path(scene), Path(out)
     if not scene.exists():
@@ -640,8 +647,8 @@ def run_build(
         state = {"format": FORMAT, "format_version": FORMAT_VERSION, "stages": {}}
     state.update(scene=str(scene), scene_sha256=scene_sha, profile=recipe.name,
                  recipe=recipe.to_json(), nhfd_version=__version__)
-    ctx = Context(scene, out, recipe, config, up, workers or max(1, os.cpu_count() or 1), say,
-                  progress)  # fmt: skip
+    ctx = Context(scene, out, recipe, optics, slm, up, workers or max(1, os.cpu_count() or 1),
+                  say, progress)  # fmt: skip
 
     # Keys first: a changed stage (and so every one after it) is refused before anything runs.
     keys, prev = {}, ""

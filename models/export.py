@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from nhfd.config import device_choice
+from nhfd.config import Config, device_choice
 from nhfd.dataset.build import sha256_file
 from nhfd.model_info import ModelInfo
 from nhfd.models.inputs import seeded_input
@@ -670,14 +670,18 @@ def run_padded(model: Any, x: torch.Tensor,
     return (amp[0], phase[0]) if single else (amp, phase)
 
 
-def load_model(path: str | Path, config=None, *, threads: int = 0,
+def load_model(path: str | Path, config: Config | None = None, *, threads: int = 0,
                providers: tuple[str, ...] = CPU_ONLY, device: str | torch.device = "cpu",
                input_hw: tuple[int, int] | None = None,
                engine_cache_dir: str | Path | None = None) -> OnnxModel:
-    """Load an exported model; with a `nhfd.config.Config`, refuse one trained for other optics.
+    """Load an exported model; with a configuration, refuse one trained for other optics.
     `device`, `input_hw`, `engine_cache_dir`: `OnnxModel`'s (a CUDA device's errors name
-    daemon.device when a config is given)."""
-    expected = expected_from_config(config) if config is not None else None
+    daemon.device when a config is given).
+
+    `config`: the whole configuration the model is to serve under (None: no check), because the
+    optics it must match span two sections, `[optics]` and `[slm]`'s pitch
+    (`expected_from_config`), and its device is `daemon.device`."""
+    expected = expected_from_config(config.optics, config.slm) if config is not None else None
     return OnnxModel(path, expected=expected, threads=threads, providers=providers,
                      device=device, input_hw=input_hw, engine_cache_dir=engine_cache_dir,
                      device_setting="daemon.device" if config is not None else "device")

@@ -14,6 +14,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from nhfd.config import OpticsSettings, SLMSettings
 from nhfd.model_info import (
     AMPLITUDE_SCALE_RANGE,
     APERTURE_SHAPES,
@@ -152,12 +153,13 @@ def checked_size_entry(hw: tuple[int, int], max_abs_diff: float, against: str) -
             "against": against}
 
 
-def expected_from_config(config) -> dict[str, Any]:
-    """The optics a validated `nhfd.config.Config` asks for, in the metadata's keys and units."""
-    o = config.optics
+def expected_from_config(optics: OpticsSettings, slm: SLMSettings) -> dict[str, Any]:
+    """The optics a configuration asks for, in the metadata's keys and units: `[optics]`
+    (wavelengths, aperture, z0, volume) and `[slm]`'s pitch."""
+    o = optics
     return {
         "wavelengths_m": [v * 1e-9 for v in o.wavelengths_nm],
-        "pitch_m": config.slm.pitch_um * 1e-6,
+        "pitch_m": slm.pitch_um * 1e-6,
         "aperture_shape": o.aperture.shape,
         "cutoff_per_px": list(o.aperture.cutoff_per_px),
         "z0_m": o.z0_mm * 1e-3,

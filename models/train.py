@@ -219,9 +219,12 @@ class TrainOptions:
         return self.crop_height_px, self.crop_width_px
 
     @staticmethod
-    def from_config(config, profile: str | None = None, **overrides) -> TrainOptions:
-        """Options from a validated `nhfd.config.Config` (its [model] section)."""
-        m = config.model
+    def from_config(model: ModelSettings, profile: str | None = None,
+                    **overrides) -> TrainOptions:
+        """Options from a configuration's `[model]` section: the network of `[model.profiles]`
+        `profile` (default `[model].profile`) and `[model.train]`, with `overrides` (None
+        values ignored) on top."""
+        m = model
         name = profile or m.profile
         if name not in m.profiles:
             raise ValueError(

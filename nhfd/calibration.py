@@ -25,12 +25,15 @@ import threading
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from nhfd import spec
 from nhfd.spec import PhaseCurve
+
+if TYPE_CHECKING:  # nhfd.config imports this module (`check_files`): annotations only
+    from nhfd.config import CalibrationSettings, Config, OpticsSettings, SLMSettings
 
 FORMAT = "nhfd-calibration"
 FORMAT_VERSION = 1
@@ -336,7 +339,8 @@ def _dump(doc: dict[str, Any], prefix: str = "") -> str:
     return out
 
 
-def panel_coding(slm: Any, cal: Calibration | None) -> tuple[tuple[PhaseCurve, ...], int, bool]:
+def panel_coding(slm: SLMSettings, cal: Calibration | None
+                 ) -> tuple[tuple[PhaseCurve, ...], int, bool]:
     """The phase curves, sign and grey inversion frames are coded with, for the configuration's
     `[slm]` section: a calibration's measured curves and sign replace the configured ones. The
     one rule for the blank panel (`nhfd.daemon.panel`) and for frames (`nhfd.pipeline.settings`),
@@ -381,41 +385,49 @@ def _version(path: Path) -> tuple[int, int, int]:
     return (st.st_ino, st.st_mtime_ns, st.st_size)
 
 
-def _expected(config: Any) -> tuple[tuple[float, ...], float]:
-    return tuple(config.optics.wavelengths_m), float(config.slm.pitch_m)
+def _expected(optics: OpticsSettings, slm: SLMSettings) -> tuple[tuple[float, ...], float]:
+    """The configured bench a calibration must have been fitted for: wavelengths (m) and the
+    SLM's pitch (m)."""
+    return tuple(optics.wavelengths_m), float(slm.pitch_m)
 
 
-def _path(config: Any) -> Path | None:
-    section = getattr(config, "calibration", None)
-    name = getattr(section, "file", "") if section is not None else ""
-    return Path(name) if name else None
+def _path(calibration: CalibrationSettings) -> Path | None:
+    """The configured calibration file, or None (`calibration.file` empty)."""
+    return Path(calibration.file) if calibration.file else None
 
 
-def _key(path: Path, config: Any) -> tuple[str, tuple[float, ...]]:
-    wavelengths_m, pitch_m = _expected(config)
+def _key(path: Path, optics: OpticsSettings, slm: SLMSettings
+         ) -> tuple[str, tuple[float, ...]]:
+    """The entry of `_states` for `path` under the configured bench."""
+    wavelengths_m, pitch_m = _expected(optics, slm)
     return str(path.resolve()), (*wavelengths_m, pitch_m)
 
 
-def keep(config: Any, cal: Calibration) -> None:
+def keep(config: Config, cal: Calibration) -> None:
     """Take `cal` as the accepted calibration of `config`'s file in this process, unless one
     already is: the frame worker gets the daemon's at its start, so a version refused on disk
-    before the worker first reads the file keeps the daemon's there too."""
-    path = _path(config)
+    before the worker first reads the file keeps the daemon's there too.
+
+    `config`: the whole configuration, for three sections that go together: `[calibration]`
+    (the file) and the bench the file must have been fitted for (`[optics]` wavelengths,
+    `[slm]` pitch), which key the accepted version."""
+    path = _path(config.calibration)
     if path is None:
         return
     with _lock:
         # a version no file has: the file on disk is still read, and refused or accepted
-        _states.setdefault(_key(path, config), _State((-2, -2, -2), cal))
+        _states.setdefault(_key(path, config.optics, config.slm), _State((-2, -2, -2), cal))
 
 
-def _state(config: Any) -> _State | None:
+def _state(config: Config) -> _State | None:
     """The state of the configured file (loading a new version), or None when none is
-    configured; raises `CalibrationFileError` when no version was ever accepted."""
-    path = _path(config)
+    configured; raises `CalibrationFileError` when no version was ever accepted. Reads
+    `[calibration]`, `[optics]` and `[slm]` (see `keep`)."""
+    path = _path(config.calibration)
     if path is None:
         return None
-    wavelengths_m, pitch_m = _expected(config)
-    key = _key(path, config)
+    wavelengths_m, pitch_m = _expected(config.optics, config.slm)
+    key = _key(path, config.optics, config.slm)
     version = _version(path)
     with _lock:
         state = _states.get(key)
@@ -437,22 +449,26 @@ def _state(config: Any) -> _State | None:
         return state
 
 
-def active_calibration(config: Any) -> Calibration | None:
-    """The configuration's calibration, or None when `calibration.file` is empty."""
+def active_calibration(config: Config) -> Calibration | None:
+    """The configuration's calibration, or None when `calibration.file` is empty.
+
+    `config`: the whole configuration, for three sections: `[calibration]` names the file, and
+    a file fitted for another bench than `[optics]` wavelengths and `[slm]` pitch is refused
+    (`CalibrationFileError`)."""
     state = _state(config)
     return state.good if state is not None else None
 
 
-def calibration_refusal(config: Any) -> str | None:
+def calibration_refusal(config: Config) -> str | None:
     """Why the configured file, as it is on disk now, is not the calibration in use (a refused
-    hot swap: the earlier version is kept), or None."""
+    hot swap: the earlier version is kept), or None. `config`: as `active_calibration`'s."""
     state = _state(config)
     return state.refused if state is not None else None
 
 
-def new_refusal(config: Any) -> str | None:
+def new_refusal(config: Config) -> str | None:
     """`calibration_refusal`, but only the first time it is asked for that file version: for an
-    error list that should say it once."""
+    error list that should say it once. `config`: as `active_calibration`'s."""
     state = _state(config)
     with _lock:
         if state is None or state.refused is None or state.reported:

@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     results: dict = {"scene": scene.name, "device": device, "gpu": gpu, "sizes": {}}
     for size in args.sizes.split(","):
         w, h = parse_wxh(size, "--sizes")
-        s = ExampleSettings.from_config(config, width_px=w, height_px=h)
+        s = ExampleSettings.from_config(config.optics, config.slm, width_px=w, height_px=h)
         cam = suggest_camera(g, w, h, up, fov_x_deg=s.fov_x_deg)
         central = render(g, cam)  # the mapping from the CPU render, as dataset builds do
         d = central.depth[central.alpha > 0.5]

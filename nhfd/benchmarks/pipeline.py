@@ -45,6 +45,8 @@ from nhfd.config import (
     INT8_MODES,
     REFRESH_HZ_MAX,
     Config,
+    DaemonSettings,
+    SLMSettings,
     _overlay,
     load_config,
 )
@@ -102,9 +104,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 class _Host:
     """The slice of the daemon a FrameLink needs: the view slot, the panel on a simulated SLM,
-    the error list its events feed (`frame_link`)."""
+    the error list its events feed (`frame_link`).
 
-    def __init__(self, config: Any) -> None:
+    `config`: the whole configuration, handed to the daemon's `Panel` and `FrameLink` (which
+    take it whole: the worker runs under all of it); the simulated SLM is `[slm]`'s size."""
+
+    def __init__(self, config: Config) -> None:
         self.config = config
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
@@ -144,24 +149,29 @@ def _load(link: Any, scene: Path, model: Path) -> None:
         raise ValueError(str(failed[0])) from None
 
 
-def measure(config: Any, model: Path, scene: Path, views: int, warmup: int, *,
+def measure(config: Config, model: Path, scene: Path, views: int, warmup: int, *,
             transport: str | None = None, int8: str | None = None,
             device: str | None = None) -> dict[str, Any]:
-    """One model under one transport, int8 setting and device (`measure_side_by_side` of one)."""
+    """One model under one transport, int8 setting and device (`measure_side_by_side` of one).
+    `config`: as `measure_side_by_side`'s."""
     return measure_side_by_side(config, model, scene, views, warmup,
                                 [Variant(transport, int8, device)])[0]
 
 
-def measure_side_by_side(config: Any, model: Path, scene: Path, views: int, warmup: int,
+def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, warmup: int,
                          variants: list[tuple[str | None, ...]]) -> list[dict[str, Any]]:
     """`model` under each `Variant` (transport, daemon.int8[, daemon.device]; None: the
     configuration's) of `variants`, each in its own worker, all started first and then given the
     same views in turn, one frame at a time (the order rotating per view): on a loaded machine
-    the variants see the same load and their medians compare."""
+    the variants see the same load and their medians compare.
+
+    `config`: the whole configuration, because each worker runs under all of it (the frame
+    pipeline joins `[daemon]`, `[slm]`, `[optics]`, `[coding]` and `[calibration]`), with the
+    variant's `[daemon]` settings and `[slm]` refresh on top (`_variant_config`)."""
     info = OnnxModel(model).info
     configs = [_variant_config(config, Variant(*v)) for v in variants]
     for cfg in configs:  # before any worker starts
-        _check_fits(cfg, model, info)
+        _check_fits(cfg.daemon, cfg.slm, model, info)
     runs = []
     try:
         for cfg in configs:
@@ -183,11 +193,11 @@ def measure_side_by_side(config: Any, model: Path, scene: Path, views: int, warm
     finally:
         for _cfg, _host, link, _rows in runs:
             link.close()
-    return [_result(model, info, cfg, rows, report)
+    return [_result(model, info, cfg.daemon, rows, report)
             for (cfg, _host, _link, rows), report in zip(runs, reports, strict=True)]
 
 
-def _variant_config(config: Any, v: Variant) -> Config:
+def _variant_config(config: Config, v: Variant) -> Config:
     """The configuration one worker runs under: the variant's settings, no frame cache (every
     view computed) and no refresh pacing (the bench times the pipeline, not the panel)."""
     daemon: dict[str, Any] = {"frame_cache_frames": 0}
@@ -203,12 +213,12 @@ def _variant_config(config: Any, v: Variant) -> Config:
     return Config.model_validate(_overlay(config.model_dump(), overlay))
 
 
-def _check_fits(cfg: Any, model: Path, info: ModelInfo) -> None:
+def _check_fits(daemon: DaemonSettings, slm: SLMSettings, model: Path, info: ModelInfo) -> None:
     """Refuse a frame window larger than the panel before a worker starts for it (the
     configuration checked daemon.frame_size_px; `frame_window_hw` checks the model's training
     size that stands in for an empty one)."""
     try:
-        frame_window_hw(cfg, info)
+        frame_window_hw(daemon, slm, info)
     except ValueError as exc:
         raise ValueError(f"{model}: {exc}") from None
 
@@ -237,10 +247,10 @@ def _show(host: _Host, link: Any, view: View) -> float:
     return (time.perf_counter() - t0) * 1e3
 
 
-def _result(model: Path, model_info: ModelInfo, cfg: Any, rows: list[dict[str, float]],
-            info: dict[str, Any]) -> dict[str, Any]:
+def _result(model: Path, model_info: ModelInfo, daemon: DaemonSettings,
+            rows: list[dict[str, float]], info: dict[str, Any]) -> dict[str, Any]:
     """One worker's figures, with what it served and the device it computed on (its model
-    status: `device`, `device_reason`)."""
+    status: `device`, `device_reason`); `daemon`: the `[daemon]` section it ran under."""
     h, w = model_info.train_size_hw
     summary = {k: {"median_ms": float(np.median([r[k] for r in rows])),
                    "p90_ms": float(np.percentile([r[k] for r in rows], 90)),
@@ -248,10 +258,10 @@ def _result(model: Path, model_info: ModelInfo, cfg: Any, rows: list[dict[str, f
                for k in (*STAGES, "total")}
     device = info.get("device")
     return {"model": str(model), "profile": model_info.profile,
-            "size_wh": list(cfg.daemon.frame_size_px) or [w, h],
-            "transport": cfg.daemon.frame_transport, "int8": cfg.daemon.int8,
-            "worker_threads": cfg.daemon.worker_threads,
-            "device_setting": cfg.daemon.device, "device": device,
+            "size_wh": list(daemon.frame_size_px) or [w, h],
+            "transport": daemon.frame_transport, "int8": daemon.int8,
+            "worker_threads": daemon.worker_threads,
+            "device_setting": daemon.device, "device": device,
             "device_reason": info.get("device_reason"), "gpu": _gpu(device),
             "onnx_providers": info.get("providers"), "inference": info.get("inference"),
             "inference_reason": info.get("inference_reason"),
@@ -295,7 +305,7 @@ def run(args: argparse.Namespace) -> int:
             for r in measure_side_by_side(cfg, model, Path(args.scene), args.views,
                                           args.warmup, variants):
                 results.append(r)
-                _print(r, cfg)
+                _print(r, cfg.daemon)
     machine = _machine(results)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -325,7 +335,7 @@ def _devices(text: str) -> list[str]:
     return [item.lower() for item in items]  # daemon.device's spelling
 
 
-def _size_configs(config: Any, sizes: list[list[int]] | None) -> list[Any]:
+def _size_configs(config: Config, sizes: list[list[int]] | None) -> list[Config]:
     """One configuration per --frame-size-px W H (validated: a window larger than the panel is
     refused here), or the configuration as it is."""
     if not sizes:
@@ -417,11 +427,13 @@ def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: s
     return "\n".join(lines) + "\n"
 
 
-def _print(r: dict[str, Any], config: Any) -> None:
+def _print(r: dict[str, Any], daemon: DaemonSettings) -> None:
+    """One result `r` as the command prints it; `daemon`: the `[daemon]` section it ran
+    under."""
     s = r["stages"]
     print(f"{r['model']} ({r['profile']}, {r['size_wh'][0]} x {r['size_wh'][1]}), "
           f"device {_device_label(r)}, {r['views']} views, worker threads "
-          f"{config.daemon.worker_threads}, frames by {r['transport']}, serving {r['variant']} "
+          f"{daemon.worker_threads}, frames by {r['transport']}, serving {r['variant']} "
           f"{r['served']} (daemon.int8 = {r['int8']}: {r['variant_reason']}):")
     if r["device_setting"] != r["device"]:  # "auto", or a fall back: say why
         print(f"  device: {r['device_reason']}")

@@ -27,7 +27,14 @@ from pathlib import Path
 
 from nhfd.benchmarks.machine import describe
 from nhfd.cli.args import parse_wxh
-from nhfd.config import GROWTH_RANGE, LEARNING_RATE_RULE, SKIPS, learning_rate_ok, load_config
+from nhfd.config import (
+    GROWTH_RANGE,
+    LEARNING_RATE_RULE,
+    SKIPS,
+    ModelSettings,
+    learning_rate_ok,
+    load_config,
+)
 from nhfd.models.data import HoloData
 from nhfd.models.evaluate import evaluate
 from nhfd.models.export import CPU_ONLY, CUDA, GRAPH_FORM, OnnxModel, export_onnx
@@ -106,12 +113,13 @@ def variant_name(width: int, depth: int, unshuffle: int, growth: float,
             + ("" if skip == SKIPS[0] else f"-{skip}"))  # fmt: skip
 
 
-def variants(config, profiles: str, widths: list[int], depths: list[int], unshuffles: list[int],
-             growths: list[float] = (), skips: list[str] = ()
+def variants(model: ModelSettings, profiles: str, widths: list[int], depths: list[int],
+             unshuffles: list[int], growths: list[float] = (), skips: list[str] = ()
              ) -> list[tuple[str, str, int, int, int, float, str]]:  # fmt: skip
     """(name, profile, width, depth, unshuffle, growth, skip) of every variant, without
-    duplicates."""
-    m = config.model
+    duplicates: the `[model.profiles]` named in `profiles` ("all", "none" or a comma list), then
+    the grid, whose missing axes take `[model].profile`'s values."""
+    m = model
     names = [] if profiles == "none" else (
         sorted(m.profiles) if profiles == "all" else [p.strip() for p in profiles.split(",")]
     )  # fmt: skip
@@ -266,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"--data {args.data}: no such dataset folder")
 
     config = load_config(args.config).config
-    todo = variants(config, args.profiles, widths, depths, unshuffles, growths, skips)
+    todo = variants(config.model, args.profiles, widths, depths, unshuffles, growths, skips)
 
     import numpy as np
     import torch
@@ -285,7 +293,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"GPU column: {no_gpu or 'fp16 on onnxruntime CUDA'}", flush=True)
     for name, profile, width, depth, unshuffle, growth, skip in todo:
         crop_kw = {"crop_width_px": crop[0], "crop_height_px": crop[1]} if crop else {}
-        opts = TrainOptions.from_config(config, profile, width=width, depth=depth,
+        opts = TrainOptions.from_config(config.model, profile, width=width, depth=depth,
                                         unshuffle=unshuffle, growth=growth, skip=skip,
                                         steps=args.steps, learning_rate=args.lr,
                                         val_views=args.eval_views,

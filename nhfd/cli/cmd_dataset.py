@@ -121,8 +121,8 @@ def run_build(args: argparse.Namespace) -> int:
     if args.address and args.executor != "ray":
         raise ValueError(f"--address {args.address!r}: only with --executor ray")
     config = load_config(args.config).config
-    settings = ExampleSettings.from_config(config, width_px=w, height_px=h, fov_x_deg=args.fov,
-                                           phase=args.phase,
+    settings = ExampleSettings.from_config(config.optics, config.slm, width_px=w, height_px=h,
+                                           fov_x_deg=args.fov, phase=args.phase,
                                            shared_views=not args.per_colour_views)  # fmt: skip
     scene = Path(args.scene)
     g = load_scene(scene)

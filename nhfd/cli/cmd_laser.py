@@ -20,9 +20,10 @@ import logging
 import os
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
-from nhfd.config import load_config
+from nhfd.config import DaemonSettings, load_config
 from nhfd.device_settings import LaserSettings
 from nhfd.drivers.errors import DeviceError, PortBusy
 from nhfd.drivers.guardian import (
@@ -75,13 +76,14 @@ def _common(p: argparse.ArgumentParser) -> None:
     where.add_argument("--usb-serial", help="USB serial number of the laser's port")
 
 
-def _settings(args: argparse.Namespace) -> tuple[Any, Any]:
+def _settings(args: argparse.Namespace) -> tuple[LaserSettings, DaemonSettings | None]:
     return laser_settings(args.config, port=args.port or "", usb_serial=args.usb_serial or "",
                           guardian_socket=args.socket or "", prog=f"nhfd {args.command}")
 
 
 def laser_settings(config: str | None = None, *, port: str = "", usb_serial: str = "",
-                   guardian_socket: str = "", prog: str = "nhfd laser-off") -> tuple[Any, Any]:
+                   guardian_socket: str = "", prog: str = "nhfd laser-off"
+                   ) -> tuple[LaserSettings, DaemonSettings | None]:
     """LaserSettings from the configuration's [devices.readybeam], with a port and guardian
     socket given on the command line on top, and the [daemon] section (runtime directory, socket
     group; None when the configuration could not be read). A broken configuration file must not
@@ -103,7 +105,7 @@ def laser_settings(config: str | None = None, *, port: str = "", usb_serial: str
     return (settings.model_copy(update=update) if update else settings), daemon
 
 
-def _off_through_guardian(settings: Any, path: Any, group_ok: bool, timeout_s: float,
+def _off_through_guardian(settings: LaserSettings, path: Path, group_ok: bool, timeout_s: float,
                           prog: str = "nhfd laser-off") -> str:
     """All off through a guardian this command can trust; returns what it did. Raises
     GuardianUnavailable (none answers; a hung one of ours is killed first) or GuardianRefused."""
@@ -176,8 +178,8 @@ def _laser_off(args: argparse.Namespace) -> int:
     return 1
 
 
-def switch_all_off(settings: Any, path: Any, daemon: Any, *, timeout_s: float = 3.0,
-                   prog: str = "nhfd laser-off",
+def switch_all_off(settings: LaserSettings, path: Path, daemon: DaemonSettings | None, *,
+                   timeout_s: float = 3.0, prog: str = "nhfd laser-off",
                    port_hint: str = "--port or --usb-serial") -> OffOutcome:
     """Every laser channel off without the daemon: through the guardian at `path` if it can be
     trusted, else directly on the configured port (a hung nhfd guardian of this user is killed

@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 
 from nhfd.cli.args import parse_wxh
-from nhfd.config import load_config
+from nhfd.config import Config, load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
 from nhfd.daemon.paths import socket_path
 from nhfd.daemon.protocol import RpcError
@@ -103,12 +103,12 @@ def run_model_build(args: argparse.Namespace) -> int:
         parse_axis(args.up)
     device = resolve_device(args.device)
     training_device(device, check_available=True)  # before hours of dataset, not after
-    recipe = Recipe.from_config(config, args.profile, device=device,
+    recipe = Recipe.from_config(config.model, args.profile, device=device,
                                 progress=not args.no_progress)  # fmt: skip
     scene = Path(args.scene)
     out = Path(args.out) if args.out else Path("builds") / f"{_stem(scene)}-{recipe.name}"
     t0 = time.perf_counter()
-    res = run_build(scene, out, recipe, config, force=args.force, up=args.up,
+    res = run_build(scene, out, recipe, config.optics, config.slm, force=args.force, up=args.up,
                     workers=args.workers, progress=not args.no_progress)  # fmt: skip
     r = res.report
     f = r["heldout"]["float"]
@@ -154,11 +154,16 @@ def _place(src: Path, folder: Path, name: str) -> Path:
     return dst.resolve()
 
 
-def serve(config, scene: Path, out: Path, model_name: str, args: argparse.Namespace) -> None:
+def serve(config: Config, scene: Path, out: Path, model_name: str,
+          args: argparse.Namespace) -> None:
     """Load the scene and the float model into the running daemon, then show a view from the
     middle of the trained poses. The daemon reads files only inside its configured folders, so
     both are copied there first (the original scene: the daemon takes its up axis from its
-    format, as the build did)."""
+    format, as the build did).
+
+    `config`: the configuration, whose `[daemon]` section names the folders and, through
+    `nhfd.daemon.paths.socket_path` (which takes the configuration, as nhfctl's commands do),
+    the control socket."""
     d = config.daemon
     model_dir = Path(args.model_dir or d.model_dirs[0])
     scene_dir = Path(args.scene_dir or d.scene_dirs[0])

@@ -487,7 +487,7 @@ def _reduce(args: argparse.Namespace) -> int:
               for k in ("azimuth", "elevation", "radius-scale")}
     config = load_config(args.config).config
     settings = env_mod.ExampleSettings.from_config(
-        config, width_px=w, height_px=h, fov_x_deg=args.fov,
+        config.optics, config.slm, width_px=w, height_px=h, fov_x_deg=args.fov,
         shared_views=not args.per_colour_views)
     scene = _load(args.file, args.up)
     if len(scene.g) == 0:

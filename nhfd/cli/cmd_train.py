@@ -144,7 +144,7 @@ def run_train(args: argparse.Namespace) -> int:
     crop = parse_wxh(args.crop, "--crop", 8192) if args.crop else (None, None)
 
     options = TrainOptions.from_config(
-        config, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
+        config.model, args.profile, width=args.width, depth=args.depth, unshuffle=args.unshuffle,
         inputs=args.inputs, growth=args.growth, skip=args.skip,
         single_conv_levels=args.single_conv_levels, deep_width=args.deep_width,
         steps=args.steps, batch=args.batch,

@@ -22,10 +22,11 @@ from pathlib import Path
 from typing import Any
 
 from nhfd.cli.cmd_laser import laser_settings, switch_all_off
-from nhfd.config import load_config
+from nhfd.config import DaemonSettings, load_config
 from nhfd.daemon.client import LOOPBACK_HOSTS, Client, DaemonUnavailable
 from nhfd.daemon.paths import socket_path
 from nhfd.daemon.protocol import RpcError, describe_codes
+from nhfd.device_settings import LaserSettings
 from nhfd.drivers.guardian import socket_path_for
 from nhfd.drivers.rundir import runtime_dir
 
@@ -270,7 +271,8 @@ def _remote(args: argparse.Namespace) -> bool:
     return bool(args.tcp) and args.tcp.rpartition(":")[0].strip("[]") not in LOOPBACK_HOSTS
 
 
-def _guardian_socket(args: argparse.Namespace, settings: Any, daemon: Any) -> Path:
+def _guardian_socket(args: argparse.Namespace, settings: LaserSettings,
+                     daemon: DaemonSettings | None) -> Path:
     """--guardian-socket; else the configured guardian socket; else laser.sock in the daemon's
     runtime directory (the one --socket lies in, or the configured one)."""
     if args.guardian_socket:

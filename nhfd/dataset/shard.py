@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nhfd.config import Config
+from nhfd.config import OpticsSettings, SLMSettings
 from nhfd.dataset.poses import Pose
 from nhfd.holo import band_limit, colour_sampling, scene_hologram
 from nhfd.optics import Aperture, reference_to_slm
@@ -32,24 +32,24 @@ SHARD_KEYS = ("rgb", "depth", "alpha", "field", "amp_samples", "meta")
 FORMAT_VERSION = 1
 
 
-def _optics_defaults(config=None) -> dict:
-    """The optics of a configuration (default: the packaged nhfd.toml) in ExampleSettings' SI
-    fields: the one source of wavelengths, pitch, volume, z0, panel and aperture."""
-
-    c = config if config is not None else Config()
-    o = c.optics
+def _optics_defaults(optics: OpticsSettings, slm: SLMSettings) -> dict:
+    """The optics of a configuration's `[optics]` and `[slm]` sections (the panel and its pitch)
+    in ExampleSettings' SI fields: the one source of wavelengths, pitch, volume, z0, panel and
+    aperture."""
+    o = optics
     return {
         "wavelengths_m": tuple(v * 1e-9 for v in o.wavelengths_nm),
-        "pitch_m": c.slm.pitch_um * 1e-6,
+        "pitch_m": slm.pitch_um * 1e-6,
         "volume_m": (o.volume_mm[0] * 1e-3, o.volume_mm[1] * 1e-3),
         "z0_m": o.z0_mm * 1e-3,
-        "panel_hw": (c.slm.height_px, c.slm.width_px),
+        "panel_hw": (slm.height_px, slm.width_px),
         "aperture_shape": o.aperture.shape,
         "cutoff_per_px": tuple(o.aperture.cutoff_per_px),
     }
 
 
-_DEFAULT_OPTICS = _optics_defaults()
+# The defaults of the configuration's sections (what `nhfd.config.Config()` holds).
+_DEFAULT_OPTICS = _optics_defaults(OpticsSettings(), SLMSettings())
 
 
 @dataclass(frozen=True)
@@ -76,9 +76,10 @@ class ExampleSettings:
     extra: dict = field(default_factory=dict)
 
     @staticmethod
-    def from_config(config, **overrides) -> ExampleSettings:
-        """The optics of `config` (a validated nhfd.config.Config), plus `overrides`."""
-        return ExampleSettings(**{**_optics_defaults(config), **overrides})
+    def from_config(optics: OpticsSettings, slm: SLMSettings, **overrides) -> ExampleSettings:
+        """The optics of a configuration's `[optics]` and `[slm]` sections, plus `overrides`
+        (ExampleSettings' fields)."""
+        return ExampleSettings(**{**_optics_defaults(optics, slm), **overrides})
 
     def __post_init__(self) -> None:
         if not (1 <= self.width_px <= 8192 and 1 <= self.height_px <= 8192):

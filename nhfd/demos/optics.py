@@ -102,6 +102,13 @@ def smooth_phase(shape_hw: tuple[int, int], seed: int) -> torch.Tensor:
 
 
 def run_demo(cfg: Config) -> DemoResult:
+    """The three-word target through the whole display chain (see the module docstring): to the
+    SLM, double-phase coding to grey levels, back through the panel's phase curves to the
+    volume, with the focal stacks of the target and of what is shown.
+
+    `cfg`: the whole configuration, because the chain spans three sections: `[optics]`
+    (wavelengths, window, z0, volume, aperture, padding, precision, kernel cache), `[slm]`
+    (panel, pitch, phase stroke, sign, inversion) and `[coding]` (antialiasing, `zero_below`)."""
     o, s = cfg.optics, cfg.slm
     lams, pitch = o.wavelengths_m, s.pitch_m
     aperture = Aperture(o.aperture.shape, tuple(o.aperture.cutoff_per_px))

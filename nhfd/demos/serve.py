@@ -93,13 +93,16 @@ def read_png16(path: Path) -> np.ndarray:
     return rows[:, 1:].copy().view(">u2").astype(np.float64) / 65535.0
 
 
-def check_model_and_scene(model: Path, scene: Path, config: Any) -> dict[str, Any]:
+def check_model_and_scene(model: Path, scene: Path, config: Config) -> dict[str, Any]:
     """The demo's model and scene, checked before the daemon starts (which would otherwise wait
     for a load that fails): both files exist (FileNotFoundError; for the model, how to build
     it), the model is for the configured optics (`ModelMismatch`, a ValueError naming what
     differs), it was trained on this scene (its metadata's `scene_sha256` is the file's) and its
     hologram fits the configured panel (`panel_hw` is the SLM's, the training size within it);
-    each mismatch a ValueError naming the model and the scene or panel. Returns the metadata."""
+    each mismatch a ValueError naming the model and the scene or panel. Returns the metadata.
+
+    `config`: the whole configuration, because the model is checked as `load_model` checks it
+    (`[optics]` and `[slm]`'s pitch) and against `[slm]`'s panel."""
     model, scene = Path(model), Path(scene)
     if not model.is_file():
         raise FileNotFoundError(HOW_TO_BUILD.format(model=model))
@@ -132,7 +135,8 @@ def check_model_and_scene(model: Path, scene: Path, config: Any) -> dict[str, An
     return meta
 
 
-def demo_config(base: Any, *, model: Path, scene: Path, runtime: Path, captures: Path) -> Any:
+def demo_config(base: Config, *, model: Path, scene: Path, runtime: Path, captures: Path
+                ) -> tuple[Config, TrueBench, ModelInfo]:
     """The user's configuration with the bench forced to the simulated devices, the demo's model,
     scene and folders, a camera region around the hologram window and the focus mapping of the
     simulated relay. Returns the configuration, the simulated bench's truth and the model's
@@ -166,7 +170,12 @@ def focus_command_mm(z_h_m: float, truth: Any) -> float:
     return z_h_m * 1e3 / truth.stage_scale
 
 
-def run(out: Path, *, config: Any, model: Path, scene: Path, log: Any = print) -> dict[str, Any]:
+def run(out: Path, *, config: Config, model: Path, scene: Path, log: Any = print
+        ) -> dict[str, Any]:
+    """Run the demo (see the module docstring) into the folder `out`; returns the summary it
+    writes there (summary.json). `config`: the user's configuration, which the demo's daemon
+    runs under with the bench forced to the simulated devices (`demo_config`): the whole of it,
+    as `nhfd serve` takes it. `log`: where progress lines go."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -182,7 +191,7 @@ def run(out: Path, *, config: Any, model: Path, scene: Path, log: Any = print) -
                     t_start=t_start)
 
 
-def _run(out: Path, runtime: Path, *, config: Any, model: Path, scene: Path, log: Any,
+def _run(out: Path, runtime: Path, *, config: Config, model: Path, scene: Path, log: Any,
          t_start: float) -> dict[str, Any]:
     import matplotlib.pyplot as plt
 

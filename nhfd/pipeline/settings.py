@@ -5,12 +5,12 @@ panel a frame changes (`Region`, a value of `nhfd.frame_message`: the daemon rea
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from nhfd import spec
 from nhfd.calibration import Calibration, panel_coding
+from nhfd.config import Config, DaemonSettings, SLMSettings
 from nhfd.frame_message import Region
 from nhfd.model_info import ModelInfo
 from nhfd.optics import Aperture
@@ -96,15 +96,17 @@ def zero_pattern(s: FrameSettings) -> np.ndarray:
     return spec.zero_pattern(s.panel_hw, s.curves(), s.phase_sign, s.grey_invert)
 
 
-def frame_window_hw(config: Any, info: ModelInfo) -> tuple[int, int]:
-    """The frames' window (height, width): `daemon.frame_size_px` [W, H], or the model's
-    training size when that is empty; any size up to the panel, the whole panel included (the
-    frame worker then refuses a size the model was not checked at: `nhfd.models.sizes`)."""
-    size = list(config.daemon.frame_size_px)
+def frame_window_hw(daemon: DaemonSettings, slm: SLMSettings, info: ModelInfo
+                    ) -> tuple[int, int]:
+    """The frames' window (height, width) in pixels: `daemon.frame_size_px` [W, H], or the
+    model's training size when that is empty; any size up to the panel (`slm.width_px` x
+    `height_px`), the whole panel included (the frame worker then refuses a size the model was
+    not checked at: `nhfd.models.sizes`)."""
+    size = list(daemon.frame_size_px)
     if size:  # the configuration checked it fits the panel
         return int(size[1]), int(size[0])
     h, w = info.train_size_hw
-    ph, pw = config.slm.height_px, config.slm.width_px
+    ph, pw = slm.height_px, slm.width_px
     if h > ph or w > pw:
         raise ValueError(f"frame window {w} x {h} (the model's training size: "
                          f"daemon.frame_size_px is empty) does not fit the panel {pw} x {ph} "
@@ -113,15 +115,19 @@ def frame_window_hw(config: Any, info: ModelInfo) -> tuple[int, int]:
     return h, w
 
 
-def frame_settings(config: Any, info: ModelInfo, calibration: Calibration | None, *,
+def frame_settings(config: Config, info: ModelInfo, calibration: Calibration | None, *,
                    refocus_m: float = 0.0) -> FrameSettings:
     """The settings of frames for a model under a configuration and a calibration (None: the
     configured curves and sign; else its measured curves, sign, focus offsets, source profile
     and aberrations replace them; `nhfd.calibration.active_calibration` gives the configured
     one). The optics (z0, aperture, wavelengths, pitch) are the model's: `load_model` has
     already checked they match the configuration. The window is the model's training size
-    unless `daemon.frame_size_px` says otherwise (the trained fx is kept either way)."""
-    window_hw = frame_window_hw(config, info)
+    unless `daemon.frame_size_px` says otherwise (the trained fx is kept either way).
+
+    `config`: the whole configuration, because a frame's settings join four sections: `[slm]`
+    (panel, phase stroke, sign, inversion), `[coding]` (`zero_below`), `[optics]` (`padding`)
+    and `[daemon]` (`frame_size_px`)."""
+    window_hw = frame_window_hw(config.daemon, config.slm, info)
     s = config.slm
     cal = calibration
     _, sign, invert = panel_coding(s, cal)

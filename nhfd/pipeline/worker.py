@@ -46,7 +46,7 @@ import onnxruntime as ort
 import torch
 
 from nhfd.calibration import Calibration, active_calibration, keep
-from nhfd.config import Config
+from nhfd.config import Config, DaemonSettings
 from nhfd.dataset.build import sha256_file
 from nhfd.frame_message import FrameMessage, StageTimes
 from nhfd.models.export import (
@@ -92,14 +92,14 @@ def worker_device(value: str, inference: str = "auto") -> tuple[torch.device, st
     return frame_device(value, ort.get_available_providers(), inference=inference)
 
 
-def worker_inference(config: Any) -> tuple[str, str]:
+def worker_inference(daemon: DaemonSettings) -> tuple[str, str]:
     """`inference_backend` for the configured device and `daemon.inference`: ("onnxruntime" |
     "torch", why)."""
-    device, _ = worker_device(config.daemon.device, config.daemon.inference)
-    return inference_backend(config.daemon.inference, device, ort.get_available_providers())
+    device, _ = worker_device(daemon.device, daemon.inference)
+    return inference_backend(daemon.inference, device, ort.get_available_providers())
 
 
-def open_model(path: str, config: Any, threads: int) -> Any:
+def open_model(path: str, config: Config, threads: int) -> Any:
     """The model at `path` checked against the configured optics, on the configured device:
     an `OnnxModel` on the configured providers, with `threads` intra-op threads in pools that
     do not spin (`nhfd.models.export.session_options`), or a `TorchModel` where
@@ -110,20 +110,25 @@ def open_model(path: str, config: Any, threads: int) -> Any:
     session created and test-run on the frame window in a child process limited to that memory
     (`nhfd.models.export.probe_model`): a model that needs more is refused (`ModelOverBudget`)
     without this process allocating it. `load_memory_mb` on the model: what the child's session
-    and run took."""
+    and run took.
+
+    `config`: the whole configuration, because a model is served under three sections: `[daemon]`
+    (providers, device, inference, memory, frame window), `[slm]` (the panel the window fits)
+    and `[optics]` with `[slm]`'s pitch (the optics the model must have been trained for)."""
     # Checked here too, so the error names the setting to change. No silent fallback: a bench
     # configured for CUDA that quietly ran on the CPU would be 10x slower with nothing but a
     # warning to say why; the load fails instead and the previous model keeps running.
-    providers = check_providers(list(config.daemon.onnx_providers),
-                                ort.get_available_providers(), "daemon.onnx_providers")
+    d = config.daemon
+    providers = check_providers(list(d.onnx_providers), ort.get_available_providers(),
+                                "daemon.onnx_providers")
     # A CUDA device torch lacks, or one named without its frame path installed: ValueError.
-    device, _ = worker_device(config.daemon.device, config.daemon.inference)
-    memory_mb = int(config.daemon.model_memory_mb)
+    device, _ = worker_device(d.device, d.inference)
+    memory_mb = int(d.model_memory_mb)
     meta, input_name = read_model_metadata(path, max_bytes=memory_mb << 20,
                                            setting=MEMORY_SETTING)
     info = parse_model_info(meta, path, input_name)
-    window_hw = frame_window_hw(config, info)
-    torch_inference = worker_inference(config)[0] == "torch"
+    window_hw = frame_window_hw(d, config.slm, info)
+    torch_inference = worker_inference(d)[0] == "torch"
     m = info.input_multiple
     shape, want = trial_input(4 if input_name == "rgbd" else 3, m, window_hw)
     shapes = [shape]
@@ -135,11 +140,12 @@ def open_model(path: str, config: Any, threads: int) -> Any:
         raise ModelUnfit(f"{path}: a test inference on a {want} input failed: "
                          f"{probe['run_error']}")
     if torch_inference:
-        model = TorchModel(path, expected=expected_from_config(config), device=device)
+        model = TorchModel(path, expected=expected_from_config(config.optics, config.slm),
+                           device=device)
     elif device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
         model = load_model(path, config, threads=threads, providers=tuple(providers),
                            device=device, input_hw=window_hw,
-                           engine_cache_dir=config.daemon.engine_cache_dir or None)
+                           engine_cache_dir=d.engine_cache_dir or None)
     else:  # validates; raises ModelMismatch etc.
         model = load_model(path, config, threads=threads, providers=tuple(providers))
     # reported in status (model_info): what to compare daemon.model_memory_mb with
@@ -206,31 +212,31 @@ def model_info(model: Any, path: str) -> dict[str, Any]:
             "load_memory_mb": getattr(model, "load_memory_mb", None)}
 
 
-def cpu_path(config: Any) -> bool:
+def cpu_path(daemon: DaemonSettings) -> bool:
     """Whether the frames' inference runs in onnxruntime on the CPU: its CPU provider first, no
     CUDA device asked for (`daemon.device`, where this nhfd has it), and not in torch."""
-    if worker_device(config.daemon.device, config.daemon.inference)[0].type != "cpu":
+    if worker_device(daemon.device, daemon.inference)[0].type != "cpu":
         return False
-    if worker_inference(config)[0] != "onnxruntime":
+    if worker_inference(daemon)[0] != "onnxruntime":
         return False
-    return config.daemon.onnx_providers[0] == "CPUExecutionProvider"
+    return daemon.onnx_providers[0] == "CPUExecutionProvider"
 
 
-def choose_variant(path: str, config: Any, int8_metadata: dict[str, Any] | None
+def choose_variant(path: str, daemon: DaemonSettings, int8_metadata: dict[str, Any] | None
                    ) -> tuple[str, str]:
     """("int8" | "float", why) for the float model at `path` whose int8 sibling has the nhfd
     metadata `int8_metadata` (None: no sibling). `daemon.int8`: "never", "always" (whenever the
     sibling exists), "auto": the sibling's own metadata must record a held-out loss against
     this very float file (its SHA-256) within INT8_MAX_LOSS_DB (`int8_within_loss`)."""
-    mode = config.daemon.int8
+    mode = daemon.int8
     sibling = int8_sibling(path).name
     if mode == "never":
         return "float", "daemon.int8 = \"never\""
-    if not cpu_path(config):
+    if not cpu_path(daemon):
         return "float", (f"int8 serves only on the CPU path (daemon.onnx_providers = "
-                         f"{list(config.daemon.onnx_providers)}, daemon.device = "
-                         f"{config.daemon.device!r}, daemon.inference = "
-                         f"{config.daemon.inference!r})")
+                         f"{list(daemon.onnx_providers)}, daemon.device = "
+                         f"{daemon.device!r}, daemon.inference = "
+                         f"{daemon.inference!r})")
     if int8_metadata is None:
         return "float", f"no int8 model beside it ({sibling})"
     if mode == "always":
@@ -285,7 +291,13 @@ class FrameSlots:
 
 
 class _WorkerState:
-    def __init__(self, config: Any) -> None:
+    """The frame worker's model, scene, encoders and frame cache.
+
+    `config`: the whole configuration, handed on to `open_model` and `frame_settings` (and the
+    active calibration), which join several sections; its `[daemon]` section sets the threads,
+    the frame cache, the model's variant and the scene's size limit."""
+
+    def __init__(self, config: Config) -> None:
         self.config = config
         self.threads = int(config.daemon.worker_threads)
         self.model: Any = None
@@ -301,9 +313,10 @@ class _WorkerState:
     def load_model(self, path: str) -> dict[str, Any]:
         """The float model at `path`, or its int8 sibling where `choose_variant` says so (an
         int8 model that fails to load or to infer falls back to the float one, saying why)."""
+        daemon = self.config.daemon
         model = open_model(path, self.config, self.threads)
-        window_hw = frame_window_hw(self.config, model.info)
-        allow = self.config.daemon.allow_unchecked_sizes
+        window_hw = frame_window_hw(daemon, self.config.slm, model.info)
+        allow = daemon.allow_unchecked_sizes
         # UncheckedSize names the size, the checked ones and daemon.allow_unchecked_sizes
         warning = window_check(model.info, window_hw, path, allow=allow)
         check_inference(model, window_hw, path)
@@ -311,10 +324,10 @@ class _WorkerState:
         sibling = int8_sibling(path)
         if Path(path).stem.endswith("-int8") or HELDOUT_KEY in model.metadata:
             variant, why = "int8", "the model given is an int8 model"
-        elif self.config.daemon.int8 != "never" and sibling.is_file() and cpu_path(self.config):
+        elif daemon.int8 != "never" and sibling.is_file() and cpu_path(daemon):
             try:
                 q = open_model(str(sibling), self.config, self.threads)
-                variant, why = choose_variant(path, self.config, q.metadata)
+                variant, why = choose_variant(path, daemon, q.metadata)
                 if variant == "int8":
                     window_check(q.info, window_hw, str(sibling), allow=allow)
                     check_inference(q, window_hw, str(sibling))
@@ -322,15 +335,14 @@ class _WorkerState:
             except Exception as exc:  # the float model serves; status says why
                 variant, why = "float", f"{sibling.name} refused: {type(exc).__name__}: {exc}"
         else:
-            variant, why = choose_variant(path, self.config, None)
+            variant, why = choose_variant(path, daemon, None)
         self.model, self.model_id = served, self.model_id + 1
         self.encoders.clear()
         # recorded False: an older export, only its training window counts as checked
         checked, recorded = served.info.checked_sizes_hw()
-        device, device_why = worker_device(self.config.daemon.device,
-                                           self.config.daemon.inference)
+        device, device_why = worker_device(daemon.device, daemon.inference)
         info = model_info(served, path)
-        info["inference"], info["inference_reason"] = worker_inference(self.config)
+        info["inference"], info["inference_reason"] = worker_inference(daemon)
         info.update(variant=variant, variant_reason=why,
                     served=str(sibling) if variant == "int8" else path,
                     window_hw=list(window_hw), checked_sizes_hw=[list(hw) for hw in checked],

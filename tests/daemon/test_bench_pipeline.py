@@ -111,7 +111,7 @@ def test_a_cuda_result_is_named_by_its_gpu_in_the_header_the_table_and_the_machi
                "gpu": pipeline._gpu("cuda:0")}
     machine = pipeline._machine([cpu_run, gpu_run])
     assert machine["cuda_devices"] == {"cuda:0": h100}
-    pipeline._print(gpu_run, pipeline.Config())
+    pipeline._print(gpu_run, pipeline.Config().daemon)
     assert f"device cuda:0 ({h100}), 2 views" in capsys.readouterr().out
     md = pipeline._markdown([cpu_run, gpu_run], machine, "nhfd bench pipeline")
     assert f"cuda:0: {h100}" in md.splitlines()[0]

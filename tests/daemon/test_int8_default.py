@@ -51,25 +51,25 @@ def test_the_choice_follows_the_recorded_loss_and_the_setting(tmp_path):
     f.write_bytes(b"float model bytes")
     auto = small_config()
     assert int8_sibling(f) == tmp_path / "model-int8.onnx"
-    variant, why = choose_variant(str(f), auto, record(0.3, f))
+    variant, why = choose_variant(str(f), auto.daemon, record(0.3, f))
     assert variant == "int8" and "loses 0.30 dB" in why and "within 0.5 dB" in why
-    variant, why = choose_variant(str(f), auto, record(0.7, f))
+    variant, why = choose_variant(str(f), auto.daemon, record(0.7, f))
     assert variant == "float" and "loses 0.70 dB of held-out PSNR, more than 0.5 dB" in why
-    variant, why = choose_variant(str(f), auto, {})
+    variant, why = choose_variant(str(f), auto.daemon, {})
     assert variant == "float" and "records no held-out loss" in why
-    variant, why = choose_variant(str(f), auto, None)
+    variant, why = choose_variant(str(f), auto.daemon, None)
     assert variant == "float" and "no int8 model beside it (model-int8.onnx)" in why
     other = tmp_path / "other.onnx"
     other.write_bytes(b"another float model")
-    variant, why = choose_variant(str(f), auto, record(0.1, other))
+    variant, why = choose_variant(str(f), auto.daemon, record(0.1, other))
     assert variant == "float" and "measured against another float model" in why
     # The setting decides over the record.
-    assert choose_variant(str(f), with_int8(auto, "never"), record(0.1, f))[0] == "float"
-    assert choose_variant(str(f), with_int8(auto, "always"), record(0.7, f)) == (
+    assert choose_variant(str(f), with_int8(auto, "never").daemon, record(0.1, f))[0] == "float"
+    assert choose_variant(str(f), with_int8(auto, "always").daemon, record(0.7, f)) == (
         "int8", 'daemon.int8 = "always" (model-int8.onnx)')
     cuda = with_int8(auto, "auto", onnx_providers=["CUDAExecutionProvider",
                                                    "CPUExecutionProvider"])
-    variant, why = choose_variant(str(f), cuda, record(0.1, f))
+    variant, why = choose_variant(str(f), cuda.daemon, record(0.1, f))
     assert variant == "float" and "only on the CPU path" in why
 
 

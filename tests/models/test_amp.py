@@ -50,7 +50,7 @@ def test_amp_is_a_configuration_key_with_auto_default():
     config = load_config(None).config
     assert config.model.train.amp == "auto"
     assert TrainOptions().amp == "auto"
-    assert TrainOptions.from_config(config).amp == "auto"
+    assert TrainOptions.from_config(config.model).amp == "auto"
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")

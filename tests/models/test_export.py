@@ -59,7 +59,7 @@ def test_a_model_for_other_optics_is_refused_naming_what_differs(exported):
     with pytest.raises(ModelMismatch, match=r"z0_m: model 0\.006, configured 0\.007") as err:
         load_model(exported.path, other)
     assert "pitch_m" in str(err.value) and "wavelengths_m" not in str(err.value)
-    expected = expected_from_config(config) | {"aperture_shape": "circle"}
+    expected = expected_from_config(config.optics, config.slm) | {"aperture_shape": "circle"}
     with pytest.raises(ModelMismatch, match="aperture_shape"):
         OnnxModel(exported.path, expected=expected)
 

@@ -18,6 +18,8 @@ from nhfd.models.train import TrainOptions
 from nhfd.scene.io import load_scene
 
 SCENE = Path(__file__).parents[1] / "data" / "formats" / "donut-crop.ply"
+# The bench a build is made for: the default configuration's [optics] and [slm].
+BENCH = (Config().optics, Config().slm)
 
 
 def tiny_recipe(**kw) -> Recipe:
@@ -57,7 +59,7 @@ def built(tmp_path_factory):
     mb.train = failing_train
     try:
         with pytest.raises(RuntimeError, match="injected failure"):
-            run_build(SCENE, out, tiny_recipe(), Config(), workers=1, log=logs.append,
+            run_build(SCENE, out, tiny_recipe(), *BENCH, workers=1, log=logs.append,
                       progress=False)  # fmt: skip
     finally:
         mb.train = real_train
@@ -65,7 +67,7 @@ def built(tmp_path_factory):
     after_failure = {s: e.get("done") for s, e in state["stages"].items()}
     shards = {p.name: p.stat().st_mtime_ns for p in (out / "dataset").glob("view_*.npz")}
     logs.clear()
-    res = run_build(SCENE, out, tiny_recipe(), Config(), workers=1, log=logs.append,
+    res = run_build(SCENE, out, tiny_recipe(), *BENCH, workers=1, log=logs.append,
                     progress=False)  # fmt: skip
     return out, res, after_failure, shards, list(logs)
 
@@ -153,7 +155,7 @@ def test_a_rerun_skips_every_stage_and_touches_no_file(built):
     out, *_ = built
     before = _fingerprints(out)
     logs: list[str] = []
-    res = run_build(SCENE, out, tiny_recipe(), Config(), workers=1, log=logs.append,
+    res = run_build(SCENE, out, tiny_recipe(), *BENCH, workers=1, log=logs.append,
                     progress=False)  # fmt: skip
     assert res.ran == [] and res.skipped == list(STAGES)
     assert [line.split(": ", 1)[1] for line in logs] == \
@@ -175,7 +177,7 @@ def early_build(tmp_path, monkeypatch):
 
     def rerun():
         logs.clear()
-        return run_build(SCENE, out, tiny_recipe(views=6), Config(), workers=1,
+        return run_build(SCENE, out, tiny_recipe(views=6), *BENCH, workers=1,
                          log=logs.append, progress=False)  # fmt: skip
 
     rerun()
@@ -246,32 +248,32 @@ def test_another_recipe_or_scene_is_refused_without_force(built, tmp_path):
     before = _fingerprints(out)
     with pytest.raises(ValueError, match=rf"{out} holds a build of .* with profile 'tiny', not "
                        r"of .* with profile 'other'; use another --out, or --force"):
-        run_build(SCENE, out, tiny_recipe(name="other"), Config(), progress=False,
+        run_build(SCENE, out, tiny_recipe(name="other"), *BENCH, progress=False,
                   log=lambda _m: None)  # fmt: skip
     with pytest.raises(ValueError, match=r"the train stage was built with other settings.*"
                        r"--force to redo it"):
-        run_build(SCENE, out, mb.recipe_with(tiny_recipe(), steps=41), Config(),
+        run_build(SCENE, out, mb.recipe_with(tiny_recipe(), steps=41), *BENCH,
                   progress=False, log=lambda _m: None)  # fmt: skip
     assert _fingerprints(out) == before
     stray = tmp_path / "stray"
     stray.mkdir()
     (stray / "notes.txt").write_text("mine")
     with pytest.raises(ValueError, match=r"holds files that are not a model build.*--force"):
-        run_build(SCENE, stray, tiny_recipe(), Config(), progress=False, log=lambda _m: None)
+        run_build(SCENE, stray, tiny_recipe(), *BENCH, progress=False, log=lambda _m: None)
 
 
 def test_recipes_come_from_the_configuration():
     config = Config()
-    default = Recipe.from_config(config)
+    default = Recipe.from_config(config.model)
     assert default.name == "default" and default.views == 130
     assert (default.width_px, default.height_px) == (512, 288)
     # the default recipe trains as `nhfd train` does by default (the shipped model's recipe)
-    assert default.train == TrainOptions.from_config(config)
-    quick = Recipe.from_config(config, "quick")
+    assert default.train == TrainOptions.from_config(config.model)
+    quick = Recipe.from_config(config.model, "quick")
     assert quick.train.steps < default.train.steps and quick.views < default.views
     with pytest.raises(ValueError, match=r"--profile 'huge': not one of the recipes default, "
                        r"quick"):
-        Recipe.from_config(config, "huge")
+        Recipe.from_config(config.model, "huge")
 
 
 @pytest.mark.parametrize("toml,message", [
@@ -297,7 +299,7 @@ def test_a_recipe_of_ones_own_takes_the_default_recipe_for_what_it_leaves_out(tm
 
     path = tmp_path / "nhfd.toml"
     path.write_text("[model.build.profiles.mine]\nsteps = 200\n")
-    mine = Recipe.from_config(load_config(path).config, "mine")
+    mine = Recipe.from_config(load_config(path).config.model, "mine")
     assert mine.train.steps == 200 and mine.views == 130 and mine.train.profile == "fast"
 
 

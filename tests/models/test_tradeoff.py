@@ -142,7 +142,7 @@ def test_the_pause_before_each_timed_call_is_not_counted():
 def test_the_grid_adds_variants_named_by_shape_and_growth():
     from nhfd.config import Config
 
-    todo = variants(Config(), "balanced", [8, 16], [], [], [1, 2], ["concat"])
+    todo = variants(Config().model, "balanced", [8, 16], [], [], [1, 2], ["concat"])
     names = [t[0] for t in todo]
     # balanced (16/3/2, doubling) is not repeated by the grid; constant width gets "-g1"
     assert names == ["balanced", "w8-d3-u2-g1", "w8-d3-u2", "w16-d3-u2-g1"]
@@ -152,7 +152,7 @@ def test_the_grid_adds_variants_named_by_shape_and_growth():
 def test_summed_skips_are_a_grid_axis_named_add():
     from nhfd.config import Config
 
-    todo = variants(Config(), "none", [16], [], [], [1], ["concat", "add"])
+    todo = variants(Config().model, "none", [16], [], [], [1], ["concat", "add"])
     assert [t[0] for t in todo] == ["w16-d3-u2-g1", "w16-d3-u2-g1-add"]
     assert todo[1][2:] == (16, 3, 2, 1.0, "add")
 
@@ -164,7 +164,7 @@ def test_profiles_that_differ_in_single_conv_levels_or_deep_width_are_distinct_v
     fast = config.model.profiles["fast"]
     config.model.profiles["lean"] = ModelProfile(**{**fast.model_dump(), "single_conv_levels": 2})
     config.model.profiles["thin"] = ModelProfile(**{**fast.model_dump(), "deep_width": 8})
-    todo = variants(config, "fast,lean,thin", [16], [], [], [1], ["add"])
+    todo = variants(config.model, "fast,lean,thin", [16], [], [], [1], ["add"])
     # the grid point has fast's shape (the grid keeps the default profile's blocks), so it is
     # fast and is not repeated; lean and thin have the same grid key but other networks
     assert [t[0] for t in todo] == ["fast", "lean", "thin"]

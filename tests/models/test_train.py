@@ -114,7 +114,7 @@ def test_the_options_defaults_are_the_configurations():
     """One place for the recipe: a bare TrainOptions is what `nhfd train` runs by default."""
     from nhfd.config import Config
 
-    assert TrainOptions() == TrainOptions.from_config(Config())
+    assert TrainOptions() == TrainOptions.from_config(Config().model)
 
 
 def _flat_weights(run) -> torch.Tensor:
