@@ -85,9 +85,11 @@ def _serve(args: argparse.Namespace) -> int:
 
 def _start_web(daemon: service.Daemon):  # -> nhfd.web.server.WebView
     # The optional path: aiohttp loads only when [daemon.web] is enabled (a listed seam).
-    from nhfd.web.server import serve_daemon
+    from nhfd.web.server import serve_web_view
 
-    view = serve_daemon(daemon)
+    view = serve_web_view(daemon.config.daemon, socket_path=daemon.socket_path,
+                          runtime_dir=daemon.runtime_dir, base_dir=daemon.base_dir,
+                          tcp_token=daemon.rpc.tcp_token, audit=daemon.audit)
     logging.getLogger("nhfd.web").info("web view at %s (token in %s)", view.url,
                                        view.token_source)
     return view

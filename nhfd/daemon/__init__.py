@@ -5,8 +5,11 @@ nhfd.scene, nhfd.drivers), never torch, numba or onnxruntime at module level. It
 pipeline as a separate, spawned process and talks to it over a pipe.
 
   service   the daemon core: start-up in a safe order, the control loop, shutdown with lasers off,
-            request dispatch, `status`
-  methods   the RPC methods, each against the narrow `Host` Protocol of the daemon it uses
+            `status`; it builds the parts below, each with what it uses, never the daemon
+  dispatch  JSON-RPC lines to the methods: batches, TCP authentication, refusals while stopping,
+            the audit log and the session recording per method
+  methods   the RPC methods, acting on `RpcContext` (the parts and places the daemon gives them)
+  errors    the recent errors `status` lists; the parts report to it through callbacks
   protocol  JSON-RPC 2.0 framing, parameter validation and THE table of error codes
   server    the Unix-socket (and optional loopback TCP) line server, with its bounds: slots,
             deadlines, buffered bytes, lines and time per pass

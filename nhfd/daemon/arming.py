@@ -50,7 +50,7 @@ from nhfd.drivers.twins.keyswitch_twin import KeySwitchTwin
 
 from .audit import AuditLog
 from .guardian_link import LaserLink
-from .jobs import Cancelled, Job
+from .jobs import Cancelled, Job, JobRunner, submit_or_busy
 from .protocol import BUSY, FORBIDDEN, NOT_AVAILABLE, RpcError
 from .server import Connection, forwarded_by_ssh
 
@@ -64,14 +64,13 @@ class ArmNotConfirmed(RuntimeError):
     """No confirmation from the bench in time: the lasers stay disarmed."""
 
 
-class ArmHost(Protocol):
-    """What the arming gate uses of the daemon (`nhfd.daemon.service.Daemon`)."""
+class NavigatorState(Protocol):
+    """What a button-press confirmation reads of the navigator input
+    (`nhfd.daemon.navigation.NavigatorInput`): the open navigator (None when there is none)
+    and why there is none."""
 
-    laser: LaserLink
-    audit: AuditLog
-    navigation: Any  # NavigatorInput: .navigator (None when not open) and .error
-
-    def submit_bench_job(self, job: Job) -> Job: ...
+    navigator: Any
+    error: str | None
 
 
 # -- authority --------------------------------------------------------------------------------
@@ -86,6 +85,7 @@ def user_name(uid: int) -> str | None:
 
 
 def group_name(gid: int) -> str:
+    """The group database's name for `gid` (the number itself when it has none)."""
     try:
         return grp.getgrgid(gid).gr_name
     except KeyError:
@@ -192,7 +192,7 @@ class _ButtonPress:
     """A navigator button gone down after the request (the control loop reads the navigator;
     this only watches its press count)."""
 
-    def __init__(self, navigation: Any) -> None:
+    def __init__(self, navigation: NavigatorState) -> None:
         self.navigation = navigation
         nav = navigation.navigator
         product = getattr(nav, "product", "") or type(nav).__name__
@@ -229,10 +229,21 @@ class ArmingGate:
     One per daemon (`Daemon.arming`). At most one arm waits for confirmation at a time; `cancel`
     (from `laser off` / `disarm`) guarantees it does not arm afterwards."""
 
-    def __init__(self, settings: DaemonSettings, navigator_backend: str = "none", *,
+    def __init__(self, settings: DaemonSettings, navigator_backend: str, *, laser: LaserLink,
+                 audit: AuditLog, bench_jobs: JobRunner, navigation: NavigatorState,
                  daemon_uid: int | None = None, key_opener: LinesOpener | None = None) -> None:
+        """`settings`: `[daemon]` (who may arm, the confirmation and its input).
+        `navigator_backend`: `devices.navigator` (a SpaceMouse confirmation needs one).
+        `laser`: what arms. `audit`: where each outcome is written. `bench_jobs`: the runner
+        a confirmation waits on (BUSY when its queue is full). `navigation`: the navigator a
+        button press is read from. `daemon_uid`: the daemon's user (default: this process's
+        effective uid). `key_opener`: the key switch's lines (default: from the settings)."""
         check_confirm_settings(settings, navigator_backend)
         self.settings = settings
+        self.laser = laser
+        self.audit = audit
+        self.bench_jobs = bench_jobs
+        self.navigation = navigation
         self.daemon_uid = os.geteuid() if daemon_uid is None else daemon_uid
         self.twin: KeySwitchTwin | None = None
         port = settings.arm_confirm_port.strip()
@@ -282,16 +293,16 @@ class ArmingGate:
             raise RpcError(FORBIDDEN, "arming is refused through an SSH tunnel: a person arms "
                            "on the bench's machine", {"field": "action", "allowed": allowed})
 
-    def arm(self, d: ArmHost, conn: Connection, duration_s: float) -> dict[str, Any]:
+    def arm(self, conn: Connection, duration_s: float) -> dict[str, Any]:
         """The `laser arm` request: armed now (no confirmation configured), or a pending job
         that waits for the person at the bench."""
         self.authorise(conn)
         uid = conn.peer.get("uid")
         if self.settings.arm_confirm == "none":
-            reply = d.laser.arm(duration_s)
+            reply = self.laser.arm(duration_s)
             return {"armed": True, "armed_remaining_s": reply.get("armed_remaining_s"),
                     "by_uid": uid}
-        source = self._source(d)
+        source = self._source()
         timeout_s = self.settings.arm_confirm_timeout_s
         who = conn.who
         with self._lock:
@@ -303,8 +314,8 @@ class ArmingGate:
             job = Job("laser arm", {"duration_s": duration_s, "confirm": source.what,
                                     "timeout_s": timeout_s, "by_uid": uid,
                                     "by_user": conn.peer.get("user")},
-                      lambda job: self._wait_and_arm(d, who, duration_s, source, job))
-            d.submit_bench_job(job)  # BUSY when the bench queue is full
+                      lambda job: self._wait_and_arm(who, duration_s, source, job))
+            submit_or_busy(self.bench_jobs, job)  # BUSY when the bench queue is full
             self._pending = job
         return {"armed": False, "pending": True, "job": job.id, "confirm": source.what,
                 "prompt": f"{source.prompt} within {timeout_s:g} s", "timeout_s": timeout_s,
@@ -326,6 +337,8 @@ class ArmingGate:
         self.cancel()
 
     def status(self) -> dict[str, Any]:
+        """The confirmation configured, the arm waiting for it (its job) and whether its
+        window is open now."""
         job = self._pending
         return {"confirm": self.settings.arm_confirm,
                 "pending_job": job.id if job is not None and not job.done.is_set() else None,
@@ -333,37 +346,38 @@ class ArmingGate:
 
     # -- the wait (a bench job's thread) ---------------------------------------------------------
 
-    def _source(self, d: ArmHost) -> _KeyTurn | _ButtonPress:
+    def _source(self) -> _KeyTurn | _ButtonPress:
         """The configured input, or NOT_AVAILABLE (at once, not after the wait) when it cannot
         be read."""
         if self.settings.arm_confirm == "serial":
             assert self._key_opener is not None  # set in __init__ for "serial"
             return _KeyTurn(KeySwitch(self._key_opener, self.settings.arm_confirm_line,
                                       self.settings.arm_confirm_port.strip()))
-        if d.navigation.navigator is None:
+        if self.navigation.navigator is None:
             raise RpcError(NOT_AVAILABLE, "daemon.arm_confirm = 'spacemouse', but no navigator "
-                           f"is open ({d.navigation.error or 'devices.navigator'}): nothing at "
-                           "the bench can confirm an arm", {"device": "navigator"})
-        return _ButtonPress(d.navigation)
+                           f"is open ({self.navigation.error or 'devices.navigator'}): nothing "
+                           "at the bench can confirm an arm", {"device": "navigator"})
+        return _ButtonPress(self.navigation)
 
-    def _wait_and_arm(self, d: ArmHost, who: dict[str, Any], duration_s: float,
+    def _wait_and_arm(self, who: dict[str, Any], duration_s: float,
                       source: _KeyTurn | _ButtonPress, job: Job) -> dict[str, Any]:
         timeout_s = self.settings.arm_confirm_timeout_s
         try:
             waited_s = self._wait(source, job, timeout_s)
             with self._lock:
                 job.check()  # a laser off, disarm or stop since the request wins
-                reply = d.laser.arm(duration_s)
+                reply = self.laser.arm(duration_s)
         except Cancelled:
-            d.audit.write(who, "laser arm cancelled", job=job.id, outcome="cancelled: laser "
-                          "off, disarm or stop before the confirmation; not armed")
+            self.audit.write(who, "laser arm cancelled", job=job.id,
+                             outcome="cancelled: laser off, disarm or stop before the "
+                                     "confirmation; not armed")
             raise
         except Exception as exc:
-            d.audit.write(who, "laser arm refused", job=job.id, confirm=source.what,
-                          outcome=f"refused: {exc}")
+            self.audit.write(who, "laser arm refused", job=job.id, confirm=source.what,
+                             outcome=f"refused: {exc}")
             raise
-        d.audit.write(who, "laser arm confirmed", job=job.id, confirm=source.what,
-                      waited_s=round(waited_s, 3), duration_s=duration_s, outcome="armed")
+        self.audit.write(who, "laser arm confirmed", job=job.id, confirm=source.what,
+                         waited_s=round(waited_s, 3), duration_s=duration_s, outcome="armed")
         return {"armed": True, "armed_remaining_s": reply.get("armed_remaining_s"),
                 "by_uid": who.get("uid"), "confirmed_by": source.what,
                 "waited_s": round(waited_s, 3)}

@@ -21,10 +21,13 @@ import json
 import os
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any
 
-from .protocol import _sanitise
+from nhfd.config import DaemonSettings
+
+from .protocol import sanitise
 
 # A refused request's parameters and error message are kept to this many characters: enough to
 # see what was sent, too little for a client to fill the disk with one line.
@@ -36,18 +39,32 @@ def _clip(text: str, limit: int) -> str:
     return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} chars)"
 
 
+def audit_path(settings: DaemonSettings, base_dir: Path, env: Mapping[str, str],
+               runtime_dir: Path) -> Path:
+    """Where the daemon's audit log goes: `daemon.audit_log` (relative to `base_dir`), else
+    systemd's $LOGS_DIRECTORY, else the runtime directory; the file `audit.jsonl`."""
+    if settings.audit_log:
+        return base_dir / Path(settings.audit_log).expanduser()
+    logs = env.get("LOGS_DIRECTORY")
+    return (Path(logs.split(":")[0]) if logs else runtime_dir) / "audit.jsonl"
+
+
 def compact_params(params: Any) -> Any:
     """`params` itself when its JSON is short, else its JSON cut to `PARAMS_CHARS`."""
-    text = json.dumps(_sanitise(params), allow_nan=False, default=str)
+    text = json.dumps(sanitise(params), allow_nan=False, default=str)
     return params if len(text) <= PARAMS_CHARS else _clip(text, PARAMS_CHARS)
 
 
 class AuditLog:
+    """The audit log file: one JSON line per record, flushed at once, rotated by size; safe
+    to write from any thread (jobs finish on their own)."""
+
     def __init__(self, path: Path | None, *, summary_s: float, max_bytes: int,
                  backups: int) -> None:
-        """`path` None: nothing is written (a daemon before start). The limits come from
-        `daemon.audit_summary_s`, `audit_max_bytes` and `audit_backups`."""
-        self.path = path
+        """`path` None: nothing is written until `open` (a daemon before start: it opens the
+        file once it holds its lock). The limits come from `daemon.audit_summary_s`,
+        `audit_max_bytes` and `audit_backups` (`for_settings`)."""
+        self.path: Path | None = None
         self._file: IO[str] | None = None
         self._size = 0
         # jobs finish on worker threads; summaries are updated by requests and the control loop
@@ -57,7 +74,20 @@ class AuditLog:
         self.backups = backups
         self._pending: dict[str, dict[str, Any]] = {}
         if path is not None:
-            path.parent.mkdir(parents=True, exist_ok=True)
+            self.open(path)
+
+    @classmethod
+    def for_settings(cls, settings: DaemonSettings, path: Path | None = None) -> AuditLog:
+        """An audit log with `[daemon]`'s limits (`path` None: opened later, `open`)."""
+        return cls(path, summary_s=settings.audit_summary_s, max_bytes=settings.audit_max_bytes,
+                   backups=settings.audit_backups)
+
+    def open(self, path: Path) -> None:
+        """Start writing to `path` (appending; its folder made). The parts that write to this
+        log hold it from construction, so the daemon opens it in place at start."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with self._lock:
+            self.path = path
             self._open()
 
     def _open(self) -> None:
@@ -75,6 +105,8 @@ class AuditLog:
         self._open()
 
     def write(self, who: dict[str, Any], what: str, **details: Any) -> None:
+        """One record: `who` asked (or "daemon"), `what` happened, and its `details` (the
+        time added; nothing is written before the file is open)."""
         now = time.time()
         record = {
             "time": dt.datetime.fromtimestamp(now, dt.UTC).isoformat(timespec="milliseconds"),
@@ -83,7 +115,7 @@ class AuditLog:
             "what": what,
             **details,
         }
-        line = json.dumps(_sanitise(record), allow_nan=False, default=str) + "\n"
+        line = json.dumps(sanitise(record), allow_nan=False, default=str) + "\n"
         size = len(line.encode())
         with self._lock:
             if self._file is None:
@@ -111,6 +143,7 @@ class AuditLog:
                 pending["last"] = last
 
     def view(self, who: dict[str, Any], seq: int, view: dict[str, Any]) -> None:
+        """A `set_view` (view `seq`, in its JSON form), summarised per caller and window."""
         key = "set_view " + json.dumps(who, sort_keys=True, default=str)
         self._summarise(key, who, {"what": "set_view", "seq": seq, "view": view},
                         {"last_seq": seq, "last_view": view})
@@ -149,6 +182,7 @@ class AuditLog:
                     self.flush(key)
 
     def close(self) -> None:
+        """Write what the open windows counted, then close the file."""
         with self._lock:
             self.flush()
             if self._file is not None:

@@ -9,19 +9,23 @@ stalls the control loop that sends the laser heartbeat.
 Faults and the light path: an SLM whose output is lost (cable unplugged, output disabled) no
 longer shows what the daemon computed, so the lasers must go off. The monitor only *notices*
 (it must not talk to the laser guardian: the control loop owns that link); it queues the change
-in `faults`, and the control loop switches the lasers off (`Daemon._device_faults`). The stage
+in `faults`, and the control loop switches the lasers off (the daemon's device faults). The stage
 and the camera sit on the detection side: their faults fail jobs and show in `status`, the
 lasers stay as they are. Every fault clears when the device answers again.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
 import threading
 import time
+from types import SimpleNamespace
 from typing import Any
 
+from nhfd.calibration import active_calibration
+from nhfd.config import Config
 from nhfd.drivers import factory
 
 from .panel import Panel
@@ -35,10 +39,27 @@ def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
     return stage_at_reference_mm + z_mm
 
 
+def stage_mm_for_focus(config: Config, z_mm: float) -> float:
+    """The stage position (mm) that focuses the camera `z_mm` of hologram depth from the
+    reference plane: the active calibration's fitted mapping (green's focus) when there is
+    one, else `focus_stage_mm` from `daemon.stage_at_reference_mm`. A configured calibration
+    that cannot be applied raises its `CalibrationFileError`."""
+    cal = active_calibration(config)
+    if cal is not None:
+        return cal.stage_mm_for(config.optics.z0_m + z_mm * 1e-3, 1)
+    return focus_stage_mm(z_mm, config.daemon.stage_at_reference_mm)
+
+
 class Bench:
-    def __init__(self, config: Any, laser_twin: Any = None) -> None:
+    """The SLM (through its `panel`), the stage and the camera, opened by `open`; a device
+    that fails to open is left None with its error in `errors`."""
+
+    def __init__(self, config: Config) -> None:
+        """`config`: the devices (`[devices]`) at the panel's size and pitch (`[slm]`); the
+        camera region (`daemon.camera_roi_px`); the panel's colour mode and coding (its
+        `Panel` reads `[daemon]`, `[slm]` and the active calibration)."""
         self.config = config
-        self.laser_twin = laser_twin
+        self.laser_twin: Any = None  # the guardian's simulated laser, for the simulated camera
         self.slm: Any = None
         self.stage: Any = None
         self.camera: Any = None
@@ -55,18 +76,39 @@ class Bench:
 
     # -- open / close --------------------------------------------------------------------------
 
-    def open(self) -> None:
+    def open(self, laser_twin: Any = None) -> None:
+        """Open the devices (the SLM first, showing the blank), then start the monitor.
+        `laser_twin`: the guardian's simulated laser (`LaserLink.twin`), which the simulated
+        camera images; None otherwise."""
         # The guardian owns the laser port: the bench builds no laser driver, and the simulated
         # camera reads the guardian's twin. A device that fails is reported and left None.
+        self.laser_twin = laser_twin
         devices = factory.make_bench(
             self.config.devices, self.config.slm.width_px, self.config.slm.height_px,
             laser=False, laser_twin=self.laser_twin, on_open=self._opened, on_error=self._failed,
             pitch_um=self.config.slm.pitch_um)
         self.slm, self.stage, self.camera = devices.slm, devices.stage, devices.camera
+        self._apply_camera_roi()
         self._refresh()  # status has the stage's state from the first request on
         self._monitor = threading.Thread(target=self._watch, name="nhfd-bench-monitor",
                                          daemon=True)
         self._monitor.start()
+
+    def _apply_camera_roi(self) -> None:
+        """Give the simulated camera the configured sensor region (daemon.camera_roi_px): the
+        camera is rebuilt, because its fixed-pattern noise is drawn for its region at
+        creation."""
+        roi = list(self.config.daemon.camera_roi_px)
+        if not roi or self.camera is None or self.config.devices.camera != "simulated":
+            return
+        with contextlib.suppress(Exception):
+            self.camera.close()
+        camera = factory.make_camera(self.config.devices, slm=self.slm,
+                                     laser=SimpleNamespace(twin=self.laser_twin),
+                                     stage=self.stage, roi=tuple(roi))
+        if camera is not None:
+            camera.open()
+        self.camera = camera
 
     def _opened(self, device: str, driver: Any) -> None:
         if device == "slm":
@@ -78,6 +120,7 @@ class Bench:
         log.error("%s: %s", device, self.errors[device])
 
     def close(self) -> None:
+        """Stop the monitor, then close the camera, the stage and the SLM (blank first)."""
         self._stop.set()
         if self._monitor is not None:
             self._monitor.join(2.0)
@@ -118,6 +161,7 @@ class Bench:
             self.faults.put(("slm", True, detail))
 
     def stop_stage(self) -> str:
+        """Stop the stage at once (from any thread): "stop sent", or "no stage"."""
         if self.stage is None:
             return "no stage"
         self.stage.stop(immediate=True)  # the driver: safe from any thread at any time
@@ -170,6 +214,7 @@ class Bench:
             self.errors["stage"] = f"{type(again).__name__}: {again}"
 
     def status(self) -> dict[str, Any]:
+        """`status.devices`: each device's backend, whether it is open, its state and error."""
         d = self.config.devices
         return {
             "slm": {"backend": d.slm, "open": self.slm is not None, "showing": self.panel.showing,

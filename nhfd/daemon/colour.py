@@ -24,7 +24,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from nhfd.config import Config
+from nhfd.config import DaemonSettings
 from nhfd.device_settings import COLOURS
 
 from .audit import AuditLog
@@ -52,10 +52,11 @@ def panel_for_mode(frame: np.ndarray, mode: str, colour: str) -> np.ndarray:
     return out.transpose(2, 0, 1)
 
 
-def check_laser_command(config: Config, action: str, channel: str | None,
+def check_laser_command(settings: DaemonSettings, action: str, channel: str | None,
                         power_pct: float | None) -> None:
-    """Refuse what the colour mode forbids, before anything reaches the guardian."""
-    c = config.daemon
+    """Refuse what the colour mode (`daemon.colour_mode`, `single_colour`) forbids, before
+    anything reaches the guardian."""
+    c = settings
     mode = c.colour_mode
     if mode == "single" and channel is not None and channel != c.single_colour:
         if action == "enable" or (action == "power" and power_pct):
@@ -93,36 +94,25 @@ class ShownViews(Protocol):
     shown_seq: int
 
 
-class CaptureHost(Protocol):
-    """What the capture-mode snapshot uses of the daemon."""
-
-    laser: LaserLink
-    audit: AuditLog
-    frames: ShownViews
-
-    @property
-    def bench(self) -> CaptureBench: ...
-    @property
-    def panel(self) -> CapturePanel: ...
-
-
-def capture_colours(d: CaptureHost, job: Job, path: Path, frames: int | None
-                    ) -> dict[str, Any]:
+def capture_colours(job: Job, path: Path, frames: int | None, *, bench: CaptureBench,
+                    panel: CapturePanel, laser: LaserLink, audit: AuditLog,
+                    shown: ShownViews) -> dict[str, Any]:
     """The capture-mode snapshot: one capture per colour that has power, each with only its diode
     on and its own pattern settled on the panel; written as one PNG per colour and their mean.
+    `laser` switches the diodes (the guardian reads each back), `audit` records each enable,
+    `shown` is the last view frame (what every colour shows, and what the panel shows again).
 
     The panel is held meanwhile (`Panel.hold`), so a view arriving during the sequence cannot
     replace the colour's pattern under the camera; afterwards it shows the last view again."""
-    bench, panel, link = d.bench, d.panel, d.laser
     if bench.slm is None or bench.camera is None:
         raise RuntimeError("capture mode needs the SLM and the camera")
-    link.refresh()
-    powers = {ch: float(link.status()["channels"].get(ch, {}).get("power_pct", 0.0))
+    laser.refresh()
+    powers = {ch: float(laser.status()["channels"].get(ch, {}).get("power_pct", 0.0))
               for ch in COLOURS}
     lit = [ch for ch in COLOURS if powers[ch] > 0]
     if not lit:
         raise RuntimeError("no colour has power: set per-channel power (laser power) first")
-    base = d.frames.last_frame if d.frames.last_frame is not None else panel.blank_frame()
+    base = shown.last_frame if shown.last_frame is not None else panel.blank_frame()
     images: dict[str, np.ndarray] = {}
     try:
         with panel.hold():
@@ -130,25 +120,25 @@ def capture_colours(d: CaptureHost, job: Job, path: Path, frames: int | None
                 for ch in lit:
                     job.check()
                     for other in COLOURS:  # all off, and read back by the guardian
-                        link.enable(other, False)
+                        laser.enable(other, False)
                     panel.show_colour(base, ch)
-                    link.enable(ch, True)
-                    d.audit.write({"who": "daemon", "job": job.id},
-                                  "laser enable (capture mode)", channel=ch,
-                                  power_pct=powers[ch])
+                    laser.enable(ch, True)
+                    audit.write({"who": "daemon", "job": job.id},
+                                "laser enable (capture mode)", channel=ch,
+                                power_pct=powers[ch])
                     try:
                         images[ch] = bench.capture(frames).image
                     finally:
-                        link.enable(ch, False)
+                        laser.enable(ch, False)
             finally:
                 for ch in COLOURS:
                     with contextlib.suppress(Exception):
-                        link.enable(ch, False)
-                d.audit.write({"who": "daemon", "job": job.id},
-                              "laser all disabled (capture mode)")
+                        laser.enable(ch, False)
+                audit.write({"who": "daemon", "job": job.id},
+                            "laser all disabled (capture mode)")
     finally:
         with contextlib.suppress(Exception):  # back to what the control loop last computed
-            panel.resume(d.frames.last_frame, d.frames.shown_seq)
+            panel.resume(shown.last_frame, shown.shown_seq)
     # A colour camera sees each colour in its own channel; a mono one gives [H, W] per colour.
     planes = {ch: img if img.ndim == 2 else img[COLOURS.index(ch)] for ch, img in images.items()}
     zero = np.zeros_like(next(iter(planes.values())))

@@ -51,13 +51,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import StrEnum
 from multiprocessing import shared_memory
-from types import SimpleNamespace
 from typing import Any, Protocol
 
 import numpy as np
 
-from nhfd.calibration import active_calibration
-from nhfd.drivers import factory
+from nhfd.calibration import Calibration, active_calibration
+from nhfd.config import Config, DaemonSettings
 from nhfd.drivers.slm import SLMOutputLost
 from nhfd.frame_message import FrameMessage
 from nhfd.views import View
@@ -95,6 +94,9 @@ SEND_MARGIN_S = 0.002
 class PanelView(Protocol):
     """The daemon's panel (`nhfd.daemon.panel.Panel`), as far as view frames go."""
 
+    @property
+    def vsync_detail(self) -> str: ...
+
     def show_view(self, frame: np.ndarray, seq: int) -> np.ndarray: ...
 
     def blank_frame(self) -> np.ndarray: ...
@@ -112,12 +114,13 @@ class ViewSource(Protocol):
 # -- the worker process, seen from the daemon --------------------------------------------------
 
 
-def worker_environment(config: Any) -> dict[str, str]:
-    """The worker's thread counts, for its environment: read once, when torch, numba and
-    onnxruntime load in the spawned process, so they must be there before its first import."""
-    threads = str(int(config.daemon.worker_threads))
+def worker_environment(settings: DaemonSettings) -> dict[str, str]:
+    """The worker's thread counts (`daemon.worker_threads`, `worker_threading_layer`), for its
+    environment: read once, when torch, numba and onnxruntime load in the spawned process, so
+    they must be there before its first import."""
+    threads = str(int(settings.worker_threads))
     env = {var: threads for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
-    env["NUMBA_THREADING_LAYER"] = str(config.daemon.worker_threading_layer)
+    env["NUMBA_THREADING_LAYER"] = str(settings.worker_threading_layer)
     return env
 
 
@@ -171,7 +174,11 @@ class FrameWorker:
     _ids = itertools.count(1)
     _workers = itertools.count(1)
 
-    def __init__(self, config: Any, module: str = WORKER_MODULE) -> None:
+    def __init__(self, config: Config, module: str = WORKER_MODULE) -> None:
+        """`config`: the whole configuration, which the worker gets (it builds its frame
+        settings from `[slm]`, `[optics]`, `[coding]`, `[daemon]` and the calibration); here
+        `daemon.frame_transport` and the panel's size (`[slm]`, the slots). `module`: the
+        worker's module, spawned by name."""
         self.config = config
         self.module = module
         self.process: Any = None
@@ -186,13 +193,15 @@ class FrameWorker:
         self.free_slots: list[int] = []
 
     def start(self) -> None:
+        """Make the slots and spawn the worker (blocks for the spawn, not for its import);
+        its "ready" comes later on the pipe."""
         slots = self._make_slots() if self.transport == "shm" else None
         try:
             ctx = mp.get_context("spawn")
             here, there = ctx.Pipe(duplex=True)
             self.process = ctx.Process(target=run_by_name,
-                                       args=(self.module, worker_environment(self.config), there,
-                                             self.config.model_dump(),
+                                       args=(self.module, worker_environment(self.config.daemon),
+                                             there, self.config.model_dump(),
                                              _accepted_calibration(self.config), slots),
                                        name="nhfd-frame-worker", daemon=True)
             self.process.start()
@@ -375,12 +384,12 @@ class FrameLink:
     written by the control loop alone. A queued load goes out at the loop's next step (within
     `daemon.tick_s`)."""
 
-    def __init__(self, config: Any, views: ViewSource, panel: Callable[[], PanelView],
+    def __init__(self, config: Config, views: ViewSource, panel: Callable[[], PanelView],
                  events: FrameEvents, worker_module: str = WORKER_MODULE) -> None:
         """`config`: the daemon's (`nhfd.config.Config`: slm.refresh_hz, the worker's
         settings). `views`: the newest view requested (read only: `events.shown` marks it
-        applied). `panel`: the panel in use now (a getter: the daemon's bench, and its panel,
-        are replaced when it starts). `worker_module`: another worker speaking the same
+        applied). `panel`: the panel in use now (a getter, asked each time it is used).
+        `worker_module`: another worker speaking the same
         protocol (tests use a fake one)."""
         self.config = config
         self.views = views
@@ -435,6 +444,8 @@ class FrameLink:
             self.start()
 
     def close(self) -> None:
+        """Stop the worker for good; every load still waiting fails ("the frame worker
+        stopped")."""
         self.state = LinkState.STOPPED
         # A frame waiting for its refresh, or in the worker: its slot goes with the worker.
         self.waiting = self.inflight = None
@@ -501,6 +512,15 @@ class FrameLink:
         for r in requests:
             if r.reload:
                 self.events.error("frame worker", f"reloading {r.kind} {r.path}: {r.result}")
+
+    @property
+    def pipe(self) -> Any:
+        """The worker's end of the pipe while `step` drains it (the worker starting or
+        running), else None: the control loop keeps it in its selector, so a frame, a load's
+        answer or the worker's death wakes the loop at once."""
+        if self.state in (LinkState.STARTING, LinkState.RUNNING):
+            return self.worker.conn
+        return None
 
     def resend(self) -> None:
         """Send the current view again at the next step (the panel lost it: an SLM output
@@ -683,10 +703,10 @@ class FrameLink:
         """`status.frames`: the worker, what it serves, the sequence numbers, the counts and
         the pacing."""
         info, c = self.model_info or {}, self.counts
-        slm = getattr(getattr(self.panel(), "devices", None), "slm", None)
         pacing = f"timer: one frame per refresh at {1 / self.refresh_s:g} Hz (slm.refresh_hz)"
-        if getattr(slm, "vsync_detail", ""):  # the framebuffer's FBIO_WAITFORVSYNC, or why not
-            pacing += f"; {slm.vsync_detail}"
+        vsync = self.panel().vsync_detail  # the framebuffer's FBIO_WAITFORVSYNC, or why not
+        if vsync:
+            pacing += f"; {vsync}"
         return {"state": str(self.state), "pid": self.worker.pid, "alive": self.worker.alive,
                 "model": self.model_path, "scene": self.scene_path,
                 "model_variant": info.get("variant"),
@@ -720,27 +740,10 @@ class PanelBuffer:
         return out.transpose(2, 0, 1)
 
 
-def _accepted_calibration(config: Any) -> Any:
+def _accepted_calibration(config: Config) -> Calibration | None:
     """The calibration this process applies, for the worker; None when there is none to keep
     (the worker's own load then says why, with each frame)."""
     try:
         return active_calibration(config)
     except ValueError:
         return None
-
-
-def apply_camera_roi(bench: Any, config: Any) -> None:
-    """Give the simulated camera the configured sensor region (daemon.camera_roi_px): the
-    camera is rebuilt, because its fixed-pattern noise is drawn for its region at creation."""
-    roi = list(config.daemon.camera_roi_px)
-    if not roi or bench.camera is None or config.devices.camera != "simulated":
-        return
-    with contextlib.suppress(Exception):
-        bench.camera.close()
-    camera = factory.make_camera(config.devices, slm=bench.slm,
-                                 laser=SimpleNamespace(twin=bench.laser_twin),
-                                 stage=bench.stage, roi=tuple(roi))
-    if camera is not None:
-        camera.open()
-    bench.camera = camera
-

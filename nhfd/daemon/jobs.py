@@ -20,6 +20,8 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from .protocol import BUSY, RpcError
+
 log = logging.getLogger(__name__)
 
 _ids = itertools.count(1)
@@ -31,6 +33,10 @@ class Cancelled(Exception):
 
 @dataclass
 class Job:
+    """One piece of slow work: `run(job)` on a runner's thread, which calls `job.check()`
+    between steps so that a cancel ends it; its state, result or error for `job` and
+    `status`."""
+
     kind: str
     describe: dict[str, Any]
     run: Callable[[Job], Any]
@@ -45,18 +51,26 @@ class Job:
     done: threading.Event = field(default_factory=threading.Event)
 
     def check(self) -> None:
+        """Raise `Cancelled` when the job was cancelled (a step boundary of `run`)."""
         if self.cancel.is_set():
             raise Cancelled(f"{self.kind} job {self.id} cancelled")
 
     def to_json(self) -> dict[str, Any]:
+        """The job as `job` and `status.jobs` show it."""
         return {"id": self.id, "kind": self.kind, "state": self.state, "params": self.describe,
                 "result": self.result, "error": self.error, "created_s": self.created_s,
                 "started_s": self.started_s, "ended_s": self.ended_s}
 
 
 class JobRunner:
+    """One worker thread running jobs in order from a bounded queue, keeping the last `kept`
+    finished ones for `job` and `status`. The thread starts with the first job, so a runner
+    made with its daemon costs nothing until that daemon has work."""
+
     def __init__(self, name: str, *, max_queued: int = 16, kept: int = 32,
                  on_finish: Callable[[Job, str, str | None], None] | None = None) -> None:
+        """`on_finish(job, state, error)`: called on the runner's thread before the job's end
+        state is published (the daemon notes a failure and audits the end)."""
         self.name = name
         self._queue: queue.Queue[Job | None] = queue.Queue(maxsize=max_queued)
         self._lock = threading.Lock()
@@ -64,23 +78,30 @@ class JobRunner:
         self._finished: deque[Job] = deque(maxlen=kept)
         self._on_finish = on_finish
         self.current: Job | None = None
-        self._thread = threading.Thread(target=self._work, name=f"nhfd-{name}", daemon=True)
-        self._thread.start()
+        self._thread: threading.Thread | None = None
+        self._closed = False
 
     def submit(self, job: Job) -> Job:
-        """Queue a job; queue.Full when the queue is full (the caller answers BUSY)."""
+        """Queue a job; queue.Full when the queue is full (the caller answers BUSY, see
+        `submit_or_busy`)."""
         with self._lock:
             self._queue.put_nowait(job)
             self._active[job.id] = job
+            if self._thread is None and not self._closed:  # closed: nothing runs any more
+                self._thread = threading.Thread(target=self._work, name=f"nhfd-{self.name}",
+                                                daemon=True)
+                self._thread.start()
         return job
 
     def get(self, job_id: int) -> Job | None:
+        """The job with this id, queued, running or among the finished kept; else None."""
         with self._lock:
             if job_id in self._active:
                 return self._active[job_id]
             return next((j for j in self._finished if j.id == job_id), None)
 
     def jobs(self) -> list[Job]:
+        """The finished jobs kept, then the queued and running ones by id."""
         with self._lock:
             return [*self._finished, *sorted(self._active.values(), key=lambda j: j.id)]
 
@@ -94,12 +115,19 @@ class JobRunner:
             return touched
 
     def close(self, timeout_s: float = 2.0) -> None:
+        """Cancel every job and end the thread (waiting at most about `timeout_s` for each
+        step)."""
         self.cancel_all()
+        with self._lock:
+            self._closed = True
+            thread = self._thread
+        if thread is None:  # never ran a job: no thread to end
+            return
         try:
             self._queue.put(None, timeout=timeout_s)
         except queue.Full:
             pass
-        self._thread.join(timeout_s)
+        thread.join(timeout_s)
 
     def _work(self) -> None:
         while (job := self._queue.get()) is not None:
@@ -139,3 +167,17 @@ class JobRunner:
                 self._active.pop(job.id, None)
                 self._finished.append(job)
             job.done.set()
+
+
+# What a client hears when the bench queue is full (`submit_or_busy`'s default).
+BENCH_QUEUE_FULL = "the bench job queue is full; wait or stop"
+
+
+def submit_or_busy(runner: JobRunner, job: Job, message: str = BENCH_QUEUE_FULL,
+                   data: dict[str, Any] | None = None) -> Job:
+    """`runner.submit(job)`, a full queue refused as BUSY with `message` (and `data`): a
+    request never waits for room in a queue."""
+    try:
+        return runner.submit(job)
+    except queue.Full:
+        raise RpcError(BUSY, message, data) from None

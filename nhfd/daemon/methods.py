@@ -44,13 +44,13 @@ from __future__ import annotations
 
 import base64
 import hmac
+import itertools
 import math
 import os
-import queue
 import time
 import weakref
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -63,15 +63,14 @@ from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES, is_sog_folder
 
 from .arming import ArmingGate
 from .audit import AuditLog
-from .bench import Bench
+from .bench import Bench, stage_mm_for_focus
 from .colour import ShownViews, capture_colours, check_laser_command
 from .guardian_link import LaserLink
-from .jobs import Job, JobRunner
+from .jobs import Job, JobRunner, submit_or_busy
 from .panel import Panel
 from .paths import inside
 from .png import write_png16
 from .protocol import (
-    BUSY,
     DEVICE_ERROR,
     FORBIDDEN,
     INVALID_FILE,
@@ -96,34 +95,32 @@ class Frames(ShownViews, Protocol):
     def load_model(self, path: str) -> dict[str, Any]: ...
 
 
-class Host(Protocol):
-    """What the RPC methods use of the daemon (`nhfd.daemon.service.Daemon`)."""
+@dataclass
+class RpcContext:
+    """What the RPC methods act on, given explicitly: the daemon builds one at construction
+    from its parts (`Daemon.rpc`), and a method touches nothing else. Not the daemon: no
+    method can reach its lifecycle, its loop or another part's insides."""
 
-    config: Config
-    base_dir: Path
-    scene_dirs: list[Path]
-    model_dirs: list[Path]
-    snapshot_dirs: list[Path]
-    pattern_dirs: list[Path]
-    tcp_token: str | None
+    config: Config  # [daemon] limits and colour mode, [slm] size, the focus calibration
+    base_dir: Path  # relative paths in requests and settings are taken from here
+    scene_dirs: list[Path]  # where load_scene may read (resolved, `paths.resolve_dirs`)
+    model_dirs: list[Path]  # where load_model may read
+    snapshot_dirs: list[Path]  # where snapshot (and capture) may write
+    pattern_dirs: list[Path]  # where show_pattern may read and capture may write
     audit: AuditLog
-    arming: ArmingGate
-    navigation: Any
     laser: LaserLink
+    arming: ArmingGate
     bench: Bench
+    panel: Panel  # the bench's: what the SLM shows
     views: ViewSlot
     frames: Frames
     bench_jobs: JobRunner
     load_jobs: JobRunner
-    scene: dict[str, Any] | None
-
-    @property
-    def panel(self) -> Panel: ...
-    def status(self) -> dict[str, Any]: ...
-    def focus_stage_mm(self, z_mm: float) -> float: ...
-    def submit_bench_job(self, job: Job) -> Job: ...
-    def next_snapshot(self) -> int: ...
-    def request_shutdown(self, reason: str) -> None: ...
+    status: Callable[[], dict[str, Any]]  # the daemon's whole `status`
+    request_shutdown: Callable[[str], None]  # the daemon's, with the reason
+    tcp_token: str | None = None  # set at start when daemon.tcp_port is
+    scene: dict[str, Any] | None = None  # the loaded scene (status "scene"), set by load_scene
+    snapshot_numbers: Iterator[int] = field(default_factory=lambda: itertools.count(1))
 
 
 MODEL_SUFFIXES = (".onnx",)
@@ -137,38 +134,40 @@ _LAST_CAPTURE: weakref.WeakKeyDictionary[Any, tuple[float, np.ndarray]] = (
 
 @dataclass(frozen=True)
 class Method:
-    func: Callable[[Host, Connection, Params], Any]
+    """An RPC method: its function and what the dispatcher does around it."""
+
+    func: Callable[[RpcContext, Connection, Params], Any]
     audited: bool  # changes the bench: written to the audit log with who and what
     while_stopping: bool = False  # still served during shutdown
 
 
-def _status(d: Host, conn: Connection, p: Params) -> Any:
+def _status(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     p.done()
-    return d.status()
+    return ctx.status()
 
 
-def _set_view(d: Host, conn: Connection, p: Params) -> Any:
+def _set_view(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     # Parsed once, here: a View from now on (digital refocus included, kept when not given).
-    view = parse_view(p, d.views.view)
-    if d.panel.pattern is not None:  # a calibration pattern gives the panel back to the view
-        _end_pattern(d)
-    seq = d.views.submit(view)
+    view = parse_view(p, ctx.views.view)
+    if ctx.panel.pattern is not None:  # a calibration pattern gives the panel back to the view
+        _end_pattern(ctx)
+    seq = ctx.views.submit(view)
     shown = view.to_json()  # the reply, the audit log and the recording show the plain form
-    d.audit.view(conn.who, seq, shown)
+    ctx.audit.view(conn.who, seq, shown)
     return {"seq": seq, "view": shown}
 
 
-def _focus(d: Host, conn: Connection, p: Params) -> Any:
-    cfg = d.config.daemon
+def _focus(ctx: RpcContext, conn: Connection, p: Params) -> Any:
+    cfg = ctx.config.daemon
     low, high = cfg.focus_range_mm
     z_mm = p.number("z_mm", low, high)
     home = p.boolean("home", False)
     p.done()
-    stage = d.bench.stage
+    stage = ctx.bench.stage
     if stage is None:
-        raise RpcError(NOT_AVAILABLE, f"no stage: {d.bench.errors['stage'] or 'none configured'}",
+        raise RpcError(NOT_AVAILABLE, f"no stage: {ctx.bench.errors['stage'] or 'none configured'}",
                        {"device": "stage"})
-    target = _focus_target(d, z_mm)
+    target = _focus_target(ctx, z_mm)
     s_low, s_high = stage.settings.soft_limits_mm
     if not s_low <= target <= s_high:
         z_lo = max(low, s_low - cfg.stage_at_reference_mm)
@@ -183,33 +182,33 @@ def _focus(d: Host, conn: Connection, p: Params) -> Any:
         state = stage.move_to(target)
         return {"z_mm": z_mm, "stage_mm": state.position_mm if state else target}
 
-    job = d.submit_bench_job(Job("focus", {"z_mm": z_mm, "home": home}, run))
+    job = submit_or_busy(ctx.bench_jobs, Job("focus", {"z_mm": z_mm, "home": home}, run))
     return {"job": job.id, "stage_mm": target}
 
 
-def _focus_target(d: Host, z_mm: float) -> float:
+def _focus_target(ctx: RpcContext, z_mm: float) -> float:
     """The stage position for `z_mm`; a configured calibration that cannot be applied (no
     accepted version to keep) is the file's error, not the daemon's."""
     try:
-        return d.focus_stage_mm(z_mm)
+        return stage_mm_for_focus(ctx.config, z_mm)
     except CalibrationFileError as exc:
         raise RpcError(INVALID_FILE, str(exc), {"field": "calibration.file"}) from None
 
 
-def _laser(d: Host, conn: Connection, p: Params) -> Any:
+def _laser(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     action = p.choice("action", ("arm", "disarm", "off", "power", "enable", "disable"))
-    link = d.laser
+    link = ctx.laser
     if action == "arm":
         cap_s = link.settings.arm_max_s
         duration_s = p.number("duration_s", 0.0, cap_s, low_open=True)
         p.done()
         # Who may arm (the kernel's uid, daemon.arm_users / arm_groups; never over TCP) and the
         # optional confirmation at the bench (a pending job): nhfd/daemon/arming.py.
-        return d.arming.arm(d, conn, duration_s)
+        return ctx.arming.arm(conn, duration_s)
     if action in ("disarm", "off"):
         p.done()
         # First, so that an arm still waiting for its confirmation can never land after this.
-        cancelled = d.arming.cancel()
+        cancelled = ctx.arming.cancel()
         link.disarm() if action == "disarm" else link.off()
         return {"armed": False, "all_off": True,
                 **({"cancelled_arm_job": cancelled} if cancelled is not None else {})}
@@ -217,76 +216,78 @@ def _laser(d: Host, conn: Connection, p: Params) -> Any:
     if action == "power":
         power_pct = p.number("power_pct", 0.0, 100.0)
         p.done()
-        check_laser_command(d.config, action, channel, power_pct)
+        check_laser_command(ctx.config.daemon, action, channel, power_pct)
         applied = link.power(channel, power_pct)
         return {"channel": channel, "power_pct": applied, "capped": applied < power_pct}
     p.done()
-    check_laser_command(d.config, action, channel, None)
-    if action == "enable" and d.bench.slm_lost is not None:
+    check_laser_command(ctx.config.daemon, action, channel, None)
+    if action == "enable" and ctx.bench.slm_lost is not None:
         # The light would fall on a panel the daemon does not control.
-        raise RpcError(LASER_REFUSED, f"SLM output lost ({d.bench.slm_lost}): no diode may be "
+        raise RpcError(LASER_REFUSED, f"SLM output lost ({ctx.bench.slm_lost}): no diode may be "
                        "enabled until it is back", {"device": "slm"})
     link.enable(channel, action == "enable")
     return {"channel": channel, "enabled": action == "enable"}
 
 
-def _stop(d: Host, conn: Connection, p: Params) -> Any:
+def _stop(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     p.done()
-    cancelled = d.bench_jobs.cancel_all() + d.load_jobs.cancel_all()
+    cancelled = ctx.bench_jobs.cancel_all() + ctx.load_jobs.cancel_all()
     try:
-        stage = d.bench.stop_stage()
+        stage = ctx.bench.stop_stage()
     except Exception as exc:
         raise RpcError(DEVICE_ERROR, f"stage stop failed: {exc}", {"device": "stage"}) from None
     return {"cancelled_jobs": cancelled, "stage": stage}
 
 
-def _blank(d: Host, conn: Connection, p: Params) -> Any:
+def _blank(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     p.done()
     try:
-        d.panel.blank()
+        ctx.panel.blank()
     except Exception as exc:
         raise RpcError(DEVICE_ERROR, f"blank failed: {exc}", {"device": "slm"}) from None
     return {"showing": "blank"}
 
 
-def _camera(d: Host) -> Any:
+def _camera(ctx: RpcContext) -> Any:
     """The open camera, or NOT_AVAILABLE with why there is none."""
-    if d.bench.camera is None:
+    if ctx.bench.camera is None:
         raise RpcError(NOT_AVAILABLE,
-                       f"no camera: {d.bench.errors['camera'] or 'none configured'}",
+                       f"no camera: {ctx.bench.errors['camera'] or 'none configured'}",
                        {"device": "camera"})
-    return d.bench.camera
+    return ctx.bench.camera
 
 
-def _snapshot(d: Host, conn: Connection, p: Params) -> Any:
+def _snapshot(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     raw = p.string("path", None)
     frames = p.integer("frames", 1, 1000, None)
     p.done()
-    name = raw or time.strftime("snapshot-%Y%m%d-%H%M%S") + f"-{d.next_snapshot()}.png"
-    path = inside("path", name, d.snapshot_dirs, d.base_dir)
+    name = raw or time.strftime("snapshot-%Y%m%d-%H%M%S") + f"-{next(ctx.snapshot_numbers)}.png"
+    path = inside("path", name, ctx.snapshot_dirs, ctx.base_dir)
     if path.suffix.lower() != ".png":
         raise bad_param("path", f"{raw!r} does not end in .png", "a .png file name")
-    _camera(d)  # refuse now, not in the job
+    _camera(ctx)  # refuse now, not in the job
 
     def run(job: Job) -> dict[str, Any]:
-        if d.config.daemon.colour_mode == "capture":
-            return capture_colours(d, job, path, frames)
-        cap = d.bench.capture(frames)  # a failure is the camera's error in status until it works
-        _LAST_CAPTURE[d.bench] = (time.time(), cap.image)
+        if ctx.config.daemon.colour_mode == "capture":
+            return capture_colours(job, path, frames, bench=ctx.bench, panel=ctx.panel,
+                                   laser=ctx.laser, audit=ctx.audit, shown=ctx.frames)
+        cap = ctx.bench.capture(frames)  # a failure is the camera's error in status until it works
+        _LAST_CAPTURE[ctx.bench] = (time.time(), cap.image)
         job.check()
         write_png16(path, cap.image)
         return {"path": str(path), "frames": cap.frames, "exposure_s": cap.exposure_s,
                 "saturated_fraction": cap.saturated_fraction,
                 "max_linear": float(cap.image.max()) if cap.image.size else 0.0}
 
-    job = d.submit_bench_job(Job("snapshot", {"path": str(path), "frames": frames}, run))
+    job = submit_or_busy(ctx.bench_jobs,
+                         Job("snapshot", {"path": str(path), "frames": frames}, run))
     return {"job": job.id, "path": str(path)}
 
 
-def _end_pattern(d: Host) -> None:
+def _end_pattern(ctx: RpcContext) -> None:
     """The last view frame (or the blank pattern) in place of a calibration pattern."""
     try:
-        d.panel.resume(d.frames.last_frame, d.frames.shown_seq)
+        ctx.panel.resume(ctx.frames.last_frame, ctx.frames.shown_seq)
     except Exception as exc:
         raise RpcError(DEVICE_ERROR, f"ending the calibration pattern failed: {exc}",
                        {"device": "slm"}) from None
@@ -323,32 +324,32 @@ def _pattern_frame(path: Any, hw: tuple[int, int]) -> np.ndarray:
     return np.ascontiguousarray(np.broadcast_to(a, (3, h, w)))
 
 
-def _show_pattern(d: Host, conn: Connection, p: Params) -> Any:
+def _show_pattern(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
-    path = _checked_file("path", raw, d.pattern_dirs, d.base_dir, PATTERN_SUFFIXES)
-    s = d.config.slm
+    path = _checked_file("path", raw, ctx.pattern_dirs, ctx.base_dir, PATTERN_SUFFIXES)
+    s = ctx.config.slm
     frame = _pattern_frame(path, (s.height_px, s.width_px))
-    if d.bench.slm is None:
-        raise RpcError(NOT_AVAILABLE, f"no SLM: {d.bench.errors['slm'] or 'none configured'}",
+    if ctx.bench.slm is None:
+        raise RpcError(NOT_AVAILABLE, f"no SLM: {ctx.bench.errors['slm'] or 'none configured'}",
                        {"device": "slm"})
-    if d.bench.slm_lost is not None:
-        raise RpcError(DEVICE_ERROR, f"SLM output lost ({d.bench.slm_lost})", {"device": "slm"})
+    if ctx.bench.slm_lost is not None:
+        raise RpcError(DEVICE_ERROR, f"SLM output lost ({ctx.bench.slm_lost})", {"device": "slm"})
     try:
-        d.panel.show_pattern(frame, str(path))
+        ctx.panel.show_pattern(frame, str(path))
     except Exception as exc:
         raise RpcError(DEVICE_ERROR, f"show_pattern failed: {exc}", {"device": "slm"}) from None
     return {"showing": str(path), "shape": list(frame.shape)}
 
 
-def _stage_move(d: Host, conn: Connection, p: Params) -> Any:
-    stage = d.bench.stage
+def _stage_move(ctx: RpcContext, conn: Connection, p: Params) -> Any:
+    stage = ctx.bench.stage
     low, high = (stage.settings.soft_limits_mm if stage is not None else (-1e6, 1e6))
     position = p.number("position_mm", low, high)
     home = p.boolean("home", False)
     p.done()
     if stage is None:
-        raise RpcError(NOT_AVAILABLE, f"no stage: {d.bench.errors['stage'] or 'none configured'}",
+        raise RpcError(NOT_AVAILABLE, f"no stage: {ctx.bench.errors['stage'] or 'none configured'}",
                        {"device": "stage"})
 
     def run(job: Job) -> dict[str, Any]:
@@ -358,41 +359,42 @@ def _stage_move(d: Host, conn: Connection, p: Params) -> Any:
         state = stage.move_to(position)
         return {"stage_mm": state.position_mm if state else position}
 
-    job = d.submit_bench_job(Job("stage_move", {"position_mm": position, "home": home}, run))
+    job = submit_or_busy(ctx.bench_jobs,
+                         Job("stage_move", {"position_mm": position, "home": home}, run))
     return {"job": job.id, "stage_mm": position}
 
 
-def _capture(d: Host, conn: Connection, p: Params) -> Any:
+def _capture(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     frames = p.integer("frames", 1, 1000, None)
     exposure_s = p.number("exposure_s", 1e-6, 60.0, None, low_open=False)
     dark = p.boolean("dark", False)
     p.done()
-    path = inside("path", raw, [*d.pattern_dirs, *d.snapshot_dirs], d.base_dir)
+    path = inside("path", raw, [*ctx.pattern_dirs, *ctx.snapshot_dirs], ctx.base_dir)
     if path.suffix.lower() != ".npy":
         raise bad_param("path", f"{raw!r} does not end in .npy", "a .npy file name")
-    camera = _camera(d)
+    camera = _camera(ctx)
     mask_path = path.with_name(f"{path.stem}.saturated.npy")
 
     def run(job: Job) -> dict[str, Any]:
         if exposure_s is not None:
             camera.set_exposure(exposure_s)  # the same value keeps the stored dark frame
         if dark:
-            d.laser.refresh()
-            lit = [ch for ch, c in (d.laser.status().get("channels") or {}).items()
+            ctx.laser.refresh()
+            lit = [ch for ch, c in (ctx.laser.status().get("channels") or {}).items()
                    if c.get("enabled") and c.get("power_pct", 0) > 0]
             if lit:
                 raise RuntimeError(f"a dark frame needs every laser off; on: {', '.join(lit)}")
-        if d.bench.slm is not None:
-            d.bench.slm.wait_settled()
+        if ctx.bench.slm is not None:
+            ctx.bench.slm.wait_settled()
         job.check()
         if dark:
-            image = d.bench.camera.capture_dark(frames)
+            image = ctx.bench.camera.capture_dark(frames)
             saturated = np.zeros(image.shape, bool)
             n, exposure = frames or camera.settings.burst_frames, camera.exposure_s
         else:
-            cap = d.bench.capture(frames)
-            _LAST_CAPTURE[d.bench] = (time.time(), cap.image)
+            cap = ctx.bench.capture(frames)
+            _LAST_CAPTURE[ctx.bench] = (time.time(), cap.image)
             image, saturated, n, exposure = cap.image, cap.saturated, cap.frames, cap.exposure_s
         job.check()
         path.parent.mkdir(parents=True, exist_ok=True)
@@ -400,16 +402,16 @@ def _capture(d: Host, conn: Connection, p: Params) -> Any:
             tmp = target.with_name(f".{target.name}.tmp.npy")
             np.save(tmp, array)
             tmp.replace(target)
-        stage = d.bench.status()["stage"].get("position_mm")
+        stage = ctx.bench.status()["stage"].get("position_mm")
         return {"path": str(path), "saturated_path": str(mask_path), "dark": dark,
                 "frames": n, "exposure_s": exposure, "gain_db": camera.gain_db,
                 "shape": list(image.shape),
                 "saturated_fraction": float(saturated.mean()) if saturated.size else 0.0,
                 "max_linear": float(image.max()) if image.size else 0.0,
-                "stage_mm": stage, "showing": d.panel.showing}
+                "stage_mm": stage, "showing": ctx.panel.showing}
 
-    job = d.submit_bench_job(Job("capture", {"path": str(path), "frames": frames,
-                                             "exposure_s": exposure_s, "dark": dark}, run))
+    job = submit_or_busy(ctx.bench_jobs, Job("capture", {
+        "path": str(path), "frames": frames, "exposure_s": exposure_s, "dark": dark}, run))
     return {"job": job.id, "path": str(path)}
 
 
@@ -433,10 +435,10 @@ def _readable_file(field: str, path: Any) -> Any:
     return path
 
 
-def _load_scene(d: Host, conn: Connection, p: Params) -> Any:
+def _load_scene(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
-    path = inside("path", raw, d.scene_dirs, d.base_dir)
+    path = inside("path", raw, ctx.scene_dirs, ctx.base_dir)
     # A SOG scene may be a folder, or named by its meta.json; anything else is one file with a
     # scene suffix. Only scenes have such names: _checked_file (models, patterns) is suffix-only.
     if path.name.lower() in SCENE_NAMES:
@@ -450,62 +452,60 @@ def _load_scene(d: Host, conn: Connection, p: Params) -> Any:
         # more than daemon.max_gaussians or needs more than daemon.scene_memory_mb before the
         # worker is asked: the old scene keeps rendering. Read in a child process (scene_check
         # says why), so neither the daemon's memory nor its control loop pays for the file.
-        counts = read_scene_counts(path, d.config.daemon.max_gaussians,
-                                   d.config.daemon.scene_memory_mb, job.check)
+        counts = read_scene_counts(path, ctx.config.daemon.max_gaussians,
+                                   ctx.config.daemon.scene_memory_mb, job.check)
         job.check()
         info = {"path": str(path), **counts, "loaded_s": time.time()}
         # The frame worker loads its own copy (it renders in another process).
-        info.update(d.frames.load_scene(str(path)), loaded_s=time.time())
-        d.scene = info  # replaced only now: on failure the old scene keeps running
+        info.update(ctx.frames.load_scene(str(path)), loaded_s=time.time())
+        ctx.scene = info  # replaced only now: on failure the old scene keeps running
         return info
 
-    return _submit_load(d, "load_scene", path, run)
+    return _submit_load(ctx, "load_scene", path, run)
 
 
-def _submit_load(d: Host, kind: str, path: Any, run: Any) -> dict[str, Any]:
+def _submit_load(ctx: RpcContext, kind: str, path: Any, run: Any) -> dict[str, Any]:
     """Queue a scene or model load; a full queue is BUSY, not a wait."""
-    try:
-        job = d.load_jobs.submit(Job(kind, {"path": str(path)}, run))
-    except queue.Full:
-        raise RpcError(BUSY, "too many loads queued", {"field": "path"}) from None
+    job = submit_or_busy(ctx.load_jobs, Job(kind, {"path": str(path)}, run),
+                         "too many loads queued", {"field": "path"})
     return {"job": job.id, "path": str(path)}
 
 
-def _load_model(d: Host, conn: Connection, p: Params) -> Any:
+def _load_model(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     raw = p.string("path")
     p.done()
-    path = _checked_file("path", raw, d.model_dirs, d.base_dir, MODEL_SUFFIXES)
+    path = _checked_file("path", raw, ctx.model_dirs, ctx.base_dir, MODEL_SUFFIXES)
 
     def run(job: Job) -> dict[str, Any]:
         # The worker checks the metadata against [optics] (ModelMismatch names each differing
         # field) and swaps models only on success: on failure the old one keeps running.
-        return d.frames.load_model(str(path))
+        return ctx.frames.load_model(str(path))
 
-    return _submit_load(d, "load_model", path, run)
+    return _submit_load(ctx, "load_model", path, run)
 
 
-def _job(d: Host, conn: Connection, p: Params) -> Any:
+def _job(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     job_id = p.integer("id", 1, 2**53)
     p.done()
-    job = d.bench_jobs.get(job_id) or d.load_jobs.get(job_id)
+    job = ctx.bench_jobs.get(job_id) or ctx.load_jobs.get(job_id)
     if job is None:
         raise RpcError(NO_SUCH_JOB, f"no job {job_id} (finished jobs are kept: "
-                       f"daemon.jobs_kept = {d.config.daemon.jobs_kept})", {"field": "id"})
+                       f"daemon.jobs_kept = {ctx.config.daemon.jobs_kept})", {"field": "id"})
     return job.to_json()
 
 
-def _preview(d: Host, conn: Connection, p: Params) -> Any:
+def _preview(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     source = p.choice("source", ("slm", "camera"))
     max_px = p.integer("max_px", 16, 4096, 320)
     p.done()
     if source == "slm":
-        slm = d.bench.slm
+        slm = ctx.bench.slm
         frame = slm.last_frame if slm is not None else None  # [3, H, W] uint8, what it shows
         if frame is None:
-            return {"source": source, "available": False, "showing": d.panel.showing}
-        pixels, extra = frame.transpose(1, 2, 0), {"showing": d.panel.showing}
+            return {"source": source, "available": False, "showing": ctx.panel.showing}
+        pixels, extra = frame.transpose(1, 2, 0), {"showing": ctx.panel.showing}
     else:
-        last = _LAST_CAPTURE.get(d.bench)
+        last = _LAST_CAPTURE.get(ctx.bench)
         if last is None:
             return {"source": source, "available": False}
         time_s, image = last
@@ -523,18 +523,18 @@ def _preview(d: Host, conn: Connection, p: Params) -> Any:
             **extra}
 
 
-def _auth(d: Host, conn: Connection, p: Params) -> Any:
+def _auth(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     token = p.string("token", max_len=1024)
     p.done()
     if conn.transport == "unix":
         return {"authenticated": True}  # the socket's mode and group already decide
-    if d.tcp_token is None or not hmac.compare_digest(token.encode(), d.tcp_token.encode()):
+    if ctx.tcp_token is None or not hmac.compare_digest(token.encode(), ctx.tcp_token.encode()):
         raise RpcError(UNAUTHORIZED, "wrong token", {"field": "token"})
     conn.authed = True
     return {"authenticated": True}
 
 
-def _web_client(d: Host, conn: Connection, p: Params) -> Any:
+def _web_client(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     """The web view runs on a thread of this daemon and reaches it over the Unix socket, so
     without this its requests read in the audit log as the daemon's own. It names the web
     client (address, TLS, the token file it signed in with) that the next requests on this
@@ -554,9 +554,9 @@ def _web_client(d: Host, conn: Connection, p: Params) -> Any:
     return {"web_client": client}
 
 
-def _shutdown(d: Host, conn: Connection, p: Params) -> Any:
+def _shutdown(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     p.done()
-    d.request_shutdown(f"shutdown requested by {conn.who}")
+    ctx.request_shutdown(f"shutdown requested by {conn.who}")
     return {"shutting_down": True}
 
 

@@ -16,15 +16,16 @@ below the laser heartbeat's timeout.
 from __future__ import annotations
 
 import logging
-from typing import Any, Protocol
+from typing import Any
 
-from nhfd.config import Config
+from nhfd.config import DeviceSettings
 from nhfd.drivers import factory
 from nhfd.drivers.navigator import Waypoint
 from nhfd.views import Orbit, View
 
 from .audit import AuditLog
 from .protocol import Params, RpcError
+from .recording import SessionRecorder
 from .views import ELEVATION_DEG, ViewSlot, parse_view
 
 log = logging.getLogger("nhfd.daemon.navigation")
@@ -58,20 +59,21 @@ def relative_move(view: View, reading: Any, dt_s: float) -> dict[str, Any] | Non
     return {"translate": t, "rotate_deg": r}
 
 
-class Host(Protocol):
-    """What navigator input uses of the daemon (`nhfd.daemon.service.Daemon`)."""
-
-    config: Config
-    views: ViewSlot
-    audit: AuditLog
-
-    def record(self, method: str, params: dict[str, Any], who: dict[str, Any],
-               result: Any = None) -> None: ...
-
-
 class NavigatorInput:
-    def __init__(self, d: Host) -> None:
-        self.d = d
+    """The navigator, read from the control loop: its motion moves the current view through
+    the view slot, each move audited and recorded as a client's set_view is."""
+
+    def __init__(self, devices: DeviceSettings, period_s: float, views: ViewSlot,
+                 audit: AuditLog, recorder: SessionRecorder) -> None:
+        """`devices`: `[devices]` (which navigator, and the SpaceMouse's settings).
+        `period_s`: how often it is read (`daemon.navigator_period_s`). `views`: the slot its
+        moves go to (the current view read from it). `audit`, `recorder`: where each move is
+        written, as the navigator's (`WHO`)."""
+        self.devices = devices
+        self.period_s = period_s
+        self.views = views
+        self.audit = audit
+        self.recorder = recorder
         self.navigator: Any = None
         self.error: str | None = None
         self.moves = 0
@@ -80,9 +82,9 @@ class NavigatorInput:
         self._next_s = 0.0
 
     def open(self) -> None:
-        devices = self.d.config.devices
+        """Open the configured navigator; one that fails is left out (`status` says why)."""
         try:
-            self.navigator = factory.make_navigator(devices, SIMULATED_SCRIPT)
+            self.navigator = factory.make_navigator(self.devices, SIMULATED_SCRIPT)
             if self.navigator is not None:
                 self.navigator.open()
         except Exception as exc:  # the daemon runs on without it; status says why
@@ -91,6 +93,7 @@ class NavigatorInput:
             log.error("navigator: %s", self.error)
 
     def close(self) -> None:
+        """Close the navigator (an error only logged: the daemon is on its way out)."""
         if self.navigator is not None:
             try:
                 self.navigator.close()
@@ -107,7 +110,7 @@ class NavigatorInput:
         """From the control loop, every tick; reads at most every navigator_period_s."""
         if self.navigator is None or now < self._next_s:
             return
-        self._next_s = now + self.d.config.daemon.navigator_period_s
+        self._next_s = now + self.period_s
         try:
             reading = self.navigator.read()
             self.error = None
@@ -116,7 +119,7 @@ class NavigatorInput:
             self._last_s = None
             return
         last, self._last_s = self._last_s, now
-        current = self.d.views.view
+        current = self.views.view
         if last is None or current is None:
             return
         rel = relative_move(current, reading, now - last)
@@ -127,14 +130,15 @@ class NavigatorInput:
         except RpcError as exc:  # e.g. a pose that would leave the coordinate range
             self.error = f"move refused: {exc.message}"
             return
-        seq = self.d.views.submit(view)
+        seq = self.views.submit(view)
         shown = view.to_json()
-        self.d.audit.view(WHO, seq, shown)
-        self.d.record("set_view", {}, WHO, {"view": shown})
+        self.audit.view(WHO, seq, shown)
+        self.recorder.record_request("set_view", {}, WHO, {"view": shown})
         self.moves += 1
         self.last_seq = seq
 
     def status(self) -> dict[str, Any]:
-        return {"backend": self.d.config.devices.navigator, "open": self.navigator is not None,
+        """`status.navigator`: the backend, whether it is open, its moves and last error."""
+        return {"backend": self.devices.navigator, "open": self.navigator is not None,
                 "moves": self.moves, "last_seq": self.last_seq, "error": self.error,
-                "period_s": self.d.config.daemon.navigator_period_s}
+                "period_s": self.period_s}

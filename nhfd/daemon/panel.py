@@ -63,7 +63,12 @@ def blank_pattern(config: Config, cal: Calibration | None) -> np.ndarray:
 
 
 class Panel:
+    """What the SLM shows, and the one way to change it (see the module's docstring)."""
+
     def __init__(self, config: Config, devices: PanelDevices) -> None:
+        """`config`: the panel's size and curves (`[slm]`), the colour mode (`[daemon]`) and
+        the active calibration (`[calibration]`, whose curves code the blank). `devices`: the
+        SLM it drives and why there is none (the bench)."""
         self.config = config
         self.devices = devices
         self.current = "blank"  # status "display"
@@ -78,6 +83,12 @@ class Panel:
         """View frames do not reach the SLM: a calibration pattern or a capture sequence owns
         the panel."""
         return self._capturing or self.pattern is not None
+
+    @property
+    def vsync_detail(self) -> str:
+        """How the SLM paces frames to its refresh, when it says (the framebuffer's
+        FBIO_WAITFORVSYNC, or why not); "" otherwise."""
+        return str(getattr(self.devices.slm, "vsync_detail", "") or "")
 
     def blank_frame(self) -> np.ndarray:
         """The blank of the coding in use, rebuilt when a calibration is swapped in: shown by

@@ -8,11 +8,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 from nhfd.drivers.rundir import UnsafeDirectory, check_private_dir, make_private_dir, runtime_dir
 
 from .protocol import PATH_NOT_ALLOWED, RpcError
+
+if TYPE_CHECKING:  # the annotation only: the client imports this module without pydantic
+    from nhfd.config import Config
 
 __all__ = ["UnsafeDirectory", "check_private_dir", "make_private_dir", "runtime_dir"]
 
@@ -23,10 +26,12 @@ TOKEN_NAME = "tcp.token"
 
 def control_socket(configured_runtime_dir: str = "",
                    env: Mapping[str, str] | None = None) -> Path:
+    """The control socket in the runtime directory (`daemon.runtime_dir`, else the default one
+    for this user and environment)."""
     return runtime_dir(configured_runtime_dir, env) / SOCKET_NAME
 
 
-def socket_path(socket_arg: str | None, config: Any | Callable[[], Any]) -> str:
+def socket_path(socket_arg: str | None, config: Config | Callable[[], Config]) -> str:
     """The control socket a command talks to: its `--socket` when given, else the configured
     daemon's (`config.daemon.runtime_dir`, by the daemon's own rules). `config` may be a function
     that loads the configuration: it is then called only when no `--socket` is given, so a

@@ -187,19 +187,21 @@ def to_request(obj: Any) -> Request:
 # ---------------------------------------------------------------------------------- encoding
 
 
-def _sanitise(value: Any) -> Any:
+def sanitise(value: Any) -> Any:
+    """`value` with every non-finite float as None and tuples as lists: what JSON may carry
+    (the replies, the audit log and the session recording all write through it)."""
     if isinstance(value, float):
         return value if math.isfinite(value) else None
     if isinstance(value, dict):
-        return {str(k): _sanitise(v) for k, v in value.items()}
+        return {str(k): sanitise(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
-        return [_sanitise(v) for v in value]
+        return [sanitise(v) for v in value]
     return value
 
 
 def dumps(obj: Any) -> bytes:
     """One line of JSON; never NaN or Infinity (they become null)."""
-    return json.dumps(_sanitise(obj), allow_nan=False, separators=(",", ":")).encode() + b"\n"
+    return json.dumps(sanitise(obj), allow_nan=False, separators=(",", ":")).encode() + b"\n"
 
 
 def result_reply(request_id: Any, result: Any) -> dict[str, Any]:
@@ -245,7 +247,7 @@ class Params:
         self._used.add(name)
         if name in self._p:
             return self._p[name]
-        if default is Params._MISSING:
+        if default is self._MISSING:
             raise bad_param(self._prefix + name, "missing", allowed)
         return default
 

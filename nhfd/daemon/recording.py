@@ -23,7 +23,7 @@ from typing import IO, Any
 
 from nhfd import __version__
 
-from .protocol import _sanitise
+from .protocol import sanitise
 
 FORMAT = 1
 
@@ -42,28 +42,59 @@ def view_params(view: dict[str, Any]) -> dict[str, Any]:
 
 
 class SessionRecorder:
-    def __init__(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        self.path = path
+    """The session recording. `path` None: it records nothing until `open` (the daemon makes
+    one at construction and opens it at start when `daemon.record` names a file, so the parts
+    that record hold it from the first)."""
+
+    def __init__(self, path: Path | None = None) -> None:
+        self.path: Path | None = None
         self._lock = threading.Lock()  # the navigator and requests both record
         self._t0 = time.monotonic()
-        self._file: IO[str] | None = path.open("w", encoding="utf-8")
+        self._file: IO[str] | None = None
+        if path is not None:
+            self.open(path)
+
+    def open(self, path: Path) -> None:
+        """Start a new recording in `path` (replaced if it exists): the header line, and the
+        times of what follows counted from now."""
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with self._lock:
+            self.path = path
+            self._t0 = time.monotonic()
+            self._file = path.open("w", encoding="utf-8")
         self._line({"nhfd_session": FORMAT, "version": __version__,
                     "started_unix_s": round(time.time(), 3)})
 
+    @property
+    def recording(self) -> bool:
+        """Whether requests are being written (open, not yet closed)."""
+        return self._file is not None
+
     def record(self, method: str, params: dict[str, Any], who: dict[str, Any]) -> None:
+        """One request as it was sent (nothing when not recording)."""
+        if not self.recording:
+            return
         self._line({"t_s": round(time.monotonic() - self._t0, 4),
                     "unix_s": round(time.time(), 3), "method": method, "params": params,
                     "who": who})
 
+    def record_request(self, method: str, params: dict[str, Any], who: dict[str, Any],
+                       result: Any = None) -> None:
+        """One bench-changing request; a view as the absolute view it produced (`result`'s
+        "view"), so that replay does not depend on where a relative move started."""
+        if method == "set_view" and isinstance(result, dict) and "view" in result:
+            params = view_params(result["view"])
+        self.record(method, params, who)
+
     def _line(self, record: dict[str, Any]) -> None:
-        line = json.dumps(_sanitise(record), allow_nan=False, default=str)
+        line = json.dumps(sanitise(record), allow_nan=False, default=str)
         with self._lock:
             if self._file is not None:
                 self._file.write(line + "\n")
                 self._file.flush()  # a crash must not lose the steps that led to it
 
     def close(self) -> None:
+        """End the recording (what was written stays)."""
         with self._lock:
             if self._file is not None:
                 self._file.close()

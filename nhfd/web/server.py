@@ -69,9 +69,10 @@ import numpy as np
 from aiohttp import WSCloseCode, WSMsgType, web
 from PIL import Image
 
-from nhfd.config import LOOPBACK_HOSTS, WebSettings
+from nhfd.config import LOOPBACK_HOSTS, DaemonSettings, WebSettings
 from nhfd.daemon.audit import AuditLog
 from nhfd.daemon.client import Client, DaemonUnavailable
+from nhfd.daemon.paths import resolve_dirs
 from nhfd.daemon.protocol import (
     BUSY,
     DEVICE_ERROR,
@@ -268,22 +269,26 @@ def web_token(settings: WebSettings, *, runtime_dir: Path, daemon_token: str | N
     return token, path
 
 
-def serve_daemon(daemon: Any) -> WebView:
-    """Start the web view of a started `nhfd.daemon.service.Daemon` (in this process) with its
-    `[daemon.web]` settings, token and snapshot directory; `stop()` it before the daemon ends."""
-    c = daemon.config.daemon
-    settings = c.web
-    token, made = web_token(settings, runtime_dir=daemon.runtime_dir,
-                            daemon_token=daemon.tcp_token, base_dir=daemon.base_dir)
+def serve_web_view(settings: DaemonSettings, *, socket_path: Path, runtime_dir: Path,
+                   base_dir: Path, tcp_token: str | None, audit: AuditLog) -> WebView:
+    """Start the web view of a started daemon in this process: `settings` is its `[daemon]`
+    (`web`, `snapshot_dir`, `auth_timeout_s`, `audit_summary_s`), `socket_path` the Unix
+    socket the page's requests go to, `runtime_dir` where a token file is made when none is
+    configured, `base_dir` what relative paths are taken from, `tcp_token` the daemon's TCP
+    token (the page asks for it when it has one), `audit` the daemon's audit log (refusals go
+    there). `stop()` it before the daemon ends."""
+    web_settings = settings.web
+    token, made = web_token(web_settings, runtime_dir=runtime_dir, daemon_token=tcp_token,
+                            base_dir=base_dir)
     # A connection that has not sent a request within daemon.auth_timeout_s is dropped, as an
     # unauthenticated TCP client of the daemon is; refusals go to the daemon's audit log.
-    view = WebView(settings, socket_path=daemon.socket_path, token=token,
-                   snapshot_dir=daemon.snapshot_dirs[0] if daemon.snapshot_dirs else None,
-                   base_dir=daemon.base_dir, token_file_made=made, audit=daemon.audit,
-                   idle_timeout_s=c.auth_timeout_s, summary_s=c.audit_summary_s)
+    view = WebView(web_settings, socket_path=socket_path, token=token,
+                   snapshot_dir=resolve_dirs([settings.snapshot_dir], base_dir)[0],
+                   base_dir=base_dir, token_file_made=made, audit=audit,
+                   idle_timeout_s=settings.auth_timeout_s, summary_s=settings.audit_summary_s)
     view.token_source = made or (
-        daemon.base_dir / settings.token_file if settings.token_file
-        else daemon.runtime_dir / "tcp.token")
+        base_dir / web_settings.token_file if web_settings.token_file
+        else runtime_dir / "tcp.token")
     try:
         view.start()
     except BaseException:
@@ -293,6 +298,8 @@ def serve_daemon(daemon: Any) -> WebView:
 
 
 def tls_context(settings: WebSettings, base_dir: Path) -> ssl.SSLContext | None:
+    """The web view's TLS context from `daemon.web.tls_cert` and `tls_key` (relative to
+    `base_dir`), or None when no certificate is configured."""
     if not settings.tls_cert:
         return None
     return server_tls_context(base_dir / Path(settings.tls_cert).expanduser(),

@@ -75,6 +75,16 @@ class Running:
     def client(self, **kw: Any) -> Client:
         return Client(self.socket, **kw)
 
+    def web_view(self) -> Any:
+        """The daemon's web view on a thread of this process, started as `nhfd serve` starts
+        it (`nhfd.cli.cmd_serve`): `stop()` it before the daemon."""
+        from nhfd.web.server import serve_web_view  # aiohttp: the web extra
+
+        d = self.daemon
+        return serve_web_view(d.config.daemon, socket_path=d.socket_path,
+                              runtime_dir=d.runtime_dir, base_dir=d.base_dir,
+                              tcp_token=d.rpc.tcp_token, audit=d.audit)
+
     def stop(self) -> None:
         self.daemon.request_shutdown("test over")
         self.thread.join(10)

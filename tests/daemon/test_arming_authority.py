@@ -119,8 +119,16 @@ def test_membership_of_any_of_the_uids_groups_allows_arming():
         assert grp.getgrgid(entry.pw_gid).gr_name in why  # the user's groups, named
 
 
+def gate_of(daemon_settings: DaemonSettings, navigator_backend: str = "none") -> ArmingGate:
+    """A gate for what is decided before anything arms (authority, the settings' checks): its
+    collaborators are never called."""
+    unused: Any = None
+    return ArmingGate(daemon_settings, navigator_backend, laser=unused, audit=unused,
+                      bench_jobs=unused, navigation=unused)
+
+
 def test_tcp_and_the_web_views_connection_are_refused_whatever_their_uid():
-    gate = ArmingGate(settings())
+    gate = gate_of(settings())
     cases = {"tcp": ({"address": "127.0.0.1:5000", "uid": ME},
                      "arming is accepted only over the Unix socket"),
              "unix": ({"uid": ME, "pid": os.getpid(), "web_client": {"via": "web view"}},
@@ -137,8 +145,8 @@ def test_a_confirmation_without_its_input_is_a_configuration_error_naming_the_ke
                        r"daemon.arm_confirm_port"):
         check_confirm_settings(settings(arm_confirm="serial"), "none")
     with pytest.raises(ConfigError, match=r"'spacemouse' needs a navigator: devices.navigator"):
-        ArmingGate(settings(arm_confirm="spacemouse"), "none")
-    ArmingGate(settings(arm_confirm="spacemouse"), "simulated")  # a navigator: fine
+        gate_of(settings(arm_confirm="spacemouse"), "none")
+    gate_of(settings(arm_confirm="spacemouse"), "simulated")  # a navigator: fine
 
 
 def test_a_peer_whose_uid_is_not_allowed_is_refused_and_audited(short_dir, mecom_twin,

@@ -33,12 +33,13 @@ def test_twenty_thousand_refusals_stay_under_the_limit_with_exact_counts(short_d
             else:
                 msg = {"jsonrpc": "2.0", "id": i, "method": "laser",
                        "params": {"action": "blast", "pad": pad}}
-            reply = r.daemon.handle_message(conn, msg)
+            reply = r.daemon.dispatcher.handle_message(conn, msg)
             assert reply["error"]["code"] == -32602
             sent[(msg["method"], -32602)] += 1
         conn = Connection(None, "unix", {"uid": 1000, "pid": 1})  # type: ignore[arg-type]
-        reply = r.daemon.handle_message(conn, {"jsonrpc": "2.0", "id": 0, "method": "laser",
-                                               "params": {"action": "off"}})
+        reply = r.daemon.dispatcher.handle_message(conn, {"jsonrpc": "2.0", "id": 0,
+                                                          "method": "laser",
+                                                          "params": {"action": "off"}})
         assert reply["result"] == {"armed": False, "all_off": True}
     finally:
         r.stop()
@@ -102,8 +103,9 @@ def test_an_internal_error_is_audited_with_its_params_cut_short(running, monkeyp
 
     monkeypatch.setitem(METHODS, "focus", Method(boom, audited=True))
     conn = Connection(None, "unix", {"uid": 1000, "pid": 7})  # type: ignore[arg-type]
-    reply = running.daemon.handle_message(conn, {"jsonrpc": "2.0", "id": 1, "method": "focus",
-                                                 "params": {"pad": "y" * 100_000}})
+    reply = running.daemon.dispatcher.handle_message(conn, {"jsonrpc": "2.0", "id": 1,
+                                                            "method": "focus",
+                                                            "params": {"pad": "y" * 100_000}})
     assert reply["error"]["code"] == -32603
     running.stop()
     lines = _lines(running.daemon.runtime_dir)

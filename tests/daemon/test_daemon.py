@@ -109,7 +109,7 @@ def test_ten_thousand_bad_requests_leave_the_daemon_serving_and_unchanged(runnin
     assert after["laser"]["armed"] is False and after["daemon"]["state"] == "ready"
     assert after["devices"]["stage"].get("homed") == before["devices"]["stage"].get("homed")
     assert mecom_twin.max_emitted_pct() == 0.0
-    assert not list((running.daemon.snapshot_dirs[0]).iterdir())
+    assert not list((running.daemon.rpc.snapshot_dirs[0]).iterdir())
 
 
 def test_eight_clients_storming_set_view_end_on_the_last_sequence_number(running):

@@ -44,7 +44,7 @@ def test_a_stalled_loop_is_logged_and_the_disarm_audited_with_the_guardians_reas
         stalls = [rec.getMessage() for rec in caplog.records
                   if "the control loop stalled" in rec.getMessage()]
         assert stalls and f"the guardian disarms at {timeout_s * 1e3:.0f} ms" in stalls[0]
-        disarms = [e for e in _audit(r.daemon._audit_path().parent)
+        disarms = [e for e in _audit(r.daemon.audit.path.parent)
                    if str(e.get("what", "")).startswith("laser disarmed by the guardian")]
         assert [e["what"] for e in disarms] == [
             f"laser disarmed by the guardian: no heartbeat for {timeout_s:g} s"]

@@ -100,7 +100,7 @@ def test_the_frame_workers_pipe_wakes_the_loop_and_leaves_the_selector_when_not_
     t0 = time.monotonic()
     d.step(30.0)  # woken by the pipe, and the message collected in the same step
     assert time.monotonic() - t0 < 15
-    assert d.errors[-1]["message"] == "view 7: a message from the worker"
+    assert d.errors.entries()[-1]["message"] == "view 7: a message from the worker"
     # A crashed worker's pipe (end of file nobody drains) leaves the selector, or every
     # select would return at once.
     frames.state = "crashed"

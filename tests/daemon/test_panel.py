@@ -1,5 +1,6 @@
 """The panel (nhfd/daemon/panel.py) is the one owner of what the SLM shows, and the control
-plane's modules take narrow Protocols of the daemon instead of importing it (issue 22)."""
+plane's modules take narrow Protocols of the parts they use instead of the daemon (issues 22
+and 33; tests/daemon/test_parts.py keeps the daemon out of their constructors)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,8 @@ from typing import Any, Generic, Protocol
 import numpy as np
 import pytest
 
-from nhfd.daemon import colour, methods, navigation
+from nhfd.daemon import arming, colour, frame_link, methods
+from nhfd.daemon import panel as panel_module
 from nhfd.daemon.panel import Panel, blank_pattern
 from nhfd.daemon.service import Daemon
 
@@ -114,13 +116,15 @@ def test_output_lost(short_dir):
     assert (panel.current, panel.showing) == ("nothing (SLM output lost)", "nothing (output lost)")
 
 
-# -- the Protocols ----------------------------------------------------------------------------
+# -- the Protocols and the methods' context ---------------------------------------------------
 
 
-def members(proto: type) -> set[str]:
+def members(declared: type) -> set[str]:
+    """What a Protocol (its Protocol bases included) or a dataclass declares."""
     out: set[str] = set()
-    for cls in proto.__mro__:
-        if cls in (Protocol, Generic, object) or not getattr(cls, "_is_protocol", False):
+    for cls in declared.__mro__:
+        if cls in (Protocol, Generic, object) or not (
+                getattr(cls, "_is_protocol", False) or cls is declared):
             continue
         out |= set(getattr(cls, "__annotations__", {}))
         out |= {k for k in vars(cls) if not k.startswith("_")}
@@ -139,22 +143,33 @@ def used(path: Path, name: str, via: str | None = None) -> set[str]:
     return {n.attr for n in ast.walk(tree) if isinstance(n, ast.Attribute) and is_host(n.value)}
 
 
-@pytest.mark.parametrize(("module", "proto", "name", "via"), [
-    ("methods.py", methods.Host, "d", None),
-    ("colour.py", colour.CaptureHost, "d", None),
-    ("navigation.py", navigation.Host, "d", "self"),
+@pytest.mark.parametrize(("module", "declared", "name", "via"), [
+    ("methods.py", methods.RpcContext, "ctx", None),
+    ("colour.py", colour.CaptureBench, "bench", None),
+    ("colour.py", colour.CapturePanel, "panel", None),
+    ("colour.py", colour.ShownViews, "shown", None),
+    ("arming.py", arming.NavigatorState, "navigation", "self"),
+    ("frame_link.py", frame_link.ViewSource, "views", "self"),
 ])
-def test_each_protocol_names_what_its_module_uses_of_the_daemon(module, proto, name, via):
-    assert used(DAEMON / module, name, via) <= members(proto)
+def test_each_protocol_names_what_its_module_uses_of_another_part(module, declared, name, via):
+    assert used(DAEMON / module, name, via) <= members(declared)
 
 
-def test_the_daemon_has_what_each_protocol_names(short_dir):
+def test_the_parts_the_daemon_wires_have_what_each_protocol_names(short_dir):
     daemon = Daemon(bench_config(short_dir, None), base_dir=short_dir, env={},
                     handle_signals=False)
-    for proto in (methods.Host, colour.CaptureHost, navigation.Host):
-        assert [m for m in members(proto) if not hasattr(daemon, m)] == [], proto
-    # The methods hand their daemon to the capture sequence.
-    assert members(colour.CaptureHost) <= members(methods.Host)
+    ctx = daemon.rpc
+    for declared, part in ((colour.CaptureBench, ctx.bench), (colour.CapturePanel, ctx.panel),
+                           (colour.ShownViews, ctx.frames), (methods.Frames, ctx.frames),
+                           (frame_link.PanelView, daemon.panel),
+                           (frame_link.ViewSource, daemon.views),
+                           (panel_module.PanelDevices, daemon.bench),
+                           (arming.NavigatorState, daemon.navigation)):
+        assert [m for m in members(declared) if not hasattr(part, m)] == [], declared
+    # The methods act on the daemon's own parts, not copies.
+    for name in ("audit", "laser", "arming", "bench", "panel", "views", "frames", "bench_jobs",
+                 "load_jobs"):
+        assert getattr(ctx, name) is getattr(daemon, name), name
 
 
 def test_the_daemon_package_imports_without_a_circle():

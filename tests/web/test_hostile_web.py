@@ -26,7 +26,7 @@ from tests.daemon.conftest import bench_config, running_daemon, wait_until
 
 aiohttp = pytest.importorskip("aiohttp", reason="the web view needs the web extra (aiohttp)")
 
-from nhfd.web.server import MAX_DEPTH, MAX_IN_FLIGHT, WebView, serve_daemon  # noqa: E402
+from nhfd.web.server import MAX_DEPTH, MAX_IN_FLIGHT, WebView  # noqa: E402
 
 TOKEN = "t0k3n"
 GUARD_S = 10.0  # how long a test waits for something that should come at once (never a measure)
@@ -394,7 +394,7 @@ def test_the_web_views_thread_ending_leaves_the_daemon_serving_and_the_lasers_as
         caplog):
     caplog.set_level(logging.INFO, logger="nhfd.web")
     with running_daemon(armed_daemon_config, "nhfd-w-") as (r, _):
-        view = serve_daemon(r.daemon)
+        view = r.web_view()
         try:
             with r.client() as c:
                 c.call("laser", action="arm", duration_s=60)
@@ -419,7 +419,7 @@ def test_the_web_views_thread_ending_leaves_the_daemon_serving_and_the_lasers_as
 
 def test_all_lasers_off_from_the_page_is_audited_as_the_web_client(tmp_path):
     with running_daemon(armed_daemon_config, "nhfd-w-") as (r, root):
-        view = serve_daemon(r.daemon)
+        view = r.web_view()
 
         async def run() -> tuple[str, dict]:
             async with await signed_in_with(view, (root / "run" / "web.token")) as s:

@@ -30,7 +30,7 @@ from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support.ui import WebDriverWait
 
-from nhfd.web.server import serve_daemon
+from nhfd.daemon.bench import stage_mm_for_focus
 from tests.daemon.conftest import Running, bench_config, wait_until
 
 REPO = Path(__file__).resolve().parents[2]
@@ -67,7 +67,7 @@ def bench():
     try:
         # Homing (from 7 mm at 2 mm/s) runs while the browser starts; focus needs a homed stage.
         r.client().call("stage_move", position_mm=0.0, home=True)
-        view = serve_daemon(r.daemon)
+        view = r.web_view()
         yield r, view, root
     finally:
         if view is not None:
@@ -156,7 +156,7 @@ def test_the_page_shows_the_bench_and_steers_it_but_never_arms(bench, browser):
     browser.execute_script("""
         const s = document.getElementById('focus'); s.value = arguments[0];
         s.dispatchEvent(new Event('input')); s.dispatchEvent(new Event('change'));""", z_mm)
-    target_mm = r.daemon.focus_stage_mm(z_mm)
+    target_mm = stage_mm_for_focus(r.daemon.config, z_mm)
     assert target_mm == pytest.approx(0.4)
     wait_until(lambda: abs(stage.position_mm - target_mm) < 1e-3, 10, "the stage twin at focus")
     wait.until(lambda d: d.find_element(By.ID, "stage").text.startswith("0.400 mm"))
