@@ -1,4 +1,5 @@
-"""Thorlabs APT messages for KDC101 / TDC001 motor controllers (hardware.md, "Stage").
+"""Thorlabs APT messages for KDC101 / TDC001 motor controllers (docs/design.md, "The hardware":
+Stage).
 
 Header, 6 bytes little-endian:
   short message  `<H B B B B`  id, param1, param2, dest, source
@@ -25,6 +26,8 @@ LONG_HEADER = struct.Struct("<HHBB")
 
 
 class MsgId(IntEnum):
+    """The APT message ids nhfd sends or reads."""
+
     HW_DISCONNECT = 0x0002
     HW_REQ_INFO = 0x0005
     HW_GET_INFO = 0x0006
@@ -51,6 +54,8 @@ class MsgId(IntEnum):
 
 
 class Status(IntFlag):
+    """The status bits of a DC servo controller's status block (limits, motion, homing, enabled)."""
+
     LIMIT_CW = 0x1
     LIMIT_CCW = 0x2
     MOVING_CW = 0x10
@@ -108,6 +113,9 @@ FROM_UNIT: dict[int, int | None] = {
 
 @dataclass(frozen=True)
 class Message:
+    """One APT message: id, the two header parameters (short form) or the data (long form),
+    destination and source."""
+
     msg_id: int
     param1: int = 0
     param2: int = 0
@@ -116,6 +124,7 @@ class Message:
     source: int = HOST
 
     def encode(self) -> bytes:
+        """The message's bytes: the 6-byte header, then the data of a long message."""
         if self.data is None:
             return HEADER.pack(self.msg_id, self.param1, self.param2, self.dest, self.source)
         return (
@@ -125,6 +134,7 @@ class Message:
 
     @property
     def name(self) -> str:
+        """The id's name in `MsgId`, else its hex value."""
         try:
             return MsgId(self.msg_id).name
         except ValueError:
@@ -133,10 +143,12 @@ class Message:
 
 def short(msg_id: int, param1: int = 0, param2: int = 0, *, dest: int = USB_UNIT,
           source: int = HOST) -> bytes:
+    """A header-only message's bytes (host to controller unless `dest` and `source` say)."""
     return Message(msg_id, param1, param2, None, dest, source).encode()
 
 
 def long(msg_id: int, data: bytes, *, dest: int = USB_UNIT, source: int = HOST) -> bytes:
+    """A long message's bytes: the header with the data's length, then `data`."""
     return Message(msg_id, data=data, dest=dest, source=source).encode()
 
 
@@ -144,59 +156,75 @@ def long(msg_id: int, data: bytes, *, dest: int = USB_UNIT, source: int = HOST) 
 
 
 def req_info() -> bytes:
+    """HW_REQ_INFO: ask for the controller's `HwInfo`."""
     return short(MsgId.HW_REQ_INFO)
 
 
 def start_update_msgs() -> bytes:
+    """HW_START_UPDATEMSGS: ask for periodic status updates (`DcStatus`)."""
     return short(MsgId.HW_START_UPDATEMSGS)
 
 
 def stop_update_msgs() -> bytes:
+    """HW_STOP_UPDATEMSGS: stop the status updates."""
     return short(MsgId.HW_STOP_UPDATEMSGS)
 
 
 def disconnect() -> bytes:
+    """HW_DISCONNECT: tell the controller the host is leaving."""
     return short(MsgId.HW_DISCONNECT)
 
 
 def set_channel_enable(channel: int, on: bool) -> bytes:
+    """MOD_SET_CHANENABLESTATE: enable or disable `channel`'s motor drive."""
     return short(MsgId.MOD_SET_CHANENABLESTATE, channel, ENABLE_ON if on else ENABLE_OFF)
 
 
 def move_home(channel: int) -> bytes:
+    """MOT_MOVE_HOME: home `channel` (answered by MOT_MOVE_HOMED)."""
     return short(MsgId.MOT_MOVE_HOME, channel)
 
 
 def move_absolute(channel: int, position_counts: int) -> bytes:
+    """MOT_MOVE_ABSOLUTE: move `channel` to `position_counts` (encoder counts)."""
     return long(MsgId.MOT_MOVE_ABSOLUTE, MOVE.pack(channel, position_counts))
 
 
 def move_relative(channel: int, distance_counts: int) -> bytes:
+    """MOT_MOVE_RELATIVE: move `channel` by `distance_counts` (encoder counts, signed)."""
     return long(MsgId.MOT_MOVE_RELATIVE, MOVE.pack(channel, distance_counts))
 
 
 def move_stop(channel: int, immediate: bool = True) -> bytes:
+    """MOT_MOVE_STOP: stop `channel`, at once or with the deceleration profile."""
     return short(MsgId.MOT_MOVE_STOP, channel, STOP_IMMEDIATE if immediate else STOP_PROFILED)
 
 
 def req_status_bits(channel: int) -> bytes:
+    """MOT_REQ_STATUSBITS: ask for `channel`'s status bits."""
     return short(MsgId.MOT_REQ_STATUSBITS, channel)
 
 
 def req_dc_status(channel: int) -> bytes:
+    """MOT_REQ_DCSTATUSUPDATE: ask for `channel`'s status block (`DcStatus`)."""
     return short(MsgId.MOT_REQ_DCSTATUSUPDATE, channel)
 
 
 def ack_dc_status() -> bytes:
+    """MOT_ACK_DCSTATUSUPDATE: the keep-alive without which the controller stops its status
+    updates."""
     return short(MsgId.MOT_ACK_DCSTATUSUPDATE)
 
 
 def set_vel_params(channel: int, min_velocity: int, acceleration: int, max_velocity: int) -> bytes:
+    """MOT_SET_VELPARAMS: `channel`'s velocity profile in APT units (as
+    `StageSettings.velocity_units` and `acceleration_units` scale mm/s and mm/s^2)."""
     return long(MsgId.MOT_SET_VELPARAMS,
                 VELPARAMS.pack(channel, min_velocity, acceleration, max_velocity))
 
 
 def req_vel_params(channel: int) -> bytes:
+    """MOT_REQ_VELPARAMS: ask for `channel`'s velocity profile (`VelParams`)."""
     return short(MsgId.MOT_REQ_VELPARAMS, channel)
 
 
@@ -205,6 +233,9 @@ def req_vel_params(channel: int) -> bytes:
 
 @dataclass(frozen=True)
 class DcStatus:
+    """A DC servo status block: channel, position (encoder counts), velocity (raw APT units) and
+    status bits."""
+
     channel: int
     position_counts: int
     velocity_raw: int
@@ -212,40 +243,51 @@ class DcStatus:
 
     @classmethod
     def decode(cls, data: bytes) -> DcStatus:
+        """The status block in `data` (14 bytes)."""
         channel, position, velocity, _reserved, bits = STATUS_BLOCK.unpack(data)
         return cls(channel, position, velocity, Status(bits))
 
     def encode(self) -> bytes:
+        """The 14-byte status block (what a controller sends; the twin uses it)."""
         return STATUS_BLOCK.pack(self.channel, self.position_counts, self.velocity_raw, 0,
                                  int(self.status))
 
     @property
     def moving(self) -> bool:
+        """Whether the motor moves, either way."""
         return bool(self.status & MOVING)
 
     @property
     def homing(self) -> bool:
+        """Whether a homing move runs."""
         return Status.HOMING in self.status
 
     @property
     def homed(self) -> bool:
+        """Whether the stage has been homed since power-up."""
         return Status.HOMED in self.status
 
     @property
     def at_limit(self) -> bool:
+        """Whether either limit switch is pressed."""
         return bool(self.status & LIMITS)
 
     @property
     def motion_error(self) -> bool:
+        """Whether the controller reports a motion error."""
         return Status.MOTION_ERROR in self.status
 
     @property
     def enabled(self) -> bool:
+        """Whether the channel's drive is enabled."""
         return Status.ENABLED in self.status
 
 
 @dataclass(frozen=True)
 class HwInfo:
+    """HW_GET_INFO's payload: serial number, model ("KDC101"), hardware type, firmware (major,
+    interim, minor), notes, versions and channel count."""
+
     serial_number: int
     model: str
     hw_type: int
@@ -257,12 +299,14 @@ class HwInfo:
 
     @classmethod
     def decode(cls, data: bytes) -> HwInfo:
+        """The controller information in `data` (84 bytes)."""
         (serial, model, hw_type, minor, interim, major, _unused, notes, _empty, hw_version,
          mod_state, nchs) = INFO.unpack(data)
         return cls(serial, _text(model), hw_type, (major, interim, minor), _text(notes),
                    hw_version, mod_state, nchs)
 
     def encode(self) -> bytes:
+        """The 84-byte payload (what a controller sends; the twin uses it)."""
         major, interim, minor = self.firmware
         return INFO.pack(self.serial_number, self.model.encode()[:8], self.hw_type, minor,
                          interim, major, 0, self.notes.encode()[:48], b"", self.hw_version,
@@ -271,6 +315,9 @@ class HwInfo:
 
 @dataclass(frozen=True)
 class VelParams:
+    """MOT_GET_VELPARAMS's payload: channel, minimum velocity, acceleration and maximum velocity in
+    APT units."""
+
     channel: int
     min_velocity: int
     acceleration: int
@@ -278,21 +325,27 @@ class VelParams:
 
     @classmethod
     def decode(cls, data: bytes) -> VelParams:
+        """The velocity profile in `data` (14 bytes)."""
         return cls(*VELPARAMS.unpack(data))
 
 
 @dataclass(frozen=True)
 class RichResponse:
+    """HW_RICHRESPONSE's payload: the message that failed, the error code and the controller's
+    note."""
+
     msg_ident: int
     code: int
     notes: str
 
     @classmethod
     def decode(cls, data: bytes) -> RichResponse:
+        """The error report in `data` (68 bytes)."""
         ident, code, notes = RICH.unpack(data)
         return cls(ident, code, _text(notes))
 
     def encode(self) -> bytes:
+        """The 68-byte payload (what a controller sends; the twin uses it)."""
         return RICH.pack(self.msg_ident, self.code, self.notes.encode()[:64])
 
 
@@ -318,6 +371,8 @@ class AptStream:
         self.discarded = 0
 
     def feed(self, data: bytes) -> list[Message]:
+        """Append `data` and return every whole message it completes, dropping bytes that cannot
+        start a plausible header."""
         self._buf += data
         out: list[Message] = []
         while len(self._buf) >= HEADER.size:
@@ -349,4 +404,5 @@ class AptStream:
         self.discarded += 1
 
     def clear(self) -> None:
+        """Drop the buffered bytes (a partial message included)."""
         self._buf.clear()

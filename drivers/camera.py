@@ -1,14 +1,14 @@
 """Cameras: a base class that returns linear float32 images, and the real backends.
 
-The base class holds what every camera needs for measurement (hardware.md, "Camera"): explicit
-exposure and gain with auto modes off, the camera's response curve applied inverse so that values
-are *linear* in irradiance, saturation flagged rather than hidden, burst averaging, and a stored
-dark frame subtracted from later captures. A backend only opens the device, sets exposure and gain
-and returns one raw frame.
+The base class holds what every camera needs for measurement (docs/design.md, "The hardware":
+Camera): explicit exposure and gain with auto modes off, the camera's response curve applied
+inverse so that values are *linear* in irradiance, saturation flagged rather than hidden, burst
+averaging, and a stored dark frame subtracted from later captures. A backend only opens the
+device, sets exposure and gain and returns one raw frame.
 
 Values are fractions of full scale: 1.0 is the linear value of the highest raw level (a saturated
 pixel). Mono captures are `[H, W]`, colour captures channel-first `[3, H, W]` in R, G, B order
-(optics.md's convention).
+(docs/physics.md's convention, "Units and names").
 
 Backends here: `OpenCVCamera` (any V4L2/UVC camera through OpenCV's `VideoCapture`) and
 `GenICamCamera` (USB3 Vision / GigE Vision through `harvesters` and the vendor's GenTL producer
@@ -68,6 +68,7 @@ class ResponseCurve:
 
     @property
     def max_level(self) -> int:
+        """The top raw level (saturation): the table's length less one."""
         return self.linear.size - 1
 
     def to_linear(self, raw: np.ndarray) -> np.ndarray:
@@ -95,10 +96,12 @@ class Capture:
 
     @property
     def saturated_fraction(self) -> float:
+        """The fraction of pixels saturated in any frame of the burst (0 for an empty image)."""
         return float(self.saturated.mean()) if self.saturated.size else 0.0
 
     @property
     def any_saturated(self) -> bool:
+        """Whether any pixel saturated in any frame of the burst."""
         return bool(self.saturated.any())
 
 
@@ -129,6 +132,8 @@ class Camera(Device, ABC):
     # -- lifecycle ---------------------------------------------------------------------------
 
     def open(self) -> Camera:
+        """Open the backend and apply the exposure and gain with auto modes off (closed again if
+        that fails); a no-op when open."""
         if not self._is_open:
             self._do_open()
             self._is_open = True
@@ -143,22 +148,26 @@ class Camera(Device, ABC):
         return self
 
     def close(self) -> None:
+        """Close the backend; a no-op when closed."""
         if self._is_open:
             self._is_open = False
             self._do_close()
 
     @property
     def is_open(self) -> bool:
+        """Whether the camera is open."""
         return self._is_open
 
     # -- settings ----------------------------------------------------------------------------
 
     @property
     def exposure_s(self) -> float:
+        """The exposure in use (s), as the camera read it back."""
         return self._exposure_s
 
     @property
     def gain_db(self) -> float:
+        """The gain in use (dB), as the camera read it back."""
         return self._gain_db
 
     def set_exposure(self, exposure_s: float) -> float:
@@ -198,6 +207,7 @@ class Camera(Device, ABC):
         return cap.image
 
     def clear_dark(self) -> None:
+        """Drop the stored dark frame."""
         self._dark = None
 
     def capture(self, frames: int | None = None, *, subtract_dark: bool = True) -> Capture:

@@ -37,13 +37,16 @@ class Device:
 
     @property
     def name(self) -> str:
+        """The device's name in messages: its class name unless a backend says more."""
         return type(self).__name__
 
     def open(self) -> Self:
+        """Open the device (`_do_open`); returns it, for `with`."""
         self._do_open()
         return self
 
     def close(self) -> None:
+        """Close the device (`_do_close`)."""
         self._do_close()
 
     def __enter__(self) -> Self:

@@ -33,6 +33,10 @@ ENTRY_BACKEND = {"readybeam": ("laser", "readybeam"), "apt": ("stage", "apt"),
 
 @dataclass(frozen=True)
 class Found:
+    """One device found: listing kind ("serial", "hid", "usb"), name (port path, HID path or bus and
+    address), USB vendor and product id, serial number, description and the config entries that
+    would use it."""
+
     kind: str  # "serial", "hid", "usb"
     name: str  # port path, HID path, or bus:address
     vid: int | None
@@ -43,14 +47,18 @@ class Found:
 
     @property
     def usb_id(self) -> str:
+        """"vvvv:pppp" in hex, or "-" where the device has no USB id."""
         return f"{self.vid:04x}:{self.pid:04x}" if self.vid is not None else "-"
 
     def as_dict(self) -> dict[str, Any]:
+        """The fields and `usb_id`, JSON-ready."""
         return {**asdict(self), "usb_id": self.usb_id}
 
 
 @dataclass(frozen=True)
 class Listing:
+    """The three listings; `usb` is None where no libusb could be loaded (`usb_note` says why)."""
+
     serial: list[Found]
     hid: list[Found]
     usb: list[Found] | None  # None: no libusb could be loaded (why in usb_note)
@@ -84,6 +92,7 @@ def uses_of(devices: Any, *, port: str = "", serial_number: str = "", vid: int |
 
 
 def serial_ports(devices: Any) -> list[Found]:
+    """The serial ports, sorted by path, each with the config entries that would use it."""
     found = []
     for p in sorted(list_ports.comports(), key=lambda p: p.device):
         serial = p.serial_number or ""
@@ -96,6 +105,7 @@ def serial_ports(devices: Any) -> list[Found]:
 
 
 def hid_devices(devices: Any) -> list[Found]:
+    """The HID devices hidapi lists, each with the config entries that would use it."""
     found = []
     for d in hid.enumerate():
         vid, pid = d.get("vendor_id"), d.get("product_id")
@@ -121,6 +131,7 @@ def _usb_string(dev: Any, attr: str) -> str:
 
 
 def usb_devices(devices: Any) -> tuple[list[Found] | None, str]:
+    """The USB devices and "", or None and why where no libusb could be loaded."""
     try:
         found_devices = list(usb.core.find(find_all=True, backend=_usb_backend()))
     except usb.core.NoBackendError:
@@ -139,5 +150,7 @@ def usb_devices(devices: Any) -> tuple[list[Found] | None, str]:
 
 
 def list_devices(devices: Any) -> Listing:
+    """What is plugged in, in the three listings, matched against `devices` (the `[devices]`
+    section)."""
     usb_found, usb_note = usb_devices(devices)
     return Listing(serial_ports(devices), hid_devices(devices), usb_found, usb_note)

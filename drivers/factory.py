@@ -47,6 +47,8 @@ class SimulatedLaser(MecomLaser):
         super().__init__(settings, self.twin.opener(), clock=clock)
 
     def close(self) -> None:
+        """Close the driver (all channels off, read back), then stop the twin, even when off could
+        not be confirmed."""
         try:
             super().close()
         finally:
@@ -65,6 +67,7 @@ class SimulatedStage(AptStage):
         super().__init__(settings, self.twin.opener())
 
     def close(self) -> None:
+        """Close the driver, then stop the twin."""
         try:
             super().close()
         finally:
@@ -78,6 +81,8 @@ def _require_port(entry: str, settings: LaserSettings | StageSettings) -> None:
 
 
 def make_laser(devices: Any, *, clock: Clock = time.monotonic) -> Laser | None:
+    """The laser driver `[devices].laser` names (None for "none"), not opened; ValueError when
+    "readybeam" has neither port nor usb_serial, or the backend is unknown."""
     backend, settings = devices.laser, devices.readybeam
     if backend == "none":
         return None
@@ -90,6 +95,8 @@ def make_laser(devices: Any, *, clock: Clock = time.monotonic) -> Laser | None:
 
 
 def make_stage(devices: Any, *, clock: Clock = time.monotonic) -> Stage | None:
+    """The stage driver `[devices].stage` names (None for "none"), not opened; ValueError when "apt"
+    has neither port nor usb_serial, or the backend is unknown."""
     backend, settings = devices.stage, devices.apt
     if backend == "none":
         return None

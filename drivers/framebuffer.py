@@ -61,6 +61,9 @@ def _read(path: Path) -> str:
 
 
 class FramebufferSLM(SLM):
+    """The SLM as a memory-mapped /dev/fbN (24 or 32 bpp, geometry from sysfs), paced by
+    FBIO_WAITFORVSYNC where the driver has it; health from the DRM connectors' status."""
+
     def __init__(self, width_px: int, height_px: int, settings: SLMOutputSettings | None = None,
                  *, clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(width_px, height_px, settings, clock=clock)
@@ -77,6 +80,7 @@ class FramebufferSLM(SLM):
 
     @property
     def name(self) -> str:
+        """"framebuffer /dev/fbN", for messages."""
         return f"framebuffer {self.device}"
 
     def _do_open(self) -> None:

@@ -81,11 +81,13 @@ def socket_path_for(settings: LaserSettings,
 
 
 def pid_path_for(socket_path: str | os.PathLike[str]) -> Path:
+    """The guardian's pid file beside its socket: `<socket>.pid`."""
     p = Path(socket_path)
     return p.with_name(p.name + ".pid")
 
 
 def token_path_for(socket_path: str | os.PathLike[str]) -> Path:
+    """The guardian's token file beside its socket: `<socket>.token` (mode 0600)."""
     p = Path(socket_path)
     return p.with_name(p.name + ".token")
 
@@ -153,6 +155,9 @@ class Guardian:
     # -- socket --------------------------------------------------------------------------------
 
     def listen(self) -> None:
+        """Bind the socket (mode 0660, in a private directory) and write the token and pid files;
+        GuardianError when the directory is unsafe, the path is not a socket, or another guardian
+        listens there."""
         path = self.socket_path
         try:
             make_private_dir(path.parent, group_writable_ok=self.group_writable_ok)
@@ -179,6 +184,8 @@ class Guardian:
         _write_private(pid_path_for(path), f"{os.getpid()}\n", 0o644)
 
     def close(self) -> None:
+        """Drop every client (without tripping), close the socket and remove it and its token and
+        pid files."""
         for client in list(self._clients.values()):
             self._drop(client, trip=False)
         if self._server is not None:
@@ -200,6 +207,8 @@ class Guardian:
             self.step()
 
     def step(self) -> None:
+        """One turn of the loop: serve the clients that are ready (waiting at most `tick_s`), then
+        enforce arming expiry and the heartbeat timeout."""
         for key, _ in self._sel.select(timeout=self.tick_s):
             if key.fileobj is self._server:
                 self._accept()
@@ -426,6 +435,9 @@ class GuardianClient:
             raise
 
     def call(self, op: str, *, timeout_s: float | None = None, **params: Any) -> dict[str, Any]:
+        """Send request `op` with `params` and return the reply without its "ok" (bounded by
+        `timeout_s`, default the client's); GuardianError with the guardian's reason when it
+        refuses, GuardianUnresponsive when it does not answer in time."""
         self._sock.settimeout(self.timeout_s if timeout_s is None else timeout_s)
         try:
             self._sock.sendall(json.dumps({"op": op, **params}).encode() + b"\n")
@@ -452,27 +464,40 @@ class GuardianClient:
         return reply
 
     def hello(self) -> dict[str, Any]:
+        """Who the guardian is: its channels and caps, heartbeat timeout (s), pid, uid, port and the
+        laser's identity (open to anyone)."""
         return self.call("hello")
 
     def heartbeat(self, timeout_s: float | None = None) -> dict[str, Any]:
+        """Keep the session alive and become the controller; the reply holds armed, the arming left
+        (s), fault, connected, trips and the last trip."""
         return self.call("heartbeat", timeout_s=timeout_s)
 
     def arm(self, duration_s: float) -> None:
+        """Arm the laser for `duration_s` (s, at most `arm_max_s`); needs a live heartbeat.
+        GuardianError when the guardian refuses."""
         self.call("arm", duration_s=duration_s)
 
     def disarm(self) -> None:
+        """Disarm: every channel off, read back."""
         self.call("disarm")
 
     def set_power(self, channel: str, power_pct: float) -> float:
+        """Set `channel`'s power (% of full power, clamped to [0, cap]); returns the power applied,
+        read back. Needs a live heartbeat."""
         return float(self.call("power", channel=channel, power_pct=power_pct)["power_pct"])
 
     def enable(self, channel: str, on: bool = True) -> None:
+        """Switch `channel`'s emission on or off (on needs an arming); needs a live heartbeat."""
         self.call("enable", channel=channel, on=on)
 
     def all_off(self) -> None:
+        """Every channel off, read back (open to anyone: switching off is always allowed)."""
         self.call("off")
 
     def status(self) -> dict[str, Any]:
+        """The laser's status: device status, arming, fault and each channel's enable and power
+        (%)."""
         return self.call("status")
 
     def shutdown(self) -> int:
@@ -480,6 +505,8 @@ class GuardianClient:
         return int(self.call("shutdown")["pid"])
 
     def close(self) -> None:
+        """Close the connection (a controller's close makes the guardian switch every channel
+        off)."""
         self._sock.close()
 
     def __enter__(self) -> GuardianClient:
@@ -527,6 +554,8 @@ def spawn_guardian(
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """`python -m nhfd.drivers.guardian`: parse the settings, port and socket, and run the guardian;
+    returns the exit code."""
     parser = argparse.ArgumentParser(prog="nhfd-laser-guardian", description=__doc__.split("\n")[0])
     parser.add_argument("--settings-json", default="{}", help="LaserSettings as JSON")
     parser.add_argument("--port", help="laser port path (overrides the settings)")
@@ -544,6 +573,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def run(settings: LaserSettings, socket_path: str | None = None, *,
         group_writable_ok: bool = False) -> int:
+    """Open the laser (every channel off), listen on the socket, print "ready" and serve until a
+    signal; the channels are off when it returns. Returns 0, or 1 on a device error."""
     install_signal_handlers()
     path = Path(socket_path) if socket_path else socket_path_for(settings)
     laser = MecomLaser(settings)
@@ -603,6 +634,8 @@ def read_private(path: Path) -> str:
 
 
 def read_token(socket_path: str | os.PathLike[str]) -> str:
+    """The controller's token of the guardian on `socket_path` (`read_private`); GuardianRefused
+    when the token file is missing or unsafe."""
     try:
         return read_private(token_path_for(socket_path))
     except FileNotFoundError:
@@ -626,6 +659,7 @@ def is_our_guardian(pid: int) -> bool:
 
 
 def alive(pid: int) -> bool:
+    """Whether process `pid` exists and is not a zombie (from /proc)."""
     try:
         status = Path(f"/proc/{pid}/status").read_text()
     except OSError:

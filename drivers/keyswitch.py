@@ -37,10 +37,18 @@ class ModemLines(Protocol):
     rts: bool
 
     @property
-    def cts(self) -> bool: ...
+    def cts(self) -> bool:
+        """Whether the CTS input is asserted."""
+        ...
+
     @property
-    def dsr(self) -> bool: ...
-    def close(self) -> None: ...
+    def dsr(self) -> bool:
+        """Whether the DSR input is asserted."""
+        ...
+
+    def close(self) -> None:
+        """Release the port."""
+        ...
 
 
 LinesOpener = Callable[[], ModemLines]

@@ -70,12 +70,17 @@ class NotArmed(DeviceError):
 
 @dataclass(frozen=True)
 class ChannelState:
+    """One channel as read back: enabled, and its power in % of the diode's full power."""
+
     enabled: bool
     power_pct: float
 
 
 @dataclass(frozen=True)
 class LaserStatus:
+    """The laser as read back: the device's status code and name, each channel's `ChannelState`,
+    arming (the time left in s) and the latched fault, if any."""
+
     device_status: int | None
     device_status_name: str
     channels: dict[str, ChannelState]
@@ -85,6 +90,7 @@ class LaserStatus:
 
     @property
     def any_on(self) -> bool:
+        """Whether any channel is enabled at a power above 0."""
         return any(c.enabled and c.power_pct > 0 for c in self.channels.values())
 
 
@@ -215,20 +221,24 @@ class Laser(Device, ABC):
 
     @property
     def armed(self) -> bool:
+        """Whether a person's arming is in force (not expired)."""
         return self._armed_until is not None and self._clock() < self._armed_until
 
     @property
     def armed_remaining_s(self) -> float:
+        """Seconds left of the arming (0 when not armed)."""
         if self._armed_until is None:
             return 0.0
         return max(0.0, self._armed_until - self._clock())
 
     @property
     def connected(self) -> bool:
+        """Whether the link is open (identified, every channel switched off at open)."""
         return self._connected
 
     @property
     def fault(self) -> str | None:
+        """The latched fault's description, or None."""
         return self._fault
 
     def clear_fault(self) -> None:
@@ -332,6 +342,8 @@ class Laser(Device, ABC):
                 )
 
     def status(self) -> LaserStatus:
+        """Everything read back from the device (arming expiry enforced first); LinkDown when not
+        connected."""
         with self._lock:
             self.service()
             self._require_link()
@@ -446,6 +458,7 @@ class MecomLaser(Laser):
 
     @property
     def name(self) -> str:
+        """"laser <port>", for messages."""
         return f"laser {self.port_name or 'laser'}"
 
     @property
@@ -519,6 +532,8 @@ class MecomLaser(Laser):
                 continue  # a late answer to an earlier try
 
     def read_parameter(self, param_id: int, instance: int) -> mecom.ValueReply:
+        """`?VR` read of parameter `param_id`, instance `instance`; ProtocolError when the reply
+        carries no value."""
         a = self.settings.address
         reply = self.transact(lambda seq: mecom.query(a, seq, param_id, instance))
         if not isinstance(reply, mecom.ValueReply):
@@ -526,6 +541,8 @@ class MecomLaser(Laser):
         return reply
 
     def write_parameter(self, param_id: int, instance: int, bits: int) -> None:
+        """`VS` write of 32 value bits to parameter `param_id`, instance `instance`; ProtocolError
+        when the reply is not an acknowledgement."""
         a = self.settings.address
         reply = self.transact(lambda seq: mecom.set_value(a, seq, param_id, instance, bits))
         if not isinstance(reply, mecom.Ack):

@@ -1,4 +1,5 @@
-"""Meerstetter MeCom ASCII frames, as the FISBA READYBeam speaks them (hardware.md, "Lasers").
+"""Meerstetter MeCom ASCII frames, as the FISBA READYBeam speaks them (docs/design.md, "The
+hardware": Lasers).
 
 Host frame:   `#` AA SSSS payload CCCC `\\r`   (AA address, SSSS sequence, CCCC CRC, all hex)
 Device frames, echoing address and sequence:
@@ -57,6 +58,7 @@ _HOST_FRAME = re.compile(
 
 
 def crc16_xmodem(data: bytes) -> int:
+    """The CRC-16/XMODEM of `data` (poly 0x1021, init 0, no reflection)."""
     crc = 0
     for byte in data:
         crc ^= byte << 8
@@ -79,10 +81,12 @@ def float_bits(value: float) -> int:
 
 
 def bits_int32(bits: int) -> int:
+    """32 value bits read as a signed 32-bit integer."""
     return struct.unpack(">i", struct.pack(">I", bits))[0]
 
 
 def bits_float32(bits: int) -> float:
+    """32 value bits read as an IEEE-754 single."""
     return struct.unpack(">f", struct.pack(">I", bits))[0]
 
 
@@ -91,24 +95,31 @@ def bits_float32(bits: int) -> float:
 
 @dataclass(frozen=True)
 class Request:
+    """One host request: the device address, the sequence number and the payload (`?VR...` or
+    `VS...`)."""
+
     address: int
     sequence: int
     payload: str
 
     @property
     def body(self) -> bytes:
+        """The frame before its CRC: `#`, address, sequence and payload."""
         return f"#{self.address:02X}{self.sequence:04X}{self.payload}".encode("ascii")
 
     @property
     def crc(self) -> int:
+        """The CRC-16/XMODEM of `body`."""
         return crc16_xmodem(self.body)
 
     @property
     def frame(self) -> bytes:
+        """The whole frame: body, CRC as 4 hex digits, `\\r`."""
         return self.body + f"{self.crc:04X}".encode() + EOL
 
     @property
     def is_query(self) -> bool:
+        """Whether this is a `?VR` read (else a `VS` write)."""
         return self.payload.startswith(QUERY)
 
     @property
@@ -162,29 +173,38 @@ def parse_request(frame: bytes) -> Request:
 
 @dataclass(frozen=True)
 class ValueReply:
+    """A value reply: the parameter's 32 value bits."""
+
     bits: int
 
     @property
     def as_int(self) -> int:
+        """The value as a signed 32-bit integer."""
         return bits_int32(self.bits)
 
     @property
     def as_float(self) -> float:
+        """The value as an IEEE-754 single."""
         return bits_float32(self.bits)
 
 
 @dataclass(frozen=True)
 class Ack:
+    """An acknowledgement of a `VS` write (no value)."""
+
     pass
 
 
 @dataclass(frozen=True)
 class ErrorReply:
+    """An error reply: the error code, and its two hex digits as sent."""
+
     code: int
     code_text: str
 
     @property
     def meaning(self) -> str:
+        """The error code in words (`ERROR_MEANINGS`), or "unknown error code"."""
         return ERROR_MEANINGS.get(self.code, "unknown error code")
 
 
@@ -209,15 +229,20 @@ class MecomDeviceError(DeviceError):
 
 
 def value_frame(address: int, sequence: int, bits: int) -> bytes:
+    """A device's value reply frame (`!` address, sequence, 8 hex digits, its own CRC, `\\r`): the
+    twin sends these."""
     body = f"!{address:02X}{sequence:04X}{bits:08X}".encode()
     return body + f"{crc16_xmodem(body):04X}".encode() + EOL
 
 
 def ack_frame(request: Request) -> bytes:
+    """A device's acknowledgement of `request` (echoing the request's CRC): the twin sends these."""
     return f"!{request.address:02X}{request.sequence:04X}{request.crc:04X}".encode() + EOL
 
 
 def error_frame(address: int, sequence: int, code_text: str) -> bytes:
+    """A device's error reply frame with `code_text` (two hex digits; ValueError otherwise): the
+    twin sends these."""
     if not re.fullmatch(rf"[{_HEX}]{{2}}", code_text):
         raise ValueError(f"error code must be two hex digits, got {code_text!r}")
     body = f"!{address:02X}{sequence:04X}+{code_text}".encode()

@@ -1,9 +1,9 @@
 """6-DoF navigator: SpaceMouse HID report parsing, a hidapi backend, and a simulated navigator.
 
-HID reports (hardware.md): id 1 translation (3 x int16 little-endian), id 2 rotation (3 x int16),
-id 3 buttons (bitmask); some models send translation and rotation together in one 13-byte report
-id 1. Other ids (battery, LEDs) are ignored. Devices are matched by vendor AND product id: vendor
-0x046d is Logitech's, shared with mice and keyboards.
+HID reports (docs/design.md, "The hardware": Navigator): id 1 translation (3 x int16
+little-endian), id 2 rotation (3 x int16), id 3 buttons (bitmask); some models send translation
+and rotation together in one 13-byte report id 1. Other ids (battery, LEDs) are ignored. Devices
+are matched by vendor AND product id: vendor 0x046d is Logitech's, shared with mice and keyboards.
 
 `Navigator.read()` returns velocities: each raw axis through a dead zone, scaled linearly from the
 dead-zone edge to full deflection, times the configured maximum.
@@ -69,17 +69,22 @@ def parse_report(report: bytes | Sequence[int], state: RawState = RawState()) ->
 
 
 def matches(vendor_id: int, product_id: int, usb_ids: Sequence[Sequence[int]]) -> bool:
+    """Whether (vendor_id, product_id) is one of `usb_ids` (both must match)."""
     return any(vendor_id == v and product_id == p for v, p in usb_ids)
 
 
 @dataclass(frozen=True)
 class NavigatorReading:
+    """One reading: view translation velocity (scene m/s) and rotation velocity (deg/s) about x, y,
+    z, the button bitmask, and when it was read (s, the navigator's clock)."""
+
     translation_m_s: tuple[float, float, float]
     rotation_deg_s: tuple[float, float, float]
     buttons: int
     time_s: float
 
     def pressed(self, button: int) -> bool:
+        """Whether button `button` (bit index) is down."""
         return bool(self.buttons >> button & 1)
 
 
@@ -93,6 +98,8 @@ def scale_axis(raw: int, dead_zone: int, full_scale: int) -> float:
 
 
 def to_reading(state: RawState, settings: NavigatorSettings, time_s: float) -> NavigatorReading:
+    """Raw counts -> velocities: each axis through the dead zone and `axis_signs`, times
+    `max_translation_m_s` or `max_rotation_deg_s`."""
     s = settings
     unit = [sign * scale_axis(v, s.dead_zone_counts, s.full_scale_counts)
             for v, sign in zip(state.axes, s.axis_signs, strict=True)]
@@ -107,6 +114,9 @@ def to_reading(state: RawState, settings: NavigatorSettings, time_s: float) -> N
 
 
 class Navigator(Device, ABC):
+    """A 6-DoF navigator read as velocities; `presses` counts button presses. A backend implements
+    `_poll`."""
+
     def __init__(self, settings: NavigatorSettings | None = None, *,
                  clock: Callable[[], float] = time.monotonic) -> None:
         self.settings = settings or NavigatorSettings()

@@ -41,7 +41,8 @@ from .errors import DeviceError
 from .slm import GREY_LEVELS
 
 # HOLOEYE ships PLUTO-VIS panels with a 2 pi table at 532 nm; at other wavelengths the stroke
-# scales roughly as 532 / lambda (optics.md, "Phase to grey").
+# scales roughly as 532 / lambda (docs/physics.md, "Double-phase amplitude coding and the SLM":
+# phase to grey).
 PANEL_CALIBRATION_WAVELENGTH_M = 532e-9
 
 FrameSource = Callable[[], Any]
@@ -236,9 +237,11 @@ class TrueBench:
         return self.stage_at_slm_mm + (z_m - self.z_offset_m[colour]) / self.stage_scale * 1e3
 
     def response(self) -> ResponseCurve:
+        """The camera's response curve (gamma with its wiggle, at the sensor's bit depth)."""
         return camera_response(self.response_gamma, self.response_wiggle, self.bit_depth)
 
     def gain(self, gain_db: float) -> float:
+        """The linear signal gain of `gain_db` dB: 10^(gain_db / 20)."""
         return 10 ** (gain_db / 20)
 
     def dark_level_at(self, exposure_s: float, gain_db: float = 0.0) -> float:

@@ -43,6 +43,8 @@ class SLMOutputLost(DeviceError):
 
 @dataclass(frozen=True)
 class SLMHealth:
+    """Whether the output reaches the panel, and why not (or what it is)."""
+
     ok: bool
     detail: str
 
@@ -111,6 +113,8 @@ class SLM(Device, ABC):
 
     @property
     def settle_s(self) -> float:
+        """Seconds from a write until a capture means anything: `settle_ms`, or 0 where the flip
+        output triggers the camera's exposure."""
         # With the flip output wired to the camera, the camera's exposure waits on the flip's
         # edge (plus its trigger delay): the host sleeps no settle time.
         # (The camera's exposure-active line, "camera_exposure", says nothing of the panel: the
@@ -120,12 +124,14 @@ class SLM(Device, ABC):
         return self.settings.settle_ms / 1000
 
     def open(self) -> SLM:
+        """Open the backend; a no-op when open."""
         if not self._is_open:
             self._do_open()
             self._is_open = True
         return self
 
     def close(self) -> None:
+        """Close the backend; a no-op when closed."""
         if self._is_open:
             self._is_open = False
             self._do_close()
@@ -164,6 +170,8 @@ class SLM(Device, ABC):
         return self._shown_at + self.settle_s
 
     def blank(self) -> float:
+        """Show grey 0 everywhere; returns the clock time (s) at which the liquid crystal has
+        settled."""
         return self.show(np.zeros(self.shape, np.uint8))
 
     def attach_trigger(self, line: Any) -> None:
@@ -172,12 +180,14 @@ class SLM(Device, ABC):
         self.trigger = line
 
     def wait_settled(self) -> None:
+        """Sleep until the last frame has settled (`settle_s` after it was shown)."""
         remaining = self._shown_at + self.settle_s - self._clock()
         if remaining > 0:
             time.sleep(remaining)
 
     @property
     def settled(self) -> bool:
+        """Whether the last frame has settled."""
         return self._clock() >= self._shown_at + self.settle_s
 
     @property
@@ -186,6 +196,7 @@ class SLM(Device, ABC):
         return None if self._last is None else self._last.transpose(2, 0, 1).copy()
 
     def health(self) -> SLMHealth:
+        """The backend's health (`_health`): whether frames reach the panel."""
         return self._health()
 
     # -- backend hooks -------------------------------------------------------------------------
@@ -220,9 +231,11 @@ class SimulatedSLM(SLM):
         self._never_flips = False
 
     def unplug(self) -> None:
+        """Test hook: the output reads lost (`show` raises SLMOutputLost) until `replug`."""
         self._plugged = False
 
     def replug(self) -> None:
+        """Test hook: the output is back."""
         self._plugged = True
 
     def never_flip(self, stuck: bool = True) -> None:
@@ -259,6 +272,8 @@ class SimulatedSLM(SLM):
                 self.trigger.edge(flip_s)
 
     def attach_trigger(self, line: Any) -> None:
+        """Wire `line` as `SLM.attach_trigger` does, and replay the frame already up's write and
+        flip on it."""
         super().attach_trigger(line)
         if self._flips:  # the frame already up (the daemon's blank) has flipped: say so
             written_s, flip_s, _ = self._flips[-1]

@@ -90,6 +90,7 @@ class SlmsuiteSLM(SLM):
 
     @property
     def name(self) -> str:
+        """"SlmsuiteSLM(<slmsuite class>)", for messages."""
         return f"SlmsuiteSLM({_class_name(self.suite.slm_class, self._given)})"
 
     def _do_open(self) -> None:
@@ -159,6 +160,7 @@ class SlmsuiteCamera(Camera):
 
     @property
     def name(self) -> str:
+        """"SlmsuiteCamera(<slmsuite class>)", for messages."""
         return f"SlmsuiteCamera({_class_name(self.suite.camera_class, self._given)})"
 
     def _do_open(self) -> None:

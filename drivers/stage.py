@@ -37,7 +37,8 @@ from .transport import LineControl, LineControlError, Opener, Transport, serial_
 
 log = logging.getLogger(__name__)
 
-# FTDI ids of Thorlabs motion controllers (hardware.md): used when searching by serial number.
+# FTDI ids of Thorlabs motion controllers (docs/design.md, "The hardware"): used when searching
+# by serial number.
 THORLABS_VID, THORLABS_PID = 0x0403, 0xFAF0
 
 Outcome = Literal["completed", "stopped", "homed"]
@@ -82,6 +83,8 @@ class AptDeviceError(StageError):
 
 @dataclass(frozen=True)
 class StageInfo:
+    """Who the controller is: serial number, model ("KDC101") and firmware version."""
+
     serial_number: str
     model: str
     firmware: str
@@ -89,6 +92,9 @@ class StageInfo:
 
 @dataclass(frozen=True)
 class StageState:
+    """The axis as read: position (mm), motion, homing and homed flags, the two limit switches,
+    motion error, drive enabled and the raw status bits."""
+
     position_mm: float
     moving: bool
     homing: bool
@@ -101,6 +107,7 @@ class StageState:
 
     @property
     def at_limit(self) -> bool:
+        """Whether either limit switch is pressed."""
         return self.limit_cw or self.limit_ccw
 
 
@@ -163,6 +170,8 @@ class Stage(Device, ABC):
     # -- motion --------------------------------------------------------------------------------
 
     def home(self, *, wait: bool = True, timeout_s: float | None = None) -> StageState | None:
+        """Home the axis; with `wait`, until it is homed (bounded by `timeout_s`, default
+        `home_timeout_s`) and return the state. StageError while another motion is outstanding."""
         self._begin("home", timeout_s or self.settings.home_timeout_s)
         try:
             self._begin_home()
@@ -173,6 +182,9 @@ class Stage(Device, ABC):
 
     def move_to(self, position_mm: float, *, wait: bool = True,
                 timeout_s: float | None = None) -> StageState | None:
+        """Move to `position_mm` (mm); with `wait`, until it arrives (bounded by `timeout_s`,
+        default `move_timeout_s`) and return the state. SoftLimitError outside the soft limits,
+        NotHomed before homing."""
         self._check_target(position_mm)
         self._require_homed()
         self._begin("move", timeout_s or self.settings.move_timeout_s, position_mm)
@@ -185,6 +197,7 @@ class Stage(Device, ABC):
 
     def move_by(self, distance_mm: float, *, wait: bool = True,
                 timeout_s: float | None = None) -> StageState | None:
+        """Move by `distance_mm` (mm, signed) from the position read now; otherwise as `move_to`."""
         if not math.isfinite(distance_mm):
             raise ValueError(f"distance_mm = {distance_mm}: must be finite")
         self._require_homed()
@@ -239,13 +252,16 @@ class Stage(Device, ABC):
         return state
 
     def position_mm(self) -> float:
+        """The position read from the controller now (mm)."""
         return self.state().position_mm
 
     def state(self) -> StageState:
+        """The axis's state read from the controller now."""
         return self._read_state()
 
     @property
     def moving(self) -> bool:
+        """Whether a home or move is outstanding (requested and not yet waited for)."""
         return self._pending is not None
 
     # -- shared helpers ------------------------------------------------------------------------
@@ -346,6 +362,7 @@ class AptStage(Stage):
 
     @property
     def name(self) -> str:
+        """"stage <port>", for messages."""
         return f"stage {self._transport.name if self._transport else self.settings.port}"
 
     # -- link ----------------------------------------------------------------------------------

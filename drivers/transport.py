@@ -83,6 +83,7 @@ class Transport(ABC):
 
     @property
     def closed(self) -> bool:
+        """Whether `close` has been called."""
         return self._closed
 
     def _check_open(self) -> None:
@@ -90,6 +91,7 @@ class Transport(ABC):
             raise TransportError(f"{self.name}: transport is closed")
 
     def write(self, data: bytes) -> None:
+        """Send `data`; TransportError when closed, PortVanished where the port is gone."""
         self._check_open()
         self._write(bytes(data))
 
@@ -149,6 +151,7 @@ class Transport(ABC):
             pass
 
     def close(self) -> None:
+        """Close the link; a no-op when closed."""
         if not self._closed:
             self._closed = True
             self._close()
@@ -199,6 +202,7 @@ class PtyTransport(Transport):
             raise TransportError(f"{path}: cannot configure: {exc.strerror}") from None
 
     def line_control(self, control: LineControl) -> None:
+        """Record the request in `line_control_calls` (a pty has no RTS line or latency timer)."""
         # A pty has no RTS line or latency timer (the ioctls raise ENOTTY): record the request so
         # tests can check the driver asked for it.
         self._check_open()
@@ -332,6 +336,8 @@ class SerialTransport(Transport):
                                 rtscts=rtscts, write_timeout=write_timeout_s)
 
     def line_control(self, control: LineControl) -> None:
+        """Set the FTDI latency timer (ms, through sysfs) and pulse RTS with a buffer purge, as
+        `control` asks; LineControlError where the adapter has no RTS line."""
         self._check_open()
         if control.latency_timer_ms is not None:
             set_ftdi_latency_timer(self.name, control.latency_timer_ms, self._sysfs_root)

@@ -116,6 +116,7 @@ class TriggerLine:
 
     @property
     def clock(self) -> Callable[[], float]:
+        """The clock the line's times are on (s)."""
         return self._clock
 
     @classmethod
@@ -159,6 +160,7 @@ class TriggerLine:
             self._cut = True
 
     def mend(self) -> None:
+        """Test-only: undo `cut` and `stick_high`."""
         with self._cond:
             self._cut = False
             self._stuck_high = False
@@ -180,6 +182,8 @@ class TriggerLine:
             return self._exposing_since
 
     def exposure_ends(self, at_s: float) -> None:
+        """The camera's exposure ended at `at_s` (the line falls): record the exposure window and
+        wake writers waiting for it."""
         with self._cond:
             if self._exposing_since is not None:
                 self.exposures.append(ExposureWindow(self._exposing_since, at_s))

@@ -10,7 +10,7 @@ refused.
 
 Each frame is uploaded as an RGB texture the size of the panel and drawn 1:1 (no scaling, no
 filtering, dithering off) into the back buffer, then flipped: with vsync the flip waits for the
-vertical blank. Check full-range RGB over HDMI with a camera (hardware.md).
+vertical blank. Check full-range RGB over HDMI with a camera (docs/design.md, "The hardware": SLM).
 """
 
 from __future__ import annotations
@@ -79,6 +79,9 @@ def pick_screen(screens: Sequence[Any], output_name: str, width_px: int, height_
 
 
 class WindowSLM(SLM):
+    """The SLM as a borderless full-screen pyglet window on the named output, each frame drawn 1:1
+    and flipped with vsync."""
+
     def __init__(self, width_px: int, height_px: int, settings: SLMOutputSettings | None = None,
                  *, clock: Callable[[], float] = time.monotonic) -> None:
         super().__init__(width_px, height_px, settings, clock=clock)
@@ -88,6 +91,7 @@ class WindowSLM(SLM):
 
     @property
     def name(self) -> str:
+        """"window SLM <connector>" ("(auto)" when none is configured), for messages."""
         return f"window SLM {self.settings.drm_connector or '(auto)'}"
 
     def _do_open(self) -> None:

@@ -14,7 +14,7 @@ Modules (import what you need; nothing heavy is imported here):
   `choose_planes`, `uniform_planes`;
 - `data`: `HoloData` (a dataset in memory), deterministic `batch_views`, `step_rng`, crops;
 - `train`: `TrainOptions`, `train` (seeded, resumable), `load_run`;
-- `evaluate`: `evaluate` (optics.md quality vs the baselines, focus check, PNG);
+- `evaluate`: `evaluate` (docs/physics.md's quality vs the baselines, focus check, PNG);
 - `export`: `export_onnx`, `OnnxModel`, `load_model`, and `probe_model` (a candidate's first
   session and test run in a child process under a memory budget); `metadata`: what a model
   records, every field checked at parse (finite, in range, typed: `InvalidMetadata` names the

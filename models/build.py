@@ -213,6 +213,7 @@ class AttemptClock:
         self._thread = threading.Thread(target=self._run, daemon=True, name="attempt-clock")
 
     def elapsed(self) -> dict[str, float]:
+        """The attempt's time so far: wall `seconds` and `cpu_s` (this process's CPU seconds)."""
         return {"seconds": time.perf_counter() - self.t0, "cpu_s": _cpu_s() - self.cpu0}
 
     def _run(self) -> None:
@@ -288,6 +289,7 @@ class Context:
     force_stage: bool = False  # the stage's inputs changed (--force): start it over
 
     def path(self, name: str) -> Path:
+        """The output folder's file `name`."""
         return self.out / name
 
 
@@ -601,6 +603,9 @@ def _read_state(out: Path) -> dict | None:
 
 @dataclass
 class BuildResult:
+    """A finished build: its folder, its report.json, the stages this run ran and those it
+    skipped as already done."""
+
     out: Path
     report: dict
     ran: list[str]

@@ -102,11 +102,13 @@ class HoloData:
 
     @property
     def volume_m(self) -> tuple[float, float]:
+        """The dataset's hologram volume `(z_min, z_max)` about the reference plane, m."""
         v = self.manifest["settings"]["volume_m"]
         return float(v[0]), float(v[1])
 
     @property
     def size_hw(self) -> tuple[int, int]:
+        """The views' size `(H, W)`, px."""
         s = self.manifest["settings"]
         return int(s["height_px"]), int(s["width_px"])
 
@@ -166,6 +168,7 @@ def random_crop(
 
 
 def centre_crop(t: torch.Tensor, crop_hw: tuple[int, int]) -> torch.Tensor:
+    """The centred `crop_hw` (px) of `t` [..., H, W], clipped to the view's size."""
     top, left, ch, cw = _centre(t.shape[-2:], crop_hw)
     return t[..., top : top + ch, left : left + cw]
 

@@ -1,6 +1,6 @@
 """`nhfd eval`: hologram quality on held-out views, next to the two baselines.
 
-Measures (optics.md, "Measuring hologram quality"): focal-stack PSNR and SSIM from
+Measures (docs/physics.md, "Measuring hologram quality"): focal-stack PSNR and SSIM from
 `nhfd.optics.focal_stack_quality` (linear intensity after the aperture, the fixed planes of
 `quality_planes`, inside the scene's pixels, one robust percentile of the target), per plane and
 overall, for the model, an all-black prediction and the 2D hologram; the per-depth-bin focus
@@ -59,6 +59,9 @@ def torch_predictor(run_dir: str | Path) -> tuple[Predictor, dict]:
 
 
 def onnx_predictor(path: str | Path, manifest: dict) -> tuple[Predictor, dict]:
+    """An ONNX model checked against the dataset's `manifest` as a predictor (input [C, H, W] ->
+    field [3, H, W] complex64), and what it is (source, kind, profile, net, inputs,
+    `train_poses`)."""
     model = OnnxModel(path, expected=expected_from_manifest(manifest))
 
     def run(x: torch.Tensor) -> torch.Tensor:
@@ -227,6 +230,9 @@ def evaluate(
 
 
 def summarise(views: list[dict], planes) -> dict:
+    """Per split and over "all": mean PSNR (dB) and SSIM of the model, the black and the 2D
+    baselines, per-plane PSNR, focus bins passed; with PSNR against the angle (deg) to the
+    nearest training pose and the focus tolerance (mm)."""
     out: dict = {}
     for split in [*sorted({v["split"] for v in views}), "all"]:
         vs = [v for v in views if split in ("all", v["split"])]
@@ -254,6 +260,8 @@ def summarise(views: list[dict], planes) -> dict:
 
 
 def format_summary(summary: dict, planes) -> list[str]:
+    """`summarise`'s result as lines for a person: a table per split, the focus check, PSNR per
+    focal plane (`planes` in m, shown in mm) and PSNR against the angle to training."""
     lines = [f"{'split':<8}{'views':>6}{'model dB':>10}{'2D dB':>8}{'black dB':>10}"
              f"{'model SSIM':>12}{'2D SSIM':>9}{'focus':>8}"]  # fmt: skip
     for split, s in summary.items():

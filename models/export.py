@@ -54,6 +54,9 @@ CHECK_SIZES_STRIDES = ((3, 5), (5, 4))
 
 @dataclass
 class ExportResult:
+    """An exported model: its path, the largest torch-onnxruntime difference (NaN unchecked),
+    the input sizes `(H, W)` px it was compared at, and its metadata."""
+
     path: Path
     max_abs_diff: float
     checked_sizes: list[tuple[int, int]]
@@ -158,6 +161,7 @@ Provider = str | tuple[str, dict[str, Any]]
 
 
 def provider_name(p: Provider) -> str:
+    """The execution provider's name, with or without its options."""
     return p if isinstance(p, str) else p[0]
 
 

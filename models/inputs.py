@@ -5,9 +5,10 @@ appearance, and the depth decides the phase curvature the hologram needs. Measur
 scene (README, "RGB or RGB-D"), sRGB-only networks kept drifting their focus toward the reference
 plane. The renderer computes the depth anyway, at no extra cost per frame.
 
-The depth channel is the hologram depth `z_h = a + b / d` (the scene's mapping, optics.md) scaled
-so the volume spans [-1, 1]: `(z_h - centre) / half_depth`, clipped to [-DEPTH_CLIP, DEPTH_CLIP];
-background (coverage below ALPHA_CONTENT) is 0, the reference plane's depth.
+The depth channel is the hologram depth `z_h = a + b / d` (the scene's mapping, docs/physics.md)
+scaled so the volume spans [-1, 1]: `(z_h - centre) / half_depth`, clipped to
+[-DEPTH_CLIP, DEPTH_CLIP]; background (coverage below ALPHA_CONTENT) is 0, the reference plane's
+depth.
 
 One formula, three places, all here:
 

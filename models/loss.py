@@ -40,6 +40,8 @@ class Optics:
 
     @staticmethod
     def from_manifest(manifest: dict) -> Optics:
+        """The optics a dataset manifest's `settings` record (pitch, wavelengths and volume in
+        m, the aperture)."""
         s = manifest["settings"]
         return Optics(
             pitch_m=float(s["pitch_m"]),
@@ -181,6 +183,7 @@ class FocalStackLoss:
             self.vgg = VGGFeatures.from_file(vgg_weights)
 
     def describe(self) -> str:
+        """The loss's terms and weights in words, for the training log."""
         term = {
             "ssim": f"box-window SSIM ({self.window} px) x {self.weight:g}",
             "vgg": f"VGG-16 features at half resolution x {self.weight:g}",
@@ -238,6 +241,8 @@ class FocalStackLoss:
         perceptual_planes: Sequence[int] = (),
         interior_edges: Sequence[bool] = (True, True, True, True),
     ) -> dict[str, torch.Tensor]:
+        """The loss of `pred` against `target` ([B, C, H, W] complex) on `planes_m` (m): scalar
+        tensors `loss`, `l2`, `perceptual`. ValueError when the shapes differ."""
         if pred.shape != target.shape:
             raise ValueError(f"pred {tuple(pred.shape)} and target {tuple(target.shape)} differ")
         ip = self.stack(pred, planes_m, interior_edges)
@@ -270,5 +275,5 @@ class FocalStackLoss:
 
 def psnr_from_l2(l2: float, peak: float) -> float:
     """PSNR (dB) of an intensity L2 given the target's peak intensity (a rough validation
-    figure; the optics.md measure is `nhfd.optics.focal_stack_quality`)."""
+    figure; docs/physics.md's measure is `nhfd.optics.focal_stack_quality`)."""
     return 10 * math.log10(max(peak, 1e-30) ** 2 / max(l2, 1e-30))

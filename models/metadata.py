@@ -68,6 +68,7 @@ SHOWN_CHARS = 80
 
 
 def manifest_sha256(data_dir: str | Path) -> str | None:
+    """The SHA-256 (hex) of the dataset folder's manifest.json; None when it has none."""
     path = Path(data_dir) / "manifest.json"
     return hashlib.sha256(path.read_bytes()).hexdigest() if path.exists() else None
 
@@ -168,6 +169,7 @@ def expected_from_config(optics: OpticsSettings, slm: SLMSettings) -> dict[str, 
 
 
 def expected_from_manifest(manifest: dict) -> dict[str, Any]:
+    """The optics a dataset was built for (`OPTICS_KEYS`, SI units), from its manifest."""
     s = manifest["settings"]
     return {k: s[k] for k in OPTICS_KEYS}
 
@@ -191,6 +193,8 @@ def differences(metadata: dict, expected: dict) -> list[str]:
 
 
 def check_metadata(metadata: dict, expected: dict, source: str) -> None:
+    """Raise `ModelMismatch` naming `source` and every differing key when the model's optics
+    are not the `expected` ones (`differences`)."""
     diff = differences(metadata, expected)
     if diff:
         raise ModelMismatch(

@@ -87,6 +87,7 @@ class NetSpec:
         return self.unshuffle * 2**self.depth
 
     def to_json(self) -> dict:
+        """The spec's fields as a dict (checkpoints and the ONNX metadata record it)."""
         return asdict(self)
 
 
@@ -172,6 +173,7 @@ def build_net(spec: NetSpec, seed: int | None = None) -> NHFNet:
 
 
 def parameter_count(net: nn.Module) -> int:
+    """The number of scalar parameters of `net`."""
     return sum(p.numel() for p in net.parameters())
 
 

@@ -211,11 +211,13 @@ class TrainOptions:
 
     @property
     def spec(self) -> NetSpec:
+        """The network these options train."""
         return NetSpec(self.width, self.depth, self.unshuffle, self.inputs, self.growth,
                        self.skip, self.single_conv_levels, self.deep_width)  # fmt: skip
 
     @property
     def crop_hw(self) -> tuple[int, int]:
+        """The training crop `(H, W)`, px."""
         return self.crop_height_px, self.crop_width_px
 
     @staticmethod
@@ -253,6 +255,7 @@ class Distributed:
 
     @property
     def is_main(self) -> bool:
+        """Whether this is rank 0 (the process that logs, validates and saves)."""
         return self.rank == 0
 
 
@@ -274,6 +277,9 @@ def distributed_from_env(device: torch.device) -> Distributed | None:
 
 @dataclass
 class TrainResult:
+    """A finished run: its folder, the last step, the last loss, seconds per step of this call
+    and the step it resumed from (0: a fresh run)."""
+
     run_dir: Path
     step: int
     last_loss: float
@@ -318,6 +324,8 @@ def _atomic_save(obj: object, path: Path) -> None:
 
 
 def lr_at(step: int, options: TrainOptions) -> float:
+    """The learning rate at `step`: a cosine from `learning_rate` down to `LR_FLOOR` of it at
+    the last step."""
     t = min(1.0, step / max(1, options.steps))
     return options.learning_rate * (LR_FLOOR + (1 - LR_FLOOR) * 0.5 * (1 + math.cos(math.pi * t)))
 
@@ -345,6 +353,8 @@ def _append(path: Path, columns: tuple[str, ...], row: dict) -> None:
 
 
 def plot_curves(run_dir: Path) -> Path:
+    """Plot the run's training loss and L2, and its validation loss and PSNR (dB), against step
+    into its curves PNG; returns the PNG's path."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -428,6 +438,7 @@ def validate_views(
 
 
 def data_volume(data: HoloData) -> tuple[float, float]:
+    """The dataset's hologram volume `(z_min, z_max)` about the reference plane, m."""
     v = data.manifest["settings"]["volume_m"]
     return float(v[0]), float(v[1])
 
@@ -703,4 +714,5 @@ def load_run(run_dir: str | Path) -> tuple[torch.nn.Module, dict]:
 
 
 def with_overrides(options: TrainOptions, **kw) -> TrainOptions:
+    """`options` with the fields in `kw` replaced, None values ignored."""
     return replace(options, **{k: v for k, v in kw.items() if v is not None})

@@ -22,6 +22,8 @@ _STD = (0.229, 0.224, 0.225)
 
 
 class VGGFeatures(nn.Module):
+    """VGG-16's convolutions up to relu3_3, frozen, with ImageNet's input normalisation."""
+
     def __init__(self) -> None:
         super().__init__()
         layers: list[nn.Module] = []
@@ -39,6 +41,8 @@ class VGGFeatures(nn.Module):
 
     @staticmethod
     def from_file(path: str | Path) -> VGGFeatures:
+        """The network with the weights of a local torchvision VGG-16 state dict, in eval mode;
+        FileNotFoundError when absent, ValueError when it is not VGG-16's."""
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"VGG-16 weights {path} not found (nothing is downloaded)")
@@ -55,6 +59,7 @@ class VGGFeatures(nn.Module):
         return net.eval()
 
     def taps(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The relu1_2, relu2_2 and relu3_3 features of `[N, 3, H, W]` images."""
         x = (x - self.mean) / self.std
         out = []
         for i, layer in enumerate(self.features):

@@ -56,6 +56,11 @@ class CalibrationFileError(ValueError):
 
 @dataclass(frozen=True)
 class Calibration:
+    """One fitted calibration (calibration.toml's value): per-colour phase tables (256 values,
+    rad), focus offsets (m), stage mapping (mm), geometry, intensity and the optional source,
+    zero-order and aberration fits, with standard errors. Raises ValueError when a value is out of
+    range."""
+
     wavelengths_m: tuple[float, float, float]
     pitch_m: float
     phase_sign: int
@@ -125,6 +130,7 @@ class Calibration:
     # -- what the daemon uses ------------------------------------------------------------------
 
     def phase_curves(self) -> list[PhaseCurve]:
+        """The fitted phase curves, R, G, B."""
         return [PhaseCurve(tuple(t)) for t in self.phase_tables_rad]
 
     def relative_intensity(self) -> tuple[float, float, float]:
@@ -166,11 +172,13 @@ class Calibration:
 
     @property
     def label(self) -> str:
+        """The file it came from and when it was fitted, for status and logs."""
         return f"{self.source or '(unsaved)'} fitted {self.created or 'now'}"
 
     # -- file ----------------------------------------------------------------------------------
 
     def to_toml(self) -> str:
+        """The calibration.toml text (format, version, creation time and every section)."""
         created = self.created or _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
         doc: dict[str, Any] = {
             "format": FORMAT, "version": FORMAT_VERSION, "created": created,
@@ -215,6 +223,7 @@ class Calibration:
         return _dump(doc)
 
     def save(self, path: Path | str) -> Path:
+        """Write calibration.toml to `path` atomically (a temporary file, then a rename)."""
         path = Path(path)
         tmp = path.with_name(f".{path.name}.tmp")
         tmp.write_text(self.to_toml())
@@ -223,6 +232,8 @@ class Calibration:
 
     @classmethod
     def load(cls, path: Path | str) -> Calibration:
+        """Read and validate a calibration.toml; `CalibrationFileError` when the file is missing,
+        corrupt, foreign, of another version or has a value out of range."""
         path = Path(path)
         if not path.is_file():
             raise CalibrationFileError(f"calibration file {path}: not found")

@@ -64,6 +64,9 @@ REFRESH_HZ_MAX = 1000.0
 
 
 class SLMSettings(_Section):
+    """`[slm]`: the panel's size (px), pixel pitch (um), phase stroke per colour (rad, R, G, B),
+    phase sign, grey inversion and refresh rate (Hz)."""
+
     width_px: Pixels = 1920
     height_px: Pixels = 1080
     pitch_um: PositiveMicrons = 8.0
@@ -78,15 +81,22 @@ class SLMSettings(_Section):
 
     @property
     def pitch_m(self) -> float:
+        """The pixel pitch in metres."""
         return self.pitch_um * 1e-6
 
 
 class ApertureSettings(_Section):
+    """`[optics.aperture]`: the relay's Fourier aperture, its shape and its cutoff per colour in
+    cycles per pixel (R, G, B; 0.25 is half the band)."""
+
     shape: Literal["square", "circle", "diamond"] = "square"
     cutoff_per_px: Annotated[list[CyclesPerPixel], Field(min_length=3, max_length=3)] = [0.25] * 3
 
 
 class OpticsSettings(_Section):
+    """`[optics]`: wavelengths (nm, R, G, B), the hologram window (px), the reference plane's
+    distance z0 and the volume about it (mm), propagation's padding, precision and kernel cache."""
+
     wavelengths_nm: Annotated[list[Nanometres], Field(min_length=3, max_length=3)] = [
         660.0,
         520.0,
@@ -115,18 +125,24 @@ class OpticsSettings(_Section):
 
     @property
     def wavelengths_m(self) -> tuple[float, ...]:
+        """The three wavelengths in metres, R, G, B."""
         return tuple(w * 1e-9 for w in self.wavelengths_nm)
 
     @property
     def z0_m(self) -> float:
+        """The reference plane's distance from the SLM in metres."""
         return self.z0_mm * 1e-3
 
     @property
     def volume_m(self) -> tuple[float, float]:
+        """The hologram volume `(z_min, z_max)` about the reference plane, in metres."""
         return (self.volume_mm[0] * 1e-3, self.volume_mm[1] * 1e-3)
 
 
 class CodingSettings(_Section):
+    """`[coding]`: double-phase coding's anti-alias low-pass and the amplitude fraction below
+    which a pixel codes as the zero pattern."""
+
     antialias: bool = True
     zero_below: Annotated[float, Field(ge=0, lt=1)] = 0.03
 
@@ -306,6 +322,9 @@ class BuildSettings(_Section):
 
 
 class ModelSettings(_Section):
+    """`[model]`: the network profile used unless a command names one, the profiles, and the
+    training and `nhfd model build` defaults."""
+
     profile: str = "fast"
     profiles: dict[str, ModelProfile] = Field(default_factory=_default_profiles)
     train: TrainSettings = TrainSettings()
@@ -557,10 +576,11 @@ class DaemonSettings(_Section):
     # How frames cross from the frame worker: "shm" (shared-memory slots, only a small message
     # on the pipe) or "pickle" (the arrays pickled through the pipe; for comparison).
     frame_transport: Literal[FRAME_TRANSPORTS] = "shm"
-    # Colour timing (hardware.md): "single" (daemon.single_colour's pattern in every channel,
-    # only that diode may be on), "capture" (snapshots step through the colours: all off, the
-    # colour's pattern, settle, that diode on, capture, off; clients only set powers) or
-    # "hw-sync" (each colour's pattern in its own channel, lasers modulated by the SLM's sync).
+    # Colour timing (docs/design.md, "The hardware"): "single" (daemon.single_colour's pattern in
+    # every channel, only that diode may be on), "capture" (snapshots step through the colours:
+    # all off, the colour's pattern, settle, that diode on, capture, off; clients only set
+    # powers) or "hw-sync" (each colour's pattern in its own channel, lasers modulated by the
+    # SLM's sync).
     colour_mode: Literal["single", "capture", "hw-sync"] = "hw-sync"
     single_colour: Literal["red", "green", "blue"] = "green"
     # How often the control loop reads the navigator (devices.navigator) and moves the view (s).
@@ -608,6 +628,8 @@ class DaemonSettings(_Section):
 
 
 class CalibrationSettings(_Section):
+    """`[calibration]`: the calibration.toml the daemon applies ("" = none)."""
+
     # calibration.toml written by `nhfd calib fit` ("" = none: the configured phase curves, sign
     # and daemon.stage_at_reference_mm focus mapping apply). The daemon applies its phase curves
     # and sign, and maps focus through its depth -> stage fit.
@@ -615,6 +637,9 @@ class CalibrationSettings(_Section):
 
 
 class Config(_Section):
+    """The whole validated configuration, one typed section per TOML table; the rules joining
+    sections (`cross_field_problems`) apply at construction."""
+
     slm: SLMSettings = SLMSettings()
     optics: OpticsSettings = OpticsSettings()
     coding: CodingSettings = CodingSettings()
@@ -668,6 +693,7 @@ class LoadedConfig:
 
 
 def default_text() -> str:
+    """The packaged default configuration's text (`nhfd/default.toml`)."""
     return resources.files("nhfd").joinpath("default.toml").read_text(encoding="utf-8")
 
 

@@ -5,7 +5,8 @@ settings without loading the rest of the package, and `nhfd.config` nests these 
 `Config`. Like `nhfd.config`, models are strict (TOML is typed) and frozen.
 
 Protocol facts that a real unit might not share (MeCom parameter ids, channel instances, APT
-scaling) are settings, because hardware.md marks them unverified or model-dependent.
+scaling) are settings, because docs/design.md ("The hardware") marks them unverified or
+model-dependent.
 """
 
 from __future__ import annotations
@@ -55,6 +56,9 @@ class MecomParameterIds(_Settings):
 
 
 class GuardianSettings(_Settings):
+    """`[devices.readybeam.guardian]`: the laser guardian process's socket, heartbeat timeout
+    and tick (s), and how long the daemon waits for it to start and to answer (s)."""
+
     # Unix socket the daemon and `nhfd laser-off` talk to. "" = laser.sock in the daemon's runtime
     # directory (so two daemons with two runtime directories have two guardians).
     socket_path: str = ""
@@ -70,6 +74,10 @@ class GuardianSettings(_Settings):
 
 
 class LaserSettings(_Settings):
+    """`[devices.readybeam]`: the READYBeam's port or USB serial, MeCom address and device type,
+    channel instances and power caps (% per colour, R, G, B), arming limit, timeouts (s) and
+    reconnection."""
+
     # Port path (/dev/ttyUSB0); "" = find the port by usb_serial.
     port: str = ""
     # USB serial number of the controller's FTDI chip (`nhfd devices` lists them).
@@ -112,9 +120,11 @@ class LaserSettings(_Settings):
         return v
 
     def cap_pct(self, channel: str) -> float:
+        """The power cap (% of full power) of `channel` ("red", "green" or "blue")."""
         return self.max_power_pct[COLOURS.index(channel)]
 
     def instance(self, channel: str) -> int:
+        """The MeCom instance of `channel`'s diode ("red", "green" or "blue")."""
         return self.channel_instances[COLOURS.index(channel)]
 
 
@@ -122,6 +132,10 @@ class LaserSettings(_Settings):
 
 
 class StageSettings(_Settings):
+    """`[devices.apt]`: the Thorlabs controller's port or USB serial, channel, allowed models,
+    encoder scaling (counts/mm), velocity (mm/s), acceleration (mm/s^2), soft limits (mm) and
+    timeouts (s)."""
+
     # Port path; "" = find by usb_serial (27xxxxxx KDC101, 83xxxxxx TDC001).
     port: str = ""
     usb_serial: str = ""
@@ -170,10 +184,12 @@ class StageSettings(_Settings):
 
     @property
     def velocity_units(self) -> int:
+        """`velocity_mm_s` in APT velocity units (counts/mm * T * 65536 * v)."""
         return round(self.counts_per_mm * self.time_unit_s * 65536 * self.velocity_mm_s)
 
     @property
     def acceleration_units(self) -> int:
+        """`acceleration_mm_s2` in APT acceleration units (counts/mm * T^2 * 65536 * a)."""
         return round(self.counts_per_mm * self.time_unit_s**2 * 65536 * self.acceleration_mm_s2)
 
 
@@ -231,6 +247,9 @@ SPACEMOUSE_IDS: list[list[int]] = [
 
 
 class NavigatorSettings(_Settings):
+    """`[devices.spacemouse]`: the SpaceMouse's USB ids, dead zone and full scale (raw counts),
+    the view's velocity at full deflection (m/s, deg/s), axis signs and read timeout (ms)."""
+
     usb_ids: Annotated[
         list[Annotated[list[Annotated[int, Field(ge=0, le=0xFFFF)]],
                        Field(min_length=2, max_length=2)]],

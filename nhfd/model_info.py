@@ -282,6 +282,11 @@ class ModelInfo:
         """The network input's channels: 3 (sRGB), or 4 with the mapped depth."""
         return 4 if self.inputs == "rgbd" else 3
 
+    @property
+    def mapping_dict(self) -> dict[str, float] | None:
+        """The depth mapping as `network_input` takes it (`a_m`, `b_m`, ...), or None."""
+        return None if self.mapping is None else self.mapping.as_dict()
+
     def focal_px(self) -> tuple[float, float]:
         """The render's focal lengths (fx, fy) in px: the trained ones (fy = fx where only fx
         is recorded), or from `fov_x_deg` across the training width for older exports. Another

@@ -57,6 +57,7 @@ class PhaseCurve:
 
     @property
     def is_default(self) -> bool:
+        """Whether this is the linear 2 pi curve over 256 levels (quantisation then rounds)."""
         return self == PhaseCurve.linear()
 
 

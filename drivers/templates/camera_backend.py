@@ -9,6 +9,9 @@ from nhfd.drivers.camera import Camera, CameraSettings, ResponseCurve
 
 
 class MyCamera(Camera):
+    """A camera backend to fill in: open, set exposure and gain with auto modes off, grab one raw
+    frame."""
+
     def __init__(self, settings: CameraSettings, response: ResponseCurve | None = None) -> None:
         super().__init__(settings, response=response)
         # Import the vendor library here, not at module level, and raise CameraUnavailable

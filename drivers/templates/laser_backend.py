@@ -8,6 +8,8 @@ from nhfd.drivers.transport import Opener, Transport, serial_opener
 
 
 class MyLaser(Laser):
+    """A laser backend to fill in: identify, read and write one channel's enable and power (%)."""
+
     def __init__(self, settings: LaserSettings, opener: Opener | None = None) -> None:
         super().__init__(settings)
         # Real port by path or USB serial number; a test passes its twin's opener instead.

@@ -6,6 +6,8 @@ from nhfd.drivers.navigator import Navigator, RawState
 
 
 class MyNavigator(Navigator):
+    """A navigator backend to fill in: return the latest raw axis counts and buttons."""
+
     def _do_open(self) -> None:
         pass  # match the device by vendor AND product id
 

@@ -8,6 +8,9 @@ from nhfd.drivers.slm import SLM, SLMHealth
 
 
 class MySLM(SLM):
+    """A phase SLM backend to fill in: write one uint8 [H, W, 3] RGB frame, report the output's
+    health."""
+
     def _do_open(self) -> None:
         pass  # find the output (by EDID name, not index), check its geometry
 

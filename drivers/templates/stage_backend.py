@@ -7,6 +7,9 @@ from nhfd.drivers.stage import Outcome, Stage, StageInfo, StageState
 
 
 class MyStage(Stage):
+    """A stage backend to fill in: identify, start homing and moves (mm), stop, read the state, wait
+    for the end."""
+
     def __init__(self, settings: StageSettings) -> None:
         super().__init__(settings)
 

@@ -53,6 +53,9 @@ class _Motion:
 
 
 class AptTwin(PtyPeer):
+    """A simulated KDC101 / TDC001 that answers APT on a pty, moving on its clock between limit
+    switches (positions in encoder counts inside, mm at the test API)."""
+
     def __init__(
         self,
         *,
@@ -100,6 +103,8 @@ class AptTwin(PtyPeer):
 
     def inject(self, kind: str, *, msg_id: int | None = None, count: int = 1, code: int = 0x2B,
                notes: str = "simulated fault", keep_bytes: int = 10) -> None:
+        """Apply fault `kind` (one of `FAULT_KINDS`) to the next `count` messages from the host
+        (those with `msg_id` only, when given); ValueError for an unknown kind."""
         if kind not in FAULT_KINDS:
             raise ValueError(f"fault {kind!r}: one of {FAULT_KINDS}")
         with self.lock:
@@ -107,11 +112,13 @@ class AptTwin(PtyPeer):
 
     @property
     def position_mm(self) -> float:
+        """The position now (mm, on the twin's clock, mid-move included)."""
         with self.lock:
             return self._position_now() / self.counts_per_mm
 
     @property
     def moving(self) -> bool:
+        """Whether a move or homing is under way."""
         with self.lock:
             return self._motion is not None
 
@@ -120,6 +127,7 @@ class AptTwin(PtyPeer):
         self.wait_for(lambda: self._motion is not None, timeout_s)
 
     def received_ids(self) -> list[int]:
+        """The ids of every message received from the host, in order."""
         with self.lock:
             return [m.msg_id for _, m in self.received]
 
@@ -175,6 +183,7 @@ class AptTwin(PtyPeer):
     # -- protocol ------------------------------------------------------------------------------
 
     def on_bytes(self, data: bytes) -> None:
+        """Decode the host's bytes and handle each whole message (faults applied), recording it."""
         for message in self._stream.feed(data):
             self.received.append((self.clock(), message))
             self._handle(message)
@@ -269,6 +278,8 @@ class AptTwin(PtyPeer):
         return None
 
     def tick(self) -> None:
+        """Advance the motion to the clock (arrival, limit switches, an injected motion error) and
+        send status updates when due."""
         now = self.clock()
         m = self._motion
         if m is not None:

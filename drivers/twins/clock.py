@@ -19,10 +19,12 @@ class ManualClock:
         self._lock = threading.Lock()
 
     def __call__(self) -> float:
+        """The time now (s)."""
         with self._lock:
             return self._now_s
 
     def advance(self, dt_s: float) -> float:
+        """Move time forward by `dt_s` (s, >= 0; ValueError otherwise); returns the new time."""
         if dt_s < 0:
             raise ValueError("time does not run backwards")
         with self._lock:

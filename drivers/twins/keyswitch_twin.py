@@ -20,6 +20,9 @@ OUTPUTS = ("dtr", "rts")
 
 
 class KeySwitchTwin:
+    """A simulated key switch wired from a port's DTR or RTS output to its CTS or DSR input, with
+    the record of opens, closes, reads and output changes."""
+
     def __init__(self, line: str = "cts", *, output: str = "dtr", port: str = "simulated") -> None:
         if line not in ("cts", "dsr"):
             raise ValueError(f"key switch line {line!r}: allowed: cts or dsr")
@@ -47,6 +50,7 @@ class KeySwitchTwin:
             self.gone = True
 
     def replug(self) -> None:
+        """The adapter is back: opens and reads work again."""
         with self.lock:
             self.gone = False
 
@@ -88,6 +92,7 @@ class TwinLines:
 
     @property
     def dtr(self) -> bool:
+        """Whether DTR is asserted (set it to change it)."""
         return self._out["dtr"]
 
     @dtr.setter
@@ -96,6 +101,7 @@ class TwinLines:
 
     @property
     def rts(self) -> bool:
+        """Whether RTS is asserted (set it to change it)."""
         return self._out["rts"]
 
     @rts.setter
@@ -104,13 +110,18 @@ class TwinLines:
 
     @property
     def cts(self) -> bool:
+        """Whether CTS reads asserted: the key is on, the switch is on CTS and its output is
+        asserted. OSError (EIO) once vanished."""
         return self._input("cts")
 
     @property
     def dsr(self) -> bool:
+        """Whether DSR reads asserted: the key is on, the switch is on DSR and its output is
+        asserted. OSError (EIO) once vanished."""
         return self._input("dsr")
 
     def close(self) -> None:
+        """Close this open of the port (counted in the twin's `closes`)."""
         if not self._closed:
             self._closed = True
             with self._twin.lock:

@@ -1,9 +1,9 @@
 """A READYBeam twin: answers MeCom frames on a pty and records every channel's emission.
 
-It behaves as hardware.md describes the device: value replies with their own CRC,
-acknowledgements echoing the request's CRC, `+EE` error replies in hex, silence on a bad request
-CRC, and read-only / out-of-range / unknown-parameter errors. Emission of a channel is its power
-while its enable is 1 (the twin does not model digital control gating it).
+It behaves as docs/design.md ("The hardware": Lasers) describes the device: value replies with
+their own CRC, acknowledgements echoing the request's CRC, `+EE` error replies in hex, silence on a
+bad request CRC, and read-only / out-of-range / unknown-parameter errors. Emission of a channel is
+its power while its enable is 1 (the twin does not model digital control gating it).
 
 The record is what tests trust: `emission(channel)` lists (time_s, emitted_pct) at every change,
 on the twin's clock, so "the lasers were off by then" is a fact read from the device side.
@@ -59,6 +59,9 @@ class _Fault:
 
 @dataclass
 class RequestRecord:
+    """One request the twin received: when (s, the twin's clock), its payload, and whether it was
+    answered."""
+
     time_s: float
     payload: str
     answered: bool = True
@@ -77,6 +80,9 @@ class _Channel:
 
 
 class MecomTwin(PtyPeer):
+    """A simulated FISBA READYBeam that answers MeCom on a pty and records each channel's emission
+    (% of full power) on its clock."""
+
     def __init__(
         self,
         *,
@@ -137,10 +143,12 @@ class MecomTwin(PtyPeer):
             return list(self._channels[self._instance(channel)].log)
 
     def emitting(self) -> dict[str, float]:
+        """Each channel's emission now (%), by colour."""
         with self.lock:
             return {self.names[i]: c.emitted_pct for i, c in self._channels.items()}
 
     def max_emitted_pct(self, channel: str | int | None = None) -> float:
+        """The highest emission (%) ever recorded, on `channel` or on any."""
         insts = self.names if channel is None else [self._instance(channel)]
         with self.lock:
             return max(p for i in insts for _, p in self._channels[i].log)
@@ -173,12 +181,15 @@ class MecomTwin(PtyPeer):
             self._record(ch)
 
     def writes(self) -> list[str]:
+        """The payloads of every `VS` write received, in order."""
         with self.lock:
             return [r.payload for r in self.requests if r.payload.startswith(mecom.SET)]
 
     # -- protocol ------------------------------------------------------------------------------
 
     def on_bytes(self, data: bytes) -> None:
+        """Parse the host's frames and handle each (faults applied); frames with a bad CRC get no
+        answer and are kept in `rejected`."""
         self._rx += data
         while (end := self._rx.find(mecom.EOL)) >= 0:
             raw = bytes(self._rx[: end + 1])

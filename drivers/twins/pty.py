@@ -31,6 +31,9 @@ TICK_S = 0.002
 
 
 class PtyPeer(ABC):
+    """A simulated device on the master side of a pseudo-terminal, served from a thread: a subclass
+    answers `on_bytes` and, for timed state, `tick`."""
+
     def __init__(self, *, clock: Clock = real_clock) -> None:
         self.clock = clock
         self.lock = threading.RLock()
@@ -45,6 +48,7 @@ class PtyPeer(ABC):
     # -- lifecycle -----------------------------------------------------------------------------
 
     def start(self) -> PtyPeer:
+        """Open the pty pair and start the serving thread; returns the peer."""
         self._open_pair()
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
@@ -54,6 +58,7 @@ class PtyPeer(ABC):
         return self
 
     def close(self) -> None:
+        """Stop the serving thread and close the pty pair."""
         self._stop.set()
         self.wake()
         if self._thread is not None:
@@ -80,6 +85,7 @@ class PtyPeer(ABC):
 
     @property
     def port_path(self) -> str:
+        """The slave's path the driver opens; RuntimeError before `start` or while vanished."""
         if self._path is None:
             raise RuntimeError(f"{type(self).__name__}: not started, or the port has vanished")
         return self._path
@@ -124,6 +130,7 @@ class PtyPeer(ABC):
 
     @property
     def present(self) -> bool:
+        """Whether the port exists (started and not vanished)."""
         return self._master is not None
 
     # -- pair ----------------------------------------------------------------------------------

@@ -60,7 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("--radius-scale", default="0.9,1.1",
                    help="radius range as multiples of the suggested camera distance")
     b.add_argument("--phase", default="depth", choices=("depth", "zero", "random"),
-                   help="phase heuristic (optics.md; default depth-aware)")
+                   help="phase heuristic (docs/physics.md; default depth-aware)")
     b.add_argument("--per-colour-views", action="store_true",
                    help="render each colour's own directions instead of one shared set")
     b.add_argument("--d-near", type=float, help="override the measured scene near depth")

@@ -1,5 +1,5 @@
-"""Colour modes (hardware.md, "Colour timing"): what the panel shows per colour, which diodes a
-client may switch, and the capture-mode snapshot sequence.
+"""Colour modes (docs/design.md, "The hardware": Colour timing): what the panel shows per colour,
+which diodes a client may switch, and the capture-mode snapshot sequence.
 
   single   one colour (daemon.single_colour): its pattern in every HDMI channel, and only its
            diode may be enabled or given power. The safe choice for a bench without sync wiring.

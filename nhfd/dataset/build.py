@@ -2,7 +2,8 @@
 
 1. A depth-only pass over every pose (at a quarter of the resolution: percentiles of depth do
    not need more) fixes the scene's `d_near`, `d_far` before any hologram is computed, so every
-   shard shares one mapping (optics.md).
+   shard shares one mapping (docs/physics.md, "The hologram volume and the scene-to-volume
+   mapping").
 2. The manifest freezes the poses, the mapping, the angular sampling, the pose envelope, the
    settings and the scene file's SHA-256; its `key` (a hash of all that) is written into every
    shard. A rebuild with other settings into the same folder is refused unless `force`.
@@ -56,15 +57,18 @@ AMPLITUDE_PERCENTILE = 99.5
 
 
 def sha256_file(path: Path) -> str:
+    """The SHA-256 of the file at `path`, hex."""
     with open(path, "rb") as f:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
 def shard_name(index: int) -> str:
+    """The shard file name of example `index` (`view_00042.npz`)."""
     return f"view_{index:05d}.npz"
 
 
 def write_json_atomic(path: Path, data: dict) -> None:
+    """Write `data` as JSON to `path` atomically: a synced temporary file beside it, renamed."""
     fd, tmp = tempfile.mkstemp(prefix=path.name + ".", suffix=".tmp", dir=path.parent)
     with os.fdopen(fd, "w") as f:
         json.dump(data, f, indent=1)
@@ -300,6 +304,8 @@ def _build_star(job: tuple) -> dict:
 
 
 def amplitude_scale(out_dir: Path, n: int) -> dict:
+    """The dataset's amplitude scale: the `AMPLITUDE_PERCENTILE` of the content-pixel amplitude
+    samples pooled over shards 0..n-1, with how it was taken. ValueError when there are none."""
     pooled = np.concatenate([read_shard(out_dir / shard_name(i))["amp_samples"] for i in range(n)])
     if pooled.size == 0:
         raise ValueError(f"{out_dir}: no content pixels in any target; is the scene in view?")
@@ -569,6 +575,7 @@ def build(
 
 
 def load_manifest(out_dir: Path) -> dict:
+    """The dataset folder's manifest.json as a dict; FileNotFoundError when it has none."""
     path = Path(out_dir) / MANIFEST
     if not path.exists():
         raise FileNotFoundError(f"{out_dir}: no {MANIFEST}; is this a dataset folder?")

@@ -49,6 +49,8 @@ class Envelope:
     focal_planes_m: tuple[float, ...]
 
     def describe(self) -> dict:
+        """The envelope for a report, JSON-ready: counts, the mapping's figures (depths in scene
+        units, z in m), the sampling and the focal planes (m)."""
         m = self.mapping_report
         return {"n_poses": self.n_poses, "views_per_pose": self.views_per_pose,
                 "n_cameras": len(self.cameras),

@@ -45,10 +45,12 @@ class Pose:
     radius: float | None = None
 
     def matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """`(R, t)` as float64 arrays, [3, 3] and [3]."""
         return np.array(self.R, np.float64), np.array(self.t, np.float64)
 
     @property
     def position(self) -> np.ndarray:
+        """The camera centre in world coordinates, `-R^T t`, [3] float64 (scene units)."""
         r, t = self.matrices()
         return -r.T @ t
 
@@ -89,6 +91,7 @@ class PoseSampler:
         parse_axis(self.up)
 
     def sample(self) -> list[Pose]:
+        """The seeded poses: `n_train` train, then `n_interp` interp, then `n_extrap` extrap."""
         rng = np.random.default_rng(self.seed)
         a0, a1 = self.azimuth_deg
         # Stratified azimuths: one per equal slice of the sector, at a random place in it.
@@ -119,6 +122,7 @@ class PoseSampler:
         return Pose(_tuple2(rot), tuple(float(v) for v in t), split, az, el, r)
 
     def describe(self) -> dict:
+        """The sampler's settings as a dict (for the manifest)."""
         return asdict(self)
 
 
@@ -146,6 +150,7 @@ def envelope(poses: list[Pose], center: np.ndarray) -> dict:
 
 
 def save_poses(path: Path, poses: list[Pose]) -> None:
+    """Write `poses` to `path` as the JSON list `load_poses` reads."""
     path.write_text(json.dumps([asdict(p) for p in poses], indent=1))
 
 

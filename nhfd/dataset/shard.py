@@ -105,13 +105,16 @@ class ExampleSettings:
         return Camera(r, t, fx, fy, cx, cy, self.width_px, self.height_px, near=near)
 
     def aperture(self):
+        """The Fourier aperture of these settings (shape, cutoff per colour in cycles/px)."""
         return Aperture(shape=self.aperture_shape, cutoff_per_px=tuple(self.cutoff_per_px))
 
     def to_json(self) -> dict:
+        """The settings as a dict, for the manifest."""
         return asdict(self)
 
 
 def camera_distance(pose: Pose, center: np.ndarray) -> float:
+    """The distance from the pose's camera to `center` [3] (scene units)."""
     return float(np.linalg.norm(pose.position - np.asarray(center, np.float64)))
 
 

@@ -323,8 +323,9 @@ def on_camera(camera: Any, images: np.ndarray, panel_hw: tuple[int, int],
 def focus_correlation(captures: list[np.ndarray], reference: np.ndarray,
                       mask: np.ndarray) -> list[float]:
     """Pearson correlation, inside `mask`, of each capture with `reference` (the view's linear
-    intensity where the camera sees it): largest where that region is in focus. optics.md's
-    measure for whole scenes; gradient energy is not one, since coherent ringing dominates it."""
+    intensity where the camera sees it): largest where that region is in focus. docs/physics.md's
+    measure for whole scenes ("The focus test"); gradient energy is not one, since coherent
+    ringing dominates it."""
     v = reference[mask] - reference[mask].mean()
     out = []
     for img in captures:

@@ -1,4 +1,5 @@
-"""Wavefront inversion: light fields to complex holograms (optics.md, "Wavefront inversion").
+"""Wavefront inversion: light fields to complex holograms (docs/physics.md, "Wavefront inversion
+(inverse STFT, overlap-add with hop 1)").
 
 Pure functions of arrays and tensors (no files, devices or globals):
 

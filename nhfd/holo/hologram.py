@@ -145,7 +145,8 @@ def scene_hologram(
 
     Colours with identical slopes share renders. With `shared_views`, every colour uses the views
     rendered with the longest wavelength's slopes (with `colour_sampling(..., shared=True)` the
-    others' own slopes differ from them by the rounding of W, a few percent; optics.md).
+    others' own slopes differ from them by the rounding of W, a few percent; docs/physics.md,
+    "Light field sampling (per wavelength)").
 
     `device` "cpu" renders with the CPU rasteriser and inverts on the CPU (the field is a CPU
     tensor); "cuda" or "cuda:N" renders with gsplat, `batch_views` views per call, and inverts on

@@ -1,4 +1,5 @@
-"""Inverse STFT with hop 1 in the per-direction convolution form (optics.md, "Wavefront inversion").
+"""Inverse STFT with hop 1 in the per-direction convolution form (docs/physics.md, "Wavefront
+inversion (inverse STFT, overlap-add with hop 1)").
 
 Per hogel h the `W x W` spectrum `S(h, k)` is inverse-DFT'd into a patch over the offsets
 `n = -W/2 ... W/2 - 1` (relative to the hogel), windowed by a separable Hann window without zero

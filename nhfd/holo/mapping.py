@@ -1,4 +1,5 @@
-"""The scene-level depth mapping (optics.md, "The hologram volume and the scene-to-volume mapping").
+"""The scene-level depth mapping (docs/physics.md, "The hologram volume and the scene-to-volume
+mapping").
 
 One mapping per *scene*: `d_near`, `d_far` are robust percentiles of the rendered depth over many
 poses (pixels with alpha > 0.5), then `z_h(d) = a + b / d` puts `d_near` at `z_max` and `d_far` at

@@ -1,4 +1,5 @@
-"""Phase heuristics for the light field's rays (optics.md, "Wavefront inversion").
+"""Phase heuristics for the light field's rays (docs/physics.md, "Wavefront inversion (inverse
+STFT, overlap-add with hop 1)").
 
 - "depth" (default): the phase of the spherical wave converging on the ray's point,
   `Phi = -(2 pi / lambda) z_h (1 / cos(theta) - 1)`, with `z_h` from the view's rendered depth

@@ -1,4 +1,4 @@
-"""Angular sampling per colour (optics.md, "Light field sampling (per wavelength)").
+"""Angular sampling per colour (docs/physics.md, "Light field sampling (per wavelength)").
 
 Each colour has its own hogel window `W` (derived from the volume and its aperture cutoff, or
 given), STFT bins `fx_k = k / (W p)` and slopes `tau_k = tan(asin(lambda fx_k))`; only bins inside
@@ -35,6 +35,7 @@ class ColourSampling:
 
     @property
     def n_views(self) -> int:
+        """Views of the light field this colour uses: `len(k)` squared."""
         return len(self.k) ** 2
 
 

@@ -1,13 +1,15 @@
-"""The Fourier aperture: the band the display can show (optics.md, "The Fourier aperture").
+"""The Fourier aperture: the band the display can show (docs/physics.md, "The Fourier
+aperture").
 
 One model is used everywhere (light-field directions, targets, the training loss, evaluation, the
 runtime and the simulated camera). Cutoffs are per colour in cycles per pixel (`f_cut * pitch`),
 so the same aperture object serves any pitch.
 
 Conventions, on the `fftfreq` grid of whatever array is filtered (k = integer bin, N = length):
-- square:  -c <= k/N < c on both axes (half-open, as an fftfreq grid is; optics.md);
+- square:  -c <= k/N < c on both axes (half-open, as an fftfreq grid is; docs/physics.md);
 - circle:  (kx/Nx)^2 + (ky/Ny)^2 < c^2;
-- diamond: |kx/Nx| + |ky/Ny| < 2c (same area as the square; c = 1/4 gives optics.md's diamond).
+- diamond: |kx/Nx| + |ky/Ny| < 2c (same area as the square; c = 1/4 gives docs/physics.md's
+  diamond).
 """
 
 from __future__ import annotations
@@ -59,9 +61,9 @@ class Aperture:
         self, colour: int, n_colours: int, wavelength_m: float, pitch_m: float
     ) -> float:
         """Half the depth of field of the filtered system for one colour, `1 / (4 lambda
-        f_cut^2)` with `f_cut = cutoff / pitch` (optics.md: `lambda / (2 NA^2)` with
-        `NA = lambda f_cut`; `4 p^2 / lambda` at the default half-band cutoff): the focus
-        test's tolerance."""
+        f_cut^2)` with `f_cut = cutoff / pitch` (docs/physics.md, "The Fourier aperture":
+        `lambda / (2 NA^2)` with `NA = lambda f_cut`; `4 p^2 / lambda` at the default half-band
+        cutoff): the focus test's tolerance."""
         _validate.wavelength("wavelength_m", wavelength_m)
         f_cut = self.cutoffs(n_colours)[colour] / _validate.pitch("pitch_m", pitch_m)
         return 1.0 / (4.0 * wavelength_m * f_cut * f_cut)

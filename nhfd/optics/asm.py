@@ -1,4 +1,5 @@
-"""Band-limited angular spectrum propagation (optics.md, "The SLM, the field and propagation").
+"""Band-limited angular spectrum propagation (docs/physics.md, "The SLM, the field and
+propagation").
 
 `P(U; z)` multiplies the spectrum of U, on the `fftfreq` grid of the zero-padded array, by
 

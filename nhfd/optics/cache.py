@@ -29,6 +29,8 @@ class KernelCache:
         return len(self._items)
 
     def get(self, key: Hashable, compute: Callable[[], torch.Tensor]) -> torch.Tensor:
+        """The tensor cached under `key`, else `compute()`, kept when it fits `max_bytes`
+        (least recently used entries dropped to make room)."""
         if key in self._items:
             self.hits += 1
             self._items.move_to_end(key)
@@ -45,5 +47,6 @@ class KernelCache:
         return value
 
     def clear(self) -> None:
+        """Drop every cached tensor (the hit and miss counts stay)."""
         self._items.clear()
         self.nbytes = 0

@@ -1,4 +1,5 @@
-"""Double-phase amplitude coding and phase-to-grey quantisation (optics.md, "Double-phase").
+"""Double-phase amplitude coding and phase-to-grey quantisation (docs/physics.md, "Double-phase
+amplitude coding and the SLM").
 
 A complex field `a exp(i phi)` (a <= 1) equals the mean of `exp(i (phi + acos a))` and
 `exp(i (phi - acos a))`. Writing the two on a pixel checkerboard leaves the wanted field plus an

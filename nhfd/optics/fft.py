@@ -59,6 +59,7 @@ class FFTCheck:
     seconds: float
 
     def describe(self) -> str:
+        """The layout in words (dtype, op, shape, dims, sizes, device, threads), for warnings."""
         sizes = " x ".join(str(s) for s in self.sizes)
         place = ", in place" if self.in_place else ""
         return (f"{self.dtype} {self.op} of shape {self.shape} over dims {self.dims} to {sizes} "

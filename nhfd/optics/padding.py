@@ -38,6 +38,7 @@ class PaddingPlan:
     reach_px: tuple[int, int]
 
     def describe(self) -> str:
+        """The plan in words: policy, `H x W -> Hp x Wp` and the kernel reach (px)."""
         (h, w), (hp, wp) = self.shape_hw, self.padded_hw
         return (
             f"padding {self.policy}: {h} x {w} -> {hp} x {wp} "

@@ -1,4 +1,5 @@
-"""The relay's pupil phase: Zernike aberrations on the Fourier plane (optics.md).
+"""The relay's pupil phase: Zernike aberrations on the Fourier plane (docs/physics.md,
+"The bench, the camera and calibration").
 
 A calibration fits the relay's aberrations as Zernike coefficients (`nhfd.calib.bench_model`);
 the frame pipeline's propagation kernels carry their conjugate (`nhfd.optics.region`). Both take
@@ -53,3 +54,4 @@ def pupil_phase(hw: tuple[int, int], cutoff_per_px: float, zernike_rad: tuple[fl
         if a:
             out += a * zernike(FIRST_NOLL + k, rho, theta)
     return out * scale
+

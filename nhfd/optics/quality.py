@@ -1,4 +1,4 @@
-"""Hologram quality as optics.md defines it ("Measuring hologram quality").
+"""Hologram quality as docs/physics.md defines it ("Measuring hologram quality").
 
 Focal stacks are compared in linear intensity after the aperture, on a fixed set of planes, inside
 a mask of the scene's pixels, with prediction and target normalised by the same robust percentile

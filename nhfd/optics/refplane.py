@@ -1,4 +1,5 @@
-"""The reference plane and the hologram window (optics.md, "The hologram volume").
+"""The reference plane and the hologram window (docs/physics.md, "The hologram volume and the
+scene-to-volume mapping").
 
 The network predicts the field on a reference plane `z0` in front of the SLM, over a centred
 window of the panel; outside the window the amplitude is zero. The runtime takes that field to the

@@ -122,6 +122,8 @@ class HostCopy:
         self.device = torch.device(device)
 
     def start(self, *tensors: torch.Tensor | None) -> tuple[list[torch.Tensor | None], Any]:
+        """Queue the copies of `tensors` (None passes through) into pinned host tensors; the
+        result is the host tensors and the event that marks them done (None on the CPU)."""
         if self.device.type != "cuda":
             return [None if t is None else t.detach() for t in tensors], None
         hosts: list[torch.Tensor | None] = []
@@ -137,12 +139,15 @@ class HostCopy:
         return hosts, done
 
     def wait(self, started: tuple[list[torch.Tensor | None], Any]) -> list[np.ndarray | None]:
+        """Wait for the copies `start` queued and return them as NumPy arrays (shapes and
+        dtypes of the device tensors)."""
         hosts, done = started
         if done is not None:
             done.synchronize()
         return [None if h is None else h.numpy() for h in hosts]
 
     def fetch(self, *tensors: torch.Tensor | None) -> list[np.ndarray | None]:
+        """`start` then `wait`: the tensors as host NumPy arrays."""
         return self.wait(self.start(*tensors))
 
 
@@ -176,11 +181,13 @@ class StageClock:
         self._marks = [self._new_mark()]
 
     def stage(self, name: str) -> None:
+        """End the current stage as `name` and begin the next one."""
         self._names.append(name)
         self._marks.append(self._new_mark())
 
     @property
     def seconds(self) -> dict[str, float]:
+        """Each stage's duration in seconds, by name, in order (waits for the last mark)."""
         self._marks[-1].synchronize()
         return {n: 1e-3 * a.elapsed_time(b)
                 for n, a, b in zip(self._names, self._marks[:-1], self._marks[1:], strict=True)}

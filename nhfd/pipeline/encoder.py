@@ -1,6 +1,6 @@
-"""The reference-plane field -> the coded grey region (optics.md): propagation to the SLM plane
-on the window plus the kernel's reach, double-phase coding with the model's amplitude scale and
-`coding.zero_below`, the calibrated phase -> grey curves, uint8.
+"""The reference-plane field -> the coded grey region (docs/physics.md): propagation to the SLM
+plane on the window plus the kernel's reach, double-phase coding with the model's amplitude scale
+and `coding.zero_below`, the calibrated phase -> grey curves, uint8.
 
 On the CPU the coding is numba's fused pass (`nhfd.optics.double_phase_grey`). On a CUDA device
 (`Encoder(settings, device=...)`) the propagation runs there with its kernels and buffers, and the

@@ -1,4 +1,4 @@
-"""One frame: a view of the scene -> the SLM's coded grey region (issue 7, optics.md).
+"""One frame: a view of the scene -> the SLM's coded grey region (issue 7, docs/physics.md).
 
 `compute_frame` is the whole data flow, its stages in order:
 
@@ -125,9 +125,9 @@ def compute_frame_on_device(view: View, scene: Scene, model: Any, encoder: Encod
     with torch.no_grad():
         rgb, depth, alpha = render_on_device(view, scene, model.info, s.window_hw, dev)
         clock.stage("render")
-        meta = model.metadata
+        info = model.info
         x = network_input_on_device(rgb, model.inputs, depth=depth, alpha=alpha,
-                                    mapping=meta.get("mapping"), volume_m=meta.get("volume_m"))
+                                    mapping=info.mapping_dict, volume_m=info.volume_m)
         if hasattr(model, "run_on"):
             amplitude, phase = model.run_on(x)
         else:  # a callable on NumPy arrays (tests' stand-ins)
@@ -181,6 +181,5 @@ def infer(model: Any, rendered: Render) -> tuple[np.ndarray, np.ndarray]:
     `[3, h, w]` float32."""
     info = model.info
     x = network_input(rendered.rgb, model.inputs, depth=rendered.depth, alpha=rendered.alpha,
-                      mapping=None if info.mapping is None else info.mapping.as_dict(),
-                      volume_m=info.volume_m)
+                      mapping=info.mapping_dict, volume_m=info.volume_m)
     return model(x)

@@ -60,10 +60,12 @@ class FrameSettings:
 
     @property
     def aperture(self) -> Aperture:
+        """The Fourier aperture (shape, cutoff per colour in cycles/px)."""
         return Aperture(self.aperture_shape, tuple(self.cutoff_per_px))  # type: ignore[arg-type]
 
     @property
     def propagation_z_m(self) -> float:
+        """The propagation from the reference plane to the SLM, m: -(z0 + refocus)."""
         return -(self.z0_m + self.refocus_m)
 
     @property
@@ -73,6 +75,8 @@ class FrameSettings:
         return tuple(self.propagation_z_m - o for o in offsets)
 
     def curves(self) -> list[PhaseCurve]:
+        """The phase curves in use per colour: the calibration's tables, else linear curves of
+        `phase_stroke_rad`."""
         return spec.phase_curves(self.phase_stroke_rad, self.phase_tables_rad)
 
 

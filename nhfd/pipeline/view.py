@@ -41,6 +41,8 @@ class Scene:
 
 
 def scene_frame(g: Any, path: str | None = None) -> SceneFrame:
+    """The scene frame of Gaussians `g`: the median of the means [3] (origin when empty) and the
+    up axis detected from the data and the file's format (`path`)."""
     up = detect_up_axis(g, format_hint(path) if path else None)[0]
     center = np.median(g.means, axis=0) if len(g) else np.zeros(3)
     return SceneFrame(tuple(float(v) for v in center), up)  # type: ignore[arg-type]

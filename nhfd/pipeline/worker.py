@@ -286,6 +286,7 @@ class FrameSlots:
         return message.in_slot(slot)
 
     def close(self) -> None:
+        """Detach from every slot (the daemon unlinks them)."""
         for shm in self.shms:
             shm.close()
 

@@ -9,7 +9,7 @@
   cameras         pinhole cameras and poses (OpenCV conventions), look-at, orbit, 6-DoF
   suggest         what a file does not state: which way is up, a camera that frames it
   raster          the tile rasteriser (numba kernels in _kernels; gsplat_backend on CUDA)
-  lightfield      the translated-camera light field of optics.md
+  lightfield      the translated-camera light field of docs/physics.md
   cull            reduce_scene: what a set of cameras can show (undrawn and faint splats, SH
                   bands), within a grey-level budget
 

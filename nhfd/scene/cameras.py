@@ -1,4 +1,4 @@
-"""Pinhole cameras and poses, OpenCV conventions (optics.md).
+"""Pinhole cameras and poses, OpenCV conventions (docs/physics.md, "Units and names").
 
 x right, y down, z forward; a pose is world-to-camera `[R | t]` (a point `X` in world units maps
 to `R X + t` in camera units); intrinsics `fx, fy, cx, cy` are in pixels, with the pixel `(i, j)`
@@ -83,7 +83,8 @@ class Camera:
 
     def translated(self, dx: float, dy: float, dcx_px: float = 0.0, dcy_px: float = 0.0) -> Camera:
         """Move the camera centre by `(dx, dy, 0)` in its own frame and the principal point by
-        `(dcx_px, dcy_px)`: the light-field view of optics.md (`t' = t - (dx, dy, 0)`)."""
+        `(dcx_px, dcy_px)`: the light-field view of docs/physics.md ("Rendering the light field
+        with translated cameras": `t' = t - (dx, dy, 0)`)."""
         return replace(
             self,
             t=self.t - np.array([dx, dy, 0.0]),

@@ -105,24 +105,30 @@ class CullReport:
 
     @property
     def kept_fraction(self) -> float:
+        """Gaussians kept over Gaussians in (1.0 for an empty scene)."""
         return self.n_kept / self.n_gaussians_in if self.n_gaussians_in else 1.0
 
     @property
     def render_saved_fraction(self) -> float:
+        """The share of render time saved on the timed views (0 when not timed)."""
         b = self.render_s_before
         return (b - self.render_s_after) / b if b > 0 else 0.0
 
     @property
     def work_saved_fraction(self) -> float:
+        """The share of (Gaussian, tile) pairs saved on the timed views (0 when not counted)."""
         b = self.tile_pairs_before
         return (b - self.tile_pairs_after) / b if b > 0 else 0.0
 
     def to_dict(self) -> dict:
+        """Every field and the three fractions, JSON-ready."""
         return {**asdict(self), "kept_fraction": self.kept_fraction,
                 "render_saved_fraction": self.render_saved_fraction,
                 "work_saved_fraction": self.work_saved_fraction}
 
     def summary(self) -> str:
+        """One line for a person: Gaussians kept, SH degrees, the largest change in grey levels
+        and the render time saved (ms)."""
         return (f"kept {self.n_kept} of {self.n_gaussians_in} Gaussians "
                 f"({100 * self.kept_fraction:.1f}%: {self.n_culled_frustum} drawn in no view, "
                 f"{self.n_culled_contribution} too faint), SH degree {self.sh_degree_in} -> "

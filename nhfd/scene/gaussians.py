@@ -44,6 +44,10 @@ def malformed_as_scene_error(path: Path | str, what: str) -> Iterator[None]:
 
 @dataclass(frozen=True)
 class Gaussians:
+    """A splat scene, activated, float32: means [N, 3] (scene units), quats [N, 4] (w x y z),
+    scales [N, 3] (> 0), opacities [N] in [0, 1], sh [N, K, 3]; ValueError on another shape or
+    dtype."""
+
     means: np.ndarray
     quats: np.ndarray
     scales: np.ndarray
@@ -77,6 +81,7 @@ class Gaussians:
 
     @property
     def sh_degree(self) -> int:
+        """The spherical-harmonic degree, 0 to 3 (K = (degree + 1)^2)."""
         return SH_DEGREE_FOR_K[self.sh.shape[1]]
 
     def base_colors(self) -> np.ndarray:
@@ -84,6 +89,7 @@ class Gaussians:
         return (0.5 + SH_C0 * self.sh[:, 0, :]).astype(np.float32)
 
     def subset(self, index: np.ndarray) -> Gaussians:
+        """The Gaussians `index` selects (a boolean mask [N] or integer indices)."""
         return Gaussians(
             self.means[index],
             self.quats[index],
@@ -94,6 +100,7 @@ class Gaussians:
 
     @staticmethod
     def empty(sh_degree: int = 0) -> Gaussians:
+        """A scene of no Gaussians with SH of `sh_degree`."""
         k = (sh_degree + 1) ** 2
         z = np.zeros
         return Gaussians(

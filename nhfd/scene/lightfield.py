@@ -1,4 +1,5 @@
-"""The light field on the reference plane, rendered with translated cameras (optics.md).
+"""The light field on the reference plane, rendered with translated cameras (docs/physics.md,
+"Rendering the light field with translated cameras").
 
 Directions are the STFT bins of a `W x W` hogel window: `fx_k = k / (W p)`, `tau_k =
 tan(asin(lambda fx_k))`, and only bins inside the aperture, `-f_cut <= fx_k < f_cut` (half-open,
@@ -29,7 +30,8 @@ from nhfd.spec import PITCH_RANGE_M, WAVELENGTH_RANGE_M
 @dataclass(frozen=True)
 class DepthMapping:
     """`z_h(d) = a_m + b_m / d`: scene depth `d` (scene units, along the central camera's axis) to
-    hologram depth from the reference plane (m). One mapping per scene (optics.md)."""
+    hologram depth from the reference plane (m). One mapping per scene (docs/physics.md, "The
+    hologram volume and the scene-to-volume mapping")."""
 
     a_m: float
     b_m: float
@@ -65,7 +67,8 @@ def hogel_window(
     wavelength_m: float, pitch_m: float, z_abs_max_m: float, f_cut_per_px: float
 ) -> int:
     """The least even `W` whose window covers the widest cone in the volume:
-    `W >= 2 max|z_h| tan(theta_cut) / p`, `sin(theta_cut) = lambda f_cut / p` (optics.md)."""
+    `W >= 2 max|z_h| tan(theta_cut) / p`, `sin(theta_cut) = lambda f_cut / p` (docs/physics.md,
+    "Light field sampling (per wavelength)")."""
     _check_optics(wavelength_m, pitch_m, f_cut_per_px)
     if not (math.isfinite(z_abs_max_m) and z_abs_max_m > 0):
         raise ValueError(f"volume half depth must be positive, got {z_abs_max_m} m")

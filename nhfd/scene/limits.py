@@ -171,6 +171,8 @@ class GzipStream:
         return data
 
     def take(self, n: int) -> bytearray:
+        """The next `n` inflated bytes (fewer only where the stream ends); EOFError where the
+        data ends before the end-of-stream marker."""
         out = bytearray()
         while len(out) < n:
             if self._d.eof:  # a member ended: another may follow, or the stream ends here

@@ -31,7 +31,8 @@ SHAPE_RMS_TOL = 0.01
 
 
 def _dof_m(bench: TrueBench, colour: int) -> float:
-    # Depth of field of the filtered system (optics.md): 8 p^2 / lambda at the default aperture.
+    # Depth of field of the filtered system (docs/physics.md): 8 p^2 / lambda at the default
+    # aperture.
     return 8 * bench.pitch_m**2 / bench.wavelengths_m[colour]
 
 

@@ -79,7 +79,7 @@ def stack_psnr(bench: TrueBench, frame: np.ndarray, stage_mm_for: Callable[[floa
                                                                  *cam.roi[2:])
     window = torch.zeros(1, *PANEL_HW, dtype=torch.float64)
     window[:, t : t + WINDOW_HW[0], lft : lft + WINDOW_HW[1]] = 1.0
-    # The scene's pixels (optics.md): inside the window, away from its edge.
+    # The scene's pixels (docs/physics.md): inside the window, away from its edge.
     inside = cam.project_to_camera(window, settings.pitch_m)[0] > 0.999
     images = []
     for z in PLANES_M:

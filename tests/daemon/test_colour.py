@@ -1,6 +1,6 @@
-"""Colour modes (hardware.md, "Colour timing") on the simulated bench. The laser twin's emission
-record proves the capture sequence: never two diodes on at once, and each capture taken with only
-its own diode on and its own colour's pattern on the panel."""
+"""Colour modes (docs/design.md, "The hardware": Colour timing) on the simulated bench. The
+laser twin's emission record proves the capture sequence: never two diodes on at once, and each
+capture taken with only its own diode on and its own colour's pattern on the panel."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""APT messages byte by byte, as hardware.md lays them out (little-endian, dest 0x50, source 1)."""
+"""APT messages byte by byte, as docs/design.md ("The hardware") lays them out (little-endian,
+dest 0x50, source 1)."""
 
 from __future__ import annotations
 

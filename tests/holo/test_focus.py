@@ -1,5 +1,5 @@
-"""The focus test (optics.md): the acceptance test of renderer + inversion + propagation, and the
-stability cases. Small images (96 x 96) keep it fast; the renderer is the real one."""
+"""The focus test (docs/physics.md): the acceptance test of renderer + inversion + propagation,
+and the stability cases. Small images (96 x 96) keep it fast; the renderer is the real one."""
 
 from __future__ import annotations
 
@@ -88,7 +88,7 @@ def test_depth_aware_phase_beats_random_phase() -> None:
     focused = sweep(g, "depth").max(axis=(0, -2, -1))
     speckle = sweep(g, "random").max(axis=(0, -2, -1))
     ratio = focused / speckle
-    # Measured: 60 / 60 / 37 (R, G, B); optics.md's full-band prototype saw 20-50x.
+    # Measured: 60 / 60 / 37 (R, G, B); docs/physics.md's full-band prototype saw 20-50x.
     assert (ratio > 10).all(), ratio
 
 

@@ -20,7 +20,7 @@ from nhfd.optics import srgb_to_linear
 
 
 def direct_istft(spectra: np.ndarray, window: int, k_x: np.ndarray, k_y: np.ndarray) -> np.ndarray:
-    """optics.md literally: per hogel, the W x W spectrum (zero outside the given bins) is
+    """docs/physics.md literally: per hogel, the W x W spectrum (zero outside the given bins) is
     inverse-DFT'd (no 1/W^2) into a patch over offsets -W/2..W/2-1, Hann-windowed, overlap-added
     with hop 1, and normalised by the window sum. `spectra` [Ky, Kx, H, W] complex."""
     _, _, h, w = spectra.shape

@@ -77,7 +77,7 @@ def test_mapping_puts_near_at_z_max_and_reports_exaggeration() -> None:
 
 def test_window_per_colour_from_volume_and_aperture() -> None:
     s = colour_sampling(LAMS, P, (-3e-3, 3e-3))
-    assert [c.window for c in s] == [16, 14, 12]  # optics.md's +-3 mm example
+    assert [c.window for c in s] == [16, 14, 12]  # docs/physics.md's +-3 mm example
     assert [len(c.k) for c in s] == [8, 7, 6]
     assert all(c.window_source == "derived" for c in s)
     for c in s:  # half-open aperture: -f_cut <= k / W < f_cut

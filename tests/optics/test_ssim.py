@@ -1,5 +1,5 @@
 """Evaluation's SSIM map against analytic values (Gaussian window 11, sigma 1.5, K1 0.01,
-K2 0.03, reflect padding; optics.md). `nhfd bench geometry` compares it with kornia's."""
+K2 0.03, reflect padding; docs/physics.md). `nhfd bench geometry` compares it with kornia's."""
 
 from __future__ import annotations
 

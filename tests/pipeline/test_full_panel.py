@@ -59,7 +59,7 @@ def numpy_asm(field: np.ndarray, padded_hw: tuple[int, int], pitch_m: float, lam
     """float64 angular spectrum of one colour: zero-padded at the bottom and right to
     `padded_hw`, the square aperture |fx|, |fy| < cutoff (cycles/px, [-c, c) as the product
     samples it), the transfer function exp(i 2 pi z (sqrt(1/lambda^2 - f^2) - 1/lambda)) (the
-    carrier removed, as optics.md defines it), cropped back to the top left. No band limit: at
+    carrier removed, as docs/physics.md defines it), cropped back to the top left. No band limit: at
     z = 6 mm on these grids it passes more than the aperture does."""
     hp, wp = padded_hw
     fy, fx = np.fft.fftfreq(hp)[:, None], np.fft.fftfreq(wp)[None, :]

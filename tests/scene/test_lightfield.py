@@ -1,4 +1,4 @@
-"""Light-field sampling and the translated-camera views of optics.md."""
+"""Light-field sampling and the translated-camera views of docs/physics.md."""
 
 from __future__ import annotations
 
@@ -23,7 +23,7 @@ RED_M, GREEN_M, BLUE_M = 660e-9, 520e-9, 450e-9
 
 
 def test_window_follows_the_volume_and_aperture():
-    # optics.md: +-3 mm at 660 nm with the half-band aperture needs W = 16 (15.5 px cone), and
+    # docs/physics.md: +-3 mm at 660 nm with the half-band aperture needs W = 16 (15.5 px cone), and
     # the central 8 x 8 directions pass: 64 views for red.
     assert hogel_window(RED_M, PITCH_M, 3e-3, 0.25) == 16
     k, tau = directions(16, RED_M, PITCH_M, 0.25)
@@ -113,7 +113,7 @@ def test_view_disparity_is_linear_in_tau_and_zero_at_the_reference_plane():
     for iy, ix, view in iter_views(g, cam, m, PITCH_M, tau, tau):
         for i, d in enumerate(depths):
             z_h = float(m.z_h(d))
-            # optics.md: a point at z_h sits at u = u_0 - z_h tau / p in view tau.
+            # docs/physics.md: a point at z_h sits at u = u_0 - z_h tau / p in view tau.
             expect = (
                 central[i][0] - z_h * tau[ix] / PITCH_M,
                 central[i][1] - z_h * tau[iy] / PITCH_M,
