@@ -12,4 +12,6 @@ daemon); the daemon never imports it. Everything imports at module level.
   bench_model  the differentiable bench model and the depth mapping fitted through it
   fit          the whole fit: a capture -> a `nhfd.calibration.Calibration`
   report       PNGs of a capture against its fit
+  citl         the camera in refinement's loop (`CameraLoop`): show, capture at the content's
+               planes, map onto the SLM grid through the calibration; never arms
 """

@@ -36,7 +36,7 @@ import torch
 from kornia.geometry.transform import warp_affine
 
 from nhfd.optics import Aperture, PhaseCurve, grey_to_phase, propagate
-from nhfd.optics.pupil import FIRST_NOLL, N_ZERNIKE, pupil_phase
+from nhfd.optics.pupil import FIRST_NOLL, N_ZERNIKE, apply_pupil
 
 from .focus import STAGE_M_PER_MM, FocusError
 from .geometry import Geometry
@@ -70,19 +70,6 @@ DA_RAD = 0.02
 # Starting points of the aberration fit's astigmatism (j = 5, 6; radians at the reference
 # wavelength): a relay's astigmatism reaches the better part of a radian.
 ASTIG_GRID_RAD = (-0.6, -0.3, 0.0, 0.3, 0.6)
-
-
-def apply_pupil(field: torch.Tensor, cutoff_per_px: float, zernike_rad: tuple[float, ...],
-                scale: float = 1.0) -> torch.Tensor:
-    """A field [..., H, W] through the pupil phase, zero-padded 2x so that the aberrated
-    spread does not wrap around the panel (a spectral product: it commutes with the ASM)."""
-    if not any(zernike_rad):
-        return field
-    h, w = field.shape[-2:]
-    ph = pupil_phase((2 * h, 2 * w), cutoff_per_px, zernike_rad, scale)
-    spec = torch.fft.fft2(field.to(torch.complex128), s=(2 * h, 2 * w))
-    return torch.fft.ifft2(spec * torch.polar(torch.ones_like(ph), ph))[..., :h, :w].to(
-        field.dtype)
 
 
 class BenchModel:

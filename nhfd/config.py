@@ -636,6 +636,38 @@ class CalibrationSettings(_Section):
     file: str = ""
 
 
+# The frame tiers, cheapest first: the network's double-phase frame; the light-field inversion
+# of the view (no network); phase-only optimisation through the calibrated bench model; the same
+# with the bench's camera in the loop (nhfd.pipeline.refine).
+QUALITY_TIERS = ("network", "exact", "sgd", "citl")
+Quality = Literal["network", "exact", "sgd", "citl"]
+
+
+class RefineSettings(_Section):
+    """`[refine]`: frames better than the network's (`nhfd.pipeline.refine`), at the display
+    (`nhfctl set-view --quality`) and offline (`nhfd refine`): the tier, the optimisation's
+    budget and stopping rule, and time multiplexing."""
+
+    # The tier a view gets unless it asks for another ("network" = open loop, as before).
+    quality: Quality = "network"
+    # The budget: refinement stops at whichever comes first.
+    iterations: Annotated[int, Field(ge=1, le=100_000)] = 200
+    seconds: Annotated[float, Field(gt=0, le=3600)] = 60.0
+    # Converged: the best loss fell by less than this fraction over the last `patience`
+    # iterations (0 = never stop early).
+    tolerance: Annotated[float, Field(ge=0, le=0.5)] = 1e-3
+    patience: Annotated[int, Field(ge=1, le=10_000)] = 25
+    # Adam's step on the SLM phase (rad): a few grey levels (2 pi / 256 = 0.025 rad each).
+    learning_rate_rad: Annotated[float, Field(gt=0, le=1.0)] = 0.05
+    # Time multiplexing: K subframes optimised jointly on their mean intensity and shown in
+    # turn (one camera exposure spans the K flips).
+    subframes: Annotated[int, Field(ge=1, le=16)] = 1
+    # The planes fitted: this many depth quantiles of the view's content.
+    planes: Annotated[int, Field(ge=1, le=16)] = 3
+    # Progressive mode: a better frame replaces the one shown every this many iterations.
+    swap_every: Annotated[int, Field(ge=1, le=10_000)] = 10
+
+
 class Config(_Section):
     """The whole validated configuration, one typed section per TOML table; the rules joining
     sections (`cross_field_problems`) apply at construction."""
@@ -648,6 +680,7 @@ class Config(_Section):
 
     daemon: DaemonSettings = DaemonSettings()
     calibration: CalibrationSettings = CalibrationSettings()
+    refine: RefineSettings = RefineSettings()
 
     @model_validator(mode="after")
     def _cross_field(self) -> Config:

@@ -82,7 +82,7 @@ def test_named_file_must_exist(tmp_path):
         (
             "[lasers]\n",
             r"lasers: unknown key; allowed here: calibration, coding, daemon, devices, model, "
-            r"optics, slm",
+            r"optics, refine, slm",
         ),
         ("[optics.aperture]\nradius = 1\n", r"optics\.aperture\.radius: unknown key"),
         ("[slm]\npitch_um = '8'\n", r"slm\.pitch_um = '8': Input should be a valid number"),

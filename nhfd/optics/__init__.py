@@ -11,7 +11,7 @@ Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength e
   refplane  the window on the reference plane <-> the panel on the SLM plane
   region    a window's propagation to the region of the panel around it (the frame pipeline's)
   pupil     the relay's pupil phase (Zernike aberrations) on the Fourier plane
-  quality   focal stacks and their quality measures
+  quality   focal stacks and their quality measures (PSNR, SSIM, speckle contrast)
   color     sRGB <-> linear <-> amplitude
   cache     kernels kept between calls, by key
   fft       FFTs checked once against a known answer before they are trusted
@@ -39,10 +39,13 @@ from nhfd.optics.padding import PaddingPlan, next_fast_len, plan_padding
 from nhfd.optics.pupil import pupil_phase, zernike
 from nhfd.optics.quality import (
     Quality,
+    colour_gains,
     focal_stack,
     focal_stack_quality,
     hologram_2d,
     quality_planes,
+    speckle_contrast,
+    stack_quality,
 )
 from nhfd.optics.refplane import (
     crop_window,
@@ -65,6 +68,7 @@ __all__ = [
     "aperture_mask",
     "apply_aperture",
     "checkerboard",
+    "colour_gains",
     "crop_window",
     "device_curves",
     "device_grey",
@@ -86,8 +90,10 @@ __all__ = [
     "reference_to_slm",
     "region_propagators",
     "slm_to_reference",
+    "speckle_contrast",
     "srgb_to_amplitude",
     "srgb_to_linear",
+    "stack_quality",
     "transfer_function",
     "transfer_function_z",
     "window_offset",

@@ -2,7 +2,8 @@
 "The bench, the camera and calibration").
 
 A calibration fits the relay's aberrations as Zernike coefficients (`nhfd.calib.bench_model`);
-the frame pipeline's propagation kernels carry their conjugate (`nhfd.optics.region`). Both take
+the frame pipeline's propagation kernels carry their conjugate (`nhfd.optics.region`), and the
+bench models (the calibration's, refinement's) apply them with `apply_pupil`. Both take
 the phase from here, on the `fftfreq` grid the angular spectrum method uses.
 """
 
@@ -55,3 +56,15 @@ def pupil_phase(hw: tuple[int, int], cutoff_per_px: float, zernike_rad: tuple[fl
             out += a * zernike(FIRST_NOLL + k, rho, theta)
     return out * scale
 
+
+def apply_pupil(field: torch.Tensor, cutoff_per_px: float, zernike_rad: tuple[float, ...],
+                scale: float = 1.0) -> torch.Tensor:
+    """A field [..., H, W] through the pupil phase, zero-padded 2x so that the aberrated
+    spread does not wrap around the panel (a spectral product: it commutes with the ASM)."""
+    if not any(zernike_rad):
+        return field
+    h, w = field.shape[-2:]
+    ph = pupil_phase((2 * h, 2 * w), cutoff_per_px, zernike_rad, scale)
+    spec = torch.fft.fft2(field.to(torch.complex128), s=(2 * h, 2 * w))
+    return torch.fft.ifft2(spec * torch.polar(torch.ones_like(ph), ph))[..., :h, :w].to(
+        field.dtype)

@@ -148,23 +148,69 @@ def focal_stack_quality(
         torch.stack([prediction, target]).to(torch.complex64),
         planes_m, pitch_m, wavelengths_m, aperture, **kw,
     )
-    pred_i, targ_i = stacks[0], stacks[1]  # [D, C, H, W]
-    inside = targ_i[..., mask]
+    return stack_quality(stacks[0], stacks[1], planes_m=planes_m, mask=mask,
+                         percentile=percentile)
+
+
+def _psnr_db(mse: float) -> float:
+    return min(PSNR_CEILING_DB, -10 * math.log10(max(mse, 1e-30)))
+
+
+def colour_gains(seen: torch.Tensor, target: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """The least-squares gain per colour `[C]` that brings intensities `seen` `[D, C, H, W]` to
+    `target` over the `mask` `[H, W]` pixels of every plane: what a camera's exposure and each
+    laser's power leave free (never below 0; 1 for a dark colour)."""
+    s, t = seen[..., mask].double(), target[..., mask].double()  # [D, C, M]
+    num = (s * t).sum(dim=(0, 2))
+    den = (s * s).sum(dim=(0, 2))
+    return torch.where(den > 0, num.clamp(min=0) / den.clamp(min=1e-300), torch.ones_like(den))
+
+
+def stack_quality(seen: torch.Tensor, target: torch.Tensor, *, planes_m: Sequence[float],
+                  mask: torch.Tensor | None = None, percentile: float = 99.5,
+                  fit_gains: bool = False) -> Quality:
+    """PSNR and SSIM of a focal stack of intensities `seen` `[D, C, H, W]` (a simulation's, or
+    a camera's mapped onto the target's grid) against `target`'s, both divided by the target's
+    `percentile` inside `mask` `[H, W]` and clipped to [0, 1]. `fit_gains`: first scale each
+    colour of `seen` by `colour_gains` (a camera's images are in arbitrary units)."""
+    if seen.shape != target.shape or seen.dim() != 4 or seen.shape[0] != len(planes_m):
+        raise ValueError(f"seen {tuple(seen.shape)} and target {tuple(target.shape)} must both "
+                         f"be [D, C, H, W] with D = {len(planes_m)} planes")
+    h, w = target.shape[-2:]
+    if mask is None:
+        mask = torch.ones((h, w), dtype=torch.bool, device=target.device)
+    if mask.shape != (h, w) or not mask.any():
+        raise ValueError(f"mask must be a non-empty [H, W] = [{h}, {w}] boolean image")
+    if fit_gains:
+        seen = seen * colour_gains(seen, target, mask).to(seen.dtype)[:, None, None]
+    inside = target[..., mask]
     scale = torch.quantile(inside.flatten().double()[:16_000_000], percentile / 100).item()
     scale = scale if scale > 0 else 1.0
-    p = (pred_i / scale).clamp(0, 1).float()
-    t = (targ_i / scale).clamp(0, 1).float()
+    p = (seen / scale).clamp(0, 1).float()
+    t = (target / scale).clamp(0, 1).float()
     se = ((p - t) ** 2)[..., mask]  # [D, C, M]
     mse_plane = se.mean(dim=(1, 2))
     ssim = ssim_map(p.flatten(0, 1), t.flatten(0, 1)).reshape(p.shape)[..., mask].mean(dim=(1, 2))
-
-    def psnr(mse: float) -> float:
-        return min(PSNR_CEILING_DB, -10 * math.log10(max(mse, 1e-30)))
-
     return Quality(
-        psnr_db=psnr(float(se.mean())),
+        psnr_db=_psnr_db(float(se.mean())),
         ssim=float(ssim.mean()),
         planes_m=tuple(float(z) for z in planes_m),
-        psnr_per_plane_db=tuple(psnr(float(m)) for m in mse_plane),
+        psnr_per_plane_db=tuple(_psnr_db(float(m)) for m in mse_plane),
         ssim_per_plane=tuple(float(s) for s in ssim),
     )
+
+
+def speckle_contrast(seen: torch.Tensor, target: torch.Tensor, mask: torch.Tensor,
+                     bright: float = 0.25) -> float:
+    """Speckle contrast std(r) / mean(r) of r = seen / target over the bright pixels (target at
+    least `bright` of its 99.5th percentile, inside `mask` `[H, W]`), pooled over planes and
+    colours of `[D, C, H, W]` intensity stacks, after `colour_gains`: 0 for a display that
+    shows the target's intensity exactly, about 1 for fully developed speckle."""
+    seen = seen.double() * colour_gains(seen, target, mask)[:, None, None]
+    t = target.double()
+    peak = torch.quantile(t[..., mask].flatten()[:16_000_000], 0.995).item()
+    keep = (t >= bright * peak) & mask if peak > 0 else torch.zeros_like(t, dtype=torch.bool)
+    if not keep.any():
+        raise ValueError("speckle_contrast: the target has no bright pixels inside the mask")
+    r = seen[keep] / t[keep]
+    return float(r.std() / r.mean().clamp(min=1e-300))

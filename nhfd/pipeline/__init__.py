@@ -7,13 +7,17 @@ own process by name and talks to it over a pipe (`nhfd.daemon.frame_link`); the 
   frame     `compute_frame(view, scene, model, encoder) -> Frame`: the whole data flow, its
             stages in order (render, inference, propagation, coding), each timed
   settings  `FrameSettings` and its one constructor `frame_settings(config, metadata,
-            calibration)`; the panel `Region` a frame changes, the zero pattern around it
+            calibration)` (a calibration's part: `with_calibration`); the panel `Region` a
+            frame changes, the zero pattern around it
   view      a view -> the render camera (`SceneFrame`, `Scene`, `render_camera`), and whether
             it lies inside the model's trained poses (`envelope_warnings`)
   encoder   `Encoder`: the reference-plane field -> the SLM plane (`nhfd.optics.region`) ->
             double-phase coding -> calibrated phase -> grey, uint8
   device    `daemon.device` -> a torch device (`resolve_device`), the pinned asynchronous host
             copy of a CUDA frame (`HostCopy`), CUDA-event stage times (`StageClock`)
+  refine    frames better than the network's: `exact` (the view's light-field inversion),
+            `sgd` (the SLM phase optimised through the calibrated bench model, `BenchForward`),
+            `citl` (the camera in the loop, through a `Capture`), K subframes; `refine_view`
   worker    the frame worker process: `worker_main`, model loading and checking (`open_model`,
             `check_inference`, `ModelUnfit`, `model_info`), the frame cache
 """

@@ -47,6 +47,7 @@ class Encoder:
         self.curves = settings.curves()
         self._zero: np.ndarray | None = None
         self._gain_map: torch.Tensor | None = None
+        self._source: torch.Tensor | None = None
         self._groups: list[RegionPropagator] | None = None
         self._curves_dev: DeviceCurves | None = None
 
@@ -89,13 +90,14 @@ class Encoder:
                 s.zernike_wavelength_m, device=self.device)
         return self._groups
 
-    def amplitude_gain_map(self) -> torch.Tensor | None:
-        """[3, h, w] factors on the region's SLM-plane field that undo the source's profile
-        (None without one): A(window centre) / A(x), at most max_amplitude_gain."""
+    def source_amplitude(self) -> torch.Tensor | None:
+        """[3, Hr, Wr] the illumination's amplitude on the region relative to the window's
+        centre, A(x) / A(window centre), from the calibrated source profile (None without
+        one): what the bench multiplies the SLM's field by."""
         s, r = self.settings, self.region
         if not s.source_profile:
             return None
-        if self._gain_map is None:
+        if self._source is None:
             ph, pw = s.panel_hw
             rows = torch.arange(r.top, r.top + r.height, dtype=torch.float64)
             cols = torch.arange(r.left, r.left + r.width, dtype=torch.float64)
@@ -105,12 +107,23 @@ class Encoder:
             xc = (r.left + r.window_left + (s.window_hw[1] - 1) / 2 - (pw - 1) / 2) * s.pitch_m
             maps = []
             for waist, x0, y0 in s.source_profile:
-                # Amplitude exp(-r^2 / w^2): its inverse relative to the window's centre.
+                # Amplitude exp(-r^2 / w^2) (w the 1/e^2 intensity radius), relative to the
+                # window's centre.
                 r2 = (x[None, :] - x0) ** 2 + (y[:, None] - y0) ** 2
                 rc2 = (xc - x0) ** 2 + (yc - y0) ** 2
-                maps.append(torch.clamp(torch.exp((r2 - rc2) / waist**2),
-                                        max=s.max_amplitude_gain))
-            self._gain_map = torch.stack(maps).float().to(self.device)
+                maps.append(torch.exp((rc2 - r2) / waist**2))
+            self._source = torch.stack(maps)
+        return self._source
+
+    def amplitude_gain_map(self) -> torch.Tensor | None:
+        """[3, h, w] factors on the region's SLM-plane field that undo the source's profile
+        (None without one): A(window centre) / A(x), at most max_amplitude_gain."""
+        source = self.source_amplitude()
+        if source is None:
+            return None
+        if self._gain_map is None:
+            gain = torch.clamp(source.reciprocal(), max=self.settings.max_amplitude_gain)
+            self._gain_map = gain.float().to(self.device)
         return self._gain_map
 
     def code(self, slm_field: torch.Tensor) -> tuple[np.ndarray, tuple[float, ...]]:

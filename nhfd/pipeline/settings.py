@@ -4,7 +4,7 @@ panel a frame changes (`Region`, a value of `nhfd.frame_message`: the daemon rea
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -133,9 +133,8 @@ def frame_settings(config: Config, info: ModelInfo, calibration: Calibration | N
     and `[daemon]` (`frame_size_px`)."""
     window_hw = frame_window_hw(config.daemon, config.slm, info)
     s = config.slm
-    cal = calibration
-    _, sign, invert = panel_coding(s, cal)
-    return FrameSettings(
+    _, sign, invert = panel_coding(s, calibration)
+    base = FrameSettings(
         panel_hw=(s.height_px, s.width_px),
         window_hw=window_hw,
         pitch_m=info.pitch_m,
@@ -150,10 +149,22 @@ def frame_settings(config: Config, info: ModelInfo, calibration: Calibration | N
         grey_invert=invert,
         refocus_m=float(refocus_m),
         padding=config.optics.padding,
-        phase_tables_rad=cal.phase_tables_rad if cal else (),
-        colour_offset_m=tuple(cal.refocus_m(c) for c in range(3)) if cal else (),
+    )
+    return with_calibration(base, calibration)
+
+
+def with_calibration(s: FrameSettings, cal: Calibration | None) -> FrameSettings:
+    """`s` coded through a calibration (None: `s` itself): its measured phase curves and sign
+    (as `panel_coding` rules), focus offsets, source profile and aberrations."""
+    if cal is None:
+        return s
+    return replace(
+        s,
+        phase_tables_rad=cal.phase_tables_rad,
+        phase_sign=int(cal.phase_sign),
+        colour_offset_m=tuple(cal.refocus_m(c) for c in range(3)),
         source_profile=tuple((cal.source_waist_m[c], *cal.source_centre_m[c])  # type: ignore[misc]
-                             for c in range(3)) if cal and cal.source_waist_m else (),
-        zernike_rad=cal.zernike_rad if cal else (),
-        zernike_wavelength_m=cal.zernike_wavelength_m if cal else 0.0,
+                             for c in range(3)) if cal.source_waist_m else (),
+        zernike_rad=cal.zernike_rad,
+        zernike_wavelength_m=cal.zernike_wavelength_m,
     )

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from nhfd.calib.bench_model import apply_pupil
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
+from nhfd.optics.pupil import apply_pupil
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.settings import FrameSettings
 

@@ -1,0 +1,154 @@
+"""The camera in the loop (`citl`, `nhfd.pipeline.refine`): the bench's devices show each step's
+frame, capture it at the content's planes, and the images are mapped onto the SLM's pixel grid
+through the calibration's geometry.
+
+Laser safety: `CameraLoop` never arms and never sets a power. It captures only while a person's
+arming holds, switching each colour on in turn at the power already set and off again after;
+disarmed, expired or faulted, it stops with `CaptureStopped` before switching anything on, and
+every colour is off on every way out of a capture (`finally`; should switching one off fail, the
+laser's `all_off`, which zeroes the powers too).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from nhfd.calibration import Calibration
+from nhfd.device_settings import COLOURS
+from nhfd.drivers.errors import DeviceError
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.refine import CaptureStopped
+
+from .bench_model import to_slm_grid
+from .data import default_camera_pitch_m
+from .geometry import Geometry
+
+# More than this fraction of the window saturated: the exposure is too long to fit intensities.
+MAX_SATURATED = 0.02
+
+
+def calibrated_geometry(cal: Calibration) -> Geometry:
+    """The calibration's SLM -> camera geometry (in the calibration capture's image, so on the
+    same camera region of interest)."""
+    pitch = float(cal.fitted_on.get("camera_pitch_m") or default_camera_pitch_m())
+    return Geometry(cal.magnification / pitch, cal.rotation_deg, cal.mirror_x, cal.shift_px,
+                    0.0, 0, 0.0, 0.0)
+
+
+class CameraLoop:
+    """A `nhfd.pipeline.refine.Capture` over the bench's devices (`BenchDevices`: SLM, laser,
+    stage, camera), the calibration that maps focus to the stage and the camera onto the SLM,
+    and the encoder whose region the frames fill (the rest of the panel shows its zero
+    pattern). Each call: per plane, the stage at the plane's focus; per colour (the camera is
+    mono; a colour camera's own channel is read), that diode alone on at its set power; the K
+    subframes shown in turn, their images averaged (one exposure spanning K flips); the dark
+    frame subtracted. `frames`: images averaged per capture."""
+
+    def __init__(self, devices: Any, calibration: Calibration, encoder: Encoder, *,
+                 frames: int = 1) -> None:
+        missing = [n for n in ("slm", "laser", "stage", "camera")
+                   if getattr(devices, n, None) is None]
+        if missing:
+            raise ValueError(f"quality = 'citl' needs the bench's {', '.join(missing)} "
+                             f"(devices.{missing[0]} = 'none')")
+        self.devices = devices
+        self.calibration = calibration
+        self.encoder = encoder
+        self.frames = int(frames)
+        self.geometry = calibrated_geometry(calibration)
+        self.dark: np.ndarray | None = None
+        self.captures = 0
+        stage = devices.stage
+        if stage.settings.require_homed and not stage.state().homed:
+            stage.home()
+
+    def _stopped(self, why: str) -> CaptureStopped:
+        return CaptureStopped(f"{why}; citl never arms: arm the lasers (nhfctl laser arm) and "
+                              "set each colour's power, then refine again")
+
+    def _check_laser(self) -> dict[str, float]:
+        laser = self.devices.laser
+        status = laser.status()
+        if status.fault:
+            raise CaptureStopped(f"laser fault: {status.fault}")
+        if not status.armed or status.armed_remaining_s <= 0:
+            raise self._stopped("the lasers are not armed")
+        powers = {name: float(status.channels[name].power_pct) for name in COLOURS}
+        dark = [n for n, p in powers.items() if p <= 0]
+        if dark:
+            raise CaptureStopped(f"{', '.join(dark)} at 0% power: citl fits every colour and "
+                                 "never sets a power (nhfctl laser power COLOUR PCT)")
+        return powers
+
+    def _lights_out(self) -> None:
+        """Every colour switched off, each read back, keeping the powers a person set; if that
+        fails, `all_off` (powers to 0 as well), and the error goes on."""
+        laser = self.devices.laser
+        try:
+            for name in COLOURS:
+                laser.enable(name, False)
+        except BaseException:
+            laser.all_off()
+            raise
+
+    def _panel(self, grey: np.ndarray) -> np.ndarray:
+        r = self.encoder.region
+        panel = self.encoder.zero.copy()
+        panel[:, r.top : r.top + r.height, r.left : r.left + r.width] = grey
+        return panel
+
+    def __call__(self, grey: np.ndarray, planes_m: Sequence[float]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        d = self.devices
+        s, r = self.encoder.settings, self.encoder.region
+        grey = np.asarray(grey, np.uint8)
+        self._check_laser()  # before anything moves or emits
+        panels = [self._panel(g) for g in grey]
+        h, w = s.window_hw
+        top, left = r.top + r.window_top, r.left + r.window_left
+        out = np.zeros((len(planes_m), len(COLOURS), h, w), np.float64)
+        seen = np.ones((h, w), bool)  # inside the camera's image
+        saturated = np.zeros((h, w), bool)
+        try:
+            if self.dark is None:
+                self._lights_out()
+                self.dark = d.camera.capture_dark(self.frames)
+            for i, dz in enumerate(planes_m):
+                z_m = s.z0_m + s.refocus_m + float(dz)
+                d.stage.move_to(self.calibration.stage_mm_for(z_m))
+                for c, name in enumerate(COLOURS):
+                    self._check_laser()
+                    try:
+                        d.laser.enable(name)
+                    except DeviceError as exc:  # NotArmed, a fault: nothing was switched on
+                        raise CaptureStopped(f"{name} could not be switched on: {exc}") from exc
+                    images = []
+                    for panel in panels:
+                        d.slm.show(panel)
+                        d.slm.wait_settled()
+                        cap = d.camera.capture(self.frames)
+                        self.captures += 1
+                        image = cap.image if cap.image.ndim == 2 else cap.image[..., c]
+                        sat = cap.saturated if cap.saturated.ndim == 2 else cap.saturated[..., c]
+                        images.append((np.asarray(image, np.float64), np.asarray(sat, bool)))
+                    d.laser.enable(name, False)
+                    mean = np.mean([im for im, _ in images], axis=0)
+                    sat = np.any([m for _, m in images], axis=0).astype(np.float64)
+                    vals, ok = to_slm_grid(mean, self.geometry, s.panel_hw, s.pitch_m)
+                    sat_slm, _ = to_slm_grid(sat, self.geometry, s.panel_hw, s.pitch_m)
+                    out[i, c] = vals[top : top + h, left : left + w]
+                    seen &= ok[top : top + h, left : left + w]
+                    saturated |= sat_slm[top : top + h, left : left + w] > 0
+        finally:
+            self._lights_out()
+        if seen.mean() < 0.5:
+            raise CaptureStopped(f"the camera sees {100 * seen.mean():.0f}% of the window: its "
+                                 "region of interest must hold the panel's image, as in the "
+                                 "calibration's capture")
+        if (saturated & seen).sum() > MAX_SATURATED * seen.sum():
+            raise CaptureStopped(f"{100 * (saturated & seen).sum() / seen.sum():.1f}% of the "
+                                 "window saturated: shorten devices.camera_settings.exposure_s")
+        return out, seen & ~saturated

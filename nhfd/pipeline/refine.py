@@ -1,0 +1,452 @@
+"""Frames better than the network's: the `exact`, `sgd` and `citl` tiers (docs/refine.md).
+
+  exact   a view's hologram without a network: the light-field inversion the dataset build uses
+          (`nhfd.holo.scene_hologram`), double-phase coded as a network frame is. Seconds on a
+          CPU; also the target every refinement is fitted to.
+  sgd     the SLM's phase optimised with Adam through the calibrated bench model
+          (`BenchForward`): the phase curves and their grey levels (a straight-through
+          estimator), each colour's focus, the illumination and the relay's pupil, fitted to the
+          target's focal stack at the planes where the view's content lies, started from a
+          double-phase frame.
+  citl    the same loop with the bench's camera in it (Peng et al. 2020, camera-in-the-loop),
+          started from `sgd`'s frame: each step's frame is shown and captured at those planes (a
+          `Capture`; `nhfd.calib.citl.CameraLoop` over the devices), and the captured
+          intensities replace the model's in the loss while the model's gradients steer.
+
+Time multiplexing: K subframes are optimised jointly on their mean intensity (the eye, or one
+camera exposure spanning K flips, sees the mean). `refine` stops on its budget (iterations,
+seconds) or on convergence, is cancelled between steps (a new view), and stops on a non-finite
+or diverging loss keeping the best frame so far: nothing worse than the start is ever returned.
+
+Shapes: the frame's region (`Encoder.region`, the window plus the propagation's reach) is
+`[C, Hr, Wr]`; the window `[C, h, w]`; K subframes lead, D planes follow them.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+import torch
+
+from nhfd.config import QUALITY_TIERS, RefineSettings
+from nhfd.holo import band_limit, colour_sampling, hologram_depth, scene_hologram
+from nhfd.model_info import ModelInfo
+from nhfd.optics import (
+    Aperture,
+    colour_gains,
+    focal_stack,
+    grey_to_phase,
+    phase_to_grey,
+    propagate,
+)
+from nhfd.optics.pupil import apply_pupil
+from nhfd.scene.lightfield import DepthMapping
+from nhfd.views import View
+
+from .encoder import Encoder
+from .frame import render_view
+from .view import Scene, render_camera
+
+# Pixels along the window's edge left out of the loss: the window's edge diffracts, and the
+# target (the window alone, propagated) and the bench (the whole region) differ there.
+EDGE_PX = 6
+# A content pixel: the render's alpha above this.
+CONTENT_ALPHA = 0.5
+# Planes closer than this (m) count as one.
+PLANE_MERGE_M = 20e-6
+# The loss this many times the starting loss: the optimisation is diverging.
+DIVERGE_FACTOR = 4.0
+# The subframes after the first start from the first with a seeded phase jitter of this
+# amplitude (rad): different starts decorrelate their speckle.
+SUBFRAME_JITTER_RAD = 0.5 * math.pi
+
+
+class Cancelled(Exception):
+    """Refinement was cancelled (a new view): the caller keeps what it showed."""
+
+
+class CaptureStopped(RuntimeError):
+    """The bench cannot capture for `citl` (lasers disarmed, no camera, a device fault); the
+    message says why and what to do."""
+
+
+class Capture(Protocol):
+    """The bench's camera as `citl` needs it: the K subframes `grey` `[K, C, Hr, Wr]` uint8
+    (the frame's region) shown in turn during each exposure, captured at `planes_m` (metres
+    from the reference plane) -> the intensities `[D, C, h, w]` on the window's SLM pixel grid
+    (any units: a gain per colour is fitted) and the pixels the camera saw `[h, w]` bool.
+    Raises `CaptureStopped` when it cannot."""
+
+    def __call__(self, grey: np.ndarray, planes_m: Sequence[float]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """Show `grey`, capture at `planes_m`: (intensities `[D, C, h, w]`, seen `[h, w]`)."""
+        ...
+
+
+def _never() -> bool:
+    return False
+
+
+@dataclass(frozen=True)
+class Target:
+    """What a refined frame is fitted to: `intensity` `[D, C, h, w]` float32, the focal stack of
+    the view's reference field through the aperture at `planes_m` (metres from the reference
+    plane), compared inside `mask` `[h, w]` bool; `scale` is its 99.5th percentile there (the
+    loss is in units of it, so -10 log10(loss) is the PSNR `nhfd.optics.stack_quality` gives)."""
+
+    planes_m: tuple[float, ...]
+    intensity: torch.Tensor
+    mask: torch.Tensor
+    scale: float
+
+    def __post_init__(self) -> None:
+        d = len(self.planes_m)
+        if self.intensity.dim() != 4 or self.intensity.shape[0] != d:
+            raise ValueError(f"target intensity {tuple(self.intensity.shape)}: expected "
+                             f"[D, C, h, w] with D = {d} planes")
+        if self.mask.shape != self.intensity.shape[-2:] or not bool(self.mask.any()):
+            raise ValueError(f"target mask {tuple(self.mask.shape)}: expected a non-empty "
+                             f"[h, w] = {list(self.intensity.shape[-2:])}")
+        if not torch.isfinite(self.intensity).all() or not self.scale > 0:
+            raise ValueError("target intensity: expected finite values with a positive peak")
+
+
+def window_mask(window_hw: tuple[int, int], edge_px: int = EDGE_PX) -> torch.Tensor:
+    """The window's pixels `[h, w]` bool, less `edge_px` along each edge."""
+    h, w = window_hw
+    mask = torch.zeros((h, w), dtype=torch.bool)
+    e = min(edge_px, (h - 1) // 2, (w - 1) // 2)
+    mask[e : h - e, e : w - e] = True
+    return mask
+
+
+def target_from_field(reference: torch.Tensor, planes_m: Sequence[float], encoder: Encoder,
+                      mask: torch.Tensor | None = None) -> Target:
+    """The `Target` of a reference-plane field `[C, h, w]` (the window, in the dataset's
+    units: an `exact_reference`, or a network's field) at `planes_m`."""
+    s = encoder.settings
+    if reference.dim() != 3 or tuple(reference.shape[-2:]) != tuple(s.window_hw):
+        raise ValueError(f"reference field {tuple(reference.shape)}: expected [C, h, w] = "
+                         f"[{len(s.wavelengths_m)}, {s.window_hw[0]}, {s.window_hw[1]}]")
+    with torch.no_grad():
+        stack = focal_stack(reference.detach().cpu().to(torch.complex64), list(planes_m),
+                            s.pitch_m, s.wavelengths_m, s.aperture, padding=s.padding)
+    mask = window_mask(s.window_hw) if mask is None else mask
+    scale = torch.quantile(stack[..., mask].flatten().double()[:16_000_000], 0.995).item()
+    return Target(tuple(float(z) for z in planes_m), stack.float(), mask, scale)
+
+
+def content_planes(z_h_m: np.ndarray | torch.Tensor, alpha: np.ndarray | torch.Tensor, n: int,
+                   volume_m: tuple[float, float]) -> tuple[float, ...]:
+    """`n` planes where a view's content lies: quantiles (1/2n, 3/2n, ...) of its hologram
+    depth `z_h_m` `[h, w]` (metres from the reference plane) over the pixels with alpha above
+    CONTENT_ALPHA, clipped to the volume; planes closer than PLANE_MERGE_M merge. A view with
+    no content gets the reference plane."""
+    z = torch.as_tensor(z_h_m, dtype=torch.float64).flatten()
+    a = torch.as_tensor(alpha, dtype=torch.float64).flatten()
+    z = z[(a > CONTENT_ALPHA) & torch.isfinite(z)]
+    if not z.numel():
+        return (0.0,)
+    q = torch.tensor([(2 * i + 1) / (2 * n) for i in range(n)], dtype=torch.float64)
+    planes: list[float] = []
+    for v in torch.quantile(z, q).tolist():
+        v = min(max(v, volume_m[0]), volume_m[1])
+        if not planes or v - planes[-1] > PLANE_MERGE_M:
+            planes.append(round(v, 9))
+    return tuple(planes)
+
+
+def exact_reference(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[int, int], *,
+                    progress: Callable[[int, int], None] | None = None) -> torch.Tensor:
+    """The view's reference-plane field `[C, h, w]` complex64 without a network: its light field
+    rendered through the model's camera and inverted (`nhfd.holo.scene_hologram`, the depth-aware
+    phase, colours sharing views, as the dataset build does), band-limited by the aperture; in
+    the dataset's units, so the encoder codes it as it codes a network's field. `progress(done,
+    total)` is called after each view (it may raise `Cancelled`)."""
+    if info.mapping is None:
+        raise ValueError("exact: the model records no depth mapping (mapping.a_m, b_m): "
+                         "rebuild it with `nhfd model build`")
+    aperture = Aperture(info.aperture_shape, tuple(info.cutoff_per_px))  # type: ignore[arg-type]
+    sampling = colour_sampling(info.wavelengths_m, info.pitch_m, info.volume_m, aperture,
+                               shared=True)
+    mapping = DepthMapping(info.mapping.a_m, info.mapping.b_m)
+    holo = scene_hologram(scene.gaussians, render_camera(view, scene.frame, info, window_hw),
+                          mapping, info.pitch_m, sampling, phase="depth", shared_views=True,
+                          progress=progress)
+    return band_limit(holo.field, aperture).to(torch.complex64)
+
+
+def view_planes(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[int, int], n: int
+                ) -> tuple[float, ...]:
+    """`content_planes` of the view rendered through the model's camera."""
+    if info.mapping is None:
+        return (0.0,)
+    r = render_view(view, scene, info, window_hw)
+    return content_planes(hologram_depth(r.depth, info.mapping), r.alpha, n, info.volume_m)
+
+
+def quantise(theta: torch.Tensor, encoder: Encoder) -> tuple[torch.Tensor, torch.Tensor]:
+    """Phase `[..., C, H, W]` (rad) -> (the phase the panel shows for the nearest grey levels,
+    which passes `theta`'s gradient straight through; those grey levels, uint8)."""
+    s = encoder.settings
+    with torch.no_grad():
+        grey = phase_to_grey(theta.detach(), encoder.curves, sign=s.phase_sign,
+                             invert=s.grey_invert)
+        shown = grey_to_phase(grey, encoder.curves, sign=s.phase_sign, invert=s.grey_invert)
+    return theta + (shown.to(theta.dtype) - theta).detach(), grey
+
+
+def grey_phase(grey: np.ndarray | torch.Tensor, encoder: Encoder) -> torch.Tensor:
+    """Grey levels `[..., C, H, W]` -> the phase the panel shows (rad, float32)."""
+    s = encoder.settings
+    return grey_to_phase(torch.as_tensor(np.asarray(grey)), encoder.curves, sign=s.phase_sign,
+                         invert=s.grey_invert)
+
+
+class BenchForward:
+    """The calibrated bench as refinement sees it: the SLM phase on the frame's region
+    `[K, C, Hr, Wr]` (rad) -> the intensity `[K, D, C, h, w]` on the window at each of
+    `planes_m`. Each colour: the illumination's amplitude (`Encoder.source_amplitude`), the
+    relay's pupil (the calibration's Zernike terms), the aperture and the angular spectrum to
+    z0 + refocus + the colour's focus offset + the plane's depth. What it leaves out (the
+    pixels' fill factor, gaps and crosstalk, unmodulated light, the camera's colour and
+    response) is what `citl`'s captures bring in."""
+
+    def __init__(self, encoder: Encoder, planes_m: Sequence[float]) -> None:
+        s, r = encoder.settings, encoder.region
+        self.encoder = encoder
+        self.planes_m = tuple(float(z) for z in planes_m)
+        self.source = encoder.source_amplitude()  # [C, Hr, Wr] or None
+        self.window = (slice(r.window_top, r.window_top + s.window_hw[0]),
+                       slice(r.window_left, r.window_left + s.window_hw[1]))
+        self.cutoffs = s.aperture.cutoffs(len(s.wavelengths_m))
+        # SLM -> each plane: the reverse of the encoder's propagation, plus the plane's depth.
+        self.z_m = [[-zc + dz for dz in self.planes_m] for zc in s.colour_propagation_z_m]
+
+    def __call__(self, phase: torch.Tensor, cancelled: Callable[[], bool] = _never
+                 ) -> torch.Tensor:
+        """The intensity `[K, D, C, h, w]` of the phase `[K, C, Hr, Wr]` (differentiable);
+        `cancelled()` is polled per colour (raising `Cancelled`)."""
+        s = self.encoder.settings
+        out = []
+        for c, lam in enumerate(s.wavelengths_m):
+            if cancelled():
+                raise Cancelled
+            u = torch.polar(torch.ones_like(phase[:, c]), phase[:, c])  # [K, Hr, Wr]
+            if self.source is not None:
+                u = u * self.source[c]
+            if s.zernike_rad:
+                u = apply_pupil(u, self.cutoffs[c], s.zernike_rad,
+                                s.zernike_wavelength_m / lam)
+            v = propagate(u[:, None], self.z_m[c], s.pitch_m, [lam],
+                          aperture=Aperture(s.aperture_shape, (self.cutoffs[c],)),  # type: ignore[arg-type]
+                          padding=s.padding, cache=self.encoder.cache)  # [K, D, 1, Hr, Wr]
+            out.append(v[..., 0, self.window[0], self.window[1]].abs().square())
+        return torch.stack(out, dim=2)
+
+
+def stack_loss(seen: torch.Tensor, target: Target, mask: torch.Tensor | None = None
+               ) -> torch.Tensor:
+    """Mean squared error of intensities `seen` `[D, C, h, w]` against the target inside the
+    mask, after the least-squares gain per colour (`nhfd.optics.colour_gains`: a camera's
+    exposure and each laser's power are free), in units of the target's scale squared."""
+    m = target.mask if mask is None else mask
+    gains = colour_gains(seen.detach(), target.intensity, m).to(seen.dtype)
+    diff = (seen * gains[:, None, None] - target.intensity) / target.scale
+    return diff[..., m].square().mean()
+
+
+def psnr_db(loss: float) -> float:
+    """The PSNR (dB) a `stack_loss` stands for (120 dB at most)."""
+    return min(120.0, -10 * math.log10(max(loss, 1e-12)))
+
+
+@dataclass
+class RefineReport:
+    """Where a refinement stands: its tier, iterations and seconds so far, the best loss and
+    the PSNR it stands for (the model's for `sgd`, the camera's for `citl`), the start's, and
+    why it stopped ("" while it runs): "iterations", "seconds", "converged", "cancelled", or a
+    sentence for a non-finite or diverging loss or a capture that stopped."""
+
+    tier: str
+    iterations: int = 0
+    seconds: float = 0.0
+    loss: float = math.inf
+    psnr_db: float = 0.0
+    start_psnr_db: float = 0.0
+    stop: str = ""
+
+    def to_json(self) -> dict[str, object]:
+        """What `status` and `nhfd refine`'s report show."""
+        return {"tier": self.tier, "iterations": self.iterations,
+                "seconds": round(self.seconds, 3), "loss": self.loss,
+                "psnr_db": round(self.psnr_db, 2), "start_psnr_db": round(self.start_psnr_db, 2),
+                "stop": self.stop}
+
+
+@dataclass
+class Refined:
+    """A refinement's best frame, `grey` `[K, C, Hr, Wr]` uint8 (K subframes of the region),
+    its report, and the loss history `[(iteration, seconds, loss)]`."""
+
+    grey: np.ndarray
+    report: RefineReport
+    history: list[tuple[int, float, float]] = field(default_factory=list)
+
+
+def check_tier(tier: str) -> str:
+    """`tier` if it is one of QUALITY_TIERS, else a ValueError naming them."""
+    if tier not in QUALITY_TIERS:
+        raise ValueError(f"quality = {tier!r}: must be one of {', '.join(QUALITY_TIERS)}")
+    return tier
+
+
+def refine(start: np.ndarray, target: Target, model: BenchForward, settings: RefineSettings,
+           *, capture: Capture | None = None, cancelled: Callable[[], bool] = _never,
+           on_better: Callable[[Refined], None] | None = None, seed: int = 0,
+           clock: Callable[[], float] = time.monotonic) -> Refined:
+    """Optimise the SLM pattern from `start` (grey `[C, Hr, Wr]` or `[K, C, Hr, Wr]` uint8: a
+    double-phase frame) for `target` through `model`, with the camera in the loop when
+    `capture` is given (`citl`; else `sgd`), `settings.subframes` subframes.
+
+    Stops at `settings.iterations` or `settings.seconds`, when the best loss fell by less than
+    `settings.tolerance` of itself over `settings.patience` iterations, when `cancelled()`, on a
+    non-finite loss or phase, on a loss DIVERGE_FACTOR times the start's, or when the capture
+    stops (`CaptureStopped`). Returns the best frame seen (the start if nothing was better).
+    `on_better(refined)` is called every `settings.swap_every` iterations when the best
+    improved (progressive display)."""
+    tier = "citl" if capture is not None else "sgd"
+    t0 = clock()
+    grey0 = np.asarray(start, np.uint8)
+    grey0 = grey0[None] if grey0.ndim == 3 else grey0
+    k = settings.subframes
+    theta0 = grey_phase(grey0, model.encoder).float()
+    if theta0.shape[0] < k:  # subframes after the first: the first with a seeded jitter
+        g = torch.Generator().manual_seed(seed)
+        extra = theta0[:1].repeat(k - theta0.shape[0], 1, 1, 1)
+        extra = extra + SUBFRAME_JITTER_RAD * (2 * torch.rand(extra.shape, generator=g) - 1)
+        theta0 = torch.cat([theta0, extra])
+    theta = theta0[:k].clone().requires_grad_(True)
+    opt = torch.optim.Adam([theta], lr=settings.learning_rate_rad)
+    report = RefineReport(tier)
+    best = Refined(grey0[:k].copy() if grey0.shape[0] >= k else
+                   quantise(theta.detach(), model.encoder)[1].numpy(), report)
+    start_loss = math.inf
+    last_swap = 0
+    it = 0
+    while True:
+        if cancelled():
+            report.stop = "cancelled"
+            break
+        try:
+            shown, grey = quantise(theta, model.encoder)
+            seen = model(shown, cancelled).mean(dim=0)  # [D, C, h, w]: the eye's mean
+            mask = target.mask
+            if capture is not None:
+                captured, valid = capture(grey.numpy(), target.planes_m)
+                cap = torch.as_tensor(np.asarray(captured), dtype=seen.dtype)
+                mask = target.mask & torch.as_tensor(np.asarray(valid, bool))
+                if cap.shape != seen.shape or not bool(mask.any()):
+                    raise CaptureStopped(f"the capture gave {tuple(cap.shape)} over "
+                                         f"{int(mask.sum())} valid pixels: expected "
+                                         f"{tuple(seen.shape)} over the window")
+                cap = cap * colour_gains(cap, seen.detach(), mask).to(seen.dtype)[:, None, None]
+                seen = seen + (cap - seen).detach()  # the camera's values, the model's gradient
+            loss = stack_loss(seen, target, mask)
+        except Cancelled:
+            report.stop = "cancelled"
+            break
+        except CaptureStopped as exc:
+            report.stop = f"capture stopped: {exc}"
+            break
+        value = float(loss.detach())
+        now = clock() - t0
+        if not math.isfinite(value) or not bool(torch.isfinite(theta).all()):
+            report.stop = (f"non-finite loss at iteration {it}: kept the frame of loss "
+                           f"{report.loss:.3g}")
+            break
+        if it == 0:
+            start_loss = value
+            report.start_psnr_db = psnr_db(value)
+        best.history.append((it, now, value))
+        if value < report.loss:
+            report.loss, report.psnr_db = value, psnr_db(value)
+            best.grey = grey.numpy().copy()
+        report.iterations, report.seconds = it + 1, now
+        if value > DIVERGE_FACTOR * start_loss:
+            report.stop = (f"diverged at iteration {it}: loss {value:.3g} against {start_loss:.3g} "
+                           f"at the start (refine.learning_rate_rad too large?)")
+            break
+        if on_better is not None and it - last_swap >= settings.swap_every and \
+                report.loss < start_loss:
+            last_swap = it
+            on_better(best)
+        if it + 1 >= settings.iterations:
+            report.stop = "iterations"
+            break
+        if now >= settings.seconds:
+            report.stop = "seconds"
+            break
+        p = settings.patience
+        if settings.tolerance > 0 and len(best.history) > p:
+            before = min(h[2] for h in best.history[:-p])
+            if before - report.loss < settings.tolerance * report.loss:
+                report.stop = "converged"
+                break
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        it += 1
+    report.seconds = clock() - t0
+    return best
+
+
+def refine_view(view: View, scene: Scene, info: ModelInfo, encoder: Encoder, tier: str,
+                settings: RefineSettings, *, start: np.ndarray | None = None,
+                capture: Capture | None = None, cancelled: Callable[[], bool] = _never,
+                on_better: Callable[[Refined], None] | None = None, seed: int = 0
+                ) -> tuple[Refined, Target]:
+    """A view's frame at `tier` ("exact", "sgd" or "citl"; `check_tier`) and the target it was
+    measured against: the view's `exact_reference` at its `content_planes`
+    (`settings.planes`); "exact" codes that field, "sgd" and "citl" refine from `start` (the
+    network's frame, `[C, Hr, Wr]` uint8) or, without one, from the exact frame. `citl` needs
+    `capture`. `cancelled()` is polled through the inversion and every step."""
+    check_tier(tier)
+    if tier == "network":
+        raise ValueError("quality = 'network': the network's frame is `compute_frame`'s")
+    if tier == "citl" and capture is None:
+        raise ValueError("quality = 'citl' needs the bench's camera and a calibration "
+                         "(devices.camera and calibration.file)")
+    window_hw = encoder.settings.window_hw
+
+    def poll(_done: int, _total: int) -> None:
+        if cancelled():
+            raise Cancelled
+
+    t0 = time.monotonic()
+    planes = view_planes(view, scene, info, window_hw, settings.planes)
+    reference = exact_reference(view, scene, info, window_hw, progress=poll)
+    target = target_from_field(reference, planes, encoder)
+    model = BenchForward(encoder, planes)
+    with torch.no_grad():
+        exact_grey, _ = encoder.code(encoder.to_slm(reference))
+    if tier == "exact":
+        with torch.no_grad():
+            loss = float(stack_loss(model(grey_phase(exact_grey[None], encoder)).mean(0),
+                                    target))
+        report = RefineReport("exact", 0, time.monotonic() - t0, loss, psnr_db(loss),
+                              psnr_db(loss), "exact")
+        return Refined(exact_grey[None], report), target
+    first = exact_grey if start is None else start
+    sgd = refine(first, target, model, settings, cancelled=cancelled, on_better=on_better,
+                 seed=seed)
+    if tier == "sgd" or sgd.report.stop == "cancelled":
+        return sgd, target
+    # The camera fine-tunes what the model can do: each of its steps costs D x C x K captures.
+    return refine(sgd.grey, target, model, settings, capture=capture, cancelled=cancelled,
+                  on_better=on_better, seed=seed), target
