@@ -33,8 +33,15 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from nhfd.config import QUALITY_TIERS, RefineSettings
-from nhfd.holo import band_limit, colour_sampling, hologram_depth, scene_hologram
+from nhfd.config import QUALITY_TIERS, OpticsSettings, RefineSettings, SLMSettings
+from nhfd.holo import (
+    band_limit,
+    colour_sampling,
+    hologram_depth,
+    scene_depth_range,
+    scene_hologram,
+)
+from nhfd.model_info import DepthMapping as InfoMapping
 from nhfd.model_info import ModelInfo
 from nhfd.optics import (
     Aperture,
@@ -59,6 +66,8 @@ EDGE_PX = 6
 CONTENT_ALPHA = 0.5
 # Planes closer than this (m) count as one.
 PLANE_MERGE_M = 20e-6
+# The field of view across the window of a scene served without a model (the model build's).
+SCENE_FOV_X_DEG = 40.0
 # The loss this many times the starting loss: the optimisation is diverging.
 DIVERGE_FACTOR = 4.0
 # The subframes after the first start from the first with a seeded phase jitter of this
@@ -179,6 +188,40 @@ def exact_reference(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[
                           mapping, info.pitch_m, sampling, phase="depth", shared_views=True,
                           progress=progress)
     return band_limit(holo.field, aperture).to(torch.complex64)
+
+
+def scene_info(optics: OpticsSettings, slm: SLMSettings, view: View, scene: Scene,
+               window_hw: tuple[int, int], *, fov_x_deg: float = SCENE_FOV_X_DEG) -> ModelInfo:
+    """What the frame path needs of a model, for a scene served without one (the `exact`
+    tier, and `sgd`/`citl` from it): the configured optics (`[optics]`, `[slm]`'s pitch), a
+    `fov_x_deg` camera across the window, and the depth mapping of this view's own content (its
+    robust near and far depths, `nhfd.holo.scene_depth_range`, onto the volume). The amplitude
+    scale is 1: code with `amplitude_scale_of` the field."""
+    h, w = window_hw
+    fx = 0.5 * w / math.tan(math.radians(fov_x_deg) / 2)
+    volume = (optics.volume_mm[0] * 1e-3, optics.volume_mm[1] * 1e-3)
+    base = dict(inputs="rgb", wavelengths_m=tuple(v * 1e-9 for v in optics.wavelengths_nm),
+                pitch_m=slm.pitch_m, aperture_shape=optics.aperture.shape,
+                cutoff_per_px=tuple(optics.aperture.cutoff_per_px), z0_m=optics.z0_mm * 1e-3,
+                volume_m=volume, amplitude_scale=1.0, train_size_hw=(h, w), input_multiple=1,
+                fx_px=fx, fy_px=fx)
+    r = render_view(view, scene, ModelInfo(**base), window_hw)  # type: ignore[arg-type]
+    d = scene_depth_range([r.depth], [r.alpha])
+    mapping = DepthMapping.from_range(d["d_near"], d["d_far"], *volume)
+    return ModelInfo(**base, mapping=InfoMapping(mapping.a_m, mapping.b_m,  # type: ignore[arg-type]
+                                                 d["d_near"], d["d_far"]))
+
+
+def amplitude_scale_of(reference: torch.Tensor, encoder: Encoder) -> float:
+    """The amplitude scale a dataset of this one field would have: the 99.5th percentile of
+    its SLM-plane amplitude over content pixels (above 1% of the peak), as `nhfd dataset
+    build` pools it over its shards."""
+    with torch.no_grad():
+        amp = encoder.to_slm(reference).abs().flatten().double().cpu()
+    peak = float(amp.max())
+    if not peak > 0:
+        raise ValueError("the view's field is dark: nothing of the scene is in view")
+    return float(torch.quantile(amp[amp > 0.01 * peak][:16_000_000], 0.995))
 
 
 def view_planes(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[int, int], n: int
