@@ -32,6 +32,7 @@ from nhfd.device_settings import (
     StageSettings,
     TriggerSettings,
 )
+from nhfd.views import QUALITY_TIERS
 
 DEFAULT_NAME = "packaged default"
 
@@ -636,11 +637,8 @@ class CalibrationSettings(_Section):
     file: str = ""
 
 
-# The frame tiers, cheapest first: the network's double-phase frame; the light-field inversion
-# of the view (no network); phase-only optimisation through the calibrated bench model; the same
-# with the bench's camera in the loop (nhfd.pipeline.refine).
-QUALITY_TIERS = ("network", "exact", "sgd", "citl")
-Quality = Literal["network", "exact", "sgd", "citl"]
+# The frame tiers (`nhfd.views.QUALITY_TIERS`, where they are defined and described).
+Quality = Literal[QUALITY_TIERS]  # type: ignore[valid-type]
 
 
 class RefineSettings(_Section):

@@ -163,3 +163,38 @@ def _shape(name: str, shape: Any) -> tuple[int, int, int]:
     if len(dims) != 3 or not all(isinstance(d, int | np.integer) and d >= 0 for d in dims):
         raise ValueError(f"frame {name} = {list(dims)}: expected [3, h, w], integers >= 0")
     return tuple(int(d) for d in dims)  # type: ignore[return-value]
+
+
+# What a refinement report carries (`nhfd.pipeline.refine.RefineReport.to_json`), the keys
+# `status.frames.refine` shows.
+REFINE_KEYS = ("tier", "iterations", "seconds", "loss", "psnr_db", "start_psnr_db", "stop")
+
+
+@dataclass(frozen=True, eq=False)
+class RefinedFrame:
+    """A better frame for a view already shown (the progressive mode of issue 34), as the worker
+    reports it while the view rests.
+
+    region   where the subframes go on the panel (the network frame's region)
+    grey     the K subframes `[K, 3, h, w]` uint8, shown in turn one per refresh; None when
+             only the report changed (a refinement that stopped without a better frame)
+    report   the refinement so far: `REFINE_KEYS` (tier, iterations, seconds, loss, the
+             estimated PSNR in dB and the start's, why it stopped or "" while it runs)
+    Pickled through the pipe: a better frame comes every `refine.swap_every` iterations at most.
+    """
+
+    region: Region
+    grey: np.ndarray | None
+    report: dict[str, Any]
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.region, Region):
+            raise ValueError(f"refined region = {self.region!r}: expected a Region")
+        g = self.grey
+        if g is not None and (g.dtype != np.uint8 or g.ndim != 4 or
+                              g.shape[2:] != (self.region.height, self.region.width)):
+            raise ValueError(f"refined grey {g.dtype} {list(g.shape)}: expected uint8 [K, C, "
+                             f"{self.region.height}, {self.region.width}]")
+        missing = [k for k in REFINE_KEYS if k not in self.report]
+        if missing:
+            raise ValueError(f"refined report: missing {', '.join(missing)}")

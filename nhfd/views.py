@@ -30,6 +30,11 @@ ELEVATION_DEG = (-89.9, 89.9)
 RADIUS = (0.0, 1e6)  # scene units; open at 0
 COORD = (-1e6, 1e6)  # scene units, each coordinate of a pose's position
 REFOCUS_MM = (-10.0, 10.0)  # digital refocus, mm, + toward the viewer
+# The frame tiers a view may ask for, cheapest first (`nhfd.pipeline.refine`): the network's
+# double-phase frame; the view's light-field inversion (no network); the SLM phase optimised
+# through the calibrated bench model; the same with the bench's camera in the loop. Above
+# "network" the daemon shows the network's frame at once and better ones while the view rests.
+QUALITY_TIERS = ("network", "exact", "sgd", "citl")
 # How far from 1 a pose's quaternion norm may be: the RPC edge normalises (its result is within
 # a few ulp of 1); a quaternion off by more was never normalised, and its rotation would scale.
 QUATERNION_NORM_TOL = 1e-6
@@ -104,16 +109,21 @@ class Pose:
 
 @dataclass(frozen=True)
 class View:
-    """One requested view: where the camera is (`camera`, an `Orbit` or a `Pose`) and the
-    digital refocus in mm (+ toward the viewer: the reference plane moves by refocus_mm)."""
+    """One requested view: where the camera is (`camera`, an `Orbit` or a `Pose`), the
+    digital refocus in mm (+ toward the viewer: the reference plane moves by refocus_mm) and the
+    frame tier asked for (`QUALITY_TIERS`)."""
 
     camera: Orbit | Pose
     refocus_mm: float = 0.0
+    quality: str = "network"
 
     def __post_init__(self) -> None:
         if not isinstance(self.camera, Orbit | Pose):
             raise ValueError(f"view camera = {self.camera!r}: expected an Orbit or a Pose")
         _finite_in("refocus_mm", self.refocus_mm, *REFOCUS_MM, "mm")
+        if self.quality not in QUALITY_TIERS:
+            raise ValueError(f"view quality = {self.quality!r}: expected one of "
+                             f"{', '.join(QUALITY_TIERS)}")
 
     @property
     def kind(self) -> str:
@@ -129,13 +139,22 @@ class View:
         """The same camera, refocused to `refocus_mm` (mm)."""
         return replace(self, refocus_mm=refocus_mm)
 
+    def with_quality(self, quality: str) -> View:
+        """The same camera and refocus at another tier."""
+        return replace(self, quality=quality)
+
     def to_json(self) -> dict[str, Any]:
-        """The plain form `status`, the audit log and `set_view`'s reply show."""
-        return {**self.camera.to_json(), "refocus_mm": self.refocus_mm}
+        """The plain form `status`, the audit log and `set_view`'s reply show (`quality` only
+        above "network", so open-loop views read as they always did)."""
+        out = {**self.camera.to_json(), "refocus_mm": self.refocus_mm}
+        if self.quality != "network":
+            out["quality"] = self.quality
+        return out
 
 
 def view_from_json(data: dict[str, Any]) -> View:
-    """A view from its JSON form (`View.to_json`; `refocus_mm` may be absent: 0). ValueError
+    """A view from its JSON form (`View.to_json`; `refocus_mm` may be absent: 0, `quality`:
+    "network"). ValueError
     naming the key for a kind or a key that is missing; the constructors check the values."""
     if not isinstance(data, dict):
         raise ValueError(f"view = {data!r}: expected an object with kind orbit or pose")
@@ -150,4 +169,4 @@ def view_from_json(data: dict[str, Any]) -> View:
             raise ValueError(f"view kind = {kind!r}: expected \"orbit\" or \"pose\"")
     except KeyError as exc:
         raise ValueError(f"view: a {kind} view needs {exc.args[0]}") from None
-    return View(camera, data.get("refocus_mm", 0.0))
+    return View(camera, data.get("refocus_mm", 0.0), data.get("quality", "network"))

@@ -100,3 +100,19 @@ def test_the_view_slot_shows_the_json_form():
     seq = slot.submit(ORBIT)
     assert slot.latest_after(0, 0.0) == (seq, ORBIT)
     assert slot.snapshot()["requested"] == ORBIT.to_json()
+
+
+def test_a_views_quality_tier_is_checked_and_shown_only_above_network() -> None:
+    from nhfd.views import QUALITY_TIERS, Orbit, View, view_from_json
+
+    cam = Orbit(10.0, 5.0, 2.0)
+    plain = View(cam)
+    assert plain.quality == "network" and "quality" not in plain.to_json()
+    sgd = plain.with_quality("sgd")
+    assert sgd.to_json()["quality"] == "sgd" and view_from_json(sgd.to_json()) == sgd
+    assert view_from_json(plain.to_json()) == plain
+    assert sgd != plain and hash(sgd) != hash(plain)  # the worker's cache keys on views
+    with pytest.raises(ValueError, match="view quality = 'best': expected one of network, "
+                                         "exact, sgd, citl"):
+        View(cam, quality="best")
+    assert QUALITY_TIERS == ("network", "exact", "sgd", "citl")

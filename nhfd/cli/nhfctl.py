@@ -29,6 +29,7 @@ from nhfd.daemon.protocol import RpcError, describe_codes
 from nhfd.device_settings import LaserSettings
 from nhfd.drivers.guardian import socket_path_for
 from nhfd.drivers.rundir import runtime_dir
+from nhfd.views import QUALITY_TIERS
 
 # How long `laser off` / `disarm` waits for the daemon before going to the guardian: a healthy
 # daemon answers in milliseconds, and one a second late has missed its heartbeats already.
@@ -76,6 +77,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="relative orbit move")
     g.add_argument("--by-pose", type=_floats(6, "--by-pose"), metavar="DX,DY,DZ,RX,RY,RZ",
                    help="relative camera-frame translation and rotation (deg)")
+    sv.add_argument("--quality", choices=QUALITY_TIERS,
+                    help="the frame tier: network (the network's frame, at once), exact (the "
+                         "view's own hologram, no network: seconds), sgd (the SLM pattern "
+                         "optimised through the calibrated bench model); above network the "
+                         "network's frame shows at once and better ones replace it while the "
+                         "view rests (status shows the tier, iterations and estimated PSNR); "
+                         "default: the current view's, or refine.quality")
 
     fo = sub.add_parser("focus", help="move the camera stage to a hologram depth (mm)")
     fo.add_argument("z_mm", type=float)
@@ -122,18 +130,28 @@ def build_parser() -> argparse.ArgumentParser:
 def _request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
     cmd = args.command
     if cmd == "set-view":
-        if args.orbit:
-            az, el, r = args.orbit
-            return "set_view", {"orbit": {"azimuth_deg": az, "elevation_deg": el, "radius": r}}
-        if args.pose:
-            return "set_view", {"pose": {"position": args.pose[:3],
-                                         "quaternion_wxyz": args.pose[3:]}}
-        if args.by_orbit:
-            daz, de, dr = args.by_orbit
-            return "set_view", {"relative": {"d_azimuth_deg": daz, "d_elevation_deg": de,
-                                             "d_radius": dr}}
-        return "set_view", {"relative": {"translate": args.by_pose[:3],
-                                         "rotate_deg": args.by_pose[3:]}}
+        method, params = _view_request(args)
+        return method, {**params, **({"quality": args.quality} if args.quality else {})}
+    return _other_request(args)
+
+
+def _view_request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
+    if args.orbit:
+        az, el, r = args.orbit
+        return "set_view", {"orbit": {"azimuth_deg": az, "elevation_deg": el, "radius": r}}
+    if args.pose:
+        return "set_view", {"pose": {"position": args.pose[:3],
+                                     "quaternion_wxyz": args.pose[3:]}}
+    if args.by_orbit:
+        daz, de, dr = args.by_orbit
+        return "set_view", {"relative": {"d_azimuth_deg": daz, "d_elevation_deg": de,
+                                         "d_radius": dr}}
+    return "set_view", {"relative": {"translate": args.by_pose[:3],
+                                     "rotate_deg": args.by_pose[3:]}}
+
+
+def _other_request(args: argparse.Namespace) -> tuple[str, dict[str, Any]]:
+    cmd = args.command
     if cmd == "focus":
         return "focus", {"z_mm": args.z_mm, **({"home": True} if args.home else {})}
     if cmd == "laser":
@@ -222,11 +240,27 @@ def human_status(s: dict[str, Any]) -> str:
                      + (f"; error: {nav['error']}" if nav.get("error") else ""))
     v = s["view"]
     lines.append(f"view     seq {v['seq']}: {json.dumps(v['requested'])}")
+    refine = (s.get("frames") or {}).get("refine")
+    if refine:
+        lines.append("refine   " + human_refine(refine))
     active = [j for j in s["jobs"] if j["state"] in ("queued", "running")]
     lines.append(f"jobs     {len(active)} active, {len(s['jobs'])} listed")
     for e in s["errors"][-5:]:
         lines.append(f"error    {e['source']}: {e['message']}")
     return "\n".join(lines)
+
+
+def human_refine(r: dict[str, Any]) -> str:
+    """One line of `status.frames.refine`: the tier, how far it went, the estimated PSNR."""
+    psnr = r.get("psnr_db")
+    start = r.get("start_psnr_db")
+    gain = (f"{psnr:.1f} dB (from {start:.1f})" if psnr is not None and start is not None
+            else "no estimate yet")
+    stop = r.get("stop") or "refining"
+    subframes = f", {r['subframes']} subframes" if r.get("subframes", 0) > 1 else ""
+    return (f"{r['tier']} of view {r['seq']}: {r.get('iterations', 0)} iterations in "
+            f"{r.get('seconds', 0.0):.1f} s, {gain}, {r.get('swaps', 0)} frames swapped in"
+            f"{subframes}; {stop}")
 
 
 def _size(hw: Any) -> str:

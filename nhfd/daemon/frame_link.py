@@ -58,7 +58,7 @@ import numpy as np
 from nhfd.calibration import Calibration, active_calibration
 from nhfd.config import Config, DaemonSettings
 from nhfd.drivers.slm import SLMOutputLost
-from nhfd.frame_message import FrameMessage
+from nhfd.frame_message import FrameMessage, RefinedFrame
 from nhfd.views import View
 
 log = logging.getLogger("nhfd.daemon.frame_link")
@@ -334,6 +334,20 @@ class WaitingFrame:
 
 
 @dataclass
+class Refinement:
+    """The refinement of the view on the panel (issue 34's progressive mode): its sequence
+    number, the worker's latest report (`nhfd.frame_message.REFINE_KEYS`), the better frame's
+    subframes as whole panels `[3, H, W]` (shown in turn, one per refresh) and the one shown
+    last."""
+
+    seq: int
+    report: dict[str, Any]
+    panels: list[np.ndarray] = field(default_factory=list)
+    index: int = 0
+    swaps: int = 0
+
+
+@dataclass
 class FrameCounts:
     """What `status.frames` counts (docs/frames.md): frames shown; views never computed because
     a newer one overtook them (latest wins), plus a frame waiting for its refresh when the
@@ -411,6 +425,7 @@ class FrameLink:
         self.last_rgb: np.ndarray | None = None
         self.last_frame: np.ndarray | None = None
         self.counts = FrameCounts()
+        self.refinement: Refinement | None = None  # of the view on the panel, if it asked
         self.refresh_s = 1.0 / float(config.slm.refresh_hz)
         self.last_show_s = -math.inf  # monotonic, when the last view frame went to the panel
         self.compute_s: float | None = None  # the worker's recent frame time, request to ready
@@ -553,6 +568,8 @@ class FrameLink:
         if self.waiting is not None and time.monotonic() >= self.due_s - DUE_SLACK_S:
             waiting, self.waiting = self.waiting, None
             self._show(waiting)
+        elif self._cycling and time.monotonic() >= self.due_s - DUE_SLACK_S:
+            self._show_subframe()
         self._send_next()
 
     @property
@@ -572,10 +589,17 @@ class FrameLink:
         return self.due_s - 1.5 * self.compute_s - SEND_MARGIN_S
 
     @property
+    def _cycling(self) -> bool:
+        """Whether the panel shows time-multiplexed subframes, one per refresh."""
+        r = self.refinement
+        return r is not None and len(r.panels) > 1 and self.views.seq == r.seq
+
+    @property
     def wake_s(self) -> float:
         """When the control loop must step again (monotonic; inf: nothing is waiting): for a
-        frame waiting for its refresh, or a newer view waiting for its time to go out."""
-        if self.waiting is not None:
+        frame waiting for its refresh, the next subframe, or a newer view waiting for its time
+        to go out."""
+        if self.waiting is not None or self._cycling:
             return self.due_s
         if self._ready_to_send():
             return self.send_at_s  # the step then sends it (_send_next)
@@ -624,6 +648,48 @@ class FrameLink:
                 self.worker.release(self.inflight.slot)
             self.inflight = None
             self.events.error("frame worker", f"view {seq}: {message}")
+        elif kind == "refined":
+            self._refined(msg[1], msg[2])
+        elif kind == "refine_error":
+            seq, message = msg[1], msg[2]
+            self.events.error("frame worker", f"view {seq}: refinement failed: {message}")
+            if self.refinement is not None and self.refinement.seq == seq:
+                self.refinement.report = {**self.refinement.report, "stop": f"error: {message}"}
+
+    def _refined(self, seq: int, refined: Any) -> None:
+        """A better frame for view `seq`: shown only while `seq` is the view on the panel and no
+        newer one was asked for (a refinement the worker had not yet seen cancelled is
+        stale); its subframes then take turns, one per refresh."""
+        current = self.refinement
+        if (not isinstance(refined, RefinedFrame) or current is None or current.seq != seq
+                or self.shown_seq != seq or self.views.seq != seq or self.waiting is not None):
+            return
+        current.report = dict(refined.report)
+        if refined.grey is None:
+            return
+        blank = self.panel().blank_frame()
+        if self._zero is None or self._zero_of is not blank:
+            self._zero, self._zero_of = PanelBuffer(blank), blank
+        r = refined.region
+        current.panels = [self._zero.frame(r.top, r.left, g) for g in refined.grey]
+        current.index, current.swaps = -1, current.swaps + 1
+        self._show_subframe()
+
+    def _show_subframe(self) -> None:
+        """The refinement's next subframe on the panel (the control loop paces them, one per
+        refresh). A panel that refuses it is an error in status; the frame before stays."""
+        r = self.refinement
+        assert r is not None and r.panels
+        r.index = (r.index + 1) % len(r.panels)
+        self.last_show_s = time.monotonic()
+        try:
+            self.last_frame = self.panel().show_view(r.panels[r.index], r.seq)
+        except Exception as exc:
+            self.events.error("slm", f"showing view {r.seq}'s refined frame: "
+                                     f"{type(exc).__name__}: {exc}")
+            r.panels = []
+            if isinstance(exc, SLMOutputLost):
+                self.events.slm_lost(str(exc))
 
     def _send_next(self) -> None:
         if not self._ready_to_send() or time.monotonic() < self.send_at_s:
@@ -669,6 +735,11 @@ class FrameLink:
         self.warnings = list(message.warnings)
         self.last_rgb, self.last_frame = rgb, frame
         self.shown_seq = seq
+        view = self.views.view if self.views.seq == seq else None
+        quality = view.quality if view is not None else "network"
+        self.refinement = None if quality == "network" else Refinement(seq, {
+            "tier": quality, "iterations": 0, "seconds": 0.0, "loss": None, "psnr_db": None,
+            "start_psnr_db": None, "stop": ""})
         self.events.shown(seq)
 
     def _panel(self, message: FrameMessage) -> tuple[np.ndarray, np.ndarray | None]:
@@ -718,7 +789,16 @@ class FrameLink:
                 "max_frame_age_ms": round(c.max_age_s * 1e3, 3),
                 "refresh_hz": round(1 / self.refresh_s, 6), "pacing": pacing,
                 "transport": self.worker.transport, "crashes": self.crashes,
-                "pose_warnings": self.warnings}
+                "pose_warnings": self.warnings, "refine": self._refine_status()}
+
+    def _refine_status(self) -> dict[str, Any] | None:
+        """`status.frames.refine`: the refinement of the view on the panel (None: it asked for
+        the network's frame): the worker's report, the view's sequence number, the better frames
+        swapped in and the subframes shown in turn."""
+        r = self.refinement
+        if r is None:
+            return None
+        return {**r.report, "seq": r.seq, "swaps": r.swaps, "subframes": len(r.panels)}
 
 
 class PanelBuffer:

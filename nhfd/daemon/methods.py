@@ -2,7 +2,7 @@
 so a bad request changes nothing.
 
   status       {}                                     -> devices, laser, scene, model, view, jobs
-  set_view     {orbit|pose|relative: {...}, refocus_mm?} -> {seq, view}
+  set_view     {orbit|pose|relative: {...}, refocus_mm?, quality?} -> {seq, view}
   focus        {z_mm, home?}                          -> {job, stage_mm}
   laser        {action: arm|disarm|off|power|enable|disable, duration_s?, channel?, power_pct?}
   stop         {}                                     -> jobs cancelled, stage stop sent
@@ -148,7 +148,12 @@ def _status(ctx: RpcContext, conn: Connection, p: Params) -> Any:
 
 def _set_view(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     # Parsed once, here: a View from now on (digital refocus included, kept when not given).
-    view = parse_view(p, ctx.views.view)
+    view = parse_view(p, ctx.views.view, ctx.config.refine.quality)
+    if view.quality == "citl":
+        # The camera is the daemon's and the optimisation the frame worker's: not joined yet.
+        raise bad_param("quality", "'citl' is not served by the daemon yet (its camera is not "
+                        "in the frame worker's loop): run it offline, nhfd refine --quality "
+                        "citl", "network, exact or sgd (refine.quality sets the default)")
     if ctx.panel.pattern is not None:  # a calibration pattern gives the panel back to the view
         _end_pattern(ctx)
     seq = ctx.views.submit(view)

@@ -22,7 +22,17 @@ import math
 import threading
 from typing import Any
 
-from nhfd.views import AZIMUTH_DEG, COORD, ELEVATION_DEG, RADIUS, REFOCUS_MM, Orbit, Pose, View
+from nhfd.views import (
+    AZIMUTH_DEG,
+    COORD,
+    ELEVATION_DEG,
+    QUALITY_TIERS,
+    RADIUS,
+    REFOCUS_MM,
+    Orbit,
+    Pose,
+    View,
+)
 
 from .protocol import Params, bad_param
 
@@ -71,12 +81,15 @@ def _normalised(name: str, q: list[float]) -> list[float]:
     return [c / norm for c in q]
 
 
-def parse_view(params: Params, current: View | None) -> View:
-    """Exactly one of `orbit`, `pose`, `relative`, and `refocus_mm` (mm, + toward the viewer;
-    absent: the current view's, or 0): the absolute view, azimuth wrapped into (-180, 180] and
-    quaternions normalised. RpcError (invalid params) naming the parameter otherwise."""
+def parse_view(params: Params, current: View | None, default_quality: str = "network") -> View:
+    """Exactly one of `orbit`, `pose`, `relative`, `refocus_mm` (mm, + toward the viewer;
+    absent: the current view's, or 0) and `quality` (one of QUALITY_TIERS; absent: the current
+    view's, or `default_quality`, `refine.quality`): the absolute view, azimuth wrapped into
+    (-180, 180] and quaternions normalised. RpcError (invalid params) naming the parameter
+    otherwise."""
     # Read first: its error comes before the view's, as when set_view read it itself.
     refocus = params.number("refocus_mm", *REFOCUS_MM, default=None)
+    quality = params.choice("quality", QUALITY_TIERS, default=None)
     given = [k for k in ("orbit", "pose", "relative") if params.has(k)]
     if len(given) != 1:
         raise bad_param("orbit|pose|relative", f"got {len(given)} of them",
@@ -99,7 +112,9 @@ def parse_view(params: Params, current: View | None) -> View:
     # Digital refocus travels with the view; it stays as it was when not given.
     if refocus is None:
         refocus = current.refocus_mm if current is not None else 0.0
-    return View(camera, refocus)
+    if quality is None:
+        quality = current.quality if current is not None else default_quality
+    return View(camera, refocus, quality)
 
 
 def _relative(sub: Params, current: View | None) -> Orbit | Pose:

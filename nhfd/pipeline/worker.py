@@ -13,6 +13,11 @@ Protocol (tuples over one duplex `multiprocessing` pipe):
   worker -> daemon   ("ready", pid)
                      ("model" | "scene", req_id, ok, info | error message)
                      ("frame", seq, message)    ("frame_error", seq, message)
+                     ("refined", seq, refined)  ("refine_error", seq, message)
+
+A view whose `quality` is above "network" is refined after its network frame is sent
+(`Refiner`, a thread): each better frame comes as a `RefinedFrame` until the refinement stops or
+any message from the daemon cancels it.
 
 The view is an `nhfd.views.View` and a frame's message an `nhfd.frame_message.FrameMessage`:
 L0 values both processes import, read by name.
@@ -34,8 +39,10 @@ from __future__ import annotations
 
 import functools
 import os
+import threading
 import time
 from collections import OrderedDict
+from collections.abc import Callable
 from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Any
@@ -48,7 +55,7 @@ import torch
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config, DaemonSettings
 from nhfd.dataset.build import sha256_file
-from nhfd.frame_message import FrameMessage, StageTimes
+from nhfd.frame_message import FrameMessage, RefinedFrame, StageTimes
 from nhfd.models.export import (
     check_providers,
     load_model,
@@ -65,6 +72,7 @@ from nhfd.views import View
 from .device import frame_device, inference_backend
 from .encoder import Encoder
 from .frame import compute_frame
+from .refine import Refined, refine_view
 from .settings import frame_settings, frame_window_hw
 from .view import Scene, envelope_warnings, scene_frame
 
@@ -375,6 +383,7 @@ class _WorkerState:
             raise RuntimeError("no model loaded (load_model, or daemon.model)")
         if self.scene is None:
             raise RuntimeError("no scene loaded (load_scene, or daemon.scene)")
+        view = view.with_quality("network")  # the tiers above refine this frame (`Refiner`)
         key = (view, self.model_id, self.scene_id)
         if key in self.cache:
             self.cache.move_to_end(key)
@@ -389,6 +398,60 @@ class _WorkerState:
             while len(self.cache) > self.cache_size:
                 self.cache.popitem(last=False)
         return message
+
+
+class Refiner:
+    """Progressive refinement (issue 34) in a thread of the worker: once a view's network frame
+    is sent, a view asking for a higher tier (`View.quality`) is refined while no newer message
+    waits, and each better frame goes to the daemon as ("refined", seq, `RefinedFrame`); a
+    failure goes as ("refine_error", seq, message). `cancel` (any message from the daemon: a
+    new view, a load, stop) stops it between steps and waits for the thread, which polls
+    between each colour's propagation: the new view's frame starts within one of them."""
+
+    def __init__(self, send: Callable[[tuple], None], config: Config) -> None:
+        self.send = send
+        self.config = config
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+
+    def start(self, seq: int, view: View, state: _WorkerState, network: np.ndarray) -> None:
+        """Refine view `seq` from its network frame's grey region `network` `[3, h, w]`."""
+        self.cancel()
+        if view.quality == "network":
+            return
+        self._stop = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run, args=(seq, view, state.model, state.scene, network, self._stop),
+            name=f"refine-{seq}", daemon=True)
+        self._thread.start()
+
+    def cancel(self) -> None:
+        """Stop the refinement running (if any) and wait for its thread."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def _run(self, seq: int, view: View, model: Any, scene: Any, network: np.ndarray,
+             stop: threading.Event) -> None:
+        try:
+            # Its own encoder: the worker's keeps scratch buffers for the frames it computes.
+            enc = Encoder(frame_settings(self.config, model.info,
+                                         active_calibration(self.config),
+                                         refocus_m=view.refocus_m), device=model.device)
+            region = enc.region
+
+            def better(refined: Refined) -> None:
+                self.send(("refined", seq, RefinedFrame(region, refined.grey.copy(),
+                                                        refined.report.to_json())))
+
+            refined, _ = refine_view(view, scene, model.info, enc, view.quality,
+                                     self.config.refine, start=network, cancelled=stop.is_set,
+                                     on_better=better)
+            if refined.report.stop != "cancelled":
+                better(refined)
+        except Exception as exc:  # reported to the daemon; the frame shown stays
+            self.send(("refine_error", seq, f"{type(exc).__name__}: {exc}"))
 
 
 def worker_main(conn: Any, config_data: dict[str, Any],
@@ -411,10 +474,26 @@ def worker_main(conn: Any, config_data: dict[str, Any],
 
 
 def _serve(conn: Any, state: _WorkerState, shm: FrameSlots | None) -> None:
-    conn.send(("ready", os.getpid()))
+    lock = threading.Lock()
+
+    def send(msg: tuple) -> None:  # the refinement thread sends too
+        with lock:
+            conn.send(msg)
+
+    refiner = Refiner(send, state.config)
+    try:
+        _serve_loop(conn, send, state, shm, refiner)
+    finally:
+        refiner.cancel()
+
+
+def _serve_loop(conn: Any, send: Callable[[tuple], None], state: _WorkerState,
+                shm: FrameSlots | None, refiner: Refiner) -> None:
+    send(("ready", os.getpid()))
     while True:
         try:
             msgs = [conn.recv()]
+            refiner.cancel()  # whatever came, the view being refined is no longer alone
             while conn.poll(0):
                 msgs.append(conn.recv())
         except (EOFError, OSError):
@@ -429,17 +508,21 @@ def _serve(conn: Any, state: _WorkerState, shm: FrameSlots | None) -> None:
             kind, req_id, path = msg
             try:
                 info = state.load_model(path) if kind == "model" else state.load_scene(path)
-                conn.send((kind, req_id, True, info))
+                send((kind, req_id, True, info))
             except Exception as exc:  # reported to the daemon; the old model/scene stays
-                conn.send((kind, req_id, False, f"{type(exc).__name__}: {exc}"))
+                send((kind, req_id, False, f"{type(exc).__name__}: {exc}"))
         if latest is not None:
             seq, view, slot = latest[1], latest[2], latest[3] if len(latest) > 3 else None
             try:
                 message = state.frame(view)
+                network = message.grey
                 if slot is not None and shm is not None:
                     message = shm.write(slot, message)
                 # When the frame was whole in its slot (CLOCK_MONOTONIC, shared by both
                 # processes): the daemon's "late" counts from here.
-                conn.send(("frame", seq, message.ready(time.monotonic())))
+                send(("frame", seq, message.ready(time.monotonic())))
             except Exception as exc:
-                conn.send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))
+                send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))
+                continue
+            if network is not None:
+                refiner.start(seq, view, state, network)

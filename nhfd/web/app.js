@@ -6,6 +6,16 @@ let nextId = 1;
 let seeded = false;  // sliders set from the daemon's state once, then left to the user
 const pending = new Map();
 
+// status.frames.refine: the tier of the view on the panel, how far its refinement went and the
+// estimated PSNR (nhfctl status prints the same line).
+function refineText(r) {
+  if (!r) return "network (open loop)";
+  const gain = r.psnr_db === null ? "no estimate yet"
+    : `${r.psnr_db.toFixed(1)} dB (from ${r.start_psnr_db.toFixed(1)})`;
+  const subframes = r.subframes > 1 ? `, ${r.subframes} subframes` : "";
+  return `${r.tier}: ${r.iterations} iterations in ${r.seconds.toFixed(1)} s, ${gain}${subframes}; ${r.stop || "refining"}`;
+}
+
 function connect() {
   const scheme = location.protocol === "https:" ? "wss:" : "ws:";
   ws = new WebSocket(`${scheme}//${location.host}/ws`);
@@ -96,6 +106,7 @@ function showState(msg) {
   const cal = s.calibration || {};
   text("calibration", cal.loaded ? `${cal.file}` : (cal.error || "none (uncalibrated focus mapping)"));
   text("fps", msg.fps === null ? "–" : `${msg.fps.toFixed(1)} frames/s (${s.frames.frames_shown} shown)`);
+  text("refine", refineText(s.frames.refine));
   const errors = (s.errors || []).slice(-5).reverse();
   $("errors").innerHTML = errors.length ? "" : '<li class="hint">none</li>';
   for (const e of errors) {
