@@ -5,7 +5,10 @@ its own spawned process) with the shipped model and the donut scene (or the user
 `--scene`, checked first by `check_model_and_scene`), then over the Unix socket:
 moves the view along a short orbit inside the model's pose envelope, arms the green laser at its
 power cap, sweeps the camera's focus from the near to the far end of the middle view's content
-and captures the simulated camera, and shuts the daemon down (lasers off). The contact sheet
+and captures the simulated camera, asks for the same view at the `sgd` tier (the network's
+frame refined through the bench model while the view rests, docs/refine.md) and sweeps again,
+and shuts the daemon down (lasers off). `focal_strip.png` and `focal_sweep.gif` show both sweeps
+side by side. The contact sheet
 judges focus by region: the nearest and the farthest quarter of the content (by mapped depth,
 projected onto the camera with the simulated bench's geometry), each enlarged at both focuses,
 with each capture's match to the view there. Writes to the output folder: the rendered views,
@@ -62,6 +65,7 @@ REGION_FRACTION = 0.25
 # The sweep runs between these percentiles of the view's content depth (near to far).
 SWEEP_PERCENTILES = (97.0, 3.0)
 EXPOSURE_S = 0.05
+REFINE_ITERATIONS = 80
 HOW_TO_BUILD = """\
 The demo needs the trained default model {model}, which is not there.
 Build it (about 8 min + 45 min on 2 cores, or a few minutes with --device cuda on a GPU; see
@@ -160,6 +164,8 @@ def demo_config(base: Config, *, model: Path, scene: Path, runtime: Path, captur
                    "camera_roi_px": list(roi),
                    # The stage reading that focuses the camera on the reference plane (green).
                    "stage_at_reference_mm": round(truth.stage_mm_for(z0_m, 1), 6)},
+        # The refined sweep's budget: a few seconds on 2 cores at the model's window.
+        "refine": {"iterations": REFINE_ITERATIONS, "seconds": 60.0},
     }
     return Config.model_validate(_overlay(base.model_dump(), user)), truth, info
 
@@ -249,29 +255,34 @@ def _run(out: Path, runtime: Path, *, config: Config, model: Path, scene: Path, 
         c.call("laser", action="enable", channel="green")
         log(f"  green laser armed at its cap ({applied:g}%); focus sweep over the view's content "
             f"depth, {sweep_m[0] * 1e3:+.2f} (near) to {sweep_m[-1] * 1e3:+.2f} mm (far)")
-        images = []
-        for k, z_h in enumerate(sweep_m):
-            z_mm = focus_command_mm(float(z_h), truth)
-            job = c.call("focus", z_mm=z_mm, home=k == 0)["job"]  # a fresh stage homes first
-            _job(c, job, 120)
-            # The daemon resolves snapshot paths inside its snapshot_dir (the captures folder).
-            name = f"focus_{k:02d}_{z_h * 1e3:+.2f}mm.png"
-            path = out / "captures" / name
-            _job(c, c.call("snapshot", path=name)["job"], 120)
-            images.append((float(z_h), read_png16(path)))
-            summary["focus_sweep"].append({"hologram_depth_mm": float(z_h) * 1e3,
-                                           "focus_z_mm": z_mm, "capture": str(path)})
-            log(f"  captured at hologram depth {z_h * 1e3:+.2f} mm")
+        images = _focus_sweep(c, out, sweep_m, truth, "network", summary, log)
+        # The same view at the sgd tier: the network's frame at once, then better ones while
+        # it rests (docs/refine.md); swept again once the refinement stops.
+        refined_seq = c.call("set_view", orbit={"azimuth_deg": mid, "elevation_deg": elevation,
+                                                "radius": radius}, quality="sgd")["seq"]
+        _wait(lambda: c.status()["view"]["applied_seq"] == refined_seq, 60, "the sgd view", c)
+        _wait(lambda: bool((c.status()["frames"]["refine"] or {}).get("stop")), 120,
+              "the sgd refinement", c)
+        summary["refine"] = c.status()["frames"]["refine"]
+        r = summary["refine"]
+        log(f"  sgd: {r['iterations']} iterations in {r['seconds']:.1f} s, estimated "
+            f"{r['start_psnr_db']:.1f} -> {r['psnr_db']:.1f} dB ({r['stop']}); sweeping again")
+        refined = _focus_sweep(c, out, sweep_m, truth, "sgd", summary, log)
         c.call("laser", action="off")
         summary["regions"] = focus_regions(images, rgb, zh, daemon.bench.camera,
                                            settings.panel_hw, settings.pitch_m)
+        summary["regions_sgd"] = focus_regions(refined, rgb, zh, daemon.bench.camera,
+                                               settings.panel_hw, settings.pitch_m)
+        focal_strip(images, refined, summary["regions"], out / "focal_strip.png")
+        focal_gif(images, refined, summary["regions"], out / "focal_sweep.gif")
         for name, r in summary["regions"].items():
             log(f"  {name} content at {r['content_mm']:+.2f} mm: best match with the view at "
                 f"focus {r['best_focus_mm']:+.2f} mm")
         contact_sheet(images, summary["regions"], rgb, zh, out / "contact_sheet.png")
-        for r in summary["regions"].values():
-            for key in ("mask_window", "mask_camera"):
-                r.pop(key)
+        for regions in (summary["regions"], summary["regions_sgd"]):
+            for r in regions.values():
+                for key in ("mask_window", "mask_camera"):
+                    r.pop(key)
         summary["stages_ms_median"] = {
             k: float(np.median([v["timings"][f"{k}_ms"] for v in summary["views"]]))
             for k in ("render", "inference", "propagation", "coding", "output")}
@@ -283,6 +294,97 @@ def _run(out: Path, runtime: Path, *, config: Config, model: Path, scene: Path, 
     summary["runtime_s"] = round(time.perf_counter() - t_start, 1)
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     return summary
+
+
+def _focus_sweep(c: Any, out: Path, sweep_m: np.ndarray, truth: Any, tier: str,
+                 summary: dict[str, Any], log: Any) -> list[tuple[float, np.ndarray]]:
+    """Capture the shown frame at each hologram depth of `sweep_m` (the green laser on):
+    [(z_h m, image)], each image also written to the captures folder."""
+    images = []
+    for k, z_h in enumerate(sweep_m):
+        z_mm = focus_command_mm(float(z_h), truth)
+        job = c.call("focus", z_mm=z_mm, home=k == 0 and tier == "network")["job"]
+        _job(c, job, 120)
+        # The daemon resolves snapshot paths inside its snapshot_dir (the captures folder).
+        name = f"focus_{tier}_{k:02d}_{z_h * 1e3:+.2f}mm.png"
+        path = out / "captures" / name
+        _job(c, c.call("snapshot", path=name)["job"], 120)
+        images.append((float(z_h), read_png16(path)))
+        summary["focus_sweep"].append({"tier": tier, "hologram_depth_mm": float(z_h) * 1e3,
+                                       "focus_z_mm": z_mm, "capture": str(path)})
+    log(f"  {tier}: captured at {len(images)} depths, {sweep_m[0] * 1e3:+.2f} to "
+        f"{sweep_m[-1] * 1e3:+.2f} mm")
+    return images
+
+
+def _upright(sweeps: list[list[tuple[float, np.ndarray]]], regions: dict[str, dict[str, Any]]
+             ) -> tuple[list[list[np.ndarray]], float, list[np.ndarray]]:
+    """The captures rotated upright (the relay images the panel upside down) and cropped to the
+    content (the near and far regions' box), the one level every crop is shown against (the
+    99.9th percentile of the brightest), and the regions' masks on the crops."""
+    masks = [np.rot90(r["mask_camera"], 2) for r in regions.values()]
+    box = _box(np.logical_or.reduce(masks), pad=12)
+    up = [[np.rot90(img, 2)[box] for _, img in sweep] for sweep in sweeps]
+    norm = max(float(np.percentile(img, 99.9)) for row in up for img in row) or 1.0
+    return up, norm, [m[box] for m in masks]
+
+
+def focal_strip(network: list[tuple[float, np.ndarray]], refined: list[tuple[float, np.ndarray]],
+                regions: dict[str, dict[str, Any]], path: Path) -> None:
+    """The focal sweep as a still strip: the network's frame (top) and the sgd-refined one
+    (bottom) captured at each depth, near to far, the near and far content outlined."""
+    import matplotlib.pyplot as plt
+
+    (net, ref), norm, masks = _upright([network, refined], regions)
+    n = len(network)
+    h, w = net[0].shape
+    fig, axes = plt.subplots(2, n, figsize=(1.9 * n, 2 * 1.9 * h / w + 1.0))
+    colours = ["C1", "C0"]  # near, far
+    for row, (label, images) in enumerate((("network", net), ("sgd-refined", ref))):
+        for k, img in enumerate(images):
+            ax = axes[row, k]
+            ax.imshow(np.clip(img / norm, 0, 1) ** 0.5, cmap="gray", vmin=0, vmax=1)
+            for mask, colour in zip(masks, colours, strict=True):
+                ax.contour(mask.astype(float), levels=[0.5], colors=colour, linewidths=0.6)
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if row == 0:
+                ax.set_title(f"focus {network[k][0] * 1e3:+.1f} mm", fontsize=9)
+            if k == 0:
+                ax.set_ylabel(label, fontsize=10)
+    fig.suptitle("Simulated camera swept from the near (orange) to the far (blue) content: the "
+                 "network's frame and the same view refined (sgd)", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def focal_gif(network: list[tuple[float, np.ndarray]], refined: list[tuple[float, np.ndarray]],
+              regions: dict[str, dict[str, Any]], path: Path, frame_ms: int = 450) -> None:
+    """The focal sweep as an animated GIF, near to far and back: the network's frame (left) and
+    the sgd-refined one (right) at each focus, side by side, with the depth written in."""
+    from PIL import Image, ImageDraw
+
+    (net, ref), norm, _ = _upright([network, refined], regions)
+    frames = []
+    for k in list(range(len(net))) + list(range(len(net) - 2, 0, -1)):
+        # 2 x 2 camera pixels to one (the camera samples the panel finer than its pixels) and
+        # 64 greys: the sensor's noise would otherwise cost a megabyte per sweep.
+        pair = [_bin2(np.clip(img / norm, 0, 1) ** 0.5) for img in (net[k], ref[k])]
+        gap = np.ones((pair[0].shape[0], 4))
+        grey = Image.fromarray((np.hstack([pair[0], gap, pair[1]]) * 255).astype(np.uint8))
+        draw = ImageDraw.Draw(grey)
+        draw.text((3, 1), f"network {network[k][0] * 1e3:+.1f} mm", fill=255)
+        draw.text((pair[0].shape[1] + 7, 1), "sgd-refined", fill=255)
+        frames.append(grey.convert("P", palette=Image.Palette.ADAPTIVE, colors=64))
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=frame_ms, loop=0,
+                   optimize=True)
+
+
+def _bin2(image: np.ndarray) -> np.ndarray:
+    """The mean of each 2 x 2 block (an odd last row or column dropped)."""
+    h, w = image.shape[0] // 2 * 2, image.shape[1] // 2 * 2
+    return image[:h, :w].reshape(h // 2, 2, w // 2, 2).mean(axis=(1, 3))
 
 
 def view_depth(view: View, scene: Path, info: ModelInfo, window_hw: tuple[int, int]
