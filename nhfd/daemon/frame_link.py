@@ -612,9 +612,13 @@ class FrameLink:
         the panel, so what the worker computes is the newest view then, and the slot is free),
         and a view newer than the last sent is waiting (or the current one is to go again)."""
         views = self.views
+        # Without a model, a view above "network" still goes: the worker serves its exact
+        # frame (the scene's own hologram, seconds) and refines it.
+        served = self.model_path is not None or (views.view is not None
+                                                 and views.view.quality != "network")
         return (self.state == LinkState.RUNNING and self.worker.ready
                 and self.inflight is None and self.waiting is None
-                and self.model_path is not None and self.scene_path is not None
+                and served and self.scene_path is not None
                 and views.view is not None and (views.seq > self.sent_seq or self._resend))
 
     def _handle(self, msg: tuple) -> None:
@@ -648,6 +652,11 @@ class FrameLink:
                 self.worker.release(self.inflight.slot)
             self.inflight = None
             self.events.error("frame worker", f"view {seq}: {message}")
+        elif kind == "frame_cancelled":  # a load overtook a model-less view's exact frame
+            if self.inflight is not None:
+                self.worker.release(self.inflight.slot)
+            self.inflight = None
+            self.counts.dropped += 1
         elif kind == "refined":
             self._refined(msg[1], msg[2])
         elif kind == "refine_error":

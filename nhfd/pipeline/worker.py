@@ -14,10 +14,13 @@ Protocol (tuples over one duplex `multiprocessing` pipe):
                      ("model" | "scene", req_id, ok, info | error message)
                      ("frame", seq, message)    ("frame_error", seq, message)
                      ("refined", seq, refined)  ("refine_error", seq, message)
+                     ("frame_cancelled", seq)
 
 A view whose `quality` is above "network" is refined after its network frame is sent
 (`Refiner`, a thread): each better frame comes as a `RefinedFrame` until the refinement stops or
-any message from the daemon cancels it.
+any message from the daemon cancels it. With no model loaded, such a view's first frame is its
+exact frame (the scene's own hologram, seconds later), or "frame_cancelled" when a load came
+first.
 
 The view is an `nhfd.views.View` and a frame's message an `nhfd.frame_message.FrameMessage`:
 L0 values both processes import, read by name.
@@ -43,6 +46,7 @@ import threading
 import time
 from collections import OrderedDict
 from collections.abc import Callable
+from dataclasses import replace
 from multiprocessing import shared_memory
 from pathlib import Path
 from typing import Any
@@ -71,8 +75,15 @@ from nhfd.views import View
 
 from .device import frame_device, inference_backend
 from .encoder import Encoder
-from .frame import compute_frame
-from .refine import Refined, refine_view
+from .frame import compute_frame, preview_levels, render_view
+from .refine import (
+    Cancelled,
+    Refined,
+    amplitude_scale_of,
+    exact_reference,
+    refine_view,
+    scene_info,
+)
 from .settings import frame_settings, frame_window_hw
 from .view import Scene, envelope_warnings, scene_frame
 
@@ -425,6 +436,18 @@ class Refiner:
             name=f"refine-{seq}", daemon=True)
         self._thread.start()
 
+    def start_without_model(self, seq: int, view: View, state: _WorkerState,
+                            first: Callable[[FrameMessage], None]) -> None:
+        """View `seq` of a scene with no model loaded (its `quality` above "network"): the exact
+        frame (`scene_info`: the configured optics, the view's own depth mapping) is its first
+        frame, handed to `first`, then refined at the view's tier. Seconds on a CPU."""
+        self.cancel()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(
+            target=self._run_without_model, args=(seq, view, state.scene, first, self._stop),
+            name=f"exact-{seq}", daemon=True)
+        self._thread.start()
+
     def cancel(self) -> None:
         """Stop the refinement running (if any) and wait for its thread."""
         self._stop.set()
@@ -452,6 +475,48 @@ class Refiner:
                 better(refined)
         except Exception as exc:  # reported to the daemon; the frame shown stays
             self.send(("refine_error", seq, f"{type(exc).__name__}: {exc}"))
+
+    def _run_without_model(self, seq: int, view: View, scene: Any,
+                           first: Callable[[FrameMessage], None], stop: threading.Event) -> None:
+        try:
+            t0 = time.perf_counter()
+            config = self.config
+            window_hw = (config.optics.hologram_height_px, config.optics.hologram_width_px)
+            if config.daemon.frame_size_px:
+                window_hw = (config.daemon.frame_size_px[1], config.daemon.frame_size_px[0])
+            info = scene_info(config.optics, config.slm, view, scene, window_hw)
+            cal = active_calibration(config)
+            enc = Encoder(frame_settings(config, info, cal, refocus_m=view.refocus_m))
+            exact = exact_reference(view, scene, info, window_hw,
+                                    progress=lambda _d, _t: _raise_if(stop))
+            enc = Encoder(replace(enc.settings, amplitude_scale=amplitude_scale_of(exact, enc)))
+            with torch.no_grad():
+                grey, clipped = enc.code(enc.to_slm(exact))
+            rgb = render_view(view, scene, info, window_hw).rgb
+            first(FrameMessage.of_arrays(
+                enc.region, grey, preview_levels(rgb),
+                StageTimes(render_s=time.perf_counter() - t0), clipped))
+            if view.quality == "exact" or stop.is_set():
+                return
+            region = enc.region
+
+            def better(refined: Refined) -> None:
+                self.send(("refined", seq, RefinedFrame(region, refined.grey.copy(),
+                                                        refined.report.to_json())))
+
+            refined, _ = refine_view(view, scene, info, enc, view.quality, config.refine,
+                                     start=grey, cancelled=stop.is_set, on_better=better)
+            if refined.report.stop != "cancelled":
+                better(refined)
+        except Cancelled:
+            self.send(("frame_cancelled", seq))
+        except Exception as exc:
+            self.send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))
+
+
+def _raise_if(stop: threading.Event) -> None:
+    if stop.is_set():
+        raise Cancelled
 
 
 def worker_main(conn: Any, config_data: dict[str, Any],
@@ -513,6 +578,16 @@ def _serve_loop(conn: Any, send: Callable[[tuple], None], state: _WorkerState,
                 send((kind, req_id, False, f"{type(exc).__name__}: {exc}"))
         if latest is not None:
             seq, view, slot = latest[1], latest[2], latest[3] if len(latest) > 3 else None
+            if state.model is None and state.scene is not None and view.quality != "network":
+
+                def first(message: FrameMessage, seq: int = seq, slot: int | None = slot
+                          ) -> None:
+                    if slot is not None and shm is not None:
+                        message = shm.write(slot, message)
+                    send(("frame", seq, message.ready(time.monotonic())))
+
+                refiner.start_without_model(seq, view, state, first)
+                continue
             try:
                 message = state.frame(view)
                 network = message.grey

@@ -111,3 +111,33 @@ def test_subframes_take_turns_on_the_panel(short_dir, mecom_twin, tiny):
         assert seen == {0, 1}
     finally:
         r.stop()
+
+
+def test_a_scene_without_a_model_is_served_exact(short_dir, mecom_twin, tiny):
+    """No model loaded: a view at the exact tier gets the scene's own hologram (slowly), one at
+    sgd that frame refined, an open-loop view nothing."""
+    r = Running(daemon_config(short_dir, mecom_twin, tiny), short_dir)
+    try:
+        c = r.client()
+        c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
+        wait_until(lambda: (c.status()["scene"] or {}).get("center") is not None, 30,
+                   "the scene")
+        assert c.status()["model"] == "none loaded"
+        seq = c.call("set_view", pose=FRONT_POSE)["seq"]
+        time.sleep(0.5)
+        assert c.status()["view"]["applied_seq"] != seq  # no network, no open-loop frame
+        seq = c.call("set_view", pose=FRONT_POSE, quality="exact")["seq"]
+        wait_until(lambda: c.status()["view"]["applied_seq"] == seq, 60, "the exact frame")
+        frame = r.daemon.frames.last_frame
+        blank = r.daemon.panel.blank_frame()
+        assert not np.array_equal(frame, blank)  # a coded region, not the zero pattern
+        # sgd without a model: refined from the exact frame.
+        seq = c.call("set_view", pose=dict(FRONT_POSE, position=[0.05, 0.0, -2.0]),
+                      quality="sgd")["seq"]
+        wait_until(lambda: (c.status()["frames"]["refine"] or {}).get("swaps", 0) >= 1
+                   and c.status()["frames"]["refine"]["seq"] == seq, 60, "a refined frame")
+        refine = c.status()["frames"]["refine"]
+        assert refine["psnr_db"] > refine["start_psnr_db"]
+        assert c.status()["errors"] == []
+    finally:
+        r.stop()
