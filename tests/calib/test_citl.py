@@ -59,6 +59,14 @@ def _devices(bench: TrueBench, *, armed: bool) -> Iterator[BenchDevices]:
         yield devices
 
 
+def _case(fitted) -> tuple[Encoder, np.ndarray, Target]:
+    """The encoder of the calibrated small bench, the spots' double-phase frame and target."""
+    enc = _encoder(fitted)
+    ref = spots(5)
+    grey, _ = enc.code(enc.to_slm(ref))
+    return enc, grey, target_from_field(ref, PLANES_M, enc)
+
+
 def _seen_loss(loop: CameraLoop, grey: np.ndarray, target: Target) -> float:
     captured, seen = loop(grey, target.planes_m)
     mask = target.mask & torch.as_tensor(seen)
@@ -66,10 +74,7 @@ def _seen_loss(loop: CameraLoop, grey: np.ndarray, target: Target) -> float:
 
 
 def test_citl_beats_sgd_on_an_aberration_the_model_does_not_know(bench, fitted) -> None:
-    enc = _encoder(fitted)
-    ref = spots(5)
-    target = target_from_field(ref, PLANES_M, enc)
-    grey, _ = enc.code(enc.to_slm(ref))
+    enc, grey, target = _case(fitted)
     model = BenchForward(enc, PLANES_M)
     sgd = refine(grey, target, model, RefineSettings(iterations=40, tolerance=0.0))
     with _devices(bench, armed=True) as devices:
@@ -92,10 +97,7 @@ def test_citl_beats_sgd_on_an_aberration_the_model_does_not_know(bench, fitted) 
 
 
 def test_disarmed_lasers_stop_citl_and_nothing_is_emitted(bench, fitted) -> None:
-    enc = _encoder(fitted)
-    ref = spots(5)
-    target = target_from_field(ref, PLANES_M, enc)
-    grey, _ = enc.code(enc.to_slm(ref))
+    enc, grey, target = _case(fitted)
     model = BenchForward(enc, PLANES_M)
     with _devices(bench, armed=False) as devices:
         out = refine(grey, target, model, RefineSettings(iterations=5),
@@ -108,10 +110,7 @@ def test_disarmed_lasers_stop_citl_and_nothing_is_emitted(bench, fitted) -> None
 
 
 def test_a_disarm_during_citl_stops_it_and_emission_ends(bench, fitted) -> None:
-    enc = _encoder(fitted)
-    ref = spots(5)
-    target = target_from_field(ref, PLANES_M, enc)
-    grey, _ = enc.code(enc.to_slm(ref))
+    enc, grey, target = _case(fitted)
     with _devices(bench, armed=True) as devices:
         loop = CameraLoop(devices, fitted, enc)
         twin = devices.laser.twin
