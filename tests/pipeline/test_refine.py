@@ -222,3 +222,30 @@ def test_exact_and_sgd_beat_the_network_frame_on_the_shipped_scene() -> None:
                          RefineSettings(iterations=30, tolerance=0.0), start=network)
     assert sgd.report.start_psnr_db == pytest.approx(network_db, abs=1e-6)
     assert sgd.report.psnr_db > network_db + 5.0
+
+
+class _Spike:
+    """A bench model whose `at`-th call is 3 times too bright in one colour (a step that
+    overshot, as far as `refine` can tell)."""
+
+    def __init__(self, model: BenchForward, at: int) -> None:
+        self.model, self.at, self.calls, self.encoder = model, at, 0, model.encoder
+
+    def __call__(self, phase: torch.Tensor, cancelled=lambda: False) -> torch.Tensor:
+        self.calls += 1
+        out = self.model(phase, cancelled)
+        if self.calls == self.at:
+            g = torch.Generator().manual_seed(7)
+            out = out * (1 + 3 * torch.rand(out.shape, generator=g))
+        return out
+
+
+def test_a_step_that_overshoots_goes_back_to_the_best_phase() -> None:
+    enc, grey, target = start_and_target(encoder())
+    model = _Spike(BenchForward(enc, PLANES_M), at=6)
+    out = refine(grey, target, model, RefineSettings(iterations=12, tolerance=0.0))  # type: ignore[arg-type]
+    losses = [h[2] for h in out.history]
+    assert losses[5] > 1.5 * min(losses[:5])  # the spike
+    # The step after it starts again from the best phase: its loss is the best's, exactly.
+    assert losses[6] == pytest.approx(min(losses[:5]), rel=1e-6)
+    assert out.report.stop == "iterations" and out.report.loss < min(losses[:6])
