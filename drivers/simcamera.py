@@ -345,6 +345,11 @@ class SimulatedCamera(Camera):
         self._rng = np.random.default_rng(self.bench.noise_seed)
         self._optical_key: tuple[Any, ...] | None = None
         self._optical: np.ndarray | None = None
+        # Pure functions of the bench and the grid, reused across captures (CITL captures the
+        # same geometry thousands of times): the pupil factor per colour, the ROI's sampling grid.
+        self._pupils: dict[tuple[Any, ...], torch.Tensor] = {}
+        self._grids: dict[tuple[Any, ...], tuple[torch.Tensor, int]] = {}
+        self._panel: tuple[tuple[Any, ...], torch.Tensor] | None = None
         self._prnu, self._dsnu = self._patterns()
         self._stalled = False
 
@@ -459,12 +464,15 @@ class SimulatedCamera(Camera):
         stage = float(self._stage_mm())
         if not math.isfinite(stage):
             raise DeviceError(f"{self.name}: stage position {stage!r}")
-        key = (hashlib.blake2b(np.ascontiguousarray(frame).tobytes(), digest_size=16).digest(),
-               frame.shape, stage, tuple(colours))
+        digest = hashlib.blake2b(np.ascontiguousarray(frame).tobytes(), digest_size=16).digest()
+        key = (digest, frame.shape, stage, tuple(colours))
         if key != self._optical_key or self._optical is None:
             with torch.no_grad():
-                panel = self.panel_field(frame)
-                self._optical = self._image(panel, stage, colours)
+                # The panel's field depends on the frame alone: a focal stack reuses it.
+                panel_key = (digest, frame.shape, self.bench)
+                if self._panel is None or self._panel[0] != panel_key:
+                    self._panel = (panel_key, self.panel_field(frame))
+                self._optical = self._image(self._panel[1], stage, colours)
             self._optical_key = key
         return self._optical
 
@@ -516,9 +524,20 @@ class SimulatedCamera(Camera):
         """The relay's pupil phase applied to a colour's panel field [1, sH, sW] (a spectral
         product, so it commutes with the propagation and the aperture); zero-padded 2x so the
         aberrated spread does not wrap around the panel."""
-        b = self.bench
-        s = b.oversample
         h, w = field.shape[-2:]
+        spec = torch.fft.fft2(field.to(torch.complex128), s=(2 * h, 2 * w))
+        out = torch.fft.ifft2(spec * self._pupil(h, w, colour))
+        return out[..., :h, :w].to(field.dtype)
+
+    def _pupil(self, h: int, w: int, colour: int) -> torch.Tensor:
+        """The relay's pupil factor exp(i phase) [2h, 2w] complex128 for a colour's field of
+        [h, w] samples (memoised per bench, grid and colour)."""
+        b = self.bench
+        key = (b, h, w, colour)
+        pupil = self._pupils.get(key)
+        if pupil is not None:
+            return pupil
+        s = b.oversample
         fy = torch.fft.fftfreq(2 * h, dtype=torch.float64)[:, None] * s  # cycles per SLM px
         fx = torch.fft.fftfreq(2 * w, dtype=torch.float64)[None, :] * s
         cutoff = b.aperture_cutoff_per_px[colour]
@@ -528,9 +547,11 @@ class SimulatedCamera(Camera):
         for k, a in enumerate(b.zernike_rad):
             phase += a * _zernike_noll(5 + k, rho, theta)
         phase *= b.wavelengths_m[1] / b.wavelengths_m[colour]
-        spec = torch.fft.fft2(field.to(torch.complex128), s=(2 * h, 2 * w))
-        out = torch.fft.ifft2(spec * torch.polar(torch.ones_like(phase), phase))
-        return out[..., :h, :w].to(field.dtype)
+        pupil = torch.polar(torch.ones_like(phase), phase)
+        if len(self._pupils) >= 8:
+            self._pupils.clear()
+        self._pupils[key] = pupil
+        return pupil
 
     def project_to_camera(self, image: torch.Tensor | np.ndarray, pitch_m: float) -> np.ndarray:
         """Map an SLM-plane image [C, H, W] (sample pitch `pitch_m`, centred on the panel) onto
@@ -538,8 +559,22 @@ class SimulatedCamera(Camera):
         Outside the image is 0. Also useful to put a target where the camera sees it."""
         img = torch.as_tensor(image, dtype=torch.float32)
         c, hs, ws = img.shape
-        top, left, h, w = self.roi
+        _, _, h, w = self.roi
+        grid, k = self._camera_grid(hs, ws, pitch_m)
+        sampled = F.grid_sample(img[None], grid, mode="bilinear", padding_mode="zeros",
+                                align_corners=True)[0]
+        return sampled.reshape(c, h, k, w, k).mean(dim=(2, 4)).double().numpy()
+
+    def _camera_grid(self, hs: int, ws: int, pitch_m: float) -> tuple[torch.Tensor, int]:
+        """grid_sample's grid [1, h k, w k, 2] of the ROI's pixels, each supersampled k x k,
+        on an SLM-plane image of [hs, ws] samples at `pitch_m`, and k (memoised per bench, ROI
+        and image grid)."""
         b = self.bench
+        key = (b, self.roi, hs, ws, pitch_m)
+        hit = self._grids.get(key)
+        if hit is not None:
+            return hit
+        top, left, h, w = self.roi
         # Supersample each camera pixel finely enough to integrate over its footprint.
         footprint = b.camera_pitch_m / b.magnification
         k = max(1, math.ceil(2 * footprint / pitch_m))
@@ -552,9 +587,10 @@ class SimulatedCamera(Camera):
         gx = x / pitch_m / ((ws - 1) / 2)
         gy = y / pitch_m / ((hs - 1) / 2)
         grid = torch.from_numpy(np.stack([gx, gy], axis=-1)).float()[None]
-        sampled = F.grid_sample(img[None], grid, mode="bilinear", padding_mode="zeros",
-                                align_corners=True)[0]
-        return sampled.reshape(c, h, k, w, k).mean(dim=(2, 4)).double().numpy()
+        if len(self._grids) >= 4:
+            self._grids.clear()
+        self._grids[key] = (grid, k)
+        return grid, k
 
     def _patterns(self) -> tuple[np.ndarray, np.ndarray]:
         """PRNU (gain) and DSNU (offset) of the ROI's pixels, fixed for the sensor: each sensor

@@ -31,6 +31,8 @@ BENCHES: tuple[Command, ...] = (
             "2 local workers vs 1: dataset build and training"),
     Command("geometry", "nhfd.benchmarks.geometry",
             "dot geometry, warps and SSIM vs OpenCV and kornia"),
+    Command("quality", "nhfd.benchmarks.quality",
+            "speed against captured quality of the frame tiers"),
 )
 
 

@@ -29,6 +29,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("eval", "nhfd.cli.cmd_train", "hologram quality of a run or .onnx on held-out views"),
     Command("export", "nhfd.cli.cmd_train", "export a run to ONNX (checked against torch)"),
     Command("model", "nhfd.cli.cmd_model", "a scene to a served model in one command"),
+    Command("refine", "nhfd.cli.cmd_refine",
+            "a view's frame above the network's: exact, sgd or citl"),
     Command("bench", "nhfd.cli.cmd_bench", "run a benchmark"),
     Command("serve", "nhfd.cli.cmd_serve", "run the bench daemon in the foreground"),
     Command("replay", "nhfd.cli.cmd_replay", "replay a recorded session against a daemon"),

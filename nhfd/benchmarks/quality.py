@@ -1,0 +1,467 @@
+"""`nhfd bench quality`: seconds per frame against the quality the camera captures, per tier.
+
+On the simulated bench: a randomised twin (`TrueBench.randomised`) is calibrated (the capture
+and the fit, into the output's folder, reused when present), then an aberration is added to it
+that the calibration never saw. For a seeded set of views of the shipped donut (with its model)
+and of a second scene without a model (the guitar: `scene_info`), each tier's frame is made and
+then captured by the twin's camera through `nhfd.calib.citl.CameraLoop` at the target's content
+planes:
+
+  network  the network's double-phase frame (donut only); its seconds are the frame's
+  exact    the view's light-field inversion; seconds: the exact target (scene_info, the
+           reference, the focal stack) and the coding
+  sgd      K subframes optimised through the bench model from the network's frame (donut) or
+           the exact one; seconds add the network frame (donut) and the optimisation
+  citl     the camera in the loop from sgd's frame; seconds add the loop's steps (each D x C x
+           K captures of the twin: its simulation and stage moves, not a real camera's)
+
+Scored: the captured stack's PSNR and SSIM against the exact target (`stack_quality`, a gain
+per colour fitted), and its speckle contrast (`speckle_contrast`). `BENCH_LEAVES_OUT` lists
+the physics the twin has and the bench model does not.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from nhfd.benchmarks.machine import describe
+from nhfd.calib.citl import CameraLoop
+from nhfd.cli.args import parse_wxh
+from nhfd.cli.cmd_refine import (
+    Prepared,
+    arm_twin,
+    citl_frame,
+    load_scene,
+    model_loss,
+    prepare,
+    refine_settings,
+    sgd_frame,
+    sim_devices,
+    sim_panel_hw,
+    suggested_radius,
+    twin_calibration,
+)
+from nhfd.config import Config, load_config
+from nhfd.drivers.simcamera import TrueBench
+from nhfd.model_info import ModelInfo
+from nhfd.models.export import load_model
+from nhfd.optics.quality import speckle_contrast, stack_quality
+from nhfd.pipeline.frame import compute_frame
+from nhfd.pipeline.refine import Refined, psnr_db
+from nhfd.pipeline.view import Scene
+from nhfd.views import Orbit, View
+
+REPO = Path(__file__).resolve().parents[2]
+DONUT = REPO / "models" / "scenes" / "donut.ply"
+DONUT_MODEL = REPO / "models" / "nhf-donut-512.onnx"
+GUITAR = REPO.parent / "shared" / "data" / "scenes" / "guitar.compressed.ply"
+TIERS = ("network", "exact", "sgd", "citl")
+BENCH_SEED = 7
+# Coma and astigmatism (rad at green, Noll 5-7) the relay gains after its calibration.
+UNKNOWN_ZERNIKE_RAD = (0.5, -0.3, 0.4)
+# What the twin has and the bench model (`nhfd.pipeline.refine.BenchForward`) leaves out.
+BENCH_LEAVES_OUT = (
+    "the pixels' fill factor and the light reflected by the gaps between them "
+    "(TrueBench.fill_factor, gap_reflectance)",
+    "the liquid crystal's fringing crosstalk (the phase blurred across pixel edges, "
+    "crosstalk_sigma_m)",
+    "unmodulated (zero-order) light, coherent with the signal (zero_order_fraction)",
+    "an aberration added after the calibration: Zernike coma and astigmatism (Noll 5-7) "
+    f"{', '.join(f'{a:+g}' for a in UNKNOWN_ZERNIKE_RAD)} rad at green",
+    "the camera: shot, read and dark noise, pixel gain and offset patterns (PRNU, DSNU), its "
+    "response curve and 12-bit quantisation, integration over its pixels",
+)
+# The no-model scene's views: azimuth and elevation ranges (deg) at 1.5x the suggested distance.
+NO_MODEL_AZIMUTH_DEG = (-30.0, 30.0)
+NO_MODEL_ELEVATION_DEG = (5.0, 25.0)
+NO_MODEL_DISTANCE = 1.5
+# Views of a model's scene stay this fraction inside each end of its pose envelope.
+ENVELOPE_INSET = 0.1
+GOAL_SGD_OVER_NETWORK_DB = 3.0
+GOAL_CITL_OVER_SGD_DB = 2.0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("quality", help="speed against captured quality of the frame tiers",
+                       description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--views", type=int, default=2, help="seeded views per scene (default 2)")
+    p.add_argument("--seed", type=int, default=0, help="the views' seed (default 0)")
+    p.add_argument("--size", default="512x288", metavar="WxH",
+                   help="the window (default 512x288; 1024x576 also)")
+    p.add_argument("--subframes", default="1,4", metavar="K,...",
+                   help="subframe counts for sgd and citl (default 1,4)")
+    p.add_argument("--tiers", default=",".join(TIERS), help="tiers to run (default all)")
+    p.add_argument("--iterations", type=int, default=100, help="sgd's steps (default 100)")
+    p.add_argument("--citl-iterations", type=int, default=20,
+                   help="citl's steps after sgd (default 20; each is D x C x K captures)")
+    p.add_argument("--seconds", type=float, default=900.0,
+                   help="each refinement's time budget (default 900)")
+    p.add_argument("--tolerance", type=float, default=0.0,
+                   help="refine.tolerance for every refinement (default 0: each runs its whole "
+                        "budget, so a frame's seconds and quality are its budget's)")
+    p.add_argument("--model", default=str(DONUT_MODEL), help="the donut's model")
+    p.add_argument("--scene", default=str(DONUT), help="the model's scene")
+    p.add_argument("--other-scene", default=str(GUITAR),
+                   help="a scene refined without a model (default: the shared guitar); "
+                        "'none' to skip")
+    p.add_argument("--bench-seed", type=int, default=BENCH_SEED,
+                   help=f"the twin's seed (TrueBench.randomised; default {BENCH_SEED})")
+    p.add_argument("--config", help="configuration file (default: the search order)")
+    p.add_argument("--out", default="out/bench/quality.json", help="JSON file to write")
+    p.add_argument("--calibration-dir", default=None,
+                   help="the twin's calibration (default: quality-calibration-WxH beside --out; "
+                        "reused when present)")
+    p.add_argument("--plot", default="docs/figures/quality.png",
+                   help="the figure to write ('' for none)")
+    p.set_defaults(handler=run)
+
+
+# -- the figures (pure: tests check them) -------------------------------------------------------
+
+def _mean(values: Sequence[float]) -> float:
+    return float(np.mean(values)) if len(values) else math.nan
+
+
+def summarise(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One entry per (scene, tier, K), in the rows' order: the views counted and the means of
+    seconds per frame, captured PSNR, SSIM and speckle contrast, and the bench model's PSNR."""
+    groups: dict[tuple[str, str, int], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["scene"], r["tier"], int(r["k"])), []).append(r)
+    out = []
+    for (scene, tier, k), rs in groups.items():
+        out.append({"scene": scene, "tier": tier, "k": k, "views": len(rs),
+                    **{f"{key}_mean": _mean([float(r[key]) for r in rs])
+                       for key in ("seconds", "psnr_db", "ssim", "speckle", "model_psnr_db")}})
+    return out
+
+
+def paired(rows: Sequence[dict[str, Any]], key: str, a: tuple[str, int], b: tuple[str, int]
+           ) -> list[dict[str, Any]]:
+    """`key` of tier/K `b` minus that of `a`, per (scene, view) that has both, in `a`'s row
+    order: [{scene, view, a, b, diff}]."""
+    index = {(r["scene"], r["view"], r["tier"], int(r["k"])): r for r in rows}
+    out = []
+    for r in rows:
+        if (r["tier"], int(r["k"])) != a:
+            continue
+        other = index.get((r["scene"], r["view"], b[0], b[1]))
+        if other is not None:
+            out.append({"scene": r["scene"], "view": r["view"], "a": float(r[key]),
+                        "b": float(other[key]), "diff": float(other[key]) - float(r[key])})
+    return out
+
+
+def goal_checks(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
+    """The issue's goals, each measured over the views that have both sides (mean of the paired
+    differences) and met or not: sgd (K = 1) over the network's frame by at least
+    GOAL_SGD_OVER_NETWORK_DB captured; citl over sgd (same K) by at least GOAL_CITL_OVER_SGD_DB
+    captured; the largest K's speckle contrast below K = 1's (sgd and citl). A goal with no
+    pairs is reported with `met` None."""
+    ks = sorted({int(r["k"]) for r in rows if r["tier"] in ("sgd", "citl")})
+    checks = []
+
+    def check(goal: str, pairs: list[dict[str, Any]], ok: Callable[[float], bool],
+              unit: str) -> None:
+        mean = _mean([p["diff"] for p in pairs])
+        checks.append({"goal": goal, "pairs": len(pairs), "mean_diff": mean, "unit": unit,
+                       "diffs": [round(p["diff"], 3) for p in pairs],
+                       "met": bool(ok(mean)) if pairs else None})
+
+    check(f"sgd (K=1) over the network's double-phase frame >= +{GOAL_SGD_OVER_NETWORK_DB:g} dB "
+          "captured", paired(rows, "psnr_db", ("network", 1), ("sgd", 1)),
+          lambda d: d >= GOAL_SGD_OVER_NETWORK_DB, "dB")
+    for k in ks:
+        check(f"citl over sgd (K={k}) >= +{GOAL_CITL_OVER_SGD_DB:g} dB captured",
+              paired(rows, "psnr_db", ("sgd", k), ("citl", k)),
+              lambda d: d >= GOAL_CITL_OVER_SGD_DB, "dB")
+    if len(ks) > 1 and ks[0] == 1:
+        for tier in ("sgd", "citl"):
+            check(f"{tier}: speckle contrast at K={ks[-1]} lower than at K=1",
+                  paired(rows, "speckle", (tier, 1), (tier, ks[-1])), lambda d: d < 0, "")
+    return checks
+
+
+def table(summary: Sequence[dict[str, Any]]) -> str:
+    """The summary as a markdown table."""
+    lines = ["| scene | tier | K | views | s / frame | captured PSNR (dB) | SSIM | speckle "
+             "contrast | model's PSNR (dB) |", "|---|---|---|---|---|---|---|---|---|"]
+    for s in summary:
+        lines.append(f"| {s['scene']} | {s['tier']} | {s['k']} | {s['views']} | "
+                     f"{s['seconds_mean']:.1f} | {s['psnr_db_mean']:.2f} | {s['ssim_mean']:.3f} "
+                     f"| {s['speckle_mean']:.3f} | {s['model_psnr_db_mean']:.2f} |")
+    return "\n".join(lines)
+
+
+# -- the measurement ----------------------------------------------------------------------------
+
+def aberrated(twin: TrueBench, zernike_rad: Sequence[float] = UNKNOWN_ZERNIKE_RAD) -> TrueBench:
+    """The twin with `zernike_rad` (Noll 5, 6, ...) added to its relay's pupil."""
+    z = list(twin.zernike_rad) + [0.0] * max(0, len(zernike_rad) - len(twin.zernike_rad))
+    for i, a in enumerate(zernike_rad):
+        z[i] += a
+    return replace(twin, zernike_rad=tuple(z))
+
+
+def seeded_views(rng: np.random.Generator, n: int, scene: Scene, info: ModelInfo | None,
+                 window_hw: tuple[int, int]) -> list[View]:
+    """`n` orbit views: inside the model's pose envelope (ENVELOPE_INSET from its ends), or
+    without a model in NO_MODEL_AZIMUTH_DEG x NO_MODEL_ELEVATION_DEG at NO_MODEL_DISTANCE x
+    the suggested distance."""
+    env = info.pose_envelope if info is not None else None
+
+    def inside(bounds: tuple[float, float]) -> float:
+        lo, hi = bounds
+        d = ENVELOPE_INSET * (hi - lo)
+        return float(rng.uniform(lo + d, hi - d))
+
+    views = []
+    for _ in range(n):
+        if env is not None and env.azimuth_deg and env.elevation_deg and env.distance:
+            views.append(View(Orbit(inside(env.azimuth_deg), inside(env.elevation_deg),
+                                    inside(env.distance))))
+        else:
+            az = float(rng.uniform(*NO_MODEL_AZIMUTH_DEG))
+            el = float(rng.uniform(*NO_MODEL_ELEVATION_DEG))
+            views.append(View(Orbit(az, el, NO_MODEL_DISTANCE
+                                    * suggested_radius(scene, window_hw, az, el))))
+    return views
+
+
+class TimedLoop:
+    """A capture that counts its calls' seconds (the camera's share of a citl frame)."""
+
+    def __init__(self, loop: CameraLoop) -> None:
+        self.loop, self.seconds = loop, 0.0
+
+    def __call__(self, grey: np.ndarray, planes_m: Sequence[float]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        t0 = time.perf_counter()
+        try:
+            return self.loop(grey, planes_m)
+        finally:
+            self.seconds += time.perf_counter() - t0
+
+
+def captured_quality(loop: CameraLoop, p: Prepared, grey: np.ndarray) -> dict[str, Any]:
+    """The frame `grey` (`[C, Hr, Wr]` or `[K, C, Hr, Wr]`) captured at the target's planes:
+    PSNR and SSIM against the target (gains fitted), per plane too, and speckle contrast."""
+    g = np.asarray(grey)
+    g = g[None] if g.ndim == 3 else g
+    captured, seen = loop(g, p.target.planes_m)
+    cap = torch.as_tensor(captured).float()
+    mask = p.target.mask & torch.as_tensor(seen)
+    q = stack_quality(cap, p.target.intensity, planes_m=p.target.planes_m, mask=mask,
+                      fit_gains=True)
+    return {"psnr_db": q.psnr_db, "ssim": q.ssim,
+            "psnr_per_plane_db": [round(v, 3) for v in q.psnr_per_plane_db],
+            "speckle": speckle_contrast(cap, p.target.intensity, mask),
+            "seen_fraction": float(np.mean(seen))}
+
+
+def _row(scene: str, view: int, tier: str, k: int, seconds: float, grey: np.ndarray,
+         p: Prepared, loop: CameraLoop, refined: Refined | None = None,
+         extra: dict[str, Any] | None = None) -> dict[str, Any]:
+    q = captured_quality(loop, p, grey)
+    row = {"scene": scene, "view": view, "tier": tier, "k": k, "seconds": seconds, **q,
+           "model_psnr_db": psnr_db(model_loss(p, grey))}
+    if refined is not None:
+        row["refine"] = refined.report.to_json()
+        row["history"] = [[i, round(t, 3), loss] for i, t, loss in refined.history]
+    row.update(extra or {})
+    print(f"  {scene} view {view} {tier:7s} K={k}: {seconds:7.1f} s/frame, captured "
+          f"{q['psnr_db']:5.2f} dB, SSIM {q['ssim']:.3f}, speckle {q['speckle']:.3f} "
+          f"(model {row['model_psnr_db']:.2f} dB)", flush=True)
+    return row
+
+
+def _plot(path: Path, rows: Sequence[dict[str, Any]], summary: Sequence[dict[str, Any]],
+          title: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    scenes = list(dict.fromkeys(r["scene"] for r in rows))
+    colours = {"network": "tab:grey", "exact": "tab:blue", "sgd": "tab:orange",
+               "citl": "tab:green"}
+    markers = {1: "o", 2: "D", 4: "s", 8: "^"}
+    from matplotlib.ticker import FuncFormatter, NullFormatter
+
+    fig, axes = plt.subplots(1, len(scenes), figsize=(5.4 * len(scenes), 4.4), sharex=True,
+                             squeeze=False)
+    for ax, scene in zip(axes[0], scenes, strict=True):
+        for r in rows:
+            if r["scene"] == scene:
+                ax.scatter(r["seconds"], r["psnr_db"], color=colours.get(r["tier"], "k"),
+                           marker=markers.get(int(r["k"]), "v"), alpha=0.25, s=22,
+                           edgecolors="none")
+        for s in summary:
+            if s["scene"] == scene:
+                ax.scatter(s["seconds_mean"], s["psnr_db_mean"], color=colours.get(s["tier"]),
+                           marker=markers.get(s["k"], "v"), s=70, edgecolors="black",
+                           linewidths=0.6, label=f"{s['tier']} K={s['k']}")
+        ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(NullFormatter())
+        ax.set_xlabel("seconds per frame (log)")
+        ax.set_ylabel("captured PSNR (dB)")
+        ax.set_title(f"{scene} (faint: each view; bold: their mean)", fontsize=9)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7, loc="upper left", framealpha=0.8)
+    fig.suptitle(title, fontsize=10)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _ks(text: str) -> list[int]:
+    try:
+        ks = sorted({int(v) for v in text.split(",") if v.strip()})
+    except ValueError:
+        raise ValueError(f"--subframes {text!r}: expected a comma-separated list of integers "
+                         "1..16, e.g. 1,4") from None
+    if not ks or ks[0] < 1 or ks[-1] > 16:
+        raise ValueError(f"--subframes {text!r}: each K must be 1..16 (refine.subframes)")
+    return ks
+
+
+def _scene_runs(args: argparse.Namespace, config: Config, window_hw: tuple[int, int]
+                ) -> list[tuple[str, Scene, Any]]:
+    runs = []
+    model = load_model(args.model, config)
+    runs.append((Path(args.scene).name.split(".")[0], load_scene(args.scene), model))
+    if args.other_scene and args.other_scene.lower() != "none":
+        other = Path(args.other_scene)
+        if not other.exists():
+            raise FileNotFoundError(f"--other-scene {other}: not found (or 'none' to skip)")
+        runs.append((other.name.split(".")[0], load_scene(other), None))
+    return runs
+
+
+def run(args: argparse.Namespace) -> int:
+    t_all = time.perf_counter()
+    config = load_config(args.config).config
+    w, h = parse_wxh(args.size)
+    window_hw = (h, w)
+    ks = _ks(args.subframes)
+    tiers = [t.strip() for t in args.tiers.split(",") if t.strip()]
+    unknown = [t for t in tiers if t not in TIERS]
+    if unknown:
+        raise ValueError(f"--tiers {args.tiers!r}: unknown {', '.join(unknown)}; one or more of "
+                         f"{', '.join(TIERS)}")
+    base = config.refine
+    sgd_settings = {k: refine_settings(base, {"subframes": k, "iterations": args.iterations,
+                                              "seconds": args.seconds,
+                                              "tolerance": args.tolerance}) for k in ks}
+    citl_settings = {k: refine_settings(s, {"iterations": args.citl_iterations})
+                     for k, s in sgd_settings.items()}
+    base = sgd_settings[ks[0]]
+    out = Path(args.out)
+    panel_hw = sim_panel_hw(window_hw)
+    cal_dir = Path(args.calibration_dir) if args.calibration_dir else \
+        out.parent / f"quality-calibration-{w}x{h}"
+    machine = describe()
+    print(f"nhfd bench quality: {w} x {h} window on a {panel_hw[1]} x {panel_hw[0]} simulated "
+          f"panel; {machine['cpu']}, {machine['cores']} cores", flush=True)
+    twin = TrueBench.randomised(args.bench_seed)
+    t0 = time.perf_counter()
+    calibration = twin_calibration(cal_dir, twin, panel_hw)
+    calibration_s = time.perf_counter() - t0
+    runs = _scene_runs(args, config, window_hw)
+    rows: list[dict[str, Any]] = []
+    views_json: list[dict[str, Any]] = []
+    result: dict[str, Any] = {
+        "machine": machine, "size": f"{w}x{h}", "window_hw": list(window_hw),
+        "panel_hw": list(panel_hw), "subframes": ks, "tiers": tiers,
+        "iterations": {"sgd": args.iterations, "citl": args.citl_iterations,
+                       "seconds": args.seconds, "tolerance": base.tolerance,
+                       "patience": base.patience, "planes": base.planes,
+                       "learning_rate_rad": base.learning_rate_rad},
+        "twin": {"seed": args.bench_seed, "added_after_calibration_zernike_rad":
+                 list(UNKNOWN_ZERNIKE_RAD), "power_pct": 10.0},
+        "bench_model_leaves_out": list(BENCH_LEAVES_OUT),
+        "calibration": {"dir": str(cal_dir), "seconds": round(calibration_s, 1)},
+        "views": views_json, "rows": rows,
+    }
+    rng = np.random.default_rng(args.seed)
+    with sim_devices(aberrated(twin), panel_hw) as devices:
+        for name, scene, model in runs:
+            info = model.info if model is not None else None
+            if model is not None:  # warm-up: the renderer's kernels, the session
+                warm = prepare(config, scene, seeded_views(np.random.default_rng(99), 1, scene,
+                                                           info, (64, 96))[0],
+                               (64, 96), sim_panel_hw((64, 96)), base, info=info)
+                compute_frame(warm.view, scene, model, warm.encoder)
+            for i, view in enumerate(seeded_views(rng, args.views, scene, info, window_hw)):
+                p = prepare(config, scene, view, window_hw, panel_hw, base,
+                            calibration=calibration, info=info)
+                views_json.append({"scene": name, "view": i, **view.to_json(),
+                                   "planes_m": list(p.target.planes_m)})
+                print(f"{name} view {i}: {view.to_json()}; exact target at "
+                      f"{len(p.target.planes_m)} planes in {p.seconds:.1f} s", flush=True)
+                loop = CameraLoop(devices, calibration, p.encoder)
+                start, net_s = None, 0.0
+                if model is not None:
+                    t0 = time.perf_counter()
+                    start = compute_frame(view, scene, model, p.encoder).grey
+                    net_s = time.perf_counter() - t0
+                    if "network" in tiers:
+                        rows.append(_row(name, i, "network", 1, net_s, start, p, loop))
+                if "exact" in tiers:
+                    rows.append(_row(name, i, "exact", 1, p.seconds, p.exact_grey, p, loop))
+                for k in ks:
+                    if "sgd" not in tiers and "citl" not in tiers:
+                        break
+                    t0 = time.perf_counter()
+                    sgd = sgd_frame(p, sgd_settings[k], start=start, seed=i)
+                    sgd_s = p.seconds + net_s + time.perf_counter() - t0
+                    if "sgd" in tiers:
+                        rows.append(_row(name, i, "sgd", k, sgd_s, sgd.grey, p, loop, sgd))
+                    if "citl" in tiers:
+                        arm_twin(devices)
+                        timed = TimedLoop(loop)
+                        before = loop.captures
+                        t0 = time.perf_counter()
+                        citl = citl_frame(p, sgd, citl_settings[k], timed, seed=i)
+                        citl_s = time.perf_counter() - t0
+                        rows.append(_row(name, i, "citl", k, sgd_s + citl_s, citl.grey, p,
+                                         loop, citl, {"captures": loop.captures - before,
+                                                      "capture_s": timed.seconds,
+                                                      "sgd_s": sgd_s}))
+                out.parent.mkdir(parents=True, exist_ok=True)
+                out.write_text(json.dumps(result, indent=2))  # what is done so far
+    summary = summarise(rows)
+    goals = goal_checks(rows)
+    result.update(summary=summary, goals=goals,
+                  seconds_total=round(time.perf_counter() - t_all, 1))
+    out.write_text(json.dumps(result, indent=2))
+    print()
+    print(f"{machine['cpu']}, {machine['cores']} cores; window {w} x {h}; "
+          f"{args.views} view(s) per scene")
+    print(table(summary))
+    print()
+    for g in goals:
+        verdict = {True: "met", False: "not met", None: "not measured"}[g["met"]]
+        print(f"- {g['goal']}: mean {g['mean_diff']:+.3f}{' ' + g['unit'] if g['unit'] else ''}"
+              f" over {g['pairs']} view(s): {verdict}")
+    print("The bench model leaves out: " + "; ".join(BENCH_LEAVES_OUT))
+    if args.plot:
+        gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
+        title = (f"captured PSNR against seconds per frame, {w} x {h}, simulated bench\n"
+                 f"{machine['cpu']}, {machine['cores']} cores, {gpu} (frames on the CPU)")
+        _plot(Path(args.plot), rows, summary, title)
+        print(f"wrote {args.plot}")
+    print(f"wrote {out} in {result['seconds_total']:.0f} s")
+    return 0
