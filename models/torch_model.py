@@ -53,9 +53,14 @@ FOLDED = frozenset({"net.head.weight", "net.head.bias"})
 class TorchModel:
     """The network of the model file at `path`, rebuilt as a torch module on `device`.
 
+    `run_on` launches only device work (no host synchronisation), so the device frame path may
+    capture it in a CUDA graph (`graphable`; `nhfd.pipeline.device.CudaGraphs`).
+
     `expected` (optics keys, `nhfd.models.metadata.expected_from_config`): refuse a model
     trained for other optics, as `OnnxModel` does. ValueError (`NotAModel`) for a file that is
     not an nhfd model, an int8 one, or one whose graph the rebuild does not reproduce."""
+
+    graphable = True
 
     def __init__(self, path: str | Path, *, expected: dict | None = None,
                  device: str | torch.device = "cpu", source: str | None = None) -> None:

@@ -605,6 +605,10 @@ class DaemonSettings(_Section):
     # (the model file's network rebuilt as a torch module, `nhfd.models.torch_model`), or
     # "auto": onnxruntime, except on a CUDA device whose onnxruntime has no CUDA provider.
     inference: Literal[INFERENCES] = "auto"
+    # On CUDA, each frame stage after the render (network in torch, propagation, coding) is
+    # replayed as one CUDA graph (`nhfd.pipeline.device.CudaGraphs`); false launches every
+    # kernel from the host. No effect on the CPU.
+    cuda_graphs: bool = True
 
     @model_validator(mode="after")
     def _device_named(self) -> DaemonSettings:

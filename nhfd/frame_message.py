@@ -103,6 +103,8 @@ class FrameMessage:
                       in the message (the pickled transport), or not yet written (`in_slot`)
     ready_s           when the frame was whole in its slot (CLOCK_MONOTONIC, shared by both
                       processes), set just before sending
+    grey_hwc          the slot holds the grey region as `[h, w, 3]` (the SLM's interleaved
+                      layout, which a device frame computes) instead of `[3, h, w]`
     """
 
     region: Region
@@ -116,6 +118,7 @@ class FrameMessage:
     ready_s: float | None = None
     grey: np.ndarray | None = None
     rgb: np.ndarray | None = None
+    grey_hwc: bool = False
 
     def __post_init__(self) -> None:
         if not isinstance(self.region, Region):
@@ -140,9 +143,11 @@ class FrameMessage:
                   timings: StageTimes, clipped_fraction: tuple[float, ...] = (),
                   warnings: tuple[str, ...] | list[str] = ()) -> FrameMessage:
         """A frame holding its arrays (grey `[3, h, w]` uint8, the preview `[3, H, W]` uint8 or
-        None), the shapes taken from them."""
+        None), the shapes taken from them; a grey region that is a view of an `[h, w, 3]` array
+        (`is_interleaved`) crosses in that layout."""
         return cls(region, tuple(grey.shape), None if rgb is None else tuple(rgb.shape),
-                   timings, tuple(clipped_fraction), tuple(warnings), grey=grey, rgb=rgb)
+                   timings, tuple(clipped_fraction), tuple(warnings), grey=grey, rgb=rgb,
+                   grey_hwc=is_interleaved(grey))
 
     def in_slot(self, slot: int) -> FrameMessage:
         """This frame with its arrays written to shared-memory `slot` (by the caller): the
@@ -156,6 +161,13 @@ class FrameMessage:
     def from_cache(self) -> FrameMessage:
         """This frame served again from the worker's cache: no stage ran."""
         return replace(self, cached=True, timings=StageTimes())
+
+
+def is_interleaved(grey: np.ndarray) -> bool:
+    """Whether `grey` `[C, h, w]` is the channel-first view of a C-contiguous `[h, w, C]` array
+    (the SLM's layout): then it is copied as `grey.transpose(1, 2, 0)`, row by row."""
+    return (grey.ndim == 3 and grey.shape[0] > 1 and not grey.flags.c_contiguous
+            and grey.transpose(1, 2, 0).flags.c_contiguous)
 
 
 def _shape(name: str, shape: Any) -> tuple[int, int, int]:

@@ -10,6 +10,7 @@
 #   GPU_DEADLINE_S  seconds the whole run may take (default 560); each step gets what is left
 #   GPU_VIEWS     views per measured configuration (default 30)
 #   OUT           where the packed results go (default out/gpu)
+#   GPU_BUILD_STEPS  build: train the default recipe for this many steps instead of its own
 #
 # install: the wheels in .whl/ (the packages the machine lacks, `pip install --no-deps`) and
 # nhfd itself (editable, no build isolation: nothing is downloaded). gsplat: the CUDA extension
@@ -104,8 +105,12 @@ do_tests() {
 }
 
 do_pipeline() {
-  nhfd bench pipeline --device cpu,cuda --frame-size-px 1024 576 --frame-size-px 1920 1080 \
-    --views "$VIEWS" --json "$WORK/gpu_pipeline.json"
+  # The GPU with and without CUDA graphs side by side (the same views in turns), then the CPU
+  # path on the same machine (fewer views: 0.2 to 0.5 s each).
+  nhfd bench pipeline --device cuda --cuda-graphs on,off --frame-size-px 1024 576 \
+    --frame-size-px 1920 1080 --views "$VIEWS" --json "$WORK/gpu_pipeline.json" || return 1
+  nhfd bench pipeline --device cpu --frame-size-px 1024 576 --frame-size-px 1920 1080 \
+    --views 10 --json "$WORK/cpu_pipeline.json"
 }
 
 do_net() { "$PY" scripts/gpu_probe.py net --views 50 --json "$WORK/net.json"; }
@@ -127,7 +132,15 @@ do_train() {
 }
 
 do_build() {
-  nhfd model build models/scenes/donut.ply --device cuda --out "$WORK/build" --no-progress
+  # GPU_BUILD_STEPS (when set): the default recipe with fewer training steps, to fit a short
+  # lease; report.json's seconds per step gives the full recipe's training time.
+  local cfg=()
+  if [ -n "${GPU_BUILD_STEPS:-}" ]; then
+    printf '[model.build.profiles.default]\nsteps = %d\n' "$GPU_BUILD_STEPS" > "$WORK/build.toml"
+    cfg=(--config "$WORK/build.toml")
+  fi
+  nhfd model build models/scenes/donut.ply --device cuda --out "$WORK/build" --no-progress \
+    "${cfg[@]}"
   local rc=$?
   cp "$WORK/build/report.json" "$WORK/build_report.json" 2>/dev/null
   return $rc
@@ -136,7 +149,7 @@ do_build() {
 # `timeout` runs a new bash: it needs the functions and settings exported.
 export -f nhfd do_env do_install do_gsplat do_tests do_pipeline do_net do_frame do_holo do_train \
   do_build
-export PY WORK VIEWS GPU_TESTS
+export PY WORK VIEWS GPU_TESTS GPU_BUILD_STEPS
 step env 30 do_env
 step install 120 do_install
 step gsplat 300 do_gsplat

@@ -247,7 +247,27 @@ def _frame_parts(w: int, h: int, device: str) -> dict[str, Any]:
                       float(np.mean(env.distance))), refocus_mm=0.0)
     settings = frame_settings(config, model.info, active_calibration(config))
     return {"model": model, "scene": scene, "view": view,
-            "encoder": Encoder(settings, device=device)}
+            "encoder": Encoder(settings, device=device),
+            "graphed": Encoder(settings, device=device, cuda_graphs=True)}
+
+
+def _panel_paste_ms(grey_hwc: np.ndarray, zero: np.ndarray, iters: int = 30) -> dict[str, float]:
+    """The daemon's output stage on this host: the region pasted into the panel from the
+    SLM's [h, w, 3] layout (a device frame's) and from a channel-first copy (the CPU path's)."""
+    from nhfd.daemon.frame_link import PanelBuffer
+
+    buffer = PanelBuffer(zero)
+    grey = grey_hwc.transpose(2, 0, 1)
+    planar = np.ascontiguousarray(grey)
+    out = {}
+    for name, g in (("interleaved", grey), ("planar", planar)):
+        times = []
+        for _ in range(iters):
+            t0 = time.perf_counter()
+            buffer.frame(0, 0, g)
+            times.append((time.perf_counter() - t0) * 1e3)
+        out[f"paste_{name}_median_ms"] = float(np.median(times))
+    return out
 
 
 def cmd_frame(args: argparse.Namespace) -> dict[str, Any]:
@@ -260,36 +280,42 @@ def cmd_frame(args: argparse.Namespace) -> dict[str, Any]:
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
     for w, h in args.sizes:
         p = _frame_parts(w, h, args.device)
-
-        def one(p: dict[str, Any] = p) -> Any:
-            return compute_frame(p["view"], p["scene"], p["model"], p["encoder"])
-
+        entry: dict[str, Any] = {"size_wh": [w, h], "frames": args.views}
+        # Eager and graphed in turns, frame by frame: the same card, the same load.
+        walls: dict[str, list[float]] = {"eager": [], "graphs": []}
+        stages: dict[str, dict[str, list[float]]] = {"eager": {}, "graphs": {}}
         for _ in range(5):
-            one()
-        stages: dict[str, list[float]] = {}
-        walls = []
+            for enc in (p["encoder"], p["graphed"]):
+                f = compute_frame(p["view"], p["scene"], p["model"], enc)
         for _ in range(args.views):
-            t0 = time.perf_counter()
-            f = one()
-            walls.append((time.perf_counter() - t0) * 1e3)
-            for k, v in f.timings_s.items():
-                stages.setdefault(k, []).append(v * 1e3)
+            for name, enc in (("eager", p["encoder"]), ("graphs", p["graphed"])):
+                t0 = time.perf_counter()
+                f = compute_frame(p["view"], p["scene"], p["model"], enc)
+                walls[name].append((time.perf_counter() - t0) * 1e3)
+                for k, v in f.timings_s.items():
+                    stages[name].setdefault(k, []).append(v * 1e3)
+        for name in walls:
+            entry[name] = {"wall_median_ms": float(np.median(walls[name])),
+                           "wall_p99_ms": float(np.percentile(walls[name], 99)),
+                           "stage_median_ms": {k: float(np.median(v))
+                                               for k, v in stages[name].items()}}
+            print(f"{w} x {h} on {args.device}, {name}: compute_frame wall median "
+                  f"{entry[name]['wall_median_ms']:.2f} ms, p99 "
+                  f"{entry[name]['wall_p99_ms']:.2f}; stages "
+                  + ", ".join(f"{k} {v:.2f}" for k, v in entry[name]["stage_median_ms"].items()))
+        entry["graph_failures"] = dict(p["graphed"].graphs.failed)
+        entry.update(_panel_paste_ms(f.grey.transpose(1, 2, 0), p["encoder"].zero))
+        print(f"  output paste: interleaved {entry['paste_interleaved_median_ms']:.2f} ms, "
+              f"planar {entry['paste_planar_median_ms']:.2f} ms; graph failures: "
+              f"{entry['graph_failures'] or 'none'}")
         with profile(activities=activities) as prof:
             for _ in range(5):
-                one()
-        table = prof.key_averages().table(
+                compute_frame(p["view"], p["scene"], p["model"], p["graphed"])
+        entry["profile_top_kernels_5_graphed_frames"] = prof.key_averages().table(
             sort_by="cuda_time_total" if dev.type == "cuda" else "cpu_time_total", row_limit=25,
             max_name_column_width=60)
-        entry = {"size_wh": [w, h], "frames": args.views,
-                 "wall_median_ms": float(np.median(walls)),
-                 "wall_p99_ms": float(np.percentile(walls, 99)),
-                 "stage_median_ms": {k: float(np.median(v)) for k, v in stages.items()},
-                 "profile_top_kernels_5_frames": table}
+        print(entry["profile_top_kernels_5_graphed_frames"])
         out["sizes"].append(entry)
-        print(f"{w} x {h} on {args.device}: compute_frame wall median "
-              f"{entry['wall_median_ms']:.2f} ms, p99 {entry['wall_p99_ms']:.2f}; stages "
-              + ", ".join(f"{k} {v:.2f}" for k, v in entry["stage_median_ms"].items()))
-        print(table)
     return out
 
 

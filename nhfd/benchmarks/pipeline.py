@@ -73,6 +73,7 @@ class Variant(NamedTuple):
     int8: str | None = None  # daemon.int8
     device: str | None = None  # daemon.device
     inference: str | None = None  # daemon.inference
+    cuda_graphs: bool | None = None  # daemon.cuda_graphs
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -99,6 +100,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--inference", default=None,
                    help=f"comma list of what runs the network, to compare: "
                         f"{', '.join(INFERENCES)} (daemon.inference; default: the configuration's)")
+    p.add_argument("--cuda-graphs", default=None,
+                   help="comma list of on, off: daemon.cuda_graphs to compare on a CUDA device "
+                        "(default: the configuration's)")
     p.set_defaults(handler=run)
 
 
@@ -209,6 +213,8 @@ def _variant_config(config: Config, v: Variant) -> Config:
         daemon["device"] = v.device
     if v.inference is not None:
         daemon["inference"] = v.inference
+    if v.cuda_graphs is not None:
+        daemon["cuda_graphs"] = v.cuda_graphs
     overlay = {"daemon": daemon, "slm": {"refresh_hz": REFRESH_HZ_MAX}}
     return Config.model_validate(_overlay(config.model_dump(), overlay))
 
@@ -261,7 +267,7 @@ def _result(model: Path, model_info: ModelInfo, daemon: DaemonSettings,
             "size_wh": list(daemon.frame_size_px) or [w, h],
             "transport": daemon.frame_transport, "int8": daemon.int8,
             "worker_threads": daemon.worker_threads,
-            "device_setting": daemon.device, "device": device,
+            "device_setting": daemon.device, "device": device, "cuda_graphs": daemon.cuda_graphs,
             "device_reason": info.get("device_reason"), "gpu": _gpu(device),
             "onnx_providers": info.get("providers"), "inference": info.get("inference"),
             "inference_reason": info.get("inference_reason"),
@@ -297,8 +303,11 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         raise FileNotFoundError(f"{missing[0]}: no such model (see `nhfd demo` for how to build "
                                 "the default one)")
-    variants = [Variant(t, q, d, n) for d in devices for n in inferences for q in int8s
-                for t in transports]
+    graphs = ([{"on": True, "off": False}[g] for g in _choices(
+        "--cuda-graphs", args.cuda_graphs, ("on", "off"))]
+        if getattr(args, "cuda_graphs", None) else [None])
+    variants = [Variant(t, q, d, n, g) for d in devices for n in inferences for q in int8s
+                for t in transports for g in graphs]
     results = []
     for cfg in configs:  # each size in turn, its variants side by side
         for model in models:
@@ -387,8 +396,11 @@ def _command(args: argparse.Namespace) -> str:
 def _device_label(r: dict[str, Any]) -> str:
     """The device computed on: "cpu", "cuda:0 (NVIDIA H100 80GB HBM3)"; "auto"'s choice says
     so ("cpu (auto)"), else a cpu,auto run's two rows would read alike."""
-    notes = [n for n in (r.get("gpu"), "auto" if r.get("device_setting") == "auto" else None)
-             if n]
+    graphs = None
+    if str(r.get("device", "")).startswith("cuda") and "cuda_graphs" in r:
+        graphs = "CUDA graphs" if r["cuda_graphs"] else "no graphs"
+    notes = [n for n in (r.get("gpu"), "auto" if r.get("device_setting") == "auto" else None,
+                         graphs) if n]
     return f"{r['device']} ({', '.join(notes)})" if notes else str(r["device"])
 
 

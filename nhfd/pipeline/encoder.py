@@ -22,7 +22,7 @@ from nhfd.optics import (
     region_propagators,
 )
 
-from .device import HostCopy, resolve_device
+from .device import CudaGraphs, HostCopy, resolve_device
 from .settings import FrameSettings, frame_region, zero_pattern
 
 
@@ -31,16 +31,20 @@ class Encoder:
     the propagation's scratch buffers (so not thread-safe: one per worker process and refocus)."""
 
     def __init__(self, settings: FrameSettings, cache_bytes: int = 256 * 2**20,
-                 device: torch.device | str = "cpu", *, device_coding: bool | None = None
-                 ) -> None:
+                 device: torch.device | str = "cpu", *, device_coding: bool | None = None,
+                 cuda_graphs: bool = False) -> None:
         """`device`: where propagation and coding run ("cpu", "cuda:N", or a torch device;
         "auto" as `daemon.device`). `device_coding`: code with `device_grey` (torch) instead of
         numba's pass; the default is True exactly on CUDA (tests set it on the CPU to check the
-        device path's arithmetic against the CPU's)."""
+        device path's arithmetic against the CPU's). `cuda_graphs` (`daemon.cuda_graphs`): the
+        device frame path replays its stages as CUDA graphs (`graphs`; no effect on the CPU)."""
         self.device = resolve_device(device, "device")
         self.device_coding = (self.device.type != "cpu" if device_coding is None
                               else bool(device_coding))
         self.host = HostCopy(self.device)
+        # The graphs capture this encoder's kernels, curves and amplitude scale: they live and
+        # die with it (the worker builds a new encoder for a new model, scene or refocus).
+        self.graphs = CudaGraphs(self.device, cuda_graphs)
         self.settings = settings
         self.region = frame_region(settings)
         self.cache = KernelCache(cache_bytes)

@@ -20,7 +20,9 @@ torch propagation). With `encoder.device_coding` (every CUDA device) the frame s
 device: gsplat renders, the network input is built there, onnxruntime binds device memory
 (`OnnxModel.run_on`), the propagation and `device_grey` run there, and only the uint8 region
 and the uint8 preview of the view cross to the host, in one asynchronous pinned copy; the stage
-times come from CUDA events (the copy counts in coding).
+times come from CUDA events (the copy counts in coding). With `daemon.cuda_graphs` each stage
+after the render is replayed as one CUDA graph (`nhfd.pipeline.device.CudaGraphs`), and the
+grey region comes back in the SLM's interleaved `[h, w, 3]` layout.
 """
 
 from __future__ import annotations
@@ -56,7 +58,8 @@ def preview_levels(rgb: np.ndarray) -> np.ndarray:
 
 @dataclass
 class Frame:
-    """One computed frame: the coded region (grey `[3, h, w]` uint8) and where it goes, the
+    """One computed frame: the coded region (grey `[3, h, w]` uint8; from a device frame a view
+    of its `[h, w, 3]` array, the SLM's layout) and where it goes, the
     rendered view (sRGB `[3, H, W]` float32; None from a device frame, which brings back only
     its preview) and the seconds each stage took."""
 
@@ -122,28 +125,43 @@ def compute_frame_on_device(view: View, scene: Scene, model: Any, encoder: Encod
         raise ValueError(f"the model runs on {model_device}, the encoder on {dev}: load both "
                          "for one device (daemon.device)")
     clock = StageClock(dev)
+    graphs = encoder.graphs  # each stage after the render one CUDA graph (daemon.cuda_graphs)
     with torch.no_grad():
         rgb, depth, alpha = render_on_device(view, scene, model.info, s.window_hw, dev)
         clock.stage("render")
         info = model.info
         x = network_input_on_device(rgb, model.inputs, depth=depth, alpha=alpha,
                                     mapping=info.mapping_dict, volume_m=info.volume_m)
-        if hasattr(model, "run_on"):
+        if getattr(model, "graphable", False):  # torch's network (onnxruntime's is not)
+            amplitude, phase = graphs.run("inference", model.run_on, x)
+        elif hasattr(model, "run_on"):
             amplitude, phase = model.run_on(x)
         else:  # a callable on NumPy arrays (tests' stand-ins)
             amplitude, phase = (_on(v, dev) for v in model(x.cpu().numpy()))
         clock.stage("inference")
-        slm_field = encoder.to_slm(reference_field(amplitude, phase, s.amplitude_scale))
+        slm_field = graphs.run("propagation", lambda a, p: encoder.to_slm(
+            reference_field(a, p, s.amplitude_scale)), amplitude, phase)
         clock.stage("propagation")
-        grey_t, clipped_t, bad_t = encoder.code_on_device(slm_field)
-        # `preview_levels` on the GPU: only uint8 crosses to the host (the float view and its
-        # conversion there took 14 ms a frame at 1920 x 1080).
-        preview_t = (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
-        started = encoder.host.start(grey_t, clipped_t, bad_t, preview_t)
+        coded = graphs.run("coding", lambda f, v: _code_on_device(encoder, f, v), slm_field, rgb)
+        started = encoder.host.start(*coded)
         clock.stage("coding")
-        grey, clipped, bad, preview = encoder.host.wait(started)
+        grey_hwc, clipped, bad, preview = encoder.host.wait(started)
     fractions = encoder.check_coded(clipped, bad)
+    # [3, h, w] as a view of the [h, w, 3] array: the SLM's layout, which the daemon pastes
+    # into its panel row by row (`PanelBuffer`) instead of interleaving three planes.
+    grey = grey_hwc.transpose(2, 0, 1)
     return Frame(encoder.region, grey, clock.seconds, None, fractions, preview)
+
+
+def _code_on_device(encoder: Encoder, slm_field: torch.Tensor, rgb: torch.Tensor
+                    ) -> tuple[torch.Tensor, ...]:
+    """The coding stage on the device: grey `[h, w, 3]` uint8 (the SLM's interleaved layout),
+    the clipped fraction `[3]`, the non-finite count, and the view's preview `[3, H, W]` uint8
+    (`preview_levels` on the GPU: the float view and its conversion on the host took 14 ms a
+    frame at 1920 x 1080)."""
+    grey, clipped, bad = encoder.code_on_device(slm_field)
+    preview = (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8)
+    return grey.permute(1, 2, 0).contiguous(), clipped, bad, preview
 
 
 def render_on_device(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[int, int],

@@ -277,7 +277,8 @@ def choose_variant(path: str, daemon: DaemonSettings, int8_metadata: dict[str, A
 
 class FrameSlots:
     """The daemon's shared-memory slots, attached by name. Each holds a frame's grey `[3, h, w]`
-    uint8 and then its render's RGB `[3, h', w']` uint8, back to back."""
+    uint8 (`[h, w, 3]` where the message says `grey_hwc`) and then its render's RGB
+    `[3, h', w']` uint8, back to back."""
 
     def __init__(self, names: list[str], slot_bytes: int) -> None:
         self.slot_bytes = int(slot_bytes)
@@ -299,7 +300,11 @@ class FrameSlots:
                              f"{None if rgb is None else list(rgb.shape)}) does not fit a "
                              f"{self.slot_bytes}-byte slot (the panel's size)")
         buf = self.shms[slot].buf
-        np.ndarray(grey.shape, np.uint8, buffer=buf)[...] = grey
+        if message.grey_hwc:  # the SLM's layout, as the device frame computed it
+            c, h, w = grey.shape
+            np.ndarray((h, w, c), np.uint8, buffer=buf)[...] = grey.transpose(1, 2, 0)
+        else:
+            np.ndarray(grey.shape, np.uint8, buffer=buf)[...] = grey
         if rgb is not None:
             np.ndarray(rgb.shape, np.uint8, buffer=buf, offset=grey.nbytes)[...] = rgb
         return message.in_slot(slot)
@@ -385,7 +390,8 @@ class _WorkerState:
                 self.encoders.clear()
             settings = frame_settings(self.config, self.model.info,
                                       active_calibration(self.config), refocus_m=refocus_m)
-            self.encoders[refocus_m] = Encoder(settings, device=self.model.device)
+            self.encoders[refocus_m] = Encoder(settings, device=self.model.device,
+                                               cuda_graphs=self.config.daemon.cuda_graphs)
         return self.encoders[refocus_m]
 
     def frame(self, view: View) -> FrameMessage:

@@ -112,11 +112,12 @@ def test_a_cuda_result_is_named_by_its_gpu_in_the_header_the_table_and_the_machi
     machine = pipeline._machine([cpu_run, gpu_run])
     assert machine["cuda_devices"] == {"cuda:0": h100}
     pipeline._print(gpu_run, pipeline.Config().daemon)
-    assert f"device cuda:0 ({h100}), 2 views" in capsys.readouterr().out
-    md = pipeline._markdown([cpu_run, gpu_run], machine, "nhfd bench pipeline")
+    assert f"device cuda:0 ({h100}, CUDA graphs), 2 views" in capsys.readouterr().out
+    eager = {**gpu_run, "cuda_graphs": False}  # --cuda-graphs on,off: the rows say which
+    md = pipeline._markdown([cpu_run, gpu_run, eager], machine, "nhfd bench pipeline")
     assert f"cuda:0: {h100}" in md.splitlines()[0]
-    devices = [line.split("|")[3].strip() for line in md.splitlines()[-2:]]
-    assert devices == ["cpu", f"cuda:0 ({h100})"]
+    devices = [line.split("|")[3].strip() for line in md.splitlines()[-3:]]
+    assert devices == ["cpu", f"cuda:0 ({h100}, CUDA graphs)", f"cuda:0 ({h100}, no graphs)"]
 
 
 def test_what_runs_the_network_is_compared_side_by_side(tiny, tmp_path):

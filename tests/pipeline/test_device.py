@@ -17,6 +17,7 @@ import torch
 from nhfd.calibration import active_calibration
 from nhfd.config import DEVICES, Config, _overlay, default_text, device_choice
 from nhfd.dataset.build import check_device
+from nhfd.frame_message import is_interleaved
 from nhfd.models.build import resolve_device as build_resolve_device
 from nhfd.models.export import (
     CUDA,
@@ -30,7 +31,7 @@ from nhfd.models.inputs import network_input
 from nhfd.models.train import TrainOptions, training_device
 from nhfd.optics import double_phase_grey
 from nhfd.optics.dpac import DEVICE_LUT_BINS, device_curves, device_grey
-from nhfd.pipeline.device import HostCopy, resolve_device
+from nhfd.pipeline.device import CudaGraphs, HostCopy, resolve_device
 from nhfd.pipeline.encoder import Encoder, reference_field
 from nhfd.pipeline.frame import compute_frame, network_input_on_device
 from nhfd.pipeline.settings import frame_settings
@@ -323,6 +324,8 @@ def test_the_device_path_on_the_cpu_gives_the_cpu_paths_frame(donut):
     dev = compute_frame(d["view"], d["scene"], d["model"],
                         Encoder(d["settings"], device_coding=True))
     assert dev.grey.shape == cpu.grey.shape and dev.grey.dtype == np.uint8
+    # The device path's region comes back in the SLM's [h, w, 3] layout, viewed as [3, h, w].
+    assert is_interleaved(dev.grey) and not is_interleaved(cpu.grey)
     diff = _circular_level_diff(dev.grey, cpu.grey)
     assert diff.max() <= 1 and (diff == 0).mean() > 0.999
     assert dev.clipped_fraction == pytest.approx(cpu.clipped_fraction, abs=0)
@@ -644,3 +647,60 @@ def test_a_cuda_frame_renders_the_scene_uploaded_once(donut, monkeypatch):
     assert (got.fx, got.cx, got.cy, got.width_px, got.height_px) == (
         want.fx, want.cx, want.cy, want.width_px, want.height_px)
     assert rgb.shape == (3, *hw) and depth.shape == alpha.shape == hw
+
+
+def test_cuda_graphs_capture_nothing_off_cuda_and_the_setting_is_a_boolean():
+    calls = []
+
+    def stage(t):
+        calls.append(t)
+        return t * 2
+
+    graphs = CudaGraphs("cpu", enabled=True)
+    x = torch.arange(4.0)
+    assert not graphs.enabled  # the CPU path launches nothing worth a graph
+    assert torch.equal(graphs.run("coding", stage, x), x * 2) and calls[-1] is x
+    assert Encoder(SETTINGS, device="cpu", cuda_graphs=True).graphs.enabled is False
+    with pytest.raises(ValueError, match="cuda_graphs"):
+        Config.model_validate(_overlay(tomllib.loads(default_text()),
+                                       {"daemon": {"cuda_graphs": "sometimes"}}))
+
+
+@needs_cuda
+def test_cuda_graphs_replay_the_eager_frames_view_after_view(donut, monkeypatch, record_property):
+    """daemon.cuda_graphs: the stages after the render, captured once and replayed, give the
+    eager path's frame for each of several views in turn (a replay that kept its first inputs
+    would show the first view's frame again), and every stage was captured."""
+    from nhfd.pipeline import frame as frame_mod
+    from nhfd.pipeline.worker import open_model
+
+    d = donut
+
+    def cpu_render(view, scene, info, window_hw, device):  # the same render for both paths
+        r = frame_mod.render_view(view, scene, info, window_hw)
+        return tuple(torch.from_numpy(v).to(device) for v in (r.rgb, r.depth, r.alpha))
+
+    monkeypatch.setattr(frame_mod, "render_on_device", cpu_render)
+    model = open_model(str(MODEL), _cuda_config(d["config"]), 1)
+    eager = Encoder(d["settings"], device="cuda:0")
+    graphed = Encoder(d["settings"], device="cuda:0", cuda_graphs=True)
+    env = model.info.pose_envelope
+    views = [View(Orbit(float(az), float(np.mean(env.elevation_deg)),
+                        float(np.mean(env.distance))), refocus_mm=0.0)
+             for az in np.linspace(*env.azimuth_deg, 5)]
+    frames = []
+    for view in views:
+        g = compute_frame(view, d["scene"], model, graphed)
+        e = compute_frame(view, d["scene"], model, eager)
+        diff = _circular_level_diff(g.grey, e.grey)
+        record_property(f"identical_{view.camera.azimuth_deg:.1f}", float((diff == 0).mean()))
+        assert diff.max() <= 1 and (diff == 0).mean() >= 0.9999
+        assert np.array_equal(g.preview, e.preview)
+        assert g.clipped_fraction == pytest.approx(e.clipped_fraction, abs=1e-6)
+        frames.append(g.grey.copy())
+    assert graphed.graphs.failed == {}
+    captured = {key[0] for key in graphed.graphs._graphs}
+    want = {"propagation", "coding"} | ({"inference"} if getattr(model, "graphable", False)
+                                        else set())
+    assert captured == want
+    assert all((frames[0] != f).mean() > 0.1 for f in frames[1:])
