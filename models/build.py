@@ -43,7 +43,7 @@ import numpy as np
 from nhfd import __version__
 from nhfd.config import ModelSettings, OpticsSettings, SLMSettings, device_choice
 from nhfd.dataset.build import build as build_dataset
-from nhfd.dataset.build import sha256_file, shard_name, write_json_atomic
+from nhfd.dataset.build import check_device, sha256_file, shard_name, write_json_atomic
 from nhfd.dataset.envelope import dataset_envelope
 from nhfd.dataset.poses import EXTRAP_SHARE, INTERP_SHARE, PoseSampler, orbit_sampler
 from nhfd.dataset.shard import ExampleSettings
@@ -79,8 +79,10 @@ CANDIDATES = ("int8", "fp16")
 # pose-pixel (the donut's 130 poses at 1024 x 576, about 2 min), a dataset example per
 # worker (the shipped donut build, 130 examples in 7 min 40 s on 2 workers), a training step per
 # pixel of the crop (257 ms at 384 x 224, the shipped run), an export with its check, an
-# evaluated view per pixel, and the report.
-PRIOR_S = {"reduce_per_px": 1.0e-6, "example": 7.0, "step_per_px": 0.257 / (384 * 224),
+# evaluated view per pixel, and the report. A dataset example on a GPU: 24 in 7.1 s on an H200
+# (docs/gpu.md).
+PRIOR_S = {"reduce_per_px": 1.0e-6, "example": 7.0, "gpu_example": 0.3,
+           "step_per_px": 0.257 / (384 * 224),
            "export": 20.0, "int8": 10.0, "fp16": 2.0, "eval_per_px": 2.0 / (512 * 288),
            "report": 10.0}  # fmt: skip
 SPEED_STAGES = ("dataset", "train", "eval")
@@ -356,8 +358,23 @@ def _example_settings(ctx: Context) -> ExampleSettings:
                                        phase=r.phase)  # fmt: skip
 
 
+def _dataset_device(ctx: Context) -> tuple[str, int]:
+    """Where the dataset is built, and by how many processes: on the training GPU when gsplat
+    renders there (in this process: on an H200 the donut's 130 examples took 80 s in 16 CPU
+    workers, and 24 took 7.1 s on the GPU), else in the CPU's workers."""
+    device = ctx.recipe.train.device
+    if not device.startswith("cuda"):
+        return "cpu", ctx.workers
+    try:
+        return check_device(device), 1
+    except ValueError as exc:  # gsplat absent: the GPU still trains
+        ctx.log(f"dataset on the CPU: {exc}")
+        return "cpu", ctx.workers
+
+
 def _dataset(ctx: Context) -> dict:
     sampler, poses = _poses(ctx)
+    device, workers = _dataset_device(ctx)
     bar = None
     if ctx.progress:
         from tqdm import tqdm
@@ -372,8 +389,8 @@ def _dataset(ctx: Context) -> dict:
     try:
         manifest = build_dataset(
             ctx.path("scene.ply"), ctx.path("dataset"), poses, _example_settings(ctx),
-            seed=ctx.recipe.seed, sampler=sampler.describe(), workers=ctx.workers,
-            force=ctx.force_stage, progress=progress,
+            seed=ctx.recipe.seed, sampler=sampler.describe(), workers=workers,
+            force=ctx.force_stage, progress=progress, device=device,
         )  # fmt: skip
     finally:
         if bar is not None:
@@ -577,6 +594,8 @@ def _work(ctx: Context, stage: str) -> float:
     if stage == "reduce":
         return r.views * px * PRIOR_S["reduce_per_px"] * r.reduce
     if stage == "dataset":
+        if r.train.device.startswith("cuda"):  # built on the GPU (`_dataset_device`)
+            return r.views * PRIOR_S["gpu_example"]
         return r.views * PRIOR_S["example"] / max(1, ctx.workers)
     if stage == "train":
         crop = min(r.train.crop_width_px, r.width_px) * min(r.train.crop_height_px, r.height_px)

@@ -7,6 +7,7 @@ import json
 import os
 import struct
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -388,3 +389,27 @@ def test_serve_loads_the_scene_and_the_model_into_a_running_daemon(built, tmp_pa
         with contextlib.suppress(Exception):
             running.stop()
         shutil.rmtree(root, ignore_errors=True)
+
+
+def test_a_gpu_build_builds_its_dataset_on_that_gpu_or_says_why_not(monkeypatch):
+    """`nhfd model build --device cuda`: the dataset is rendered and inverted on the training GPU
+    in one process (where gsplat renders); without gsplat the CPU's workers build it and the
+    log says why; a CPU build keeps its workers."""
+    logged: list[str] = []
+
+    def ctx(device: str) -> SimpleNamespace:
+        return SimpleNamespace(recipe=SimpleNamespace(train=SimpleNamespace(device=device)),
+                               workers=6, log=logged.append)
+
+    monkeypatch.setattr(mb, "check_device", lambda device: device)
+    assert mb._dataset_device(ctx("cuda:1")) == ("cuda:1", 1)
+    assert mb._dataset_device(ctx("cpu")) == ("cpu", 6)
+    assert logged == []
+
+    def no_gsplat(device: str) -> str:
+        raise ValueError(f"--device {device}: needs the gsplat package (pip install 'nhfd[gpu]')")
+
+    monkeypatch.setattr(mb, "check_device", no_gsplat)
+    assert mb._dataset_device(ctx("cuda:0")) == ("cpu", 6)
+    assert logged == ["dataset on the CPU: --device cuda:0: needs the gsplat package "
+                      "(pip install 'nhfd[gpu]')"]
