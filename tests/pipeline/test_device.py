@@ -692,10 +692,12 @@ def test_cuda_graphs_replay_the_eager_frames_view_after_view(donut, monkeypatch,
     for view in views:
         g = compute_frame(view, d["scene"], model, graphed)
         e = compute_frame(view, d["scene"], model, eager)
-        diff = _circular_level_diff(g.grey, e.grey)
-        record_property(f"identical_{view.camera.azimuth_deg:.1f}", float((diff == 0).mean()))
-        assert diff.max() <= 1 and (diff == 0).mean() >= 0.9999
-        assert np.array_equal(g.preview, e.preview)
+        # The same kernels in the same order, launched by a replay instead of the host: the
+        # same bytes (measured on an H200, every pixel of 5 views).
+        record_property(f"identical_{view.camera.azimuth_deg:.1f}",
+                        float((g.grey == e.grey).mean()))
+        np.testing.assert_array_equal(g.grey, e.grey)
+        np.testing.assert_array_equal(g.preview, e.preview)
         assert g.clipped_fraction == pytest.approx(e.clipped_fraction, abs=1e-6)
         frames.append(g.grey.copy())
     assert graphed.graphs.failed == {}
