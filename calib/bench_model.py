@@ -33,20 +33,15 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from kornia.geometry.transform import warp_affine
 
 from nhfd.optics import Aperture, PhaseCurve, grey_to_phase, propagate
 from nhfd.optics.pupil import FIRST_NOLL, N_ZERNIKE, apply_pupil
 
 from .focus import STAGE_M_PER_MM, FocusError
-from .geometry import Geometry
 
 # Forward-difference step for d(image)/dz (SLM metres): far below the depth of field (~1 mm)
 # and far above float32 noise in the propagated intensity.
 DZ_M = 5e-6
-# Pixels (SLM) left out along the panel's edge: the edge diffracts light that the model's
-# missing background terms would otherwise have to explain.
-EDGE_MARGIN_PX = 6
 # The descent stops when no image's depth moves by more than this (SLM metres): a thousandth of
 # the depth of field, far below the 5% the calibration must reach.
 Z_TOL_M = 1e-6
@@ -113,31 +108,6 @@ class BenchModel:
             u = propagate(self.field, z, self.pitch_m, [self.wavelength_m],
                           aperture=self.aperture, padding="auto")
             return u.abs().square()[:, :, 0].mean(dim=0).double()
-
-
-def to_slm_grid(image: np.ndarray, geo: Geometry, panel_hw: tuple[int, int], pitch_m: float
-                ) -> tuple[np.ndarray, np.ndarray]:
-    """A camera image sampled (bilinearly) at the SLM pixel centres through the geometry:
-    ([H, W] values, [H, W] bool: inside the image and EDGE_MARGIN_PX inside the panel)."""
-    h, w = panel_hw
-    # SLM pixel (col, row) -> camera (col, row) is affine: camera = a @ (col, row) + b.
-    a = geo.matrix * pitch_m
-    b = geo.to_camera(np.array([[-(w - 1) / 2 * pitch_m, -(h - 1) / 2 * pitch_m]]))[0]
-    forward = np.eye(3)
-    forward[:2, :2], forward[:2, 2] = a, b
-    # warp_affine takes the map from the source (camera) to the destination (SLM grid);
-    # align_corners: pixel centres at integers, as the geometry counts them.
-    vals = warp_affine(torch.from_numpy(np.asarray(image, np.float64))[None, None],
-                       torch.from_numpy(np.linalg.inv(forward)[:2])[None], (h, w),
-                       mode="bilinear", padding_mode="zeros", align_corners=True)[0, 0]
-    rows, cols = np.arange(h)[:, None], np.arange(w)[None, :]
-    cam_col = a[0, 0] * cols + a[0, 1] * rows + b[0]
-    cam_row = a[1, 0] * cols + a[1, 1] * rows + b[1]
-    ih, iw = image.shape
-    ok = (cam_col >= 0) & (cam_row >= 0) & (cam_col <= iw - 1) & (cam_row <= ih - 1)
-    m = EDGE_MARGIN_PX
-    inner = (rows >= m) & (rows < h - m) & (cols >= m) & (cols < w - m)
-    return vals.numpy(), ok & inner
 
 
 @dataclass(frozen=True)

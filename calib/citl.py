@@ -19,23 +19,10 @@ import numpy as np
 from nhfd.calibration import Calibration
 from nhfd.device_settings import COLOURS
 from nhfd.drivers.errors import DeviceError
+from nhfd.optics.camera_grid import calibrated_geometry
+from nhfd.pipeline.citl import captured_window
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.refine import CaptureStopped
-
-from .bench_model import to_slm_grid
-from .data import default_camera_pitch_m
-from .geometry import Geometry
-
-# More than this fraction of the window saturated: the exposure is too long to fit intensities.
-MAX_SATURATED = 0.02
-
-
-def calibrated_geometry(cal: Calibration) -> Geometry:
-    """The calibration's SLM -> camera geometry (in the calibration capture's image, so on the
-    same camera region of interest)."""
-    pitch = float(cal.fitted_on.get("camera_pitch_m") or default_camera_pitch_m())
-    return Geometry(cal.magnification / pitch, cal.rotation_deg, cal.mirror_x, cal.shift_px,
-                    0.0, 0, 0.0, 0.0)
 
 
 class CameraLoop:
@@ -103,29 +90,27 @@ class CameraLoop:
     def __call__(self, grey: np.ndarray, planes_m: Sequence[float]
                  ) -> tuple[np.ndarray, np.ndarray]:
         d = self.devices
-        s, r = self.encoder.settings, self.encoder.region
         grey = np.asarray(grey, np.uint8)
         self._check_laser()  # before anything moves or emits
         panels = [self._panel(g) for g in grey]
-        h, w = s.window_hw
-        top, left = r.top + r.window_top, r.left + r.window_left
-        out = np.zeros((len(planes_m), len(COLOURS), h, w), np.float64)
-        seen = np.ones((h, w), bool)  # inside the camera's image
-        saturated = np.zeros((h, w), bool)
+        images: list[list[np.ndarray]] = []
+        saturated: list[list[np.ndarray]] = []
         try:
             if self.dark is None:
                 self._lights_out()
                 self.dark = d.camera.capture_dark(self.frames)
-            for i, dz in enumerate(planes_m):
-                z_m = s.z0_m + s.refocus_m + float(dz)
-                d.stage.move_to(self.calibration.stage_mm_for(z_m))
+            for dz in planes_m:
+                s = self.encoder.settings
+                d.stage.move_to(self.calibration.stage_mm_for(s.z0_m + s.refocus_m + float(dz)))
+                images.append([])
+                saturated.append([])
                 for c, name in enumerate(COLOURS):
                     self._check_laser()
                     try:
                         d.laser.enable(name)
                     except DeviceError as exc:  # NotArmed, a fault: nothing was switched on
                         raise CaptureStopped(f"{name} could not be switched on: {exc}") from exc
-                    images = []
+                    shots = []
                     for panel in panels:
                         d.slm.show(panel)
                         d.slm.wait_settled()
@@ -133,22 +118,11 @@ class CameraLoop:
                         self.captures += 1
                         image = cap.image if cap.image.ndim == 2 else cap.image[..., c]
                         sat = cap.saturated if cap.saturated.ndim == 2 else cap.saturated[..., c]
-                        images.append((np.asarray(image, np.float64), np.asarray(sat, bool)))
+                        shots.append((np.asarray(image, np.float64), np.asarray(sat, bool)))
                     d.laser.enable(name, False)
-                    mean = np.mean([im for im, _ in images], axis=0)
-                    sat = np.any([m for _, m in images], axis=0).astype(np.float64)
-                    vals, ok = to_slm_grid(mean, self.geometry, s.panel_hw, s.pitch_m)
-                    sat_slm, _ = to_slm_grid(sat, self.geometry, s.panel_hw, s.pitch_m)
-                    out[i, c] = vals[top : top + h, left : left + w]
-                    seen &= ok[top : top + h, left : left + w]
-                    saturated |= sat_slm[top : top + h, left : left + w] > 0
+                    images[-1].append(np.mean([im for im, _ in shots], axis=0))
+                    saturated[-1].append(np.any([m for _, m in shots], axis=0))
         finally:
             self._lights_out()
-        if seen.mean() < 0.5:
-            raise CaptureStopped(f"the camera sees {100 * seen.mean():.0f}% of the window: its "
-                                 "region of interest must hold the panel's image, as in the "
-                                 "calibration's capture")
-        if (saturated & seen).sum() > MAX_SATURATED * seen.sum():
-            raise CaptureStopped(f"{100 * (saturated & seen).sum() / seen.sum():.1f}% of the "
-                                 "window saturated: shorten devices.camera_settings.exposure_s")
-        return out, seen & ~saturated
+        return captured_window(np.asarray(images), np.asarray(saturated), self.geometry,
+                               self.encoder)

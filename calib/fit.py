@@ -21,6 +21,7 @@ import numpy as np
 
 from nhfd.calibration import Calibration
 from nhfd.optics import PhaseCurve
+from nhfd.optics.camera_grid import to_slm_grid
 
 from .bench_model import (
     AberrationFit,
@@ -28,7 +29,6 @@ from .bench_model import (
     ModelDepthFit,
     fit_aberration,
     fit_depth_model,
-    to_slm_grid,
 )
 from .data import CaptureData, default_camera_pitch_m, load_capture, load_frame, load_image
 from .focus import FocusError, dot_metric, fit_depth, peak_position

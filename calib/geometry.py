@@ -16,10 +16,11 @@ turn is found, not assumed, and part of the lattice may be out of view.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
+
+from nhfd.optics.camera_grid import Geometry
 
 from .patterns import DotLayout
 
@@ -177,38 +178,6 @@ def identify_dots(points: np.ndarray, layout: DotLayout) -> np.ndarray:
         if 0 <= i < nx and 0 <= j < ny and present[i, j]:
             out[k] = index[i, j]
     return out
-
-
-@dataclass(frozen=True)
-class Geometry:
-    """`camera_px = A @ xy_m + t`; `A = px_per_m R(rotation) F(mirror_x)`. Uncertainties are
-    one standard deviation from the least-squares fit."""
-
-    px_per_m: float
-    rotation_deg: float
-    mirror_x: bool
-    shift_px: tuple[float, float]
-    rms_px: float
-    n_dots: int
-    px_per_m_std: float
-    rotation_std_deg: float
-
-    @property
-    def matrix(self) -> np.ndarray:
-        a = math.radians(self.rotation_deg)
-        rot = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-        flip = np.diag([-1.0 if self.mirror_x else 1.0, 1.0])
-        return self.px_per_m * rot @ flip
-
-    def to_camera(self, xy_m: np.ndarray) -> np.ndarray:
-        """SLM metres [N, 2] -> camera (col, row) [N, 2]."""
-        return np.asarray(xy_m) @ self.matrix.T + np.asarray(self.shift_px)
-
-    def to_slm(self, colrow: np.ndarray) -> np.ndarray:
-        return (np.asarray(colrow) - np.asarray(self.shift_px)) @ np.linalg.inv(self.matrix).T
-
-    def magnification(self, camera_pitch_m: float) -> float:
-        return self.px_per_m * camera_pitch_m
 
 
 def fit_similarity(xy_m: np.ndarray, colrow: np.ndarray) -> Geometry:

@@ -236,10 +236,11 @@ def fit_source(flats: dict[int, list[tuple[np.ndarray, np.ndarray]]],
     """The illumination's profile and the unmodulated light from flat frames at the SLM plane.
 
     `flats[c]` = per grey level: (image per unit exposure and power resampled on the SLM grid,
-    valid mask) (see `bench_model.to_slm_grid`); `greys[c]` the levels. A flat panel sends all
-    its light into the zero order, so the image is the source intensity `S(x)` times a
-    brightness `B(g) = P (1 + e^2 + 2 e cos(sign phi(g) + d))`: the modulated light interferes
-    with the unmodulated (relative amplitude `e`, phase `-d`) as the level turns the phase.
+    valid mask) (see `nhfd.optics.camera_grid.to_slm_grid`); `greys[c]` the levels. A flat
+    panel sends all its light into the zero order, so the image is the source intensity `S(x)`
+    times a brightness `B(g) = P (1 + e^2 + 2 e cos(sign phi(g) + d))`: the modulated light
+    interferes with the unmodulated (relative amplitude `e`, phase `-d`) as the level turns the
+    phase.
     The profile is a Gaussian per colour (each laser has its own beam), fitted as a quadratic
     in log intensity, weighted by intensity (shot noise). Its uncertainty is the larger of the
     formal one and the scatter of the levels' separate fits. The brightness over the levels

@@ -5,7 +5,9 @@ The worker (`nhfd.pipeline.worker`) sends `("frame", seq, FrameMessage)`; the da
 (`Region`), where its arrays are (a shared-memory slot and their shapes, or the arrays
 themselves with the pickled transport), the stage times (`StageTimes`), the clipped fractions,
 the pose warnings, whether it came from the frame cache, and when it was whole in its slot.
-Both processes import this module (NumPy and the standard library only), so the message's form
+A refinement's better frames come as `RefinedFrame`s; the camera in the loop asks the daemon's
+bench for captures with a `CaptureRequest` and gets a `CaptureReply`. Both processes import this
+module (NumPy and the standard library only), so the message's form
 is defined once: no positional lists, no keys to agree on.
 """
 
@@ -210,3 +212,65 @@ class RefinedFrame:
         missing = [k for k in REFINE_KEYS if k not in self.report]
         if missing:
             raise ValueError(f"refined report: missing {', '.join(missing)}")
+
+
+@dataclass(frozen=True, eq=False)
+class CaptureRequest:
+    """The camera in the loop (`citl`, issue 34) asking the daemon's bench for one step's
+    captures: the worker sends `("capture", seq, req_id, CaptureRequest)` and waits for
+    `("captured", req_id, CaptureReply)`.
+
+    region   where the subframes go on the panel
+    grey     the K subframes `[K, 3, h, w]` uint8, each shown in turn during a colour's capture
+    z_m      the planes to capture, as depths from the SLM (m; what `Calibration.stage_mm_for`
+             takes): the stage moves to each in turn
+    frames   camera frames averaged per capture (`devices.camera_settings`' burst when 0)
+    """
+
+    region: Region
+    grey: np.ndarray
+    z_m: tuple[float, ...]
+    frames: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.region, Region):
+            raise ValueError(f"capture region = {self.region!r}: expected a Region")
+        g = self.grey
+        if (not isinstance(g, np.ndarray) or g.dtype != np.uint8 or g.ndim != 4
+                or g.shape[0] < 1 or g.shape[2:] != (self.region.height, self.region.width)):
+            raise ValueError(f"capture grey {getattr(g, 'dtype', type(g).__name__)} "
+                             f"{list(getattr(g, 'shape', ()))}: expected uint8 [K >= 1, C, "
+                             f"{self.region.height}, {self.region.width}]")
+        z = tuple(float(v) for v in self.z_m)
+        if not z or not all(math.isfinite(v) for v in z):
+            raise ValueError(f"capture z_m = {list(self.z_m)}: expected one or more finite "
+                             "depths (m)")
+        object.__setattr__(self, "z_m", z)
+        f = self.frames
+        if not (isinstance(f, int | np.integer) and not isinstance(f, bool) and f >= 0):
+            raise ValueError(f"capture frames = {f!r}: expected an integer >= 0")
+        object.__setattr__(self, "frames", int(f))
+
+
+@dataclass(frozen=True, eq=False)
+class CaptureReply:
+    """The daemon's answer to a `CaptureRequest`: the camera's linear images `[P, C, Hc, Wc]`
+    (float32, per plane and colour, the K subframes' mean, dark subtracted) and where any
+    subframe saturated (bool, the same shape); or `error`, why the bench did not capture (the
+    lasers disarmed, a device missing or failing, the request overtaken)."""
+
+    images: np.ndarray | None = None
+    saturated: np.ndarray | None = None
+    error: str = ""
+
+    def __post_init__(self) -> None:
+        if self.error:
+            return
+        im, sat = self.images, self.saturated
+        if (not isinstance(im, np.ndarray) or im.ndim != 4 or not isinstance(sat, np.ndarray)
+                or sat.shape != im.shape or sat.dtype != np.bool_):
+            raise ValueError(f"capture reply images {list(getattr(im, 'shape', ()))}, saturated "
+                             f"{list(getattr(sat, 'shape', ()))}: expected [P, C, H, W] each "
+                             "(saturated bool), or an error")
+        if not np.isfinite(im).all():
+            raise ValueError("capture reply images: not finite")

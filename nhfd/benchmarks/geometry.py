@@ -55,7 +55,6 @@ import torch.nn.functional as F
 from numpy.lib.stride_tricks import sliding_window_view
 
 from nhfd.benchmarks.machine import describe
-from nhfd.calib.bench_model import EDGE_MARGIN_PX, to_slm_grid
 from nhfd.calib.capture import SimBenchIO
 from nhfd.calib.geometry import (
     ENVELOPE_FLOOR,
@@ -71,6 +70,7 @@ from nhfd.calib.geometry import (
 )
 from nhfd.calib.patterns import DotLayout, PatternSpec, dot_layout, dots_frame
 from nhfd.drivers.simcamera import TrueBench
+from nhfd.optics.camera_grid import EDGE_MARGIN_PX, to_slm_grid
 from nhfd.optics.quality import SSIM_WINDOW_PX, ssim_map
 
 PANEL_HW = (128, 128)

@@ -80,7 +80,9 @@ def build_parser() -> argparse.ArgumentParser:
     sv.add_argument("--quality", choices=QUALITY_TIERS,
                     help="the frame tier: network (the network's frame, at once), exact (the "
                          "view's own hologram, no network: seconds), sgd (the SLM pattern "
-                         "optimised through the calibrated bench model); above network the "
+                         "optimised through the calibrated bench model), citl (sgd, then the "
+                         "bench's camera in the loop: colour_mode capture, a calibration, armed "
+                         "lasers with every colour's power set); above network the "
                          "network's frame shows at once and better ones replace it while the "
                          "view rests (status shows the tier, iterations and estimated PSNR); "
                          "default: the current view's, or refine.quality")

@@ -24,6 +24,8 @@ pipeline as a separate, spawned process and talks to it over a pipe.
             mapping without calibration
   colour    colour modes: the panel per mode, which diodes a client may switch, the capture-mode
             snapshot sequence
+  citl      a citl step's captures for the frame worker: one diode at a time, plane by plane,
+            never arming; and why a bench cannot serve citl views
   views     view requests: validation and latest-wins coalescing
   navigation  navigator motion -> relative view moves through the set_view path
   guardian_link  the daemon's side of the laser guardian

@@ -58,7 +58,13 @@ import numpy as np
 from nhfd.calibration import Calibration, active_calibration
 from nhfd.config import Config, DaemonSettings
 from nhfd.drivers.slm import SLMOutputLost
-from nhfd.frame_message import FrameMessage, RefinedFrame, is_interleaved
+from nhfd.frame_message import (
+    CaptureReply,
+    CaptureRequest,
+    FrameMessage,
+    RefinedFrame,
+    is_interleaved,
+)
 from nhfd.views import View
 
 log = logging.getLogger("nhfd.daemon.frame_link")
@@ -383,12 +389,16 @@ class FrameEvents:
               owner makes the bench safe (lasers off, panel blanked) and records the error. The
               link restarts the worker after RESTART_BACKOFF_S.
     slm_lost  (detail): the SLM refused a frame because its output is lost (`SLMOutputLost`)
+    capture   (req_id, request): a citl step of the view on the panel asks for the bench's
+              captures (`CaptureRequest`); the owner answers later, from any thread, with
+              `FrameLink.answer_capture`. None: every request is refused.
     """
 
     shown: Callable[[int], None]
     error: Callable[[str, str], None]
     crashed: Callable[[str], None]
     slm_lost: Callable[[str], None]
+    capture: Callable[[int, CaptureRequest], None] | None = None
 
 
 class FrameLink:
@@ -441,6 +451,10 @@ class FrameLink:
         self._zero: PanelBuffer | None = None  # of the blank frame `_zero_of`, built on use
         self._zero_of: np.ndarray | None = None
         self._restart_at = 0.0
+        # citl's capture requests the worker still waits for, and the answers bench jobs give
+        # (from their threads) for the control loop to send.
+        self._captures_wanted: set[int] = set()
+        self._capture_answers: queue.SimpleQueue[tuple[int, CaptureReply]] = queue.SimpleQueue()
 
     # -- lifecycle (the control loop's thread) -------------------------------------------------
 
@@ -466,6 +480,7 @@ class FrameLink:
         """Stop the worker for good; every load still waiting fails ("the frame worker
         stopped")."""
         self.state = LinkState.STOPPED
+        self._captures_wanted.clear()
         # A frame waiting for its refresh, or in the worker: its slot goes with the worker.
         self.waiting = self.inflight = None
         self._report_failed_reloads(self.worker.close())
@@ -512,6 +527,7 @@ class FrameLink:
             return
         for request in self._unsent:
             self.worker.request(request)
+            self._captures_wanted.clear()  # the worker cancels its refinement for any load
         self._unsent.clear()
 
     def _loaded(self, request: LoadRequest, ok: bool, result: Any) -> None:
@@ -569,6 +585,7 @@ class FrameLink:
             return
         for msg in msgs:
             self._handle(msg)
+        self._send_capture_answers()
         if self.waiting is not None and time.monotonic() >= self.due_s - DUE_SLACK_S:
             waiting, self.waiting = self.waiting, None
             self._show(waiting)
@@ -663,11 +680,49 @@ class FrameLink:
             self.counts.dropped += 1
         elif kind == "refined":
             self._refined(msg[1], msg[2])
+        elif kind == "capture":
+            self._capture_requested(msg[1], msg[2], msg[3])
         elif kind == "refine_error":
             seq, message = msg[1], msg[2]
             self.events.error("frame worker", f"view {seq}: refinement failed: {message}")
             if self.refinement is not None and self.refinement.seq == seq:
                 self.refinement.report = {**self.refinement.report, "stop": f"error: {message}"}
+
+    def _capture_requested(self, seq: int, req_id: int, request: Any) -> None:
+        """A citl step of view `seq` asks for captures: handed to the owner while `seq` is the
+        view on the panel and the newest asked for; refused (answered at once) otherwise."""
+        why = None
+        if not isinstance(request, CaptureRequest):
+            why = f"not a capture request: {type(request).__name__}"
+        elif self.events.capture is None:
+            why = "this daemon has no camera loop"
+        elif self.views.seq != seq or self.shown_seq != seq:
+            why = f"view {seq} is no longer the one shown"
+        if why is not None:
+            self.worker.send(("captured", req_id, CaptureReply(error=why)))
+            return
+        self._captures_wanted.add(req_id)
+        self.events.capture(req_id, request)
+
+    def capture_wanted(self, req_id: int) -> bool:
+        """Whether the worker still waits for capture request `req_id` (any thread: a bench job
+        stops capturing once it is not)."""
+        return req_id in self._captures_wanted
+
+    def answer_capture(self, req_id: int, reply: CaptureReply) -> None:
+        """The bench's answer to capture request `req_id` (any thread); the control loop sends
+        it at its next step, while the worker still waits for it."""
+        self._capture_answers.put((req_id, reply))
+
+    def _send_capture_answers(self) -> None:
+        while True:
+            try:
+                req_id, reply = self._capture_answers.get_nowait()
+            except queue.Empty:
+                return
+            if req_id in self._captures_wanted:
+                self._captures_wanted.discard(req_id)
+                self.worker.send(("captured", req_id, reply))
 
     def _refined(self, seq: int, refined: Any) -> None:
         """A better frame for view `seq`: shown only while `seq` is the view on the panel and no
@@ -710,6 +765,7 @@ class FrameLink:
         seq, view = self.views.seq, self.views.view
         shm_slot = self.worker.take_slot()  # free: no frame of ours is out or waiting
         self.worker.send(("frame", seq, view, shm_slot))
+        self._captures_wanted.clear()  # the worker cancels the refinement that asked
         self.inflight = InFlight(seq, time.monotonic(), shm_slot)
         if self.sent_seq and seq > self.sent_seq + 1:
             self.counts.dropped += seq - self.sent_seq - 1  # overtaken, never computed
@@ -770,6 +826,7 @@ class FrameLink:
     def _crashed(self) -> None:
         code = self.worker.process.exitcode if self.worker.process is not None else None
         self.crashes += 1
+        self._captures_wanted.clear()  # nobody waits for them now
         message = f"frame worker (pid {self.worker.pid}) died with exit code {code}"
         log.error("%s; lasers off, SLM blanked, restarting", message)
         # The panel may hold a half-updated or stale frame the daemon no longer controls: the

@@ -64,6 +64,7 @@ from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES, is_sog_folder
 from .arming import ArmingGate
 from .audit import AuditLog
 from .bench import Bench, stage_mm_for_focus
+from .citl import citl_problem
 from .colour import ShownViews, capture_colours, check_laser_command
 from .guardian_link import LaserLink
 from .jobs import Job, JobRunner, submit_or_busy
@@ -150,10 +151,11 @@ def _set_view(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     # Parsed once, here: a View from now on (digital refocus included, kept when not given).
     view = parse_view(p, ctx.views.view, ctx.config.refine.quality)
     if view.quality == "citl":
-        # The camera is the daemon's and the optimisation the frame worker's: not joined yet.
-        raise bad_param("quality", "'citl' is not served by the daemon yet (its camera is not "
-                        "in the frame worker's loop): run it offline, nhfd refine --quality "
-                        "citl", "network, exact or sgd (refine.quality sets the default)")
+        problem = citl_problem(ctx.config, ctx.bench)
+        if problem:
+            raise bad_param("quality", f"'citl' cannot be served here: {problem}",
+                            "network, exact or sgd on this bench (refine.quality sets the "
+                            "default)")
     if ctx.panel.pattern is not None:  # a calibration pattern gives the panel back to the view
         _end_pattern(ctx)
     seq = ctx.views.submit(view)

@@ -41,10 +41,12 @@ from typing import IO, Any
 from nhfd import __version__
 from nhfd.calibration import active_calibration, calibration_refusal, new_refusal
 from nhfd.config import Config, ConfigError, DaemonSettings, cross_field_problems
+from nhfd.frame_message import CaptureReply, CaptureRequest
 
 from .arming import ArmingGate
 from .audit import AuditLog, audit_path
 from .bench import Bench
+from .citl import CitlStopped, citl_capture
 from .dispatch import Dispatcher
 from .errors import ErrorList
 from .frame_link import FrameEvents, FrameLink
@@ -247,7 +249,8 @@ class Daemon:
         panel = self.panel
         self.frames = FrameLink(config, self.views, lambda: panel, FrameEvents(
             shown=self.views.mark_applied, error=self.errors.note,
-            crashed=self._frame_worker_crashed, slm_lost=self.bench.note_slm_lost))
+            crashed=self._frame_worker_crashed, slm_lost=self.bench.note_slm_lost,
+            capture=self._citl_capture))
         self.bench_jobs = JobRunner("bench", kept=c.jobs_kept, on_finish=self._job_finished)
         self.load_jobs = JobRunner("load", kept=c.jobs_kept, on_finish=self._job_finished)
         self.navigation = NavigatorInput(config.devices, c.navigator_period_s, self.views,
@@ -513,6 +516,33 @@ class Daemon:
         if state == "failed":
             self.errors.note(f"job {job.id} ({job.kind})", error or "failed")
         self.audit.write({"who": "daemon"}, f"job {job.kind} {state}", job=job.id, error=error)
+
+    def _citl_capture(self, req_id: int, request: CaptureRequest) -> None:
+        """A citl step's captures (`FrameEvents.capture`): a bench job, one at a time with the
+        other bench work, whose answer goes back to the worker. A stop on the bench (lasers
+        disarmed, the view changed) is the answer, not a failed job; a full queue is refused."""
+        frames = self.frames
+
+        def run(job: Job) -> dict[str, Any]:
+            try:
+                reply = citl_capture(job, request, config=self.config, bench=self.bench,
+                                     panel=self.panel, laser=self.laser, audit=self.audit,
+                                     shown=frames, wanted=lambda: frames.capture_wanted(req_id))
+            except CitlStopped as exc:
+                frames.answer_capture(req_id, CaptureReply(error=str(exc)))
+                return {"stopped": str(exc)}
+            except BaseException as exc:
+                frames.answer_capture(req_id, CaptureReply(error=f"{type(exc).__name__}: {exc}"))
+                raise
+            frames.answer_capture(req_id, reply)
+            return {"planes": len(request.z_m), "subframes": int(request.grey.shape[0])}
+
+        job = Job("citl capture", {"planes": len(request.z_m),
+                                   "subframes": int(request.grey.shape[0])}, run)
+        try:
+            self.bench_jobs.submit(job)
+        except queue.Full:
+            frames.answer_capture(req_id, CaptureReply(error="the bench's job queue is full"))
 
     def _frame_worker_crashed(self, message: str) -> None:
         """The frame worker died (`FrameEvents.crashed`): the panel may hold a half-updated or

@@ -12,6 +12,8 @@ Shapes are channel-first `[..., C, H, W]`, colours R, G, B with one wavelength e
   region    a window's propagation to the region of the panel around it (the frame pipeline's)
   pupil     the relay's pupil phase (Zernike aberrations) on the Fourier plane
   quality   focal stacks and their quality measures (PSNR, SSIM, speckle contrast)
+  camera_grid  the camera's view of the SLM plane: the calibrated similarity, and camera images
+            resampled on the SLM's pixel grid
   color     sRGB <-> linear <-> amplitude
   cache     kernels kept between calls, by key
   fft       FFTs checked once against a known answer before they are trusted

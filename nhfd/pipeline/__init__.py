@@ -18,6 +18,8 @@ own process by name and talks to it over a pipe (`nhfd.daemon.frame_link`); the 
   refine    frames better than the network's: `exact` (the view's light-field inversion),
             `sgd` (the SLM phase optimised through the calibrated bench model, `BenchForward`),
             `citl` (the camera in the loop, through a `Capture`), K subframes; `refine_view`
+  citl      the camera in the loop's worker half: a `Capture` served by the daemon's bench
+            over the pipe (`RemoteCapture`), captures -> the window's grid (`captured_window`)
   worker    the frame worker process: `worker_main`, model loading and checking (`open_model`,
             `check_inference`, `ModelUnfit`, `model_info`), the frame cache
 """

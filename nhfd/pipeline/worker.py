@@ -10,15 +10,18 @@ Protocol (tuples over one duplex `multiprocessing` pipe):
 
   daemon -> worker   ("model", req_id, path)   ("scene", req_id, path)
                      ("frame", seq, view, slot) ("stop",)
+                     ("captured", req_id, reply)
   worker -> daemon   ("ready", pid)
                      ("model" | "scene", req_id, ok, info | error message)
                      ("frame", seq, message)    ("frame_error", seq, message)
                      ("refined", seq, refined)  ("refine_error", seq, message)
-                     ("frame_cancelled", seq)
+                     ("frame_cancelled", seq)   ("capture", seq, req_id, request)
 
 A view whose `quality` is above "network" is refined after its network frame is sent
 (`Refiner`, a thread): each better frame comes as a `RefinedFrame` until the refinement stops or
-any message from the daemon cancels it. With no model loaded, such a view's first frame is its
+any message from the daemon but a "captured" cancels it. A `citl` view's steps ask the daemon's
+bench for captures (`nhfd.pipeline.citl.RemoteCapture`: a `CaptureRequest`, answered by a
+`CaptureReply`). With no model loaded, such a view's first frame is its
 exact frame (the scene's own hologram, seconds later), or "frame_cancelled" when a load came
 first.
 
@@ -59,7 +62,7 @@ import torch
 from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config, DaemonSettings
 from nhfd.dataset.build import sha256_file
-from nhfd.frame_message import FrameMessage, RefinedFrame, StageTimes
+from nhfd.frame_message import CaptureReply, FrameMessage, RefinedFrame, StageTimes
 from nhfd.models.export import (
     check_providers,
     load_model,
@@ -73,6 +76,7 @@ from nhfd.models.torch_model import TorchModel
 from nhfd.scene.io import read_scene
 from nhfd.views import View
 
+from .citl import RemoteCapture
 from .device import frame_device, inference_backend
 from .encoder import Encoder
 from .frame import compute_frame, preview_levels, render_view
@@ -430,6 +434,14 @@ class Refiner:
         self.config = config
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self._capture: RemoteCapture | None = None  # citl's, while a citl view is refined
+
+    def deliver(self, req_id: int, reply: CaptureReply) -> None:
+        """The daemon's captures for the citl step waiting on them (dropped when none waits:
+        the refinement that asked was cancelled)."""
+        capture = self._capture
+        if capture is not None:
+            capture.deliver(req_id, reply)
 
     def start(self, seq: int, view: View, state: _WorkerState, network: np.ndarray) -> None:
         """Refine view `seq` from its network frame's grey region `network` `[3, h, w]`."""
@@ -474,13 +486,28 @@ class Refiner:
                 self.send(("refined", seq, RefinedFrame(region, refined.grey.copy(),
                                                         refined.report.to_json())))
 
+            capture = self._remote_capture(seq, view, enc, stop)
             refined, _ = refine_view(view, scene, model.info, enc, view.quality,
-                                     self.config.refine, start=network, cancelled=stop.is_set,
-                                     on_better=better)
+                                     self.config.refine, start=network, capture=capture,
+                                     cancelled=stop.is_set, on_better=better)
             if refined.report.stop != "cancelled":
                 better(refined)
         except Exception as exc:  # reported to the daemon; the frame shown stays
             self.send(("refine_error", seq, f"{type(exc).__name__}: {exc}"))
+
+    def _remote_capture(self, seq: int, view: View, enc: Encoder, stop: threading.Event
+                        ) -> RemoteCapture | None:
+        """citl's captures, from the daemon's bench (None for the other tiers). The calibration
+        maps the camera onto the SLM and the focus onto the stage: without one, a ValueError
+        naming it."""
+        if view.quality != "citl":
+            return None
+        cal = active_calibration(self.config)
+        if cal is None:
+            raise ValueError("quality = 'citl' needs a calibration (calibration.file): it maps "
+                             "the camera onto the SLM and the focus onto the stage")
+        self._capture = RemoteCapture(self.send, seq, enc, cal, stop)
+        return self._capture
 
     def _run_without_model(self, seq: int, view: View, scene: Any,
                            first: Callable[[FrameMessage], None], stop: threading.Event) -> None:
@@ -510,8 +537,10 @@ class Refiner:
                 self.send(("refined", seq, RefinedFrame(region, refined.grey.copy(),
                                                         refined.report.to_json())))
 
+            capture = self._remote_capture(seq, view, enc, stop)
             refined, _ = refine_view(view, scene, info, enc, view.quality, config.refine,
-                                     start=grey, cancelled=stop.is_set, on_better=better)
+                                     start=grey, capture=capture, cancelled=stop.is_set,
+                                     on_better=better)
             if refined.report.stop != "cancelled":
                 better(refined)
         except Cancelled:
@@ -564,11 +593,19 @@ def _serve_loop(conn: Any, send: Callable[[tuple], None], state: _WorkerState,
     while True:
         try:
             msgs = [conn.recv()]
-            refiner.cancel()  # whatever came, the view being refined is no longer alone
             while conn.poll(0):
                 msgs.append(conn.recv())
         except (EOFError, OSError):
             return  # the daemon is gone: nothing to show frames to
+        # The bench's captures go to the citl step waiting for them; anything else means the
+        # view being refined is no longer alone.
+        for msg in msgs:
+            if msg[0] == "captured":
+                refiner.deliver(msg[1], msg[2])
+        msgs = [msg for msg in msgs if msg[0] != "captured"]
+        if not msgs:
+            continue
+        refiner.cancel()
         latest: tuple | None = None
         for msg in msgs:
             if msg[0] == "stop":

@@ -15,13 +15,14 @@ import math
 import numpy as np
 import pytest
 
-from nhfd.calib.bench_model import BenchModel, ModelDepthFit, fit_aberration, to_slm_grid
+from nhfd.calib.bench_model import BenchModel, ModelDepthFit, fit_aberration
 from nhfd.calib.geometry import Geometry
 from nhfd.calib.patterns import PatternSpec, dots_frame, flat_frames
 from nhfd.calib.response import fit_source
 from nhfd.device_settings import CameraSettings
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 from nhfd.optics import PhaseCurve
+from nhfd.optics.camera_grid import to_slm_grid
 
 PANEL_HW = (128, 128)
 # SLM-space depths of the stack (m): the dots' depths (-1.5, 0, 1.5 mm) bracketed.

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from nhfd.calib.bench_model import EDGE_MARGIN_PX, to_slm_grid
 from nhfd.calib.geometry import Geometry
+from nhfd.optics.camera_grid import EDGE_MARGIN_PX, to_slm_grid
 
 PANEL_HW = (48, 64)
 PITCH_M = 8e-6

@@ -77,8 +77,10 @@ def test_bad_tiers_are_refused_and_nothing_changes(short_dir, mecom_twin, tiny):
         with pytest.raises(RpcError, match=r'quality: got "best"; allowed: one of network, '
                                            r"exact, sgd, citl"):
             c.call("set_view", pose=FRONT_POSE, quality="best")
-        with pytest.raises(RpcError, match=r"quality.*'citl' is not served by the daemon yet.*"
-                                           r"nhfd refine --quality citl"):
+        # citl on a bench that cannot serve it: the setting that stands in the way is named.
+        with pytest.raises(RpcError, match=r"quality: 'citl' cannot be served here: "
+                                           r"daemon.colour_mode is 'hw-sync': citl needs "
+                                           r"'capture'.*; allowed: network, exact or sgd"):
             c.call("set_view", pose=FRONT_POSE, quality="citl")
         assert c.status()["view"] == before
     finally:

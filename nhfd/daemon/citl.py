@@ -1,0 +1,145 @@
+"""The daemon's half of the camera in the loop (`citl`, issue 34): one refinement step's
+captures on the bench, for the frame worker that optimises (`nhfd.pipeline.citl`).
+
+`citl_capture` runs as a bench job. It holds the panel, and captures plane by plane (the stage
+at the calibration's focus for each). For each colour that has power, it switches that diode
+alone on, shows each of the step's K subframes as the colour's pattern (`Panel.show_colour`, as
+the capture-mode snapshot does), captures, and switches the diode off. It answers the raw camera
+images; the worker maps them onto the SLM's grid (the daemon imports no optics).
+
+Laser safety: it never arms and never sets a power. Before anything moves or emits, and before
+each colour, it reads the arming (the guardian's last heartbeat) and stops with a `CitlStopped`
+naming why when the lasers are disarmed, expired or faulted. Every colour is off on every way
+out (`finally`, each read back by the guardian), and every switch-on is in the audit log.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from nhfd.calibration import active_calibration
+from nhfd.config import Config
+from nhfd.device_settings import COLOURS
+from nhfd.frame_message import CaptureReply, CaptureRequest
+
+from .audit import AuditLog
+from .colour import CaptureBench, CapturePanel, ShownViews
+from .frame_link import PanelBuffer
+from .guardian_link import LaserLink
+from .jobs import Job
+
+NEVER_ARMS = ("citl never arms: arm the lasers (nhfctl laser arm) and set each colour's power "
+              "(nhfctl laser power COLOUR PCT), then ask for the view again")
+
+
+class CitlStopped(RuntimeError):
+    """The bench cannot capture this step; the message says why (the worker's refinement stops
+    with it and keeps its best frame)."""
+
+
+def citl_problem(config: Config, bench: Any) -> str | None:
+    """Why this daemon cannot serve `citl` views (None: it can): the colour mode, the devices
+    and the calibration it needs, each named by its setting."""
+    if config.daemon.colour_mode != "capture":
+        return (f"daemon.colour_mode is {config.daemon.colour_mode!r}: citl needs 'capture' "
+                "(the daemon switches each diode on alone for its captures)")
+    for name in ("slm", "stage", "camera"):
+        if getattr(bench, name, None) is None:
+            why = bench.errors.get(name) if hasattr(bench, "errors") else None
+            return f"citl needs the bench's {name} (devices.{name}: {why or 'none configured'})"
+    if active_calibration(config) is None:
+        return ("citl needs a calibration (calibration.file): it maps the camera onto the SLM "
+                "and the focus onto the stage")
+    return None
+
+
+def _check_laser(laser: LaserLink) -> dict[str, float]:
+    """The powers a person set, per colour, while the arming holds; CitlStopped otherwise."""
+    status = laser.status()
+    if status.get("fault"):
+        raise CitlStopped(f"laser fault: {status['fault']}")
+    if not status.get("armed") or float(status.get("armed_remaining_s") or 0.0) <= 0:
+        raise CitlStopped(f"the lasers are not armed; {NEVER_ARMS}")
+    channels = status.get("channels") or {}
+    powers = {ch: float(channels.get(ch, {}).get("power_pct", 0.0)) for ch in COLOURS}
+    dark = [ch for ch, p in powers.items() if p <= 0]
+    if dark:
+        raise CitlStopped(f"{', '.join(dark)} at 0% power: citl fits every colour; {NEVER_ARMS}")
+    return powers
+
+
+def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: CaptureBench,
+                 panel: CapturePanel, laser: LaserLink, audit: AuditLog, shown: ShownViews,
+                 wanted: Callable[[], bool]) -> CaptureReply:
+    """One citl step's captures (see the module's docstring): images `[P, C, Hc, Wc]` float32
+    (the subframes' mean per plane and colour, the stored dark frame subtracted) and their
+    saturation. `wanted()` turns false when the worker moved on (a new view): the sequence stops
+    between captures. Raises CitlStopped (or the device's error) without an answer to give."""
+    problem = citl_problem(config, bench)
+    if problem:
+        raise CitlStopped(problem)
+    cal = active_calibration(config)
+    assert cal is not None  # citl_problem checked it
+    camera, stage = bench.camera, getattr(bench, "stage", None)
+    # Homing moves the stage to a limit switch: the daemon does it only when asked.
+    if stage.settings.require_homed and not stage.state().homed:
+        raise CitlStopped("the stage is not homed: home it first (nhfctl focus Z_MM --home)")
+    laser.refresh()
+    powers = _check_laser(laser)  # before anything moves or emits
+    r = request.region
+    frames = request.frames or None
+    buffer = PanelBuffer(panel.blank_frame())
+    panels = [buffer.frame(r.top, r.left, g) for g in request.grey]
+    images = np.zeros((len(request.z_m), len(COLOURS)), object)
+    saturated = np.zeros((len(request.z_m), len(COLOURS)), object)
+    who = {"who": "daemon", "job": job.id}
+
+    def go_on() -> None:
+        job.check()
+        if not wanted():
+            raise CitlStopped("the view changed: its refinement was cancelled")
+
+    try:
+        with panel.hold():
+            try:
+                for ch in COLOURS:
+                    laser.enable(ch, False)
+                camera.capture_dark(frames)
+                for i, z_m in enumerate(request.z_m):
+                    go_on()
+                    stage.move_to(cal.stage_mm_for(z_m))
+                    for c, ch in enumerate(COLOURS):
+                        go_on()
+                        _check_laser(laser)
+                        panel.show_colour(panels[0], ch)
+                        laser.enable(ch, True)
+                        audit.write(who, "laser enable (citl)", channel=ch, power_pct=powers[ch])
+                        try:
+                            shots = []
+                            for k, frame in enumerate(panels):
+                                if k:
+                                    panel.show_colour(frame, ch)
+                                cap = bench.capture(frames)
+                                image = cap.image if cap.image.ndim == 2 else cap.image[..., c]
+                                sat = (cap.saturated if cap.saturated.ndim == 2
+                                       else cap.saturated[..., c])
+                                shots.append((np.asarray(image, np.float32),
+                                              np.asarray(sat, bool)))
+                        finally:
+                            laser.enable(ch, False)
+                        images[i, c] = np.mean([im for im, _ in shots], axis=0)
+                        saturated[i, c] = np.any([m for _, m in shots], axis=0)
+            finally:
+                for ch in COLOURS:
+                    with contextlib.suppress(Exception):
+                        laser.enable(ch, False)
+                audit.write(who, "laser all disabled (citl)")
+    finally:
+        with contextlib.suppress(Exception):  # back to what the control loop last showed
+            panel.resume(shown.last_frame, shown.shown_seq)
+    return CaptureReply(np.stack([np.stack(list(row)) for row in images]).astype(np.float32),
+                        np.stack([np.stack(list(row)) for row in saturated]))
