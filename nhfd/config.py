@@ -661,6 +661,9 @@ class RefineSettings(_Section):
     patience: Annotated[int, Field(ge=1, le=10_000)] = 25
     # Adam's step on the SLM phase (rad): a few grey levels (2 pi / 256 = 0.025 rad each).
     learning_rate_rad: Annotated[float, Field(gt=0, le=1.0)] = 0.05
+    # citl's step: smaller, since each step's loss is a noisy capture (with 0.05 the camera's
+    # loss was best after 3 or 4 steps and then grew; 0.02 still gained at 8, docs/refine.md).
+    citl_learning_rate_rad: Annotated[float, Field(gt=0, le=1.0)] = 0.02
     # Time multiplexing: K subframes optimised jointly on their mean intensity and shown in
     # turn (one camera exposure spans the K flips).
     subframes: Annotated[int, Field(ge=1, le=16)] = 1

@@ -388,7 +388,8 @@ def run(args: argparse.Namespace) -> int:
         "iterations": {"sgd": args.iterations, "citl": args.citl_iterations,
                        "seconds": args.seconds, "tolerance": base.tolerance,
                        "patience": base.patience, "planes": base.planes,
-                       "learning_rate_rad": base.learning_rate_rad},
+                       "learning_rate_rad": base.learning_rate_rad,
+                       "citl_learning_rate_rad": base.citl_learning_rate_rad},
         "twin": {"seed": args.bench_seed, "added_after_calibration_zernike_rad":
                  list(UNKNOWN_ZERNIKE_RAD), "power_pct": 10.0},
         "bench_model_leaves_out": list(BENCH_LEAVES_OUT),

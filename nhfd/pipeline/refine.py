@@ -383,7 +383,8 @@ def refine(start: np.ndarray, target: Target, model: BenchForward, settings: Ref
         extra = extra + SUBFRAME_JITTER_RAD * (2 * torch.rand(extra.shape, generator=g) - 1)
         theta0 = torch.cat([theta0, extra])
     theta = theta0[:k].clone().requires_grad_(True)
-    lr = settings.learning_rate_rad
+    # The camera's loss is noisy: citl takes smaller steps (refine.citl_learning_rate_rad).
+    lr = settings.citl_learning_rate_rad if capture is not None else settings.learning_rate_rad
     opt = torch.optim.Adam([theta], lr=lr)
     best_theta = theta.detach().clone()
     report = RefineReport(tier)

@@ -249,3 +249,24 @@ def test_a_step_that_overshoots_goes_back_to_the_best_phase() -> None:
     # The step after it starts again from the best phase: its loss is the best's, exactly.
     assert losses[6] == pytest.approx(min(losses[:5]), rel=1e-6)
     assert out.report.stop == "iterations" and out.report.loss < min(losses[:6])
+
+
+def test_citl_steps_at_its_own_learning_rate() -> None:
+    """A camera that sees exactly what the model predicts makes citl's loss the model's: its
+    steps then retrace an sgd run at `citl_learning_rate_rad`, not at `learning_rate_rad`."""
+    enc, grey, target = start_and_target(encoder())
+    model = BenchForward(enc, PLANES_M)
+
+    def faithful(frames: np.ndarray, planes_m) -> tuple[np.ndarray, np.ndarray]:
+        with torch.no_grad():
+            seen = model(grey_phase(frames, enc).float()).mean(dim=0)
+        return seen.numpy(), np.ones(seen.shape[-2:], bool)
+
+    def losses(capture, **settings) -> list[float]:
+        out = refine(grey, target, model, RefineSettings(iterations=6, tolerance=0.0,
+                                                         **settings), capture=capture)
+        return [h[2] for h in out.history]
+
+    citl = losses(faithful, learning_rate_rad=0.05, citl_learning_rate_rad=0.02)
+    np.testing.assert_allclose(citl, losses(None, learning_rate_rad=0.02), rtol=1e-4)
+    assert not np.allclose(citl, losses(None, learning_rate_rad=0.05), rtol=1e-3)
