@@ -76,11 +76,33 @@ BENCH_LEAVES_OUT = (
     "the liquid crystal's fringing crosstalk (the phase blurred across pixel edges, "
     "crosstalk_sigma_m)",
     "unmodulated (zero-order) light, coherent with the signal (zero_order_fraction)",
-    "an aberration added after the calibration: Zernike coma and astigmatism (Noll 5-7) "
-    f"{', '.join(f'{a:+g}' for a in UNKNOWN_ZERNIKE_RAD)} rad at green",
     "the camera: shot, read and dark noise, pixel gain and offset patterns (PRNU, DSNU), its "
     "response curve and 12-bit quantisation, integration over its pixels",
 )
+
+
+def leaves_out(zernike_rad: Sequence[float]) -> list[str]:
+    """`BENCH_LEAVES_OUT`, with the aberration added after the calibration when there is one."""
+    if not any(zernike_rad):
+        return list(BENCH_LEAVES_OUT)
+    return [*BENCH_LEAVES_OUT[:3],
+            "an aberration added after the calibration: Zernike coma and astigmatism (Noll "
+            f"5-7) {', '.join(f'{a:+g}' for a in zernike_rad)} rad at green",
+            *BENCH_LEAVES_OUT[3:]]
+
+
+def _zernike(text: str) -> tuple[float, ...]:
+    """--unknown-zernike's comma list (rad), or 'none'."""
+    if text.strip().lower() in ("none", "0", ""):
+        return ()
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise ValueError(f"--unknown-zernike {text!r}: give radians at green for Noll 5, 6, "
+                         "..., comma separated (e.g. 0.5,-0.3,0.4), or none") from None
+    if not all(math.isfinite(v) and abs(v) <= 10 for v in values):
+        raise ValueError(f"--unknown-zernike {text!r}: each within [-10, 10] rad")
+    return values
 # The no-model scene's views: azimuth and elevation ranges (deg) at 1.5x the suggested distance.
 NO_MODEL_AZIMUTH_DEG = (-30.0, 30.0)
 NO_MODEL_ELEVATION_DEG = (5.0, 25.0)
@@ -123,6 +145,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "reused when present)")
     p.add_argument("--plot", default="docs/figures/quality.png",
                    help="the figure to write ('' for none)")
+    p.add_argument("--unknown-zernike", default=",".join(f"{a:g}" for a in UNKNOWN_ZERNIKE_RAD),
+                   metavar="RAD,...",
+                   help="the aberration added to the twin after its calibration, radians at "
+                        "green for Noll 5, 6, ... (default: coma and astigmatism "
+                        f"{','.join(f'{a:g}' for a in UNKNOWN_ZERNIKE_RAD)}; none: the "
+                        "calibrated twin as it is)")
     p.set_defaults(handler=run)
 
 
@@ -356,6 +384,7 @@ def run(args: argparse.Namespace) -> int:
     w, h = parse_wxh(args.size)
     window_hw = (h, w)
     ks = _ks(args.subframes)
+    unknown_zernike = _zernike(args.unknown_zernike)
     tiers = [t.strip() for t in args.tiers.split(",") if t.strip()]
     unknown = [t for t in tiers if t not in TIERS]
     if unknown:
@@ -391,13 +420,13 @@ def run(args: argparse.Namespace) -> int:
                        "learning_rate_rad": base.learning_rate_rad,
                        "citl_learning_rate_rad": base.citl_learning_rate_rad},
         "twin": {"seed": args.bench_seed, "added_after_calibration_zernike_rad":
-                 list(UNKNOWN_ZERNIKE_RAD), "power_pct": 10.0},
-        "bench_model_leaves_out": list(BENCH_LEAVES_OUT),
+                 list(unknown_zernike), "power_pct": 10.0},
+        "bench_model_leaves_out": leaves_out(unknown_zernike),
         "calibration": {"dir": str(cal_dir), "seconds": round(calibration_s, 1)},
         "views": views_json, "rows": rows,
     }
     rng = np.random.default_rng(args.seed)
-    with sim_devices(aberrated(twin), panel_hw) as devices:
+    with sim_devices(aberrated(twin, unknown_zernike), panel_hw) as devices:
         for name, scene, model in runs:
             info = model.info if model is not None else None
             if model is not None:  # warm-up: the renderer's kernels, the session
@@ -457,7 +486,7 @@ def run(args: argparse.Namespace) -> int:
         verdict = {True: "met", False: "not met", None: "not measured"}[g["met"]]
         print(f"- {g['goal']}: mean {g['mean_diff']:+.3f}{' ' + g['unit'] if g['unit'] else ''}"
               f" over {g['pairs']} view(s): {verdict}")
-    print("The bench model leaves out: " + "; ".join(BENCH_LEAVES_OUT))
+    print("The bench model leaves out: " + "; ".join(leaves_out(unknown_zernike)))
     if args.plot:
         gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
         title = (f"captured PSNR against seconds per frame, {w} x {h}, simulated bench\n"

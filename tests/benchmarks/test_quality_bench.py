@@ -11,8 +11,10 @@ import pytest
 
 from nhfd.benchmarks.quality import (
     ENVELOPE_INSET,
+    _zernike,
     aberrated,
     goal_checks,
+    leaves_out,
     paired,
     seeded_views,
     summarise,
@@ -92,6 +94,17 @@ def test_the_aberration_is_added_to_the_twins_own() -> None:
     assert out.zernike_rad == pytest.approx((0.6, -0.3, 0.4))
     assert out.fill_factor == twin.fill_factor and twin.zernike_rad == (0.1,)
     assert aberrated(TrueBench(), (0.5,)).zernike_rad == (0.5,)
+
+
+def test_the_unknown_aberration_is_a_setting_and_the_record_says_which() -> None:
+    assert _zernike("0.5,-0.3,0.4") == (0.5, -0.3, 0.4) and _zernike("none") == ()
+    assert aberrated(TrueBench(), _zernike("none")).zernike_rad == TrueBench().zernike_rad
+    with pytest.raises(ValueError, match=r"--unknown-zernike 'coma': give radians"):
+        _zernike("coma")
+    with pytest.raises(ValueError, match=r"--unknown-zernike '0.5,nan': each within"):
+        _zernike("0.5,nan")
+    assert not any("aberration" in line for line in leaves_out(()))
+    assert "coma and astigmatism (Noll 5-7) +0.5, -0.3 rad" in " ".join(leaves_out((0.5, -0.3)))
 
 
 def test_seeded_views_lie_inside_the_model_envelope_and_repeat_with_the_seed() -> None:
