@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from nhfd.calibration import Calibration
-from nhfd.device_settings import COLOURS
+from nhfd.device_settings import COLOURS, citl_laser_refusal
 from nhfd.drivers.errors import DeviceError
 from nhfd.optics.camera_grid import calibrated_geometry
 from nhfd.pipeline.citl import captured_window
@@ -52,22 +52,13 @@ class CameraLoop:
         if stage.settings.require_homed and not stage.state().homed:
             stage.home()
 
-    def _stopped(self, why: str) -> CaptureStopped:
-        return CaptureStopped(f"{why}; citl never arms: arm the lasers (nhfctl laser arm) and "
-                              "set each colour's power, then refine again")
-
     def _check_laser(self) -> dict[str, float]:
-        laser = self.devices.laser
-        status = laser.status()
-        if status.fault:
-            raise CaptureStopped(f"laser fault: {status.fault}")
-        if not status.armed or status.armed_remaining_s <= 0:
-            raise self._stopped("the lasers are not armed")
+        status = self.devices.laser.status()
         powers = {name: float(status.channels[name].power_pct) for name in COLOURS}
-        dark = [n for n, p in powers.items() if p <= 0]
-        if dark:
-            raise CaptureStopped(f"{', '.join(dark)} at 0% power: citl fits every colour and "
-                                 "never sets a power (nhfctl laser power COLOUR PCT)")
+        refusal = citl_laser_refusal(status.fault, status.armed, status.armed_remaining_s,
+                                     powers)
+        if refusal:
+            raise CaptureStopped(refusal)
         return powers
 
     def _lights_out(self) -> None:

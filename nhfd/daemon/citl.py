@@ -23,7 +23,7 @@ import numpy as np
 
 from nhfd.calibration import active_calibration
 from nhfd.config import Config
-from nhfd.device_settings import COLOURS
+from nhfd.device_settings import COLOURS, citl_laser_refusal
 from nhfd.frame_message import CaptureReply, CaptureRequest
 
 from .audit import AuditLog
@@ -31,9 +31,6 @@ from .colour import CaptureBench, CapturePanel, ShownViews
 from .frame_link import PanelBuffer
 from .guardian_link import LaserLink
 from .jobs import Job
-
-NEVER_ARMS = ("citl never arms: arm the lasers (nhfctl laser arm) and set each colour's power "
-              "(nhfctl laser power COLOUR PCT), then ask for the view again")
 
 
 class CitlStopped(RuntimeError):
@@ -60,15 +57,12 @@ def citl_problem(config: Config, bench: Any) -> str | None:
 def _check_laser(laser: LaserLink) -> dict[str, float]:
     """The powers a person set, per colour, while the arming holds; CitlStopped otherwise."""
     status = laser.status()
-    if status.get("fault"):
-        raise CitlStopped(f"laser fault: {status['fault']}")
-    if not status.get("armed") or float(status.get("armed_remaining_s") or 0.0) <= 0:
-        raise CitlStopped(f"the lasers are not armed; {NEVER_ARMS}")
     channels = status.get("channels") or {}
     powers = {ch: float(channels.get(ch, {}).get("power_pct", 0.0)) for ch in COLOURS}
-    dark = [ch for ch, p in powers.items() if p <= 0]
-    if dark:
-        raise CitlStopped(f"{', '.join(dark)} at 0% power: citl fits every colour; {NEVER_ARMS}")
+    refusal = citl_laser_refusal(status.get("fault"), bool(status.get("armed")),
+                                 float(status.get("armed_remaining_s") or 0.0), powers)
+    if refusal:
+        raise CitlStopped(refusal)
     return powers
 
 

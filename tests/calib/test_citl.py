@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from nhfd.benchmarks.quality import UNKNOWN_ZERNIKE_RAD, aberrated
 from nhfd.calib.citl import CameraLoop
 from nhfd.config import Config, RefineSettings
 from nhfd.device_settings import COLOURS
@@ -26,8 +27,6 @@ from tests.pipeline.test_refine import PLANES_M, spots
 
 from .conftest import PANEL_HW
 
-# Coma and astigmatism (rad at green, Noll 5-7) the relay gains after its calibration.
-UNKNOWN_ZERNIKE_RAD = (0.5, -0.3, 0.4)
 POWER_PCT = 10.0  # the simulated laser's cap
 
 
@@ -43,15 +42,12 @@ def _encoder(fitted) -> Encoder:
 
 @contextmanager
 def _devices(bench: TrueBench, *, armed: bool) -> Iterator[BenchDevices]:
-    zernike = list(bench.zernike_rad) + [0.0] * max(0, 3 - len(bench.zernike_rad))
-    for i, a in enumerate(UNKNOWN_ZERNIKE_RAD):
-        zernike[i] += a
-    aberrated = dataclasses.replace(bench, zernike_rad=tuple(zernike))
+    twin = aberrated(bench, UNKNOWN_ZERNIKE_RAD)  # the coma and astigmatism the bench measures
     d = Config().devices
     d = d.model_copy(update={"camera_settings": d.camera_settings.model_copy(
         update={"channels": "mono", "exposure_s": 0.005})})
-    with make_bench(d, PANEL_HW[1], PANEL_HW[0], bench=aberrated,
-                    roi=aberrated.roi_for_panel(PANEL_HW)) as devices:
+    with make_bench(d, PANEL_HW[1], PANEL_HW[0], bench=twin,
+                    roi=twin.roi_for_panel(PANEL_HW)) as devices:
         if armed:
             devices.laser.arm(600)
         for name in COLOURS:
