@@ -6,7 +6,7 @@
 #
 #   PYTHON        the interpreter (default: python3, the machine's own torch, never reinstalled)
 #   GPU_STEPS     comma list of steps (default: all, in this order):
-#                 env install gsplat tests holo train pipeline frame net build
+#                 env install gsplat tests holo train pipeline frame refine net build
 #   GPU_DEADLINE_S  seconds the whole run may take (default 560); each step gets what is left
 #   GPU_VIEWS     views per measured configuration (default 30)
 #   OUT           where the packed results go (default out/gpu)
@@ -22,13 +22,14 @@ cd "$REPO"
 PY=${PYTHON:-python3}
 DEST=${OUT:-$REPO/out/gpu}
 WORK=${GPU_WORK:-/tmp/nhfd-gpu}
-STEPS=${GPU_STEPS:-env,install,gsplat,tests,holo,train,pipeline,frame,net,build}
+STEPS=${GPU_STEPS:-env,install,gsplat,tests,holo,train,pipeline,frame,refine,net,build}
 DEADLINE=$(( $(date +%s) + ${GPU_DEADLINE_S:-560} ))
 VIEWS=${GPU_VIEWS:-30}
 # The CUDA tests: every test that needs CUDA, and the ones that check their CPU halves.
 GPU_TESTS="tests/pipeline/test_device.py tests/scene/test_gsplat_conventions.py
   tests/models/test_fp16.py tests/models/test_amp.py tests/dataset/test_build_device.py
   tests/models/test_torch_model.py
+  tests/pipeline/test_refine.py::test_refine_on_the_gpu_follows_the_cpu
   tests/models/test_train.py::test_a_cuda_run_resumes_on_the_cpu_from_the_same_step
   tests/test_require_cuda.py"
 export NHFD_SHARED_DATA=${NHFD_SHARED_DATA:-$REPO/.gpu/shared/data}
@@ -117,6 +118,9 @@ do_net() { "$PY" scripts/gpu_probe.py net --views 50 --json "$WORK/net.json"; }
 
 do_frame() { "$PY" scripts/gpu_probe.py frame --views "$VIEWS" --json "$WORK/frame.json"; }
 
+# Issue 34's GPU figure: ms per sgd iteration at 1920 x 1080, the CPU beside it in the same run.
+do_refine() { nhfd bench refine --devices cpu,cuda --iterations 8 --out "$WORK/refine.json"; }
+
 do_holo() {
   nhfd bench holo --device cuda --scene models/scenes/donut.ply --out "$WORK/holo_cuda.json" &&
     nhfd bench holo --device cpu --scene models/scenes/donut.ply --sizes 1024x576 \
@@ -147,7 +151,7 @@ do_build() {
 }
 
 # `timeout` runs a new bash: it needs the functions and settings exported.
-export -f nhfd do_env do_install do_gsplat do_tests do_pipeline do_net do_frame do_holo do_train \
+export -f nhfd do_env do_install do_gsplat do_tests do_pipeline do_net do_frame do_refine do_holo do_train \
   do_build
 export PY WORK VIEWS GPU_TESTS GPU_BUILD_STEPS
 step env 30 do_env
@@ -158,6 +162,7 @@ step holo 240 do_holo
 step train 240 do_train
 step pipeline 240 do_pipeline
 step frame 120 do_frame
+step refine 150 do_refine
 step net 120 do_net
 step build 600 do_build
 pack

@@ -14,5 +14,7 @@ runs, so each imports what it measures at module level.
   geometry  calibration's dot geometry vs OpenCV; the bench model's warp and SSIM vs kornia
   triggers  a simulated calibration capture with and without hardware triggers
   distributed  2 local workers vs 1: dataset build (processes, Ray) and training (torchrun)
+  quality   speed against captured quality of the frame tiers (exact, sgd, citl; K)
+  refine    ms per sgd iteration per device at the panel's size
   machine   what machine a benchmark ran on
 """

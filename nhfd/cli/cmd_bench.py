@@ -33,6 +33,8 @@ BENCHES: tuple[Command, ...] = (
             "dot geometry, warps and SSIM vs OpenCV and kornia"),
     Command("quality", "nhfd.benchmarks.quality",
             "speed against captured quality of the frame tiers"),
+    Command("refine", "nhfd.benchmarks.refine",
+            "ms per sgd iteration per device at the panel's size"),
 )
 
 

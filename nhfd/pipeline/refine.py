@@ -51,7 +51,7 @@ from nhfd.optics import (
     phase_to_grey,
     propagate,
 )
-from nhfd.optics.pupil import apply_pupil
+from nhfd.optics.pupil import apply_pupil, pupil_transfer
 from nhfd.scene.lightfield import DepthMapping
 from nhfd.views import QUALITY_TIERS, View
 
@@ -127,6 +127,10 @@ class Target:
                              f"[h, w] = {list(self.intensity.shape[-2:])}")
         if not torch.isfinite(self.intensity).all() or not self.scale > 0:
             raise ValueError("target intensity: expected finite values with a positive peak")
+
+    def to(self, device: torch.device | str) -> Target:
+        """This target with its intensity and mask on `device`."""
+        return Target(self.planes_m, self.intensity.to(device), self.mask.to(device), self.scale)
 
 
 def window_mask(window_hw: tuple[int, int], edge_px: int = EDGE_PX) -> torch.Tensor:
@@ -249,10 +253,11 @@ def quantise(theta: torch.Tensor, encoder: Encoder) -> tuple[torch.Tensor, torch
 
 
 def grey_phase(grey: np.ndarray | torch.Tensor, encoder: Encoder) -> torch.Tensor:
-    """Grey levels `[..., C, H, W]` -> the phase the panel shows (rad, float32)."""
+    """Grey levels `[..., C, H, W]` -> the phase the panel shows (rad, float32), on the
+    encoder's device."""
     s = encoder.settings
-    return grey_to_phase(torch.as_tensor(np.asarray(grey)), encoder.curves, sign=s.phase_sign,
-                         invert=s.grey_invert)
+    return grey_to_phase(torch.as_tensor(np.asarray(grey)).to(encoder.device), encoder.curves,
+                         sign=s.phase_sign, invert=s.grey_invert)
 
 
 class BenchForward:
@@ -262,13 +267,18 @@ class BenchForward:
     relay's pupil (the calibration's Zernike terms), the aperture and the angular spectrum to
     z0 + refocus + the colour's focus offset + the plane's depth. What it leaves out (the
     pixels' fill factor, gaps and crosstalk, unmodulated light, the camera's colour and
-    response) is what `citl`'s captures bring in."""
+    response) is what `citl`'s captures bring in. It runs on the encoder's device, as does
+    `refine` with it."""
 
     def __init__(self, encoder: Encoder, planes_m: Sequence[float]) -> None:
         s, r = encoder.settings, encoder.region
         self.encoder = encoder
+        self.device = encoder.device
         self.planes_m = tuple(float(z) for z in planes_m)
-        self.source = encoder.source_amplitude()  # [C, Hr, Wr] or None
+        source = encoder.source_amplitude()  # [C, Hr, Wr] float64 or None
+        self.source = None if source is None else source.float().to(self.device)
+        # Each colour's pupil transfer, kept: the same every step.
+        self._pupils: dict[int, torch.Tensor] = {}
         self.window = (slice(r.window_top, r.window_top + s.window_hw[0]),
                        slice(r.window_left, r.window_left + s.window_hw[1]))
         self.cutoffs = s.aperture.cutoffs(len(s.wavelengths_m))
@@ -288,8 +298,12 @@ class BenchForward:
             if self.source is not None:
                 u = u * self.source[c]
             if s.zernike_rad:
-                u = apply_pupil(u, self.cutoffs[c], s.zernike_rad,
-                                s.zernike_wavelength_m / lam)
+                if c not in self._pupils:
+                    self._pupils[c] = pupil_transfer(u.shape[-2:], self.cutoffs[c],
+                                                     s.zernike_rad, s.zernike_wavelength_m / lam,
+                                                     self.device)
+                u = apply_pupil(u, self.cutoffs[c], s.zernike_rad, s.zernike_wavelength_m / lam,
+                                self._pupils[c])
             v = propagate(u[:, None], self.z_m[c], s.pitch_m, [lam],
                           aperture=Aperture(s.aperture_shape, (self.cutoffs[c],)),  # type: ignore[arg-type]
                           padding=s.padding, cache=self.encoder.cache)  # [K, D, 1, Hr, Wr]
@@ -376,11 +390,14 @@ def refine(start: np.ndarray, target: Target, model: BenchForward, settings: Ref
     grey0 = np.asarray(start, np.uint8)
     grey0 = grey0[None] if grey0.ndim == 3 else grey0
     k = settings.subframes
+    device = model.encoder.device  # the model runs where its encoder does
+    target = target.to(device)
     theta0 = grey_phase(grey0, model.encoder).float()
     if theta0.shape[0] < k:  # subframes after the first: the first with a seeded jitter
-        g = torch.Generator().manual_seed(seed)
+        g = torch.Generator().manual_seed(seed)  # on the CPU: the same jitter on every device
         extra = theta0[:1].repeat(k - theta0.shape[0], 1, 1, 1)
-        extra = extra + SUBFRAME_JITTER_RAD * (2 * torch.rand(extra.shape, generator=g) - 1)
+        jitter = 2 * torch.rand(extra.shape, generator=g) - 1
+        extra = extra + SUBFRAME_JITTER_RAD * jitter.to(device)
         theta0 = torch.cat([theta0, extra])
     theta = theta0[:k].clone().requires_grad_(True)
     # The camera's loss is noisy: citl takes smaller steps (refine.citl_learning_rate_rad).
@@ -389,7 +406,7 @@ def refine(start: np.ndarray, target: Target, model: BenchForward, settings: Ref
     best_theta = theta.detach().clone()
     report = RefineReport(tier)
     best = Refined(grey0[:k].copy() if grey0.shape[0] >= k else
-                   quantise(theta.detach(), model.encoder)[1].numpy(), report)
+                   quantise(theta.detach(), model.encoder)[1].cpu().numpy(), report)
     start_loss = math.inf
     last_swap = 0
     it = 0
@@ -402,9 +419,9 @@ def refine(start: np.ndarray, target: Target, model: BenchForward, settings: Ref
             seen = model(shown, cancelled).mean(dim=0)  # [D, C, h, w]: the eye's mean
             mask = target.mask
             if capture is not None:
-                captured, valid = capture(grey.numpy(), target.planes_m)
-                cap = torch.as_tensor(np.asarray(captured), dtype=seen.dtype)
-                mask = target.mask & torch.as_tensor(np.asarray(valid, bool))
+                captured, valid = capture(grey.cpu().numpy(), target.planes_m)
+                cap = torch.as_tensor(np.asarray(captured), dtype=seen.dtype, device=device)
+                mask = target.mask & torch.as_tensor(np.asarray(valid, bool), device=device)
                 if cap.shape != seen.shape or not bool(mask.any()):
                     raise CaptureStopped(f"the capture gave {tuple(cap.shape)} over "
                                          f"{int(mask.sum())} valid pixels: expected "
@@ -432,7 +449,7 @@ def refine(start: np.ndarray, target: Target, model: BenchForward, settings: Ref
             progress(it, now, value)
         if value < report.loss:
             report.loss, report.psnr_db = value, psnr_db(value)
-            best.grey = grey.numpy().copy()
+            best.grey = grey.cpu().numpy()
             best_theta = theta.detach().clone()
         report.iterations, report.seconds = it + 1, now
         if value > DIVERGE_FACTOR * start_loss:
@@ -505,7 +522,7 @@ def refine_view(view: View, scene: Scene, info: ModelInfo, encoder: Encoder, tie
     if tier == "exact":
         with torch.no_grad():
             loss = float(stack_loss(model(grey_phase(exact_grey[None], encoder)).mean(0),
-                                    target))
+                                    target.to(model.device)))
         report = RefineReport("exact", 0, time.monotonic() - t0, loss, psnr_db(loss),
                               psnr_db(loss), "exact")
         return Refined(exact_grey[None], report), target

@@ -16,6 +16,7 @@ from pydantic import ValidationError
 from nhfd.config import QUALITY_TIERS, Config, RefineSettings
 from nhfd.models.export import load_model
 from nhfd.optics import propagate
+from nhfd.optics.pupil import apply_pupil, pupil_phase, pupil_transfer
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.frame import compute_frame
 from nhfd.pipeline.refine import (
@@ -270,3 +271,45 @@ def test_citl_steps_at_its_own_learning_rate() -> None:
     citl = losses(faithful, learning_rate_rad=0.05, citl_learning_rate_rad=0.02)
     np.testing.assert_allclose(citl, losses(None, learning_rate_rad=0.02), rtol=1e-4)
     assert not np.allclose(citl, losses(None, learning_rate_rad=0.05), rtol=1e-3)
+
+
+SOURCE = dict(source_profile=((1.2e-3, 1e-4, -1e-4), (1.0e-3, 0.0, 0.0), (1.4e-3, -1e-4, 0.0)))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_refine_on_the_gpu_follows_the_cpu() -> None:
+    """`refine` runs on the encoder's device (the phase, the target, the curves, the pupil and
+    the source there): from the same frame, a GPU's first loss is the CPU's to float32's
+    rounding, and its refinement gains as much."""
+    enc, grey, target = start_and_target(encoder(**PUPIL, **SOURCE))
+    settings = RefineSettings(iterations=20, tolerance=0.0, subframes=2)
+    cpu = refine(grey, target, BenchForward(enc, PLANES_M), settings)
+    gpu_enc = Encoder(enc.settings, device="cuda")
+    gpu = refine(grey, target, BenchForward(gpu_enc, PLANES_M), settings)
+    assert gpu.history[0][2] == pytest.approx(cpu.history[0][2], rel=1e-3)
+    assert gpu.grey.dtype == np.uint8 and gpu.grey.shape == cpu.grey.shape
+    assert gpu.report.psnr_db > gpu.report.start_psnr_db + 5.0
+    assert gpu.report.psnr_db == pytest.approx(cpu.report.psnr_db, abs=1.0)
+    # Its frame, scored on the CPU, has the loss it reported.
+    with torch.no_grad():
+        again = float(stack_loss(BenchForward(enc, PLANES_M)(grey_phase(gpu.grey, enc)).mean(0),
+                                 target))
+    assert again == pytest.approx(gpu.report.loss, rel=1e-3)
+
+
+def test_the_kept_pupil_transfer_is_the_pupil() -> None:
+    """BenchForward keeps each colour's pupil transfer (complex64) across steps: the field
+    through it is the float64 pupil's to 1e-6, and a transfer for another size is refused."""
+    g = torch.Generator().manual_seed(SEED)
+    field = torch.polar(torch.rand((2, 40, 56), generator=g),
+                        6.0 * torch.rand((2, 40, 56), generator=g))
+    z = (0.4, -0.3, 0.2, 0.0, 0.1)
+    kept = pupil_transfer((40, 56), 0.25, z, 0.8)
+    ph = pupil_phase((80, 112), 0.25, z, 0.8)
+    exact = torch.fft.ifft2(torch.fft.fft2(field.to(torch.complex128), s=(80, 112))
+                            * torch.polar(torch.ones_like(ph), ph))[..., :40, :56]
+    got = apply_pupil(field, 0.25, z, 0.8, kept)
+    assert float((got - exact).abs().max() / exact.abs().max()) < 1e-6
+    assert float((got - field).abs().max()) > 0.1  # the pupil does something here
+    with pytest.raises(ValueError, match=r"pupil transfer \(80, 112\): expected \[80, 110\]"):
+        apply_pupil(field[..., :55], 0.25, z, 0.8, kept)
