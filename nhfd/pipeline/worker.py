@@ -63,6 +63,7 @@ from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config, DaemonSettings
 from nhfd.dataset.build import sha256_file
 from nhfd.frame_message import CaptureReply, FrameMessage, RefinedFrame, StageTimes
+from nhfd.model_info import ModelInfo
 from nhfd.models.export import (
     check_providers,
     load_model,
@@ -480,20 +481,25 @@ class Refiner:
             enc = Encoder(frame_settings(self.config, model.info,
                                          active_calibration(self.config),
                                          refocus_m=view.refocus_m), device=model.device)
-            region = enc.region
-
-            def better(refined: Refined) -> None:
-                self.send(("refined", seq, RefinedFrame(region, refined.grey.copy(),
-                                                        refined.report.to_json())))
-
-            capture = self._remote_capture(seq, view, enc, stop)
-            refined, _ = refine_view(view, scene, model.info, enc, view.quality,
-                                     self.config.refine, start=network, capture=capture,
-                                     cancelled=stop.is_set, on_better=better)
-            if refined.report.stop != "cancelled":
-                better(refined)
+            self._refine(seq, view, scene, model.info, enc, network, stop)
         except Exception as exc:  # reported to the daemon; the frame shown stays
             self.send(("refine_error", seq, f"{type(exc).__name__}: {exc}"))
+
+    def _refine(self, seq: int, view: View, scene: Any, info: ModelInfo, enc: Encoder,
+                start: np.ndarray, stop: threading.Event) -> None:
+        """Refine view `seq` from the grey region `start` at its tier, sending each better
+        frame as ("refined", seq, `RefinedFrame`) and the best one when it stops (unless a newer
+        message cancelled it)."""
+        def better(refined: Refined) -> None:
+            self.send(("refined", seq, RefinedFrame(enc.region, refined.grey.copy(),
+                                                    refined.report.to_json())))
+
+        capture = self._remote_capture(seq, view, enc, stop)
+        refined, _ = refine_view(view, scene, info, enc, view.quality, self.config.refine,
+                                 start=start, capture=capture, cancelled=stop.is_set,
+                                 on_better=better)
+        if refined.report.stop != "cancelled":
+            better(refined)
 
     def _remote_capture(self, seq: int, view: View, enc: Encoder, stop: threading.Event
                         ) -> RemoteCapture | None:
@@ -531,18 +537,7 @@ class Refiner:
                 StageTimes(render_s=time.perf_counter() - t0), clipped))
             if view.quality == "exact" or stop.is_set():
                 return
-            region = enc.region
-
-            def better(refined: Refined) -> None:
-                self.send(("refined", seq, RefinedFrame(region, refined.grey.copy(),
-                                                        refined.report.to_json())))
-
-            capture = self._remote_capture(seq, view, enc, stop)
-            refined, _ = refine_view(view, scene, info, enc, view.quality, config.refine,
-                                     start=grey, capture=capture, cancelled=stop.is_set,
-                                     on_better=better)
-            if refined.report.stop != "cancelled":
-                better(refined)
+            self._refine(seq, view, scene, info, enc, grey, stop)
         except Cancelled:
             self.send(("frame_cancelled", seq))
         except Exception as exc:
