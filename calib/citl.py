@@ -18,6 +18,7 @@ import numpy as np
 
 from nhfd.calibration import Calibration
 from nhfd.device_settings import COLOURS, citl_laser_refusal
+from nhfd.drivers.camera import colour_planes
 from nhfd.drivers.errors import DeviceError
 from nhfd.optics.camera_grid import calibrated_geometry
 from nhfd.pipeline.citl import captured_window
@@ -84,36 +85,36 @@ class CameraLoop:
         grey = np.asarray(grey, np.uint8)
         self._check_laser()  # before anything moves or emits
         panels = [self._panel(g) for g in grey]
-        images: list[list[np.ndarray]] = []
-        saturated: list[list[np.ndarray]] = []
+        s = self.encoder.settings
+
+        def at_plane(i: int) -> None:
+            d.stage.move_to(self.calibration.stage_mm_for(s.z0_m + s.refocus_m
+                                                          + float(planes_m[i])))
+
+        def show(k: int, _name: str) -> None:
+            d.slm.show(panels[k])
+            d.slm.wait_settled()
+
+        def light(name: str, on: bool) -> None:
+            try:
+                d.laser.enable(name, on)
+            except DeviceError as exc:  # NotArmed, a fault: nothing was switched on
+                if on:
+                    raise CaptureStopped(f"{name} could not be switched on: {exc}") from exc
+                raise
+
+        def capture() -> Any:
+            self.captures += 1
+            return d.camera.capture(self.frames)
+
         try:
             if self.dark is None:
                 self._lights_out()
                 self.dark = d.camera.capture_dark(self.frames)
-            for dz in planes_m:
-                s = self.encoder.settings
-                d.stage.move_to(self.calibration.stage_mm_for(s.z0_m + s.refocus_m + float(dz)))
-                images.append([])
-                saturated.append([])
-                for c, name in enumerate(COLOURS):
-                    self._check_laser()
-                    try:
-                        d.laser.enable(name)
-                    except DeviceError as exc:  # NotArmed, a fault: nothing was switched on
-                        raise CaptureStopped(f"{name} could not be switched on: {exc}") from exc
-                    shots = []
-                    for panel in panels:
-                        d.slm.show(panel)
-                        d.slm.wait_settled()
-                        cap = d.camera.capture(self.frames)
-                        self.captures += 1
-                        image = cap.image if cap.image.ndim == 2 else cap.image[..., c]
-                        sat = cap.saturated if cap.saturated.ndim == 2 else cap.saturated[..., c]
-                        shots.append((np.asarray(image, np.float64), np.asarray(sat, bool)))
-                    d.laser.enable(name, False)
-                    images[-1].append(np.mean([im for im, _ in shots], axis=0))
-                    saturated[-1].append(np.any([m for _, m in shots], axis=0))
+            images, saturated = colour_planes(
+                len(planes_m), len(panels), at_plane=at_plane,
+                before_colour=lambda _name: self._check_laser(), show=show, light=light,
+                capture=capture)
         finally:
             self._lights_out()
-        return captured_window(np.asarray(images), np.asarray(saturated), self.geometry,
-                               self.encoder)
+        return captured_window(images, saturated, self.geometry, self.encoder)

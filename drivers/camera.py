@@ -21,13 +21,14 @@ from __future__ import annotations
 import logging
 import math
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from nhfd.device_settings import CameraSettings
+from nhfd.device_settings import COLOURS, CameraSettings
 
 from .device import Device
 from .errors import DeviceError
@@ -103,6 +104,47 @@ class Capture:
     def any_saturated(self) -> bool:
         """Whether any pixel saturated in any frame of the burst."""
         return bool(self.saturated.any())
+
+    def of_colour(self, c: int) -> tuple[np.ndarray, np.ndarray]:
+        """The image and saturation `[H, W]` a colour `c` (0 R, 1 G, 2 B) lights: a mono
+        camera's whole frame, a colour camera's own channel (channel-first)."""
+        if self.image.ndim == 2:
+            return self.image, self.saturated
+        return self.image[c], self.saturated[c]
+
+
+def colour_planes(n_planes: int, n_subframes: int, *, at_plane: Callable[[int], None],
+                  before_colour: Callable[[str], None], show: Callable[[int, str], None],
+                  light: Callable[[str, bool], None], capture: Callable[[], Capture]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """The captures of camera-in-the-loop and the capture-mode tiers, one sequence for the
+    daemon's job and the offline loop: for each plane (`at_plane(i)`: the focus there), each
+    colour in COLOURS: `before_colour(name)` (raises to stop: the lasers disarmed, the view
+    changed), subframe 0 shown as that colour's pattern (`show(k, name)`, settled), the diode
+    switched on (`light(name, True)`), each of the `n_subframes` shown and captured in turn,
+    and the diode off again on every way out. Returns the subframes' mean image `[P, C, H, W]`
+    float32 (one exposure spanning K flips) and where any saturated `[P, C, H, W]` bool."""
+    images: list[list[np.ndarray]] = []
+    saturated: list[list[np.ndarray]] = []
+    for i in range(n_planes):
+        at_plane(i)
+        images.append([])
+        saturated.append([])
+        for c, name in enumerate(COLOURS):
+            before_colour(name)
+            show(0, name)  # the pattern is up before the light
+            light(name, True)
+            try:
+                shots = []
+                for k in range(n_subframes):
+                    if k:
+                        show(k, name)
+                    shots.append(capture().of_colour(c))
+            finally:
+                light(name, False)
+            images[-1].append(np.mean([np.asarray(im, np.float32) for im, _ in shots], axis=0))
+            saturated[-1].append(np.any([np.asarray(m, bool) for _, m in shots], axis=0))
+    return np.asarray(images, np.float32), np.asarray(saturated, bool)
 
 
 class Camera(Device, ABC):

@@ -19,11 +19,10 @@ import contextlib
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
-
 from nhfd.calibration import active_calibration
 from nhfd.config import Config
 from nhfd.device_settings import COLOURS, citl_laser_refusal
+from nhfd.drivers.camera import colour_planes
 from nhfd.frame_message import CaptureReply, CaptureRequest
 
 from .audit import AuditLog
@@ -88,8 +87,6 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: Ca
     frames = request.frames or None
     buffer = PanelBuffer(panel.blank_frame())
     panels = [buffer.frame(r.top, r.left, g) for g in request.grey]
-    images = np.zeros((len(request.z_m), len(COLOURS)), object)
-    saturated = np.zeros((len(request.z_m), len(COLOURS)), object)
     who = {"who": "daemon", "job": job.id}
 
     def go_on() -> None:
@@ -97,36 +94,29 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: Ca
         if not wanted():
             raise CitlStopped("the view changed: its refinement was cancelled")
 
+    def before_colour(_name: str) -> None:
+        go_on()
+        _check_laser(laser)
+
+    def light(name: str, on: bool) -> None:
+        laser.enable(name, on)
+        if on:
+            audit.write(who, "laser enable (citl)", channel=name, power_pct=powers[name])
+
+    def at_plane(i: int) -> None:
+        go_on()
+        stage.move_to(cal.stage_mm_for(request.z_m[i]))
+
     try:
         with panel.hold():
             try:
                 for ch in COLOURS:
                     laser.enable(ch, False)
                 camera.capture_dark(frames)
-                for i, z_m in enumerate(request.z_m):
-                    go_on()
-                    stage.move_to(cal.stage_mm_for(z_m))
-                    for c, ch in enumerate(COLOURS):
-                        go_on()
-                        _check_laser(laser)
-                        panel.show_colour(panels[0], ch)
-                        laser.enable(ch, True)
-                        audit.write(who, "laser enable (citl)", channel=ch, power_pct=powers[ch])
-                        try:
-                            shots = []
-                            for k, frame in enumerate(panels):
-                                if k:
-                                    panel.show_colour(frame, ch)
-                                cap = bench.capture(frames)
-                                image = cap.image if cap.image.ndim == 2 else cap.image[..., c]
-                                sat = (cap.saturated if cap.saturated.ndim == 2
-                                       else cap.saturated[..., c])
-                                shots.append((np.asarray(image, np.float32),
-                                              np.asarray(sat, bool)))
-                        finally:
-                            laser.enable(ch, False)
-                        images[i, c] = np.mean([im for im, _ in shots], axis=0)
-                        saturated[i, c] = np.any([m for _, m in shots], axis=0)
+                images, saturated = colour_planes(
+                    len(request.z_m), len(panels), at_plane=at_plane, before_colour=before_colour,
+                    show=lambda k, ch: panel.show_colour(panels[k], ch), light=light,
+                    capture=lambda: bench.capture(frames))
             finally:
                 for ch in COLOURS:
                     with contextlib.suppress(Exception):
@@ -135,5 +125,4 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: Ca
     finally:
         with contextlib.suppress(Exception):  # back to what the control loop last showed
             panel.resume(shown.last_frame, shown.shown_seq)
-    return CaptureReply(np.stack([np.stack(list(row)) for row in images]).astype(np.float32),
-                        np.stack([np.stack(list(row)) for row in saturated]))
+    return CaptureReply(images, saturated)

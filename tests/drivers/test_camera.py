@@ -15,10 +15,13 @@ from pydantic import ValidationError
 from nhfd.drivers.camera import (
     Camera,
     CameraSettings,
+    CameraTimeout,
     CameraUnavailable,
+    Capture,
     GenICamCamera,
     OpenCVCamera,
     ResponseCurve,
+    colour_planes,
 )
 from nhfd.drivers.errors import DeviceError
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench, slm_frame_source
@@ -379,3 +382,52 @@ def test_a_randomised_bench_is_reproducible_and_plausible():
     assert {TrueBench.randomised(s).phase_sign for s in range(12)} == {1, -1}
     for table in a.phase_tables:
         assert np.all(np.diff(table) > 0)  # monotone, however wiggly
+
+
+def _colour_capture(value: float) -> Capture:
+    """A colour camera's capture `[3, 4, 5]` channel-first: channel c holds value + c, and
+    channel 2 saturates."""
+    image = np.stack([np.full((4, 5), value + c, np.float32) for c in range(3)])
+    saturated = np.zeros((3, 4, 5), bool)
+    saturated[2, 0, 0] = True
+    return Capture(image, saturated, 0.01, 0.0, 1, True)
+
+
+def test_colour_planes_reads_each_colours_own_channel_and_lights_after_the_pattern() -> None:
+    """citl's capture sequence (the daemon's job and the offline loop share it): a colour
+    camera's frame is channel-first, so colour c is channel c (not column c); the K subframes
+    average; each diode goes on only once its pattern is up, and off after its captures."""
+    log: list[tuple] = []
+    shots = iter(range(100))
+
+    def capture() -> Capture:
+        n = next(shots)
+        log.append(("capture", n))
+        return _colour_capture(10.0 * n)
+
+    images, saturated = colour_planes(
+        2, 2, at_plane=lambda i: log.append(("plane", i)),
+        before_colour=lambda name: log.append(("check", name)),
+        show=lambda k, name: log.append(("show", k, name)),
+        light=lambda name, on: log.append(("light", name, on)), capture=capture)
+    assert images.shape == (2, 3, 4, 5) and images.dtype == np.float32
+    # plane 0: red shots 0, 1 (channel 0), green 2, 3 (channel 1), blue 4, 5 (channel 2)
+    assert images[0, :, 0, 0].tolist() == [5.0, 26.0, 47.0]
+    assert images[1, :, 0, 0].tolist() == [65.0, 86.0, 107.0]
+    assert saturated[:, 2, 0, 0].all() and not saturated[:, :2].any()
+    assert log[:8] == [("plane", 0), ("check", "red"), ("show", 0, "red"), ("light", "red", True),
+                       ("capture", 0), ("show", 1, "red"), ("capture", 1),
+                       ("light", "red", False)]
+
+
+def test_colour_planes_switches_the_diode_off_when_a_capture_fails() -> None:
+    log: list[tuple] = []
+
+    def capture() -> Capture:
+        raise CameraTimeout("no frame in 2 s")
+
+    with pytest.raises(CameraTimeout, match="no frame"):
+        colour_planes(1, 1, at_plane=lambda i: None, before_colour=lambda name: None,
+                      show=lambda k, name: None,
+                      light=lambda name, on: log.append((name, on)), capture=capture)
+    assert log == [("red", True), ("red", False)]
