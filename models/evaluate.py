@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -29,12 +29,13 @@ from nhfd.models.train import load_run
 from nhfd.optics import (
     Aperture,
     KernelCache,
+    Quality,
     focal_stack,
-    focal_stack_quality,
     hologram_2d,
     linear_to_srgb,
     quality_planes,
     srgb_to_linear,
+    stack_quality,
 )
 
 FOCUS_BINS = 5
@@ -157,6 +158,20 @@ def focus_check(
     return out
 
 
+def stacks_quality(fields: dict[str, torch.Tensor], target: torch.Tensor,
+                   mask: torch.Tensor | None, *, planes_m: Sequence[float], pitch_m: float,
+                   wavelengths_m: Sequence[float], aperture: Aperture, cache: KernelCache
+                   ) -> dict[str, Quality]:
+    """`focal_stack_quality` of each named field `[C, H, W]` against `target`, and of "black"
+    (an all-dark prediction, whose stack is zero): the target propagated once for all of them,
+    with the fields in one call."""
+    stacks = focal_stack(torch.stack([*fields.values(), target]).to(torch.complex64), planes_m,
+                         pitch_m, wavelengths_m, aperture, cache=cache)
+    seen = {**dict(zip(fields, stacks[:-1], strict=True)), "black": torch.zeros_like(stacks[-1])}
+    return {name: stack_quality(stack, stacks[-1], planes_m=planes_m, mask=mask)
+            for name, stack in seen.items()}
+
+
 def evaluate(
     source: str | Path,
     data_dir: str | Path,
@@ -197,9 +212,7 @@ def evaluate(
             # Energy-matched to the target: a baseline in other units would be judged on its
             # brightness, not on its (missing) depth.
             flat = hologram_2d(rgb, like=target, mask=mask)
-            q = {name: focal_stack_quality(f, target, mask=mask, **kw)
-                 for name, f in (("model", pred), ("black", torch.zeros_like(target)),
-                                 ("hologram_2d", flat))}  # fmt: skip
+            q = stacks_quality({"model": pred, "hologram_2d": flat}, target, mask, **kw)
             focus = focus_check(pred, target, rgb, s.zh[j], optics, cache)
             views.append({
                 "index": index, "split": split,

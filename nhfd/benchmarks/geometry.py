@@ -31,9 +31,9 @@ Part 2, each library against the code it replaces (or would replace), same value
 and `dilate`, used, against the NumPy convolutions and sliding-window maximum they replaced,
 kept here as the baseline); the bench model's image warp `to_slm_grid` (kornia's `warp_affine`,
 used, against the NumPy grid of camera positions and torch `grid_sample` it replaced), at the
-test panel's size and a 1080p panel's; evaluation's SSIM map (`ssim_map`, one 11 x 11 `conv2d`
-of the five moments, kept, against `kornia.metrics.ssim`) on 15 520 x 520 float32 images, each
-also measured against the same definition in float64.
+test panel's size and a 1080p panel's; evaluation's SSIM map (`ssim_map`, one depthwise
+11 x 11 `conv2d` of the five moments, kept, against `kornia.metrics.ssim`) on 15 520 x 520
+float32 images, each also measured against the same definition in float64.
 """
 
 from __future__ import annotations
@@ -304,7 +304,7 @@ def same_values(args: argparse.Namespace) -> dict[str, Any]:
     t_k, s_k = _timed(lambda: kornia_ssim_map(x, y), r)
     exact = ssim_map(x.double(), y.double())
     out["SSIM map (float32)"] = {
-        "baseline": "ssim_map (one 11 x 11 conv2d)", "library": "kornia.metrics.ssim",
+        "baseline": "ssim_map (one depthwise 11 x 11 conv2d)", "library": "kornia.metrics.ssim",
         "shape": list(x.shape), "baseline_ms": t_s, "library_ms": t_k,
         "max_abs_diff": float((s_ours - s_k).abs().max()),
         "mean_diff": float(abs(s_ours.double().mean() - s_k.double().mean())),

@@ -103,7 +103,13 @@ def ssim_map(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
     pad = SSIM_WINDOW_PX // 2
     stack = torch.stack([x, y, x * x, y * y, x * y], dim=1).reshape(-1, 1, *x.shape[-2:])
     mode = "reflect" if min(x.shape[-2:]) > pad else "replicate"
-    blurred = F.conv2d(F.pad(stack, (pad, pad, pad, pad), mode=mode), win)
+    padded = F.pad(stack, (pad, pad, pad, pad), mode=mode)
+    # Each image its own channel of one depthwise convolution: the same sums as a batch of
+    # one-channel images, but CPU torch's depthwise kernel ran it 10x faster (0.03 against
+    # 0.3 s for 5 planes x 3 colours x 5 moments at 512 x 288; `nhfd bench geometry`).
+    n = padded.shape[0]
+    blurred = F.conv2d(padded.reshape(1, n, *padded.shape[-2:]), win.expand(n, 1, -1, -1),
+                       groups=n)
     mx, my, mxx, myy, mxy = blurred.reshape(x.shape[0], 5, *x.shape[-2:]).unbind(1)
     vx, vy, cov = mxx - mx * mx, myy - my * my, mxy - mx * my
     return ((2 * mx * my + c1) * (2 * cov + c2)) / ((mx * mx + my * my + c1) * (vx + vy + c2))
