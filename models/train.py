@@ -36,6 +36,7 @@ import numpy as np
 import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
+from torch.profiler import record_function
 
 from nhfd import __version__
 from nhfd.config import (
@@ -593,60 +594,69 @@ def _train(
         end = options.steps if stop_at is None else min(options.steps, stop_at)
         while step < end:
             t0 = time.perf_counter()
-            rng = step_rng(options.seed, step)
-            views = batch_views(options.seed, step, options.batch, n_train)
-            x, target, zh, edges = random_crop(train_split, views, options.crop_hw, rng,
-                                               options.inputs)
-            # Every process draws the whole batch (the same crops and planes as one process);
-            # each trains on its share.
-            x, target = x[share].to(device), target[share].to(device)
-            if options.plane_mode == "uniform":
-                planes = fixed
-            else:
-                planes = choose_planes(zh, data_volume(data), options.planes_from_depth,
-                                       options.planes_random, rng, options.plane_step_mm * 1e-3)
-            k = min(options.perceptual_planes, len(planes))
-            perc = sorted(rng.choice(len(planes), size=k, replace=False).tolist()) if k else []
-            lr = lr_at(step, options)
-            for g in opt.param_groups:
-                g["lr"] = lr
-            with autocast_context(half, device):
-                amp, phase = predict(model, x)
-            out = float32_loss(loss_fn, amp, phase, target, planes, perc, edges)
-            opt.zero_grad(set_to_none=True)
-            # Without fp16 the scaler is disabled: backward() and opt.step() as they were.
-            scaler.scale(out["loss"]).backward()
-            scaler.step(opt)
-            scaler.update()
+            # The step's parts are named for torch.profiler (`scripts/gpu_probe.py trainprof`);
+            # with no profiler running a name costs about a microsecond.
+            with record_function("train.crop"):
+                rng = step_rng(options.seed, step)
+                views = batch_views(options.seed, step, options.batch, n_train)
+                x, target, zh, edges = random_crop(train_split, views, options.crop_hw, rng,
+                                                   options.inputs)
+                # Every process draws the whole batch (the same crops and planes as one process);
+                # each trains on its share.
+                x, target = x[share].to(device), target[share].to(device)
+                if options.plane_mode == "uniform":
+                    planes = fixed
+                else:
+                    planes = choose_planes(zh, data_volume(data), options.planes_from_depth,
+                                           options.planes_random, rng, options.plane_step_mm * 1e-3)
+                k = min(options.perceptual_planes, len(planes))
+                perc = sorted(rng.choice(len(planes), size=k, replace=False).tolist()) if k else []
+                lr = lr_at(step, options)
+                for g in opt.param_groups:
+                    g["lr"] = lr
+            with record_function("train.forward"):
+                with autocast_context(half, device):
+                    amp, phase = predict(model, x)
+            with record_function("train.loss"):
+                out = float32_loss(loss_fn, amp, phase, target, planes, perc, edges)
+            with record_function("train.backward_step"):
+                opt.zero_grad(set_to_none=True)
+                # Without fp16 the scaler is disabled: backward() and opt.step() as they were.
+                scaler.scale(out["loss"]).backward()
+                scaler.step(opt)
+                scaler.update()
             step += 1
             steps_done += 1
-            terms = torch.stack([out[k].detach().float() for k in ("loss", "l2", "perceptual")])
-            if ddp is not None:
-                dist.all_reduce(terms)  # the job's mean, as one process would log it
-                terms = terms / world
-            last_loss, l2_val, perc_val = (float(v) for v in terms.cpu())
-            if not math.isfinite(last_loss):
-                raise FloatingPointError(f"step {step}: loss is {last_loss}; lower the rate")
-            if main:
-                _append(run_dir / TRAIN_LOG, TRAIN_COLUMNS, {
-                    "step": step, "epoch": (step - 1) // per_epoch, "loss": f"{last_loss:.6g}",
-                    "l2": f"{l2_val:.6g}", "perceptual": f"{perc_val:.6g}",
-                    "lr": f"{lr:.4g}", "planes": " ".join(f"{z * 1e3:.2f}" for z in planes),
-                    "seconds": f"{time.perf_counter() - t0:.4f}",
-                })  # fmt: skip
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{last_loss:.4g}")
+            with record_function("train.log"):  # reading the loss waits for the device
+                terms = torch.stack([out[k].detach().float() for k in ("loss", "l2", "perceptual")])
+                if ddp is not None:
+                    dist.all_reduce(terms)  # the job's mean, as one process would log it
+                    terms = terms / world
+                last_loss, l2_val, perc_val = (float(v) for v in terms.cpu())
+                if not math.isfinite(last_loss):
+                    raise FloatingPointError(f"step {step}: loss is {last_loss}; lower the rate")
+                if main:
+                    _append(run_dir / TRAIN_LOG, TRAIN_COLUMNS, {
+                        "step": step, "epoch": (step - 1) // per_epoch, "loss": f"{last_loss:.6g}",
+                        "l2": f"{l2_val:.6g}", "perceptual": f"{perc_val:.6g}",
+                        "lr": f"{lr:.4g}", "planes": " ".join(f"{z * 1e3:.2f}" for z in planes),
+                        "seconds": f"{time.perf_counter() - t0:.4f}",
+                    })  # fmt: skip
+                if bar is not None:
+                    bar.update(1)
+                    bar.set_postfix(loss=f"{last_loss:.4g}")
             if main and (step % per_epoch == 0 or step == options.steps):
                 for split in ("interp", "extrap"):
-                    res = validate_views(net, data, loss_fn, options, split)
+                    with record_function("train.validate"):
+                        res = validate_views(net, data, loss_fn, options, split)
                     if res:
                         _append(run_dir / VAL_LOG, VAL_COLUMNS, {
                             "step": step, "epoch": (step - 1) // per_epoch, **{
                                 k2: (f"{v:.6g}" if isinstance(v, float) else v)
                                 for k2, v in res.items()}})  # fmt: skip
             if step % options.checkpoint_every == 0 or step == end:
-                checkpoint()
+                with record_function("train.checkpoint"):
+                    checkpoint()
     except KeyboardInterrupt:
         checkpoint()
         say(f"interrupted: checkpoint at step {step}; run the same command to continue")

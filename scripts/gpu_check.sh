@@ -132,7 +132,9 @@ do_train() {
     --out "$WORK/ds" || return 1
   nhfd train --device cuda --data "$WORK/ds" --out "$WORK/run" --steps 200 --no-progress || return 1
   cp "$WORK/run/train_log.csv" "$WORK/run/run.json" "$WORK/" 2>/dev/null
-  "$PY" scripts/gpu_probe.py train "$WORK/run" --json "$WORK/train.json"
+  "$PY" scripts/gpu_probe.py train "$WORK/run" --json "$WORK/train.json" || return 1
+  # Where a training step's time goes (host parts, device busy time, top kernels).
+  "$PY" scripts/gpu_probe.py trainprof "$WORK/ds" --views 110 --json "$WORK/trainprof.json"
 }
 
 do_build() {

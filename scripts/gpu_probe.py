@@ -5,6 +5,7 @@
     python scripts/gpu_probe.py net  [--views N]  the network in torch, one variant per row
     python scripts/gpu_probe.py frame [--views N] one device frame's stages and top kernels
     python scripts/gpu_probe.py train RUN         steps per second from RUN/train_log.csv
+    python scripts/gpu_probe.py trainprof DATA [--views N]  N training steps under the profiler
 
 Each prints a human summary and writes one JSON object to `--json` (default stdout only). The
 `net` variants are the knobs issue 35 names before any is built into the frame path: TF32,
@@ -26,6 +27,7 @@ import platform
 import sys
 import time
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -334,6 +336,56 @@ def cmd_train(args: argparse.Namespace) -> dict[str, Any]:
     return out
 
 
+def cmd_trainprof(args: argparse.Namespace) -> dict[str, Any]:
+    """`--views` training steps of the default recipe on DATA under torch.profiler: the wall
+    time in each named part of a step (`train.crop`, `.forward`, `.loss`, `.backward_step`,
+    `.log`, whose read of the loss waits for the device, `.validate`, `.checkpoint`), the
+    device's busy time, and the top kernels: whether a step is bound by the GPU or by the
+    host's launches and copies (what a graphed or compiled step would remove)."""
+    import tempfile
+
+    from torch.profiler import ProfilerActivity, profile
+
+    from nhfd.config import load_config
+    from nhfd.models.train import TrainOptions, train
+
+    dev = torch.device(args.device)
+    options = TrainOptions.from_config(load_config().config.model, device=str(dev),
+                                       steps=args.views, checkpoint_every=10**6)
+    activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if dev.type == "cuda" else [])
+    with tempfile.TemporaryDirectory() as run:
+        train(args.run, run, replace(options, steps=10), log=lambda _m: None)  # warm-up
+        t0 = time.perf_counter()
+        with profile(activities=activities) as prof:
+            result = train(args.run, run, options, log=lambda _m: None)
+        wall_s = time.perf_counter() - t0
+    events = prof.key_averages()
+    parts = {e.key: {"calls": e.count, "cpu_ms": e.cpu_time_total / 1e3,
+                     "device_ms": getattr(e, "device_time_total", 0.0) / 1e3}
+             for e in events if e.key.startswith("train.")}
+    kernels = [e for e in events if getattr(e, "self_device_time_total", 0.0) > 0]
+    busy_ms = sum(e.self_device_time_total for e in kernels) / 1e3
+    steps = args.views - 10
+    out = {"device": _device_name(dev), "steps_profiled": steps, "wall_s": wall_s,
+           "wall_ms_per_step": 1e3 * wall_s / steps, "device_busy_ms_per_step": busy_ms / steps,
+           "parts_ms_per_step": {k: {kk: (v / steps if kk != "calls" else v)
+                                     for kk, v in d.items()} for k, d in parts.items()},
+           "seconds_per_step_reported": result.seconds_per_step,
+           "options": {k: getattr(options, k) for k in ("amp", "batch", "crop_width_px",
+                                                        "crop_height_px", "steps")
+                       if hasattr(options, k)},
+           "top": events.table(sort_by="self_cuda_time_total" if dev.type == "cuda"
+                               else "self_cpu_time_total", row_limit=25,
+                               max_name_column_width=60)}
+    print(f"{steps} steps on {out['device']}: {out['wall_ms_per_step']:.1f} ms a step under the "
+          f"profiler, the device busy {out['device_busy_ms_per_step']:.1f} ms of it")
+    for k, d in out["parts_ms_per_step"].items():
+        print(f"  {k}: {d['cpu_ms']:.2f} ms host, {d['device_ms']:.2f} ms device per step "
+              f"({d['calls']} calls)")
+    print(out["top"])
+    return out
+
+
 def _size(text: str) -> tuple[int, int]:
     w, h = (int(v) for v in text.lower().split("x"))
     return w, h
@@ -342,16 +394,17 @@ def _size(text: str) -> tuple[int, int]:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("what", choices=("env", "gsplat", "net", "frame", "train"))
-    ap.add_argument("run", nargs="?", help="train: the run folder")
+    ap.add_argument("what", choices=("env", "gsplat", "net", "frame", "train", "trainprof"))
+    ap.add_argument("run", nargs="?", help="train: the run folder; trainprof: a dataset")
     ap.add_argument("--views", type=int, default=50, help="timed repetitions")
     ap.add_argument("--json", help="write the result here")
-    ap.add_argument("--device", default="cuda:0", help="net, frame: where (cpu to rehearse)")
+    ap.add_argument("--device", default="cuda:0",
+                    help="net, frame, trainprof: where (cpu to rehearse)")
     ap.add_argument("--sizes", type=_size, nargs="+", default=list(SIZES_WH),
                     help="net, frame: frame sizes WxH (default 1024x576 1920x1080)")
     args = ap.parse_args(argv)
     result = {"env": cmd_env, "gsplat": cmd_gsplat, "net": cmd_net, "frame": cmd_frame,
-              "train": cmd_train}[args.what](args)
+              "train": cmd_train, "trainprof": cmd_trainprof}[args.what](args)
     _dump(result, args.json)
     return 0
 
