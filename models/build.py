@@ -448,13 +448,25 @@ def _eval(ctx: Context) -> dict:
     data = HoloData(ctx.path("dataset"), splits=("interp", "extrap"),
                     max_views=({"interp": ctx.recipe.eval_views, "extrap": ctx.recipe.eval_views}
                                if ctx.recipe.eval_views else None))  # fmt: skip
-    out: dict = {"variants": {}, "outputs": []}
+    # The focal stacks and their scores on the training device (66 s of a GPU build on 16
+    # CPU cores, docs/gpu.md); the networks run in onnxruntime on the CPU.
+    device = ctx.recipe.train.device if ctx.recipe.train.device.startswith("cuda") else "cpu"
+    out: dict = {"variants": {}, "outputs": [], "device": device}
     for variant in ("float", *CANDIDATES):
         if not isinstance(ex.get(variant), dict):  # an older build's fp16 note
             continue
         folder = ctx.path("eval") / variant
-        res = evaluate(ctx.path(ex[variant]["path"]), ctx.path("dataset"), data=data,
-                       out_dir=folder, log=ctx.log)  # fmt: skip
+        kw = dict(data=data, out_dir=folder, log=ctx.log)
+        try:
+            res = evaluate(ctx.path(ex[variant]["path"]), ctx.path("dataset"), device=device,
+                           **kw)
+        except RuntimeError as exc:  # a CUDA error: the same scores on the CPU, and why
+            if device == "cpu":
+                raise
+            ctx.log(f"eval on {device} failed ({type(exc).__name__}: {exc}); on the CPU instead")
+            out["device"], out["device_error"] = "cpu", f"{type(exc).__name__}: {exc}"
+            device = "cpu"
+            res = evaluate(ctx.path(ex[variant]["path"]), ctx.path("dataset"), **kw)
         s = res["summary"]
         out["variants"][variant] = {**{k: v for k, v in s["all"].items()},
                                     "splits": {k: v for k, v in s.items()

@@ -132,7 +132,7 @@ def focus_check(
     sweep = np.linspace(lo, hi, FOCUS_SWEEP).tolist()
     fields = torch.stack([field[g : g + 1], target[g : g + 1]]).to(torch.complex64)
     stacks = focal_stack(fields, sweep, optics.pitch_m, [lam], ap, cache=cache)[:, :, 0]
-    view = srgb_to_linear(rgb[g])
+    view = srgb_to_linear(rgb[g].to(stacks.device))
     edges = np.linspace(lo, hi, FOCUS_BINS + 1)
     tol = ap.half_depth_of_field_m(0, 1, lam, optics.pitch_m)
     out = []
@@ -141,7 +141,7 @@ def focus_check(
         sel = np.isfinite(z) & (z >= edges[b]) & (z <= edges[b + 1])
         if sel.sum() < FOCUS_MIN_PIXELS:
             continue
-        m = torch.from_numpy(sel)
+        m = torch.from_numpy(sel).to(stacks.device)
         v = view[m] - view[m].mean()
         best = []
         for s in range(2):
@@ -181,8 +181,12 @@ def evaluate(
     out_dir: str | Path | None = None,
     data: HoloData | None = None,
     log: Callable[[str], None] = print,
+    device: str | torch.device = "cpu",
 ) -> dict:
-    """Quality of a run folder or an exported .onnx on a dataset's held-out views."""
+    """Quality of a run folder or an exported .onnx on a dataset's held-out views. `device`:
+    where the focal stacks, their scores and the focus check run (`nhfd model build
+    --device cuda` evaluates there; the network runs where its predictor does)."""
+    dev = torch.device(device)
     source = Path(source)
     limits = {s: max_views for s in splits} if max_views else None
     data = data or HoloData(data_dir, splits=splits, max_views=limits)
@@ -205,10 +209,10 @@ def evaluate(
             continue
         s = data.splits[split]
         for j, index in enumerate(s.indices):
-            rgb, target = s.rgb[j], s.field[j]
+            rgb, target = s.rgb[j].to(dev), s.field[j].to(dev)
             mask = s.alpha[j] >= ALPHA_CONTENT
-            mask = mask if mask.any() else None
-            pred = predictor(s.inputs(about["inputs"], j))
+            mask = mask.to(dev) if mask.any() else None
+            pred = predictor(s.inputs(about["inputs"], j)).to(dev)
             # Energy-matched to the target: a baseline in other units would be judged on its
             # brightness, not on its (missing) depth.
             flat = hologram_2d(rgb, like=target, mask=mask)
@@ -225,7 +229,7 @@ def evaluate(
                 "focus": focus,
             })  # fmt: skip
             if j == 0:
-                examples.append((split, index, rgb, pred, target, flat))
+                examples.append((split, index, *(t.cpu() for t in (rgb, pred, target, flat))))
     if not views:
         raise ValueError(f"{data_dir}: no views in the splits {', '.join(splits)}")
     summary = summarise(views, planes)

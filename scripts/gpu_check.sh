@@ -30,6 +30,7 @@ GPU_TESTS="tests/pipeline/test_device.py tests/scene/test_gsplat_conventions.py
   tests/models/test_fp16.py tests/models/test_amp.py tests/dataset/test_build_device.py
   tests/models/test_torch_model.py
   tests/pipeline/test_refine.py::test_refine_on_the_gpu_follows_the_cpu
+  tests/models/test_eval_stacks.py::test_evaluation_on_the_gpu_scores_as_on_the_cpu
   tests/models/test_train.py::test_a_cuda_run_resumes_on_the_cpu_from_the_same_step
   tests/test_require_cuda.py"
 export NHFD_SHARED_DATA=${NHFD_SHARED_DATA:-$REPO/.gpu/shared/data}
