@@ -16,6 +16,17 @@ and --frame-size-px W H, repeated, measures each window size in turn. The panel'
 pacing is off here (slm.refresh_hz at its maximum): the figure is the pipeline's, not the
 panel's.
 
+--quality network,sgd compares new views arriving while the previous one is refined: each
+measured view follows the same pose asked for at the variant's tier (`set_view`'s quality),
+shown and then left to rest a seeded random time in --rest-ms MIN,MAX (the same draws for every
+variant) while the worker refines it, so the measured view (open loop) arrives at a random point
+of a refinement step. The sgd row is then the time from a new view to its frame while a
+refinement ran, the network row the same with nothing running (issue 34: at most one frame
+period apart). Each variant's refinement ends with its measured view, so none runs while
+another variant is measured. A refinement begins with the view's light-field inversion (2 to 3
+s at 512 x 288 on 2 cores) and only then steps: rests longer than that put the new view in a
+step; each row records the iterations the worker had reported (`refine.swap_every`).
+
 After the results, one markdown table (one row per result, also written as <json stem>.md beside
 the JSON) under a line naming the machine: the form the README quotes.
 """
@@ -58,12 +69,14 @@ from nhfd.model_info import ModelInfo
 from nhfd.models.export import OnnxModel
 from nhfd.pipeline.device import check_cuda_frames, gpu_name, resolve_device
 from nhfd.pipeline.settings import frame_window_hw
-from nhfd.views import Orbit, View
+from nhfd.views import QUALITY_TIERS, Orbit, View
 
 # The stages status reports, in order: the frame pipeline's four (`nhfd.pipeline.frame`), then
 # the daemon's output (the region pasted into the panel and shown).
 STAGES = ("render", "inference", "propagation", "coding", "output")
 DEFAULT_MODEL = "models/nhf-donut-512.onnx"
+# The rests' seed (--rest-ms): fixed, so every variant and every run rests alike.
+REST_SEED = 20261127
 
 
 class Variant(NamedTuple):
@@ -74,6 +87,7 @@ class Variant(NamedTuple):
     device: str | None = None  # daemon.device
     inference: str | None = None  # daemon.inference
     cuda_graphs: bool | None = None  # daemon.cuda_graphs
+    quality: str | None = None  # the tier each view asks for (None: network)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -103,6 +117,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--cuda-graphs", default=None,
                    help="comma list of on, off: daemon.cuda_graphs to compare on a CUDA device "
                         "(default: the configuration's)")
+    p.add_argument("--quality", default=None,
+                   help=f"comma list of tiers the views ask for, to compare: "
+                        f"{', '.join(QUALITY_TIERS)} (default network)")
+    p.add_argument("--rest-ms", default="0,400", metavar="MIN,MAX",
+                   help="with --quality: each view rests a seeded random time in this range "
+                        "while it is refined (ms, 0 to 60000; default 0,400)")
     p.set_defaults(handler=run)
 
 
@@ -163,17 +183,24 @@ def measure(config: Config, model: Path, scene: Path, views: int, warmup: int, *
 
 
 def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, warmup: int,
-                         variants: list[tuple[str | None, ...]]) -> list[dict[str, Any]]:
+                         variants: list[tuple[str | None, ...]],
+                         rest_ms: tuple[float, float] = (0.0, 0.0)) -> list[dict[str, Any]]:
     """`model` under each `Variant` (transport, daemon.int8[, daemon.device]; None: the
     configuration's) of `variants`, each in its own worker, all started first and then given the
     same views in turn, one frame at a time (the order rotating per view): on a loaded machine
-    the variants see the same load and their medians compare.
+    the variants see the same load and their medians compare. A variant with a `quality` is
+    shown each view at that tier first, then rests a seeded random time in `rest_ms` (one
+    draw per view, the same for every variant; the link stepped as the daemon's loop does, so
+    refined frames are shown), and the view asked again open loop is the one measured.
 
     `config`: the whole configuration, because each worker runs under all of it (the frame
     pipeline joins `[daemon]`, `[slm]`, `[optics]`, `[coding]` and `[calibration]`), with the
     variant's `[daemon]` settings and `[slm]` refresh on top (`_variant_config`)."""
     info = OnnxModel(model).info
-    configs = [_variant_config(config, Variant(*v)) for v in variants]
+    variants = [Variant(*v) for v in variants]
+    configs = [_variant_config(config, v) for v in variants]
+    rests_s = np.random.default_rng(REST_SEED).uniform(rest_ms[0] * 1e-3, rest_ms[1] * 1e-3,
+                                                        warmup + views)
     for cfg in configs:  # before any worker starts
         _check_fits(cfg.daemon, cfg.slm, model, info)
     runs = []
@@ -188,17 +215,26 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
         for i, view in enumerate(_orbit(info, warmup + views)):
             for k in range(len(runs)):
                 _cfg, host, link, rows = runs[(i + k) % len(runs)]
+                quality = variants[(i + k) % len(runs)].quality
+                refined = 0
+                if quality:  # the view at its tier, refined while it rests; then a new view
+                    _show(host, link, view.with_quality(quality))
+                    _rest(link, host, float(rests_s[i]))
+                    report = link.refinement.report if link.refinement is not None else {}
+                    refined = int(report.get("iterations") or 0)
                 total_ms = _show(host, link, view)
                 if i >= warmup:
                     t = link.timings or {}
                     rows.append({**{s: t[f"{s}_ms"] for s in STAGES}, "total": total_ms,
-                                 "azimuth_deg": view.camera.azimuth_deg})  # type: ignore[union-attr]
+                                 "azimuth_deg": view.camera.azimuth_deg,  # type: ignore[union-attr]
+                                 "refined_iterations": refined})
         reports = [dict(link.model_info or {}) for _cfg, _host, link, _rows in runs]
     finally:
         for _cfg, _host, link, _rows in runs:
             link.close()
-    return [_result(model, info, cfg.daemon, rows, report)
-            for (cfg, _host, _link, rows), report in zip(runs, reports, strict=True)]
+    return [{**_result(model, info, cfg.daemon, rows, report), "quality": v.quality or "network",
+             "rest_ms": list(rest_ms)}
+            for (cfg, _host, _link, rows), report, v in zip(runs, reports, variants, strict=True)]
 
 
 def _variant_config(config: Config, v: Variant) -> Config:
@@ -251,6 +287,16 @@ def _show(host: _Host, link: Any, view: View) -> float:
             raise RuntimeError(host.errors[-1])
         time.sleep(0.0005)
     return (time.perf_counter() - t0) * 1e3
+
+
+def _rest(link: Any, host: _Host, seconds: float) -> None:
+    """Step the link for `seconds` as the daemon's loop would (refined frames are shown)."""
+    deadline = time.perf_counter() + seconds
+    while time.perf_counter() < deadline:
+        link.step()
+        if host.errors:
+            raise RuntimeError(host.errors[-1])
+        time.sleep(0.001)
 
 
 def _result(model: Path, model_info: ModelInfo, daemon: DaemonSettings,
@@ -306,13 +352,16 @@ def run(args: argparse.Namespace) -> int:
     graphs = ([{"on": True, "off": False}[g] for g in _choices(
         "--cuda-graphs", args.cuda_graphs, ("on", "off"))]
         if getattr(args, "cuda_graphs", None) else [None])
-    variants = [Variant(t, q, d, n, g) for d in devices for n in inferences for q in int8s
-                for t in transports for g in graphs]
+    qualities = (_choices("--quality", args.quality, QUALITY_TIERS)
+                 if getattr(args, "quality", None) else [None])
+    rest_ms = _rest_range(getattr(args, "rest_ms", "0,0"))
+    variants = [Variant(t, q, d, n, g, tier) for d in devices for n in inferences for q in int8s
+                for t in transports for g in graphs for tier in qualities]
     results = []
     for cfg in configs:  # each size in turn, its variants side by side
         for model in models:
             for r in measure_side_by_side(cfg, model, Path(args.scene), args.views,
-                                          args.warmup, variants):
+                                          args.warmup, variants, rest_ms):
                 results.append(r)
                 _print(r, cfg.daemon)
     machine = _machine(results)
@@ -328,6 +377,17 @@ def run(args: argparse.Namespace) -> int:
     print(table, end="")
     print(f"wrote {out} and {md}")
     return 0
+
+
+def _rest_range(text: str) -> tuple[float, float]:
+    """--rest-ms MIN,MAX in ms (0 <= MIN <= MAX <= 60000), or a ValueError naming it."""
+    try:
+        lo, hi = (float(v) for v in str(text).split(","))
+    except ValueError:
+        raise ValueError(f"--rest-ms {text!r}: give MIN,MAX in ms, e.g. 3000,4000") from None
+    if not 0 <= lo <= hi <= 60_000:
+        raise ValueError(f"--rest-ms {text!r}: need 0 <= MIN <= MAX <= 60000 ms")
+    return lo, hi
 
 
 def _devices(text: str) -> list[str]:
@@ -389,6 +449,8 @@ def _command(args: argparse.Namespace) -> str:
         words += ["--int8", args.int8]
     if getattr(args, "inference", None):
         words += ["--inference", args.inference]
+    if getattr(args, "quality", None):
+        words += ["--quality", args.quality, "--rest-ms", args.rest_ms]
     words += ["--views", str(args.views), "--warmup", str(args.warmup), "--json", args.json]
     return shlex.join(words)
 
@@ -410,7 +472,7 @@ def _ms(value: float) -> str:
 
 
 TABLE_COLUMNS = ("model", "size", "device", "network in", "transport", "int8 (served)",
-                 "median ms",
+                 "views ask", "median ms",
                  "p99 ms", *(f"{k} ms" for k in STAGES))
 
 
@@ -427,12 +489,12 @@ def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: s
              f"{', '.join(map(str, threads))} (daemon.worker_threads); nhfd {__version__}.",
              f"Command: `{command}`", "",
              "| " + " | ".join(TABLE_COLUMNS) + " |",
-             "|" + "---|" * 6 + "---:|" * (len(TABLE_COLUMNS) - 6)]
+             "|" + "---|" * 7 + "---:|" * (len(TABLE_COLUMNS) - 7)]
     for r in results:
         s = r["stages"]
         cells = [Path(r["model"]).name, f"{r['size_wh'][0]} x {r['size_wh'][1]}",
                  _device_label(r), str(r["inference"]), r["transport"],
-                 f"{r['int8']}: {r['variant']}",
+                 f"{r['int8']}: {r['variant']}", r.get("quality", "network"),
                  _ms(s["total"]["median_ms"]), _ms(s["total"]["p99_ms"]),
                  *(_ms(s[k]["median_ms"]) for k in STAGES)]
         lines.append("| " + " | ".join(cells) + " |")

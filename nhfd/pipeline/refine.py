@@ -288,13 +288,24 @@ class BenchForward:
     def __call__(self, phase: torch.Tensor, cancelled: Callable[[], bool] = _never
                  ) -> torch.Tensor:
         """The intensity `[K, D, C, h, w]` of the phase `[K, C, Hr, Wr]` (differentiable);
-        `cancelled()` is polled per colour (raising `Cancelled`)."""
+        `cancelled()` is polled before each colour and after its pupil (raising `Cancelled`),
+        and between each colour's stages when the result's gradient is taken: a new view need
+        not wait for a whole backward pass (2 of the 3 parts of a step)."""
         s = self.encoder.settings
+
+        def poll(grad: torch.Tensor) -> torch.Tensor:
+            if cancelled():
+                raise Cancelled  # out of `backward()`: the step is dropped
+            return grad
+
+        hooks = phase.requires_grad and torch.is_grad_enabled() and cancelled is not _never
         out = []
         for c, lam in enumerate(s.wavelengths_m):
             if cancelled():
                 raise Cancelled
             u = torch.polar(torch.ones_like(phase[:, c]), phase[:, c])  # [K, Hr, Wr]
+            if hooks:
+                u.register_hook(poll)
             if self.source is not None:
                 u = u * self.source[c]
             if s.zernike_rad:
@@ -304,10 +315,17 @@ class BenchForward:
                                                      self.device)
                 u = apply_pupil(u, self.cutoffs[c], s.zernike_rad, s.zernike_wavelength_m / lam,
                                 self._pupils[c])
+                if cancelled():  # the pupil's padded FFT pair costs as much as propagating
+                    raise Cancelled
+                if hooks:
+                    u.register_hook(poll)
             v = propagate(u[:, None], self.z_m[c], s.pitch_m, [lam],
                           aperture=Aperture(s.aperture_shape, (self.cutoffs[c],)),  # type: ignore[arg-type]
                           padding=s.padding, cache=self.encoder.cache)  # [K, D, 1, Hr, Wr]
-            out.append(v[..., 0, self.window[0], self.window[1]].abs().square())
+            intensity = v[..., 0, self.window[0], self.window[1]].abs().square()
+            if hooks:
+                intensity.register_hook(poll)
+            out.append(intensity)
         return torch.stack(out, dim=2)
 
 
@@ -481,7 +499,11 @@ def refine(start: np.ndarray, target: Target, model: BenchForward, settings: Ref
             opt = torch.optim.Adam([theta], lr=lr)
         else:
             opt.zero_grad(set_to_none=True)
-            loss.backward()
+            try:
+                loss.backward()
+            except Cancelled:  # mid-step: the phase is as it was, the best frame kept
+                report.stop = "cancelled"
+                break
             opt.step()
         it += 1
     report.seconds = clock() - t0

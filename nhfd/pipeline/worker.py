@@ -482,6 +482,8 @@ class Refiner:
                                          active_calibration(self.config),
                                          refocus_m=view.refocus_m), device=model.device)
             self._refine(seq, view, scene, model.info, enc, network, stop)
+        except Cancelled:  # a newer message stopped it (in the inversion or a step): no error
+            pass
         except Exception as exc:  # reported to the daemon; the frame shown stays
             self.send(("refine_error", seq, f"{type(exc).__name__}: {exc}"))
 

@@ -69,6 +69,28 @@ def test_sgd_swaps_in_better_frames_and_a_new_view_cancels_it(short_dir, mecom_t
         r.stop()
 
 
+def test_a_new_view_during_the_inversion_cancels_without_an_error(short_dir, mecom_twin, tiny):
+    """Refinement starts with the view's light-field inversion (seconds on a CPU): a new view
+    then cancels it, which is not a failure (`nhfd bench pipeline --quality network,sgd` found
+    each such cancel reported as "refinement failed: Cancelled")."""
+    r = _running(short_dir, mecom_twin, tiny)
+    try:
+        c = r.client()
+        for i in range(3):
+            seq = c.call("set_view", pose=dict(FRONT_POSE, position=[0.02 * i, 0.0, -2.0]),
+                         quality="sgd")["seq"]
+            wait_until(lambda seq=seq: c.status()["view"]["applied_seq"] == seq, 20,
+                       "the network frame")
+            refine = c.status()["frames"]["refine"] or {}
+            assert refine.get("iterations", 0) == 0  # still inverting: nothing refined yet
+        seq = c.call("set_view", pose=FRONT_POSE)["seq"]
+        wait_until(lambda: c.status()["view"]["applied_seq"] == seq, 20, "an open-loop view")
+        time.sleep(0.5)
+        assert c.status()["errors"] == []
+    finally:
+        r.stop()
+
+
 def test_bad_tiers_are_refused_and_nothing_changes(short_dir, mecom_twin, tiny):
     r = _running(short_dir, mecom_twin, tiny)
     try:

@@ -113,6 +113,40 @@ def test_cancel_keeps_the_best_frame_so_far() -> None:
     assert out.report.loss == min(h[2] for h in out.history)
 
 
+def test_a_cancel_during_the_backward_pass_stops_it_there() -> None:
+    """A new view need not wait for a step's backward pass (2 of its 3 parts): the bench model
+    polls between each colour's stages while its gradient is taken."""
+    enc, grey, target = start_and_target(encoder(**PUPIL))
+    model = BenchForward(enc, PLANES_M)
+    armed, polls = [False], []
+
+    class ArmedAfterForward:
+        encoder = enc
+
+        def __call__(self, phase: torch.Tensor, cancelled=lambda: False) -> torch.Tensor:
+            phase.register_hook(lambda g: backward_done.append(1))  # the last of a backward
+            out = model(phase, cancelled)
+            armed[0] = len(seen) == 2
+            seen.append(1)
+            return out
+
+    seen: list[int] = []
+    backward_done: list[int] = []
+
+    def cancelled() -> bool:
+        polls.append(armed[0])
+        return armed[0]
+
+    out = refine(grey, target, ArmedAfterForward(), RefineSettings(iterations=50),
+                 cancelled=cancelled)
+    assert out.report.stop == "cancelled"
+    # The third step's loss was taken; its backward polled once and stopped: no fourth forward.
+    assert len(out.history) == 3 and len(seen) == 3
+    assert polls.count(True) == 1
+    assert len(backward_done) == 2  # the third step's backward never reached the phase
+    assert out.report.loss == min(h[2] for h in out.history)
+
+
 class _Breaks:
     """A bench model that gives NaN (or grows noise) from its `at`-th call on."""
 
