@@ -32,10 +32,16 @@ from nhfd.config import RefineSettings, load_config
 from nhfd.holo import band_limit
 from nhfd.pipeline.device import resolve_device
 from nhfd.pipeline.encoder import Encoder
-from nhfd.pipeline.refine import BenchForward, grey_phase, refine, target_from_field
-from nhfd.pipeline.settings import FrameSettings
+from nhfd.pipeline.refine import (
+    BenchForward,
+    configured_info,
+    grey_phase,
+    refine,
+    target_from_field,
+)
+from nhfd.pipeline.settings import frame_settings
 
-# The relay's pupil a calibration fits (Noll 5..11, rad at the green line): the bench's
+# The relay's pupil a calibration fits (Noll 5..11, rad at the middle colour): the bench's
 # aberrations cost an extra padded FFT pair per colour per step, so the workload carries them.
 PUPIL_ZERNIKE_RAD = (0.3, -0.2, 0.15, -0.1, 0.05, 0.0, 0.1)
 SEED = 20261127
@@ -72,19 +78,14 @@ def workload(window_hw: tuple[int, int], n_planes: int, device: torch.device
              ) -> tuple[Encoder, torch.Tensor, tuple[float, ...]]:
     """The encoder (configured optics with the pupil, amplitude scale fitted to the field),
     the seeded reference field `[3, h, w]` and the planes (metres)."""
-    c = load_config().config
-    o, slm = c.optics, c.slm
+    config = load_config().config
+    slm = config.slm
     h, w = window_hw
     if not (1 <= h <= slm.height_px and 1 <= w <= slm.width_px):
         raise ValueError(f"--size {w}x{h}: must fit the {slm.width_px} x {slm.height_px} panel")
-    s = FrameSettings(panel_hw=(slm.height_px, slm.width_px), window_hw=(h, w),
-                      pitch_m=slm.pitch_m, wavelengths_m=tuple(v * 1e-9 for v in o.wavelengths_nm),
-                      z0_m=o.z0_mm * 1e-3, aperture_shape=o.aperture.shape,
-                      cutoff_per_px=tuple(o.aperture.cutoff_per_px), amplitude_scale=1.0,
-                      zero_below=float(c.coding.zero_below),
-                      phase_stroke_rad=tuple(float(v) for v in slm.phase_stroke_rad),
-                      padding=o.padding, zernike_rad=PUPIL_ZERNIKE_RAD,
-                      zernike_wavelength_m=o.wavelengths_nm[1] * 1e-9)
+    info = configured_info(config.optics, slm, window_hw)
+    s = dataclasses.replace(frame_settings(config, info, None), window_hw=(h, w),
+                            zernike_rad=PUPIL_ZERNIKE_RAD)
     g = torch.Generator().manual_seed(SEED)
     noise = torch.polar(torch.rand((3, h, w), generator=g),
                         2 * math.pi * torch.rand((3, h, w), generator=g))
@@ -95,7 +96,7 @@ def workload(window_hw: tuple[int, int], n_planes: int, device: torch.device
     enc = Encoder(s, device=device)
     peak = float(enc.to_slm(reference).abs().max())
     enc = Encoder(dataclasses.replace(s, amplitude_scale=1.01 * peak), device=device)
-    lo, hi = o.volume_mm[0] * 1e-3, o.volume_mm[1] * 1e-3
+    lo, hi = info.volume_m
     planes = tuple(lo + (hi - lo) * (i + 0.5) / n_planes for i in range(n_planes))
     return enc, reference, planes
 

@@ -15,7 +15,6 @@ out (`finally`, each read back by the guardian), and every switch-on is in the a
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Callable
 from typing import Any
 
@@ -26,7 +25,7 @@ from nhfd.drivers.camera import colour_planes
 from nhfd.frame_message import CaptureReply, CaptureRequest
 
 from .audit import AuditLog
-from .colour import CaptureBench, CapturePanel, ShownViews
+from .colour import CaptureBench, CapturePanel, ShownViews, diodes_in_turn
 from .frame_link import PanelBuffer
 from .guardian_link import LaserLink
 from .jobs import Job
@@ -87,8 +86,6 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: Ca
     frames = request.frames or None
     buffer = PanelBuffer(panel.blank_frame())
     panels = [buffer.frame(r.top, r.left, g) for g in request.grey]
-    who = {"who": "daemon", "job": job.id}
-
     def go_on() -> None:
         job.check()
         if not wanted():
@@ -98,31 +95,17 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: Ca
         go_on()
         _check_laser(laser)
 
-    def light(name: str, on: bool) -> None:
-        laser.enable(name, on)
-        if on:
-            audit.write(who, "laser enable (citl)", channel=name, power_pct=powers[name])
-
     def at_plane(i: int) -> None:
         go_on()
         stage.move_to(cal.stage_mm_for(request.z_m[i]))
 
-    try:
-        with panel.hold():
-            try:
-                for ch in COLOURS:
-                    laser.enable(ch, False)
-                camera.capture_dark(frames)
-                images, saturated = colour_planes(
-                    len(request.z_m), len(panels), at_plane=at_plane, before_colour=before_colour,
-                    show=lambda k, ch: panel.show_colour(panels[k], ch), light=light,
-                    capture=lambda: bench.capture(frames))
-            finally:
-                for ch in COLOURS:
-                    with contextlib.suppress(Exception):
-                        laser.enable(ch, False)
-                audit.write(who, "laser all disabled (citl)")
-    finally:
-        with contextlib.suppress(Exception):  # back to what the control loop last showed
-            panel.resume(shown.last_frame, shown.shown_seq)
+    with diodes_in_turn(job, "citl", powers, panel=panel, laser=laser, audit=audit,
+                        shown=shown) as light:
+        for ch in COLOURS:
+            laser.enable(ch, False)
+        camera.capture_dark(frames)
+        images, saturated = colour_planes(
+            len(request.z_m), len(panels), at_plane=at_plane, before_colour=before_colour,
+            show=lambda k, ch: panel.show_colour(panels[k], ch), light=light,
+            capture=lambda: bench.capture(frames))
     return CaptureReply(images, saturated)

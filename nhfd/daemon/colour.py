@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
 from pathlib import Path
 from typing import Any, Protocol
@@ -94,6 +95,37 @@ class ShownViews(Protocol):
     shown_seq: int
 
 
+@contextlib.contextmanager
+def diodes_in_turn(job: Job, what: str, powers_pct: dict[str, float], *, panel: CapturePanel,
+                   laser: LaserLink, audit: AuditLog, shown: ShownViews
+                   ) -> Iterator[Callable[[str, bool], None]]:
+    """A sequence that lights one diode at a time on a held panel (the capture-mode snapshot,
+    citl's captures; `what` names it in the audit log): yields `light(channel, on)`, which
+    switches a diode and audits each switch-on with its power from `powers_pct`. On every way
+    out every diode is switched off (each read back by the guardian), that is audited, and the
+    panel shows the control loop's last view again."""
+    who = {"who": "daemon", "job": job.id}
+
+    def light(channel: str, on: bool) -> None:
+        laser.enable(channel, on)
+        if on:
+            audit.write(who, f"laser enable ({what})", channel=channel,
+                        power_pct=powers_pct[channel])
+
+    try:
+        with panel.hold():
+            try:
+                yield light
+            finally:
+                for ch in COLOURS:
+                    with contextlib.suppress(Exception):
+                        laser.enable(ch, False)
+                audit.write(who, f"laser all disabled ({what})")
+    finally:
+        with contextlib.suppress(Exception):  # back to what the control loop last showed
+            panel.resume(shown.last_frame, shown.shown_seq)
+
+
 def capture_colours(job: Job, path: Path, frames: int | None, *, bench: CaptureBench,
                     panel: CapturePanel, laser: LaserLink, audit: AuditLog,
                     shown: ShownViews) -> dict[str, Any]:
@@ -114,31 +146,18 @@ def capture_colours(job: Job, path: Path, frames: int | None, *, bench: CaptureB
         raise RuntimeError("no colour has power: set per-channel power (laser power) first")
     base = shown.last_frame if shown.last_frame is not None else panel.blank_frame()
     images: dict[str, np.ndarray] = {}
-    try:
-        with panel.hold():
+    with diodes_in_turn(job, "capture mode", powers, panel=panel, laser=laser, audit=audit,
+                        shown=shown) as light:
+        for ch in lit:
+            job.check()
+            for other in COLOURS:  # all off, and read back by the guardian
+                laser.enable(other, False)
+            panel.show_colour(base, ch)
+            light(ch, True)
             try:
-                for ch in lit:
-                    job.check()
-                    for other in COLOURS:  # all off, and read back by the guardian
-                        laser.enable(other, False)
-                    panel.show_colour(base, ch)
-                    laser.enable(ch, True)
-                    audit.write({"who": "daemon", "job": job.id},
-                                "laser enable (capture mode)", channel=ch,
-                                power_pct=powers[ch])
-                    try:
-                        images[ch] = bench.capture(frames).image
-                    finally:
-                        laser.enable(ch, False)
+                images[ch] = bench.capture(frames).image
             finally:
-                for ch in COLOURS:
-                    with contextlib.suppress(Exception):
-                        laser.enable(ch, False)
-                audit.write({"who": "daemon", "job": job.id},
-                            "laser all disabled (capture mode)")
-    finally:
-        with contextlib.suppress(Exception):  # back to what the control loop last computed
-            panel.resume(shown.last_frame, shown.shown_seq)
+                light(ch, False)
     # A colour camera sees each colour in its own channel; a mono one gives [H, W] per colour.
     planes = {ch: img if img.ndim == 2 else img[COLOURS.index(ch)] for ch, img in images.items()}
     zero = np.zeros_like(next(iter(planes.values())))

@@ -10,6 +10,7 @@ the phase from here, on the `fftfreq` grid the angular spectrum method uses.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import torch
 
@@ -55,6 +56,15 @@ def pupil_phase(hw: tuple[int, int], cutoff_per_px: float, zernike_rad: tuple[fl
         if a:
             out += a * zernike(FIRST_NOLL + k, rho, theta)
     return out * scale
+
+
+def pupil_scales(zernike_wavelength_m: float, wavelengths_m: Sequence[float]
+                 ) -> tuple[float, ...]:
+    """Each colour's `scale` (lambda_ref / lambda) for coefficients given at
+    `zernike_wavelength_m`, the middle colour's wavelength when 0: one rule for the encoder's
+    precompensating kernels and the bench models that apply the pupil."""
+    lam_ref = zernike_wavelength_m or wavelengths_m[len(wavelengths_m) // 2]
+    return tuple(lam_ref / lam for lam in wavelengths_m)
 
 
 def pupil_transfer(field_hw: tuple[int, int], cutoff_per_px: float,

@@ -20,7 +20,7 @@ from nhfd.optics.aperture import Aperture
 from nhfd.optics.asm import propagation_kernels, transfer_function
 from nhfd.optics.cache import KernelCache
 from nhfd.optics.padding import plan_padding
-from nhfd.optics.pupil import pupil_phase
+from nhfd.optics.pupil import pupil_phase, pupil_scales
 
 
 class RegionPropagator:
@@ -151,7 +151,7 @@ def _kernels_precompensated(hw: tuple[int, int], pitch_m: float, lams: tuple[flo
     key that names the aberration (a kernel for other coefficients is never reused). Computed
     on the CPU (float64 pupil phases), then moved to `device` once."""
     cutoffs = aperture.cutoffs(len(zs))
-    lam_ref = zernike_wavelength_m or lams[len(lams) // 2]
+    scales = pupil_scales(zernike_wavelength_m, lams)
     out = []
     for c, z in enumerate(zs):
         lam = lams[c]
@@ -162,10 +162,10 @@ def _kernels_precompensated(hw: tuple[int, int], pitch_m: float, lams: tuple[flo
                    c: int = c) -> torch.Tensor:
             padded_hw = plan.padded_hw  # type: ignore[attr-defined]
             k = transfer_function(padded_hw, pitch_m, [lam], [z], aperture=ap)[0, 0]
-            ph = pupil_phase(padded_hw, cutoffs[c], zernike_rad, lam_ref / lam)
+            ph = pupil_phase(padded_hw, cutoffs[c], zernike_rad, scales[c])
             return (k * torch.polar(torch.ones_like(ph), -ph).to(k.dtype)).to(device)
 
-        key = ("asm-pupil", plan.padded_hw, pitch_m, lam, z, ap, zernike_rad, lam_ref,
+        key = ("asm-pupil", plan.padded_hw, pitch_m, lam, z, ap, zernike_rad, scales[c],
                str(device))  # fmt: skip
         out.append((slice(c, c + 1), plan.padded_hw, cache.get(key, kernel)[None]))
     return out

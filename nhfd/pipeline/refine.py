@@ -27,7 +27,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
@@ -51,7 +51,7 @@ from nhfd.optics import (
     phase_to_grey,
     propagate,
 )
-from nhfd.optics.pupil import apply_pupil, pupil_transfer
+from nhfd.optics.pupil import apply_pupil, pupil_scales, pupil_transfer
 from nhfd.scene.lightfield import DepthMapping
 from nhfd.views import QUALITY_TIERS, View
 
@@ -198,26 +198,32 @@ def exact_reference(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[
     return band_limit(holo.field, aperture).to(torch.complex64)
 
 
+def configured_info(optics: OpticsSettings, slm: SLMSettings, window_hw: tuple[int, int], *,
+                    fov_x_deg: float = SCENE_FOV_X_DEG) -> ModelInfo:
+    """What the frame path needs of a model, from the configuration alone: the configured
+    optics (`[optics]`, `[slm]`'s pitch), a `fov_x_deg` camera across the `window_hw` window, an
+    amplitude scale of 1 and no depth mapping (`scene_info` adds a view's own)."""
+    h, w = window_hw
+    fx = 0.5 * w / math.tan(math.radians(fov_x_deg) / 2)
+    return ModelInfo(inputs="rgb", wavelengths_m=tuple(v * 1e-9 for v in optics.wavelengths_nm),
+                     pitch_m=slm.pitch_m, aperture_shape=optics.aperture.shape,  # type: ignore[arg-type]
+                     cutoff_per_px=tuple(optics.aperture.cutoff_per_px), z0_m=optics.z0_mm * 1e-3,
+                     volume_m=(optics.volume_mm[0] * 1e-3, optics.volume_mm[1] * 1e-3),
+                     amplitude_scale=1.0, train_size_hw=(h, w), input_multiple=1, fx_px=fx,
+                     fy_px=fx)
+
+
 def scene_info(optics: OpticsSettings, slm: SLMSettings, view: View, scene: Scene,
                window_hw: tuple[int, int], *, fov_x_deg: float = SCENE_FOV_X_DEG) -> ModelInfo:
     """What the frame path needs of a model, for a scene served without one (the `exact`
-    tier, and `sgd`/`citl` from it): the configured optics (`[optics]`, `[slm]`'s pitch), a
-    `fov_x_deg` camera across the window, and the depth mapping of this view's own content (its
-    robust near and far depths, `nhfd.holo.scene_depth_range`, onto the volume). The amplitude
-    scale is 1: code with `amplitude_scale_of` the field."""
-    h, w = window_hw
-    fx = 0.5 * w / math.tan(math.radians(fov_x_deg) / 2)
-    volume = (optics.volume_mm[0] * 1e-3, optics.volume_mm[1] * 1e-3)
-    base = dict(inputs="rgb", wavelengths_m=tuple(v * 1e-9 for v in optics.wavelengths_nm),
-                pitch_m=slm.pitch_m, aperture_shape=optics.aperture.shape,
-                cutoff_per_px=tuple(optics.aperture.cutoff_per_px), z0_m=optics.z0_mm * 1e-3,
-                volume_m=volume, amplitude_scale=1.0, train_size_hw=(h, w), input_multiple=1,
-                fx_px=fx, fy_px=fx)
-    r = render_view(view, scene, ModelInfo(**base), window_hw)  # type: ignore[arg-type]
+    tier, and `sgd`/`citl` from it): `configured_info`, with the depth mapping of this view's
+    own content (its robust near and far depths, `nhfd.holo.scene_depth_range`, onto the
+    volume). The amplitude scale is 1: code with `amplitude_scale_of` the field."""
+    info = configured_info(optics, slm, window_hw, fov_x_deg=fov_x_deg)
+    r = render_view(view, scene, info, window_hw)
     d = scene_depth_range([r.depth], [r.alpha])
-    mapping = DepthMapping.from_range(d["d_near"], d["d_far"], *volume)
-    return ModelInfo(**base, mapping=InfoMapping(mapping.a_m, mapping.b_m,  # type: ignore[arg-type]
-                                                 d["d_near"], d["d_far"]))
+    mapping = DepthMapping.from_range(d["d_near"], d["d_far"], *info.volume_m)
+    return replace(info, mapping=InfoMapping(mapping.a_m, mapping.b_m, d["d_near"], d["d_far"]))
 
 
 def amplitude_scale_of(reference: torch.Tensor, encoder: Encoder) -> float:
@@ -282,6 +288,7 @@ class BenchForward:
         self.window = (slice(r.window_top, r.window_top + s.window_hw[0]),
                        slice(r.window_left, r.window_left + s.window_hw[1]))
         self.cutoffs = s.aperture.cutoffs(len(s.wavelengths_m))
+        self.pupil_scales = pupil_scales(s.zernike_wavelength_m, s.wavelengths_m)
         # SLM -> each plane: the reverse of the encoder's propagation, plus the plane's depth.
         self.z_m = [[-zc + dz for dz in self.planes_m] for zc in s.colour_propagation_z_m]
 
@@ -309,12 +316,11 @@ class BenchForward:
             if self.source is not None:
                 u = u * self.source[c]
             if s.zernike_rad:
+                scale = self.pupil_scales[c]
                 if c not in self._pupils:
                     self._pupils[c] = pupil_transfer(u.shape[-2:], self.cutoffs[c],
-                                                     s.zernike_rad, s.zernike_wavelength_m / lam,
-                                                     self.device)
-                u = apply_pupil(u, self.cutoffs[c], s.zernike_rad, s.zernike_wavelength_m / lam,
-                                self._pupils[c])
+                                                     s.zernike_rad, scale, self.device)
+                u = apply_pupil(u, self.cutoffs[c], s.zernike_rad, scale, self._pupils[c])
                 if cancelled():  # the pupil's padded FFT pair costs as much as propagating
                     raise Cancelled
                 if hooks:

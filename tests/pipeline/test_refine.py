@@ -347,3 +347,20 @@ def test_the_kept_pupil_transfer_is_the_pupil() -> None:
     assert float((got - field).abs().max()) > 0.1  # the pupil does something here
     with pytest.raises(ValueError, match=r"pupil transfer \(80, 112\): expected \[80, 110\]"):
         apply_pupil(field[..., :55], 0.25, z, 0.8, kept)
+
+
+def test_the_bench_model_reads_the_pupil_at_the_encoders_reference_wavelength() -> None:
+    """A pupil given with `zernike_wavelength_m = 0` is at the middle colour's wavelength for
+    the encoder's precompensating kernels; the bench model must read it the same way (it took
+    0 / lambda, no pupil at all)."""
+    enc, grey, _ = start_and_target(encoder(**PUPIL))
+    unset = encoder(**{**PUPIL, "zernike_wavelength_m": 0.0,
+                       "amplitude_scale": enc.settings.amplitude_scale})
+    phase = grey_phase(grey[None], enc)
+    with torch.no_grad():
+        a = BenchForward(enc, PLANES_M)(phase)
+        b = BenchForward(unset, PLANES_M)(phase)
+        plain = BenchForward(encoder(amplitude_scale=enc.settings.amplitude_scale),
+                             PLANES_M)(phase)
+    assert float((a - b).abs().max()) <= 1e-6 * float(a.abs().max())
+    assert float((a - plain).abs().max()) > 0.1 * float(a.abs().max())
