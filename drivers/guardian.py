@@ -145,6 +145,9 @@ class Guardian:
         # guessing between an expiry and a fault.
         self.trips = 0
         self.last_trip: dict[str, Any] | None = None
+        # The longest time between two heartbeats of one controller session (s): the guardian's
+        # own record of how late the daemon's control loop has been.
+        self.max_heartbeat_gap_s = 0.0
         self._expiries_seen = laser.expiries
         self._sel = selectors.DefaultSelector()
         self._server: socket.socket | None = None
@@ -347,12 +350,17 @@ class Guardian:
             return {"off": True, "pid": os.getpid()}
         if op == "heartbeat":
             client.controller = True
-            self._last_heartbeat = time.monotonic()
+            now = time.monotonic()
+            if self._last_heartbeat is not None:
+                self.max_heartbeat_gap_s = max(self.max_heartbeat_gap_s,
+                                               now - self._last_heartbeat)
+            self._last_heartbeat = now
             if laser.connected:  # the reply tells an arming that just ran out as a trip
                 self._service_laser()
             return {"armed": laser.armed, "armed_remaining_s": laser.armed_remaining_s,
                     "fault": laser.fault, "connected": laser.connected, "trips": self.trips,
-                    "last_trip": self.last_trip}
+                    "last_trip": self.last_trip,
+                    "max_heartbeat_gap_ms": round(self.max_heartbeat_gap_s * 1e3, 1)}
         if op == "off":
             # Raises (and the client hears why) unless every channel read back off.
             if laser.connected:

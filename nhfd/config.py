@@ -510,6 +510,9 @@ class DaemonSettings(_Section):
     arm_confirm_timeout_s: Annotated[float, Field(ge=1, le=120)] = 10.0
     arm_confirm_port: str = ""
     arm_confirm_line: Literal["cts", "dsr"] = "cts"
+    # Whether a TCP or web-view peer may start what makes a laser emit (a citl view, a
+    # capture-mode snapshot, a power change or an enable while armed); off and disarm always.
+    remote_emission: bool = False
     # Scenes: the most Gaussians a scene may declare, and the memory a scene load may take (MB).
     max_gaussians: Annotated[int, Field(ge=1, le=1_000_000_000)] = 20_000_000
     scene_memory_mb: Annotated[int, Field(ge=64, le=1 << 20)] = 8192

@@ -19,6 +19,8 @@ from typing import Any
 
 import numpy as np
 
+# What a view's first frame can be: the network's, or the exact one of a scene with no model.
+FRAME_TIERS = ("network", "exact")
 # The frame pipeline's stages, in order (`nhfd.pipeline.frame.compute_frame`); the daemon adds
 # "output" (the region pasted into the panel and shown).
 STAGES = ("render", "inference", "propagation", "coding")
@@ -107,6 +109,8 @@ class FrameMessage:
                       processes), set just before sending
     grey_hwc          the slot holds the grey region as `[h, w, 3]` (the SLM's interleaved
                       layout, which a device frame computes) instead of `[3, h, w]`
+    tier              what the frame is: "network" (the model's), or "exact" (a scene served
+                      without a model: the view's own hologram, its first frame)
     """
 
     region: Region
@@ -121,10 +125,14 @@ class FrameMessage:
     grey: np.ndarray | None = None
     rgb: np.ndarray | None = None
     grey_hwc: bool = False
+    tier: str = "network"
 
     def __post_init__(self) -> None:
         if not isinstance(self.region, Region):
             raise ValueError(f"frame region = {self.region!r}: expected a Region")
+        if self.tier not in FRAME_TIERS:
+            raise ValueError(f"frame tier = {self.tier!r}: expected one of "
+                             f"{', '.join(FRAME_TIERS)}")
         if not isinstance(self.timings, StageTimes):
             raise ValueError(f"frame timings = {self.timings!r}: expected StageTimes")
         object.__setattr__(self, "grey_shape", _shape("grey_shape", self.grey_shape))
@@ -189,29 +197,58 @@ class RefinedFrame:
     """A better frame for a view already shown (the progressive mode of issue 34), as the worker
     reports it while the view rests.
 
-    region   where the subframes go on the panel (the network frame's region)
-    grey     the K subframes `[K, 3, h, w]` uint8, shown in turn one per refresh; None when
-             only the report changed (a refinement that stopped without a better frame)
-    report   the refinement so far: `REFINE_KEYS` (tier, iterations, seconds, loss, the
-             estimated PSNR in dB and the start's, why it stopped or "" while it runs)
-    Pickled through the pipe: a better frame comes every `refine.swap_every` iterations at most.
+    region      where the subframes go on the panel (the network frame's region)
+    grey        the K subframes `[K, 3, h, w]` uint8, shown in turn one per refresh, when they
+                travel in the message (the pickled transport); None when they are in a
+                shared-memory refine slot (`slot`) or when only the report changed (a
+                refinement that stopped without a better frame)
+    report      the refinement so far: `REFINE_KEYS` (tier, iterations, seconds, loss, the
+                estimated PSNR in dB and the start's, why it stopped or "" while it runs)
+    slot        the refine slot holding the subframes `[K, 3, h, w]` uint8 (channel-first,
+                contiguous), or None; the daemon gives it back once it shows newer ones
+    grey_shape  the subframes' shape `[K, 3, h, w]` when they are in `slot`
+    A better frame comes every `refine.swap_every` iterations at most. In a slot, what crosses
+    the pipe is a few hundred bytes whatever K and the panel: the daemon's control loop then
+    pastes one subframe per refresh straight from the slot.
     """
 
     region: Region
     grey: np.ndarray | None
     report: dict[str, Any]
+    slot: int | None = None
+    grey_shape: tuple[int, int, int, int] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.region, Region):
             raise ValueError(f"refined region = {self.region!r}: expected a Region")
         g = self.grey
-        if g is not None and (g.dtype != np.uint8 or g.ndim != 4 or
-                              g.shape[2:] != (self.region.height, self.region.width)):
+        hw = (self.region.height, self.region.width)
+        if g is not None and (g.dtype != np.uint8 or g.ndim != 4 or g.shape[2:] != hw):
             raise ValueError(f"refined grey {g.dtype} {list(g.shape)}: expected uint8 [K, C, "
                              f"{self.region.height}, {self.region.width}]")
+        if self.slot is not None:
+            shape = tuple(self.grey_shape or ())
+            if (g is not None or not (isinstance(self.slot, int) and self.slot >= 0)
+                    or len(shape) != 4 or shape[2:] != hw or min(shape) < 1):
+                raise ValueError(f"refined slot {self.slot!r} with grey_shape {list(shape)}: "
+                                 f"expected a slot index >= 0, [K, C, {hw[0]}, {hw[1]}] and no "
+                                 "grey in the message")
+            object.__setattr__(self, "grey_shape", tuple(int(d) for d in shape))
         missing = [k for k in REFINE_KEYS if k not in self.report]
         if missing:
             raise ValueError(f"refined report: missing {', '.join(missing)}")
+
+    @property
+    def subframes(self) -> int:
+        """K: how many subframes it carries (0: a report only)."""
+        if self.grey is not None:
+            return int(self.grey.shape[0])
+        return self.grey_shape[0] if self.slot is not None and self.grey_shape else 0
+
+    def in_slot(self, slot: int) -> RefinedFrame:
+        """This frame with its subframes written to refine slot `slot` (by the caller)."""
+        assert self.grey is not None
+        return replace(self, grey=None, slot=slot, grey_shape=tuple(self.grey.shape))
 
 
 @dataclass(frozen=True, eq=False)

@@ -258,7 +258,7 @@ def human_refine(r: dict[str, Any]) -> str:
     start = r.get("start_psnr_db")
     gain = (f"{psnr:.1f} dB (from {start:.1f})" if psnr is not None and start is not None
             else "no estimate yet")
-    stop = r.get("stop") or "refining"
+    stop = r.get("stop") or r.get("phase") or "refining"
     subframes = f", {r['subframes']} subframes" if r.get("subframes", 0) > 1 else ""
     return (f"{r['tier']} of view {r['seq']}: {r.get('iterations', 0)} iterations in "
             f"{r.get('seconds', 0.0):.1f} s, {gain}, {r.get('swaps', 0)} frames swapped in"
@@ -296,7 +296,8 @@ def _human(cmd: str, result: Any) -> str:
         rest = ", ".join(f"{k} {v}" for k, v in result.items() if k != "job")
         return f"job {result['job']} queued" + (f" ({rest})" if rest else "")
     if cmd == "set-view":
-        return f"view seq {result['seq']}: {json.dumps(result['view'])}"
+        warning = f"\nwarning: {result['warning']}" if result.get("warning") else ""
+        return f"view seq {result['seq']}: {json.dumps(result['view'])}{warning}"
     if isinstance(result, dict):
         return ", ".join(f"{k}: {v}" for k, v in result.items())
     return str(result)

@@ -293,6 +293,18 @@ class ArmingGate:
             raise RpcError(FORBIDDEN, "arming is refused through an SSH tunnel: a person arms "
                            "on the bench's machine", {"field": "action", "allowed": allowed})
 
+    def authorise_emission(self, conn: Connection, what: str) -> None:
+        """RpcError(FORBIDDEN) when `conn` is a remote peer (TCP, the web view's clients) asking
+        for `what`, something that makes a laser emit, and `daemon.remote_emission` is false:
+        a person at the bench starts emission, as they arm. `laser off` and `disarm` are never
+        asked about."""
+        if conn.remote and not self.settings.remote_emission:
+            raise RpcError(FORBIDDEN, f"{what} makes a laser emit, and {conn.describe()} may not "
+                           "start that (daemon.remote_emission = false): ask from the bench's "
+                           "machine (nhfctl over the Unix socket), or set "
+                           "daemon.remote_emission = true", {"field": "daemon.remote_emission",
+                                                             "allowed": "the Unix socket"})
+
     def arm(self, conn: Connection, duration_s: float) -> dict[str, Any]:
         """The `laser arm` request: armed now (no confirmation configured), or a pending job
         that waits for the person at the bench."""

@@ -9,8 +9,12 @@ images; the worker maps them onto the SLM's grid (the daemon imports no optics).
 
 Laser safety: it never arms and never sets a power. Before anything moves or emits, and before
 each colour, it reads the arming (the guardian's last heartbeat) and stops with a `CitlStopped`
-naming why when the lasers are disarmed, expired or faulted. Every colour is off on every way
-out (`finally`, each read back by the guardian), and every switch-on is in the audit log.
+naming why when the lasers are disarmed, expired or faulted. The run belongs to the emission
+session of its view's request (`nhfd.daemon.guardian_link`): once a laser off, disarm, stop or
+shutdown has ended that session it switches nothing on (checked under the lock the off takes),
+a capture it had under way does not count, and a later arm never resumes it. Every colour is
+off on every way out (`finally`, each read back by the guardian), and every switch-on is in the
+audit log.
 """
 
 from __future__ import annotations
@@ -34,6 +38,13 @@ from .jobs import Job
 class CitlStopped(RuntimeError):
     """The bench cannot capture this step; the message says why (the worker's refinement stops
     with it and keeps its best frame)."""
+
+
+def citl_ended(reason: str) -> str:
+    """What a citl run ended with its emission session says (`reason`: what ended it, e.g.
+    "lasers off by uid 1000 (ana) on the Unix socket")."""
+    return (f"{reason}: this citl run has ended and does not resume; ask for quality citl "
+            "again once the lasers are armed")
 
 
 def citl_problem(config: Config, bench: Any) -> str | None:
@@ -66,11 +77,15 @@ def _check_laser(laser: LaserLink) -> dict[str, float]:
 
 def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: CaptureBench,
                  panel: CapturePanel, laser: LaserLink, audit: AuditLog, shown: ShownViews,
-                 wanted: Callable[[], bool]) -> CaptureReply:
+                 wanted: Callable[[], bool], session: int,
+                 phase: Callable[[str], None] = lambda _what: None) -> CaptureReply:
     """One citl step's captures (see the module's docstring): images `[P, C, Hc, Wc]` float32
     (the subframes' mean per plane and colour, the stored dark frame subtracted) and their
     saturation. `wanted()` turns false when the worker moved on (a new view): the sequence stops
-    between captures. Raises CitlStopped (or the device's error) without an answer to give."""
+    between captures. `session`: the emission session of the view's request (EmissionEnded once
+    it has ended). `phase(what)`: where the sequence is ("capturing green at plane 2 of 3"), for
+    `status`. Raises CitlStopped (or the device's error) without an answer to give."""
+    laser.check_session(session)
     problem = citl_problem(config, bench)
     if problem:
         raise CitlStopped(problem)
@@ -86,26 +101,39 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: Ca
     frames = request.frames or None
     buffer = PanelBuffer(panel.blank_frame())
     panels = [buffer.frame(r.top, r.left, g) for g in request.grey]
+    planes = len(request.z_m)
+    where = {"plane": 0}
+
     def go_on() -> None:
         job.check()
+        laser.check_session(session)
         if not wanted():
             raise CitlStopped("the view changed: its refinement was cancelled")
 
-    def before_colour(_name: str) -> None:
+    def before_colour(name: str) -> None:
         go_on()
         _check_laser(laser)
+        phase(f"capturing {name} at plane {where['plane'] + 1} of {planes}")
 
     def at_plane(i: int) -> None:
         go_on()
+        where["plane"] = i
+        phase(f"moving the stage to plane {i + 1} of {planes}")
         stage.move_to(cal.stage_mm_for(request.z_m[i]))
 
+    def capture() -> Any:
+        cap = bench.capture(frames)
+        laser.check_session(session)  # cut short by a laser off: not a capture to fit
+        return cap
+
     with diodes_in_turn(job, "citl", powers, panel=panel, laser=laser, audit=audit,
-                        shown=shown) as light:
+                        shown=shown, session=session) as light:
         for ch in COLOURS:
             laser.enable(ch, False)
+        phase("dark frame")
         camera.capture_dark(frames)
         images, saturated = colour_planes(
-            len(request.z_m), len(panels), at_plane=at_plane, before_colour=before_colour,
-            show=lambda k, ch: panel.show_colour(panels[k], ch), light=light,
-            capture=lambda: bench.capture(frames))
+            planes, len(panels), at_plane=at_plane, before_colour=before_colour,
+            show=lambda k, ch: panel.show_colour(panels[k], ch), light=light, capture=capture)
+    laser.check_session(session)
     return CaptureReply(images, saturated)

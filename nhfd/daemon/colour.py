@@ -97,17 +97,19 @@ class ShownViews(Protocol):
 
 @contextlib.contextmanager
 def diodes_in_turn(job: Job, what: str, powers_pct: dict[str, float], *, panel: CapturePanel,
-                   laser: LaserLink, audit: AuditLog, shown: ShownViews
+                   laser: LaserLink, audit: AuditLog, shown: ShownViews, session: int
                    ) -> Iterator[Callable[[str, bool], None]]:
     """A sequence that lights one diode at a time on a held panel (the capture-mode snapshot,
     citl's captures; `what` names it in the audit log): yields `light(channel, on)`, which
-    switches a diode and audits each switch-on with its power from `powers_pct`. On every way
-    out every diode is switched off (each read back by the guardian), that is audited, and the
-    panel shows the control loop's last view again."""
+    switches a diode and audits each switch-on with its power from `powers_pct`. A switch-on
+    happens only while emission session `session` holds (`LaserLink.enable`: EmissionEnded,
+    naming what ended it, once a laser off, disarm or stop has). On every way out every diode
+    is switched off (each read back by the guardian), that is audited, and the panel shows the
+    control loop's last view again."""
     who = {"who": "daemon", "job": job.id}
 
     def light(channel: str, on: bool) -> None:
-        laser.enable(channel, on)
+        laser.enable(channel, on, session=session)
         if on:
             audit.write(who, f"laser enable ({what})", channel=channel,
                         power_pct=powers_pct[channel])
@@ -128,26 +130,31 @@ def diodes_in_turn(job: Job, what: str, powers_pct: dict[str, float], *, panel: 
 
 def capture_colours(job: Job, path: Path, frames: int | None, *, bench: CaptureBench,
                     panel: CapturePanel, laser: LaserLink, audit: AuditLog,
-                    shown: ShownViews) -> dict[str, Any]:
+                    shown: ShownViews, session: int) -> dict[str, Any]:
     """The capture-mode snapshot: one capture per colour that has power, each with only its diode
     on and its own pattern settled on the panel; written as one PNG per colour and their mean.
     `laser` switches the diodes (the guardian reads each back), `audit` records each enable,
     `shown` is the last view frame (what every colour shows, and what the panel shows again).
+    `session`: the emission session it was asked in; once that ends (a laser off, disarm or
+    stop) nothing more is switched on and it fails saying why (`EmissionEnded`).
 
     The panel is held meanwhile (`Panel.hold`), so a view arriving during the sequence cannot
     replace the colour's pattern under the camera; afterwards it shows the last view again."""
     if bench.slm is None or bench.camera is None:
         raise RuntimeError("capture mode needs the SLM and the camera")
+    laser.check_session(session)
     laser.refresh()
     powers = {ch: float(laser.status()["channels"].get(ch, {}).get("power_pct", 0.0))
               for ch in COLOURS}
     lit = [ch for ch in COLOURS if powers[ch] > 0]
     if not lit:
         raise RuntimeError("no colour has power: set per-channel power (laser power) first")
-    base = shown.last_frame if shown.last_frame is not None else panel.blank_frame()
+    # A copy: the frame link builds its panels in arrays it reuses, and views go on arriving
+    # (held back from the panel) while the colours are captured.
+    base = (shown.last_frame if shown.last_frame is not None else panel.blank_frame()).copy()
     images: dict[str, np.ndarray] = {}
     with diodes_in_turn(job, "capture mode", powers, panel=panel, laser=laser, audit=audit,
-                        shown=shown) as light:
+                        shown=shown, session=session) as light:
         for ch in lit:
             job.check()
             for other in COLOURS:  # all off, and read back by the guardian
@@ -158,6 +165,7 @@ def capture_colours(job: Job, path: Path, frames: int | None, *, bench: CaptureB
                 images[ch] = bench.capture(frames).image
             finally:
                 light(ch, False)
+            laser.check_session(session)  # a capture cut short by an off is no capture
     # A colour camera sees each colour in its own channel; a mono one gives [H, W] per colour.
     planes = {ch: img if img.ndim == 2 else img[COLOURS.index(ch)] for ch, img in images.items()}
     zero = np.zeros_like(next(iter(planes.values())))

@@ -18,6 +18,14 @@ back). With `daemon.guardian = "connect"` the guardian belongs to someone else: 
 
 Laser state changes the guardian makes by itself (arming expiry, a tripped heartbeat) are seen in
 the heartbeat replies and written to the audit log.
+
+Emission sessions: every run that could switch a diode on (a citl refinement's captures, a
+capture-mode snapshot) belongs to the session current when it was asked for (`session`). Each
+arm starts a new session, and each end ends it: `laser off`, `disarm`, `stop`, shutdown, the
+guardian's own disarm (expiry, a fault, a tripped heartbeat), a lost SLM output, a crashed frame
+worker. A run checks its session before anything moves or emits and after each capture, and
+`enable(channel, True, session=s)` checks it under the same lock as `off`, so no switch-on of an
+ended run can follow the end; a later arm starts another session and never resumes it.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ import os
 import subprocess
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 from nhfd.device_settings import LaserSettings
@@ -63,10 +72,22 @@ class LasersNotOff(RuntimeError):
     """Every channel could not be read back off: the daemon must not report ready."""
 
 
+class EmissionEnded(RuntimeError):
+    """A run that could emit belongs to an emission session that has ended (the module's
+    docstring); the message says what ended it."""
+
+
+# Emission sessions whose end reasons are kept (a run older than that reads the oldest's).
+SESSIONS_KEPT = 64
+
+
 class LaserLink:
     def __init__(self, settings: LaserSettings, backend: str, mode: str, audit: AuditLog, *,
                  runtime_dir: str | os.PathLike[str] | None = None, socket_group: str = "",
-                 call_timeout_s: float = 1.0, refresh_s: float = 1.0) -> None:
+                 call_timeout_s: float = 1.0, refresh_s: float = 1.0,
+                 on_session_end: Callable[[str], None] | None = None) -> None:
+        """`on_session_end(reason)`: called (on the ending thread, under the link's lock) each
+        time an emission session ends, with what ended it."""
         self.settings = settings
         self.backend = backend  # "simulated", "readybeam" or "none"
         self.mode = mode  # "auto", "spawn" or "connect"
@@ -95,6 +116,10 @@ class LaserLink:
         # One socket, one request at a time: the control loop (heartbeats, commands) and the
         # capture-mode snapshot job (per-colour enables) both use it.
         self._lock = threading.RLock()
+        # The emission session (the module's docstring) and why each recent one ended.
+        self._session = 1
+        self._ended: dict[int, str] = {}
+        self._on_session_end = on_session_end
 
     @property
     def present(self) -> bool:
@@ -103,6 +128,37 @@ class LaserLink:
     @property
     def spawned(self) -> bool:
         return self.proc is not None
+
+    # -- emission sessions ---------------------------------------------------------------------
+
+    @property
+    def session(self) -> int:
+        """The emission session now: a run asked for now belongs to it (any thread)."""
+        return self._session
+
+    def end_session(self, reason: str) -> None:
+        """End the emission session (`reason`: what ended it, in the words a run's refusal and
+        `status` show); every run of it is refused from now on. Any thread."""
+        with self._lock:
+            self._next_session(reason)
+
+    def _next_session(self, reason: str) -> None:
+        self._ended[self._session] = reason
+        if len(self._ended) > SESSIONS_KEPT:
+            self._ended.pop(min(self._ended))
+        self._session += 1
+        if self._on_session_end is not None:
+            try:
+                self._on_session_end(reason)
+            except Exception:  # a report, never a reason for the off itself to fail
+                log.exception("emission session end hook")
+
+    def check_session(self, session: int) -> None:
+        """EmissionEnded, saying what ended it, unless `session` is the session now."""
+        if session != self._session:
+            oldest = min(self._ended) if self._ended else session
+            reason = self._ended.get(session) or self._ended.get(oldest, "it ended")
+            raise EmissionEnded(reason)
 
     # -- start / stop --------------------------------------------------------------------------
 
@@ -218,7 +274,9 @@ class LaserLink:
                  self.identity.get("serial_number"))
 
     def all_off_confirmed(self, why: str) -> None:
-        """Disarm, all channels off, then read every channel back; LasersNotOff otherwise."""
+        """Disarm, all channels off, then read every channel back; LasersNotOff otherwise. Ends
+        the emission session."""
+        self.end_session(f"lasers off ({why})")
         client = self._require()
         # No heartbeat here: `off` needs none, and a first heartbeat would start the guardian's
         # watchdog before the control loop runs (start-up opens slow devices in between).
@@ -294,11 +352,14 @@ class LaserLink:
             return
         if self._beat.get("armed") and not beat["armed"]:
             # The guardian says why (an older one does not: then it was an expiry or a fault).
+            # The daemon's own disarms (`off`, `disarm`) mark the beat unarmed when they are
+            # sent, so only the guardian's own reach this line, once.
             new_trip = beat.get("trips", 0) > self._beat.get("trips", 0)
             reason = (beat.get("last_trip") or {}).get("reason") if new_trip else None
-            self.audit.write(SYSTEM, f"laser disarmed by the guardian: "
-                             f"{reason or 'arming expiry or a fault'}", fault=beat.get("fault"),
-                             heartbeat_gap_ms=round(gap_s * 1e3, 1))
+            what = reason or "arming expiry or a fault"
+            self._next_session(f"the guardian disarmed the lasers ({what})")
+            self.audit.write(SYSTEM, f"laser disarmed by the guardian: {what}",
+                             fault=beat.get("fault"), heartbeat_gap_ms=round(gap_s * 1e3, 1))
         self._beat = beat
         self.error = None
         if now - self._read_at >= self.refresh_s:
@@ -414,31 +475,59 @@ class LaserLink:
         return reply
 
     def arm(self, duration_s: float) -> dict[str, Any]:
-        self._call("heartbeat")
-        return self._call("arm", duration_s=duration_s)
+        """Arm for `duration_s`. Lasers that were not armed start a new emission session: a
+        run asked for before never emits in it."""
+        with self._lock:
+            # A heartbeat first: the guardian's own disarms (an expiry) are seen, and audited,
+            # before this arm, and the guardian knows its controller.
+            self._heartbeat(time.monotonic())
+            was_armed = bool(self._beat.get("armed"))
+            reply = self._call("arm", duration_s=duration_s)
+            if not was_armed:  # extending an arming keeps the runs asked for under it
+                self._next_session("the lasers were armed after it was asked for")
+            self._beat = {**self._beat, "armed": True}
+            return reply
 
-    def disarm(self) -> None:
-        self._call("disarm")
+    def disarm(self, reason: str = "lasers disarmed") -> None:
+        """Disarm (the diodes keep their powers; nothing can be enabled): ends the emission
+        session with `reason`."""
+        with self._lock:
+            self._next_session(reason)
+            self._call("disarm")
+            self._disarmed_here()
 
-    def off(self) -> None:
-        """All off. A guardian that fails to answer is replaced at once (one we started or
-        adopted), and the new one's read-back counts; otherwise the refusal stands."""
-        try:
-            self._call("off")
-        except RpcError:
-            with self._lock:
+    def off(self, reason: str = "lasers off") -> None:
+        """All off: ends the emission session with `reason`. A guardian that fails to answer is
+        replaced at once (one we started or adopted), and the new one's read-back counts;
+        otherwise the refusal stands."""
+        with self._lock:
+            self._next_session(reason)
+            try:
+                self._call("off")
+            except RpcError:
                 if self.client is not None or self.mode == "connect" or not self.present:
                     raise
                 self._next_reconnect = 0.0
                 self._reconnect(time.monotonic())
                 if self.client is None:
                     raise
+            self._disarmed_here()
+
+    def _disarmed_here(self) -> None:
+        """The daemon's own disarm: the next heartbeat must not read it as the guardian's."""
+        if self._beat:
+            self._beat = {**self._beat, "armed": False, "armed_remaining_s": 0.0}
 
     def power(self, channel: str, power_pct: float) -> float:
         return float(self._call("power", channel=channel, power_pct=power_pct)["power_pct"])
 
-    def enable(self, channel: str, on: bool) -> None:
-        self._call("enable", channel=channel, on=on)
+    def enable(self, channel: str, on: bool, *, session: int | None = None) -> None:
+        """Switch a diode on or off. With `session`, a switch-on happens only while that
+        emission session holds (EmissionEnded otherwise), checked under the lock `off` takes."""
+        with self._lock:
+            if on and session is not None:
+                self.check_session(session)
+            self._call("enable", channel=channel, on=on)
 
     def status(self) -> dict[str, Any]:
         if not self.present:
@@ -452,10 +541,14 @@ class LaserLink:
                          "serial_number": self.identity.get("serial_number"),
                          "replaced": self.replaced,
                          "late_heartbeats": self.late_heartbeats,
-                         "max_heartbeat_gap_ms": round(self.max_heartbeat_gap_s * 1e3, 1)},
+                         "max_heartbeat_gap_ms": round(self.max_heartbeat_gap_s * 1e3, 1),
+                         # the guardian's own record: its disarms, and the longest gap it saw
+                         "trips": self._beat.get("trips"),
+                         "seen_max_heartbeat_gap_ms": self._beat.get("max_heartbeat_gap_ms")},
             "state": "read back through the guardian" if self.client is not None else UNKNOWN,
             "armed": bool(self._beat.get("armed", False)),
             "armed_remaining_s": self._beat.get("armed_remaining_s", 0.0),
+            "emission_session": self._session,
             "fault": self._beat.get("fault"),
             "channels": self._channels,
             "channels_read_s_ago": round(time.monotonic() - self._read_at, 3),

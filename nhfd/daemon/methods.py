@@ -89,8 +89,10 @@ from .views import ViewSlot, parse_view
 
 
 class Frames(ShownViews, Protocol):
-    """The frame worker as the methods see it: the last frame shown, and loads (which block
-    the calling load job until the worker answers)."""
+    """The frame worker as the methods see it: the last frame shown, the model it serves, and
+    loads (which block the calling load job until the worker answers)."""
+
+    model_path: str | None
 
     def load_scene(self, path: str) -> dict[str, Any]: ...
     def load_model(self, path: str) -> dict[str, Any]: ...
@@ -156,12 +158,33 @@ def _set_view(ctx: RpcContext, conn: Connection, p: Params) -> Any:
             raise bad_param("quality", f"'citl' cannot be served here: {problem}",
                             "network, exact or sgd on this bench (refine.quality sets the "
                             "default)")
+        # Its captures switch the diodes on: a person at the bench starts it.
+        kept = "" if p.has("quality") else " (kept from the current view)"
+        ctx.arming.authorise_emission(conn, f"quality 'citl'{kept}")
     if ctx.panel.pattern is not None:  # a calibration pattern gives the panel back to the view
         _end_pattern(ctx)
     seq = ctx.views.submit(view)
     shown = view.to_json()  # the reply, the audit log and the recording show the plain form
     ctx.audit.view(conn.who, seq, shown)
-    return {"seq": seq, "view": shown}
+    # Accepted all the same (the navigator, or a client that loads its model next, moves the
+    # view first; the latest view is shown once a model is there), but said.
+    hint = no_model_hint(view.quality, ctx.frames, ctx.load_jobs)
+    return {"seq": seq, "view": shown, **({"warning": hint} if hint else {})}
+
+
+# What a client hears of an open-loop view with no model loaded or loading.
+NO_MODEL = ("no model: showing nothing for quality 'network'; ask for quality exact (the "
+            "scene's own hologram, seconds) or load a model (nhfctl load-model)")
+
+
+def no_model_hint(quality: str, frames: Frames, load_jobs: JobRunner) -> str | None:
+    """NO_MODEL when a view at `quality` would show nothing: open loop, with no model serving
+    and none loading; else None."""
+    if quality != "network" or frames.model_path is not None:
+        return None
+    loading = any(j.kind == "load_model" and j.state in ("queued", "running")
+                  for j in load_jobs.jobs())
+    return None if loading else NO_MODEL
 
 
 def _focus(ctx: RpcContext, conn: Connection, p: Params) -> Any:
@@ -216,7 +239,11 @@ def _laser(ctx: RpcContext, conn: Connection, p: Params) -> Any:
         p.done()
         # First, so that an arm still waiting for its confirmation can never land after this.
         cancelled = ctx.arming.cancel()
-        link.disarm() if action == "disarm" else link.off()
+        # Ends the emission session: every run that could emit (a citl refinement's captures,
+        # a capture-mode snapshot) stops, and no later arm resumes it.
+        by = f"by {conn.describe()}"
+        link.disarm(f"lasers disarmed {by}") if action == "disarm" else link.off(
+            f"lasers off {by}")
         return {"armed": False, "all_off": True,
                 **({"cancelled_arm_job": cancelled} if cancelled is not None else {})}
     channel = p.choice("channel", COLOURS)
@@ -224,10 +251,15 @@ def _laser(ctx: RpcContext, conn: Connection, p: Params) -> Any:
         power_pct = p.number("power_pct", 0.0, 100.0)
         p.done()
         check_laser_command(ctx.config.daemon, action, channel, power_pct)
+        if power_pct > 0 and link.status().get("armed"):
+            ctx.arming.authorise_emission(conn, f"a {channel} power of {power_pct:g} % while "
+                                                "armed")
         applied = link.power(channel, power_pct)
         return {"channel": channel, "power_pct": applied, "capped": applied < power_pct}
     p.done()
     check_laser_command(ctx.config.daemon, action, channel, None)
+    if action == "enable":
+        ctx.arming.authorise_emission(conn, f"enabling the {channel} diode")
     if action == "enable" and ctx.bench.slm_lost is not None:
         # The light would fall on a panel the daemon does not control.
         raise RpcError(LASER_REFUSED, f"SLM output lost ({ctx.bench.slm_lost}): no diode may be "
@@ -238,6 +270,10 @@ def _laser(ctx: RpcContext, conn: Connection, p: Params) -> Any:
 
 def _stop(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     p.done()
+    # Every run that could emit ends with its session (a later arm never resumes it), and an
+    # arm waiting for its confirmation with it.
+    ctx.laser.end_session(f"stop by {conn.describe()}")
+    ctx.arming.cancel()
     cancelled = ctx.bench_jobs.cancel_all() + ctx.load_jobs.cancel_all()
     try:
         stage = ctx.bench.stop_stage()
@@ -273,11 +309,16 @@ def _snapshot(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     if path.suffix.lower() != ".png":
         raise bad_param("path", f"{raw!r} does not end in .png", "a .png file name")
     _camera(ctx)  # refuse now, not in the job
+    lit_by_daemon = ctx.config.daemon.colour_mode == "capture"
+    if lit_by_daemon:  # it switches each diode on in turn
+        ctx.arming.authorise_emission(conn, "a capture-mode snapshot")
+    session = ctx.laser.session  # a laser off or stop before it runs ends it
 
     def run(job: Job) -> dict[str, Any]:
-        if ctx.config.daemon.colour_mode == "capture":
+        if lit_by_daemon:
             return capture_colours(job, path, frames, bench=ctx.bench, panel=ctx.panel,
-                                   laser=ctx.laser, audit=ctx.audit, shown=ctx.frames)
+                                   laser=ctx.laser, audit=ctx.audit, shown=ctx.frames,
+                                   session=session)
         cap = ctx.bench.capture(frames)  # a failure is the camera's error in status until it works
         _LAST_CAPTURE[ctx.bench] = (time.time(), cap.image)
         job.check()

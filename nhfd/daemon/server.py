@@ -119,6 +119,25 @@ class Connection:
     def who(self) -> dict[str, Any]:
         return {"transport": self.transport, **self.peer}
 
+    @property
+    def remote(self) -> bool:
+        """A peer beyond this machine's Unix socket: a TCP client, or a web client the daemon's
+        web view names (`web_client`)."""
+        return self.transport != "unix" or bool(self.peer.get("web_client"))
+
+    def describe(self) -> str:
+        """Who this is, in a few words, for messages and the audit log's reasons."""
+        web = self.peer.get("web_client")
+        if web:
+            return f"the web view's client at {web.get('address', '?')}"
+        if self.transport != "unix":
+            return f"a TCP peer at {self.peer.get('address', '?')}"
+        user = self.peer.get("user")
+        uid = self.peer.get("uid")
+        if uid is None:
+            return "the daemon itself"
+        return f"uid {uid}" + (f" ({user})" if user else "") + " on the Unix socket"
+
 
 Handler = Callable[[Connection, bytes], bytes | None]
 

@@ -46,13 +46,13 @@ from nhfd.frame_message import CaptureReply, CaptureRequest
 from .arming import ArmingGate
 from .audit import AuditLog, audit_path
 from .bench import Bench
-from .citl import CitlStopped, citl_capture
+from .citl import CitlStopped, citl_capture, citl_ended
 from .dispatch import Dispatcher
 from .errors import ErrorList
 from .frame_link import FrameEvents, FrameLink
-from .guardian_link import LaserLink
-from .jobs import Job, JobRunner
-from .methods import METHODS, RpcContext
+from .guardian_link import EmissionEnded, LaserLink
+from .jobs import Cancelled, Job, JobRunner
+from .methods import METHODS, RpcContext, no_model_hint
 from .navigation import NavigatorInput
 from .notify import Notifier
 from .paths import LOCK_NAME, SOCKET_NAME, TOKEN_NAME, make_private_dir, resolve_dirs, runtime_dir
@@ -241,10 +241,12 @@ class Daemon:
         self.recorder = SessionRecorder()  # daemon.record / serve --record
         self.laser = LaserLink(config.devices.readybeam, config.devices.laser, c.guardian,
                                self.audit, refresh_s=c.laser_refresh_s,
-                               runtime_dir=self.runtime_dir, socket_group=c.socket_group)
+                               runtime_dir=self.runtime_dir, socket_group=c.socket_group,
+                               on_session_end=self._emission_ended)
         self.bench = Bench(config)  # opened at start, with the guardian's simulated laser
         self.panel = self.bench.panel  # what the SLM shows
-        self.views = ViewSlot()
+        # Each view remembers the emission session it was asked in (a citl run belongs to it).
+        self.views = ViewSlot(session=lambda: self.laser.session)
         # The spawned render/inference worker, started on demand; its events come back here.
         panel = self.panel
         self.frames = FrameLink(config, self.views, lambda: panel, FrameEvents(
@@ -427,7 +429,7 @@ class Daemon:
                 message = f"output lost ({detail})"
                 try:
                     if self.laser.present:
-                        self.laser.off()
+                        self.laser.off(f"lasers off: the SLM output was lost ({detail})")
                         message += "; lasers switched off"
                 except Exception as exc:
                     message += f"; lasers off FAILED: {exc}"
@@ -471,6 +473,9 @@ class Daemon:
             return True
         self._closed = True
         self.state = "stopping"
+        # First: from here no run that could emit switches anything on (the lasers go off
+        # below, and nothing resumes them).
+        self.laser.end_session("lasers off: the daemon is shutting down")
         self.notifier.stopping()
         if self.server is not None:
             self.server.flush_all()  # the shutdown caller hears its reply
@@ -522,15 +527,34 @@ class Daemon:
         other bench work, whose answer goes back to the worker. A stop on the bench (lasers
         disarmed, the view changed) is the answer, not a failed job; a full queue is refused."""
         frames = self.frames
+        # The emission session of the view's request: a laser off, disarm, stop or shutdown
+        # since then has ended this citl run, and a later arm does not resume it.
+        session = self.views.session
+        try:
+            self.laser.check_session(session)
+        except EmissionEnded as exc:
+            frames.answer_capture(req_id, CaptureReply(error=citl_ended(str(exc))))
+            return
 
         def run(job: Job) -> dict[str, Any]:
             try:
                 reply = citl_capture(job, request, config=self.config, bench=self.bench,
                                      panel=self.panel, laser=self.laser, audit=self.audit,
-                                     shown=frames, wanted=lambda: frames.capture_wanted(req_id))
+                                     shown=frames, wanted=lambda: frames.capture_wanted(req_id),
+                                     session=session,
+                                     phase=lambda what: frames.capture_phase(req_id, what))
             except CitlStopped as exc:
                 frames.answer_capture(req_id, CaptureReply(error=str(exc)))
                 return {"stopped": str(exc)}
+            except (EmissionEnded, Cancelled) as exc:
+                # Ended with its session (a cancel by `stop` ends the session first).
+                try:
+                    self.laser.check_session(session)
+                    why = str(exc)
+                except EmissionEnded as ended:
+                    why = citl_ended(str(ended))
+                frames.answer_capture(req_id, CaptureReply(error=why))
+                return {"stopped": why}
             except BaseException as exc:
                 frames.answer_capture(req_id, CaptureReply(error=f"{type(exc).__name__}: {exc}"))
                 raise
@@ -549,13 +573,25 @@ class Daemon:
         stale frame the daemon no longer controls, so the lasers go off first, then the panel
         shows the blank pattern; status says what happened."""
         try:
-            self.laser.off()
+            self.laser.off("lasers off: the frame worker crashed")
             message += "; lasers switched off"
         except Exception as exc:
             message += f"; lasers off FAILED: {exc}"
         with contextlib.suppress(Exception):
             self.panel.blank()
         self.errors.note("frame worker", message)
+
+    def _view_warnings(self) -> list[str]:
+        """What `status` warns of the view requested: one that shows nothing."""
+        view = self.views.view
+        hint = None if view is None else no_model_hint(view.quality, self.frames,
+                                                       self.load_jobs)
+        return [hint] if hint else []
+
+    def _emission_ended(self, reason: str) -> None:
+        """An emission session ended (`LaserLink.end_session`; any thread): the citl run of the
+        view on the panel ends with it, and `status` says why at once."""
+        self.frames.emission_ended(citl_ended(reason))
 
     def status(self) -> dict[str, Any]:
         """The `status` reply: the daemon, lasers, devices, panel, scene, model, calibration,
@@ -574,7 +610,9 @@ class Daemon:
                        "socket": str(self.socket_path),
                        "tcp": (f"{self.server.tcp_address[0]}:{self.server.tcp_address[1]}"
                                if self.server and self.server.tcp_address else None),
-                       "clients": len(self.server.connections) if self.server else 0},
+                       "clients": len(self.server.connections) if self.server else 0,
+                       # whether TCP and web-view peers may start emission
+                       "remote_emission": c.remote_emission},
             "laser": laser,
             "devices": devices,
             "display": self.panel.current,
@@ -591,7 +629,7 @@ class Daemon:
             "timings": self.frames.timings,  # the last frame's per-stage timings (ms)
             "frames": self.frames.status(),
             "warnings": [f"view outside the model's pose envelope: {w}"
-                         for w in self.frames.warnings],
+                         for w in self.frames.warnings] + self._view_warnings(),
             "errors": [*device_errors, *self.errors.entries()],
             "jobs": [j.to_json() for j in sorted(jobs, key=lambda j: j.id)],
         }

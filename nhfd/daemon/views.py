@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from typing import Any
 
 from nhfd.views import (
@@ -151,12 +152,16 @@ def _relative(sub: Params, current: View | None) -> Orbit | Pose:
 
 
 class ViewSlot:
-    """The newest requested view and its sequence number; older ones are overtaken."""
+    """The newest requested view, its sequence number and the emission session it was asked in
+    (`session()` at the request: a citl view's captures belong to it); older ones are
+    overtaken."""
 
-    def __init__(self) -> None:
+    def __init__(self, session: Callable[[], int] = lambda: 0) -> None:
         self._cond = threading.Condition()
+        self._session_now = session
         self.seq = 0
         self.view: View | None = None
+        self.session = 0  # the emission session of the newest view's request
         self.applied_seq: int | None = None  # set by the frame worker once shown
         self.overtaken = 0  # requests replaced before any worker took them
 
@@ -166,6 +171,7 @@ class ViewSlot:
                 self.overtaken += 1
             self.seq += 1
             self.view = view
+            self.session = self._session_now()
             self._cond.notify_all()
             return self.seq
 

@@ -10,7 +10,8 @@ Protocol (tuples over one duplex `multiprocessing` pipe):
 
   daemon -> worker   ("model", req_id, path)   ("scene", req_id, path)
                      ("frame", seq, view, slot) ("stop",)
-                     ("captured", req_id, reply)
+                     ("captured", req_id, reply) ("refine_free", slot)
+                     ("cancel", seq)
   worker -> daemon   ("ready", pid)
                      ("model" | "scene", req_id, ok, info | error message)
                      ("frame", seq, message)    ("frame_error", seq, message)
@@ -19,11 +20,14 @@ Protocol (tuples over one duplex `multiprocessing` pipe):
 
 A view whose `quality` is above "network" is refined after its network frame is sent
 (`Refiner`, a thread): each better frame comes as a `RefinedFrame` until the refinement stops or
-any message from the daemon but a "captured" cancels it. A `citl` view's steps ask the daemon's
-bench for captures (`nhfd.pipeline.citl.RemoteCapture`: a `CaptureRequest`, answered by a
-`CaptureReply`). With no model loaded, such a view's first frame is its
-exact frame (the scene's own hologram, seconds later), or "frame_cancelled" when a load came
-first.
+any message from the daemon but a "captured" or a "refine_free" cancels it ("cancel" does only
+that: a newer view waits for a scene's exact frame no longer). A better frame's K subframes go
+into one of the daemon's two refine slots (shared memory), which the daemon gives back with
+"refine_free" once it shows newer ones; so what crosses the pipe is small whatever K. A `citl`
+view's steps ask the daemon's bench for captures (`nhfd.pipeline.citl.RemoteCapture`: a
+`CaptureRequest`, answered by a `CaptureReply`). With no model loaded, such a view's first
+frame is its exact frame (the scene's own hologram, seconds later), or "frame_cancelled" when
+a load or a newer view came first.
 
 The view is an `nhfd.views.View` and a frame's message an `nhfd.frame_message.FrameMessage`:
 L0 values both processes import, read by name.
@@ -45,10 +49,11 @@ from __future__ import annotations
 
 import functools
 import os
+import queue
 import threading
 import time
 from collections import OrderedDict
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from multiprocessing import shared_memory
 from pathlib import Path
@@ -97,6 +102,11 @@ MAX_ENCODERS = 8
 # The test inference's input: mid-grey sRGB everywhere and, for an rgbd model, the reference
 # plane's depth (0): a frame the daemon could send, so a model that fails it fails real frames.
 TEST_GREY = 0.5
+# How long a better frame waits for a free refine slot (s): the daemon gives one back within a
+# control-loop step of showing the next; an intermediate frame that finds none is skipped (its
+# report still goes), the final one waits longer.
+BETTER_WAIT_S = 0.05
+FINAL_WAIT_S = 2.0
 # The setting a model's load memory is bounded by (`open_model`), named in its refusals.
 MEMORY_SETTING = "daemon.model_memory_mb"
 
@@ -285,14 +295,38 @@ class FrameSlots:
     uint8 (`[h, w, 3]` where the message says `grey_hwc`) and then its render's RGB
     `[3, h', w']` uint8, back to back."""
 
-    def __init__(self, names: list[str], slot_bytes: int) -> None:
+    def __init__(self, names: Sequence[str], slot_bytes: int, refine_names: Sequence[str] = (),
+                 refine_bytes: int = 0) -> None:
         self.slot_bytes = int(slot_bytes)
-        self.shms: list[shared_memory.SharedMemory] = []
-        for name in names:
-            # Attaching registers the name with the resource tracker again: the daemon's own
-            # tracker (a spawned child shares it), which already holds it, so this process's exit
-            # unlinks nothing; the daemon unlinks its slots when it closes the worker.
-            self.shms.append(shared_memory.SharedMemory(name=name))
+        self.refine_bytes = int(refine_bytes)
+        # Attaching registers the name with the resource tracker again: the daemon's own
+        # tracker (a spawned child shares it), which already holds it, so this process's exit
+        # unlinks nothing; the daemon unlinks its slots when it closes the worker.
+        self.shms = [shared_memory.SharedMemory(name=name) for name in names]
+        self.refine_shms = [shared_memory.SharedMemory(name=name) for name in refine_names]
+        # The refine slots this worker may write: all at first; the daemon gives each back
+        # ("refine_free") once it no longer shows what is in it.
+        self.free_refine: queue.SimpleQueue[int] = queue.SimpleQueue()
+        for i in range(len(self.refine_shms)):
+            self.free_refine.put(i)
+
+    def write_refined(self, frame: RefinedFrame, wait_s: float) -> RefinedFrame:
+        """`frame` with its subframes `[K, 3, h, w]` copied into a free refine slot, which it
+        then names; waits up to `wait_s` for one, and without one (the daemon still shows both)
+        returns its report alone: the next better frame goes instead."""
+        grey = frame.grey
+        assert grey is not None
+        if grey.nbytes > self.refine_bytes:
+            raise ValueError(f"refined subframes {list(grey.shape)} ({grey.nbytes} bytes) do not "
+                             f"fit a {self.refine_bytes}-byte refine slot (refine.subframes x "
+                             "the panel)")
+        try:
+            slot = self.free_refine.get(timeout=wait_s) if wait_s > 0 else \
+                self.free_refine.get_nowait()
+        except queue.Empty:
+            return replace(frame, grey=None)
+        np.ndarray(grey.shape, np.uint8, buffer=self.refine_shms[slot].buf)[...] = grey
+        return frame.in_slot(slot)
 
     def write(self, slot: int, message: FrameMessage) -> FrameMessage:
         """The message with its arrays (grey `[3, h, w]`, the preview `[3, H, W]` or None,
@@ -316,7 +350,7 @@ class FrameSlots:
 
     def close(self) -> None:
         """Detach from every slot (the daemon unlinks them)."""
-        for shm in self.shms:
+        for shm in (*self.shms, *self.refine_shms):
             shm.close()
 
 
@@ -430,9 +464,13 @@ class Refiner:
     new view, a load, stop) stops it between steps and waits for the thread, which polls
     between each colour's propagation: the new view's frame starts within one of them."""
 
-    def __init__(self, send: Callable[[tuple], None], config: Config) -> None:
+    def __init__(self, send: Callable[[tuple], None], config: Config,
+                 slots: FrameSlots | None = None) -> None:
+        """`slots`: the daemon's shared memory, whose refine slots carry the better frames
+        (None: they are pickled through the pipe)."""
         self.send = send
         self.config = config
+        self.slots = slots
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._capture: RemoteCapture | None = None  # citl's, while a citl view is refined
@@ -492,16 +530,18 @@ class Refiner:
         """Refine view `seq` from the grey region `start` at its tier, sending each better
         frame as ("refined", seq, `RefinedFrame`) and the best one when it stops (unless a newer
         message cancelled it)."""
-        def better(refined: Refined) -> None:
-            self.send(("refined", seq, RefinedFrame(enc.region, refined.grey.copy(),
-                                                    refined.report.to_json())))
+        def better(refined: Refined, wait_s: float = BETTER_WAIT_S) -> None:
+            frame = RefinedFrame(enc.region, refined.grey.copy(), refined.report.to_json())
+            if self.slots is not None:
+                frame = self.slots.write_refined(frame, wait_s)
+            self.send(("refined", seq, frame))
 
         capture = self._remote_capture(seq, view, enc, stop)
         refined, _ = refine_view(view, scene, info, enc, view.quality, self.config.refine,
                                  start=start, capture=capture, cancelled=stop.is_set,
                                  on_better=better)
         if refined.report.stop != "cancelled":
-            better(refined)
+            better(refined, FINAL_WAIT_S)
 
     def _remote_capture(self, seq: int, view: View, enc: Encoder, stop: threading.Event
                         ) -> RemoteCapture | None:
@@ -525,7 +565,10 @@ class Refiner:
             window_hw = (config.optics.hologram_height_px, config.optics.hologram_width_px)
             if config.daemon.frame_size_px:
                 window_hw = (config.daemon.frame_size_px[1], config.daemon.frame_size_px[0])
+            # A newer view cancels it between any two of its stages and between the light
+            # field's elemental views (`stop`), so its exact frame starts at once.
             info = scene_info(config.optics, config.slm, view, scene, window_hw)
+            _raise_if(stop)
             cal = active_calibration(config)
             enc = Encoder(frame_settings(config, info, cal, refocus_m=view.refocus_m))
             exact = exact_reference(view, scene, info, window_hw,
@@ -533,10 +576,12 @@ class Refiner:
             enc = Encoder(replace(enc.settings, amplitude_scale=amplitude_scale_of(exact, enc)))
             with torch.no_grad():
                 grey, clipped = enc.code(enc.to_slm(exact))
+            _raise_if(stop)
             rgb = render_view(view, scene, info, window_hw).rgb
-            first(FrameMessage.of_arrays(
+            _raise_if(stop)
+            first(replace(FrameMessage.of_arrays(
                 enc.region, grey, preview_levels(rgb),
-                StageTimes(render_s=time.perf_counter() - t0), clipped))
+                StageTimes(render_s=time.perf_counter() - t0), clipped), tier="exact"))
             if view.quality == "exact" or stop.is_set():
                 return
             self._refine(seq, view, scene, info, enc, grey, stop)
@@ -562,7 +607,8 @@ def worker_main(conn: Any, config_data: dict[str, Any],
         keep(config, calibration)
     _set_threads(int(config.daemon.worker_threads))
     state = _WorkerState(config)
-    shm = FrameSlots(slots["names"], slots["bytes"]) if slots else None
+    shm = (FrameSlots(slots["names"], slots["bytes"], slots.get("refine_names", ()),
+                      slots.get("refine_bytes", 0)) if slots else None)
     try:
         _serve(conn, state, shm)
     finally:
@@ -577,7 +623,7 @@ def _serve(conn: Any, state: _WorkerState, shm: FrameSlots | None) -> None:
         with lock:
             conn.send(msg)
 
-    refiner = Refiner(send, state.config)
+    refiner = Refiner(send, state.config, shm)
     try:
         _serve_loop(conn, send, state, shm, refiner)
     finally:
@@ -594,12 +640,15 @@ def _serve_loop(conn: Any, send: Callable[[tuple], None], state: _WorkerState,
                 msgs.append(conn.recv())
         except (EOFError, OSError):
             return  # the daemon is gone: nothing to show frames to
-        # The bench's captures go to the citl step waiting for them; anything else means the
-        # view being refined is no longer alone.
+        # The bench's captures go to the citl step waiting for them, and refine slots given
+        # back return to the pool; anything else means the view being refined is no longer
+        # alone.
         for msg in msgs:
             if msg[0] == "captured":
                 refiner.deliver(msg[1], msg[2])
-        msgs = [msg for msg in msgs if msg[0] != "captured"]
+            elif msg[0] == "refine_free" and shm is not None:
+                shm.free_refine.put(int(msg[1]))
+        msgs = [msg for msg in msgs if msg[0] not in ("captured", "refine_free")]
         if not msgs:
             continue
         refiner.cancel()
@@ -607,6 +656,8 @@ def _serve_loop(conn: Any, send: Callable[[tuple], None], state: _WorkerState,
         for msg in msgs:
             if msg[0] == "stop":
                 return
+            if msg[0] == "cancel":  # the refinement (or an exact frame) only: done above
+                continue
             if msg[0] == "frame":
                 latest = msg  # latest wins: an older view that was overtaken is never computed
                 continue

@@ -15,7 +15,7 @@ import numpy as np
 
 from nhfd.benchmarks.pipeline import _Host, _load
 from nhfd.calibration import active_calibration
-from nhfd.daemon.frame_link import SHM_PREFIX, SLOTS, PanelBuffer
+from nhfd.daemon.frame_link import REFINE_SLOTS, SHM_PREFIX, SLOTS, PanelBuffer
 from nhfd.models.export import load_model
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.frame import compute_frame
@@ -63,7 +63,7 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny):
     shapes = []
     try:
         _load(link, tiny["scene"], tiny["model"])
-        assert len(our_segments()) == SLOTS
+        assert len(our_segments()) == SLOTS + REFINE_SLOTS
         for refocus_mm in (0.0, 3.0):  # a refocus widens the coded region
             view = FRONT_VIEW.with_refocus(refocus_mm)
             seq = host.views.submit(view)
@@ -93,7 +93,7 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny):
                                                   ).astype(np.uint8))
             shapes.append(message.grey_shape)
         assert shapes[0] != shapes[1]
-        assert len(our_segments()) == SLOTS  # the same slots served both sizes
+        assert len(our_segments()) == SLOTS + REFINE_SLOTS  # the same served both sizes
     finally:
         link.close()
     assert our_segments() == []

@@ -190,16 +190,17 @@ def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slo
     host, link = running_link(short_dir)
     try:
         first = our_segments()
-        # One slot: the link holds one frame at a time (in the worker or waiting for its
-        # refresh), so a second would never be needed (each is the panel's size).
-        assert len(first) == frame_link.SLOTS == 1
+        # One frame slot: the link holds one frame at a time (in the worker or waiting for its
+        # refresh), so a second would never be needed (each is the panel's size); and the two
+        # refine slots a refinement's better frames take turns in.
+        assert len(first) == frame_link.SLOTS + frame_link.REFINE_SLOTS == 3
         host.views.submit(orbit(CRASH_DEG))
         wait_until(lambda: (link.step(), link.state == LinkState.CRASHED)[1], 10, "the crash")
         assert our_segments() == []  # unlinked with the crashed worker
         assert any("died with exit code 3" in e for e in host.errors)
         wait_until(lambda: (link.step(), link.state == LinkState.RUNNING)[1], 20, "the restart")
         second = our_segments()
-        assert len(second) == frame_link.SLOTS and not set(second) & set(first)
+        assert len(second) == len(first) and not set(second) & set(first)
         seq = host.views.submit(orbit(0.0))
         wait_until(lambda: (link.step(), link.shown_seq == seq)[1], 10, "a frame after it")
     finally:

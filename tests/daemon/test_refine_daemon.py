@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from nhfd.config import Config, _overlay
+from nhfd.daemon.methods import NO_MODEL
 from nhfd.daemon.protocol import RpcError
 
 from .conftest import Running, wait_until
@@ -123,14 +124,14 @@ def test_subframes_take_turns_on_the_panel(short_dir, mecom_twin, tiny):
         wait_until(lambda: (c.status()["frames"]["refine"] or {}).get("swaps", 0) >= 1, 60,
                    "a better pair of subframes")
         assert c.status()["frames"]["refine"]["subframes"] == 2
-        panels = r.daemon.frames.refinement.panels
-        assert not np.array_equal(panels[0], panels[1])
+        refinement = r.daemon.frames.refinement
+        region, greys = refinement.region, refinement.greys.copy()
+        assert not np.array_equal(greys[0], greys[1])
         seen = set()
         deadline = time.monotonic() + 2.0
         while len(seen) < 2 and time.monotonic() < deadline:  # 60 Hz: a turn every ~17 ms
-            shown = r.daemon.bench.slm.last_frame
-            seen |= {i for i, p in enumerate(r.daemon.frames.refinement.panels)
-                     if np.array_equal(shown, p)}
+            shown = r.daemon.bench.slm.last_frame[:, region.rows, region.cols]
+            seen |= {i for i, g in enumerate(greys) if np.array_equal(shown, g)}
             time.sleep(0.004)
         assert seen == {0, 1}
     finally:
@@ -147,14 +148,21 @@ def test_a_scene_without_a_model_is_served_exact(short_dir, mecom_twin, tiny):
         wait_until(lambda: (c.status()["scene"] or {}).get("center") is not None, 30,
                    "the scene")
         assert c.status()["model"] == "none loaded"
-        seq = c.call("set_view", pose=FRONT_POSE)["seq"]
+        # No network, no open-loop frame: accepted (the latest view waits for a model), and
+        # both the reply and status say what would show something.
+        reply = c.call("set_view", pose=FRONT_POSE)
+        assert reply["warning"] == NO_MODEL and NO_MODEL.startswith("no model: showing nothing")
         time.sleep(0.5)
-        assert c.status()["view"]["applied_seq"] != seq  # no network, no open-loop frame
+        status = c.status()
+        assert status["view"]["applied_seq"] != reply["seq"] and NO_MODEL in status["warnings"]
         seq = c.call("set_view", pose=FRONT_POSE, quality="exact")["seq"]
         wait_until(lambda: c.status()["view"]["applied_seq"] == seq, 60, "the exact frame")
         frame = r.daemon.frames.last_frame
         blank = r.daemon.panel.blank_frame()
         assert not np.array_equal(frame, blank)  # a coded region, not the zero pattern
+        # The exact frame is all the exact tier does: its refinement reads as done.
+        refine = c.status()["frames"]["refine"]
+        assert (refine["tier"], refine["stop"], refine["phase"]) == ("exact", "exact", "")
         # sgd without a model: refined from the exact frame.
         seq = c.call("set_view", pose=dict(FRONT_POSE, position=[0.05, 0.0, -2.0]),
                       quality="sgd")["seq"]
@@ -162,6 +170,50 @@ def test_a_scene_without_a_model_is_served_exact(short_dir, mecom_twin, tiny):
                    and c.status()["frames"]["refine"]["seq"] == seq, 60, "a refined frame")
         refine = c.status()["frames"]["refine"]
         assert refine["psnr_db"] > refine["start_psnr_db"]
+        assert c.status()["errors"] == []
+    finally:
+        r.stop()
+
+
+def test_a_new_view_cancels_an_exact_frame_and_starts_at_once(short_dir, mecom_twin, tiny):
+    """With no model, a view's exact frame takes seconds: a newer view cancels it between the
+    light field's elemental views instead of waiting its turn, and the older frame is never
+    shown."""
+    base = daemon_config(short_dir, mecom_twin, tiny)
+    # A larger window than the other tests': its exact frame takes about a second here.
+    config = Config.model_validate(_overlay(base.model_dump(), {
+        "slm": {"width_px": 480, "height_px": 320},
+        "optics": {"hologram_width_px": 288, "hologram_height_px": 192}}))
+    r = Running(config, short_dir)
+    try:
+        c = r.client()
+        c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
+        wait_until(lambda: (c.status()["scene"] or {}).get("center") is not None, 30,
+                   "the scene")
+
+        def shown_after(pose: dict, seen: list[int] | None = None) -> float:
+            t0 = time.monotonic()
+            seq = c.call("set_view", pose=pose, quality="exact")["seq"]
+            while (applied := c.status()["view"]["applied_seq"]) != seq:
+                if seen is not None:
+                    seen.append(applied)
+                assert time.monotonic() - t0 < 20, "no exact frame"
+                time.sleep(0.01)
+            return time.monotonic() - t0
+
+        shown_after(FRONT_POSE)  # the first pays for building kernels
+        alone_s = shown_after(dict(FRONT_POSE, position=[0.02, 0.0, -2.0]))  # nothing before
+        older = c.call("set_view", pose=dict(FRONT_POSE, position=[0.04, 0.0, -2.0]),
+                       quality="exact")["seq"]
+        wait_until(lambda: r.daemon.frames.inflight is not None
+                   and r.daemon.frames.inflight.seq == older, 5, "the older view computing")
+        time.sleep(0.3 * alone_s)  # well into its inversion
+        seen: list[int] = []
+        newer_s = shown_after(dict(FRONT_POSE, position=[-0.04, 0.0, -2.0]), seen)
+        # Waiting for the older frame to finish would take its remaining 70 % first.
+        assert newer_s < 1.35 * alone_s, (newer_s, alone_s)
+        assert older not in seen, (alone_s, newer_s, seen[:3], len(seen))
+        assert c.status()["frames"]["frames_dropped"] >= 1
         assert c.status()["errors"] == []
     finally:
         r.stop()
