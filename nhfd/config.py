@@ -676,6 +676,35 @@ class RefineSettings(_Section):
     swap_every: Annotated[int, Field(ge=1, le=10_000)] = 10
 
 
+def _bounds(name: str) -> str:
+    """RefineSettings' allowed range of `name`, e.g. "1 <= iterations <= 100000"."""
+    lo = hi = ""
+    for m in RefineSettings.model_fields[name].metadata:
+        for attr, sym in (("ge", "<="), ("gt", "<")):
+            if getattr(m, attr, None) is not None:
+                lo = f"{getattr(m, attr):g} {sym} "
+        for attr, sym in (("le", "<="), ("lt", "<")):
+            if getattr(m, attr, None) is not None:
+                hi = f" {sym} {getattr(m, attr):g}"
+    return f"{lo}{name}{hi}"
+
+
+def refine_settings(base: RefineSettings, overrides: Mapping[str, Any]) -> RefineSettings:
+    """`base` (a configuration's `[refine]`) with `overrides` (None: keep), validated as
+    RefineSettings: a ValueError naming `refine.<key>`, the value and the allowed range."""
+    given = {k: v for k, v in overrides.items() if v is not None}
+    try:
+        return RefineSettings.model_validate({**base.model_dump(), **given})
+    except ValidationError as exc:
+        problems = []
+        for e in exc.errors():
+            key = ".".join(str(p) for p in e["loc"])
+            allowed = _bounds(key) if key in RefineSettings.model_fields else ""
+            problems.append(f"refine.{key} = {e.get('input')!r}: "
+                            + (f"must be {allowed}" if allowed else str(e["msg"])))
+        raise ValueError("; ".join(problems)) from None
+
+
 class Config(_Section):
     """The whole validated configuration, one typed section per TOML table; the rules joining
     sections (`cross_field_problems`) apply at construction."""

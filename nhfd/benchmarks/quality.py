@@ -3,13 +3,14 @@
 On the simulated bench: a randomised twin (`TrueBench.randomised`) is calibrated (the capture
 and the fit, into the output's folder, reused when present), then an aberration is added to it
 that the calibration never saw. For a seeded set of views of the shipped donut (with its model)
-and of a second scene without a model (the guitar: `scene_info`), each tier's frame is made and
-then captured by the twin's camera through `nhfd.calib.citl.CameraLoop` at the target's content
-planes:
+and of a second scene without a model (the guitar, refined from its exact frame), each tier's
+frame is made and then captured by the twin's camera through `nhfd.calib.citl.CameraLoop` at
+the target's content planes:
 
   network  the network's double-phase frame (donut only); its seconds are the frame's
-  exact    the view's light-field inversion; seconds: the exact target (scene_info, the
-           reference, the focal stack) and the coding
+  exact    the view's light-field inversion; seconds: the view's preparation
+           (`nhfd.pipeline.refine.prepare`: the render, the reference, the focal stack) and
+           the coding
   sgd      K subframes optimised through the bench model from the network's frame (donut) or
            the exact one; seconds add the network frame (donut) and the optimisation
   citl     the camera in the loop from sgd's frame; seconds add the loop's steps (each D x C x
@@ -36,29 +37,24 @@ import torch
 
 from nhfd.benchmarks.machine import describe
 from nhfd.calib.citl import CameraLoop
+from nhfd.calib.sim import arm_twin, sim_devices, sim_panel_hw, twin_calibration
 from nhfd.cli.args import parse_wxh
-from nhfd.cli.cmd_refine import (
-    Prepared,
-    arm_twin,
-    citl_frame,
-    load_scene,
-    model_loss,
-    prepare,
-    refine_settings,
-    sgd_frame,
-    sim_devices,
-    sim_panel_hw,
-    suggested_radius,
-    twin_calibration,
-)
-from nhfd.config import Config, load_config
+from nhfd.config import Config, load_config, refine_settings
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.model_info import ModelInfo
 from nhfd.models.export import load_model
 from nhfd.optics.quality import speckle_contrast, stack_quality
 from nhfd.pipeline.frame import compute_frame
-from nhfd.pipeline.refine import Refined, psnr_db
-from nhfd.pipeline.view import Scene
+from nhfd.pipeline.refine import (
+    Prepared,
+    Refined,
+    citl_frame,
+    model_loss,
+    prepare,
+    psnr_db,
+    sgd_frame,
+)
+from nhfd.pipeline.view import Scene, scene_from_file, suggested_radius
 from nhfd.views import Orbit, View
 
 REPO = Path(__file__).resolve().parents[2]
@@ -369,12 +365,12 @@ def _scene_runs(args: argparse.Namespace, config: Config, window_hw: tuple[int, 
                 ) -> list[tuple[str, Scene, Any]]:
     runs = []
     model = load_model(args.model, config)
-    runs.append((Path(args.scene).name.split(".")[0], load_scene(args.scene), model))
+    runs.append((Path(args.scene).name.split(".")[0], scene_from_file(args.scene), model))
     if args.other_scene and args.other_scene.lower() != "none":
         other = Path(args.other_scene)
         if not other.exists():
             raise FileNotFoundError(f"--other-scene {other}: not found (or 'none' to skip)")
-        runs.append((other.name.split(".")[0], load_scene(other), None))
+        runs.append((other.name.split(".")[0], scene_from_file(other), None))
     return runs
 
 
@@ -430,16 +426,17 @@ def run(args: argparse.Namespace) -> int:
         for name, scene, model in runs:
             info = model.info if model is not None else None
             if model is not None:  # warm-up: the renderer's kernels, the session
-                warm = prepare(config, scene, seeded_views(np.random.default_rng(99), 1, scene,
-                                                           info, (64, 96))[0],
-                               (64, 96), sim_panel_hw((64, 96)), base, info=info)
+                warm = prepare(config, seeded_views(np.random.default_rng(99), 1, scene, info,
+                                                    (64, 96))[0], scene, info=info,
+                               window_hw=(64, 96), panel_hw=sim_panel_hw((64, 96)),
+                               planes=base.planes)
                 compute_frame(warm.view, scene, model, warm.encoder)
             for i, view in enumerate(seeded_views(rng, args.views, scene, info, window_hw)):
-                p = prepare(config, scene, view, window_hw, panel_hw, base,
-                            calibration=calibration, info=info)
+                p = prepare(config, view, scene, info=info, calibration=calibration,
+                            window_hw=window_hw, panel_hw=panel_hw, planes=base.planes)
                 views_json.append({"scene": name, "view": i, **view.to_json(),
                                    "planes_m": list(p.target.planes_m)})
-                print(f"{name} view {i}: {view.to_json()}; exact target at "
+                print(f"{name} view {i}: {view.describe()}; exact target at "
                       f"{len(p.target.planes_m)} planes in {p.seconds:.1f} s", flush=True)
                 loop = CameraLoop(devices, calibration, p.encoder)
                 start, net_s = None, 0.0

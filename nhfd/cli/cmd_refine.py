@@ -7,69 +7,48 @@
             (--sim), which this command calibrates (into OUT/calibration, reused) and whose
             simulated laser it arms itself at --power
 
-A scene without a model is refined through `scene_info` (the configured optics, a 40-degree
-camera, the view's own depth mapping) and `amplitude_scale_of` (the dataset's rule for one
-field). Writes OUT/frame.npy (grey [K, 3, Hr, Wr]: K subframes of the frame's region),
-OUT/frame_k.png (each subframe's region, R G B), OUT/report.json and OUT/report.md.
-
-The pieces (`prepare`, `exact_frame`, `sgd_frame`, `citl_frame`, `twin_calibration`,
-`sim_devices`) are what `nhfd bench quality` measures with.
+A scene without a model is seen through a 40-degree camera with the configured optics, its
+depths mapped onto the volume from this view's own content, its brightness scaled as a
+dataset of this one view would be. Writes OUT/frame.npy (grey [K, 3, Hr, Wr]: K subframes of
+the frame's region), OUT/frame_k.png (each subframe's region, R G B), OUT/report.json and
+OUT/report.md.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
-import hashlib
 import json
 import math
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from PIL import Image
-from pydantic import ValidationError
 
-from nhfd.calib.capture import CapturePlan, SimBenchIO, capture
 from nhfd.calib.citl import CameraLoop
-from nhfd.calib.fit import fit_capture
-from nhfd.calib.patterns import PatternSpec
-from nhfd.calibration import Calibration, CalibrationFileError, active_calibration
+from nhfd.calib.sim import (
+    SIM_BENCH_SEED,
+    SIM_POWER_PCT,
+    sim_devices,
+    sim_panel_hw,
+    twin_calibration,
+)
+from nhfd.calibration import Calibration, active_calibration
 from nhfd.cli.args import parse_wxh
-from nhfd.config import Config, RefineSettings, load_config
-from nhfd.device_settings import COLOURS
-from nhfd.drivers.factory import BenchDevices, make_bench
+from nhfd.config import load_config, refine_settings
 from nhfd.drivers.simcamera import TrueBench
-from nhfd.model_info import ModelInfo
 from nhfd.models.export import load_model
-from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.frame import compute_frame
 from nhfd.pipeline.refine import (
-    SCENE_FOV_X_DEG,
-    BenchForward,
-    Capture,
     Refined,
-    RefineReport,
-    Target,
-    amplitude_scale_of,
-    exact_reference,
-    grey_phase,
+    citl_frame,
+    exact_frame,
+    prepare,
     psnr_db,
-    refine,
-    scene_info,
-    stack_loss,
-    target_from_field,
-    view_planes,
+    sgd_frame,
 )
-from nhfd.pipeline.settings import frame_settings
-from nhfd.pipeline.view import Scene, scene_frame
-from nhfd.scene.io import read_scene
-from nhfd.scene.suggest import suggest_camera
+from nhfd.pipeline.view import NO_MODEL_VIEW, default_view, scene_from_file
 from nhfd.views import Orbit, View
 
 DEFAULT_SIZE = "512x288"
@@ -77,17 +56,6 @@ DEFAULT_OUT = "out/refine"
 TIERS = ("exact", "sgd", "citl")
 # The settings the command line overrides, each checked through RefineSettings.
 OVERRIDES = ("iterations", "seconds", "subframes", "planes")
-# A scene without a model: an orbit at this azimuth and elevation (deg), at this multiple of
-# the distance `nhfd scene info` suggests (its framing fills 80% of the window: a little
-# farther keeps the whole object inside the window's edge, which the loss leaves out).
-NO_MODEL_VIEW = (0.0, 15.0, 1.5)
-# The simulated bench (--sim): the panel is the window plus this margin on each side (the
-# twin simulates the whole panel, so every camera capture costs in proportion to it; the
-# frame's region reaches 24 px beyond the window at the packaged optics).
-SIM_PANEL_MARGIN_PX = 64
-SIM_BENCH_SEED = 7  # TrueBench.randomised: phase sign -1, no mirror, M ~ 1.12
-SIM_POWER_PCT = 10.0  # the simulated laser's cap
-SIM_ARM_S = 900.0  # the longest arming the laser accepts
 # A progress line every this many iterations (citl: every iteration, each is D x C x K
 # captures).
 PROGRESS_EVERY = 10
@@ -99,7 +67,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", required=True, metavar="PATH", help="the splat scene")
     p.add_argument("--model", metavar="ONNX",
                    help="the scene's model (sgd then starts from its frame); without one the "
-                        "scene is refined through scene_info, from its exact frame")
+                        "scene is refined from its exact frame")
     p.add_argument("--quality", choices=TIERS, default="sgd",
                    help="the tier (default sgd); citl needs --sim")
     p.add_argument("--view", metavar="AZ,EL,R",
@@ -130,35 +98,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 # -- checking what was asked -------------------------------------------------------------------
 
-def _bounds(name: str) -> str:
-    """RefineSettings' allowed range of `name`, e.g. "1 <= iterations <= 100000"."""
-    lo = hi = ""
-    for m in RefineSettings.model_fields[name].metadata:
-        for attr, sym in (("ge", "<="), ("gt", "<")):
-            if getattr(m, attr, None) is not None:
-                lo = f"{getattr(m, attr):g} {sym} "
-        for attr, sym in (("le", "<="), ("lt", "<")):
-            if getattr(m, attr, None) is not None:
-                hi = f" {sym} {getattr(m, attr):g}"
-    return f"{lo}{name}{hi}"
-
-
-def refine_settings(base: RefineSettings, overrides: dict[str, Any]) -> RefineSettings:
-    """`base` (the configuration's `[refine]`) with `overrides` (None: keep), validated as
-    RefineSettings: a ValueError naming `refine.<key>`, the value and the allowed range."""
-    given = {k: v for k, v in overrides.items() if v is not None}
-    try:
-        return RefineSettings.model_validate({**base.model_dump(), **given})
-    except ValidationError as exc:
-        problems = []
-        for e in exc.errors():
-            key = ".".join(str(p) for p in e["loc"])
-            allowed = _bounds(key) if key in RefineSettings.model_fields else ""
-            problems.append(f"refine.{key} = {e.get('input')!r}: "
-                            + (f"must be {allowed}" if allowed else str(e["msg"])))
-        raise ValueError("; ".join(problems)) from None
-
-
 def parse_view(text: str) -> View:
     """'AZ,EL,R' -> an orbit view (ValueError naming --view and the form)."""
     parts = text.split(",")
@@ -168,192 +107,6 @@ def parse_view(text: str) -> View:
         raise ValueError(f"--view {text!r}: expected AZ,EL,R (azimuth and elevation in degrees, "
                          "radius in scene units), e.g. 10,20,0.7") from None
     return View(Orbit(az, el, r))
-
-
-# -- the scene, the view and the frame settings -------------------------------------------------
-
-def load_scene(path: str | Path) -> Scene:
-    """A splat scene as frames use it (its Gaussians and the frame orbit views are about)."""
-    load = read_scene(path)
-    return Scene(load.gaussians, scene_frame(load.gaussians, str(path)))
-
-
-def suggested_radius(scene: Scene, window_hw: tuple[int, int], azimuth_deg: float,
-                     elevation_deg: float) -> float:
-    """The orbit radius at which `nhfd scene info`'s camera frames the scene in the window
-    (a SCENE_FOV_X_DEG camera: `scene_info`'s)."""
-    h, w = window_hw
-    cam = suggest_camera(scene.gaussians, w, h, scene.frame.up, fov_x_deg=SCENE_FOV_X_DEG,
-                         azimuth_deg=azimuth_deg, elevation_deg=elevation_deg)
-    position = -cam.R.T @ cam.t
-    return float(np.linalg.norm(position - np.asarray(scene.frame.center)))
-
-
-def default_view(scene: Scene, info: ModelInfo | None, window_hw: tuple[int, int]) -> View:
-    """The middle of the model's pose envelope; without a model (or an envelope), an orbit at
-    NO_MODEL_VIEW."""
-    env = info.pose_envelope if info is not None else None
-    if env is not None and env.azimuth_deg and env.elevation_deg and env.distance:
-        return View(Orbit(sum(env.azimuth_deg) / 2, sum(env.elevation_deg) / 2,
-                          sum(env.distance) / 2))
-    az, el, k = NO_MODEL_VIEW
-    return View(Orbit(az, el, k * suggested_radius(scene, window_hw, az, el)))
-
-
-def sim_panel_hw(window_hw: tuple[int, int], margin_px: int = SIM_PANEL_MARGIN_PX
-                 ) -> tuple[int, int]:
-    """The simulated bench's panel: the window plus `margin_px` on each side."""
-    return window_hw[0] + 2 * margin_px, window_hw[1] + 2 * margin_px
-
-
-@dataclass
-class Prepared:
-    """A view ready to refine: the model's (or `scene_info`'s) info, the encoder (its amplitude
-    scale the model's, or `amplitude_scale_of` the view's field), the view's exact reference
-    field `[C, h, w]`, the target at its content planes, the bench model at those planes, the
-    exact frame `[C, Hr, Wr]` uint8, and the seconds all that took."""
-
-    view: View
-    info: ModelInfo
-    encoder: Encoder
-    reference: torch.Tensor
-    target: Target
-    model: BenchForward
-    exact_grey: np.ndarray
-    seconds: float
-
-
-def prepare(config: Config, scene: Scene, view: View, window_hw: tuple[int, int],
-            panel_hw: tuple[int, int], settings: RefineSettings, *,
-            calibration: Calibration | None = None, info: ModelInfo | None = None) -> Prepared:
-    """`refine_view`'s steps up to the optimisation, kept apart so that the tiers of one view
-    share them (and the time they took is counted once per tier): the encoder for `info` (a
-    model's; None: `scene_info` and the view's own amplitude scale) on a `panel_hw` panel, the
-    view's exact reference at `settings.planes` content planes, the target and the exact
-    frame. `config`: the whole configuration (frame settings join [slm], [coding], [optics])."""
-    if window_hw[0] > panel_hw[0] or window_hw[1] > panel_hw[1]:
-        raise ValueError(f"--size {window_hw[1]}x{window_hw[0]} does not fit the panel "
-                         f"{panel_hw[1]} x {panel_hw[0]} (slm.width_px x height_px)")
-    t0 = time.perf_counter()
-    own_scale = info is None
-    if info is None:
-        info = scene_info(config.optics, config.slm, view, scene, window_hw)
-    base = frame_settings(config, info, calibration, refocus_m=view.refocus_m)
-    s = dataclasses.replace(base, panel_hw=tuple(panel_hw), window_hw=tuple(window_hw))
-    encoder = Encoder(s)
-    reference = exact_reference(view, scene, info, window_hw)
-    if own_scale:  # no model: the amplitude scale a dataset of this one view would have
-        scale = amplitude_scale_of(reference, encoder)
-        info = dataclasses.replace(info, amplitude_scale=scale)
-        encoder = Encoder(dataclasses.replace(s, amplitude_scale=scale))
-    planes = view_planes(view, scene, info, window_hw, settings.planes)
-    target = target_from_field(reference, planes, encoder)
-    with torch.no_grad():
-        exact_grey, _ = encoder.code(encoder.to_slm(reference))
-    return Prepared(view, info, encoder, reference, target, BenchForward(encoder, planes),
-                    exact_grey, time.perf_counter() - t0)
-
-
-def model_loss(p: Prepared, grey: np.ndarray) -> float:
-    """The bench model's loss of a frame `[C, Hr, Wr]` or `[K, C, Hr, Wr]` against the target."""
-    g = np.asarray(grey)
-    g = g[None] if g.ndim == 3 else g
-    with torch.no_grad():
-        return float(stack_loss(p.model(grey_phase(g, p.encoder)).mean(0), p.target))
-
-
-def exact_frame(p: Prepared) -> Refined:
-    """The exact tier: the reference's double-phase frame, scored by the bench model (as
-    `refine_view` reports it)."""
-    loss = model_loss(p, p.exact_grey)
-    report = RefineReport("exact", 0, p.seconds, loss, psnr_db(loss), psnr_db(loss), "exact")
-    return Refined(p.exact_grey[None], report)
-
-
-def sgd_frame(p: Prepared, settings: RefineSettings, *, start: np.ndarray | None = None,
-              progress: Callable[[int, float, float], None] | None = None, seed: int = 0
-              ) -> Refined:
-    """The sgd tier from `start` (the network's frame `[C, Hr, Wr]`) or the exact frame."""
-    first = p.exact_grey if start is None else start
-    return refine(first, p.target, p.model, settings, seed=seed, progress=progress)
-
-
-def citl_frame(p: Prepared, sgd: Refined, settings: RefineSettings, loop: Capture, *,
-               progress: Callable[[int, float, float], None] | None = None, seed: int = 0
-               ) -> Refined:
-    """The citl tier: the camera's loop from sgd's frame (`refine_view`'s last step)."""
-    return refine(sgd.grey, p.target, p.model, settings, capture=loop, seed=seed,
-                  progress=progress)
-
-
-# -- the simulated bench ----------------------------------------------------------------------
-
-def _twin_key(twin: TrueBench, panel_hw: tuple[int, int]) -> str:
-    return hashlib.sha256(f"{twin!r} {tuple(panel_hw)}".encode()).hexdigest()[:16]
-
-
-def twin_calibration(folder: Path, twin: TrueBench, panel_hw: tuple[int, int], *,
-                     say: Callable[[str], None] = print) -> Calibration:
-    """The twin's calibration on a `panel_hw` panel: `folder`/calibration.toml when it was
-    fitted for this twin and panel (`twin.json` says so), else a capture (the small pattern
-    set the calibration tests use: 3 reference and 13 test grey levels) into `folder`/capture
-    and its fit (minutes at 416 x 640 on 2 cores)."""
-    folder = Path(folder)
-    toml, stamp = folder / "calibration.toml", folder / "twin.json"
-    key = _twin_key(twin, panel_hw)
-    if toml.is_file() and stamp.is_file():
-        try:
-            ok = json.loads(stamp.read_text()).get("key") == key
-        except ValueError:
-            ok = False
-        if ok:
-            try:
-                cal = Calibration.load(toml)
-            except CalibrationFileError as exc:
-                say(f"calibration {toml}: {exc}; capturing again")
-            else:
-                say(f"calibration {toml} (reused: this twin and panel)")
-                return cal
-    folder.mkdir(parents=True, exist_ok=True)
-    stamp.unlink(missing_ok=True)
-    t0 = time.perf_counter()
-    say(f"calibrating the simulated bench ({panel_hw[1]} x {panel_hw[0]} panel) into {folder}")
-    spec = PatternSpec(tuple(panel_hw), twin.pitch_m, twin.wavelengths_m, refs=(0, 96, 176),
-                       tests=tuple(range(8, 256, 20)))
-    plan = CapturePlan(stage_center_mm=10.0, stage_range_mm=2.5, coarse_step_mm=0.5,
-                       fine_steps=13, camera_pitch_m=twin.camera_pitch_m)
-    capture(folder / "capture", SimBenchIO(twin, tuple(panel_hw), noise_seed=3), spec, plan,
-            force=True)
-    cal = fit_capture(folder / "capture")
-    cal.save(toml)
-    stamp.write_text(json.dumps({"key": key, "panel_hw": list(panel_hw),
-                                 "seconds": round(time.perf_counter() - t0, 1)}))
-    say(f"calibrated in {time.perf_counter() - t0:.0f} s: {toml}")
-    return Calibration.load(toml)
-
-
-@contextmanager
-def sim_devices(twin: TrueBench, panel_hw: tuple[int, int], *, power_pct: float = SIM_POWER_PCT
-                ) -> Iterator[BenchDevices]:
-    """The simulated bench over `twin` (the packaged default devices: all simulated, a mono
-    camera on the sensor region that holds the panel's image, as in its calibration), its
-    laser armed (`SIM_ARM_S`; `arm_twin` re-arms) with every colour at `power_pct`. Closing
-    switches every laser off."""
-    d = Config().devices
-    d = d.model_copy(update={"camera_settings": d.camera_settings.model_copy(
-        update={"channels": "mono"})})
-    with make_bench(d, panel_hw[1], panel_hw[0], bench=twin,
-                    roi=twin.roi_for_panel(panel_hw)) as devices:
-        arm_twin(devices)
-        for name in COLOURS:
-            devices.laser.set_power(name, power_pct)
-        yield devices
-
-
-def arm_twin(devices: BenchDevices) -> None:
-    """Arm the simulated laser for SIM_ARM_S (before each citl frame: a long one may outlast
-    an arming)."""
-    devices.laser.arm(SIM_ARM_S)
 
 
 # -- the command ------------------------------------------------------------------------------
@@ -405,7 +158,7 @@ def _report_md(report: dict[str, Any]) -> str:
     return "\n".join([
         f"# nhfd refine: {report['tier']}",
         "",
-        f"- scene `{report['scene']}`, model `{report['model'] or 'none (scene_info)'}`",
+        f"- scene `{report['scene']}`, model `{report['model'] or 'none'}`",
         f"- view: {view}",
         f"- window {report['window_hw'][1]} x {report['window_hw'][0]}, panel "
         f"{report['panel_hw'][1]} x {report['panel_hw'][0]}, {report['subframes']} subframe(s)",
@@ -439,13 +192,13 @@ def run(args: argparse.Namespace) -> int:
         raise FileNotFoundError(f"--model {args.model}: not found")
     t_start = time.perf_counter()
     model = load_model(args.model, config) if args.model else None
-    scene = load_scene(scene_path)
+    scene = scene_from_file(scene_path)
     info = model.info if model is not None else None
     view = view or default_view(scene, info, window_hw)
     out = Path(args.out)
     print(f"nhfd refine: {args.quality} of {scene_path.name}"
-          f"{' with ' + Path(args.model).name if model else ' (no model: scene_info)'}, "
-          f"view {view.to_json()}, {w} x {h}, K = {settings.subframes}", flush=True)
+          f"{' with ' + Path(args.model).name if model else ' (no model)'}, "
+          f"view: {view.describe()}, {w} x {h}, K = {settings.subframes}", flush=True)
     calibration: Calibration | None = None
     twin: TrueBench | None = None
     if args.sim:
@@ -455,8 +208,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         panel_hw = (config.slm.height_px, config.slm.width_px)
         calibration = active_calibration(config)
-    p = prepare(config, scene, view, window_hw, panel_hw, settings, calibration=calibration,
-                info=info)
+    p = prepare(config, view, scene, info=info, calibration=calibration, window_hw=window_hw,
+                panel_hw=panel_hw, planes=settings.planes)
     print(f"  exact target at {len(p.target.planes_m)} plane(s) in {p.seconds:.1f} s", flush=True)
     times = {"prepare_s": p.seconds, "network_s": 0.0, "sgd_s": 0.0, "citl_s": 0.0}
     stages: list[Refined] = []

@@ -33,7 +33,8 @@ from typing import Protocol
 import numpy as np
 import torch
 
-from nhfd.config import OpticsSettings, RefineSettings, SLMSettings
+from nhfd.calibration import Calibration
+from nhfd.config import Config, OpticsSettings, RefineSettings, SLMSettings
 from nhfd.holo import (
     band_limit,
     colour_sampling,
@@ -57,7 +58,8 @@ from nhfd.views import QUALITY_TIERS, View
 
 from .encoder import Encoder
 from .frame import render_view
-from .view import Scene, render_camera
+from .settings import frame_settings
+from .view import SCENE_FOV_X_DEG, Scene, render_camera
 
 # Pixels along the window's edge left out of the loss: the window's edge diffracts, and the
 # target (the window alone, propagated) and the bench (the whole region) differ there.
@@ -66,8 +68,6 @@ EDGE_PX = 6
 CONTENT_ALPHA = 0.5
 # Planes closer than this (m) count as one.
 PLANE_MERGE_M = 20e-6
-# The field of view across the window of a scene served without a model (the model build's).
-SCENE_FOV_X_DEG = 40.0
 # The loss this many times the starting loss: the optimisation is diverging.
 DIVERGE_FACTOR = 4.0
 # A step whose loss is this many times the best so far overshot: `refine` goes back to the best
@@ -213,19 +213,6 @@ def configured_info(optics: OpticsSettings, slm: SLMSettings, window_hw: tuple[i
                      fy_px=fx)
 
 
-def scene_info(optics: OpticsSettings, slm: SLMSettings, view: View, scene: Scene,
-               window_hw: tuple[int, int], *, fov_x_deg: float = SCENE_FOV_X_DEG) -> ModelInfo:
-    """What the frame path needs of a model, for a scene served without one (the `exact`
-    tier, and `sgd`/`citl` from it): `configured_info`, with the depth mapping of this view's
-    own content (its robust near and far depths, `nhfd.holo.scene_depth_range`, onto the
-    volume). The amplitude scale is 1: code with `amplitude_scale_of` the field."""
-    info = configured_info(optics, slm, window_hw, fov_x_deg=fov_x_deg)
-    r = render_view(view, scene, info, window_hw)
-    d = scene_depth_range([r.depth], [r.alpha])
-    mapping = DepthMapping.from_range(d["d_near"], d["d_far"], *info.volume_m)
-    return replace(info, mapping=InfoMapping(mapping.a_m, mapping.b_m, d["d_near"], d["d_far"]))
-
-
 def amplitude_scale_of(reference: torch.Tensor, encoder: Encoder) -> float:
     """The amplitude scale a dataset of this one field would have: the 99.5th percentile of
     its SLM-plane amplitude over content pixels (above 1% of the peak), as `nhfd dataset
@@ -236,15 +223,6 @@ def amplitude_scale_of(reference: torch.Tensor, encoder: Encoder) -> float:
     if not peak > 0:
         raise ValueError("the view's field is dark: nothing of the scene is in view")
     return float(torch.quantile(amp[amp > 0.01 * peak][:16_000_000], 0.995))
-
-
-def view_planes(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[int, int], n: int
-                ) -> tuple[float, ...]:
-    """`content_planes` of the view rendered through the model's camera."""
-    if info.mapping is None:
-        return (0.0,)
-    r = render_view(view, scene, info, window_hw)
-    return content_planes(hologram_depth(r.depth, info.mapping), r.alpha, n, info.volume_m)
 
 
 def quantise(theta: torch.Tensor, encoder: Encoder) -> tuple[torch.Tensor, torch.Tensor]:
@@ -516,49 +494,147 @@ def refine(start: np.ndarray, target: Target, model: BenchForward, settings: Ref
     return best
 
 
-def refine_view(view: View, scene: Scene, info: ModelInfo, encoder: Encoder, tier: str,
-                settings: RefineSettings, *, start: np.ndarray | None = None,
-                capture: Capture | None = None, cancelled: Callable[[], bool] = _never,
+@dataclass
+class Prepared:
+    """A view ready to refine, what every tier of it shares: the model's info (or, for a scene
+    without a model, `configured_info` with the view's own depth mapping and amplitude scale),
+    the encoder, the view's exact reference field `[C, h, w]`, the target at its content
+    planes, the bench model at those planes, the exact frame `[C, Hr, Wr]` uint8 and its
+    clipped fractions, the view's render (sRGB `[3, h, w]`, the preview) and the seconds all
+    that took."""
+
+    view: View
+    info: ModelInfo
+    encoder: Encoder
+    reference: torch.Tensor
+    target: Target
+    model: BenchForward
+    exact_grey: np.ndarray
+    clipped: tuple[float, ...]
+    rgb: np.ndarray
+    seconds: float
+
+
+def prepare(config: Config, view: View, scene: Scene, *, info: ModelInfo | None = None,
+            calibration: Calibration | None = None, window_hw: tuple[int, int] | None = None,
+            panel_hw: tuple[int, int] | None = None, planes: int | None = None,
+            device: torch.device | str = "cpu", cancelled: Callable[[], bool] = _never
+            ) -> Prepared:
+    """The one preparation of a view for refinement (`nhfd refine`, the frame worker, `nhfd
+    bench quality`): the view rendered once (its content planes, and without a model its depth
+    mapping and its preview), its light field inverted (`exact_reference`), the encoder, the
+    target at `planes` (default `refine.planes`) content planes, the bench model there and the
+    exact frame.
+
+    `info`: the model's; None, a scene without one: `configured_info` on `window_hw` (then
+    required) with the view's robust near and far depths mapped onto the volume
+    (`nhfd.holo.scene_depth_range`) and the amplitude scale a dataset of this one field would
+    have (`amplitude_scale_of`). `config`: the whole configuration (frame settings join [slm],
+    [coding], [optics], [daemon]); `window_hw` and `panel_hw` replace its window and panel
+    when given. `device`: where the encoder and the bench model run. `cancelled()` is polled
+    between the stages and the light field's elemental views (`Cancelled`)."""
+    t0 = time.perf_counter()
+
+    def poll(_done: int = 0, _total: int = 0) -> None:
+        if cancelled():
+            raise Cancelled
+
+    own = info is None
+    if own:
+        if window_hw is None:
+            raise ValueError("a scene without a model needs the frame window (window_hw)")
+        info = configured_info(config.optics, config.slm, window_hw)
+    assert info is not None
+    s = frame_settings(config, info, calibration, refocus_m=view.refocus_m)
+    if window_hw is not None:
+        s = replace(s, window_hw=tuple(window_hw))
+    if panel_hw is not None:
+        s = replace(s, panel_hw=tuple(panel_hw))
+    (h, w), (ph, pw) = s.window_hw, s.panel_hw
+    if h > ph or w > pw:
+        raise ValueError(f"the window {w} x {h} does not fit the panel {pw} x {ph} "
+                         "(slm.width_px x height_px)")
+    r = render_view(view, scene, info, s.window_hw)  # the view, rendered once
+    poll()
+    if own:
+        d = scene_depth_range([r.depth], [r.alpha])
+        mapping = DepthMapping.from_range(d["d_near"], d["d_far"], *info.volume_m)
+        info = replace(info, mapping=InfoMapping(mapping.a_m, mapping.b_m, d["d_near"],
+                                                 d["d_far"]))
+    reference = exact_reference(view, scene, info, s.window_hw, progress=poll)
+    encoder = Encoder(s, device=device)
+    if own:
+        scale = amplitude_scale_of(reference, encoder)
+        info = replace(info, amplitude_scale=scale)
+        encoder = Encoder(replace(s, amplitude_scale=scale), device=device)
+    n = config.refine.planes if planes is None else planes
+    at = ((0.0,) if info.mapping is None else
+          content_planes(hologram_depth(r.depth, info.mapping), r.alpha, n, info.volume_m))
+    target = target_from_field(reference, at, encoder)
+    with torch.no_grad():
+        exact_grey, clipped = encoder.code(encoder.to_slm(reference))
+    poll()
+    return Prepared(view, info, encoder, reference, target, BenchForward(encoder, at),
+                    exact_grey, tuple(clipped), r.rgb, time.perf_counter() - t0)
+
+
+def model_loss(p: Prepared, grey: np.ndarray) -> float:
+    """The bench model's loss of a frame `[C, Hr, Wr]` or `[K, C, Hr, Wr]` against the target."""
+    g = np.asarray(grey)
+    g = g[None] if g.ndim == 3 else g
+    with torch.no_grad():
+        seen = p.model(grey_phase(g, p.encoder)).mean(0)
+        return float(stack_loss(seen, p.target.to(p.model.device)))
+
+
+def exact_frame(p: Prepared) -> Refined:
+    """The exact tier: the reference's double-phase frame, scored by the bench model."""
+    loss = model_loss(p, p.exact_grey)
+    report = RefineReport("exact", 0, p.seconds, loss, psnr_db(loss), psnr_db(loss), "exact")
+    return Refined(p.exact_grey[None], report)
+
+
+def sgd_frame(p: Prepared, settings: RefineSettings, *, start: np.ndarray | None = None,
+              cancelled: Callable[[], bool] = _never,
+              on_better: Callable[[Refined], None] | None = None, seed: int = 0,
+              progress: Callable[[int, float, float], None] | None = None) -> Refined:
+    """The sgd tier from `start` (the network's frame `[C, Hr, Wr]`) or the exact frame."""
+    first = p.exact_grey if start is None else start
+    return refine(first, p.target, p.model, settings, cancelled=cancelled, on_better=on_better,
+                  seed=seed, progress=progress)
+
+
+def citl_frame(p: Prepared, sgd: Refined, settings: RefineSettings, capture: Capture, *,
+               cancelled: Callable[[], bool] = _never,
+               on_better: Callable[[Refined], None] | None = None, seed: int = 0,
+               progress: Callable[[int, float, float], None] | None = None) -> Refined:
+    """The citl tier: the camera's loop from sgd's frame (each step D x C x K captures)."""
+    return refine(sgd.grey, p.target, p.model, settings, capture=capture, cancelled=cancelled,
+                  on_better=on_better, seed=seed, progress=progress)
+
+
+def refine_view(p: Prepared, tier: str, settings: RefineSettings, *,
+                start: np.ndarray | None = None, capture: Capture | None = None,
+                cancelled: Callable[[], bool] = _never,
                 on_better: Callable[[Refined], None] | None = None, seed: int = 0,
-                progress: Callable[[int, float, float], None] | None = None
-                ) -> tuple[Refined, Target]:
-    """A view's frame at `tier` ("exact", "sgd" or "citl"; `check_tier`) and the target it was
-    measured against: the view's `exact_reference` at its `content_planes`
-    (`settings.planes`); "exact" codes that field, "sgd" and "citl" refine from `start` (the
-    network's frame, `[C, Hr, Wr]` uint8) or, without one, from the exact frame. `citl` needs
-    `capture`. `cancelled()` is polled through the inversion and every step; `progress` is
-    `refine`'s (sgd's steps, then citl's, each counting from 0)."""
+                progress: Callable[[int, float, float], None] | None = None) -> Refined:
+    """A prepared view's frame at `tier` ("exact", "sgd" or "citl"; `check_tier`): "exact"
+    codes the exact field, "sgd" refines from `start` (the network's frame, `[C, Hr, Wr]`
+    uint8) or the exact frame, "citl" then goes on with the camera in the loop (`capture`).
+    `cancelled()` is polled every step; `progress` is `refine`'s (sgd's steps, then citl's,
+    each counting from 0)."""
     check_tier(tier)
     if tier == "network":
         raise ValueError("quality = 'network': the network's frame is `compute_frame`'s")
     if tier == "citl" and capture is None:
         raise ValueError("quality = 'citl' needs the bench's camera and a calibration "
                          "(devices.camera and calibration.file)")
-    window_hw = encoder.settings.window_hw
-
-    def poll(_done: int, _total: int) -> None:
-        if cancelled():
-            raise Cancelled
-
-    t0 = time.monotonic()
-    planes = view_planes(view, scene, info, window_hw, settings.planes)
-    reference = exact_reference(view, scene, info, window_hw, progress=poll)
-    target = target_from_field(reference, planes, encoder)
-    model = BenchForward(encoder, planes)
-    with torch.no_grad():
-        exact_grey, _ = encoder.code(encoder.to_slm(reference))
     if tier == "exact":
-        with torch.no_grad():
-            loss = float(stack_loss(model(grey_phase(exact_grey[None], encoder)).mean(0),
-                                    target.to(model.device)))
-        report = RefineReport("exact", 0, time.monotonic() - t0, loss, psnr_db(loss),
-                              psnr_db(loss), "exact")
-        return Refined(exact_grey[None], report), target
-    first = exact_grey if start is None else start
-    sgd = refine(first, target, model, settings, cancelled=cancelled, on_better=on_better,
-                 seed=seed, progress=progress)
+        return exact_frame(p)
+    sgd = sgd_frame(p, settings, start=start, cancelled=cancelled, on_better=on_better,
+                    seed=seed, progress=progress)
     if tier == "sgd" or sgd.report.stop == "cancelled":
-        return sgd, target
-    # The camera fine-tunes what the model can do: each of its steps costs D x C x K captures.
-    return refine(sgd.grey, target, model, settings, capture=capture, cancelled=cancelled,
-                  on_better=on_better, seed=seed, progress=progress), target
+        return sgd
+    assert capture is not None
+    return citl_frame(p, sgd, settings, capture, cancelled=cancelled, on_better=on_better,
+                      seed=seed, progress=progress)

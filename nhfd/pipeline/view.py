@@ -5,19 +5,28 @@ poses the model was trained on (`nhfd.model_info.PoseEnvelope`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from nhfd.model_info import ModelInfo, PoseEnvelope
 from nhfd.scene.cameras import Camera, orbit, pose_from_quaternion
-from nhfd.scene.suggest import detect_up_axis, format_hint
+from nhfd.scene.io import read_scene
+from nhfd.scene.suggest import detect_up_axis, format_hint, suggest_camera
 from nhfd.views import Orbit, View
 
 # Envelope checks allow this much beyond the trained range before warning (a view at the edge of
 # the training poses is still a trained view).
 ENVELOPE_SLACK_DEG = 1.0
 ENVELOPE_SLACK_FRACTION = 0.02
+# The field of view across the window of a scene served without a model (the model build's).
+SCENE_FOV_X_DEG = 40.0
+# A scene without a model, by default: an orbit at this azimuth and elevation (deg), at this
+# multiple of the distance `nhfd scene info` suggests (its framing fills 80% of the window: a
+# little farther keeps the whole object inside the window's edge, which refinement's loss
+# leaves out).
+NO_MODEL_VIEW = (0.0, 15.0, 1.5)
 
 
 @dataclass(frozen=True)
@@ -46,6 +55,34 @@ def scene_frame(g: Any, path: str | None = None) -> SceneFrame:
     up = detect_up_axis(g, format_hint(path) if path else None)[0]
     center = np.median(g.means, axis=0) if len(g) else np.zeros(3)
     return SceneFrame(tuple(float(v) for v in center), up)  # type: ignore[arg-type]
+
+
+def scene_from_file(path: str | Path) -> Scene:
+    """A splat scene as frames use it (its Gaussians and the frame orbit views are about)."""
+    load = read_scene(path)
+    return Scene(load.gaussians, scene_frame(load.gaussians, str(path)))
+
+
+def suggested_radius(scene: Scene, window_hw: tuple[int, int], azimuth_deg: float,
+                     elevation_deg: float) -> float:
+    """The orbit radius at which `nhfd scene info`'s camera frames the scene in the window
+    (h, w px) through a SCENE_FOV_X_DEG camera (a scene without a model's)."""
+    h, w = window_hw
+    cam = suggest_camera(scene.gaussians, w, h, scene.frame.up, fov_x_deg=SCENE_FOV_X_DEG,
+                         azimuth_deg=azimuth_deg, elevation_deg=elevation_deg)
+    position = -cam.R.T @ cam.t
+    return float(np.linalg.norm(position - np.asarray(scene.frame.center)))
+
+
+def default_view(scene: Scene, info: ModelInfo | None, window_hw: tuple[int, int]) -> View:
+    """The middle of the model's pose envelope; without a model (or an envelope), an orbit at
+    NO_MODEL_VIEW."""
+    env = info.pose_envelope if info is not None else None
+    if env is not None and env.azimuth_deg and env.elevation_deg and env.distance:
+        return View(Orbit(sum(env.azimuth_deg) / 2, sum(env.elevation_deg) / 2,
+                          sum(env.distance) / 2))
+    az, el, k = NO_MODEL_VIEW
+    return View(Orbit(az, el, k * suggested_radius(scene, window_hw, az, el)))
 
 
 def view_pose(view: View, frame: SceneFrame) -> tuple[np.ndarray, np.ndarray]:

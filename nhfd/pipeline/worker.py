@@ -68,7 +68,6 @@ from nhfd.calibration import Calibration, active_calibration, keep
 from nhfd.config import Config, DaemonSettings
 from nhfd.dataset.build import sha256_file
 from nhfd.frame_message import CaptureReply, FrameMessage, RefinedFrame, StageTimes
-from nhfd.model_info import ModelInfo
 from nhfd.models.export import (
     check_providers,
     load_model,
@@ -85,15 +84,8 @@ from nhfd.views import View
 from .citl import RemoteCapture
 from .device import frame_device, inference_backend
 from .encoder import Encoder
-from .frame import compute_frame, preview_levels, render_view
-from .refine import (
-    Cancelled,
-    Refined,
-    amplitude_scale_of,
-    exact_reference,
-    refine_view,
-    scene_info,
-)
+from .frame import compute_frame, preview_levels
+from .refine import Cancelled, Prepared, Refined, prepare, refine_view
 from .settings import frame_settings, frame_window_hw
 from .view import Scene, envelope_warnings, scene_frame
 
@@ -515,21 +507,24 @@ class Refiner:
     def _run(self, seq: int, view: View, model: Any, scene: Any, network: np.ndarray,
              stop: threading.Event) -> None:
         try:
-            # Its own encoder: the worker's keeps scratch buffers for the frames it computes.
-            enc = Encoder(frame_settings(self.config, model.info,
-                                         active_calibration(self.config),
-                                         refocus_m=view.refocus_m), device=model.device)
-            self._refine(seq, view, scene, model.info, enc, network, stop)
+            # Its own encoder (the worker's keeps scratch buffers for the frames it computes),
+            # with the frames' settings: the refined frame's region is the network frame's.
+            p = prepare(self.config, view, scene, info=model.info,
+                        calibration=active_calibration(self.config), device=model.device,
+                        cancelled=stop.is_set)
+            self._refine(seq, view, p, network, stop)
         except Cancelled:  # a newer message stopped it (in the inversion or a step): no error
             pass
         except Exception as exc:  # reported to the daemon; the frame shown stays
             self.send(("refine_error", seq, f"{type(exc).__name__}: {exc}"))
 
-    def _refine(self, seq: int, view: View, scene: Any, info: ModelInfo, enc: Encoder,
-                start: np.ndarray, stop: threading.Event) -> None:
-        """Refine view `seq` from the grey region `start` at its tier, sending each better
-        frame as ("refined", seq, `RefinedFrame`) and the best one when it stops (unless a newer
-        message cancelled it)."""
+    def _refine(self, seq: int, view: View, p: Prepared, start: np.ndarray,
+                stop: threading.Event) -> None:
+        """Refine prepared view `seq` from the grey region `start` at its tier, sending each
+        better frame as ("refined", seq, `RefinedFrame`) and the best one when it stops (unless
+        a newer message cancelled it)."""
+        enc = p.encoder
+
         def better(refined: Refined, wait_s: float = BETTER_WAIT_S) -> None:
             frame = RefinedFrame(enc.region, refined.grey.copy(), refined.report.to_json())
             if self.slots is not None:
@@ -537,9 +532,8 @@ class Refiner:
             self.send(("refined", seq, frame))
 
         capture = self._remote_capture(seq, view, enc, stop)
-        refined, _ = refine_view(view, scene, info, enc, view.quality, self.config.refine,
-                                 start=start, capture=capture, cancelled=stop.is_set,
-                                 on_better=better)
+        refined = refine_view(p, view.quality, self.config.refine, start=start, capture=capture,
+                              cancelled=stop.is_set, on_better=better)
         if refined.report.stop != "cancelled":
             better(refined, FINAL_WAIT_S)
 
@@ -565,35 +559,20 @@ class Refiner:
             window_hw = (config.optics.hologram_height_px, config.optics.hologram_width_px)
             if config.daemon.frame_size_px:
                 window_hw = (config.daemon.frame_size_px[1], config.daemon.frame_size_px[0])
-            # A newer view cancels it between any two of its stages and between the light
-            # field's elemental views (`stop`), so its exact frame starts at once.
-            info = scene_info(config.optics, config.slm, view, scene, window_hw)
-            _raise_if(stop)
-            cal = active_calibration(config)
-            enc = Encoder(frame_settings(config, info, cal, refocus_m=view.refocus_m))
-            exact = exact_reference(view, scene, info, window_hw,
-                                    progress=lambda _d, _t: _raise_if(stop))
-            enc = Encoder(replace(enc.settings, amplitude_scale=amplitude_scale_of(exact, enc)))
-            with torch.no_grad():
-                grey, clipped = enc.code(enc.to_slm(exact))
-            _raise_if(stop)
-            rgb = render_view(view, scene, info, window_hw).rgb
-            _raise_if(stop)
+            # A newer view cancels it between its stages and between the light field's
+            # elemental views (`stop`), so the newer view's exact frame starts at once.
+            p = prepare(config, view, scene, window_hw=window_hw,
+                        calibration=active_calibration(config), cancelled=stop.is_set)
             first(replace(FrameMessage.of_arrays(
-                enc.region, grey, preview_levels(rgb),
-                StageTimes(render_s=time.perf_counter() - t0), clipped), tier="exact"))
+                p.encoder.region, p.exact_grey, preview_levels(p.rgb),
+                StageTimes(render_s=time.perf_counter() - t0), p.clipped), tier="exact"))
             if view.quality == "exact" or stop.is_set():
                 return
-            self._refine(seq, view, scene, info, enc, grey, stop)
+            self._refine(seq, view, p, p.exact_grey, stop)
         except Cancelled:
             self.send(("frame_cancelled", seq))
         except Exception as exc:
             self.send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))
-
-
-def _raise_if(stop: threading.Event) -> None:
-    if stop.is_set():
-        raise Cancelled
 
 
 def worker_main(conn: Any, config_data: dict[str, Any],

@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from nhfd.cli.cmd_refine import parse_view, refine_settings
+from nhfd.cli.cmd_refine import parse_view
 from nhfd.cli.main import main
-from nhfd.config import Config, RefineSettings
+from nhfd.config import Config, RefineSettings, refine_settings
 from nhfd.models.export import load_model
 from nhfd.pipeline.settings import frame_region, frame_settings
 

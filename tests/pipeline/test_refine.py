@@ -24,6 +24,7 @@ from nhfd.pipeline.refine import (
     check_tier,
     content_planes,
     grey_phase,
+    prepare,
     psnr_db,
     refine,
     refine_view,
@@ -247,14 +248,15 @@ def test_exact_and_sgd_beat_the_network_frame_on_the_shipped_scene() -> None:
     view = View(Orbit(sum(env.azimuth_deg) / 2 + 5, sum(env.elevation_deg) / 2,
                       sum(env.distance) / 2))
     network = compute_frame(view, scene, model, enc).grey
-    exact, target = refine_view(view, scene, model.info, enc, "exact", RefineSettings())
+    p = prepare(config, view, scene, info=model.info)
+    assert p.encoder.region == enc.region  # the frames' own settings
+    exact, target = refine_view(p, "exact", RefineSettings()), p.target
     assert len(target.planes_m) == 3 and exact.report.stop == "exact"
     with torch.no_grad():
         seen = BenchForward(enc, target.planes_m)(grey_phase(network[None], enc)).mean(0)
     network_db = psnr_db(float(stack_loss(seen, target)))
     assert exact.report.psnr_db > network_db + 2.0, (exact.report.psnr_db, network_db)
-    sgd, _ = refine_view(view, scene, model.info, enc, "sgd",
-                         RefineSettings(iterations=30, tolerance=0.0), start=network)
+    sgd = refine_view(p, "sgd", RefineSettings(iterations=30, tolerance=0.0), start=network)
     assert sgd.report.start_psnr_db == pytest.approx(network_db, abs=1e-6)
     assert sgd.report.psnr_db > network_db + 5.0
 
