@@ -1,8 +1,10 @@
 """Package discovery for the one `nhfd` distribution.
 
-The design card keeps `drivers/`, `models/` and `calib/` at the top of the repository but installs
-them as `nhfd.drivers`, `nhfd.models` and `nhfd.calib`. Subpackages are found, not listed, so a new
-subfolder cannot drop out of the wheel (tests/test_packaging.py builds the wheel to prove it).
+The repository keeps `drivers/`, `models/` and `calib/` at its top level, beside `nhfd/`, and
+installs them as `nhfd.drivers`, `nhfd.models` and `nhfd.calib`: one distribution, so nothing
+generic like `models` lands at the top of site-packages (docs/design.md, "Layout"). Subpackages are
+found, not listed, so a new subfolder cannot drop out of the wheel (tests/test_packaging.py builds
+the wheel to prove it).
 """
 
 from setuptools import find_packages, setup

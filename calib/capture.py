@@ -48,11 +48,27 @@ class BenchIO(Protocol):
     """What the capture needs from a bench. Images are linear float32 [h, w], dark subtracted
     once `capture_dark` has run (mono camera)."""
 
-    def show(self, frame: np.ndarray) -> None: ...
-    def move_stage(self, position_mm: float) -> float: ...
-    def set_lasers(self, powers: tuple[float, float, float]) -> None: ...
-    def capture_dark(self, frames: int) -> np.ndarray: ...
-    def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]: ...
+    def show(self, frame: np.ndarray) -> None:
+        """Show `frame` on the SLM: uint8 `[H, W, 3]`, the whole panel."""
+        ...
+
+    def move_stage(self, position_mm: float) -> float:
+        """Move the stage to `position_mm` (mm); returns where it is (mm)."""
+        ...
+
+    def set_lasers(self, powers: tuple[float, float, float]) -> None:
+        """Each colour's power (R, G, B), relative to its maximum in [0, 1]; 0 switches it off."""
+        ...
+
+    def capture_dark(self, frames: int) -> np.ndarray:
+        """The dark frame, lasers off: `frames` images averaged, linear float32 `[h, w]`; later
+        captures subtract it."""
+        ...
+
+    def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """`frames` images averaged: (linear, dark subtracted, float32 `[h, w]`; saturated pixels,
+        bool `[h, w]`)."""
+        ...
 
 
 class SimBenchIO:
@@ -86,24 +102,31 @@ class SimBenchIO:
         self.camera.open()
 
     def show(self, frame: np.ndarray) -> None:
+        """Keep `frame` (uint8 `[H, W, 3]`): the twin camera images it."""
         self.frame = np.ascontiguousarray(frame, dtype=np.uint8)
 
     def move_stage(self, position_mm: float) -> float:
+        """The stage at `position_mm` (mm) at once; returns it."""
         self.stage_mm = float(position_mm)
         return self.stage_mm
 
     def set_lasers(self, powers: tuple[float, float, float]) -> None:
+        """The twin's powers (R, G, B), relative in [0, 1]."""
         self.powers = tuple(float(p) for p in powers)  # type: ignore[assignment]
 
     def capture_dark(self, frames: int) -> np.ndarray:
+        """The twin camera's dark frame over `frames` images, float32 `[h, w]`."""
         return self.camera.capture_dark(frames)
 
     def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """`frames` images of the twin camera averaged: (linear `[h, w]`, saturated `[h, w]`
+        bool)."""
         cap = self.camera.capture(frames)
         return cap.image, cap.saturated
 
     @property
     def exposure_s(self) -> float:
+        """The twin camera's exposure (s)."""
         return self.camera.exposure_s
 
 
@@ -160,6 +183,8 @@ class DaemonBenchIO:
             time.sleep(self.poll_s)
 
     def show(self, frame: np.ndarray) -> None:
+        """Show `frame` (uint8 `[H, W, 3]`) through `show_pattern`, as a .npy file in `work_dir`; a
+        frame already shown is not sent again."""
         frame = np.ascontiguousarray(frame, dtype=np.uint8)
         key = hashlib.blake2b(frame.tobytes(), digest_size=16).digest() + \
             str(frame.shape).encode()
@@ -174,11 +199,17 @@ class DaemonBenchIO:
         self._shown = key
 
     def move_stage(self, position_mm: float) -> float:
+        """A `stage_move` job to `position_mm` (raw mm; the first move homes first when `home` was
+        given), waited for; returns the daemon's reading (mm)."""
         result = self._wait("stage_move", position_mm=float(position_mm), home=self._home)
         self._home = False
         return float(result["stage_mm"])
 
     def set_lasers(self, powers: tuple[float, float, float]) -> None:
+        """The powers (R, G, B, relative in [0, 1]) through `laser`: the colours at 0 disabled
+        first, an arm only when `arm_s` is given and the arming has under 5 s left, then each power
+        set and its diode enabled. `powers_applied` keeps what the daemon applied (its caps).
+        CaptureError when the lasers are not armed and `arm_s` is None."""
         powers = tuple(float(p) for p in powers)
         if powers == self._powers:
             return
@@ -227,9 +258,12 @@ class DaemonBenchIO:
         self._powers = None
 
     def capture_dark(self, frames: int) -> np.ndarray:
+        """A dark `capture` job over `frames` images: linear float32 `[h, w]`."""
         return self._image("dark.npy", frames, True)[0]
 
     def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """A `capture` job over `frames` images: (linear, dark subtracted, float32 `[h, w]`;
+        saturated `[h, w]` bool). CaptureError for a camera that is not mono."""
         return self._image("capture.npy", frames, False)
 
 
@@ -259,9 +293,11 @@ class DevicesBenchIO:
 
     @property
     def exposure_s(self) -> float:
+        """The camera's exposure (s)."""
         return float(self.devices.camera.exposure_s)
 
     def show(self, frame: np.ndarray) -> None:
+        """Show `frame` (uint8 `[H, W, 3]`) on the SLM; a frame already shown is not sent again."""
         frame = np.ascontiguousarray(frame, dtype=np.uint8)
         key = hashlib.blake2b(frame.tobytes(), digest_size=16).digest() + \
             str(frame.shape).encode()
@@ -271,10 +307,14 @@ class DevicesBenchIO:
             self._shown = key
 
     def move_stage(self, position_mm: float) -> float:
+        """Move the stage to `position_mm` (mm); returns its reading (mm)."""
         state = self.devices.stage.move_to(float(position_mm))
         return float(state.position_mm if state else position_mm)
 
     def set_lasers(self, powers: tuple[float, float, float]) -> None:
+        """The powers (R, G, B, relative in [0, 1]): the colours at 0 switched off first, the laser
+        armed for `arm_s` when under 5 s are left, then each power set and its diode on.
+        `powers_applied` keeps what the laser applied (its caps)."""
         powers = tuple(float(p) for p in powers)
         if powers == self._powers:
             return
@@ -298,10 +338,14 @@ class DevicesBenchIO:
         self.waited_s += time.monotonic() - t0
 
     def capture_dark(self, frames: int) -> np.ndarray:
+        """The camera's dark frame over `frames` images, once the panel has settled: float32 `[h,
+        w]`."""
         self._settled()
         return self.devices.camera.capture_dark(frames)
 
     def capture(self, frames: int) -> tuple[np.ndarray, np.ndarray]:
+        """`frames` images averaged once the panel has settled (or on the trigger's edge): (linear
+        `[h, w]`, saturated `[h, w]` bool). Adds the wait to `waited_s`."""
         self._settled()
         line = self.devices.camera.trigger
         before = len(line.record) if line is not None else 0
@@ -451,6 +495,8 @@ class Capture:
     # -- the procedure -------------------------------------------------------------------------
 
     def run(self) -> dict[str, Any]:
+        """Run the procedure (the module's docstring), skipping every image already captured;
+        returns the manifest, marked complete."""
         p = self.plan
         if self.manifest["dark"] is None:
             self.io.set_lasers((0.0, 0.0, 0.0))

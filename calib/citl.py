@@ -81,6 +81,11 @@ class CameraLoop:
 
     def __call__(self, grey: np.ndarray, planes_m: Sequence[float]
                  ) -> tuple[np.ndarray, np.ndarray]:
+        """Show the K subframes `grey` `[K, C, Hr, Wr]` uint8 (the encoder's region) and capture
+        them at each plane of `planes_m` (m, SLM space, from the reference plane): (intensities `[D,
+        C, h, w]` float32 on the window's SLM pixel grid, dark subtracted, any units; the pixels the
+        camera saw `[h, w]` bool). CaptureStopped when the lasers are not armed, the arming expired,
+        a fault latched or a device failed."""
         d = self.devices
         grey = np.asarray(grey, np.uint8)
         self._check_laser()  # before anything moves or emits

@@ -44,11 +44,15 @@ class CalibrationDataError(ValueError):
 
 @dataclass
 class CaptureData:
+    """A complete capture directory read back: its `root`, the manifest (`records` lists every
+    image) and the patterns' `spec`."""
     root: Path
     manifest: dict[str, Any]
     spec: PatternSpec
 
     def records(self, sweep: str, colour: int | None = None) -> list[dict[str, Any]]:
+        """The records of one sweep ("coarse", "grating", "flat" or "fine"), of one colour (0 R, 1
+        G, 2 B) or of all."""
         return [r for r in self.manifest["records"] if r.get("sweep") == sweep
                 and (colour is None or r["colour"] == colour)]
 
@@ -58,6 +62,9 @@ class CaptureData:
 
 
 def load_image(path: Path, key: str = "") -> tuple[np.ndarray, np.ndarray]:
+    """A captured image file: (linear image `[h, w]` float64, saturated mask `[h, w]` bool; all
+    False when the file has none). CalibrationDataError naming the file (and capture `key`) when it
+    is missing, unreadable, not 2-D, not finite or its mask does not match."""
     name = f"{path} (capture {key!r})" if key else str(path)
     if not path.is_file():
         raise CalibrationDataError(f"{name}: missing")
@@ -97,6 +104,8 @@ def load_frame(root: Path, manifest: dict[str, Any], name: str) -> np.ndarray:
 
 
 def load_capture(root: Path | str) -> CaptureData:
+    """A complete capture directory (`root`, holding `manifest.json`), checked: CalibrationDataError
+    naming the file when it is missing, foreign, of another version, incomplete or corrupt."""
     root = Path(root)
     path = root / MANIFEST
     if not path.is_file():

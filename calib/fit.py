@@ -282,6 +282,10 @@ def measure_response(root: Path | str, spec: PatternSpec, records: list[dict[str
 
 def fit_capture(root: Path | str, progress: Callable[[str], None] | None = None
                 ) -> Calibration:
+    """Fit the calibration of the complete capture in `root` (the module's docstring: geometry,
+    phase sign and depth mapping, response and intensity, source and unmodulated light, the depth
+    mapping through the bench model); `progress` gets a line per stage. GeometryError, FocusError,
+    ResponseError or CalibrationDataError when the data cannot determine a stage."""
     say = progress or (lambda _m: None)
     data = load_capture(root)
     spec = data.spec

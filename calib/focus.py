@@ -91,10 +91,14 @@ class DepthFit:
     sign_margin: float  # |slope| / its standard deviation
 
     def z_m(self, stage_mm: float, colour: int) -> float:
+        """The SLM-space depth (m) that `colour` (0 R, 1 G, 2 B) images at the stage reading
+        `stage_mm` (mm)."""
         return (stage_mm - self.stage_at_slm_mm) * STAGE_M_PER_MM * self.stage_scale + \
             self.z_offset_m[colour]
 
     def stage_mm_for(self, z_m: float, colour: int = 1) -> float:
+        """The stage reading (mm) at which `colour` (0 R, 1 G, 2 B; default green) images the
+        SLM-space depth `z_m` (m): the inverse of `z_m`."""
         return self.stage_at_slm_mm + (z_m - self.z_offset_m[colour]) / self.stage_scale / \
             STAGE_M_PER_MM
 

@@ -74,11 +74,13 @@ class PatternSpec:
             raise ValueError(f"missing_fraction = {self.missing_fraction}: must be in [0, 0.5)")
 
     def to_dict(self) -> dict[str, object]:
+        """The spec as JSON-ready values (tuples as lists), as a capture's manifest stores it."""
         d = asdict(self)
         return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
     @classmethod
     def from_dict(cls, d: dict[str, object]) -> PatternSpec:
+        """The spec back from `to_dict`'s form (lists as tuples), checked again."""
         kw = {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
         return cls(**kw)  # type: ignore[arg-type]
 
@@ -96,6 +98,9 @@ class DotLayout:
 
 
 def dot_layout(spec: PatternSpec) -> DotLayout:
+    """The dot lattice of `spec`: every `dot_spacing_px` pixels, centred on the panel,
+    `missing_fraction` of the dots left out at random (seeded by `spec.seed`) so the pattern is not
+    periodic, and the depth groups interleaved so every part of the view holds all depths."""
     h, w = spec.panel_hw
     s = spec.dot_spacing_px
     nx, ny = (w - s) // s + 1, (h - s) // s + 1

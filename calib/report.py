@@ -51,6 +51,8 @@ def simulate(cal: Calibration, frame: np.ndarray, stage_mm: float, colour: int,
 
 def write_report(root: Path | str, cal: Calibration | None = None,
                  out: Path | str | None = None) -> list[Path]:
+    """Write the report's PNGs (the module's docstring) of the capture in `root` against `cal`
+    (default: fitted now) into `out` (default `root/report`); returns the paths written."""
     import matplotlib
 
     matplotlib.use("Agg")

@@ -12,10 +12,18 @@ dead-zone edge to full deflection, times the configured maximum.
 that arrive between two reads still count: the daemon's arm confirmation
 (`daemon.arm_confirm = "spacemouse"`) waits for it to grow. The simulated navigator is pressed by
 `press()`.
+
+Lifecycle (the base class, for every backend): `read()` on a navigator that was closed raises
+LinkDown and touches no device until it opens again; `close()` is idempotent. A read that fails
+(an unplugged puck) raises DeviceError; `reconnect()` reopens it (one attempt: the caller reads
+again on its own period) and starts from rest: the last deflection seen before the unplug is not
+replayed (a puck sends reports only when it changes), and a button held through it is no new
+press. The contract every backend keeps is tests/drivers/contracts/test_navigator.py.
 """
 
 from __future__ import annotations
 
+import os
 import struct
 import threading
 import time
@@ -29,7 +37,14 @@ import hid
 from nhfd.device_settings import NavigatorSettings
 
 from .device import Device
-from .errors import DeviceError, PortNotFound, ProtocolError
+from .errors import (
+    DeviceError,
+    LinkDown,
+    PortNotFound,
+    PortVanished,
+    ProtocolError,
+    TransportError,
+)
 
 REPORT_TRANSLATION = 1
 REPORT_ROTATION = 2
@@ -115,7 +130,8 @@ def to_reading(state: RawState, settings: NavigatorSettings, time_s: float) -> N
 
 class Navigator(Device, ABC):
     """A 6-DoF navigator read as velocities; `presses` counts button presses. A backend implements
-    `_poll`."""
+    `_poll` (and `_do_open` / `_do_close`); the base keeps the lifecycle: no read once closed,
+    an idempotent close, a reconnect that starts from rest."""
 
     def __init__(self, settings: NavigatorSettings | None = None, *,
                  clock: Callable[[], float] = time.monotonic) -> None:
@@ -123,6 +139,47 @@ class Navigator(Device, ABC):
         self._clock = clock
         self.presses = 0  # buttons gone down, counted per report (read by other threads)
         self._buttons_seen = 0
+        self._is_open = False
+        # Closed after an open: reads refused until it opens again. (One never opened is left
+        # to its backend: the simulated one reads its script, the SpaceMouse has no device.)
+        self._closed = False
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the navigator is open (reads allowed)."""
+        return self._is_open
+
+    def open(self) -> Navigator:
+        """Open the backend (`_do_open`); a no-op when open. The buttons last seen down are
+        kept: one still down after a reopen is no new press (a reconnect never confirms an arm
+        by itself)."""
+        if not self._is_open:
+            self._do_open()
+            self._is_open, self._closed = True, False
+        return self
+
+    def close(self) -> None:
+        """Close the backend (`_do_close`); a no-op when closed."""
+        if self._is_open:
+            self._is_open, self._closed = False, True
+            self._do_close()
+
+    def reconnect(self) -> None:
+        """Reopen after a link loss (an unplugged puck): one attempt, since NavigatorSettings has
+        no back-off (the caller reads again on its own period). Raises LinkDown naming the
+        failure when the navigator is not back."""
+        self._is_open, self._closed = False, True
+        self._close_quietly()
+        try:
+            self.open()
+        except TransportError as exc:
+            raise LinkDown(f"{self.name}: no link: {exc}") from None
+
+    def _at_rest(self) -> RawState:
+        """The state a backend starts from when it opens: every axis at zero (a puck reports only
+        what changes: the deflection last seen is not replayed), the buttons last seen down kept
+        (one still down is no new press)."""
+        return RawState(buttons=self._buttons_seen)
 
     def _count_presses(self, buttons: int) -> None:
         """Count a press for each report in which a button goes down."""
@@ -131,21 +188,29 @@ class Navigator(Device, ABC):
         self._buttons_seen = buttons
 
     def read(self) -> NavigatorReading:
-        """The current velocities and buttons (consumes every report waiting)."""
+        """The current velocities and buttons (consumes every report waiting). LinkDown once
+        closed; DeviceError when the device cannot be read (unplugged: `reconnect`)."""
+        if self._closed:
+            raise LinkDown(f"{self.name}: navigator not open")
         return to_reading(self._poll(), self.settings, self._clock())
 
     # -- backend hooks -------------------------------------------------------------------------
 
     @abstractmethod
-    def _poll(self) -> RawState: ...
+    def _poll(self) -> RawState:
+        """Consume every report waiting, counting presses per report (`_count_presses`), and
+        return the latest raw state; DeviceError when the device cannot be read."""
 
 
 class SpaceMouseNavigator(Navigator):
-    """A 3Dconnexion SpaceMouse through hidapi."""
+    """A 3Dconnexion SpaceMouse through hidapi: the first device matching the USB ids, or the one
+    at `path` (a hidapi path such as /dev/hidraw3, which must match them too)."""
 
     def __init__(self, settings: NavigatorSettings | None = None, *,
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 path: str | bytes | None = None) -> None:
         super().__init__(settings, clock=clock)
+        self.path = path
         self._device: Any = None
         self._state = RawState()
         self.product: str = ""
@@ -153,17 +218,27 @@ class SpaceMouseNavigator(Navigator):
     def _do_open(self) -> None:
         found = [d for d in hid.enumerate()
                  if matches(d["vendor_id"], d["product_id"], self.settings.usb_ids)]
+        where = ""
+        if self.path is not None:
+            wanted = os.fsencode(self.path)
+            found = [d for d in found if os.fsencode(d["path"]) == wanted]
+            where = f" at {os.fsdecode(wanted)}"
         # A device may expose several interfaces; the multi-axis controller is usage page 1,
         # usage 8 where hidapi reports usages.
         found.sort(key=lambda d: (d.get("usage_page"), d.get("usage")) != (1, 8))
         if not found:
-            raise PortNotFound("no SpaceMouse found (vendor and product id; is the udev rule "
-                               "installed?)")
+            raise PortNotFound(f"no SpaceMouse found{where} (vendor and product id; is the udev "
+                               "rule installed?)")
         info = found[0]
         device = hid.device()
-        device.open_path(info["path"])
-        device.set_nonblocking(True)
+        try:
+            device.open_path(info["path"])
+            device.set_nonblocking(True)
+        except OSError as exc:  # gone since the enumeration, or no permission
+            raise PortNotFound(f"SpaceMouse {os.fsdecode(info['path'])}: cannot open ({exc}; is "
+                               "the udev rule installed?)") from None
         self._device = device
+        self._state = self._at_rest()
         self.product = info.get("product_string") or f"{info['vendor_id']:04x}:" \
             f"{info['product_id']:04x}"
 
@@ -179,8 +254,8 @@ class SpaceMouseNavigator(Navigator):
         for _ in range(256):  # drain, bounded
             try:
                 report = self._device.read(64)
-            except OSError as exc:
-                raise DeviceError(f"SpaceMouse read failed (unplugged?): {exc}") from None
+            except (OSError, ValueError) as exc:  # hidapi: OSError unplugged, ValueError closed
+                raise PortVanished(f"SpaceMouse read failed (unplugged?): {exc}") from None
             if not report:
                 if time.monotonic() >= deadline:
                     break
@@ -214,9 +289,21 @@ class SimulatedNavigator(Navigator):
         self._t0 = clock()
         self._pressed: list[int] = []  # press() not yet seen by a read
         self._press_lock = threading.Lock()
+        self._plugged = True
 
     def _do_open(self) -> None:
+        if not self._plugged:
+            raise PortNotFound(f"{self.name}: unplugged")
         self._t0 = self._clock()
+
+    def unplug(self) -> None:
+        """Test-only: the puck's cable is pulled: reads fail (DeviceError) and opens find nothing
+        until `replug`; presses meanwhile are lost."""
+        self._plugged = False
+
+    def replug(self) -> None:
+        """Test-only: the cable is back; `reconnect` opens it again."""
+        self._plugged = True
 
     def press(self, button: int = 0) -> None:
         """A person presses and releases `button` (test-only: the bench's hand); the next read
@@ -229,6 +316,8 @@ class SimulatedNavigator(Navigator):
     def _poll(self) -> RawState:
         with self._press_lock:
             pressed, self._pressed = self._pressed, []
+        if not self._plugged:
+            raise PortVanished(f"{self.name}: read failed (unplugged)")
         for button in pressed:
             self._count_presses(self._buttons_seen | 1 << button)
             self._count_presses(self._buttons_seen & ~(1 << button))

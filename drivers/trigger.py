@@ -35,6 +35,18 @@ exposures, as without the wire.
 
 A real camera's trigger mode (GenICam TriggerMode/TriggerSource/TriggerDelay, or a vendor SDK's
 equivalent) is set by its backend; this module holds the timing every backend shares.
+
+Lifecycle: a line is open once made (as pyserial's `Serial` is), `close()` (idempotent) releases
+it and `open()` opens it again. On a closed line every wait raises LinkDown at once (a waiter
+blocked when it closes wakes and raises too), so a frame write that the camera_exposure line
+should gate is refused rather than made blind; a flip edge that comes while it is closed is
+lost, and none from before a reopen starts an exposure after it.
+
+Backend hooks, for a line the host reads from hardware (the model needs none): `_do_open` and
+`_do_close` (its input: a GPIO line, a serial port's modem-status line), and `_input_high()`,
+the camera's exposure-active output as read now, which waits poll every `poll_s`
+(nhfd.drivers.templates.trigger_backend). The contract every line keeps is
+tests/drivers/contracts/test_trigger.py.
 """
 
 from __future__ import annotations
@@ -48,7 +60,7 @@ from typing import Any
 
 from nhfd.device_settings import TRIGGER_DELAY_MS, TRIGGER_SOURCES, TRIGGER_TIMEOUT_MS
 
-from .errors import DeviceError
+from .errors import DeviceError, LinkDown
 
 
 class TriggerTimeout(DeviceError):
@@ -76,7 +88,11 @@ class ExposureWindow:
 
 class TriggerLine:
     """The wire from the SLM's frame-flip output to the camera's trigger input ("slm_flip"), or
-    from the camera's exposure-active output to the host ("camera_exposure")."""
+    from the camera's exposure-active output to the host ("camera_exposure"). Open once made."""
+
+    # How often a wait re-reads the line (s): the model is woken by the camera's and the SLM's
+    # calls and only rechecks its deadline; a backend polling an input (`_input_high`) sets less.
+    poll_s = 0.05
 
     def __init__(self, source: str = "slm_flip", *, delay_ms: float = 10.0,
                  timeout_ms: float = 500.0, clock: Callable[[], float] = time.monotonic) -> None:
@@ -103,6 +119,8 @@ class TriggerLine:
         self._stuck_high = False
         self.exposures: list[ExposureWindow] = []
         self.writes: list[float] = []
+        self._is_open = False
+        self.open()
 
     @property
     def flip_triggers_exposure(self) -> bool:
@@ -129,8 +147,67 @@ class TriggerLine:
                    clock=clock)
 
     def __repr__(self) -> str:
-        return (f"TriggerLine({self.source!r}, delay {self.delay_s * 1e3:g} ms, "
+        return (f"{type(self).__name__}({self.source!r}, delay {self.delay_s * 1e3:g} ms, "
                 f"timeout {self.timeout_s * 1e3:g} ms)")
+
+    # -- lifecycle -----------------------------------------------------------------------------
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the line is open (waits allowed)."""
+        return self._is_open
+
+    def open(self) -> TriggerLine:
+        """Open the line (`_do_open`); a no-op when open. Flip edges from before are forgotten:
+        none of them starts an exposure after the reopen."""
+        with self._cond:
+            if self._is_open:
+                return self
+            self._do_open()
+            self._edges = []
+            self._is_open = True
+        return self
+
+    def close(self) -> None:
+        """Close the line (`_do_close`); a no-op when closed. Waiters wake and raise LinkDown."""
+        with self._cond:
+            if not self._is_open:
+                return
+            self._is_open = False
+            self._edges = []
+            self._cond.notify_all()
+            self._do_close()
+
+    def __enter__(self) -> TriggerLine:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def _check_open(self) -> None:
+        if not self._is_open:
+            raise LinkDown(f"trigger {self.source}: not open")
+
+    # -- backend hooks -------------------------------------------------------------------------
+
+    def _do_open(self) -> None:
+        """Open the host's input (nothing for the model)."""
+
+    def _do_close(self) -> None:
+        """Release the host's input (idempotent; nothing for the model)."""
+
+    def _input_high(self) -> bool | None:
+        """camera_exposure: the exposure-active output as the host's input reads it now (True:
+        high, an exposure running), or None where the camera reports its exposures itself
+        (`exposure_begins` / `exposure_ends`: the model). A failed read raises DeviceError."""
+        return None
+
+    def _line_high(self) -> bool:
+        """Whether the exposure-active line reads high now (the caller holds the condition)."""
+        if self._stuck_high:
+            return True
+        level = self._input_high()
+        return self._exposing_since is not None if level is None else bool(level)
 
     # -- the SLM's side ------------------------------------------------------------------------
 
@@ -143,9 +220,9 @@ class TriggerLine:
             self._edges = [t for t in self._edges if t >= at_s]
 
     def edge(self, at_s: float) -> None:
-        """The SLM's flip output gave an edge at `at_s` (lost on a cut wire)."""
+        """The SLM's flip output gave an edge at `at_s` (lost on a cut wire or a closed line)."""
         with self._cond:
-            if self._cut:
+            if self._cut or not self._is_open:
                 return
             self._edges.append(at_s)
             self._cond.notify_all()
@@ -201,12 +278,13 @@ class TriggerLine:
     def wait_exposure_over(self) -> float:
         """Block while the exposure-active line is high (at once when low); returns when it was
         seen low, on the line's clock. Raises TriggerTimeout when it stays high past the
-        timeout: the host cannot know the exposure is over, so it must not write a frame."""
+        timeout: the host cannot know the exposure is over, so it must not write a frame;
+        LinkDown on a closed line (one that closes while it waits too)."""
         with self._cond:
+            self._check_open()
             if self._cut:
                 return self._clock()
-            self._wait(lambda: not (self._stuck_high or self._exposing_since is not None),
-                       self._clock() + self.timeout_s,
+            self._wait(lambda: not self._line_high(), self._clock() + self.timeout_s,
                        f"the camera's exposure-active line stayed high for "
                        f"{self.timeout_s * 1e3:g} ms (devices.trigger.timeout_ms): is the "
                        "camera's exposure output wired to the host, and is the camera stuck?")
@@ -214,12 +292,14 @@ class TriggerLine:
 
     def _wait(self, ready: Callable[[], bool], deadline_s: float, missed: str) -> None:
         """Wait on the line's condition (held by the caller) until `ready()`; TriggerTimeout
-        naming the trigger and `missed` past `deadline_s` on the line's clock."""
+        naming the trigger and `missed` past `deadline_s` on the line's clock, LinkDown once the
+        line closes."""
         while not ready():
             left = deadline_s - self._clock()
             if left <= 0:
                 raise TriggerTimeout(f"trigger {self.source}: {missed}")
-            self._cond.wait(min(left, 0.05))
+            self._cond.wait(min(left, self.poll_s))
+            self._check_open()
 
     def writes_during_exposures(self) -> list[tuple[float, ExposureWindow]]:
         """The twin's check: each frame write that fell inside an exposure (none on a working
@@ -233,8 +313,10 @@ class TriggerLine:
     def wait_exposure_start(self) -> float:
         """Block until the exposure may start: `delay` after the flip of the last frame written
         (at once when that moment has passed). Returns the start on the line's clock; raises
-        TriggerTimeout when no flip came within the timeout after the write."""
+        TriggerTimeout when no flip came within the timeout after the write, LinkDown on a
+        closed line."""
         with self._cond:
+            self._check_open()
             written = self._written_s
             # Nothing written yet: the timeout counts from now.
             deadline = (self._clock() if written == -float("inf") else written) + self.timeout_s

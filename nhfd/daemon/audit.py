@@ -95,6 +95,9 @@ class AuditLog:
         self._file = self.path.open("a", encoding="utf-8")
         self._size = self._file.tell()
 
+    # Not logging.handlers.RotatingFileHandler: it swallows a failed write (handleError prints to
+    # stderr; an audit write must raise), and on Python 3.11 it rotates an empty file for a line
+    # over max_bytes, pushing the oldest backup out (CPython gh-116263, measured on 3.11.7).
     def _rotate(self) -> None:
         assert self.path is not None and self._file is not None
         self._file.close()

@@ -47,6 +47,10 @@ def client_tls_context(ca_path: str | os.PathLike[str] | None = None) -> ssl.SSL
 
 
 class Client:
+    """A connection to `nhfd serve`: the Unix socket (`socket_path`, default the configuration's
+    control socket) or TCP (`tcp` = (host, port); TLS with `tls` or `tls_ca`, and `token` sent as
+    `auth`). Every send and read is bounded by `timeout_s` (s); DaemonUnavailable when nothing
+    answers, TLSFailure when the handshake fails."""
     def __init__(self, socket_path: str | os.PathLike[str] | None = None, *,
                  tcp: tuple[str, int] | None = None, token: str | None = None,
                  tls: bool | ssl.SSLContext = False,
@@ -94,6 +98,8 @@ class Client:
             self.call("auth", token=token)
 
     def send_raw(self, data: bytes) -> None:
+        """Send `data` as it is (request lines, or any bytes a test sends); DaemonUnavailable when
+        the socket fails."""
         try:
             self._sock.sendall(data)
         except OSError as exc:
@@ -133,6 +139,7 @@ class Client:
         self.send_raw(protocol.dumps(protocol.request(method, params)))
 
     def status(self) -> dict[str, Any]:
+        """The daemon's `status` reply."""
         return self.call("status")
 
     def wait_job(self, job_id: int, timeout_s: float = 600.0, poll_s: float = 0.1
@@ -147,6 +154,7 @@ class Client:
             time.sleep(poll_s)
 
     def close(self) -> None:
+        """Close the connection."""
         self._sock.close()
 
     def __enter__(self) -> Client:

@@ -10,8 +10,9 @@ which diodes a client may switch, and the capture-mode snapshot sequence.
            show the colour's pattern -> settle -> that diode on -> capture -> off; the captures
            are combined into one colour image.
   hw-sync  each colour's pattern in its own HDMI channel, the lasers modulated by the SLM's frame
-           sync (wired on the bench); software only shows frames and sets powers. Laser commands
-           are not restricted (the wiring decides which diode lights which field).
+           sync (wired on the bench); software shows frames, sets powers and enables channels.
+           Laser commands are not restricted (the wiring decides which diode lights which
+           field).
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from nhfd.device_settings import COLOURS
 from .audit import AuditLog
 from .guardian_link import LaserLink
 from .jobs import Job
-from .png import write_png16
+from .png import write_png16, write_preview8
 from .protocol import LASER_REFUSED, RpcError
 
 log = logging.getLogger("nhfd.daemon.colour")
@@ -73,10 +74,23 @@ def check_laser_command(settings: DaemonSettings, action: str, channel: str | No
 class CapturePanel(Protocol):
     """What the capture sequence uses of the panel (`nhfd.daemon.panel.Panel`)."""
 
-    def blank_frame(self) -> np.ndarray: ...
-    def hold(self) -> AbstractContextManager[None]: ...
-    def show_colour(self, frame: np.ndarray, colour: str) -> None: ...
-    def resume(self, last_view: np.ndarray | None, seq: int) -> None: ...
+    def blank_frame(self) -> np.ndarray:
+        """The blank of the coding in use, the whole panel `[3, H, W]` uint8."""
+        ...
+
+    def hold(self) -> AbstractContextManager[None]:
+        """Hold the panel for a capture sequence: no view frame replaces the pattern under the
+        camera meanwhile."""
+        ...
+
+    def show_colour(self, frame: np.ndarray, colour: str) -> None:
+        """Show `colour`'s pattern of `frame` (`[3, H, W]` uint8) in every channel, settled."""
+        ...
+
+    def resume(self, last_view: np.ndarray | None, seq: int) -> None:
+        """Show the last view frame again (`last_view`, view `seq`), or the blank when there is
+        none."""
+        ...
 
 
 class CaptureBench(Protocol):
@@ -85,7 +99,9 @@ class CaptureBench(Protocol):
     slm: Any
     camera: Any
 
-    def capture(self, frames: int | None = None) -> Any: ...
+    def capture(self, frames: int | None = None) -> Any:
+        """One camera capture, `frames` images averaged (None: the camera's setting)."""
+        ...
 
 
 class ShownViews(Protocol):
@@ -176,7 +192,9 @@ def capture_colours(job: Job, path: Path, frames: int | None, *, bench: CaptureB
         write_png16(out, image)
         written[ch] = str(out)
     write_png16(path, combined)
-    return {"path": str(path), "colour_mode": "capture", "colours": written,
+    preview = write_preview8(path, combined)
+    return {"path": str(path), "preview": str(preview), "colour_mode": "capture",
+            "emitting": lit, "colours": written,
             "powers_pct": {ch: powers[ch] for ch in lit},
             "max_linear": {ch: float(img.max()) if img.size else 0.0
                            for ch, img in images.items()}}

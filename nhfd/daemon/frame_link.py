@@ -113,13 +113,22 @@ class PanelView(Protocol):
     """The daemon's panel (`nhfd.daemon.panel.Panel`), as far as view frames go."""
 
     @property
-    def vsync_detail(self) -> str: ...
+    def vsync_detail(self) -> str:
+        """How the SLM paces frames to its refresh, when it says; "" otherwise."""
+        ...
 
-    def show_view(self, frame: np.ndarray, seq: int) -> np.ndarray: ...
+    def show_view(self, frame: np.ndarray, seq: int) -> np.ndarray:
+        """Show view `seq`'s full-panel frame (`[3, H, W]` uint8) in the colour mode; returns the
+        frame as shown."""
+        ...
 
-    def blank_frame(self) -> np.ndarray: ...
+    def blank_frame(self) -> np.ndarray:
+        """The blank of the coding in use, `[3, H, W]` uint8: the panel around every view frame."""
+        ...
 
-    def blank(self) -> None: ...
+    def blank(self) -> None:
+        """Show the blank."""
+        ...
 
 
 class ViewSource(Protocol):
@@ -168,6 +177,8 @@ class LoadRequest:
     result: Any = None
 
     def finish(self, ok: bool, result: Any) -> None:
+        """The control loop's outcome: `ok` and `result` (the worker's report, or its reason for
+        refusing), then `done` set."""
         self.ok, self.result = ok, result
         self.done.set()  # publishes ok and result to the waiting thread
 
@@ -264,6 +275,8 @@ class FrameWorker:
         return self.free_slots.pop(0)
 
     def release(self, slot: int | None) -> None:
+        """Give frame slot `slot` back once its frame is shown or dropped (None, pickled transport:
+        nothing to give back)."""
         if slot is not None and slot not in self.free_slots and slot < len(self.shms):
             self.free_slots.append(slot)
 
@@ -307,9 +320,11 @@ class FrameWorker:
 
     @property
     def alive(self) -> bool:
+        """Whether the worker process is running."""
         return self.process is not None and self.process.is_alive()
 
     def send(self, msg: tuple) -> None:
+        """One message to the worker over its pipe (a tuple: the kind first)."""
         self.conn.send(msg)
 
     def request(self, request: LoadRequest) -> None:

@@ -82,6 +82,10 @@ SESSIONS_KEPT = 64
 
 
 class LaserLink:
+    """The lasers through the guardian process (the module's docstring): started or connected
+    (`mode`: "auto", "spawn" or "connect"), the heartbeats the control loop sends, commands one at a
+    time under one lock, the channels read back, and the emission sessions. `backend`: "simulated"
+    (the daemon hosts the twin), "readybeam" or "none"."""
     def __init__(self, settings: LaserSettings, backend: str, mode: str, audit: AuditLog, *,
                  runtime_dir: str | os.PathLike[str] | None = None, socket_group: str = "",
                  call_timeout_s: float = 1.0, refresh_s: float = 1.0,
@@ -123,10 +127,12 @@ class LaserLink:
 
     @property
     def present(self) -> bool:
+        """Whether a laser is configured (`backend` is not "none")."""
         return self.backend != "none"
 
     @property
     def spawned(self) -> bool:
+        """Whether this daemon started the guardian it talks to."""
         return self.proc is not None
 
     # -- emission sessions ---------------------------------------------------------------------
@@ -383,6 +389,8 @@ class LaserLink:
         return gap_s
 
     def refresh(self, now: float | None = None) -> None:
+        """Read the channels back from the guardian (what `status` shows) at clock time `now` (s,
+        monotonic; default now); a guardian that does not answer is lost."""
         with self._lock:
             self._refresh(now)
 
@@ -519,6 +527,8 @@ class LaserLink:
             self._beat = {**self._beat, "armed": False, "armed_remaining_s": 0.0}
 
     def power(self, channel: str, power_pct: float) -> float:
+        """Set `channel`'s power (% of its maximum); returns the power the guardian applied (%,
+        within `max_power_pct`)."""
         return float(self._call("power", channel=channel, power_pct=power_pct)["power_pct"])
 
     def enable(self, channel: str, on: bool, *, session: int | None = None) -> None:
@@ -530,6 +540,9 @@ class LaserLink:
             self._call("enable", channel=channel, on=on)
 
     def status(self) -> dict[str, Any]:
+        """The laser part of `status`: the guardian (socket, pid, replacements, heartbeat gaps, its
+        trips), armed and the arming's time left (s), the emission session, the fault, the channels
+        as last read back and how long ago (s), and the power caps (%)."""
         if not self.present:
             return {"backend": "none"}
         return {

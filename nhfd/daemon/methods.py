@@ -70,7 +70,7 @@ from .guardian_link import LaserLink
 from .jobs import Job, JobRunner, submit_or_busy
 from .panel import Panel
 from .paths import inside
-from .png import write_png16
+from .png import write_png16, write_preview8
 from .protocol import (
     DEVICE_ERROR,
     FORBIDDEN,
@@ -94,8 +94,15 @@ class Frames(ShownViews, Protocol):
 
     model_path: str | None
 
-    def load_scene(self, path: str) -> dict[str, Any]: ...
-    def load_model(self, path: str) -> dict[str, Any]: ...
+    def load_scene(self, path: str) -> dict[str, Any]:
+        """Load the scene file at `path` into the worker, blocking until it answers: the scene's
+        counts, centre and up axis; raises with the worker's reason."""
+        ...
+
+    def load_model(self, path: str) -> dict[str, Any]:
+        """Load the model file at `path` into the worker, blocking until it answers: the model's
+        information; raises with the worker's reason."""
+        ...
 
 
 @dataclass
@@ -319,17 +326,37 @@ def _snapshot(ctx: RpcContext, conn: Connection, p: Params) -> Any:
             return capture_colours(job, path, frames, bench=ctx.bench, panel=ctx.panel,
                                    laser=ctx.laser, audit=ctx.audit, shown=ctx.frames,
                                    session=session)
+        before = _emitting(ctx.laser)
         cap = ctx.bench.capture(frames)  # a failure is the camera's error in status until it works
+        # A channel that emitted for the whole exposure was on before it and still is after.
+        emitting = [ch for ch in _emitting(ctx.laser) if ch in before]
         _LAST_CAPTURE[ctx.bench] = (time.time(), cap.image)
         job.check()
         write_png16(path, cap.image)
-        return {"path": str(path), "frames": cap.frames, "exposure_s": cap.exposure_s,
-                "saturated_fraction": cap.saturated_fraction,
-                "max_linear": float(cap.image.max()) if cap.image.size else 0.0}
+        preview = write_preview8(path, cap.image)
+        return {"path": str(path), "preview": str(preview), "frames": cap.frames,
+                "exposure_s": cap.exposure_s, "saturated_fraction": cap.saturated_fraction,
+                "max_linear": float(cap.image.max()) if cap.image.size else 0.0,
+                "emitting": emitting, **({"warning": NO_LIGHT} if not emitting else {})}
 
     job = submit_or_busy(ctx.bench_jobs,
                          Job("snapshot", {"path": str(path), "frames": frames}, run))
     return {"job": job.id, "path": str(path)}
+
+
+# What a snapshot taken with no laser emitting says (its image is the camera's dark noise).
+NO_LIGHT = ("no laser was emitting during the exposure: the image is the camera's noise; arm, "
+            "set a power and enable a channel (nhfctl laser enable green)")
+
+
+def _emitting(laser: LaserLink) -> list[str]:
+    """The channels emitting now (enabled, with power), read back from the guardian."""
+    if not laser.present:
+        return []
+    laser.refresh()
+    channels = laser.status().get("channels") or {}
+    return [ch for ch in COLOURS if (channels.get(ch) or {}).get("enabled")
+            and float((channels.get(ch) or {}).get("power_pct", 0.0)) > 0]
 
 
 def _end_pattern(ctx: RpcContext) -> None:

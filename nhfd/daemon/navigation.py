@@ -31,6 +31,8 @@ from .views import ELEVATION_DEG, ViewSlot, parse_view
 log = logging.getLogger("nhfd.daemon.navigation")
 
 WHO = {"who": "navigator"}
+# How often a navigator that stopped answering (unplugged) is opened again (s).
+RECONNECT_S = 1.0
 # The simulated navigator's script (devices.navigator = "simulated"): yaw right at half
 # deflection for 2 s, left for 4 s, right for 2 s (back where it began), then rest.
 HALF = 175
@@ -80,6 +82,7 @@ class NavigatorInput:
         self.last_seq: int | None = None
         self._last_s: float | None = None
         self._next_s = 0.0
+        self._retry_s = 0.0  # when a lost navigator is opened again (monotonic s)
 
     def open(self) -> None:
         """Open the configured navigator; one that fails is left out (`status` says why)."""
@@ -114,9 +117,15 @@ class NavigatorInput:
         try:
             reading = self.navigator.read()
             self.error = None
-        except Exception as exc:  # unplugged: say so, keep trying
+        except Exception as exc:  # unplugged: say so, and open it again once it is back
             self.error = f"{type(exc).__name__}: {exc}"
             self._last_s = None
+            if now >= self._retry_s:
+                self._retry_s = now + RECONNECT_S
+                try:
+                    self.navigator.reconnect()  # starts at rest: no stale deflection
+                except Exception as again:
+                    self.error += f"; reconnecting: {type(again).__name__}: {again}"
             return
         last, self._last_s = self._last_s, now
         current = self.views.view

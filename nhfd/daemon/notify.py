@@ -15,6 +15,9 @@ from collections.abc import Mapping
 
 
 class Notifier:
+    """systemd's notify protocol (the module's docstring) to $NOTIFY_SOCKET of `env` (default the
+    process's environment); the watchdog interval from WATCHDOG_USEC when WATCHDOG_PID is this
+    process. Without $NOTIFY_SOCKET every call is a no-op."""
     def __init__(self, env: Mapping[str, str] | None = None) -> None:
         env = os.environ if env is None else env
         address = env.get("NOTIFY_SOCKET", "")
@@ -36,9 +39,12 @@ class Notifier:
 
     @property
     def enabled(self) -> bool:
+        """Whether there is a $NOTIFY_SOCKET to send to."""
         return self._sock is not None
 
     def send(self, **fields: str) -> None:
+        """One datagram of `KEY=value` lines; a socket error is ignored (the service manager's
+        socket never takes the daemon down)."""
         if self._sock is None:
             return
         text = "\n".join(f"{k}={v}" for k, v in fields.items())
@@ -47,12 +53,15 @@ class Notifier:
             self._sock.sendto(text.encode(), self._address)
 
     def ready(self, status: str) -> None:
+        """READY=1 with `status`: once the lasers are read back off."""
         self.send(READY="1", STATUS=status)
 
     def status(self, status: str) -> None:
+        """STATUS=`status`, what `systemctl status` shows."""
         self.send(STATUS=status)
 
     def stopping(self, status: str = "stopping: lasers off") -> None:
+        """STOPPING=1 with `status`, at shutdown."""
         self.send(STOPPING="1", STATUS=status)
 
     def watchdog(self, now: float | None = None) -> None:
@@ -65,6 +74,7 @@ class Notifier:
             self.send(WATCHDOG="1")
 
     def close(self) -> None:
+        """Close the socket; later calls are no-ops."""
         if self._sock is not None:
             self._sock.close()
             self._sock = None

@@ -22,6 +22,8 @@ JSONRPC = "2.0"
 
 @dataclass(frozen=True)
 class Code:
+    """One row of the error-code table: the JSON-RPC `code`, its `name` (in replies' data and the
+    docs) and its `meaning` for a client."""
     code: int
     name: str
     meaning: str
@@ -45,8 +47,8 @@ FORBIDDEN = Code(1003, "forbidden", "not allowed over this connection (arming ne
 PATH_NOT_ALLOWED = Code(1004, "path_not_allowed", "a file path outside the configured "
                         "directories")
 UNAUTHORIZED = Code(1005, "unauthorized", "TCP connection without a valid `auth` token")
-NOT_AVAILABLE = Code(1006, "not_available", "the feature or device is not available in this "
-                     "daemon (e.g. load_model until a model exporter exists)")
+NOT_AVAILABLE = Code(1006, "not_available", "the device or feature is not available on this "
+                     "bench (e.g. focus with no stage, snapshot with no camera)")
 INVALID_FILE = Code(1007, "invalid_file", "the file could not be read or is not valid")
 NO_SUCH_JOB = Code(1008, "no_such_job", "no job with that id")
 SHUTTING_DOWN = Code(1009, "shutting_down", "the daemon is shutting down")
@@ -72,10 +74,12 @@ class RpcError(Exception):
 
     @property
     def name(self) -> str:
+        """The code's name in the table (the number as text for a code not in it)."""
         known = BY_CODE.get(self.code)
         return known.name if known else str(self.code)
 
     def to_json(self) -> dict[str, Any]:
+        """The reply's `error` object: code, message, and data when there is any."""
         err: dict[str, Any] = {"code": self.code, "message": self.message}
         if self.data:
             err["data"] = self.data
@@ -84,6 +88,8 @@ class RpcError(Exception):
 
 @dataclass(frozen=True)
 class Request:
+    """A request as parsed: `method`, `params` (named: {} when absent), `id` (None for a
+    notification) and whether it is a notification (no `id`: no reply)."""
     method: str
     params: dict[str, Any]
     id: Any
@@ -205,15 +211,19 @@ def dumps(obj: Any) -> bytes:
 
 
 def result_reply(request_id: Any, result: Any) -> dict[str, Any]:
+    """The reply carrying `result` to request `request_id`."""
     return {"jsonrpc": JSONRPC, "id": request_id, "result": result}
 
 
 def error_reply(request_id: Any, error: RpcError) -> dict[str, Any]:
+    """The reply carrying `error` to request `request_id`."""
     return {"jsonrpc": JSONRPC, "id": request_id, "error": error.to_json()}
 
 
 def request(method: str, params: Mapping[str, Any] | None = None,
             request_id: Any = None) -> dict[str, Any]:
+    """A request object for `method` with named `params`; without `request_id` a notification (no
+    reply)."""
     msg: dict[str, Any] = {"jsonrpc": JSONRPC, "method": method}
     if params:
         msg["params"] = dict(params)
@@ -226,6 +236,8 @@ def request(method: str, params: Mapping[str, Any] | None = None,
 
 
 def bad_param(name: str, message: str, allowed: str) -> RpcError:
+    """The `invalid_params` error for parameter `name`: "NAME: MESSAGE; allowed: ALLOWED", with
+    `field` and `allowed` in its data."""
     return RpcError(INVALID_PARAMS, f"{name}: {message}; allowed: {allowed}",
                     {"field": name, "allowed": allowed})
 
@@ -252,10 +264,13 @@ class Params:
         return default
 
     def has(self, name: str) -> bool:
+        """Whether the request gives `name` (it is not marked read)."""
         return name in self._p
 
     def number(self, name: str, low: float, high: float, default: Any = _MISSING, *,
                low_open: bool = False) -> float:
+        """`name` as a finite float in [low, high] ((low, high] with `low_open`). Absent: `default`,
+        or None when the default is None; without a default it is required."""
         left = "(" if low_open else "["
         allowed = f"a finite number in {left}{low:g}, {high:g}]"
         value = self._get(name, default, allowed)
@@ -264,6 +279,7 @@ class Params:
         return check_number(self._prefix + name, value, low, high, low_open=low_open)
 
     def integer(self, name: str, low: int, high: int, default: Any = _MISSING) -> int:
+        """`name` as an int in [low, high] (a bool is not an int); absent: as `number`."""
         allowed = f"an integer in [{low}, {high}]"
         value = self._get(name, default, allowed)
         if default is None and name not in self._p:
@@ -273,6 +289,7 @@ class Params:
         return value
 
     def boolean(self, name: str, default: Any = _MISSING) -> bool:
+        """`name` as true or false; absent: as `number`."""
         value = self._get(name, default, "true or false")
         if default is None and name not in self._p:
             return None  # type: ignore[return-value]  # optional, absent
@@ -281,6 +298,7 @@ class Params:
         return value
 
     def string(self, name: str, default: Any = _MISSING, *, max_len: int = 4096) -> str:
+        """`name` as a string of 1 to `max_len` characters without NUL; absent: as `number`."""
         allowed = f"a string of 1 to {max_len} characters"
         value = self._get(name, default, allowed)
         if default is None and name not in self._p:
@@ -290,6 +308,7 @@ class Params:
         return value
 
     def choice(self, name: str, options: Sequence[str], default: Any = _MISSING) -> str:
+        """`name` as one of `options`; absent: as `number`."""
         allowed = "one of " + ", ".join(options)
         value = self._get(name, default, allowed)
         if default is None and name not in self._p:
@@ -300,6 +319,7 @@ class Params:
 
     def vector(self, name: str, length: int, low: float, high: float,
                default: Any = _MISSING) -> list[float]:
+        """`name` as a list of `length` finite floats in [low, high]; absent: as `number`."""
         allowed = f"a list of {length} finite numbers in [{low:g}, {high:g}]"
         value = self._get(name, default, allowed)
         if default is None and name not in self._p:
@@ -310,6 +330,8 @@ class Params:
                 for i, v in enumerate(value)]
 
     def obj(self, name: str, default: Any = _MISSING) -> Params | None:
+        """`name` as a nested object, read by its own Params (its errors name `name.field`); absent:
+        as `number`."""
         value = self._get(name, default, "an object")
         if value is None and default is None:
             return None
@@ -318,6 +340,7 @@ class Params:
         return Params(value, prefix=f"{self._prefix}{name}.")
 
     def done(self) -> None:
+        """Refuse the first parameter not read (`invalid_params`, allowing the names read)."""
         unknown = [k for k in self._p if k not in self._used]
         if unknown:
             known = ", ".join(sorted(self._used)) or "none"
@@ -326,6 +349,8 @@ class Params:
 
 def check_number(name: str, value: Any, low: float, high: float, *,
                  low_open: bool = False) -> float:
+    """`value` as a float when it is a finite number in [low, high] ((low, high] with `low_open`; a
+    bool is not a number), else the `invalid_params` error for `name`."""
     left = "(" if low_open else "["
     allowed = f"a finite number in {left}{low:g}, {high:g}]"
     if isinstance(value, bool) or not isinstance(value, int | float):

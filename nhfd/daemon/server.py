@@ -101,6 +101,9 @@ def raise_open_files(wanted: int) -> tuple[int, int]:
 
 @dataclass
 class Connection:
+    """One client connection: its socket, `transport` ("unix" or "tcp"), the peer's identity, the
+    bytes received and not yet handled (`inbuf`) and not yet sent (`outbuf`), and its state
+    (authenticated, in the TLS handshake, closing)."""
     sock: socket.socket
     transport: str  # "unix" or "tcp"
     peer: dict[str, Any]
@@ -117,6 +120,8 @@ class Connection:
 
     @property
     def who(self) -> dict[str, Any]:
+        """The peer as the audit log names it: the transport, and for the Unix socket the kernel's
+        uid, gid and pid with the user and process names, for TCP the address."""
         return {"transport": self.transport, **self.peer}
 
     @property
@@ -175,6 +180,9 @@ def busy_error(setting: str, limit: int, what: str, extra: str = "") -> RpcError
 
 
 class LineServer:
+    """The line server (the module's docstring): the Unix socket at `unix_path`, TCP on `tcp_port`
+    (0: none) at `tcp_host`, TLS with `tls`; each complete line goes to `handler(connection, line)`,
+    whose reply bytes (None: none) are sent back. Sizes in bytes, times in seconds of `clock`."""
     def __init__(self, handler: Handler, *, unix_path: Path, socket_group: str = "",
                  tcp_port: int = 0, tcp_host: str = LOOPBACK, tls: ssl.SSLContext | None = None,
                  max_line_bytes: int = 65536, max_clients: int = 64,
@@ -226,6 +234,9 @@ class LineServer:
     # -- listening -----------------------------------------------------------------------------
 
     def listen(self) -> None:
+        """Bind and listen: the Unix socket (mode 0660, group `socket_group`; a stale socket
+        replaced, any other file refused), then TCP when `tcp_port` is set (`tcp_address` is
+        where)."""
         path = self.unix_path
         if path.exists() or path.is_symlink():
             if not stat.S_ISSOCK(path.lstat().st_mode):
@@ -261,6 +272,7 @@ class LineServer:
         self.selector.register(sock, selectors.EVENT_READ, ("listen", transport))
 
     def close(self) -> None:
+        """Flush and drop every connection, close the listeners and remove the Unix socket."""
         for conn in list(self.connections.values()):
             self._flush(conn)
             self._drop(conn)
@@ -328,6 +340,7 @@ class LineServer:
             self.selector.unregister(fd)
 
     def flush_all(self) -> None:
+        """Send what every connection has waiting, as far as its socket takes it."""
         for conn in list(self.connections.values()):
             self._flush(conn)
 

@@ -166,6 +166,8 @@ class ViewSlot:
         self.overtaken = 0  # requests replaced before any worker took them
 
     def submit(self, view: View) -> int:
+        """Make `view` the newest, in the emission session now; returns its sequence number (a view
+        not yet shown is overtaken)."""
         with self._cond:
             if self.view is not None and (self.applied_seq or 0) < self.seq:
                 self.overtaken += 1
@@ -183,10 +185,13 @@ class ViewSlot:
             return self.seq, self.view
 
     def mark_applied(self, seq: int) -> None:
+        """The frame worker has shown view `seq` (or a newer one)."""
         with self._cond:
             self.applied_seq = max(seq, self.applied_seq or 0)
 
     def snapshot(self) -> dict[str, Any]:
+        """The slot for `status`: the newest sequence number, its view (JSON), the last shown and
+        how many were overtaken."""
         with self._cond:
             return {"seq": self.seq,
                     "requested": None if self.view is None else self.view.to_json(),

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import pytest
+
 from nhfd.daemon.audit import PARAMS_CHARS, AuditLog
 from nhfd.daemon.server import Connection
 
@@ -112,3 +114,27 @@ def test_an_internal_error_is_audited_with_its_params_cut_short(running, monkeyp
     (line,) = [a for a in lines if a["what"] == "focus"]
     assert line["outcome"] == "internal error: bug"
     assert line["params"].startswith('{"pad": "yyy') and line["params"].endswith("(100011 chars)")
+
+
+def test_a_line_over_the_limit_keeps_the_history_and_a_failed_write_raises(tmp_path):
+    # Why the rotation is not logging.handlers.RotatingFileHandler (nhfd.daemon.audit): on
+    # Python 3.11 that handler rotates an empty file for such a line (here: a daemon starting on
+    # an emptied audit.jsonl), pushing the oldest backup out, and it swallows a failed write.
+    path = tmp_path / "audit.jsonl"
+    path.with_name("audit.jsonl.1").write_text('{"what": "old"}\n')
+    path.write_text("")
+    log = AuditLog(path, summary_s=1.0, max_bytes=4096, backups=2)
+    log.write({"who": "test"}, "big", pad="x" * 5000)
+    log.close()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["audit.jsonl", "audit.jsonl.1"]
+    assert path.with_name("audit.jsonl.1").read_text() == '{"what": "old"}\n'
+    assert [json.loads(x)["what"] for x in path.read_text().splitlines()] == ["big"]
+
+    class Full:
+        def write(self, text: str) -> int:
+            raise OSError(28, "No space left on device")
+
+    log = AuditLog(tmp_path / "b.jsonl", summary_s=1.0, max_bytes=4096, backups=1)
+    log._file = Full()  # type: ignore[assignment]
+    with pytest.raises(OSError, match="No space left"):
+        log.write({"who": "test"}, "laser", outcome="ok")

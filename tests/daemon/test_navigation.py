@@ -3,6 +3,7 @@ path: the sequence number advances and the azimuth follows the script."""
 
 from __future__ import annotations
 
+import time
 from types import SimpleNamespace
 
 from nhfd.daemon.navigation import relative_move
@@ -53,3 +54,26 @@ def test_relative_move_from_velocities():
     pose = View(Pose((0, 0, 0), (1, 0, 0, 0)))
     assert relative_move(pose, up, 0.5) == {"translate": [0, 0, -10.0],
                                             "rotate_deg": [15.0, 5.0, 0]}
+
+
+def test_an_unplugged_navigator_is_opened_again_once_it_is_back(short_dir, mecom_twin):
+    config = bench_config(short_dir, mecom_twin, navigator_period_s=0.02)
+    config = config.model_copy(update={"devices": config.devices.model_copy(
+        update={"navigator": "simulated"})})
+    r = Running(config, short_dir)
+    try:
+        c = r.client()
+        seq = c.call("set_view", orbit={"azimuth_deg": 0.0, "elevation_deg": 10.0,
+                                        "radius": 2.0})["seq"]
+        wait_until(lambda: c.status()["view"]["seq"] > seq, 10, "navigator moves")
+        r.daemon.navigation.navigator.unplug()
+        wait_until(lambda: c.status()["navigator"]["error"] is not None, 5, "the loss seen")
+        moves = c.status()["navigator"]["moves"]
+        time.sleep(0.3)
+        assert c.status()["navigator"]["moves"] == moves  # nothing moves while it is gone
+        r.daemon.navigation.navigator.replug()
+        # Opened again within RECONNECT_S, and moving the view again.
+        wait_until(lambda: c.status()["navigator"]["error"] is None
+                   and c.status()["navigator"]["moves"] > moves, 5, "moves after the replug")
+    finally:
+        r.stop()

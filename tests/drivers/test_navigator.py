@@ -1,4 +1,6 @@
-"""SpaceMouse HID reports from raw bytes, device matching, scaling, and the simulated navigator."""
+"""SpaceMouse HID reports from raw bytes, device matching and opening, and the simulated
+navigator's script. What every navigator backend keeps (scaling, dead zone, buttons, unplug and
+reconnect, close) is the navigator contract's: tests/drivers/contracts/test_navigator.py."""
 
 from __future__ import annotations
 
@@ -7,7 +9,7 @@ import types
 
 import pytest
 
-from nhfd.device_settings import SPACEMOUSE_IDS, NavigatorSettings
+from nhfd.device_settings import SPACEMOUSE_IDS
 from nhfd.drivers import navigator
 from nhfd.drivers.errors import PortNotFound, ProtocolError
 from nhfd.drivers.navigator import (
@@ -71,35 +73,43 @@ def fake_hid(devices: list[dict], reports: list[list[int]]) -> types.ModuleType:
     return module
 
 
-def test_spacemouse_backend_opens_the_matching_device_and_scales(monkeypatch):
+def test_spacemouse_backend_opens_the_matching_device(monkeypatch):
+    # Scaling, buttons and the lifecycle are the navigator contract's
+    # (tests/drivers/contracts/test_navigator.py); here: which device is opened.
     devices = [
         {"vendor_id": 0x046D, "product_id": 0xC077, "path": b"mouse"},
+        {"vendor_id": 0x256F, "product_id": 0xC635, "path": b"other", "usage_page": 12,
+         "usage": 1},
         {"vendor_id": 0x256F, "product_id": 0xC635, "path": b"puck", "usage_page": 1, "usage": 8,
          "product_string": "SpaceMouse Compact"},
     ]
-    reports = [list(bytes([1]) + struct.pack("<3h", 350, -15, 183)),
-               list(bytes([2]) + struct.pack("<3h", 0, 0, -700)),
-               [3, 1]]
-    hid = fake_hid(devices, reports)
+    hid = fake_hid(devices, [])
     monkeypatch.setattr(navigator, "hid", hid)
-    settings = NavigatorSettings(dead_zone_counts=15, full_scale_counts=350,
-                                 max_translation_m_s=0.2, max_rotation_deg_s=90.0,
-                                 axis_signs=[1, 1, -1, 1, 1, 1], read_timeout_ms=0)
-    with SpaceMouseNavigator(settings) as nav:
+    with SpaceMouseNavigator() as nav:  # the multi-axis interface (usage page 1, usage 8)
         assert hid.device.opened == b"puck" and nav.product == "SpaceMouse Compact"
-        reading = nav.read()
-    vx, vy, vz = reading.translation_m_s
-    assert vx == pytest.approx(0.2)  # full deflection
-    assert vy == 0.0  # inside the dead zone
-    assert vz == pytest.approx(-0.2 * (183 - 15) / (350 - 15))  # sign flipped by settings
-    assert reading.rotation_deg_s == (0.0, 0.0, -90.0)  # clipped at full scale
-    assert reading.pressed(0) and not reading.pressed(1)
+    with SpaceMouseNavigator(path="other") as nav:  # the one at the path asked for
+        assert hid.device.opened == b"other" and nav.product == "256f:c635"
+    with pytest.raises(PortNotFound, match="no SpaceMouse found at mouse"):
+        SpaceMouseNavigator(path=b"mouse").open()  # a path, but not a SpaceMouse's
 
 
 def test_spacemouse_backend_without_a_device(monkeypatch):
     monkeypatch.setattr(navigator, "hid", fake_hid(
         [{"vendor_id": 0x046D, "product_id": 0xC077, "path": b"mouse"}], []))
     with pytest.raises(PortNotFound, match="no SpaceMouse"):
+        SpaceMouseNavigator().open()
+
+
+def test_an_open_that_hidapi_refuses_is_a_device_error(monkeypatch):
+    hid = fake_hid([{"vendor_id": 0x256F, "product_id": 0xC635, "path": b"/dev/hidraw3"}], [])
+
+    def refused(self, path):
+        raise OSError("open failed")
+
+    hid.device.open_path = refused  # gone since the enumeration, or no permission
+    monkeypatch.setattr(navigator, "hid", hid)
+    with pytest.raises(PortNotFound, match=r"SpaceMouse /dev/hidraw3: cannot open \(open failed; "
+                                           r"is the udev rule installed\?\)"):
         SpaceMouseNavigator().open()
 
 

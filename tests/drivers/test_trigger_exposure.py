@@ -1,8 +1,10 @@
 """The camera's exposure-active line wired to the host (`[devices.trigger] source =
-"camera_exposure"`, nhfd.drivers.trigger) on the simulated bench: the SLM writes a frame only
-while the line is low, so no frame changes during an exposure (the twin's record of exposures and
-writes says so, and says otherwise once the wire is cut); a line stuck high fails the write with
-an error naming the trigger and its timeout; the settings refuse an unknown source.
+"camera_exposure"`, nhfd.drivers.trigger) on the simulated bench: a cut wire lets frames be
+written inside exposures, and the twin's record of exposures and writes shows it; the settle
+time stays; the settings refuse an unknown source. What every line keeps (the write waits while
+the line is high, a line stuck high times out naming the trigger and its timeout, no write
+inside an exposure, close and reopen) is the trigger contract's:
+tests/drivers/contracts/test_trigger.py.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from nhfd.config import Config
 from nhfd.device_settings import TriggerSettings
 from nhfd.drivers.factory import BenchDevices, make_bench
 from nhfd.drivers.simcamera import TrueBench
-from nhfd.drivers.trigger import TriggerLine, TriggerTimeout
+from nhfd.drivers.trigger import TriggerLine
 
 PANEL = 64
 EXPOSURE_S = 0.03  # long against a write, so an unguarded write lands inside an exposure
@@ -69,50 +71,23 @@ def shows_while_capturing(b: BenchDevices, seed: int, n: int = 8) -> int:
 
 
 @pytest.mark.parametrize("seed", [0, 1])
-def test_no_frame_is_written_during_an_exposure_and_a_cut_line_would_show(seed):
+def test_a_cut_line_lets_frames_into_exposures_and_the_twins_record_shows_it(seed):
+    # With the wire, no write falls inside an exposure (the trigger contract,
+    # tests/drivers/contracts/test_trigger.py). Without it (the host's input reads low) and
+    # without a settle wait, the same sequence writes frames while the sensor integrates: the
+    # twin's check is what would catch a missing gate.
     with bench() as b:
         line = b.slm.trigger
         assert line is b.camera.trigger and line.source == "camera_exposure"
-        exposures = shows_while_capturing(b, seed)
-        # The twin's record: the writes and the exposures interleaved (the camera kept
-        # exposing while the host showed frames), and no write fell inside an exposure window.
-        assert exposures >= 3 and len(line.writes) >= 8
-        assert line.writes_during_exposures() == []
-        # The writes waited for the line: each one inside the span the exposures cover.
-        first, last = line.exposures[0].start_s, line.exposures[-1].end_s
-        assert sum(first < w < last for w in line.writes) >= 4
-        # Without the wire (the host's input reads low) and without a settle wait, the same
-        # sequence writes frames while the sensor integrates: the check above would catch it.
         line.cut()
-        before = len(line.writes)
         shows_while_capturing(b, seed)
-        late = [w for w, _ in line.writes_during_exposures() if w >= line.writes[before]]
-        assert late
+        assert line.writes_during_exposures()
 
 
 def test_the_settle_time_stays_with_the_exposure_line():
     # Unlike the frame-flip trigger, the exposure line says nothing of the panel's flip.
     with bench(settle_ms=40.0) as b:
         assert b.slm.settle_s == pytest.approx(0.04)
-
-
-def test_a_line_stuck_high_times_out_naming_the_trigger_and_the_timeout():
-    with bench(timeout_ms=80.0) as b:
-        line = b.slm.trigger
-        b.slm.show(np.full((PANEL, PANEL), 10, np.uint8))  # a low line: written at once
-        line.stick_high()
-        writes = len(line.writes)
-        t0 = time.monotonic()
-        with pytest.raises(TriggerTimeout, match=r"trigger camera_exposure: the camera's "
-                                                 r"exposure-active line stayed high for 80 ms "
-                                                 r"\(devices\.trigger\.timeout_ms\)"):
-            b.slm.show(np.full((PANEL, PANEL), 100, np.uint8))
-        assert time.monotonic() - t0 >= 0.08
-        assert len(line.writes) == writes  # nothing written
-        assert int(b.slm.last_frame[0, 0, 0]) == 10
-        line.mend()
-        b.slm.show(np.full((PANEL, PANEL), 100, np.uint8))
-        assert int(b.slm.last_frame[0, 0, 0]) == 100
 
 
 def test_an_unknown_source_is_refused_listing_the_allowed_ones():
