@@ -11,6 +11,7 @@ $(STAMP): pyproject.toml setup.py
 	@test -x $(VENV)/bin/python || $(PYTHON) -m venv $(VENV)
 	$(VENV)/bin/python -m pip install -q $(TORCH)
 	$(VENV)/bin/python -m pip install -q -e ".[dev]"
+	$(VENV)/bin/nhfd warmup
 	@touch $(STAMP)
 
 demo: $(STAMP)

@@ -143,6 +143,22 @@ class View:
         """The same camera and refocus at another tier."""
         return replace(self, quality=quality)
 
+    def describe(self) -> str:
+        """The view in words, for people: "orbit azimuth 30 deg, elevation 10 deg, radius 4",
+        then the refocus and the tier when they are not 0 and "network"."""
+        c = self.camera
+        if isinstance(c, Orbit):
+            words = (f"orbit azimuth {c.azimuth_deg:g} deg, elevation {c.elevation_deg:g} deg, "
+                     f"radius {c.radius:g}")
+        else:
+            words = (f"pose at ({', '.join(f'{v:g}' for v in c.position)}), quaternion "
+                     f"({', '.join(f'{v:g}' for v in c.quaternion_wxyz)})")
+        if self.refocus_mm:
+            words += f", refocus {self.refocus_mm:+g} mm"
+        if self.quality != "network":
+            words += f", quality {self.quality}"
+        return words
+
     def to_json(self) -> dict[str, Any]:
         """The plain form `status`, the audit log and `set_view`'s reply show (`quality` only
         above "network", so open-loop views read as they always did)."""

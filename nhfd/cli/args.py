@@ -14,6 +14,9 @@ from dataclasses import dataclass
 from typing import Any
 
 MAX_SIDE_PX = 16384
+# The scene formats, as help texts name them (every suffix `nhfd.scene.io` reads; a test holds
+# the two together).
+SCENE_FORMATS = ".ply (INRIA and PlayCanvas compressed), .splat, .spz, glTF (.glb, .gltf) and SOG"
 
 
 def parse_wxh(text: str, option: str = "--size", max_px: int = MAX_SIDE_PX) -> tuple[int, int]:

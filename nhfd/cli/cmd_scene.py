@@ -22,7 +22,7 @@ import numpy as np
 from PIL import Image
 from PIL.PngImagePlugin import PngInfo
 
-from nhfd.cli.args import MAX_SIDE_PX, parse_wxh
+from nhfd.cli.args import MAX_SIDE_PX, SCENE_FORMATS, parse_wxh
 from nhfd.config import load_config
 from nhfd.scene import cameras
 from nhfd.scene.io import is_sog_folder, read_scene, save_ply, scene_summary
@@ -59,7 +59,7 @@ UP_HELP = (
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "scene",
-        help="inspect and render 3D Gaussian splat scenes (.ply, compressed .ply, .splat)",
+        help="inspect and render 3D Gaussian splat scenes: " + SCENE_FORMATS,
         description="Inspect a Gaussian splat scene file or render one view of it on the CPU.",
     )
     verbs = p.add_subparsers(dest="verb", metavar="VERB", required=True)
@@ -84,7 +84,7 @@ def _register_info(verbs: argparse._SubParsersAction) -> None:
         "centre, extent and mean opacity of a scene, the detected up axis with the reason, and a "
         "suggested camera as the exact `nhfd scene render` arguments that reproduce it.",
     )
-    info.add_argument("file", metavar="FILE", help="scene: INRIA .ply, compressed .ply or .splat")
+    info.add_argument("file", metavar="FILE", help="scene: " + SCENE_FORMATS)
     info.add_argument("--json", action="store_true", help="machine-readable output")
     _add_view_options(info)
     info.set_defaults(handler=_info)
@@ -104,7 +104,7 @@ def _register_render(verbs: argparse._SubParsersAction) -> None:
         "  nhfd scene render guitar.compressed.ply -o v.png --pose orbit:0,10,20 --up=-y",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    render.add_argument("file", metavar="FILE", help="scene: INRIA .ply, compressed .ply or .splat")
+    render.add_argument("file", metavar="FILE", help="scene: " + SCENE_FORMATS)
     render.add_argument("-o", "--out", required=True, metavar="PNG", help="RGB output (.png)")
     _add_view_options(render)
     render.add_argument("--pose", metavar="SPEC", help=POSE_HELP)

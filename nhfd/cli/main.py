@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from nhfd import __version__
-from nhfd.cli.args import Command, LazyCommands
+from nhfd.cli.args import SCENE_FORMATS, Command, LazyCommands
 from nhfd.config import ConfigError
 
 # In the order --help lists them; each help line is the one its module registers (a test checks).
@@ -23,7 +23,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("demo", "nhfd.cli.cmd_demo",
             "run the daemon on the simulated bench: views, a focus sweep, captures -> out/demo"),
     Command("scene", "nhfd.cli.cmd_scene",
-            "inspect and render 3D Gaussian splat scenes (.ply, compressed .ply, .splat)"),
+            "inspect and render 3D Gaussian splat scenes: " + SCENE_FORMATS),
     Command("dataset", "nhfd.cli.cmd_dataset", "build and inspect training datasets"),
     Command("train", "nhfd.cli.cmd_train", "train the NHF network on a dataset"),
     Command("eval", "nhfd.cli.cmd_train", "hologram quality of a run or .onnx on held-out views"),
@@ -39,6 +39,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("devices", "nhfd.cli.cmd_devices",
             "list connected devices and which config entry would use each"),
     Command("calib", "nhfd.cli.calib", "capture focal stacks and fit the bench model"),
+    Command("warmup", "nhfd.cli.cmd_warmup",
+            "compile the CPU kernels once, so the first view is fast"),
 )
 
 

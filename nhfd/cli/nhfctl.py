@@ -21,9 +21,11 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from nhfd.cli import human
 from nhfd.cli.cmd_laser import laser_settings, switch_all_off
+from nhfd.cli.human import fields, view_words
 from nhfd.config import DaemonSettings, load_config
-from nhfd.daemon.client import LOOPBACK_HOSTS, Client, DaemonUnavailable
+from nhfd.daemon.client import LOOPBACK_HOSTS, Client, DaemonUnavailable, TLSFailure
 from nhfd.daemon.paths import socket_path
 from nhfd.daemon.protocol import RpcError, describe_codes
 from nhfd.device_settings import LaserSettings
@@ -36,14 +38,19 @@ from nhfd.views import QUALITY_TIERS
 OFF_DAEMON_TIMEOUT_S = 1.0
 
 
-def _floats(n: int, what: str):  # argparse type factory
+def _floats(n: int, form: str):  # argparse type factory; argparse names the option
     def parse(text: str) -> list[float]:
-        try:
-            values = [float(v) for v in text.split(",")]
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{what}: numbers separated by commas") from None
+        values = []
+        for token in text.split(","):
+            try:
+                values.append(float(token))
+            except ValueError:
+                raise argparse.ArgumentTypeError(
+                    f"{token.strip()!r} is not a number: expected {form}, {n} numbers "
+                    "separated by commas") from None
         if len(values) != n:
-            raise argparse.ArgumentTypeError(f"{what}: {n} numbers, got {len(values)}")
+            raise argparse.ArgumentTypeError(f"{len(values)} numbers in {text!r}: expected "
+                                             f"{form}, {n} numbers separated by commas")
         return values
 
     return parse
@@ -65,17 +72,20 @@ def build_parser() -> argparse.ArgumentParser:
                    "own self-signed certificate, or the CA that signed it)")
     p.add_argument("--timeout-s", type=float, default=5.0, help="per-call timeout (default 5)")
     p.add_argument("--json", action="store_true", help="print the raw JSON result")
+    p.add_argument("--wait-s", type=float, default=0.0, metavar="S",
+                   help="wait up to S seconds for the daemon to answer (one just started with "
+                        "`nhfd serve &` takes a few); default 0: fail at once when none does")
     sub = p.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
     sv = sub.add_parser("set-view", help="move the displayed view (pose, orbit or relative)")
     g = sv.add_mutually_exclusive_group(required=True)
-    g.add_argument("--orbit", type=_floats(3, "--orbit"), metavar="AZ,EL,R",
+    g.add_argument("--orbit", type=_floats(3, "AZ,EL,R"), metavar="AZ,EL,R",
                    help="azimuth and elevation (deg), radius (scene units)")
-    g.add_argument("--pose", type=_floats(7, "--pose"), metavar="X,Y,Z,QW,QX,QY,QZ",
+    g.add_argument("--pose", type=_floats(7, "X,Y,Z,QW,QX,QY,QZ"), metavar="X,Y,Z,QW,QX,QY,QZ",
                    help="camera position and camera-to-world quaternion (OpenCV axes)")
-    g.add_argument("--by-orbit", type=_floats(3, "--by-orbit"), metavar="DAZ,DEL,DR",
+    g.add_argument("--by-orbit", type=_floats(3, "DAZ,DEL,DR"), metavar="DAZ,DEL,DR",
                    help="relative orbit move")
-    g.add_argument("--by-pose", type=_floats(6, "--by-pose"), metavar="DX,DY,DZ,RX,RY,RZ",
+    g.add_argument("--by-pose", type=_floats(6, "DX,DY,DZ,RX,RY,RZ"), metavar="DX,DY,DZ,RX,RY,RZ",
                    help="relative camera-frame translation and rotation (deg)")
     sv.add_argument("--quality", choices=QUALITY_TIERS,
                     help="the frame tier: network (the network's frame, at once), exact (the "
@@ -191,6 +201,20 @@ def _socket(args: argparse.Namespace) -> str:
 
 
 def _connect(args: argparse.Namespace) -> Client:
+    """The client, after waiting up to `--wait-s` for a daemon to answer."""
+    deadline = time.monotonic() + max(0.0, getattr(args, "wait_s", 0.0) or 0.0)
+    while True:
+        try:
+            return _open(args)
+        except TLSFailure:  # a certificate not trusted stays so
+            raise
+        except DaemonUnavailable:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.2)
+
+
+def _open(args: argparse.Namespace) -> Client:
     if args.tcp:
         host, _, port = args.tcp.rpartition(":")
         token = Path(args.token_file).read_text().strip() if args.token_file else None
@@ -241,7 +265,10 @@ def human_status(s: dict[str, Any]) -> str:
         lines.append(f"navigator {nav['backend']}, {nav['moves']} moves"
                      + (f"; error: {nav['error']}" if nav.get("error") else ""))
     v = s["view"]
-    lines.append(f"view     seq {v['seq']}: {json.dumps(v['requested'])}")
+    requested = view_words(v["requested"]) if v.get("requested") else "none yet"
+    lines.append(f"view     seq {v['seq']}: {requested}")
+    for w in s.get("warnings") or []:
+        lines.append(f"warning  {w}")
     refine = (s.get("frames") or {}).get("refine")
     if refine:
         lines.append("refine   " + human_refine(refine))
@@ -292,15 +319,17 @@ def _human(cmd: str, result: Any) -> str:
         what = (human_model(loaded) if cmd == "load-model" else
                 f"{loaded.get('path')} ({loaded.get('gaussians')} Gaussians)")
         return f"loaded {what} (job {result['id']})"
+    if isinstance(result, dict) and "state" in result and "kind" in result:
+        return human.job(result)  # a job waited for (--wait), or `job N`
     if isinstance(result, dict) and "job" in result and len(result) <= 3:
-        rest = ", ".join(f"{k} {v}" for k, v in result.items() if k != "job")
+        rest = fields({k: v for k, v in result.items() if k != "job"})
         return f"job {result['job']} queued" + (f" ({rest})" if rest else "")
     if cmd == "set-view":
         warning = f"\nwarning: {result['warning']}" if result.get("warning") else ""
-        return f"view seq {result['seq']}: {json.dumps(result['view'])}{warning}"
+        return f"view seq {result['seq']}: {view_words(result['view'])}{warning}"
     if isinstance(result, dict):
-        return ", ".join(f"{k}: {v}" for k, v in result.items())
-    return str(result)
+        return fields(result)
+    return human.value(result)
 
 
 def _remote(args: argparse.Namespace) -> bool:

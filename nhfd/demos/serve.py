@@ -275,9 +275,10 @@ def _run(out: Path, runtime: Path, *, config: Config, model: Path, scene: Path, 
                                                settings.panel_hw, settings.pitch_m)
         focal_strip(images, refined, summary["regions"], out / "focal_strip.png")
         focal_gif(images, refined, summary["regions"], out / "focal_sweep.gif")
-        for name, r in summary["regions"].items():
-            log(f"  {name} content at {r['content_mm']:+.2f} mm: best match with the view at "
-                f"focus {r['best_focus_mm']:+.2f} mm")
+        for tier, key in (("network", "regions"), ("sgd", "regions_sgd")):
+            for name, r in summary[key].items():
+                log(f"  {tier}: {name} content at {r['content_mm']:+.2f} mm: best match with "
+                    f"the view at focus {r['best_focus_mm']:+.2f} mm")
         contact_sheet(images, summary["regions"], rgb, zh, out / "contact_sheet.png")
         for regions in (summary["regions"], summary["regions_sgd"]):
             for r in regions.values():
@@ -338,7 +339,8 @@ def focal_strip(network: list[tuple[float, np.ndarray]], refined: list[tuple[flo
     (net, ref), norm, masks = _upright([network, refined], regions)
     n = len(network)
     h, w = net[0].shape
-    fig, axes = plt.subplots(2, n, figsize=(1.9 * n, 2 * 1.9 * h / w + 1.0))
+    # Thumbnails large enough to see the focus move (~290 px wide at dpi 110).
+    fig, axes = plt.subplots(2, n, figsize=(2.6 * n, 2 * 2.6 * h / w + 1.0))
     colours = ["C1", "C0"]  # near, far
     for row, (label, images) in enumerate((("network", net), ("sgd-refined", ref))):
         for k, img in enumerate(images):
@@ -355,7 +357,7 @@ def focal_strip(network: list[tuple[float, np.ndarray]], refined: list[tuple[flo
     fig.suptitle("Simulated camera swept from the near (orange) to the far (blue) content: the "
                  "network's frame and the same view refined (sgd)", fontsize=10)
     fig.tight_layout()
-    fig.savefig(path, dpi=90)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 

@@ -148,7 +148,7 @@ def _parse_glb(path: Path, f: BinaryIO) -> tuple[dict[str, Any], _Chunk | None]:
     if length > file_bytes:
         raise SceneFileError(
             f"{path}: truncated .glb data: the header declares {length} bytes, the file has "
-            f"{file_bytes}"
+            f"{file_bytes} bytes"
         )
     doc, at = None, _GLB_HEADER.size
     # Walk the chunk headers (seeking, not reading, past what is not JSON) up to the first BIN

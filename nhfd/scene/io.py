@@ -325,7 +325,7 @@ def _check_ply_header(path: Path, f: BinaryIO, max_gaussians: int) -> None:
         raise SceneFileError(
             f"{path}: truncated data, the file is shorter than its header declares: its "
             f"{', '.join(f'{rows:,} {name}' for name, rows, _, _ in elements)} rows need at "
-            f"least {need:,} bytes after the header, the file has {have:,}"
+            f"least {need:,} bytes after the header, the file has {have:,} bytes"
         )
 
 

@@ -70,3 +70,13 @@ def test_registry_help_lines_are_the_ones_the_modules_register():
             sub.load(command.name)
         shown = {a.dest: a.help for a in sub._choices_actions}
         assert shown == {c.name: c.help for c in registry}
+
+
+def test_the_help_names_every_scene_format_the_readers_take():
+    from nhfd.cli.args import SCENE_FORMATS
+    from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES
+
+    words = SCENE_FORMATS.lower()
+    for suffix in SCENE_SUFFIXES:
+        assert suffix.lstrip(".") in words, suffix
+    assert "sog" in words and SCENE_NAMES  # SOG: a folder or its meta.json

@@ -336,4 +336,4 @@ def test_nhfctl_laser_arm_says_what_the_bench_must_do_and_waits(short_dir, mecom
         out = capsys.readouterr()
         assert out.err.startswith(f"nhfctl laser arm: waiting for the person at the bench to "
                                   f"turn {KEY} on (off first if it is on) within 20 s (job ")
-        assert "armed: True" in out.out and f"confirmed_by: {KEY}" in out.out
+        assert "armed yes" in out.out and f"confirmed by {KEY}" in out.out

@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pytest
 
 from nhfd.benchmarks.pipeline import _Host, _load
 from nhfd.calibration import active_calibration
@@ -26,8 +27,24 @@ from nhfd.scene.io import read_scene
 from .test_frames import FRONT_VIEW, small_config
 
 
+def _segments() -> set[str]:
+    return {p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*")}
+
+
+_BEFORE: set[str] = set()
+
+
+@pytest.fixture(autouse=True)
+def _segments_before() -> None:
+    """The segments this process held before the test (another test's still closing): each
+    test judges only its own."""
+    _BEFORE.clear()
+    _BEFORE.update(_segments())
+
+
 def our_segments() -> list[str]:
-    return sorted(p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*"))
+    """This process's frame segments made during the test, by name."""
+    return sorted(_segments() - _BEFORE)
 
 
 def arrays_in(obj: Any) -> list[str]:

@@ -3,9 +3,12 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 import time
+
+import pytest
 
 from nhfd.cli.nhfctl import main
 
@@ -51,13 +54,13 @@ def test_nhfctl_commands(running: Running, capsys):
     err = capsys.readouterr().err
     assert err.startswith("nhfctl load-model: error: path_not_allowed: ")
     assert "outside the allowed directories" in err
-    assert main([*sock, "blank"]) == 0 and "showing: blank" in capsys.readouterr().out
+    assert main([*sock, "blank"]) == 0 and "showing blank" in capsys.readouterr().out
     assert main([*sock, "focus", "9"]) == 1
     err = capsys.readouterr().err
     assert err == ("nhfctl focus: error: invalid_params: z_mm: got 9.0; allowed: a finite number "
                    "in [-5, 5]\n")
     assert main([*sock, "laser", "power", "red", "3"]) == 0  # power alone emits nothing
-    assert "power_pct: 3.0" in capsys.readouterr().out
+    assert "power 3 %" in capsys.readouterr().out
     assert main([*sock, "stop"]) == 0
     assert main([*sock, "--json", "watch", "--count", "2", "--interval-s", "0.05"]) == 0
     lines = capsys.readouterr().out.strip().splitlines()
@@ -65,6 +68,45 @@ def test_nhfctl_commands(running: Running, capsys):
     assert main([*sock, "shutdown"]) == 0
     running.thread.join(10)
     assert not running.socket.exists()
+
+
+# What must never reach a person: a Python dict or list repr, None, an epoch time in seconds.
+PYTHON = re.compile(r"\{'|\['|\bNone\b|\bTrue\b|\bFalse\b|\b1[6-9]\d{8}(\.\d+)?\b")
+
+
+def test_human_output_is_words_and_json_is_the_data(running: Running, capsys):
+    sock = ["--socket", str(running.socket)]
+    assert main([*sock, "--json", "focus", "1.5", "--home", "--wait"]) == 0
+    job = json.loads(capsys.readouterr().out)["id"]
+    commands = [["set-view", "--orbit", "30,10,4", "--quality", "sgd"], ["status"],
+                ["laser", "power", "red", "3"], ["focus", "1.5", "--wait"], ["blank"],
+                ["job", str(job)], ["stop"]]
+    for command in commands:
+        assert main([*sock, *command]) == 0, command
+        text = capsys.readouterr().out
+        assert text.strip() and not PYTHON.search(text), (command, text)
+        assert main([*sock, "--json", *command]) == 0, command
+        data = json.loads(capsys.readouterr().out)
+        assert json.loads(json.dumps(data)) == data and isinstance(data, dict)
+    # A job waited for reads as a sentence, its times local ISO times.
+    assert main([*sock, "focus", "1.0", "--wait"]) == 0
+    line = capsys.readouterr().out.strip()
+    assert re.fullmatch(r"job \d+ \(focus\) done in \d+\.\d s, started "
+                        r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d[+-]\d\d:\d\d: z 1 mm, "
+                        r"stage [-\d.]+ mm", line), line
+
+
+def test_a_bad_number_names_the_token_and_the_form(running: Running, capsys):
+    sock = ["--socket", str(running.socket)]
+    for bad, said in ((["--orbit", "30,abc,0"], "'abc' is not a number: expected AZ,EL,R, 3 "
+                                                 "numbers separated by commas"),
+                      (["--by-pose", "1,2"], "2 numbers in '1,2': expected DX,DY,DZ,RX,RY,RZ, "
+                                             "6 numbers separated by commas")):
+        with pytest.raises(SystemExit) as exit_:
+            main([*sock, "set-view", *bad])
+        assert exit_.value.code == 2
+        err = capsys.readouterr().err
+        assert f"argument {bad[0]}: {said}" in err, err
 
 
 def test_load_commands_wait_for_their_job_and_fail_with_its_error(running: Running, capsys):

@@ -16,6 +16,7 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
+import pytest
 
 from nhfd.config import Config, _overlay
 from nhfd.daemon import frame_link
@@ -113,8 +114,24 @@ def running_link(root: Path) -> tuple[Host, FrameLink]:
     return host, link
 
 
+def _segments() -> set[str]:
+    return {p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*")}
+
+
+_BEFORE: set[str] = set()
+
+
+@pytest.fixture(autouse=True)
+def _segments_before() -> None:
+    """The segments this process held before the test (another test's still closing): each
+    test judges only its own."""
+    _BEFORE.clear()
+    _BEFORE.update(_segments())
+
+
 def our_segments() -> list[str]:
-    return sorted(p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*"))
+    """This process's frame segments made during the test, by name."""
+    return sorted(_segments() - _BEFORE)
 
 
 def step_until(link: FrameLink, until_s: float, submit: Any = None) -> None:

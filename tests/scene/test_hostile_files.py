@@ -151,7 +151,7 @@ def test_ply_shorter_than_its_declared_rows_is_refused_before_allocating(
     need = 2 * 14 * 1_000_000 - 1 if fmt == "ascii" else 56 * 1_000_000
     peak = refused(path, rf"{fmt}\.ply: truncated data, the file is shorter than its header "
                    rf"declares: its 1,000,000 vertex rows need at least {need:,} bytes after the "
-                   rf"header, the file has {len(row) * 2}")
+                   rf"header, the file has {len(row) * 2} bytes$")
     assert peak < PEAK_BOUND_BYTES, peak
 
 
