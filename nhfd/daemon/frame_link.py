@@ -51,7 +51,7 @@ import os
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from multiprocessing import shared_memory
@@ -592,11 +592,7 @@ class FrameLink:
         return request.wait(LOAD_TIMEOUT_S, lambda: self.state == LinkState.STOPPED)
 
     def _take_requests(self) -> None:
-        while True:
-            try:
-                self._unsent.append(self._requests.get_nowait())
-            except queue.Empty:
-                return
+        self._unsent.extend(_drain(self._requests))
 
     def _send_loads(self) -> None:
         """Queued loads to the worker, starting it for the first; held while it restarts."""
@@ -799,11 +795,7 @@ class FrameLink:
         self._capture_answers.put((req_id, reply))
 
     def _send_capture_answers(self) -> None:
-        while True:
-            try:
-                req_id, reply = self._capture_answers.get_nowait()
-            except queue.Empty:
-                return
+        for req_id, reply in _drain(self._capture_answers):
             if req_id in self._captures_wanted:
                 self._captures_wanted.discard(req_id)
                 self.worker.send(("captured", req_id, reply))
@@ -895,11 +887,7 @@ class FrameLink:
         self._emission_ends.put((self.views.seq, reason))
 
     def _apply_emission_ends(self) -> None:
-        while True:
-            try:
-                seq, reason = self._emission_ends.get_nowait()
-            except queue.Empty:
-                return
+        for seq, reason in _drain(self._emission_ends):
             r = self.refinement
             if r is not None and r.tier == "citl" and r.seq <= seq and not r.ended:
                 r.ended = reason
@@ -1090,6 +1078,15 @@ class PanelBuffer:
             for c in range(grey.shape[0]):
                 dst[..., c] = grey[c]
         return out.transpose(2, 0, 1)
+
+
+def _drain(q: queue.SimpleQueue[Any]) -> Iterator[Any]:
+    """What other threads have put on `q` so far, in order (never blocks)."""
+    while True:
+        try:
+            yield q.get_nowait()
+        except queue.Empty:
+            return
 
 
 def _accepted_calibration(config: Config) -> Calibration | None:

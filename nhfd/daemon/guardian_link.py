@@ -162,9 +162,8 @@ class LaserLink:
     def check_session(self, session: int) -> None:
         """EmissionEnded, saying what ended it, unless `session` is the session now."""
         if session != self._session:
-            oldest = min(self._ended) if self._ended else session
-            reason = self._ended.get(session) or self._ended.get(oldest, "it ended")
-            raise EmissionEnded(reason)
+            raise EmissionEnded(self._ended.get(
+                session, "the lasers were switched off or re-armed since it was asked for"))
 
     # -- start / stop --------------------------------------------------------------------------
 

@@ -526,7 +526,9 @@ class Refiner:
         enc = p.encoder
 
         def better(refined: Refined, wait_s: float = BETTER_WAIT_S) -> None:
-            frame = RefinedFrame(enc.region, refined.grey.copy(), refined.report.to_json())
+            frame = RefinedFrame(enc.region, refined.grey, refined.report.to_json())
+            # Into a refine slot (a copy), or pickled now, under the send lock: either way the
+            # refinement's own array never crosses.
             if self.slots is not None:
                 frame = self.slots.write_refined(frame, wait_s)
             self.send(("refined", seq, frame))

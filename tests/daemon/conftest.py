@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import contextlib
+import os
 import shutil
 import socket
 import tempfile
 import threading
 import time
 import tomllib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -17,6 +18,7 @@ import pytest
 
 from nhfd.config import Config, _overlay, default_text
 from nhfd.daemon.client import Client
+from nhfd.daemon.frame_link import SHM_PREFIX
 from nhfd.daemon.service import Daemon
 from nhfd.drivers.twins.mecom_twin import MecomTwin
 
@@ -155,3 +157,15 @@ def _compile_frame_kernels(tiny: dict[str, Path]) -> None:
     encoder = Encoder(frame_settings(config, model.info, active_calibration(config)))
     scene = Scene(load_scene(tiny["scene"]), SceneFrame((0.0, 0.0, 0.0), "-y"))
     compute_frame(FRONT_VIEW, scene, model, encoder)
+
+
+def _frame_segments() -> set[str]:
+    return {p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*")}
+
+
+@pytest.fixture
+def our_segments() -> Callable[[], list[str]]:
+    """This process's frame segments (/dev/shm) made since the test began, by name: a test
+    judges only its own, whatever another test's daemon is still closing."""
+    before = _frame_segments()
+    return lambda: sorted(_frame_segments() - before)

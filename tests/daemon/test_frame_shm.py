@@ -5,18 +5,15 @@ region changing size (a refocus) needs no new slot; the daemon's stop leaves /de
 from __future__ import annotations
 
 import dataclasses
-import os
 import pickle
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
-import pytest
 
 from nhfd.benchmarks.pipeline import _Host, _load
 from nhfd.calibration import active_calibration
-from nhfd.daemon.frame_link import REFINE_SLOTS, SHM_PREFIX, SLOTS, PanelBuffer
+from nhfd.daemon.frame_link import REFINE_SLOTS, SLOTS, PanelBuffer
 from nhfd.models.export import load_model
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.frame import compute_frame
@@ -25,26 +22,6 @@ from nhfd.pipeline.view import Scene, scene_frame
 from nhfd.scene.io import read_scene
 
 from .test_frames import FRONT_VIEW, small_config
-
-
-def _segments() -> set[str]:
-    return {p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*")}
-
-
-_BEFORE: set[str] = set()
-
-
-@pytest.fixture(autouse=True)
-def _segments_before() -> None:
-    """The segments this process held before the test (another test's still closing): each
-    test judges only its own."""
-    _BEFORE.clear()
-    _BEFORE.update(_segments())
-
-
-def our_segments() -> list[str]:
-    """This process's frame segments made during the test, by name."""
-    return sorted(_segments() - _BEFORE)
 
 
 def arrays_in(obj: Any) -> list[str]:
@@ -61,7 +38,7 @@ def arrays_in(obj: Any) -> list[str]:
     return []
 
 
-def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny):
+def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_segments):
     config = small_config(daemon={"frame_cache_frames": 0})
     host = _Host(config)
     link = host.frame_link()
@@ -116,7 +93,7 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny):
     assert our_segments() == []
 
 
-def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny):
+def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny, our_segments):
     """`daemon.frame_transport = "pickle"` (kept for `nhfd bench pipeline --transport`): no
     segments, the grey in the message."""
     config = small_config(daemon={"frame_cache_frames": 0, "frame_transport": "pickle"})

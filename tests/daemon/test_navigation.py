@@ -12,10 +12,15 @@ from nhfd.views import Orbit, Pose, View
 from .conftest import Running, bench_config, wait_until
 
 
-def test_simulated_navigator_moves_the_view_and_advances_the_sequence(short_dir, mecom_twin):
-    config = bench_config(short_dir, mecom_twin, navigator_period_s=0.02)
-    config = config.model_copy(update={"devices": config.devices.model_copy(
+def navigator_config(root, twin):
+    """The small simulated bench with the simulated navigator, read every 20 ms."""
+    config = bench_config(root, twin, navigator_period_s=0.02)
+    return config.model_copy(update={"devices": config.devices.model_copy(
         update={"navigator": "simulated"})})
+
+
+def test_simulated_navigator_moves_the_view_and_advances_the_sequence(short_dir, mecom_twin):
+    config = navigator_config(short_dir, mecom_twin)
     r = Running(config, short_dir)
     try:
         c = r.client()
@@ -57,9 +62,7 @@ def test_relative_move_from_velocities():
 
 
 def test_an_unplugged_navigator_is_opened_again_once_it_is_back(short_dir, mecom_twin):
-    config = bench_config(short_dir, mecom_twin, navigator_period_s=0.02)
-    config = config.model_copy(update={"devices": config.devices.model_copy(
-        update={"navigator": "simulated"})})
+    config = navigator_config(short_dir, mecom_twin)
     r = Running(config, short_dir)
     try:
         c = r.client()

@@ -16,11 +16,10 @@ from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
-import pytest
 
 from nhfd.config import Config, _overlay
 from nhfd.daemon import frame_link
-from nhfd.daemon.frame_link import SHM_PREFIX, FrameEvents, FrameLink, LinkState
+from nhfd.daemon.frame_link import FrameEvents, FrameLink, LinkState
 from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
 from nhfd.device_settings import SLMOutputSettings
@@ -114,24 +113,6 @@ def running_link(root: Path) -> tuple[Host, FrameLink]:
     return host, link
 
 
-def _segments() -> set[str]:
-    return {p.name for p in Path("/dev/shm").glob(f"{SHM_PREFIX}{os.getpid()}-*")}
-
-
-_BEFORE: set[str] = set()
-
-
-@pytest.fixture(autouse=True)
-def _segments_before() -> None:
-    """The segments this process held before the test (another test's still closing): each
-    test judges only its own."""
-    _BEFORE.clear()
-    _BEFORE.update(_segments())
-
-
-def our_segments() -> list[str]:
-    """This process's frame segments made during the test, by name."""
-    return sorted(_segments() - _BEFORE)
 
 
 def step_until(link: FrameLink, until_s: float, submit: Any = None) -> None:
@@ -143,7 +124,7 @@ def step_until(link: FrameLink, until_s: float, submit: Any = None) -> None:
         time.sleep(max(0.0, min(0.002, link.wake_s - time.monotonic())))
 
 
-def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir):
+def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir, our_segments):
     host, link = running_link(short_dir)
     period_s = 1 / REFRESH_HZ
     sent: list[tuple[int, int | None]] = []  # (slot named in a request, slot the daemon holds)
@@ -201,8 +182,8 @@ def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir):
     assert our_segments() == []
 
 
-def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slots(short_dir,
-                                                                                    monkeypatch):
+def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slots(
+        short_dir, monkeypatch, our_segments):
     monkeypatch.setattr(frame_link, "RESTART_BACKOFF_S", 0.0)
     host, link = running_link(short_dir)
     try:
@@ -225,7 +206,8 @@ def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slo
     assert our_segments() == []
 
 
-def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(short_dir):
+def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(short_dir,
+                                                                          our_segments):
     # Each bad frame reaches `_show` through the real pipe and slot: its region runs off the
     # panel (PanelBuffer's paste raises ValueError), or its arrays are larger than the slot
     # (reading them out raises TypeError). Either must land in status as an "slm" error naming
@@ -260,7 +242,7 @@ def test_a_frame_that_cannot_be_shown_is_an_error_and_the_next_one_is_shown(shor
     assert our_segments() == []
 
 
-def test_closing_forgets_a_frame_waiting_for_its_refresh(short_dir, monkeypatch):
+def test_closing_forgets_a_frame_waiting_for_its_refresh(short_dir, monkeypatch, our_segments):
     # A view sent well before its refresh (a wide send margin): its frame waits as `waiting`.
     # Its slot is unlinked with the worker on close, so the link must not keep it, nor wake
     # the loop for it.
