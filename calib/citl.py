@@ -46,7 +46,8 @@ class CameraLoop:
         self.calibration = calibration
         self.encoder = encoder
         self.frames = int(frames)
-        self.geometry = calibrated_geometry(calibration)
+        self.geometry = calibrated_geometry(calibration,
+                                            devices.camera.settings.pixel_pitch_um * 1e-6)
         self.dark: np.ndarray | None = None
         self.captures = 0
         stage = devices.stage

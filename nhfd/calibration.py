@@ -9,10 +9,11 @@ coefficients, the daemon pre-compensates them). `[zero_order]` records the coher
 light. A part the data could not determine is written `fitted = false` with the reason, never a
 guess. Units follow the keys: `_m`, `_mm`, `_rad`, `_deg`, `_px`. Colours are R, G, B.
 
-The active calibration (`active_calibration`, `keep`, `calibration_refusal`) is the file a
-configuration names, loaded once per file version, for the daemon, the frame pipeline and
-`nhfd config check`. `nhfd.calib` writes these files (capture, fit, report); this module only
-reads them, so everything that applies a calibration stays free of torch.
+The active calibration is a value, a `CalibrationStore`: the file a configuration names, loaded
+once per file version (a hot swap), which the daemon, the frame worker or a command builds and
+hands to every part that applies it; `check_calibration_file` opens it as `nhfd serve` will, for
+`nhfd config check`. `nhfd.calib` writes these files (capture, fit, report); this module only reads
+them, so everything that applies a calibration stays free of torch.
 """
 
 from __future__ import annotations
@@ -30,10 +31,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from nhfd import spec
+from nhfd.config import ConfigError
 from nhfd.spec import PhaseCurve
 
-if TYPE_CHECKING:  # nhfd.config imports this module (`check_files`): annotations only
-    from nhfd.config import CalibrationSettings, Config, OpticsSettings, SLMSettings
+if TYPE_CHECKING:
+    from nhfd.config import Config, SLMSettings
 
 FORMAT = "nhfd-calibration"
 FORMAT_VERSION = 1
@@ -361,31 +363,21 @@ def panel_coding(slm: SLMSettings, cal: Calibration | None
 
 
 # The active calibration: the file a configuration names (`[calibration] file`), loaded once per
-# file version. A configured file that cannot be loaded, or that was fitted for another bench
+# file version by the `CalibrationStore` the daemon (or a command) builds and hands to each part
+# that applies it. A configured file that cannot be loaded, or that was fitted for another bench
 # (`check_bench`: other wavelengths or pitch than the configuration's), raises
 # `CalibrationFileError` naming it: a bench silently running uncalibrated, or on another bench's
 # tables, is worse than a daemon that says why it will not start.
 #
 # When the file changes on disk after a version of it was accepted (a hot swap), a new version
-# that is refused does not replace the accepted one: it stays in use, and `calibration_refusal`
-# says why the file on disk is not (the daemon shows it in `status`). The first load in a process
-# has nothing to keep, so it raises: `nhfd serve` and `nhfd config check` refuse the file.
+# that is refused does not replace the accepted one: it stays in use, and `refusal` says why the
+# file on disk is not (the daemon shows it in `status`). The first load has nothing to keep, so it
+# raises: `nhfd serve` and `nhfd config check` refuse the file.
 log = logging.getLogger("nhfd.calibration")
 
-_lock = threading.Lock()
-# One entry per (file, configured bench); a handful at most in a process, more only in tests.
-_MAX_ENTRIES = 8
-
-
-@dataclass
-class _State:
-    version: tuple[int, int, int]  # (inode, mtime_ns, size) of the file last looked at
-    good: Calibration  # the accepted calibration, in use
-    refused: str | None = None  # why the file as it is on disk now is not in use
-    reported: bool = False  # `new_refusal` has handed `refused` out
-
-
-_states: dict[tuple[str, tuple[float, ...]], _State] = {}
+# A version no file has (`CalibrationStore(accepted=...)`): the file on disk is still read, and
+# refused or accepted, at the first look.
+_NOT_LOOKED = (-2, -2, -2)
 
 
 def _version(path: Path) -> tuple[int, int, int]:
@@ -396,93 +388,88 @@ def _version(path: Path) -> tuple[int, int, int]:
     return (st.st_ino, st.st_mtime_ns, st.st_size)
 
 
-def _expected(optics: OpticsSettings, slm: SLMSettings) -> tuple[tuple[float, ...], float]:
-    """The configured bench a calibration must have been fitted for: wavelengths (m) and the
-    SLM's pitch (m)."""
-    return tuple(optics.wavelengths_m), float(slm.pitch_m)
+class CalibrationStore:
+    """The calibration one configuration names, as a value: built once by whoever owns the bench
+    (`nhfd serve`, a command, the frame worker) and handed to every part that applies it.
 
+    `path`: the calibration file, or None (`calibration.file` empty: `active()` is None).
+    `wavelengths_m`, `pitch_m`: the configured bench (`[optics]` wavelengths, `[slm]` pitch); a
+    file fitted for another is refused. `accepted`: a calibration already accepted elsewhere (the
+    frame worker gets the daemon's at its start), kept when the file on disk is refused by the
+    first look. Thread-safe: the daemon's loop and the worker's threads share one store."""
 
-def _path(calibration: CalibrationSettings) -> Path | None:
-    """The configured calibration file, or None (`calibration.file` empty)."""
-    return Path(calibration.file) if calibration.file else None
+    def __init__(self, path: str | Path | None, wavelengths_m: tuple[float, ...], pitch_m: float,
+                 accepted: Calibration | None = None) -> None:
+        self.path = Path(path) if path else None
+        self.wavelengths_m = tuple(float(w) for w in wavelengths_m)
+        self.pitch_m = float(pitch_m)
+        self._lock = threading.Lock()
+        self._version = _NOT_LOOKED
+        self._good = accepted if self.path is not None else None
+        self._refused: str | None = None
+        self._reported = False
 
+    @classmethod
+    def of(cls, config: Config, accepted: Calibration | None = None) -> CalibrationStore:
+        """The store for `config`: `[calibration] file`, checked against `[optics]` wavelengths
+        and `[slm]` pitch. `accepted`: as the constructor's."""
+        return cls(config.calibration.file or None, tuple(config.optics.wavelengths_m),
+                   config.slm.pitch_m, accepted)
 
-def _key(path: Path, optics: OpticsSettings, slm: SLMSettings
-         ) -> tuple[str, tuple[float, ...]]:
-    """The entry of `_states` for `path` under the configured bench."""
-    wavelengths_m, pitch_m = _expected(optics, slm)
-    return str(path.resolve()), (*wavelengths_m, pitch_m)
-
-
-def keep(config: Config, cal: Calibration) -> None:
-    """Take `cal` as the accepted calibration of `config`'s file in this process, unless one
-    already is: the frame worker gets the daemon's at its start, so a version refused on disk
-    before the worker first reads the file keeps the daemon's there too.
-
-    `config`: the whole configuration, for three sections that go together: `[calibration]`
-    (the file) and the bench the file must have been fitted for (`[optics]` wavelengths,
-    `[slm]` pitch), which key the accepted version."""
-    path = _path(config.calibration)
-    if path is None:
-        return
-    with _lock:
-        # a version no file has: the file on disk is still read, and refused or accepted
-        _states.setdefault(_key(path, config.optics, config.slm), _State((-2, -2, -2), cal))
-
-
-def _state(config: Config) -> _State | None:
-    """The state of the configured file (loading a new version), or None when none is
-    configured; raises `CalibrationFileError` when no version was ever accepted. Reads
-    `[calibration]`, `[optics]` and `[slm]` (see `keep`)."""
-    path = _path(config.calibration)
-    if path is None:
-        return None
-    wavelengths_m, pitch_m = _expected(config.optics, config.slm)
-    key = _key(path, config.optics, config.slm)
-    version = _version(path)
-    with _lock:
-        state = _states.get(key)
-        if state is not None and state.version == version:
-            return state
+    def _look(self) -> None:
+        """Load the file when its version changed since the last look (under the lock)."""
+        if self.path is None:
+            return
+        version = _version(self.path)
+        if version == self._version:
+            return
         try:
-            cal = Calibration.load(path)  # raises CalibrationFileError with the path
-            check_bench(cal, wavelengths_m, pitch_m)
+            cal = Calibration.load(self.path)  # raises CalibrationFileError with the path
+            check_bench(cal, self.wavelengths_m, self.pitch_m)
         except CalibrationFileError as exc:
-            if state is None:
+            if self._good is None:
                 raise
-            log.warning("%s; keeping %s", exc, state.good.label)
-            state = _State(version, state.good, refused=f"{exc}; keeping {state.good.label}")
+            log.warning("%s; keeping %s", exc, self._good.label)
+            self._refused = f"{exc}; keeping {self._good.label}"
+            self._reported = False
         else:
-            state = _State(version, cal)
-        if key not in _states and len(_states) >= _MAX_ENTRIES:
-            _states.clear()
-        _states[key] = state
-        return state
+            self._good, self._refused = cal, None
+        self._version = version
+
+    def active(self) -> Calibration | None:
+        """The calibration in use (the file's newest accepted version), or None when none is
+        configured; raises `CalibrationFileError` when no version was ever accepted."""
+        with self._lock:
+            self._look()
+            return self._good
+
+    def refusal(self) -> str | None:
+        """Why the file, as it is on disk now, is not the calibration in use (a refused hot swap:
+        the earlier version is kept), or None."""
+        with self._lock:
+            self._look()
+            return self._refused
+
+    def new_refusal(self) -> str | None:
+        """`refusal`, but only the first time it is asked for that file version: for an error
+        list that should say it once."""
+        with self._lock:
+            self._look()
+            if self._refused is None or self._reported:
+                return None
+            self._reported = True
+            return self._refused
 
 
-def active_calibration(config: Config) -> Calibration | None:
-    """The configuration's calibration, or None when `calibration.file` is empty.
-
-    `config`: the whole configuration, for three sections: `[calibration]` names the file, and
-    a file fitted for another bench than `[optics]` wavelengths and `[slm]` pitch is refused
-    (`CalibrationFileError`)."""
-    state = _state(config)
-    return state.good if state is not None else None
-
-
-def calibration_refusal(config: Config) -> str | None:
-    """Why the configured file, as it is on disk now, is not the calibration in use (a refused
-    hot swap: the earlier version is kept), or None. `config`: as `active_calibration`'s."""
-    state = _state(config)
-    return state.refused if state is not None else None
-
-
-def new_refusal(config: Config) -> str | None:
-    """`calibration_refusal`, but only the first time it is asked for that file version: for an
-    error list that should say it once. `config`: as `active_calibration`'s."""
-    state = _state(config)
-    with _lock:
-        if state is None or state.refused is None or state.reported:
-            return None
-        state.reported = True
-        return state.refused
+def check_calibration_file(config: Config, origin: str) -> CalibrationStore:
+    """Open the calibration file `config` names as `nhfd serve` does at start (the one file a
+    configuration names that the daemon reads then), raising `ConfigError` with the loader's
+    reason and `origin` (the configuration file); the store, for the caller to keep."""
+    store = CalibrationStore.of(config)
+    try:
+        store.active()
+    except ValueError as exc:
+        reason = " ".join(str(exc).split())  # one line, whatever the parser said
+        raise ConfigError(f"{origin}: calibration.file = {config.calibration.file!r}: "
+                          f"{reason}") from None
+    return store

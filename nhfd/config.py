@@ -22,7 +22,6 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from nhfd.calibration import active_calibration
 from nhfd.device_settings import (
     CameraSettings,
     LaserSettings,
@@ -884,21 +883,6 @@ def load_config(
 
 
 def check_file(path: str | os.PathLike[str]) -> Config:
-    """Validate one file as a lab would use it (overlaid on the packaged default), and open the
-    files it names as `nhfd serve` will."""
-    config = load_config(explicit=path, env={}).config
-    check_files(config, str(path))
-    return config
-
-
-def check_files(config: Config, origin: str) -> None:
-    """Open the files a configuration names that `nhfd serve` reads at start (the calibration),
-    raising `ConfigError` with the loader's reason."""
-    if not config.calibration.file:
-        return
-    try:
-        active_calibration(config)
-    except ValueError as exc:
-        reason = " ".join(str(exc).split())  # one line, whatever the parser said
-        raise ConfigError(f"{origin}: calibration.file = {config.calibration.file!r}: "
-                          f"{reason}") from None
+    """Validate one file as a lab would use it (overlaid on the packaged default). The files it
+    names are opened by `nhfd.calibration.check_calibration_file`."""
+    return load_config(explicit=path, env={}).config

@@ -36,7 +36,8 @@ LAYER_NAMES = ["L0 vocabulary", "L1 compute and devices", "L2 data", "L3 learnin
 # Sideways edges a layer's order alone would allow.
 FORBIDDEN = {
     "nhfd.daemon": {"nhfd.holo", "nhfd.dataset", "nhfd.models", "nhfd.pipeline", "nhfd.calib"},
-    "nhfd.optics": {"nhfd.scene", "nhfd.drivers"},  # the optics core is pure
+    # The optics core is pure: values in (a calibration, tensors), never settings it builds.
+    "nhfd.optics": {"nhfd.scene", "nhfd.drivers", "nhfd.config", "nhfd.device_settings"},
 }
 HEAVY = ("torch", "numba", "onnxruntime")
 # Where an import of nhfd inside a function is the design, not a shortcut (design.md's seams), as

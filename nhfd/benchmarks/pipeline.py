@@ -49,6 +49,7 @@ import torch
 
 from nhfd import __version__
 from nhfd.benchmarks.machine import describe
+from nhfd.calibration import CalibrationStore
 from nhfd.config import (
     DEVICES,
     FRAME_TRANSPORTS,
@@ -138,7 +139,9 @@ class _Host:
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
         self.errors: list[str] = []
-        self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}))
+        self.calibration = CalibrationStore.of(config)
+        self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}),
+                           self.calibration)
 
     def error(self, source: str, message: str) -> None:
         self.errors.append(f"{source}: {message}")
@@ -146,7 +149,7 @@ class _Host:
     def frame_link(self, worker_module: str = WORKER_MODULE) -> FrameLink:
         """A frame link on this host: shown views marked applied, errors, a crash (no lasers
         here to switch off) and a lost SLM output all into `errors`."""
-        return FrameLink(self.config, self.views, lambda: self.panel, FrameEvents(
+        return FrameLink(self.config, self.calibration, self.views, lambda: self.panel, FrameEvents(
             shown=self.views.mark_applied, error=self.error,
             crashed=lambda message: self.error("frame worker", message),
             slm_lost=lambda detail: self.error("slm", detail)), worker_module)

@@ -5,7 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
-from nhfd.config import check_file, check_files, load_config
+from nhfd.calibration import check_calibration_file
+from nhfd.config import check_file, load_config
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -57,11 +58,11 @@ def _check(args: argparse.Namespace) -> int:
     """What `nhfd serve` refuses at start is refused here: every value, every rule that joins
     sections (in the model), and the calibration file it names, opened."""
     if args.file:
-        check_file(args.file)
+        check_calibration_file(check_file(args.file), args.file)
         print(f"{args.file}: ok")
     else:
         loaded = load_config()
         origin = str(loaded.path or "packaged default")
-        check_files(loaded.config, origin)
+        check_calibration_file(loaded.config, origin)
         print(f"{origin}: ok")
     return 0

@@ -34,7 +34,7 @@ from nhfd.calib.sim import (
     sim_panel_hw,
     twin_calibration,
 )
-from nhfd.calibration import Calibration, active_calibration
+from nhfd.calibration import Calibration, CalibrationStore
 from nhfd.cli.args import parse_wxh
 from nhfd.config import load_config, refine_settings
 from nhfd.drivers.simcamera import TrueBench
@@ -207,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
         calibration = twin_calibration(out / "calibration", twin, panel_hw)
     else:
         panel_hw = (config.slm.height_px, config.slm.width_px)
-        calibration = active_calibration(config)
+        calibration = CalibrationStore.of(config).active()
     p = prepare(config, view, scene, info=info, calibration=calibration, window_hw=window_hw,
                 panel_hw=panel_hw, planes=settings.planes)
     print(f"  exact target at {len(p.target.planes_m)} plane(s) in {p.seconds:.1f} s", flush=True)

@@ -16,7 +16,8 @@ import importlib.util
 import logging
 import sys
 
-from nhfd.config import check_files, load_config
+from nhfd.calibration import check_calibration_file
+from nhfd.config import load_config
 from nhfd.daemon import service
 
 
@@ -40,7 +41,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def _serve(args: argparse.Namespace) -> int:
     loaded = load_config(args.config)  # a ConfigError: one line, exit 2 (nhfd.cli.main)
     config = loaded.config
-    check_files(config, str(loaded.path or "packaged default"))
+    calibration = check_calibration_file(config, str(loaded.path or "packaged default"))
     update = {}
     if args.scene:
         update["scene"] = args.scene
@@ -56,7 +57,7 @@ def _serve(args: argparse.Namespace) -> int:
               "pip install 'nhfd[web]'", file=sys.stderr)
         return 2
     service.setup_logging(config.daemon.log_format)
-    daemon = service.Daemon(config)
+    daemon = service.Daemon(config, calibration=calibration)
     try:
         daemon.start()
     except service.AlreadyRunning as exc:

@@ -24,7 +24,7 @@ import time
 from types import SimpleNamespace
 from typing import Any
 
-from nhfd.calibration import active_calibration
+from nhfd.calibration import CalibrationStore
 from nhfd.config import Config
 from nhfd.drivers import factory
 
@@ -39,12 +39,13 @@ def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
     return stage_at_reference_mm + z_mm
 
 
-def stage_mm_for_focus(config: Config, z_mm: float) -> float:
+def stage_mm_for_focus(config: Config, calibration: CalibrationStore, z_mm: float) -> float:
     """The stage position (mm) that focuses the camera `z_mm` of hologram depth from the
     reference plane: the active calibration's fitted mapping (green's focus) when there is
     one, else `focus_stage_mm` from `daemon.stage_at_reference_mm`. A configured calibration
-    that cannot be applied raises its `CalibrationFileError`."""
-    cal = active_calibration(config)
+    that cannot be applied raises its `CalibrationFileError`. `config`: `optics.z0_m` and the
+    uncalibrated mapping."""
+    cal = calibration.active()
     if cal is not None:
         return cal.stage_mm_for(config.optics.z0_m + z_mm * 1e-3, 1)
     return focus_stage_mm(z_mm, config.daemon.stage_at_reference_mm)
@@ -54,10 +55,10 @@ class Bench:
     """The SLM (through its `panel`), the stage and the camera, opened by `open`; a device
     that fails to open is left None with its error in `errors`."""
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, calibration: CalibrationStore) -> None:
         """`config`: the devices (`[devices]`) at the panel's size and pitch (`[slm]`); the
         camera region (`daemon.camera_roi_px`); the panel's colour mode and coding (its
-        `Panel` reads `[daemon]`, `[slm]` and the active calibration)."""
+        `Panel` reads `[daemon]`, `[slm]` and `calibration`'s curves)."""
         self.config = config
         self.laser_twin: Any = None  # the guardian's simulated laser, for the simulated camera
         self.slm: Any = None
@@ -69,7 +70,8 @@ class Bench:
         # SLM output lost / back, for the control loop: (device, lost, detail).
         self.faults: queue.SimpleQueue[tuple[str, bool, str]] = queue.SimpleQueue()
         self.slm_lost: str | None = None  # why the SLM's output is lost, while it is
-        self.panel = Panel(config, self)  # what the SLM shows: every change goes through it
+        # what the SLM shows: every change goes through it
+        self.panel = Panel(config, self, calibration)
         self._stop = threading.Event()
         self._monitor: threading.Thread | None = None
         self._reconnect: threading.Thread | None = None

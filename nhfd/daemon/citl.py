@@ -22,7 +22,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from nhfd.calibration import active_calibration
+from nhfd.calibration import CalibrationStore
 from nhfd.config import Config
 from nhfd.device_settings import COLOURS, citl_laser_refusal
 from nhfd.drivers.camera import colour_planes
@@ -47,9 +47,9 @@ def citl_ended(reason: str) -> str:
             "again once the lasers are armed")
 
 
-def citl_problem(config: Config, bench: Any) -> str | None:
+def citl_problem(config: Config, calibration: CalibrationStore, bench: Any) -> str | None:
     """Why this daemon cannot serve `citl` views (None: it can): the colour mode, the devices
-    and the calibration it needs, each named by its setting."""
+    and the calibration it needs (in `calibration`), each named by its setting."""
     if config.daemon.colour_mode != "capture":
         return (f"daemon.colour_mode is {config.daemon.colour_mode!r}: citl needs 'capture' "
                 "(the daemon switches each diode on alone for its captures)")
@@ -57,7 +57,7 @@ def citl_problem(config: Config, bench: Any) -> str | None:
         if getattr(bench, name, None) is None:
             why = bench.errors.get(name) if hasattr(bench, "errors") else None
             return f"citl needs the bench's {name} (devices.{name}: {why or 'none configured'})"
-    if active_calibration(config) is None:
+    if calibration.active() is None:
         return ("citl needs a calibration (calibration.file): it maps the camera onto the SLM "
                 "and the focus onto the stage")
     return None
@@ -75,7 +75,8 @@ def _check_laser(laser: LaserLink) -> dict[str, float]:
     return powers
 
 
-def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: CaptureBench,
+def citl_capture(job: Job, request: CaptureRequest, *, config: Config,
+                 calibration: CalibrationStore, bench: CaptureBench,
                  panel: CapturePanel, laser: LaserLink, audit: AuditLog, shown: ShownViews,
                  wanted: Callable[[], bool], session: int,
                  phase: Callable[[str], None] = lambda _what: None) -> CaptureReply:
@@ -86,10 +87,10 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config, bench: Ca
     it has ended). `phase(what)`: where the sequence is ("capturing green at plane 2 of 3"), for
     `status`. Raises CitlStopped (or the device's error) without an answer to give."""
     laser.check_session(session)
-    problem = citl_problem(config, bench)
+    problem = citl_problem(config, calibration, bench)
     if problem:
         raise CitlStopped(problem)
-    cal = active_calibration(config)
+    cal = calibration.active()
     assert cal is not None  # citl_problem checked it
     camera, stage = bench.camera, getattr(bench, "stage", None)
     # Homing moves the stage to a limit switch: the daemon does it only when asked.

@@ -59,7 +59,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from nhfd.calibration import Calibration, active_calibration
+from nhfd.calibration import Calibration, CalibrationStore
 from nhfd.config import Config, DaemonSettings
 from nhfd.drivers.slm import SLMOutputLost
 from nhfd.frame_message import (
@@ -203,12 +203,15 @@ class FrameWorker:
     _ids = itertools.count(1)
     _workers = itertools.count(1)
 
-    def __init__(self, config: Config, module: str = WORKER_MODULE) -> None:
+    def __init__(self, config: Config, calibration: CalibrationStore,
+                 module: str = WORKER_MODULE) -> None:
         """`config`: the whole configuration, which the worker gets (it builds its frame
-        settings from `[slm]`, `[optics]`, `[coding]`, `[daemon]` and the calibration); here
-        `daemon.frame_transport` and the panel's size (`[slm]`, the slots). `module`: the
-        worker's module, spawned by name."""
+        settings from `[slm]`, `[optics]`, `[coding]`, `[daemon]` and the calibration file);
+        here `daemon.frame_transport` and the panel's size (`[slm]`, the slots).
+        `calibration`: the daemon's; the worker gets the version accepted here at its start.
+        `module`: the worker's module, spawned by name."""
         self.config = config
+        self.calibration = calibration
         self.module = module
         self.process: Any = None
         self.conn: Any = None
@@ -232,7 +235,7 @@ class FrameWorker:
             self.process = ctx.Process(target=run_by_name,
                                        args=(self.module, worker_environment(self.config.daemon),
                                              there, self.config.model_dump(),
-                                             _accepted_calibration(self.config), slots),
+                                             _accepted(self.calibration), slots),
                                        name="nhfd-frame-worker", daemon=True)
             self.process.start()
         except BaseException:
@@ -486,10 +489,12 @@ class FrameLink:
     written by the control loop alone. A queued load goes out at the loop's next step (within
     `daemon.tick_s`)."""
 
-    def __init__(self, config: Config, views: ViewSource, panel: Callable[[], PanelView],
-                 events: FrameEvents, worker_module: str = WORKER_MODULE) -> None:
+    def __init__(self, config: Config, calibration: CalibrationStore, views: ViewSource,
+                 panel: Callable[[], PanelView], events: FrameEvents,
+                 worker_module: str = WORKER_MODULE) -> None:
         """`config`: the daemon's (`nhfd.config.Config`: slm.refresh_hz, the worker's
-        settings). `views`: the newest view requested (read only: `events.shown` marks it
+        settings). `calibration`: the daemon's, whose accepted version each worker starts
+        with. `views`: the newest view requested (read only: `events.shown` marks it
         applied). `panel`: the panel in use now (a getter, asked each time it is used).
         `worker_module`: another worker speaking the same
         protocol (tests use a fake one)."""
@@ -497,7 +502,7 @@ class FrameLink:
         self.views = views
         self.panel = panel
         self.events = events
-        self.worker = FrameWorker(config, worker_module)
+        self.worker = FrameWorker(config, calibration, worker_module)
         self.model_path: str | None = None
         self.model_info: dict[str, Any] | None = None  # what the worker reported at the load
         self.scene_path: str | None = None
@@ -649,7 +654,8 @@ class FrameLink:
             return
         if self.state == LinkState.CRASHED:
             if time.monotonic() >= self._restart_at:
-                self.worker = FrameWorker(self.config, self.worker.module)
+                self.worker = FrameWorker(self.config, self.worker.calibration,
+                                          self.worker.module)
                 self.inflight = None
                 self.start()
             return
@@ -1089,10 +1095,10 @@ def _drain(q: queue.SimpleQueue[Any]) -> Iterator[Any]:
             return
 
 
-def _accepted_calibration(config: Config) -> Calibration | None:
+def _accepted(calibration: CalibrationStore) -> Calibration | None:
     """The calibration this process applies, for the worker; None when there is none to keep
     (the worker's own load then says why, with each frame)."""
     try:
-        return active_calibration(config)
+        return calibration.active()
     except ValueError:
         return None

@@ -56,7 +56,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from nhfd.calibration import CalibrationFileError
+from nhfd.calibration import CalibrationFileError, CalibrationStore
 from nhfd.config import Config
 from nhfd.device_settings import COLOURS
 from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES, is_sog_folder
@@ -111,7 +111,8 @@ class RpcContext:
     from its parts (`Daemon.rpc`), and a method touches nothing else. Not the daemon: no
     method can reach its lifecycle, its loop or another part's insides."""
 
-    config: Config  # [daemon] limits and colour mode, [slm] size, the focus calibration
+    config: Config  # [daemon] limits and colour mode, [slm] size
+    calibration: CalibrationStore  # the focus mapping, whether citl can run
     base_dir: Path  # relative paths in requests and settings are taken from here
     scene_dirs: list[Path]  # where load_scene may read (resolved, `paths.resolve_dirs`)
     model_dirs: list[Path]  # where load_model may read
@@ -160,7 +161,7 @@ def _set_view(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     # Parsed once, here: a View from now on (digital refocus included, kept when not given).
     view = parse_view(p, ctx.views.view, ctx.config.refine.quality)
     if view.quality == "citl":
-        problem = citl_problem(ctx.config, ctx.bench)
+        problem = citl_problem(ctx.config, ctx.calibration, ctx.bench)
         if problem:
             raise bad_param("quality", f"'citl' cannot be served here: {problem}",
                             "network, exact or sgd on this bench (refine.quality sets the "
@@ -227,7 +228,7 @@ def _focus_target(ctx: RpcContext, z_mm: float) -> float:
     """The stage position for `z_mm`; a configured calibration that cannot be applied (no
     accepted version to keep) is the file's error, not the daemon's."""
     try:
-        return stage_mm_for_focus(ctx.config, z_mm)
+        return stage_mm_for_focus(ctx.config, ctx.calibration, z_mm)
     except CalibrationFileError as exc:
         raise RpcError(INVALID_FILE, str(exc), {"field": "calibration.file"}) from None
 

@@ -28,7 +28,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from nhfd import spec
-from nhfd.calibration import Calibration, active_calibration, panel_coding
+from nhfd.calibration import Calibration, CalibrationStore, panel_coding
 from nhfd.config import Config
 
 from .colour import panel_for_mode
@@ -44,12 +44,12 @@ class PanelDevices(Protocol):
     errors: dict[str, str | None]
 
 
-def coding_calibration(config: Config) -> Calibration | None:
+def coding_calibration(calibration: CalibrationStore) -> Calibration | None:
     """The calibration frames are coded with, or None. One that cannot be loaded (the daemon
     refuses to start on one, so this is a file gone bad since) counts as none here: the panel
     must still be blanked."""
     try:
-        return active_calibration(config)
+        return calibration.active()
     except ValueError as exc:
         log.warning("blank pattern from the configured phase curves: %s", exc)
         return None
@@ -65,11 +65,13 @@ def blank_pattern(config: Config, cal: Calibration | None) -> np.ndarray:
 class Panel:
     """What the SLM shows, and the one way to change it (see the module's docstring)."""
 
-    def __init__(self, config: Config, devices: PanelDevices) -> None:
-        """`config`: the panel's size and curves (`[slm]`), the colour mode (`[daemon]`) and
-        the active calibration (`[calibration]`, whose curves code the blank). `devices`: the
-        SLM it drives and why there is none (the bench)."""
+    def __init__(self, config: Config, devices: PanelDevices,
+                 calibration: CalibrationStore) -> None:
+        """`config`: the panel's size and curves (`[slm]`) and the colour mode (`[daemon]`).
+        `devices`: the SLM it drives and why there is none (the bench). `calibration`: the
+        active calibration, whose curves code the blank."""
         self.config = config
+        self.calibration = calibration
         self.devices = devices
         self.current = "blank"  # status "display"
         self.showing = "nothing"  # what the SLM was last sent
@@ -95,7 +97,7 @@ class Panel:
         `blank`, and the panel around every view frame."""
         # Called for every frame: the active calibration is one object per file version, so
         # its identity says whether the pattern must be rebuilt (no curves built per frame).
-        cal = coding_calibration(self.config)
+        cal = coding_calibration(self.calibration)
         if self._blank is None or cal is not self._blank_calibration:
             self._blank, self._blank_calibration = blank_pattern(self.config, cal), cal
         return self._blank

@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from nhfd import __version__
-from nhfd.calibration import active_calibration, calibration_refusal, new_refusal
+from nhfd.calibration import CalibrationStore
 from nhfd.config import Config, ConfigError, DaemonSettings, cross_field_problems
 from nhfd.frame_message import CaptureReply, CaptureRequest
 
@@ -145,16 +145,17 @@ def tcp_token(settings: DaemonSettings, base_dir: Path, runtime_dir: Path
     return token, path
 
 
-def calibration_status(config: Config, note_error: Callable[[str, str], None]
-                       ) -> dict[str, Any]:
-    """`status.calibration`: the focus mapping in use and the calibration it comes from; a
-    refused hot swap (the accepted version kept) is also noted once with `note_error`."""
+def calibration_status(config: Config, calibration: CalibrationStore,
+                       note_error: Callable[[str, str], None]) -> dict[str, Any]:
+    """`status.calibration`: the focus mapping in use (`config.daemon`'s without a calibration)
+    and the calibration it comes from; a refused hot swap (the accepted version kept) is also
+    noted once with `note_error`."""
     c = config.daemon
     try:
-        cal = active_calibration(config)
+        cal = calibration.active()
     except ValueError as exc:  # unreadable, with no accepted version to keep
         return {"loaded": False, "error": str(exc), "focus_range_mm": list(c.focus_range_mm)}
-    refused = new_refusal(config)  # a refused hot swap: the accepted version is kept
+    refused = calibration.new_refusal()  # a refused hot swap: the accepted version is kept
     if refused:
         note_error("calibration", refused)
     if cal is None:
@@ -168,7 +169,7 @@ def calibration_status(config: Config, note_error: Callable[[str, str], None]
                              "stage_scale",
             "stage_at_slm_mm": cal.stage_at_slm_mm, "stage_scale": cal.stage_scale,
             "phase_sign": cal.phase_sign, "focus_range_mm": list(c.focus_range_mm),
-            "refused": calibration_refusal(config)}
+            "refused": calibration.refusal()}
 
 
 class SignalWake:
@@ -219,13 +220,17 @@ class Daemon:
     the daemon."""
 
     def __init__(self, config: Config, *, base_dir: Path | None = None,
-                 env: dict[str, str] | None = None, handle_signals: bool = True) -> None:
+                 env: dict[str, str] | None = None, handle_signals: bool = True,
+                 calibration: CalibrationStore | None = None) -> None:
         """`config`: the validated configuration (`start` checks its cross-field rules
         again: a copied config skips validation). `base_dir`: relative paths in it are taken
         from here (default: the working directory). `env`: the environment (runtime
         directory, systemd's sockets and directories; default: this process's).
-        `handle_signals`: SIGTERM and SIGINT shut down (the main thread only)."""
+        `handle_signals`: SIGTERM and SIGINT shut down (the main thread only). `calibration`:
+        the store of `config`'s calibration file (default: a new one; `nhfd serve` hands over
+        the one it checked), the one every part that applies the calibration is given."""
         self.config = config
+        self.calibration = calibration or CalibrationStore.of(config)
         self.env = dict(os.environ if env is None else env)
         self.base_dir = (base_dir or Path.cwd()).resolve()
         c = config.daemon
@@ -243,13 +248,14 @@ class Daemon:
                                self.audit, refresh_s=c.laser_refresh_s,
                                runtime_dir=self.runtime_dir, socket_group=c.socket_group,
                                on_session_end=self._emission_ended)
-        self.bench = Bench(config)  # opened at start, with the guardian's simulated laser
+        # opened at start, with the guardian's simulated laser
+        self.bench = Bench(config, self.calibration)
         self.panel = self.bench.panel  # what the SLM shows
         # Each view remembers the emission session it was asked in (a citl run belongs to it).
         self.views = ViewSlot(session=lambda: self.laser.session)
         # The spawned render/inference worker, started on demand; its events come back here.
         panel = self.panel
-        self.frames = FrameLink(config, self.views, lambda: panel, FrameEvents(
+        self.frames = FrameLink(config, self.calibration, self.views, lambda: panel, FrameEvents(
             shown=self.views.mark_applied, error=self.errors.note,
             crashed=self._frame_worker_crashed, slm_lost=self.bench.note_slm_lost,
             capture=self._citl_capture))
@@ -262,7 +268,7 @@ class Daemon:
                                  audit=self.audit, bench_jobs=self.bench_jobs,
                                  navigation=self.navigation)
         self.rpc = RpcContext(
-            config=config, base_dir=self.base_dir,
+            config=config, calibration=self.calibration, base_dir=self.base_dir,
             scene_dirs=resolve_dirs(c.scene_dirs, self.base_dir),
             model_dirs=resolve_dirs(c.model_dirs, self.base_dir),
             snapshot_dirs=resolve_dirs([c.snapshot_dir], self.base_dir),
@@ -300,7 +306,7 @@ class Daemon:
         problems = cross_field_problems(self.config)  # a copied config skips validation
         if problems:
             raise ConfigError("; ".join(problems))
-        active_calibration(self.config)  # a configured but unreadable file stops the start here
+        self.calibration.active()  # a configured but unreadable file stops the start here
         _raise_open_files(c.open_files)  # before anything opens sockets or devices
         # Another user could have made /tmp/nhfd-<uid> first, with a fake guardian in it.
         make_private_dir(self.runtime_dir, group_writable_ok=bool(c.socket_group), mode=0o750)
@@ -538,7 +544,8 @@ class Daemon:
 
         def run(job: Job) -> dict[str, Any]:
             try:
-                reply = citl_capture(job, request, config=self.config, bench=self.bench,
+                reply = citl_capture(job, request, config=self.config, calibration=self.calibration,
+                                     bench=self.bench,
                                      panel=self.panel, laser=self.laser, audit=self.audit,
                                      shown=frames, wanted=lambda: frames.capture_wanted(req_id),
                                      session=session,
@@ -623,7 +630,7 @@ class Daemon:
             "colour": {"mode": c.colour_mode, "single_colour": c.single_colour},
             "scene": self.rpc.scene,
             "model": self.frames.model_info or "none loaded",
-            "calibration": calibration_status(self.config, self.errors.note),
+            "calibration": calibration_status(self.config, self.calibration, self.errors.note),
             "view": self.views.snapshot(),
             "navigator": self.navigation.status(),
             "timings": self.frames.timings,  # the last frame's per-stage timings (ms)

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from nhfd.calibration import active_calibration
+from nhfd.calibration import CalibrationStore
 from nhfd.config import Config, _overlay
 from nhfd.daemon.client import Client
 from nhfd.daemon.service import Daemon
@@ -246,7 +246,7 @@ def _run(out: Path, runtime: Path, *, config: Config, model: Path, scene: Path, 
                                            "radius": radius})  # fmt: skip
         seq = placed["seq"]
         _wait(lambda: c.status()["view"]["applied_seq"] == seq, 60, "the middle view", c)
-        settings = frame_settings(cfg, info, active_calibration(cfg))
+        settings = frame_settings(cfg, info, CalibrationStore.of(cfg).active())
         rgb, zh = view_depth(view_from_json(placed["view"]), scene, info, settings.window_hw)
         sweep_m = np.linspace(*np.nanpercentile(zh, SWEEP_PERCENTILES), FOCUS_PLANES)
         cap = cfg.devices.readybeam.max_power_pct[1]

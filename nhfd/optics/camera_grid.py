@@ -17,7 +17,6 @@ import torch
 from kornia.geometry.transform import warp_affine
 
 from nhfd.calibration import Calibration
-from nhfd.config import Config
 
 # Pixels (SLM) left out along the panel's edge: the edge diffracts light that the model's
 # missing background terms would otherwise have to explain.
@@ -59,12 +58,11 @@ class Geometry:
         return self.px_per_m * camera_pitch_m
 
 
-def calibrated_geometry(cal: Calibration) -> Geometry:
+def calibrated_geometry(cal: Calibration, camera_pitch_m: float) -> Geometry:
     """The calibration's SLM -> camera geometry (in the calibration capture's image, so on the
-    same camera region of interest); the camera's pitch as recorded at the fit, else the
-    configured camera's (`devices.camera_settings.pixel_pitch_um`)."""
-    pitch = float(cal.fitted_on.get("camera_pitch_m")
-                  or Config().devices.camera_settings.pixel_pitch_um * 1e-6)
+    same camera region of interest); the camera's pitch as recorded at the fit, else
+    `camera_pitch_m` (the camera in use: `devices.camera_settings.pixel_pitch_um`)."""
+    pitch = float(cal.fitted_on.get("camera_pitch_m") or camera_pitch_m)
     return Geometry(cal.magnification / pitch, cal.rotation_deg, cal.mirror_x, cal.shift_px,
                     0.0, 0, 0.0, 0.0)
 

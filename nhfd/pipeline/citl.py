@@ -72,7 +72,8 @@ def captured_window(images: np.ndarray, saturated: np.ndarray, geometry: Geometr
 class RemoteCapture:
     """A `Capture` served by the daemon's bench through the worker's pipe (see the module's
     docstring), for view `seq` refined with `encoder` under `calibration` (its geometry maps
-    the images; its focus mapping moves the stage, in the daemon).
+    the images; its focus mapping moves the stage, in the daemon). `camera_pitch_m`: the bench
+    camera's pixel pitch, where the calibration did not record it.
 
     `send` puts a message on the pipe; the worker's loop hands each ("captured", req_id, reply)
     to `deliver`. A call waits for its own reply, polling `stop` (then `Cancelled`); an error
@@ -81,10 +82,11 @@ class RemoteCapture:
     _ids = itertools.count(1)
 
     def __init__(self, send: Callable[[tuple], None], seq: int, encoder: Encoder,
-                 calibration: Calibration, stop: threading.Event, *, frames: int = 0,
+                 calibration: Calibration, stop: threading.Event, *, camera_pitch_m: float,
+                 frames: int = 0,
                  timeout_s: float = CAPTURE_TIMEOUT_S) -> None:
         self.send, self.seq, self.encoder, self.stop = send, seq, encoder, stop
-        self.geometry = calibrated_geometry(calibration)
+        self.geometry = calibrated_geometry(calibration, camera_pitch_m)
         self.frames, self.timeout_s = int(frames), float(timeout_s)
         self.replies: queue.SimpleQueue[tuple[int, CaptureReply]] = queue.SimpleQueue()
         self.requests = 0

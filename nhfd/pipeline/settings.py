@@ -123,7 +123,7 @@ def frame_settings(config: Config, info: ModelInfo, calibration: Calibration | N
                    refocus_m: float = 0.0) -> FrameSettings:
     """The settings of frames for a model under a configuration and a calibration (None: the
     configured curves and sign; else its measured curves, sign, focus offsets, source profile
-    and aberrations replace them; `nhfd.calibration.active_calibration` gives the configured
+    and aberrations replace them; `nhfd.calibration.CalibrationStore` gives the configured
     one). The optics (z0, aperture, wavelengths, pitch) are the model's: `load_model` has
     already checked they match the configuration. The window is the model's training size
     unless `daemon.frame_size_px` says otherwise (the trained fx is kept either way).

@@ -64,7 +64,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from nhfd.calibration import Calibration, active_calibration, keep
+from nhfd.calibration import Calibration, CalibrationStore
 from nhfd.config import Config, DaemonSettings
 from nhfd.dataset.build import sha256_file
 from nhfd.frame_message import CaptureReply, FrameMessage, RefinedFrame, StageTimes
@@ -349,12 +349,14 @@ class FrameSlots:
 class _WorkerState:
     """The frame worker's model, scene, encoders and frame cache.
 
-    `config`: the whole configuration, handed on to `open_model` and `frame_settings` (and the
-    active calibration), which join several sections; its `[daemon]` section sets the threads,
-    the frame cache, the model's variant and the scene's size limit."""
+    `config`: the whole configuration, handed on to `open_model` and `frame_settings`, which
+    join several sections; its `[daemon]` section sets the threads, the frame cache, the model's
+    variant and the scene's size limit. `calibration`: the calibration frames are coded with
+    (default: `config`'s file, read here)."""
 
-    def __init__(self, config: Config) -> None:
+    def __init__(self, config: Config, calibration: CalibrationStore | None = None) -> None:
         self.config = config
+        self.calibration = calibration or CalibrationStore.of(config)
         self.threads = int(config.daemon.worker_threads)
         self.model: Any = None
         self.model_id = 0
@@ -420,7 +422,7 @@ class _WorkerState:
             if len(self.encoders) >= MAX_ENCODERS:
                 self.encoders.clear()
             settings = frame_settings(self.config, self.model.info,
-                                      active_calibration(self.config), refocus_m=refocus_m)
+                                      self.calibration.active(), refocus_m=refocus_m)
             self.encoders[refocus_m] = Encoder(settings, device=self.model.device,
                                                cuda_graphs=self.config.daemon.cuda_graphs)
         return self.encoders[refocus_m]
@@ -457,11 +459,13 @@ class Refiner:
     between each colour's propagation: the new view's frame starts within one of them."""
 
     def __init__(self, send: Callable[[tuple], None], config: Config,
-                 slots: FrameSlots | None = None) -> None:
-        """`slots`: the daemon's shared memory, whose refine slots carry the better frames
-        (None: they are pickled through the pipe)."""
+                 calibration: CalibrationStore, slots: FrameSlots | None = None) -> None:
+        """`calibration`: the worker's (the bench model, citl's camera mapping). `slots`: the
+        daemon's shared memory, whose refine slots carry the better frames (None: they are
+        pickled through the pipe)."""
         self.send = send
         self.config = config
+        self.calibration = calibration
         self.slots = slots
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -510,7 +514,7 @@ class Refiner:
             # Its own encoder (the worker's keeps scratch buffers for the frames it computes),
             # with the frames' settings: the refined frame's region is the network frame's.
             p = prepare(self.config, view, scene, info=model.info,
-                        calibration=active_calibration(self.config), device=model.device,
+                        calibration=self.calibration.active(), device=model.device,
                         cancelled=stop.is_set)
             self._refine(seq, view, p, network, stop)
         except Cancelled:  # a newer message stopped it (in the inversion or a step): no error
@@ -546,11 +550,12 @@ class Refiner:
         naming it."""
         if view.quality != "citl":
             return None
-        cal = active_calibration(self.config)
+        cal = self.calibration.active()
         if cal is None:
             raise ValueError("quality = 'citl' needs a calibration (calibration.file): it maps "
                              "the camera onto the SLM and the focus onto the stage")
-        self._capture = RemoteCapture(self.send, seq, enc, cal, stop)
+        camera_pitch_m = self.config.devices.camera_settings.pixel_pitch_um * 1e-6
+        self._capture = RemoteCapture(self.send, seq, enc, cal, stop, camera_pitch_m=camera_pitch_m)
         return self._capture
 
     def _run_without_model(self, seq: int, view: View, scene: Any,
@@ -564,7 +569,7 @@ class Refiner:
             # A newer view cancels it between its stages and between the light field's
             # elemental views (`stop`), so the newer view's exact frame starts at once.
             p = prepare(config, view, scene, window_hw=window_hw,
-                        calibration=active_calibration(config), cancelled=stop.is_set)
+                        calibration=self.calibration.active(), cancelled=stop.is_set)
             first(replace(FrameMessage.of_arrays(
                 p.encoder.region, p.exact_grey, preview_levels(p.rgb),
                 StageTimes(render_s=time.perf_counter() - t0), p.clipped), tier="exact"))
@@ -584,10 +589,8 @@ def worker_main(conn: Any, config_data: dict[str, Any],
     the file on disk is refused, as in the daemon). `slots`: the daemon's shared-memory slots
     ({"names": [...], "bytes": n}; None: frames are pickled through the pipe)."""
     config = Config.model_validate(config_data)
-    if calibration is not None:
-        keep(config, calibration)
     _set_threads(int(config.daemon.worker_threads))
-    state = _WorkerState(config)
+    state = _WorkerState(config, CalibrationStore.of(config, accepted=calibration))
     shm = (FrameSlots(slots["names"], slots["bytes"], slots.get("refine_names", ()),
                       slots.get("refine_bytes", 0)) if slots else None)
     try:
@@ -604,7 +607,7 @@ def _serve(conn: Any, state: _WorkerState, shm: FrameSlots | None) -> None:
         with lock:
             conn.send(msg)
 
-    refiner = Refiner(send, state.config, shm)
+    refiner = Refiner(send, state.config, state.calibration, shm)
     try:
         _serve_loop(conn, send, state, shm, refiner)
     finally:

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nhfd.calibration import CalibrationFileError, active_calibration
+from nhfd.calibration import CalibrationFileError, CalibrationStore
 from nhfd.config import Config
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.model_info import ModelInfo
@@ -35,14 +35,14 @@ METADATA = ModelInfo(inputs="rgb", train_size_hw=(64, 64), pitch_m=8e-6,
 def test_frames_use_calibration(fitted, tmp_path: Path) -> None:
     path = fitted.save(tmp_path / "calibration.toml")
     plain = Config()
-    assert active_calibration(plain) is None
-    s0 = frame_settings(plain, METADATA, active_calibration(plain))
+    assert CalibrationStore.of(plain).active() is None
+    s0 = frame_settings(plain, METADATA, CalibrationStore.of(plain).active())
     assert s0.phase_sign == 1 and all(c.is_default for c in s0.curves())
     cfg = Config.model_validate({"calibration": {"file": str(path)}})
-    s1 = frame_settings(cfg, METADATA, active_calibration(cfg))
+    s1 = frame_settings(cfg, METADATA, CalibrationStore.of(cfg).active())
     assert s1.phase_sign == fitted.phase_sign == -1
     assert [c.phase_rad for c in s1.curves()] == [tuple(t) for t in fitted.phase_tables_rad]
-    cal = active_calibration(cfg)
+    cal = CalibrationStore.of(cfg).active()
     assert cal is not None and cal.source == str(path)
     # Focus: depth z0 + z from the SLM maps through the fitted scale.
     assert cal.stage_mm_for(4e-3 + 1e-3) - cal.stage_mm_for(4e-3) == pytest.approx(
@@ -52,13 +52,13 @@ def test_frames_use_calibration(fitted, tmp_path: Path) -> None:
 def test_unreadable_configured_file_is_an_error(tmp_path: Path) -> None:
     cfg = Config.model_validate({"calibration": {"file": str(tmp_path / "nope.toml")}})
     with pytest.raises(CalibrationFileError, match=r"nope\.toml"):
-        active_calibration(cfg)
+        CalibrationStore.of(cfg).active()
 
 
 def _settings_with(cal, tmp_path: Path, name: str):
     path = cal.save(tmp_path / name)
     config = Config.model_validate({"calibration": {"file": str(path)}})
-    return small(frame_settings(config, METADATA, active_calibration(config)))
+    return small(frame_settings(config, METADATA, CalibrationStore.of(config).active()))
 
 
 def test_per_colour_focus_offsets_applied(bench: TrueBench, fitted, tmp_path: Path) -> None:

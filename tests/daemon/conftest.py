@@ -142,7 +142,7 @@ def _compile_frame_kernels(tiny: dict[str, Path]) -> None:
     """One frame in this process, outside every test's deadline: numba compiles the renderer and
     the coder once and caches them, so a daemon's spawned worker loads them instead of spending
     20 s or more compiling on its first frame (a fresh checkout has no cache)."""
-    from nhfd.calibration import active_calibration
+    from nhfd.calibration import CalibrationStore
     from nhfd.models.export import load_model
     from nhfd.pipeline.encoder import Encoder
     from nhfd.pipeline.frame import compute_frame
@@ -154,7 +154,7 @@ def _compile_frame_kernels(tiny: dict[str, Path]) -> None:
 
     config = small_config()
     model = load_model(tiny["model"], config)
-    encoder = Encoder(frame_settings(config, model.info, active_calibration(config)))
+    encoder = Encoder(frame_settings(config, model.info, CalibrationStore.of(config).active()))
     scene = Scene(load_scene(tiny["scene"]), SceneFrame((0.0, 0.0, 0.0), "-y"))
     compute_frame(FRONT_VIEW, scene, model, encoder)
 

@@ -170,7 +170,7 @@ def _with_calibration(config: Any, path: Path) -> Any:
 
 def test_a_hot_swapped_calibration_for_another_bench_is_refused_and_the_old_one_kept(
         short_dir, mecom_twin):
-    from nhfd import calibration as active
+    from nhfd.calibration import CalibrationStore
     from nhfd.daemon.protocol import INVALID_FILE, RpcError
 
     from .conftest import bench_config
@@ -204,10 +204,11 @@ def test_a_hot_swapped_calibration_for_another_bench_is_refused_and_the_old_one_
         assert c.call("focus", z_mm=1.0)["stage_mm"] == pytest.approx(10.0)  # a good swap applies
         assert c.status()["calibration"]["refused"] is None
 
-        # No accepted version to keep (a process that never loaded the file): the file's code
+        # No accepted version to keep (a store that never loaded the file, as a fresh process
+        # has): the file's code
         (short_dir / "corrupt.tmp").write_bytes(b"\x00\xff garbage")
         (short_dir / "corrupt.tmp").replace(path)
-        active._states.clear()
+        r.daemon.rpc.calibration = CalibrationStore.of(r.daemon.config)
         with pytest.raises(RpcError) as info:
             c.call("focus", z_mm=1.0)
         assert info.value.code == INVALID_FILE.code

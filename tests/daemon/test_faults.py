@@ -88,7 +88,8 @@ def test_stage_port_vanishing_is_an_error_and_it_reconnects(running: Running, me
     assert c.status()["devices"]["stage"]["homed"] is True
     job = c.call("focus", z_mm=1.0)["job"]
     wait_until(lambda: c.call("job", id=job)["state"] == "done", 15, "a focus after it")
-    assert twin.position_mm == pytest.approx(stage_mm_for_focus(running.daemon.config, 1.0),
+    assert twin.position_mm == pytest.approx(stage_mm_for_focus(running.daemon.config,
+                                                            running.daemon.calibration, 1.0),
                                              abs=1e-3)
     # The stage is on the detection side: the lasers were left alone throughout.
     assert len(mecom_twin.emission("red")) == lit_changes and mecom_twin.emitting()["red"] == 5.0

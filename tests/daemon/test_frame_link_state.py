@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from nhfd.calibration import CalibrationStore
 from nhfd.config import Config, _overlay
 from nhfd.daemon import frame_link
 from nhfd.daemon.frame_link import FrameEvents, FrameLink, InFlight, LinkState, WaitingFrame
@@ -74,7 +75,9 @@ class Owner:
     def __init__(self, config: Config) -> None:
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px).open()
-        self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}))
+        self.calibration = CalibrationStore.of(config)
+        self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}),
+                           self.calibration)
         self.shown: list[int] = []
         self.errors: list[tuple[str, str]] = []
         self.crashes: list[str] = []
@@ -89,8 +92,8 @@ def make_link(root: Path, link_class: type = FrameLink) -> tuple[Owner, FrameLin
     config = Config.model_validate(_overlay(bench_config(root, None).model_dump(),
                                             {"slm": {"refresh_hz": 1000.0}}))
     owner = Owner(config)
-    return owner, link_class(config, owner.views, lambda: owner.panel, owner.events,
-                             worker_module=__name__)
+    return owner, link_class(config, owner.calibration, owner.views, lambda: owner.panel,
+                             owner.events, worker_module=__name__)
 
 
 def load_in_thread(link: FrameLink, *loads: tuple[str, str]) -> list[Any]:

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from nhfd.benchmarks.pipeline import _Host, _load
-from nhfd.calibration import active_calibration
+from nhfd.calibration import CalibrationStore
 from nhfd.daemon.frame_link import REFINE_SLOTS, SLOTS, PanelBuffer
 from nhfd.models.export import load_model
 from nhfd.pipeline.encoder import Encoder
@@ -74,7 +74,7 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_se
             message = msg[2]
             assert message.slot in range(SLOTS) and message.grey is None
 
-            settings = frame_settings(config, model.info, active_calibration(config),
+            settings = frame_settings(config, model.info, CalibrationStore.of(config).active(),
                                       refocus_m=refocus_mm * 1e-3)
             expected = compute_frame(view, scene, model, Encoder(settings))
             r = expected.region

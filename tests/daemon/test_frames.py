@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from nhfd.calibration import active_calibration
+from nhfd.calibration import CalibrationStore
 from nhfd.config import Config, _overlay, default_text
 from nhfd.daemon.frame_link import PanelBuffer
 from nhfd.optics import grey_to_phase, propagate
@@ -119,7 +119,7 @@ def test_frame_reconstructs_the_predicted_field_and_leaves_the_rest_zero(tiny):
 
     config = small_config()
     model = load_model(tiny["model"], config)
-    settings = frame_settings(config, model.info, active_calibration(config))
+    settings = frame_settings(config, model.info, CalibrationStore.of(config).active())
     assert settings.window_hw == (64, 96) and settings.panel_hw == (128, 192)
     encoder = Encoder(settings)
     scene = Scene(load_scene(tiny["scene"]), SceneFrame((0.0, 0.0, 0.0), "-y"))
@@ -157,7 +157,7 @@ def test_frame_reconstructs_the_predicted_field_and_leaves_the_rest_zero(tiny):
     # Digital refocus is part of the kernel: refocused by 3 mm, the same prediction is shown on a
     # reference plane 3 mm nearer the viewer: it matches there, and no longer at z0.
     refocus_m = 3e-3
-    refocused = Encoder(frame_settings(config, model.info, active_calibration(config),
+    refocused = Encoder(frame_settings(config, model.info, CalibrationStore.of(config).active(),
                                        refocus_m=refocus_m))
     moved_frame = compute_frame(FRONT_VIEW, scene, model, refocused)
     moved = PanelBuffer(refocused.zero).frame(moved_frame.region.top, moved_frame.region.left,

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from nhfd.calibration import CalibrationStore
 from nhfd.config import Config, _overlay
 from nhfd.daemon import frame_link
 from nhfd.daemon.frame_link import FrameEvents, FrameLink, LinkState
@@ -85,7 +86,9 @@ class Host:
         self.views = ViewSlot()
         self.slm = SimulatedSLM(config.slm.width_px, config.slm.height_px,
                                 SLMOutputSettings(history_frames=10000)).open()
-        self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}))
+        self.calibration = CalibrationStore.of(config)
+        self.panel = Panel(config, SimpleNamespace(slm=self.slm, errors={"slm": None}),
+                           self.calibration)
         self.errors: list[str] = []
 
     def error(self, source: str, message: str) -> None:
@@ -101,7 +104,7 @@ def running_link(root: Path) -> tuple[Host, FrameLink]:
     base = bench_config(root, None)
     config = Config.model_validate(_overlay(base.model_dump(), {"slm": {"refresh_hz": REFRESH_HZ}}))
     host = Host(config)
-    link = FrameLink(config, host.views, lambda: host.panel, host.events(),
+    link = FrameLink(config, host.calibration, host.views, lambda: host.panel, host.events(),
                      worker_module=__name__)
     link.model_path, link.scene_path = "fake.onnx", "fake.ply"
     link.start()

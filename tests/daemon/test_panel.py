@@ -12,6 +12,7 @@ from typing import Any, Generic, Protocol
 import numpy as np
 import pytest
 
+from nhfd.calibration import CalibrationStore
 from nhfd.daemon import arming, colour, frame_link, methods
 from nhfd.daemon import panel as panel_module
 from nhfd.daemon.panel import Panel, blank_pattern
@@ -35,8 +36,10 @@ class RecordingSLM:
 
 
 def make_panel(root: Path, slm: Any, **daemon: Any) -> Panel:
-    return Panel(bench_config(root, None, **daemon),
-                 SimpleNamespace(slm=slm, errors={"slm": "unplugged" if slm is None else None}))
+    config = bench_config(root, None, **daemon)
+    return Panel(config,
+                 SimpleNamespace(slm=slm, errors={"slm": "unplugged" if slm is None else None}),
+                 CalibrationStore.of(config))
 
 
 def frame_of(panel: Panel, *levels: int) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from nhfd.calibration import CalibrationStore
 from nhfd.daemon.colour import panel_for_mode
 from nhfd.daemon.frame_link import FrameWorker, PanelBuffer
 from nhfd.drivers.slm import SimulatedSLM, to_rgb
@@ -53,7 +54,8 @@ def test_a_region_in_the_slms_layout_crosses_the_slot_and_pastes_as_the_planar_o
     preview = rng.integers(0, 256, (3, 20, 30), dtype=np.uint8)
     message = FrameMessage.of_arrays(r, grey, preview, StageTimes())
     assert message.grey_hwc and not FrameMessage.of_arrays(r, planar, None, StageTimes()).grey_hwc
-    worker = FrameWorker(small_config())
+    config = small_config()
+    worker = FrameWorker(config, CalibrationStore.of(config))
     slots = worker._make_slots()
     try:
         written = FrameSlots(slots["names"], slots["bytes"]).write(0, message)

@@ -68,7 +68,8 @@ def test_a_replayed_session_ends_in_the_same_state(short_dir):
                                             "radius": 2.0}, "refocus_mm": 0.5}
     assert all(x["t_s"] >= 0 for x in lines[1:])
     assert want["laser"]["red"] == 4.0 and want["armed"]
-    assert want["stage_mm"] == pytest.approx(stage_mm_for_focus(a.daemon.config, -0.5), abs=1e-3)
+    assert want["stage_mm"] == pytest.approx(
+        stage_mm_for_focus(a.daemon.config, a.daemon.calibration, -0.5), abs=1e-3)
 
     b = Running(fast_stage(bench_config(short_dir / "b", None)), short_dir / "b")
     try:

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 
 from nhfd import spec
-from nhfd.calibration import Calibration, active_calibration
+from nhfd.calibration import Calibration, CalibrationStore
 from nhfd.config import Config, _overlay
 from nhfd.daemon.panel import Panel, blank_pattern
 from nhfd.models.export import load_model
@@ -84,7 +84,7 @@ def test_blank_surround_and_coded_zero_are_one_pattern_under_a_calibration(
 
     # The coder the frame worker runs, on an all-zero field of the coded region.
     model = load_model(short_dir / "models" / "tiny.onnx", config)
-    settings = frame_settings(config, model.info, active_calibration(config))
+    settings = frame_settings(config, model.info, CalibrationStore.of(config).active())
     assert settings.phase_sign == -1 and not any(cv.is_default for cv in settings.curves())
     encoder = Encoder(settings)
     region = frame_region(settings)
@@ -118,7 +118,8 @@ def test_the_panels_blank_is_the_zero_pattern_of_the_active_calibration(short_di
     path = write_measured_calibration(short_dir / "calibration.toml", base)
     config = Config.model_validate(_overlay(base.model_dump(),
                                             {"calibration": {"file": str(path)}}))
-    panel = Panel(config, SimpleNamespace(slm=None, errors={"slm": None}))
+    panel = Panel(config, SimpleNamespace(slm=None, errors={"slm": None}),
+                  CalibrationStore.of(config))
     s = config.slm
     hw = (s.height_px, s.width_px)
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from nhfd.calibration import active_calibration
+from nhfd.calibration import CalibrationStore
 from nhfd.config import DEVICES, Config, _overlay, default_text, device_choice
 from nhfd.dataset.build import check_device
 from nhfd.frame_message import is_interleaved
@@ -297,7 +297,7 @@ def donut() -> dict:
     env = model.info.pose_envelope
     view = View(Orbit(float(np.mean(env.azimuth_deg)), float(np.mean(env.elevation_deg)),
                       float(np.mean(env.distance))), refocus_mm=0.0)
-    settings = frame_settings(config, model.info, active_calibration(config))
+    settings = frame_settings(config, model.info, CalibrationStore.of(config).active())
     return {"config": config, "model": model, "scene": scene, "view": view,
             "settings": settings}
 

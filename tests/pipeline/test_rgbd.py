@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from nhfd.calibration import active_calibration
+from nhfd.calibration import CalibrationStore
 from nhfd.models.export import load_model
 from nhfd.models.inputs import depth_channel, mapped_depth
 from nhfd.pipeline.encoder import Encoder
@@ -34,7 +34,7 @@ def test_an_rgbd_model_gets_the_renders_mapped_depth(tmp_path):
     assert model.inputs == "rgbd"
     scene = Scene(load_scene(make_tiny_scene(tmp_path / "cloud.ply")),
                   SceneFrame((0.0, 0.0, 0.0), "-y"))
-    encoder = Encoder(frame_settings(config, model.info, active_calibration(config)))
+    encoder = Encoder(frame_settings(config, model.info, CalibrationStore.of(config).active()))
     frame = compute_frame(FRONT_VIEW, scene, model, encoder)
     (x,) = model.seen
     assert x.shape == (4, 64, 96)

@@ -156,7 +156,7 @@ def test_the_page_shows_the_bench_and_steers_it_but_never_arms(bench, browser):
     browser.execute_script("""
         const s = document.getElementById('focus'); s.value = arguments[0];
         s.dispatchEvent(new Event('input')); s.dispatchEvent(new Event('change'));""", z_mm)
-    target_mm = stage_mm_for_focus(r.daemon.config, z_mm)
+    target_mm = stage_mm_for_focus(r.daemon.config, r.daemon.calibration, z_mm)
     assert target_mm == pytest.approx(0.4)
     wait_until(lambda: abs(stage.position_mm - target_mm) < 1e-3, 10, "the stage twin at focus")
     wait.until(lambda d: d.find_element(By.ID, "stage").text.startswith("0.400 mm"))
