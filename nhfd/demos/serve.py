@@ -50,6 +50,7 @@ from nhfd.optics.refplane import window_offset
 from nhfd.pipeline.frame import render_view
 from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import Scene, scene_frame
+from nhfd.pipeline.warmup import warm_frame_path
 from nhfd.scene.io import load_scene
 from nhfd.views import View, view_from_json
 
@@ -203,6 +204,13 @@ def _run(out: Path, runtime: Path, *, config: Config, model: Path, scene: Path, 
 
     cfg, truth, info = demo_config(config, model=model, scene=scene, runtime=runtime,
                                    captures=out / "captures")
+    # The demo renders views itself, in this process, beside the daemon's control loop: its
+    # kernels are loaded (or, after a fresh install, compiled) here first, so their loading never
+    # holds up the loop's heartbeat to the laser guardian (a "control loop stalled" warning).
+    warm = warm_frame_path()
+    misses = sum(k["misses"] for k in warm["kernels"].values())
+    log(f"nhfd demo: frame kernels ready in {warm['seconds']:.1f} s "
+        f"({'compiled now: nhfd warmup does this once' if misses else 'from the kernel cache'})")
     daemon = Daemon(cfg, base_dir=Path.cwd(), env={}, handle_signals=False)
     daemon.start()
     loop = threading.Thread(target=daemon.run, name="nhfd-demo-daemon", daemon=True)
@@ -364,23 +372,49 @@ def focal_strip(network: list[tuple[float, np.ndarray]], refined: list[tuple[flo
 def focal_gif(network: list[tuple[float, np.ndarray]], refined: list[tuple[float, np.ndarray]],
               regions: dict[str, dict[str, Any]], path: Path, frame_ms: int = 450) -> None:
     """The focal sweep as an animated GIF, near to far and back: the network's frame (left) and
-    the sgd-refined one (right) at each focus, side by side, with the depth written in."""
+    the sgd-refined one (right) at each focus, side by side, with the depth written in; below
+    them the near and the far region of each, enlarged (`region_insets`), where the focus is
+    seen to move."""
     from PIL import Image, ImageDraw
 
-    (net, ref), norm, _ = _upright([network, refined], regions)
+    (net, ref), norm, masks = _upright([network, refined], regions)
     frames = []
     for k in list(range(len(net))) + list(range(len(net) - 2, 0, -1)):
-        # 2 x 2 camera pixels to one (the camera samples the panel finer than its pixels) and
-        # 64 greys: the sensor's noise would otherwise cost a megabyte per sweep.
-        pair = [_bin2(np.clip(img / norm, 0, 1) ** 0.5) for img in (net[k], ref[k])]
+        shown = [np.clip(img / norm, 0, 1) ** 0.5 for img in (net[k], ref[k])]
+        # 2 x 2 camera pixels to one in the overview (the camera samples the panel finer than
+        # its pixels) and 64 greys: the sensor's noise would otherwise cost a megabyte a sweep.
+        pair = [_bin2(img) for img in shown]
         gap = np.ones((pair[0].shape[0], 4))
-        grey = Image.fromarray((np.hstack([pair[0], gap, pair[1]]) * 255).astype(np.uint8))
+        top = np.hstack([pair[0], gap, pair[1]])
+        insets, _ = region_insets(shown, masks, width_px=top.shape[1])
+        canvas = np.vstack([top, np.ones((4, top.shape[1])), insets])
+        grey = Image.fromarray((canvas * 255).astype(np.uint8))
         draw = ImageDraw.Draw(grey)
         draw.text((3, 1), f"network {network[k][0] * 1e3:+.1f} mm", fill=255)
         draw.text((pair[0].shape[1] + 7, 1), "sgd-refined", fill=255)
+        draw.text((3, top.shape[0] + 5), "near: network, sgd   far: network, sgd", fill=255)
         frames.append(grey.convert("P", palette=Image.Palette.ADAPTIVE, colors=64))
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=frame_ms, loop=0,
                    optimize=True)
+
+
+def region_insets(images: list[np.ndarray], masks: list[np.ndarray], width_px: int
+                  ) -> tuple[np.ndarray, int]:
+    """The near and far regions (each mask's box) of each image in `images` (values in [0, 1],
+    one shape), side by side region by region, image by image, 4 px apart on white, each
+    enlarged by the one whole factor (at least 1) that fits them all into `width_px`:
+    (`[H, width_px]` canvas, the factor)."""
+    boxes = [_box(m, pad=4) for m in masks]
+    crops = [img[box] for box in boxes for img in images]
+    gaps = 4 * (len(crops) - 1)
+    factor = max(1, (width_px - gaps) // max(1, sum(c.shape[1] for c in crops)))
+    canvas = np.ones((max(c.shape[0] for c in crops) * factor, width_px))
+    left = 0
+    for crop in crops:
+        big = np.kron(crop, np.ones((factor, factor)))[:, : max(0, width_px - left)]
+        canvas[: big.shape[0], left : left + big.shape[1]] = big
+        left += big.shape[1] + 4
+    return canvas, factor
 
 
 def _bin2(image: np.ndarray) -> np.ndarray:

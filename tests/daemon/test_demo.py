@@ -93,3 +93,35 @@ def test_the_demo_waits_on_a_job_as_the_client_does():
     with pytest.raises(TimeoutError, match=r"after 0.2 s waiting for job 7 \(still running\); "
                        r"daemon errors: \['e2', 'e3', 'e4'\]"):
         _job(_ScriptedClient(["running"]), 7, 0.2)
+
+
+def test_the_gif_shows_each_region_enlarged_by_a_whole_factor(tmp_path):
+    """The sweep's regions, cropped to their boxes and enlarged, side by side below the
+    overview: every inset pixel is its crop's pixel repeated factor x factor, in the order
+    near (network, sgd), far (network, sgd); and the GIF's frames hold them at that size."""
+    from PIL import Image
+
+    from nhfd.demos.serve import focal_gif, region_insets
+
+    rng = np.random.default_rng(5)
+    net, ref = rng.random((90, 140)), rng.random((90, 140))
+    near, far = np.zeros((90, 140), bool), np.zeros((90, 140), bool)
+    near[10:30, 20:50], far[50:80, 90:130] = True, True
+    canvas, factor = region_insets([net, ref], [near, far], width_px=500)
+    # boxes padded by 4: 38 and 48 px wide, twice each, 3 gaps of 4: 2 * 86 * f + 12 <= 500
+    assert factor == 2 and canvas.shape == (38 * 2, 500)
+    crops = [net[6:34, 16:54], ref[6:34, 16:54], net[46:84, 86:134], ref[46:84, 86:134]]
+    left = 0
+    for crop in crops:
+        h, w = crop.shape
+        assert np.array_equal(canvas[: 2 * h, left : left + 2 * w], np.kron(crop, np.ones((2, 2))))
+        left += 2 * w + 4
+    # Through the demo's GIF: the overview pair is binned 2 x 2, the insets sit below it.
+    sweep = [(z, np.rot90(img, 2)) for z, img in ((-1e-3, net), (1e-3, ref))]
+    regions = {"near": {"mask_camera": np.rot90(near, 2)}, "far": {"mask_camera": np.rot90(far, 2)}}
+    focal_gif(sweep, sweep, regions, tmp_path / "s.gif")
+    gif = Image.open(tmp_path / "s.gif")
+    assert gif.n_frames == 2  # near to far and back: 2 depths make 2 frames
+    # the content's box (pad 12: rows 0:90, cols 8:140) binned to 45 x 66, twice and a 4 px gap;
+    # below, 4 px on, the insets at factor 1 (172 px of crops do not fit twice into 136)
+    assert gif.size == (66 + 4 + 66, 45 + 4 + 38)
