@@ -5,12 +5,17 @@ from __future__ import annotations
 import argparse
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 from nhfd.cli.args import LazyCommands
 from nhfd.cli.cmd_bench import BENCHES
 from nhfd.cli.main import COMMANDS, main
+from tests.words import PYTHON_REPR
 
 HEAVY = ("torch", "numba", "onnxruntime")
+DONUT = Path(__file__).resolve().parents[2] / "models" / "scenes" / "donut.ply"
 
 
 def imported_after(code: str) -> set[str]:
@@ -80,3 +85,22 @@ def test_the_help_names_every_scene_format_the_readers_take():
     for suffix in SCENE_SUFFIXES:
         assert suffix.lstrip(".") in words, suffix
     assert "sog" in words and SCENE_NAMES  # SOG: a folder or its meta.json
+
+
+@pytest.mark.parametrize("argv", [
+    ["config", "show"], ["config", "check"], ["devices"], ["scene", "info", str(DONUT)],
+    ["warmup"], ["--version"],
+])
+def test_nhfd_commands_print_words(argv, capsys, monkeypatch, tmp_path):
+    """Each quick command's human output: something said, and no Python repr, None or epoch
+    time (the refine test holds `nhfd refine` to the same)."""
+    monkeypatch.chdir(tmp_path)  # no ./nhfd.toml: the packaged default
+    monkeypatch.delenv("NHFD_CONFIG", raising=False)
+    monkeypatch.setenv("XDG_CONFIG_HOME", str(tmp_path / "xdg"))
+    try:
+        code = main(argv)
+    except SystemExit as exc:  # --version exits through argparse
+        code = exc.code
+    out = capsys.readouterr().out
+    assert code == 0 and out.strip(), (argv, out)
+    assert not PYTHON_REPR.search(out), (argv, out)

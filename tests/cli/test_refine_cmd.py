@@ -17,6 +17,7 @@ from nhfd.cli.main import main
 from nhfd.config import Config, RefineSettings, refine_settings
 from nhfd.models.export import load_model
 from nhfd.pipeline.settings import frame_region, frame_settings
+from tests.words import PYTHON_REPR
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "nhf-donut-512.onnx"
@@ -64,6 +65,7 @@ def test_a_small_sgd_run_writes_the_region_frame_and_a_report_no_worse_than_its_
                  "--iterations", "5", "--quality", "sgd", "--out", str(out)]) == 0
     printed = capsys.readouterr().out
     assert "sgd  iteration    0" in printed  # progress lines
+    assert not PYTHON_REPR.search(printed), printed  # words, not Python
     # The region: the 96 x 64 window plus the propagation's reach, on the configured panel.
     config = Config()
     s = frame_settings(config, load_model(MODEL, config).info, None)

@@ -11,6 +11,7 @@ import time
 import pytest
 
 from nhfd.cli.nhfctl import main
+from tests.words import PYTHON_REPR
 
 from .conftest import Running
 
@@ -70,8 +71,6 @@ def test_nhfctl_commands(running: Running, capsys):
     assert not running.socket.exists()
 
 
-# What must never reach a person: a Python dict or list repr, None, an epoch time in seconds.
-PYTHON = re.compile(r"\{'|\['|\bNone\b|\bTrue\b|\bFalse\b|\b1[6-9]\d{8}(\.\d+)?\b")
 
 
 def test_human_output_is_words_and_json_is_the_data(running: Running, capsys):
@@ -84,7 +83,7 @@ def test_human_output_is_words_and_json_is_the_data(running: Running, capsys):
     for command in commands:
         assert main([*sock, *command]) == 0, command
         text = capsys.readouterr().out
-        assert text.strip() and not PYTHON.search(text), (command, text)
+        assert text.strip() and not PYTHON_REPR.search(text), (command, text)
         assert main([*sock, "--json", *command]) == 0, command
         data = json.loads(capsys.readouterr().out)
         assert json.loads(json.dumps(data)) == data and isinstance(data, dict)
