@@ -96,6 +96,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "network's frame shows at once and better ones replace it while the "
                          "view rests (status shows the tier, iterations and estimated PSNR); "
                          "default: the current view's, or refine.quality")
+    sv.add_argument("--wait", action="store_true",
+                    help="wait until the view is shown and, above network, refined (up to 10 "
+                         "min), then say how far the refinement went")
 
     fo = sub.add_parser("focus", help="move the camera stage to a hologram depth (mm)")
     fo.add_argument("z_mm", type=float)
@@ -401,6 +404,31 @@ def _wait_for_arm(client: Client, result: dict[str, Any]) -> tuple[int, Any]:
     return 0, job["result"]
 
 
+def _wait_view(client: Client, args: argparse.Namespace, placed: dict[str, Any]) -> int:
+    """`set-view --wait`: the view placed, then once it rests its refinement (the tier, its
+    iterations, seconds and estimated PSNR); exit 1 when it did not get there."""
+    seq, refined = int(placed["seq"]), placed["view"].get("quality", "network") != "network"
+    s = client.wait_view(seq, refined)
+    refine = (s.get("frames") or {}).get("refine")
+    refine = refine if refine and refine.get("seq") == seq else None
+    problem = None
+    if s["view"]["seq"] != seq:
+        problem = f"view seq {s['view']['seq']} replaced it before it rested"
+    elif (s["view"].get("applied_seq") or 0) < seq:
+        problem = "not shown after the wait"
+    elif refined and not (refine and refine.get("stop")):
+        problem = "its refinement still running after the wait"
+    if args.json:
+        print(json.dumps({**placed, "refine": refine}))
+    else:
+        print(_human("set-view", placed) + ("\nrefine   " + human_refine(refine) if refine
+                                            else ""))
+    if problem:
+        print(f"nhfctl set-view: error: view seq {seq}: {problem}", file=sys.stderr)
+        return 1
+    return 0
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     cmd = args.command
@@ -426,6 +454,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 code, result = _wait_for_arm(client, result)
                 if code:
                     return code
+            if cmd == "set-view" and args.wait:
+                return _wait_view(client, args, result)
             if getattr(args, "wait", False) and isinstance(result, dict) and "job" in result:
                 result = client.wait_job(int(result["job"]))
                 if result["state"] != "done":

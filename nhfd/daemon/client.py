@@ -153,6 +153,22 @@ class Client:
                 return job
             time.sleep(poll_s)
 
+    def wait_view(self, seq: int, refined: bool, timeout_s: float = 600.0, poll_s: float = 0.2
+                  ) -> dict[str, Any]:  # fmt: skip
+        """The `status` once view `seq` rests: shown, and with `refined` (it asked for a tier
+        above the network's) its refinement stopped; or as it stands when a newer view
+        replaced it, or after `timeout_s` (the caller reads `view` and `frames.refine`)."""
+        end = time.monotonic() + timeout_s
+        while True:
+            s = self.status()
+            view, refine = s["view"], (s.get("frames") or {}).get("refine") or {}
+            shown = (view.get("applied_seq") or 0) >= seq
+            stopped = refine.get("seq") == seq and bool(refine.get("stop"))
+            if view["seq"] != seq or time.monotonic() > end or (
+                    shown and (stopped or not refined)):
+                return s
+            time.sleep(poll_s)
+
     def close(self) -> None:
         """Close the connection."""
         self._sock.close()
