@@ -90,6 +90,7 @@ def test_the_dial_block_runs_as_written_and_the_readme_quotes_it():
         iterations, psnr, start = int(line.group(1)), float(line.group(3)), float(line.group(4))
         assert iterations > 0 and psnr > start, out  # refined above its network frame
         assert line.group(6).startswith(("converged", "iterations", "seconds")), out
+        assert "the daemon is shutting down: lasers off" in out, out
         # The README's example is such a line (the words, and figures in the same form).
         quoted = re.search(r"`refine   sgd of view 1: ([^`]+)`", (REPO / "README.md").read_text())
         assert quoted and re.fullmatch(r"\d+ iterations in [\d.]+ s, [\d.]+ dB \(from [\d.]+\), "

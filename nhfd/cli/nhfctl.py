@@ -327,6 +327,8 @@ def _human(cmd: str, result: Any) -> str:
     if isinstance(result, dict) and "job" in result and len(result) <= 3:
         rest = fields({k: v for k, v in result.items() if k != "job"})
         return f"job {result['job']} queued" + (f" ({rest})" if rest else "")
+    if cmd == "shutdown" and isinstance(result, dict) and result.get("shutting_down"):
+        return "the daemon is shutting down: lasers off and read back, then it exits"
     if cmd == "set-view":
         warning = f"\nwarning: {result['warning']}" if result.get("warning") else ""
         return f"view seq {result['seq']}: {view_words(result['view'])}{warning}"
