@@ -1,7 +1,8 @@
 """A computed frame as it crosses the pipe from the frame worker to the daemon (layer L0).
 
-The worker (`nhfd.pipeline.worker`) sends `("frame", seq, FrameMessage)`; the daemon's frame link
-(`nhfd.daemon.frame_link`) reads it by name: where the coded region goes on the panel
+The worker (`nhfd.pipeline.worker`) sends a `FrameDone(seq, FrameMessage)` (the pipe's messages
+are `nhfd.worker_messages`'); the daemon's frame link (`nhfd.daemon.frame_link`) reads it by
+name: where the coded region goes on the panel
 (`Region`), where its arrays are (a shared-memory slot and their shapes, or the arrays
 themselves with the pickled transport), the stage times (`StageTimes`), the clipped fractions,
 the pose warnings, whether it came from the frame cache, and when it was whole in its slot.
@@ -254,8 +255,8 @@ class RefinedFrame:
 @dataclass(frozen=True, eq=False)
 class CaptureRequest:
     """The camera in the loop (`citl`, issue 34) asking the daemon's bench for one step's
-    captures: the worker sends `("capture", seq, req_id, CaptureRequest)` and waits for
-    `("captured", req_id, CaptureReply)`.
+    captures: the worker sends a `CaptureAsked(seq, req_id, CaptureRequest)` and waits for the
+    `CaptureAnswer(req_id, CaptureReply)` (`nhfd.worker_messages`).
 
     region   where the subframes go on the panel
     grey     the K subframes `[K, 3, h, w]` uint8, each shown in turn during a colour's capture

@@ -231,7 +231,8 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
                     rows.append({**{s: t[f"{s}_ms"] for s in STAGES}, "total": total_ms,
                                  "azimuth_deg": view.camera.azimuth_deg,  # type: ignore[union-attr]
                                  "refined_iterations": refined})
-        reports = [dict(link.model_info or {}) for _cfg, _host, link, _rows in runs]
+        reports = [link.model.to_json() if link.model else {}
+                   for _cfg, _host, link, _rows in runs]
     finally:
         for _cfg, _host, link, _rows in runs:
             link.close()

@@ -35,5 +35,12 @@ pipeline as a separate, spawned process and talks to it over a pipe.
   notify, audit, paths  systemd notify, the audit log, runtime dirs and allowed directories
   frame_link  the daemon's side of the frame worker: spawns `nhfd.pipeline.worker` by name,
             sends the newest view, puts returned frames on the panel, restarts a crashed worker
-            (lasers off first)
+            (lasers off first); matches the worker's messages (`nhfd.worker_messages`) by type
+            and composes the three below
+  load_queue  the frame link's loads: from load jobs' threads to the worker and back, what it
+            serves, the served model and scene again after a crash
+  pacing    the frame link's pacing: one frame per refresh, a refinement's subframes in turn,
+            the panels reused (`PanelBuffer`)
+  capture_relay  citl's capture requests from the worker to the bench job and answers back;
+            emission sessions' ends
 """

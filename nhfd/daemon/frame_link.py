@@ -1,5 +1,6 @@
 """The daemon's side of the frame worker: the spawned process that renders, runs the network
-and codes frames (`nhfd.pipeline.worker`, whose docstring has the pipe's protocol).
+and codes frames (`nhfd.pipeline.worker`); the messages they exchange are
+`nhfd.worker_messages`' (docs/frames.md, "The worker's pipe", has them in one table).
 
 Why a process: rendering, inference and propagation hold the CPU for tens of milliseconds at a
 time; in the daemon's own process they would delay the control loop that feeds the laser
@@ -9,18 +10,30 @@ interpreter gets its thread counts in its environment before any pool exists.
 
 The daemon spawns the worker by its module's name (`WORKER_MODULE`) and learns everything of
 the model (what status reports of it, why one was refused) as data over the pipe: nothing here
-imports the pipeline, the models or torch. Views go out as `nhfd.views.View` and frames come
-back as `nhfd.frame_message.FrameMessage` (L0 values both sides import, read by name).
-`FrameLink` never blocks on the pipe: it polls it once per control-loop tick, and it shows the
-frames it gets (the "output" stage: the coded region pasted into the blank frame,
-`PanelBuffer`).
+imports the pipeline, the models or torch. Views go out in a `FrameRequest`, frames come back
+in a `FrameDone` holding an `nhfd.frame_message.FrameMessage`, a load's answer is a `Loaded`
+holding a `ModelLoaded` (the model's `ModelInfo` itself and how it serves) or a `SceneLoaded`:
+L0 values both sides import, matched by type and read by name. A message of another type is an
+error in `status`, never an exception out of the control loop. `FrameLink` never blocks on the
+pipe: it polls it once per control-loop tick.
 
 `FrameLink` knows nothing of the daemon: it gets its configuration, the view slot, a getter of
-the panel and its `FrameEvents` (shown, error, crashed, SLM lost) at construction. Its state is
-a `LinkState`; the view in the worker an `InFlight`, a frame waiting for its refresh a
-`WaitingFrame`. Load jobs' threads only queue a `LoadRequest` and wait on it: the control loop
-sends it, and on the worker's answer updates the link and finishes the request, so no field
-is written from two threads.
+the panel and its `FrameEvents` (shown, error, crashed, SLM lost, capture) at construction. It
+keeps the worker's lifecycle (its state a `LinkState`: spawn, crash, restart) and the view in
+the worker (an `InFlight`), and composes three parts, each built with what it uses:
+
+  `LoadQueue` (`load_queue`)        load jobs' loads: queued from their threads, sent by the
+                                    control loop, answered; what the worker serves since; the
+                                    served model and scene again after a crash
+  `FramePacer` (`pacing`)           when the frame back goes to the panel (one per refresh), a
+                                    refinement's K subframes in turn, the panels reused
+                                    (`PanelBuffer`), the counts
+  `CaptureRelay` (`capture_relay`)  citl's capture requests to the bench job and its answers
+                                    back; emission sessions' ends
+
+Load jobs' threads only queue a `LoadRequest` and wait on it: the control loop sends it, and on
+the worker's answer updates the link and finishes the request, so no field is written from two
+threads.
 
 Frames cross in shared memory (docs/frames.md): `FrameWorker` creates `SLOTS` (one) segment
 named `nhfd-<pid>-<n>-<slot>` in /dev/shm, sized for the whole panel (a grey region and its
@@ -48,37 +61,56 @@ import logging
 import math
 import multiprocessing as mp
 import os
-import queue
-import threading
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 from enum import StrEnum
 from multiprocessing import shared_memory
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 
 from nhfd.calibration import Calibration, CalibrationStore
 from nhfd.config import Config, DaemonSettings
-from nhfd.drivers.slm import SLMOutputLost
-from nhfd.frame_message import (
-    CaptureReply,
-    CaptureRequest,
-    FrameMessage,
-    RefinedFrame,
-    Region,
-    is_interleaved,
+from nhfd.frame_message import CaptureReply, CaptureRequest, FrameMessage, RefinedFrame
+from nhfd.worker_messages import (
+    FROM_WORKER,
+    BetterFrame,
+    CancelFrame,
+    CaptureAsked,
+    FrameCancelled,
+    FrameDone,
+    FrameFailed,
+    FrameRequest,
+    Loaded,
+    LoadFailed,
+    MessageRefused,
+    ModelLoaded,
+    RefineFailed,
+    RefineSlotFree,
+    SceneLoaded,
+    Stop,
+    ToWorker,
+    WorkerReady,
+    refusal,
 )
-from nhfd.views import View
+
+from .capture_relay import CaptureRelay
+from .load_queue import LoadQueue, LoadRequest
+from .pacing import (
+    FrameCounts,
+    FramePacer,
+    PanelBuffer,
+    PanelView,
+    Refinement,
+    ViewSource,
+    WaitingFrame,
+)
 
 log = logging.getLogger("nhfd.daemon.frame_link")
 
 # How long a load may take in the worker before the load job gives up waiting (s).
 LOAD_TIMEOUT_S = 120.0
-# How often a waiting load job looks whether the link has stopped (s): a load queued just as the
-# daemon closes is answered by no control loop.
-WAIT_POLL_S = 0.1
 # A crashed worker is restarted at most this often (s), so a worker that dies at start-up does
 # not spin.
 RESTART_BACKOFF_S = 2.0
@@ -93,49 +125,16 @@ SLOTS = 1
 # panel and `refine.subframes`). Two, double-buffered: the worker writes a better frame into one
 # while the daemon shows the other, and the daemon gives a slot back once it shows a newer one.
 REFINE_SLOTS = 2
-# Panels the frame link builds in turn (`PanelBuffer`'s `reuse`): the one shown last stays
-# whole (the panel's `resume` after a capture shows it again) while the next is built.
-PANELS_REUSED = 2
 # The /dev/shm names of the slots start with this (then the daemon's pid, a counter, the slot).
 SHM_PREFIX = "nhfd-"
-# A frame is shown when its refresh is due within this (s): the control loop's select may wake
-# a little before the time it was given.
-DUE_SLACK_S = 0.0005
-# A view goes to a worker faster than the panel this long (plus 1.5 frame times) before the
-# refresh its frame is for (s).
-SEND_MARGIN_S = 0.002
-
-
-# -- what the frame link uses of the daemon ----------------------------------------------------
-
-
-class PanelView(Protocol):
-    """The daemon's panel (`nhfd.daemon.panel.Panel`), as far as view frames go."""
-
-    @property
-    def vsync_detail(self) -> str:
-        """How the SLM paces frames to its refresh, when it says; "" otherwise."""
-        ...
-
-    def show_view(self, frame: np.ndarray, seq: int) -> np.ndarray:
-        """Show view `seq`'s full-panel frame (`[3, H, W]` uint8) in the colour mode; returns the
-        frame as shown."""
-        ...
-
-    def blank_frame(self) -> np.ndarray:
-        """The blank of the coding in use, `[3, H, W]` uint8: the panel around every view frame."""
-        ...
-
-    def blank(self) -> None:
-        """Show the blank."""
-        ...
-
-
-class ViewSource(Protocol):
-    """The newest view requested and its sequence number (`nhfd.daemon.views.ViewSlot`)."""
-
-    seq: int
-    view: View | None
+# The frame link's names, and those of its parts it re-exports (the daemon's citl, its tests and
+# the calibration's twin import `PanelBuffer`, `WaitingFrame` and the panel's protocols here).
+__all__ = [
+    "LOAD_TIMEOUT_S", "REFINE_SLOTS", "RESTART_BACKOFF_S", "SHM_PREFIX", "SLOTS",
+    "WORKER_MODULE", "FrameCounts", "FrameEvents", "FrameLink", "FrameWorker", "InFlight",
+    "LinkState", "LoadRequest", "PanelBuffer", "PanelView", "Refinement", "ViewSource",
+    "WaitingFrame", "run_by_name", "worker_environment",
+]
 
 
 # -- the worker process, seen from the daemon --------------------------------------------------
@@ -163,44 +162,9 @@ def run_by_name(module: str, env: dict[str, str], *args: Any) -> None:
     importlib.import_module(module).worker_main(*args)
 
 
-@dataclass
-class LoadRequest:
-    """A model or scene load: queued by a load job (or by a restart, `reload`), sent by the
-    control loop, which fills in its outcome (`finish`) and sets `done`; the job's thread only
-    waits for that."""
-
-    kind: str  # "model" | "scene"
-    path: str
-    reload: bool = False  # a restarted worker's: nobody waits, a failure is an error in status
-    done: threading.Event = field(default_factory=threading.Event)
-    ok: bool = False
-    result: Any = None
-
-    def finish(self, ok: bool, result: Any) -> None:
-        """The control loop's outcome: `ok` and `result` (the worker's report, or its reason for
-        refusing), then `done` set."""
-        self.ok, self.result = ok, result
-        self.done.set()  # publishes ok and result to the waiting thread
-
-    def wait(self, timeout_s: float, stopped: Callable[[], bool] = lambda: False) -> Any:
-        """The worker's report of the load, or ValueError with its reason (TimeoutError when
-        it did not answer within `timeout_s`; ValueError at once when `stopped()` turns true:
-        no control loop will answer then)."""
-        deadline = time.monotonic() + timeout_s
-        while not self.done.wait(min(WAIT_POLL_S, max(0.0, deadline - time.monotonic()))):
-            if stopped():
-                raise ValueError("the frame worker stopped")
-            if time.monotonic() >= deadline:
-                raise TimeoutError(f"the frame worker did not answer within {timeout_s:g} s")
-        if not self.ok:
-            raise ValueError(str(self.result))
-        return self.result
-
-
 class FrameWorker:
     """The worker process and its pipe, seen from the daemon. Non-blocking except `start`."""
 
-    _ids = itertools.count(1)
     _workers = itertools.count(1)
 
     def __init__(self, config: Config, calibration: CalibrationStore,
@@ -217,9 +181,6 @@ class FrameWorker:
         self.conn: Any = None
         self.pid: int | None = None
         self.ready = False
-        # Loads sent, by request id, until the worker answers. Only the control loop sends:
-        # load jobs hand their loads to it (`FrameLink._load`), so the pipe needs no lock.
-        self.pending: dict[int, LoadRequest] = {}
         self.transport = str(config.daemon.frame_transport)
         self.shms: list[shared_memory.SharedMemory] = []
         self.free_slots: list[int] = []
@@ -227,7 +188,7 @@ class FrameWorker:
 
     def start(self) -> None:
         """Make the slots and spawn the worker (blocks for the spawn, not for its import);
-        its "ready" comes later on the pipe."""
+        its `WorkerReady` comes later on the pipe."""
         slots = self._make_slots() if self.transport == "shm" else None
         try:
             ctx = mp.get_context("spawn")
@@ -319,37 +280,33 @@ class FrameWorker:
         """Give refine slot `slot` back to the worker (it may write a better frame there)."""
         if slot is not None and self.alive:
             with contextlib.suppress(OSError, ValueError):
-                self.send(("refine_free", slot))
+                self.send(RefineSlotFree(slot))
 
     @property
     def alive(self) -> bool:
         """Whether the worker process is running."""
         return self.process is not None and self.process.is_alive()
 
-    def send(self, msg: tuple) -> None:
-        """One message to the worker over its pipe (a tuple: the kind first)."""
+    def send(self, msg: ToWorker) -> None:
+        """One message to the worker over its pipe (`nhfd.worker_messages.TO_WORKER`). Only the
+        control loop sends: load jobs and bench jobs hand theirs to it, so the pipe needs no
+        lock."""
         self.conn.send(msg)
 
-    def request(self, request: LoadRequest) -> None:
-        """Send a load; its answer finishes it (`FrameLink._handle`), or the worker's end."""
-        req_id = next(self._ids)
-        self.pending[req_id] = request
-        self.send((request.kind, req_id, request.path))
-
-    def receive(self) -> list[tuple]:
-        """Every message waiting on the pipe (never blocks); EOFError when the worker is gone."""
+    def receive(self) -> list[Any]:
+        """Every message waiting on the pipe (never blocks); EOFError when the worker is gone.
+        Whatever the worker sent: the frame link matches each by its type."""
         out = []
         while self.conn.poll(0):
             out.append(self.conn.recv())
         return out
 
-    def close(self, timeout_s: float = 2.0) -> list[LoadRequest]:
-        """Stop the worker (asked, then killed after `timeout_s`) and unlink its slots; the
-        loads it had not answered fail ("the frame worker stopped") and are returned."""
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Stop the worker (asked, then killed after `timeout_s`) and unlink its slots."""
         if self.process is None:
-            return []
+            return
         with contextlib.suppress(Exception):
-            self.send(("stop",))
+            self.send(Stop())
         self.process.join(timeout_s)
         if self.process.is_alive():
             self.process.kill()
@@ -357,11 +314,6 @@ class FrameWorker:
         with contextlib.suppress(Exception):
             self.conn.close()
         self._unlink()
-        failed = list(self.pending.values())
-        for request in failed:
-            request.finish(False, "the frame worker stopped")
-        self.pending.clear()
-        return failed
 
     def _unlink(self) -> None:
         """Remove the slots from /dev/shm (the worker is gone: nothing else maps them)."""
@@ -377,7 +329,7 @@ class LinkState(StrEnum):
     """Where the frame link stands with its worker (`status.frames.state` shows the value)."""
 
     IDLE = "idle"  # no worker yet: it starts with the first load
-    STARTING = "starting"  # spawned, its "ready" not yet received
+    STARTING = "starting"  # spawned, its WorkerReady not yet received
     RUNNING = "running"
     CRASHED = "crashed"  # died: restarted RESTART_BACKOFF_S later, with the same model and scene
     STOPPED = "stopped"  # closed for good
@@ -398,64 +350,6 @@ class InFlight:
 
 
 @dataclass(frozen=True)
-class WaitingFrame:
-    """A frame back from the worker, waiting for its refresh: its view's sequence number, the
-    worker's message, and when the view went out (monotonic s; None when it was not the one in
-    flight)."""
-
-    seq: int
-    message: FrameMessage
-    sent_s: float | None
-
-
-@dataclass
-class Refinement:
-    """The refinement of the view on the panel (the progressive mode): its sequence number,
-    the tier the view asked for, the worker's latest report (`nhfd.frame_message.REFINE_KEYS`;
-    its "tier" is the stage running: a citl view's sgd steps say "sgd"), the better frame's
-    subframes `[K, 3, h, w]` and where they go (shown in turn, one per refresh: each turn pastes
-    one into a panel, never all K), the refine slot they are in, the one shown last, the citl
-    capture requests so far, and why its emission session ended ("" while it holds)."""
-
-    seq: int
-    tier: str
-    report: dict[str, Any]
-    region: Region | None = None
-    greys: np.ndarray | None = None
-    slot: int | None = None
-    index: int = 0
-    swaps: int = 0
-    captures: int = 0
-    ended: str = ""
-
-    @property
-    def subframes(self) -> int:
-        """How many subframes take turns on the panel (0: none refined yet)."""
-        return 0 if self.greys is None else int(self.greys.shape[0])
-
-
-@dataclass
-class FrameCounts:
-    """What `status.frames` counts (docs/frames.md): frames shown; views never computed because
-    a newer one overtook them (latest wins), plus a frame waiting for its refresh when the
-    worker crashed; frames shown more than one refresh after the worker finished them; and the
-    ages (s, from the frame whole in its slot to the end of the panel write)."""
-
-    shown: int = 0
-    dropped: int = 0
-    late: int = 0
-    last_age_s: float | None = None
-    max_age_s: float = 0.0
-
-    def showed(self, age_s: float | None, refresh_s: float) -> None:
-        """One more frame on the panel, `age_s` old (None: its age is unknown)."""
-        self.shown += 1
-        if age_s is not None:
-            self.last_age_s, self.max_age_s = age_s, max(self.max_age_s, age_s)
-            self.late += age_s > refresh_s
-
-
-@dataclass(frozen=True)
 class FrameEvents:
     """How a `FrameLink` reports to its owner (the daemon), given at construction: it calls
     these on the control loop's thread and never reaches into the owner otherwise.
@@ -468,7 +362,7 @@ class FrameEvents:
     slm_lost  (detail): the SLM refused a frame because its output is lost (`SLMOutputLost`)
     capture   (req_id, request): a citl step of the view on the panel asks for the bench's
               captures (`CaptureRequest`); the owner answers later, from any thread, with
-              `FrameLink.answer_capture`. None: every request is refused.
+              `FrameLink.answer_capture` (`CaptureRelay`). None: every request is refused.
     """
 
     shown: Callable[[int], None]
@@ -480,14 +374,17 @@ class FrameEvents:
 
 class FrameLink:
     """The daemon's use of the worker: send the newest view when the worker is free, show the
-    frames it returns, load models and scenes, and report a worker crash (then restart it with
-    the same model and scene).
+    frames it returns, load models and scenes, relay citl's captures, and report a worker crash
+    (then restart it with the same model and scene).
 
     One thread owns it: the control loop's, which calls `step`, `close`, `status` and reads its
     counters. Load jobs run on threads of their own: `load_model` and `load_scene` only queue a
     `LoadRequest` and wait for the control loop to fill in its outcome, so every field here is
     written by the control loop alone. A queued load goes out at the loop's next step (within
-    `daemon.tick_s`)."""
+    `daemon.tick_s`).
+
+    Its parts: `loads` (a `LoadQueue`), `pacer` (a `FramePacer`), `relay` (a `CaptureRelay`);
+    what they hold reads through here too (`model`, `shown_seq`, `refinement`, `wake_s`, ...)."""
 
     def __init__(self, config: Config, calibration: CalibrationStore, views: ViewSource,
                  panel: Callable[[], PanelView], events: FrameEvents,
@@ -503,43 +400,102 @@ class FrameLink:
         self.panel = panel
         self.events = events
         self.worker = FrameWorker(config, calibration, worker_module)
-        self.model_path: str | None = None
-        self.model_info: dict[str, Any] | None = None  # what the worker reported at the load
-        self.scene_path: str | None = None
         self.state = LinkState.IDLE
         self.inflight: InFlight | None = None
-        self.waiting: WaitingFrame | None = None
         self.sent_seq = 0  # the newest view sent to a worker
-        self.shown_seq = 0
         # The current view again (a new model or scene, a restarted worker, an SLM output back)
         self._resend = False
-        self.timings: dict[str, Any] | None = None
-        self.warnings: list[str] = []
-        self.last_rgb: np.ndarray | None = None
-        self.last_frame: np.ndarray | None = None
-        self.counts = FrameCounts()
-        self.refinement: Refinement | None = None  # of the view on the panel, if it asked
-        self.refresh_s = 1.0 / float(config.slm.refresh_hz)
-        self.last_show_s = -math.inf  # monotonic, when the last view frame went to the panel
-        self.compute_s: float | None = None  # the worker's recent frame time, request to ready
         self.crashes = 0
-        # Loads queued by load jobs' threads (the one thing they touch), and those taken from
-        # it that wait for a worker to send them to.
-        self._requests: queue.SimpleQueue[LoadRequest] = queue.SimpleQueue()
-        self._unsent: list[LoadRequest] = []
-        self._zero: PanelBuffer | None = None  # of the blank frame `_zero_of`, built on use
-        self._zero_of: np.ndarray | None = None
         self._restart_at = 0.0
-        # citl's capture requests the worker still waits for, and the answers bench jobs give
-        # (from their threads) for the control loop to send.
-        self._captures_wanted: set[int] = set()
-        self._capture_answers: queue.SimpleQueue[tuple[int, CaptureReply]] = queue.SimpleQueue()
-        # Where the bench's citl capture job is (request id, what it does), written by that
-        # job's thread alone and read for `status`.
-        self._capture_phase: tuple[int, str] = (0, "")
-        # Emission sessions that ended (from any thread): (the newest view then, why), applied
-        # to the refinement by the control loop.
-        self._emission_ends: queue.SimpleQueue[tuple[int, str]] = queue.SimpleQueue()
+        self.loads = LoadQueue(events.error)
+        self.pacer = FramePacer(1.0 / float(config.slm.refresh_hz), views, panel,
+                                lambda: self.worker, shown=events.shown, error=events.error,
+                                slm_lost=events.slm_lost)
+        self.relay = CaptureRelay(events.capture)
+
+    # -- what the parts hold, read here ----------------------------------------------------------
+
+    @property
+    def model_path(self) -> str | None:
+        """The model file the worker serves (None: none loaded yet)."""
+        return self.loads.model_path
+
+    @property
+    def model(self) -> ModelLoaded | None:
+        """What the worker reported of the model it serves (`status`'s "model" is its
+        `to_json()`), or None."""
+        return self.loads.model
+
+    @property
+    def scene_path(self) -> str | None:
+        """The scene file the worker renders (None: none loaded yet)."""
+        return self.loads.scene_path
+
+    @property
+    def scene(self) -> SceneLoaded | None:
+        """What the worker reported of the scene it renders, or None."""
+        return self.loads.scene
+
+    @property
+    def waiting(self) -> WaitingFrame | None:
+        """The frame back from the worker that waits for its refresh, if any."""
+        return self.pacer.waiting
+
+    @property
+    def refinement(self) -> Refinement | None:
+        """The refinement of the view on the panel, if it asked for one."""
+        return self.pacer.refinement
+
+    @property
+    def shown_seq(self) -> int:
+        """The sequence number of the view whose frame the panel shows last."""
+        return self.pacer.shown_seq
+
+    @property
+    def last_frame(self) -> np.ndarray | None:
+        """The last view frame as shown (`[3, H, W]` uint8), or None."""
+        return self.pacer.last_frame
+
+    @property
+    def last_rgb(self) -> np.ndarray | None:
+        """The last shown frame's render (`[3, H, W]` uint8), or None."""
+        return self.pacer.last_rgb
+
+    @property
+    def timings(self) -> dict[str, Any] | None:
+        """The last shown frame's per-stage timings (ms), its sequence number, cache and
+        clipping (`status`'s "timings")."""
+        return self.pacer.timings
+
+    @property
+    def warnings(self) -> list[str]:
+        """Why the last shown frame's view lies outside the model's pose envelope."""
+        return self.pacer.warnings
+
+    @property
+    def counts(self) -> FrameCounts:
+        """Frames shown, dropped and late (`status.frames`)."""
+        return self.pacer.counts
+
+    @property
+    def refresh_s(self) -> float:
+        """The panel's refresh period (s)."""
+        return self.pacer.refresh_s
+
+    @property
+    def last_show_s(self) -> float:
+        """When the last view frame went to the panel (monotonic s)."""
+        return self.pacer.last_show_s
+
+    @property
+    def due_s(self) -> float:
+        """When the next view frame may go to the panel (monotonic; `FramePacer.due_s`)."""
+        return self.pacer.due_s
+
+    @property
+    def send_at_s(self) -> float:
+        """When the next view may go to the worker (monotonic; `FramePacer.send_at_s`)."""
+        return self.pacer.send_at_s
 
     # -- lifecycle (the control loop's thread) -------------------------------------------------
 
@@ -547,11 +503,7 @@ class FrameLink:
         """Spawn the worker; the model and scene it had (after a crash) load again."""
         self.worker.start()
         self.state = LinkState.STARTING
-        if self.scene_path:
-            self._unsent.insert(0, LoadRequest("scene", self.scene_path, reload=True))
-        if self.model_path:
-            self._unsent.insert(int(bool(self.scene_path)),
-                                LoadRequest("model", self.model_path, reload=True))
+        self.loads.restarted()
         self._send_loads()
 
     def ensure_started(self) -> None:
@@ -565,70 +517,48 @@ class FrameLink:
         """Stop the worker for good; every load still waiting fails ("the frame worker
         stopped")."""
         self.state = LinkState.STOPPED
-        self._captures_wanted.clear()
+        self.relay.cancelled()
         # A frame waiting for its refresh, or in the worker: its slot goes with the worker, as
         # does the refinement's refine slot.
-        self.waiting = self.inflight = self.refinement = None
-        self._report_failed_reloads(self.worker.close())
-        self._take_requests()  # nothing queued may wait for a worker that will not come
-        for request in self._unsent:
-            request.finish(False, "the frame worker stopped")
-        self._unsent.clear()
+        self.inflight = None
+        self.pacer.forget()
+        self.worker.close()
+        self.loads.close()
 
     # -- loads (from load jobs' threads) --------------------------------------------------------
 
-    def load_model(self, path: str) -> dict[str, Any]:
-        """Blocks the calling job until the worker has the model, or raises with the worker's
-        reason (a ModelMismatch names the field); on failure the old model keeps running."""
-        return self._load(LoadRequest("model", path))
+    def load_model(self, path: str) -> ModelLoaded:
+        """Blocks the calling job until the worker has the model (what it reports of it), or
+        raises with the worker's reason (a ModelMismatch names the field); on failure the old
+        model keeps running."""
+        result = self._load(LoadRequest("model", path))
+        assert isinstance(result, ModelLoaded)  # `LoadQueue.answered` checked the kind
+        return result
 
-    def load_scene(self, path: str) -> dict[str, Any]:
+    def load_scene(self, path: str) -> SceneLoaded:
         """Blocks the calling job until the worker has the scene (its counts, centre, up axis),
         or raises with the worker's reason; on failure the old scene keeps rendering."""
-        return self._load(LoadRequest("scene", path))
+        result = self._load(LoadRequest("scene", path))
+        assert isinstance(result, SceneLoaded)
+        return result
 
-    def _load(self, request: LoadRequest) -> dict[str, Any]:
+    def _load(self, request: LoadRequest) -> ModelLoaded | SceneLoaded:
         # Only the queue is touched from this thread (the state is read, never written); the
         # control loop sends the load, and on the worker's answer records the new model or
         # scene and finishes the request.
         if self.state == LinkState.STOPPED:
             raise ValueError("the frame worker stopped")
-        self._requests.put(request)
-        return request.wait(LOAD_TIMEOUT_S, lambda: self.state == LinkState.STOPPED)
-
-    def _take_requests(self) -> None:
-        self._unsent.extend(_drain(self._requests))
+        return self.loads.load(request, LOAD_TIMEOUT_S, lambda: self.state == LinkState.STOPPED)
 
     def _send_loads(self) -> None:
         """Queued loads to the worker, starting it for the first; held while it restarts."""
-        self._take_requests()
-        if self._unsent and self.state == LinkState.IDLE:
+        if self.loads.take() and self.state == LinkState.IDLE:
             self.start()  # sends them
             return
         if self.state not in (LinkState.STARTING, LinkState.RUNNING):
             return
-        for request in self._unsent:
-            self.worker.request(request)
-            self._captures_wanted.clear()  # the worker cancels its refinement for any load
-        self._unsent.clear()
-
-    def _loaded(self, request: LoadRequest, ok: bool, result: Any) -> None:
-        """The worker's answer to a load: on success the link serves the new model or scene
-        (and the current view again with it); a restart's reload that failed is an error in
-        status (no job waits for it)."""
-        if ok:
-            if request.kind == "model":
-                self.model_path, self.model_info = request.path, result
-            else:
-                self.scene_path = request.path
-            self._resend = True
-        request.finish(ok, result)
-        self._report_failed_reloads([request] if not ok else [])
-
-    def _report_failed_reloads(self, requests: list[LoadRequest]) -> None:
-        for r in requests:
-            if r.reload:
-                self.events.error("frame worker", f"reloading {r.kind} {r.path}: {r.result}")
+        if self.loads.send(self.worker.send):
+            self.relay.cancelled()  # the worker cancels its refinement for any load
 
     @property
     def pipe(self) -> Any:
@@ -668,46 +598,21 @@ class FrameLink:
             return
         for msg in msgs:
             self._handle(msg)
-        self._apply_emission_ends()
-        self._send_capture_answers()
-        if self.waiting is not None and time.monotonic() >= self.due_s - DUE_SLACK_S:
-            waiting, self.waiting = self.waiting, None
-            self._show(waiting)
-        elif self._cycling and time.monotonic() >= self.due_s - DUE_SLACK_S:
-            self._show_subframe()
+        for seq, reason in self.relay.emission_ends():
+            self.pacer.emission_ended(seq, reason)
+        self.relay.send_answers(self.worker.send)
+        self.pacer.show_due()
         self._send_next()
-
-    @property
-    def due_s(self) -> float:
-        """When the next view frame may go to the panel (monotonic): one refresh after the
-        last."""
-        return self.last_show_s + self.refresh_s
-
-    @property
-    def send_at_s(self) -> float:
-        """When the next view may go to the worker (monotonic): early enough that its frame is
-        ready for the next refresh (1.5 x the worker's recent frame time plus a margin before
-        it), no earlier, so a worker faster than the panel computes the view that is newest
-        just before the refresh instead of one a refresh old."""
-        if self.compute_s is None:
-            return -math.inf
-        return self.due_s - 1.5 * self.compute_s - SEND_MARGIN_S
-
-    @property
-    def _cycling(self) -> bool:
-        """Whether the panel shows time-multiplexed subframes, one per refresh."""
-        r = self.refinement
-        return r is not None and r.subframes > 1 and self.views.seq == r.seq
 
     @property
     def wake_s(self) -> float:
         """When the control loop must step again (monotonic; inf: nothing is waiting): for a
         frame waiting for its refresh, the next subframe, or a newer view waiting for its time
         to go out."""
-        if self.waiting is not None or self._cycling:
-            return self.due_s
+        if self.pacer.waiting is not None or self.pacer.cycling:
+            return self.pacer.due_s
         if self._ready_to_send():
-            return self.send_at_s  # the step then sends it (_send_next)
+            return self.pacer.send_at_s  # the step then sends it (_send_next)
         return math.inf
 
     def _ready_to_send(self) -> bool:
@@ -719,380 +624,144 @@ class FrameLink:
         views = self.views
         # Without a model, a view above "network" still goes: the worker serves its exact
         # frame (the scene's own hologram, seconds) and refines it.
-        served = self.model_path is not None or (views.view is not None
-                                                 and views.view.quality != "network")
+        served = self.loads.model_path is not None or (views.view is not None
+                                                       and views.view.quality != "network")
         return (self.state == LinkState.RUNNING and self.worker.ready
-                and self.inflight is None and self.waiting is None
-                and served and self.scene_path is not None
+                and self.inflight is None and self.pacer.waiting is None
+                and served and self.loads.scene_path is not None
                 and views.view is not None and (views.seq > self.sent_seq or self._resend))
 
-    def _handle(self, msg: tuple) -> None:
-        kind = msg[0]
-        if kind == "ready":
-            self.worker.ready = True
-            self.state = LinkState.RUNNING
-        elif kind in ("model", "scene"):
-            _, req_id, ok, result = msg
-            request = self.worker.pending.pop(req_id, None)
-            if request is not None:
-                self._loaded(request, ok, result)
-        elif kind == "frame":
-            seq, message = msg[1], msg[2]
-            inflight, self.inflight = self.inflight, None
-            if not isinstance(message, FrameMessage):  # a worker speaking another protocol
-                if inflight is not None:
-                    self.worker.release(inflight.slot)
-                self.events.error("frame worker", f"view {seq}: not a frame message: "
-                                                  f"{type(message).__name__}")
-                return
-            sent_s = inflight.sent_s if inflight is not None and inflight.seq == seq else None
-            if sent_s is not None and message.ready_s is not None:
-                took = max(0.0, message.ready_s - sent_s)
-                self.compute_s = took if self.compute_s is None else (
-                    0.7 * self.compute_s + 0.3 * took)
-            self.waiting = WaitingFrame(seq, message, sent_s)  # one frame at a time
-        elif kind == "frame_error":
-            seq, message = msg[1], msg[2]
-            if self.inflight is not None:
-                self.worker.release(self.inflight.slot)
-            self.inflight = None
-            self.events.error("frame worker", f"view {seq}: {message}")
-        elif kind == "frame_cancelled":  # a load or a newer view overtook an exact frame
-            if self.inflight is not None:
-                self.worker.release(self.inflight.slot)
-            self.inflight = None
-            self.counts.dropped += 1
-        elif kind == "refined":
-            self._refined(msg[1], msg[2])
-        elif kind == "capture":
-            self._capture_requested(msg[1], msg[2], msg[3])
-        elif kind == "refine_error":
-            seq, message = msg[1], msg[2]
-            self.events.error("frame worker", f"view {seq}: refinement failed: {message}")
-            if self.refinement is not None and self.refinement.seq == seq:
-                self.refinement.report = {**self.refinement.report, "stop": f"error: {message}"}
+    def _handle(self, msg: Any) -> None:
+        """One message from the worker, by its type; one of another type is an error in
+        status (the loop goes on)."""
+        match msg:
+            case WorkerReady():
+                self.worker.ready = True
+                self.state = LinkState.RUNNING
+            case Loaded() | LoadFailed():
+                if self.loads.answered(msg):
+                    self._resend = True  # the current view again, with the new model or scene
+            case FrameDone(seq=seq, message=message):
+                self._frame_done(seq, message)
+            case FrameFailed(seq=seq, error=error):
+                self._inflight_over()
+                self.events.error("frame worker", f"view {seq}: {error}")
+            case FrameCancelled():  # a load or a newer view overtook an exact frame
+                self._inflight_over()
+                self.pacer.counts.dropped += 1
+            case BetterFrame(seq=seq, frame=frame):
+                self.pacer.refined(seq, frame)
+            case CaptureAsked(seq=seq, req_id=req_id, request=request):
+                current = self.views.seq == seq and self.pacer.shown_seq == seq
+                if self.relay.asked(seq, req_id, request, current, self.worker.send):
+                    self.pacer.counted_capture(seq)
+            case RefineFailed(seq=seq, error=error):
+                self.pacer.refine_failed(seq, error)
+            case MessageRefused(error=error):
+                self.events.error("frame worker", f"refused {error}")
+            case _:
+                self.events.error("frame worker", refusal(msg, "the frame link", FROM_WORKER))
 
-    def _capture_requested(self, seq: int, req_id: int, request: Any) -> None:
-        """A citl step of view `seq` asks for captures: handed to the owner while `seq` is the
-        view on the panel and the newest asked for; refused (answered at once) otherwise."""
-        why = None
-        if not isinstance(request, CaptureRequest):
-            why = f"not a capture request: {type(request).__name__}"
-        elif self.events.capture is None:
-            why = "this daemon has no camera loop"
-        elif self.views.seq != seq or self.shown_seq != seq:
-            why = f"view {seq} is no longer the one shown"
-        if why is not None:
-            self.worker.send(("captured", req_id, CaptureReply(error=why)))
+    def _frame_done(self, seq: int, message: Any) -> None:
+        """View `seq`'s frame is back: it waits for its refresh (`FramePacer.arrived`)."""
+        inflight, self.inflight = self.inflight, None
+        if not isinstance(message, FrameMessage):  # a worker speaking another protocol
+            if inflight is not None:
+                self.worker.release(inflight.slot)
+            self.events.error("frame worker", f"view {seq}: not a frame message: "
+                                              f"{type(message).__name__}")
             return
-        if self.refinement is not None and self.refinement.seq == seq:
-            self.refinement.captures += 1
-        self._captures_wanted.add(req_id)
-        self.events.capture(req_id, request)
+        sent_s = inflight.sent_s if inflight is not None and inflight.seq == seq else None
+        self.pacer.arrived(seq, message, sent_s)
 
-    def capture_wanted(self, req_id: int) -> bool:
-        """Whether the worker still waits for capture request `req_id` (any thread: a bench job
-        stops capturing once it is not)."""
-        return req_id in self._captures_wanted
-
-    def answer_capture(self, req_id: int, reply: CaptureReply) -> None:
-        """The bench's answer to capture request `req_id` (any thread); the control loop sends
-        it at its next step, while the worker still waits for it."""
-        self._capture_answers.put((req_id, reply))
-
-    def _send_capture_answers(self) -> None:
-        for req_id, reply in _drain(self._capture_answers):
-            if req_id in self._captures_wanted:
-                self._captures_wanted.discard(req_id)
-                self.worker.send(("captured", req_id, reply))
-
-    def _refined(self, seq: int, refined: Any) -> None:
-        """A better frame for view `seq`: shown only while `seq` is the view on the panel and no
-        newer one was asked for (a refinement the worker had not yet seen cancelled is
-        stale); its subframes then take turns, one per refresh. A stale frame's refine slot,
-        and the one the frame before it was in, go back to the worker."""
-        current = self.refinement
-        if not isinstance(refined, RefinedFrame):
-            self.events.error("frame worker", f"view {seq}: not a refined frame: "
-                                              f"{type(refined).__name__}")
-            return
-        if (current is None or current.seq != seq or self.shown_seq != seq
-                or self.views.seq != seq or self.waiting is not None):
-            self.worker.free_refine(refined.slot)
-            return
-        current.report = dict(refined.report)
-        if not refined.subframes:
-            return
-        try:
-            greys = self.worker.refined_arrays(refined)
-        except ValueError as exc:
-            self.events.error("frame worker", f"view {seq}'s refined frame: {exc}")
-            self.worker.free_refine(refined.slot)
-            return
-        previous = current.slot
-        current.region, current.greys, current.slot = refined.region, greys, refined.slot
-        if previous is not None and previous != refined.slot:
-            self.worker.free_refine(previous)
-        current.index, current.swaps = -1, current.swaps + 1
-        self._show_subframe()
-
-    def _show_subframe(self) -> None:
-        """The refinement's next subframe on the panel (the control loop paces them, one per
-        refresh): one subframe pasted into a fresh panel, straight from its refine slot, so a
-        turn of the loop costs one frame whatever K. A panel that refuses it is an error in
-        status; the frame before stays."""
-        r = self.refinement
-        assert r is not None and r.greys is not None and r.region is not None
-        r.index = (r.index + 1) % r.subframes
-        self.last_show_s = time.monotonic()
-        try:
-            panel = self._zero_buffer().frame(r.region.top, r.region.left, r.greys[r.index])
-            self.last_frame = self.panel().show_view(panel, r.seq)
-        except Exception as exc:
-            self.events.error("slm", f"showing view {r.seq}'s refined frame: "
-                                     f"{type(exc).__name__}: {exc}")
-            self._drop_subframes(r)
-            if isinstance(exc, SLMOutputLost):
-                self.events.slm_lost(str(exc))
-
-    def _zero_buffer(self) -> PanelBuffer:
-        """The panel buffer of the blank frame in use now (rebuilt when the blank changes)."""
-        blank = self.panel().blank_frame()
-        if self._zero is None or self._zero_of is not blank:
-            self._zero, self._zero_of = PanelBuffer(blank, reuse=PANELS_REUSED), blank
-        return self._zero
-
-    def _drop_subframes(self, r: Refinement) -> None:
-        """Stop showing `r`'s subframes, and give their refine slot back."""
-        self.worker.free_refine(r.slot)
-        r.greys, r.slot = None, None
-
-    def _drop_refinement(self) -> None:
-        """The refinement of the view on the panel is over (a newer view's frame is shown)."""
-        if self.refinement is not None:
-            self._drop_subframes(self.refinement)
-            self.refinement = None
+    def _inflight_over(self) -> None:
+        """The view in the worker came to nothing (failed, cancelled): its slot is free."""
+        if self.inflight is not None:
+            self.worker.release(self.inflight.slot)
+        self.inflight = None
 
     def _cancel_overtaken_exact(self) -> None:
         """A scene's exact frame with no model takes seconds: when a newer view waits, the
-        worker is asked to cancel it (it answers "frame_cancelled" and the newest view goes
-        out at once) instead of the newer one waiting its turn."""
+        worker is asked to cancel it (it answers `FrameCancelled` and the newest view goes out
+        at once) instead of the newer one waiting its turn."""
         f = self.inflight
         if f is None or not f.exact or f.cancelled or self.views.seq <= f.seq:
             return
-        self.worker.send(("cancel", f.seq))
+        self.worker.send(CancelFrame(f.seq))
         self.inflight = replace(f, cancelled=True)
 
-    # -- the emission sessions (any thread) and citl's status -----------------------------------
+    def _send_next(self) -> None:
+        self._cancel_overtaken_exact()
+        if not self._ready_to_send() or time.monotonic() < self.pacer.send_at_s:
+            return  # the loop wakes at send_at_s (wake_s)
+        seq, view = self.views.seq, self.views.view
+        assert view is not None  # `_ready_to_send`
+        shm_slot = self.worker.take_slot()  # free: no frame of ours is out or waiting
+        self.worker.send(FrameRequest(seq, view, shm_slot))
+        self.relay.cancelled()  # the worker cancels the refinement that asked
+        # Without a model, a view above "network" is the scene's exact frame: seconds.
+        exact = self.loads.model_path is None and view.quality != "network"
+        self.inflight = InFlight(seq, time.monotonic(), shm_slot, exact=exact)
+        if self.sent_seq and seq > self.sent_seq + 1:
+            self.pacer.counts.dropped += seq - self.sent_seq - 1  # overtaken, never computed
+        self.sent_seq = max(self.sent_seq, seq)
+        self._resend = False
+
+    def _crashed(self) -> None:
+        code = self.worker.process.exitcode if self.worker.process is not None else None
+        self.crashes += 1
+        self.relay.cancelled()  # nobody waits for the captures now
+        message = f"frame worker (pid {self.worker.pid}) died with exit code {code}"
+        log.error("%s; lasers off, SLM blanked, restarting", message)
+        # The panel may hold a half-updated or stale frame the daemon no longer controls: the
+        # owner switches the lasers off and blanks the panel (`FrameEvents.crashed`).
+        self.events.crashed(message)
+        # Its refine slot goes with the worker (the panel is blanked); a frame waiting for its
+        # refresh too: never shown.
+        self.pacer.forget(crashed=True)
+        self.worker.close(timeout_s=0.5)
+        self.loads.worker_gone()
+        self.state = LinkState.CRASHED
+        self._resend = True
+        self._restart_at = time.monotonic() + RESTART_BACKOFF_S
+
+    # -- the emission sessions and citl's captures (any thread) ---------------------------------
 
     def emission_ended(self, reason: str) -> None:
         """An emission session ended (a laser off, disarm, stop, shutdown, the guardian's own
         disarm; any thread): the citl run of the view on the panel ends with it. Its capture
         requests are refused by the owner (`FrameEvents.capture`); here `status` says why at
         once (applied at the control loop's next step)."""
-        self._emission_ends.put((self.views.seq, reason))
-
-    def _apply_emission_ends(self) -> None:
-        for seq, reason in _drain(self._emission_ends):
-            r = self.refinement
-            if r is not None and r.tier == "citl" and r.seq <= seq and not r.ended:
-                r.ended = reason
+        self.relay.emission_ended(self.views.seq, reason)
 
     def capture_phase(self, req_id: int, what: str) -> None:
         """Where the bench's capture job for request `req_id` is (its thread only)."""
-        self._capture_phase = (req_id, what)
+        self.relay.phase(req_id, what)
 
-    def _send_next(self) -> None:
-        self._cancel_overtaken_exact()
-        if not self._ready_to_send() or time.monotonic() < self.send_at_s:
-            return  # the loop wakes at send_at_s (wake_s)
-        seq, view = self.views.seq, self.views.view
-        shm_slot = self.worker.take_slot()  # free: no frame of ours is out or waiting
-        self.worker.send(("frame", seq, view, shm_slot))
-        self._captures_wanted.clear()  # the worker cancels the refinement that asked
-        # Without a model, a view above "network" is the scene's exact frame: seconds.
-        exact = self.model_path is None and view is not None and view.quality != "network"
-        self.inflight = InFlight(seq, time.monotonic(), shm_slot, exact=exact)
-        if self.sent_seq and seq > self.sent_seq + 1:
-            self.counts.dropped += seq - self.sent_seq - 1  # overtaken, never computed
-        self.sent_seq = max(self.sent_seq, seq)
-        self._resend = False
+    def capture_wanted(self, req_id: int) -> bool:
+        """Whether the worker still waits for capture request `req_id` (any thread: a bench job
+        stops capturing once it is not)."""
+        return self.relay.wanted(req_id)
 
-    def _show(self, waiting: WaitingFrame) -> None:
-        seq, message = waiting.seq, waiting.message
-        # One clock (monotonic) for all: the worker's ready_s is CLOCK_MONOTONIC, as is sent_s.
-        t0 = self.last_show_s = time.monotonic()
-        # A frame that cannot be shown (a region off the panel, arrays that do not fit the
-        # slot, the SLM refusing it) is an error in status, not an exception out of the control
-        # loop: the panel keeps the frame before it and the daemon keeps running.
-        try:
-            try:
-                panel, rgb = self._panel(message)
-            finally:  # copied out (or refused): the worker may write the slot again
-                self.worker.release(message.slot)
-            # The panel applies the colour mode, and holds the frame back during a capture.
-            frame = self.panel().show_view(panel, seq)
-        except Exception as exc:
-            self.events.error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
-            if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
-                self.events.slm_lost(str(exc))
-            return
-        done = time.monotonic()
-        self.counts.showed(None if message.ready_s is None else done - message.ready_s,
-                           self.refresh_s)
-        stages = {**message.timings.seconds(), "output": done - t0}
-        timings: dict[str, Any] = {f"{k}_ms": round(v * 1e3, 3) for k, v in stages.items()}
-        if waiting.sent_s is not None:
-            timings["view_to_slm_ms"] = round((done - waiting.sent_s) * 1e3, 3)
-        timings.update(seq=seq, cached=message.cached,
-                       clipped_fraction=list(message.clipped_fraction))
-        self.timings = timings
-        self.warnings = list(message.warnings)
-        self.last_rgb, self.last_frame = rgb, frame
-        self.shown_seq = seq
-        view = self.views.view if self.views.seq == seq else None
-        quality = view.quality if view is not None else "network"
-        self._drop_refinement()
-        if quality != "network":
-            # A scene's exact frame with no model is the exact tier already: nothing follows.
-            done = "exact" if message.tier == quality else ""
-            self.refinement = Refinement(seq, quality, {
-                "tier": message.tier if done else quality, "iterations": 0, "seconds": 0.0,
-                "loss": None, "psnr_db": None, "start_psnr_db": None, "stop": done})
-        self.events.shown(seq)
+    def answer_capture(self, req_id: int, reply: CaptureReply) -> None:
+        """The bench's answer to capture request `req_id` (any thread); the control loop sends
+        it at its next step, while the worker still waits for it."""
+        self.relay.answer(req_id, reply)
 
-    def _panel(self, message: FrameMessage) -> tuple[np.ndarray, np.ndarray | None]:
-        """The full panel: the blank frame (the zero pattern of the coding in use) outside the
-        coded region; and a copy of the render. Both copied out of the frame's slot."""
-        grey, rgb = self.worker.arrays(message)
-        panel = self._zero_buffer().frame(message.region.top, message.region.left, grey)
-        rgb = None if rgb is None else rgb.copy()
-        del grey  # no view into the slot outlives this call
-        return panel, rgb
-
-    def _crashed(self) -> None:
-        code = self.worker.process.exitcode if self.worker.process is not None else None
-        self.crashes += 1
-        self._captures_wanted.clear()  # nobody waits for them now
-        message = f"frame worker (pid {self.worker.pid}) died with exit code {code}"
-        log.error("%s; lasers off, SLM blanked, restarting", message)
-        # The panel may hold a half-updated or stale frame the daemon no longer controls: the
-        # owner switches the lasers off and blanks the panel (`FrameEvents.crashed`).
-        self.events.crashed(message)
-        self.refinement = None  # its refine slot goes with the worker; the panel is blanked
-        if self.waiting is not None:  # its slot goes with the worker: never shown
-            self.counts.dropped += 1
-            self.waiting = None
-        self._report_failed_reloads(self.worker.close(timeout_s=0.5))
-        self.state = LinkState.CRASHED
-        self._resend = True
-        self._restart_at = time.monotonic() + RESTART_BACKOFF_S
+    # -- status ---------------------------------------------------------------------------------
 
     def status(self) -> dict[str, Any]:
         """`status.frames`: the worker, what it serves, the sequence numbers, the counts and
         the pacing."""
-        info, c = self.model_info or {}, self.counts
-        pacing = f"timer: one frame per refresh at {1 / self.refresh_s:g} Hz (slm.refresh_hz)"
-        vsync = self.panel().vsync_detail  # the framebuffer's FBIO_WAITFORVSYNC, or why not
-        if vsync:
-            pacing += f"; {vsync}"
+        model = self.loads.model
         return {"state": str(self.state), "pid": self.worker.pid, "alive": self.worker.alive,
-                "model": self.model_path, "scene": self.scene_path,
-                "model_variant": info.get("variant"),
-                "model_variant_reason": info.get("variant_reason"),
-                "sent_seq": self.sent_seq, "shown_seq": self.shown_seq,
-                "frames_shown": c.shown, "frames_dropped": c.dropped, "frames_late": c.late,
-                "last_frame_age_ms": (None if c.last_age_s is None
-                                      else round(c.last_age_s * 1e3, 3)),
-                "max_frame_age_ms": round(c.max_age_s * 1e3, 3),
-                "refresh_hz": round(1 / self.refresh_s, 6), "pacing": pacing,
-                "transport": self.worker.transport, "crashes": self.crashes,
-                "pose_warnings": self.warnings, "refine": self._refine_status()}
-
-    def _refine_status(self) -> dict[str, Any] | None:
-        """`status.frames.refine`: the refinement of the view on the panel (None: it asked for
-        the network's frame): the worker's report, the tier asked for and the stage running
-        (`stage`: a citl view's first steps are sgd's), what it is doing now (`phase`: "sgd
-        through the bench model", "citl step 3: capturing green at plane 2 of 3"), the view's
-        sequence number, the better frames swapped in and the subframes shown in turn. A citl
-        run whose emission session ended says so in `stop` at once ("stopped: lasers off ...")."""
-        r = self.refinement
-        if r is None:
-            return None
-        out = {**r.report, "tier": r.tier, "stage": r.report.get("tier", r.tier),
-               "seq": r.seq, "swaps": r.swaps, "subframes": r.subframes,
-               "capture_steps": r.captures}
-        if r.ended:
-            out["stop"] = f"stopped: {r.ended}"
-        out["phase"] = self._phase(r, out)
-        return out
-
-    def _phase(self, r: Refinement, shown: dict[str, Any]) -> str:
-        """What the refinement `r` does now, in a few words ("" once it stopped)."""
-        if shown.get("stop"):
-            return ""
-        req_id, what = self._capture_phase
-        if r.tier == "citl" and req_id in self._captures_wanted:
-            return f"citl step {r.captures}: {what or 'waiting for the bench'}"
-        stage = shown["stage"]
-        if stage == "citl":
-            return f"citl step {r.captures}: fitting the captures"
-        if shown.get("iterations"):
-            return f"{stage} through the bench model"
-        return "the view's light-field inversion (its exact target)"
-
-
-class PanelBuffer:
-    """Full panel frames from the zero pattern and a coded region, built in the SLM's `[H, W, 3]`
-    layout: a frame is a fresh copy of the interleaved zero pattern with the region interleaved
-    in, returned as its `[3, H, W]` view. `nhfd.drivers.slm.to_rgb` takes that view as it is,
-    where a channel-first frame costs a transposing copy of the whole panel (~10 ms at
-    1920 x 1080)."""
-
-    def __init__(self, zero: np.ndarray, reuse: int = 0) -> None:
-        """`reuse`: 0, every frame is a fresh array; N > 0, frames are built in N arrays reused
-        in turn, so a frame stays as it was until N - 1 newer ones (the control loop's: a
-        fresh 6 MB panel costs ~500 page faults, 13 ms of CPU on this project's VM, where a
-        copy into memory already touched costs 0.5 ms)."""
-        self.zero_hwc = np.ascontiguousarray(np.asarray(zero, np.uint8).transpose(1, 2, 0))
-        self.reuse = int(reuse)
-        self._outs: list[np.ndarray] = []
-        self._next = 0
-
-    def _out(self) -> np.ndarray:
-        if len(self._outs) < self.reuse:
-            self._outs.append(self.zero_hwc.copy())
-            return self._outs[-1]
-        if not self.reuse:
-            return self.zero_hwc.copy()
-        out = self._outs[self._next]
-        self._next = (self._next + 1) % self.reuse
-        np.copyto(out, self.zero_hwc)
-        return out
-
-    def frame(self, top: int, left: int, grey: np.ndarray) -> np.ndarray:
-        """The panel `[3, H, W]` (a view of its `[H, W, 3]` array) with `grey` `[3, h, w]` at
-        (top, left). A grey region in the SLM's layout (`is_interleaved`: a device frame's) is
-        pasted row by row; a channel-first one is interleaved plane by plane (at 1920 x 1080 on
-        this project's CPU: 0.2 against 1.7 ms)."""
-        out = self._out()
-        _, h, w = grey.shape
-        dst = out[top : top + h, left : left + w]
-        if is_interleaved(grey):
-            dst[...] = grey.transpose(1, 2, 0)
-        else:
-            for c in range(grey.shape[0]):
-                dst[..., c] = grey[c]
-        return out.transpose(2, 0, 1)
-
-
-def _drain(q: queue.SimpleQueue[Any]) -> Iterator[Any]:
-    """What other threads have put on `q` so far, in order (never blocks)."""
-    while True:
-        try:
-            yield q.get_nowait()
-        except queue.Empty:
-            return
+                "model": self.loads.model_path, "scene": self.loads.scene_path,
+                "model_variant": None if model is None else model.variant,
+                "model_variant_reason": None if model is None else model.variant_reason,
+                "sent_seq": self.sent_seq, "shown_seq": self.pacer.shown_seq,
+                **self.pacer.status(), "transport": self.worker.transport,
+                "crashes": self.crashes, "pose_warnings": self.pacer.warnings,
+                "refine": self.pacer.refine_status(self.relay.waiting_phase())}
 
 
 def _accepted(calibration: CalibrationStore) -> Calibration | None:

@@ -60,6 +60,7 @@ from nhfd.calibration import CalibrationFileError, CalibrationStore
 from nhfd.config import Config
 from nhfd.device_settings import COLOURS
 from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES, is_sog_folder
+from nhfd.worker_messages import ModelLoaded, SceneLoaded
 
 from .arming import ArmingGate
 from .audit import AuditLog
@@ -94,12 +95,12 @@ class Frames(ShownViews, Protocol):
 
     model_path: str | None
 
-    def load_scene(self, path: str) -> dict[str, Any]:
+    def load_scene(self, path: str) -> SceneLoaded:
         """Load the scene file at `path` into the worker, blocking until it answers: the scene's
         counts, centre and up axis; raises with the worker's reason."""
         ...
 
-    def load_model(self, path: str) -> dict[str, Any]:
+    def load_model(self, path: str) -> ModelLoaded:
         """Load the model file at `path` into the worker, blocking until it answers: the model's
         information; raises with the worker's reason."""
         ...
@@ -533,7 +534,7 @@ def _load_scene(ctx: RpcContext, conn: Connection, p: Params) -> Any:
         job.check()
         info = {"path": str(path), **counts, "loaded_s": time.time()}
         # The frame worker loads its own copy (it renders in another process).
-        info.update(ctx.frames.load_scene(str(path)), loaded_s=time.time())
+        info.update(ctx.frames.load_scene(str(path)).to_json(), loaded_s=time.time())
         ctx.scene = info  # replaced only now: on failure the old scene keeps running
         return info
 
@@ -555,7 +556,7 @@ def _load_model(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     def run(job: Job) -> dict[str, Any]:
         # The worker checks the metadata against [optics] (ModelMismatch names each differing
         # field) and swaps models only on success: on failure the old one keeps running.
-        return ctx.frames.load_model(str(path))
+        return ctx.frames.load_model(str(path)).to_json()
 
     return _submit_load(ctx, "load_model", path, run)
 

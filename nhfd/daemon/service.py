@@ -629,7 +629,7 @@ class Daemon:
                       "wavelengths_m": list(self.config.optics.wavelengths_m)},
             "colour": {"mode": c.colour_mode, "single_colour": c.single_colour},
             "scene": self.rpc.scene,
-            "model": self.frames.model_info or "none loaded",
+            "model": self.frames.model.to_json() if self.frames.model else "none loaded",
             "calibration": calibration_status(self.config, self.calibration, self.errors.note),
             "view": self.views.snapshot(),
             "navigator": self.navigation.status(),

@@ -21,5 +21,5 @@ own process by name and talks to it over a pipe (`nhfd.daemon.frame_link`); the 
   citl      the camera in the loop's worker half: a `Capture` served by the daemon's bench
             over the pipe (`RemoteCapture`), captures -> the window's grid (`captured_window`)
   worker    the frame worker process: `worker_main`, model loading and checking (`open_model`,
-            `check_inference`, `ModelUnfit`, `model_info`), the frame cache
+            `check_inference`, `ModelUnfit`; a load reported as a `ModelLoaded`), the frame cache
 """

@@ -2,10 +2,10 @@
 window's grid, and `RemoteCapture`, the `nhfd.pipeline.refine.Capture` a frame worker uses.
 
 The camera belongs to the daemon and the optimisation to the frame worker. Each citl step the
-worker sends `("capture", seq, req_id, CaptureRequest)` (the step's subframes and the planes'
-depths); the daemon's bench shows them, captures each plane with each colour's diode alone on
-(`nhfd.daemon.citl`) and answers `("captured", req_id, CaptureReply)` with the raw camera
-images, which are mapped here onto the SLM's grid through the calibration's geometry
+worker sends a `CaptureAsked(seq, req_id, CaptureRequest)` (the step's subframes and the
+planes' depths); the daemon's bench shows them, captures each plane with each colour's diode
+alone on (`nhfd.daemon.citl`) and answers `CaptureAnswer(req_id, CaptureReply)` with the raw
+camera images, which are mapped here onto the SLM's grid through the calibration's geometry
 (`captured_window`, also what the offline `nhfd.calib.citl.CameraLoop` uses).
 """
 
@@ -22,6 +22,7 @@ import numpy as np
 from nhfd.calibration import Calibration
 from nhfd.frame_message import CaptureReply, CaptureRequest
 from nhfd.optics.camera_grid import Geometry, calibrated_geometry, to_slm_grid
+from nhfd.worker_messages import CaptureAsked
 
 from .encoder import Encoder
 from .refine import Cancelled, CaptureStopped
@@ -75,13 +76,13 @@ class RemoteCapture:
     the images; its focus mapping moves the stage, in the daemon). `camera_pitch_m`: the bench
     camera's pixel pitch, where the calibration did not record it.
 
-    `send` puts a message on the pipe; the worker's loop hands each ("captured", req_id, reply)
-    to `deliver`. A call waits for its own reply, polling `stop` (then `Cancelled`); an error
+    `send` puts a message on the pipe; the worker's loop hands each `CaptureAnswer`'s req_id and
+    reply to `deliver`. A call waits for its own reply, polling `stop` (then `Cancelled`); an error
     reply, or none within `timeout_s`, is `CaptureStopped` with the daemon's reason."""
 
     _ids = itertools.count(1)
 
-    def __init__(self, send: Callable[[tuple], None], seq: int, encoder: Encoder,
+    def __init__(self, send: Callable[[CaptureAsked], None], seq: int, encoder: Encoder,
                  calibration: Calibration, stop: threading.Event, *, camera_pitch_m: float,
                  frames: int = 0,
                  timeout_s: float = CAPTURE_TIMEOUT_S) -> None:
@@ -102,9 +103,9 @@ class RemoteCapture:
         s = self.encoder.settings
         req_id = next(self._ids)
         z_m = tuple(s.z0_m + s.refocus_m + float(dz) for dz in planes_m)
-        self.send(("capture", self.seq, req_id,
-                   CaptureRequest(self.encoder.region, np.asarray(grey, np.uint8), z_m,
-                                  self.frames)))
+        self.send(CaptureAsked(self.seq, req_id,
+                               CaptureRequest(self.encoder.region, np.asarray(grey, np.uint8),
+                                              z_m, self.frames)))
         self.requests += 1
         deadline = time.monotonic() + self.timeout_s
         while True:

@@ -6,28 +6,30 @@ loop that feeds the laser guardian's heartbeat. The daemon (`nhfd.daemon.frame_l
 by this module's name, with the thread counts in the environment before anything here imports
 torch, numba or onnxruntime (a fresh interpreter: no pools exist yet).
 
-Protocol (tuples over one duplex `multiprocessing` pipe):
+Protocol: typed messages over one duplex `multiprocessing` pipe (`nhfd.worker_messages`, the
+table in docs/frames.md), matched by type; a message of any other type is answered with
+`MessageRefused` naming it.
 
-  daemon -> worker   ("model", req_id, path)   ("scene", req_id, path)
-                     ("frame", seq, view, slot) ("stop",)
-                     ("captured", req_id, reply) ("refine_free", slot)
-                     ("cancel", seq)
-  worker -> daemon   ("ready", pid)
-                     ("model" | "scene", req_id, ok, info | error message)
-                     ("frame", seq, message)    ("frame_error", seq, message)
-                     ("refined", seq, refined)  ("refine_error", seq, message)
-                     ("frame_cancelled", seq)   ("capture", seq, req_id, request)
+  daemon -> worker   FrameRequest(seq, view, slot)   LoadModel(req_id, path)
+                     LoadScene(req_id, path)         CancelFrame(seq)
+                     CaptureAnswer(req_id, reply)    RefineSlotFree(slot)   Stop()
+  worker -> daemon   WorkerReady(pid)
+                     Loaded(req_id, ModelLoaded | SceneLoaded)   LoadFailed(req_id, error)
+                     FrameDone(seq, message)         FrameFailed(seq, error)
+                     BetterFrame(seq, frame)         RefineFailed(seq, error)
+                     FrameCancelled(seq)             CaptureAsked(seq, req_id, request)
+                     MessageRefused(kind, error)
 
 A view whose `quality` is above "network" is refined after its network frame is sent
-(`Refiner`, a thread): each better frame comes as a `RefinedFrame` until the refinement stops or
-any message from the daemon but a "captured" or a "refine_free" cancels it ("cancel" does only
-that: a newer view waits for a scene's exact frame no longer). A better frame's K subframes go
-into one of the daemon's two refine slots (shared memory), which the daemon gives back with
-"refine_free" once it shows newer ones; so what crosses the pipe is small whatever K. A `citl`
-view's steps ask the daemon's bench for captures (`nhfd.pipeline.citl.RemoteCapture`: a
-`CaptureRequest`, answered by a `CaptureReply`). With no model loaded, such a view's first
-frame is its exact frame (the scene's own hologram, seconds later), or "frame_cancelled" when
-a load or a newer view came first.
+(`Refiner`, a thread): each better frame comes as a `BetterFrame` (a `RefinedFrame`) until the
+refinement stops or any message from the daemon but a `CaptureAnswer` or a `RefineSlotFree`
+cancels it (`CancelFrame` does only that: a newer view waits for a scene's exact frame no
+longer). A better frame's K subframes go into one of the daemon's two refine slots (shared
+memory), which the daemon gives back with `RefineSlotFree` once it shows newer ones; so what
+crosses the pipe is small whatever K. A `citl` view's steps ask the daemon's bench for captures
+(`nhfd.pipeline.citl.RemoteCapture`: a `CaptureAsked`, answered by a `CaptureAnswer`). With no
+model loaded, such a view's first frame is its exact frame (the scene's own hologram, seconds
+later), or `FrameCancelled` when a load or a newer view came first.
 
 The view is an `nhfd.views.View` and a frame's message an `nhfd.frame_message.FrameMessage`:
 L0 values both processes import, read by name.
@@ -39,10 +41,12 @@ that slot until its reply, the daemon from then until it has copied the frame ou
 then says where the arrays are (`slot`, `grey_shape`, `rgb_shape`) and carries no array. With
 slot None (`"pickle"`) the arrays travel in the message, pickled, as before.
 
-Everything the daemon learns of the model (what `status` reports of it, why it was refused:
-`ModelUnfit`, `ModelMismatch`) crosses the pipe as data: the daemon never imports the model
-code. The worker drains its pipe before each frame and computes only the newest view (latest
-wins); loads are applied in order, and a failed load leaves the previous model or scene in use.
+Everything the daemon learns of the model crosses the pipe as data: what `status` reports of
+it as a `ModelLoaded` (the model's own `ModelInfo` and the facts of its serving), why it was
+refused (`ModelUnfit`, `ModelMismatch`) as a `LoadFailed`'s text; the daemon never imports the
+model code. The worker drains its pipe before each frame and computes only the newest view
+(latest wins); loads are applied in order, and a failed load leaves the previous model or scene
+in use.
 """
 
 from __future__ import annotations
@@ -80,6 +84,29 @@ from nhfd.models.sizes import window_check
 from nhfd.models.torch_model import TorchModel
 from nhfd.scene.io import read_scene
 from nhfd.views import View
+from nhfd.worker_messages import (
+    TO_WORKER,
+    BetterFrame,
+    CancelFrame,
+    CaptureAnswer,
+    FrameCancelled,
+    FrameDone,
+    FrameFailed,
+    FrameRequest,
+    FromWorker,
+    Loaded,
+    LoadFailed,
+    LoadModel,
+    LoadScene,
+    MessageRefused,
+    ModelLoaded,
+    RefineFailed,
+    RefineSlotFree,
+    SceneLoaded,
+    Stop,
+    WorkerReady,
+    refusal,
+)
 
 from .citl import RemoteCapture
 from .device import frame_device, inference_backend
@@ -174,7 +201,7 @@ def open_model(path: str, config: Config, threads: int) -> Any:
                            engine_cache_dir=d.engine_cache_dir or None)
     else:  # validates; raises ModelMismatch etc.
         model = load_model(path, config, threads=threads, providers=tuple(providers))
-    # reported in status (model_info): what to compare daemon.model_memory_mb with
+    # reported in status (ModelLoaded.load_memory_mb): what to compare daemon.model_memory_mb with
     model.load_memory_mb = round(probe["peak_mb"], 1)
     return model
 
@@ -227,15 +254,6 @@ def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
         if bad:
             raise ModelUnfit(f"{path}: output {name}: expected finite values, found {bad} of "
                              f"{out.size} not finite (test inference on a mid-grey frame)")
-
-
-def model_info(model: Any, path: str) -> dict[str, Any]:
-    """What the daemon reports of a loaded model (its `status`'s "model"): plain data, from the
-    model's `ModelInfo` (`ModelInfo.status_json`) and its session."""
-    return {"path": path, **model.info.status_json(),
-            "providers": list(model.providers), "loaded_s": time.time(),
-            # the memory its session and test run took in the load's probe (open_model)
-            "load_memory_mb": getattr(model, "load_memory_mb", None)}
 
 
 def cpu_path(daemon: DaemonSettings) -> bool:
@@ -297,7 +315,7 @@ class FrameSlots:
         self.shms = [shared_memory.SharedMemory(name=name) for name in names]
         self.refine_shms = [shared_memory.SharedMemory(name=name) for name in refine_names]
         # The refine slots this worker may write: all at first; the daemon gives each back
-        # ("refine_free") once it no longer shows what is in it.
+        # (`RefineSlotFree`) once it no longer shows what is in it.
         self.free_refine: queue.SimpleQueue[int] = queue.SimpleQueue()
         for i in range(len(self.refine_shms)):
             self.free_refine.put(i)
@@ -368,9 +386,10 @@ class _WorkerState:
         self.cache: OrderedDict[tuple[View, int, int], FrameMessage] = OrderedDict()
         self.cache_size = int(config.daemon.frame_cache_frames)
 
-    def load_model(self, path: str) -> dict[str, Any]:
+    def load_model(self, path: str) -> ModelLoaded:
         """The float model at `path`, or its int8 sibling where `choose_variant` says so (an
-        int8 model that fails to load or to infer falls back to the float one, saying why)."""
+        int8 model that fails to load or to infer falls back to the float one, saying why):
+        what the daemon reports of it (the served model's `ModelInfo` and how it serves)."""
         daemon = self.config.daemon
         model = open_model(path, self.config, self.threads)
         window_hw = frame_window_hw(daemon, self.config.slm, model.info)
@@ -399,23 +418,25 @@ class _WorkerState:
         # recorded False: an older export, only its training window counts as checked
         checked, recorded = served.info.checked_sizes_hw()
         device, device_why = worker_device(daemon.device, daemon.inference)
-        info = model_info(served, path)
-        info["inference"], info["inference_reason"] = worker_inference(daemon)
-        info.update(variant=variant, variant_reason=why,
-                    served=str(sibling) if variant == "int8" else path,
-                    window_hw=list(window_hw), checked_sizes_hw=[list(hw) for hw in checked],
-                    checked_sizes_recorded=recorded, device=str(device), device_reason=device_why)
-        if warning:
-            info["size_warning"] = warning
-        return info
+        inference, inference_why = worker_inference(daemon)
+        return ModelLoaded(
+            path=path, info=served.info, served=str(sibling) if variant == "int8" else path,
+            variant=variant, variant_reason=why, providers=tuple(served.providers),
+            inference=inference, inference_reason=inference_why, device=str(device),
+            device_reason=device_why, window_hw=window_hw, checked_sizes_hw=tuple(checked),
+            checked_sizes_recorded=recorded, loaded_s=time.time(),
+            # the memory its session and test run took in the load's probe (open_model)
+            load_memory_mb=getattr(served, "load_memory_mb", None), size_warning=warning or "")
 
-    def load_scene(self, path: str) -> dict[str, Any]:
+    def load_scene(self, path: str) -> SceneLoaded:
+        """The scene file at `path`, read within `daemon.max_gaussians`: its counts, centre and
+        up axis."""
         load = read_scene(path, self.config.daemon.max_gaussians)
         frame = scene_frame(load.gaussians, path)
         self.scene = Scene(load.gaussians, frame)
         self.scene_id += 1
         self.encoders.clear()
-        return {"path": path, **load.counts(), "center": frame.center, "up": frame.up}
+        return SceneLoaded(path=path, **load.counts(), center=frame.center, up=frame.up)
 
     def encoder(self, refocus_m: float) -> Encoder:
         if refocus_m not in self.encoders:
@@ -453,12 +474,13 @@ class _WorkerState:
 class Refiner:
     """Progressive refinement (issue 34) in a thread of the worker: once a view's network frame
     is sent, a view asking for a higher tier (`View.quality`) is refined while no newer message
-    waits, and each better frame goes to the daemon as ("refined", seq, `RefinedFrame`); a
-    failure goes as ("refine_error", seq, message). `cancel` (any message from the daemon: a
-    new view, a load, stop) stops it between steps and waits for the thread, which polls
-    between each colour's propagation: the new view's frame starts within one of them."""
+    waits, and each better frame goes to the daemon as a `BetterFrame` (a `RefinedFrame`); a
+    failure goes as a `RefineFailed`. `cancel` (any message from the daemon but a capture
+    answer or a refine slot given back: a new view, a load, stop) stops it between steps and
+    waits for the thread, which polls between each colour's propagation: the new view's frame
+    starts within one of them."""
 
-    def __init__(self, send: Callable[[tuple], None], config: Config,
+    def __init__(self, send: Callable[[FromWorker], None], config: Config,
                  calibration: CalibrationStore, slots: FrameSlots | None = None) -> None:
         """`calibration`: the worker's (the bench model, citl's camera mapping). `slots`: the
         daemon's shared memory, whose refine slots carry the better frames (None: they are
@@ -520,13 +542,13 @@ class Refiner:
         except Cancelled:  # a newer message stopped it (in the inversion or a step): no error
             pass
         except Exception as exc:  # reported to the daemon; the frame shown stays
-            self.send(("refine_error", seq, f"{type(exc).__name__}: {exc}"))
+            self.send(RefineFailed(seq, f"{type(exc).__name__}: {exc}"))
 
     def _refine(self, seq: int, view: View, p: Prepared, start: np.ndarray,
                 stop: threading.Event) -> None:
         """Refine prepared view `seq` from the grey region `start` at its tier, sending each
-        better frame as ("refined", seq, `RefinedFrame`) and the best one when it stops (unless
-        a newer message cancelled it)."""
+        better frame as a `BetterFrame` and the best one when it stops (unless a newer message
+        cancelled it)."""
         enc = p.encoder
 
         def better(refined: Refined, wait_s: float = BETTER_WAIT_S) -> None:
@@ -535,7 +557,7 @@ class Refiner:
             # refinement's own array never crosses.
             if self.slots is not None:
                 frame = self.slots.write_refined(frame, wait_s)
-            self.send(("refined", seq, frame))
+            self.send(BetterFrame(seq, frame))
 
         capture = self._remote_capture(seq, view, enc, stop)
         refined = refine_view(p, view.quality, self.config.refine, start=start, capture=capture,
@@ -577,9 +599,9 @@ class Refiner:
                 return
             self._refine(seq, view, p, p.exact_grey, stop)
         except Cancelled:
-            self.send(("frame_cancelled", seq))
+            self.send(FrameCancelled(seq))
         except Exception as exc:
-            self.send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))
+            self.send(FrameFailed(seq, f"{type(exc).__name__}: {exc}"))
 
 
 def worker_main(conn: Any, config_data: dict[str, Any],
@@ -603,7 +625,7 @@ def worker_main(conn: Any, config_data: dict[str, Any],
 def _serve(conn: Any, state: _WorkerState, shm: FrameSlots | None) -> None:
     lock = threading.Lock()
 
-    def send(msg: tuple) -> None:  # the refinement thread sends too
+    def send(msg: FromWorker) -> None:  # the refinement thread sends too
         with lock:
             conn.send(msg)
 
@@ -614,9 +636,9 @@ def _serve(conn: Any, state: _WorkerState, shm: FrameSlots | None) -> None:
         refiner.cancel()
 
 
-def _serve_loop(conn: Any, send: Callable[[tuple], None], state: _WorkerState,
+def _serve_loop(conn: Any, send: Callable[[FromWorker], None], state: _WorkerState,
                 shm: FrameSlots | None, refiner: Refiner) -> None:
-    send(("ready", os.getpid()))
+    send(WorkerReady(os.getpid()))
     while True:
         try:
             msgs = [conn.recv()]
@@ -625,54 +647,78 @@ def _serve_loop(conn: Any, send: Callable[[tuple], None], state: _WorkerState,
         except (EOFError, OSError):
             return  # the daemon is gone: nothing to show frames to
         # The bench's captures go to the citl step waiting for them, and refine slots given
-        # back return to the pool; anything else means the view being refined is no longer
-        # alone.
+        # back return to the pool; any other message the worker takes means the view being
+        # refined is no longer alone. One it does not take is refused by name, and changes
+        # nothing.
+        commands: list[FrameRequest | LoadModel | LoadScene | CancelFrame | Stop] = []
         for msg in msgs:
-            if msg[0] == "captured":
-                refiner.deliver(msg[1], msg[2])
-            elif msg[0] == "refine_free" and shm is not None:
-                shm.free_refine.put(int(msg[1]))
-        msgs = [msg for msg in msgs if msg[0] not in ("captured", "refine_free")]
-        if not msgs:
+            match msg:
+                case CaptureAnswer(req_id=req_id, reply=reply):
+                    refiner.deliver(req_id, reply)
+                case RefineSlotFree(slot=slot):
+                    if shm is not None:
+                        shm.free_refine.put(int(slot))
+                case FrameRequest() | LoadModel() | LoadScene() | CancelFrame() | Stop():
+                    commands.append(msg)
+                case _:
+                    send(MessageRefused(type(msg).__name__,
+                                        refusal(msg, "the frame worker", TO_WORKER)))
+        if not commands:
             continue
         refiner.cancel()
-        latest: tuple | None = None
-        for msg in msgs:
-            if msg[0] == "stop":
-                return
-            if msg[0] == "cancel":  # the refinement (or an exact frame) only: done above
-                continue
-            if msg[0] == "frame":
-                latest = msg  # latest wins: an older view that was overtaken is never computed
-                continue
-            kind, req_id, path = msg
-            try:
-                info = state.load_model(path) if kind == "model" else state.load_scene(path)
-                send((kind, req_id, True, info))
-            except Exception as exc:  # reported to the daemon; the old model/scene stays
-                send((kind, req_id, False, f"{type(exc).__name__}: {exc}"))
+        latest: FrameRequest | None = None
+        for msg in commands:
+            match msg:
+                case Stop():
+                    return
+                case CancelFrame():  # the refinement (or an exact frame) only: done above
+                    continue
+                case FrameRequest():
+                    latest = msg  # latest wins: an older view that was overtaken is never computed
+                case LoadModel(req_id=req_id, path=path):
+                    _load(send, req_id, state.load_model, path)
+                case LoadScene(req_id=req_id, path=path):
+                    _load(send, req_id, state.load_scene, path)
         if latest is not None:
-            seq, view, slot = latest[1], latest[2], latest[3] if len(latest) > 3 else None
-            if state.model is None and state.scene is not None and view.quality != "network":
+            _frame(send, state, shm, refiner, latest)
 
-                def first(message: FrameMessage, seq: int = seq, slot: int | None = slot
-                          ) -> None:
-                    if slot is not None and shm is not None:
-                        message = shm.write(slot, message)
-                    send(("frame", seq, message.ready(time.monotonic())))
 
-                refiner.start_without_model(seq, view, state, first)
-                continue
-            try:
-                message = state.frame(view)
-                network = message.grey
-                if slot is not None and shm is not None:
-                    message = shm.write(slot, message)
-                # When the frame was whole in its slot (CLOCK_MONOTONIC, shared by both
-                # processes): the daemon's "late" counts from here.
-                send(("frame", seq, message.ready(time.monotonic())))
-            except Exception as exc:
-                send(("frame_error", seq, f"{type(exc).__name__}: {exc}"))
-                continue
-            if network is not None:
-                refiner.start(seq, view, state, network)
+def _load(send: Callable[[FromWorker], None], req_id: int,
+          load: Callable[[str], ModelLoaded | SceneLoaded], path: str) -> None:
+    """Load `path`, answering `Loaded` or, with the reason, `LoadFailed` (the old model or scene
+    stays)."""
+    try:
+        result = load(path)
+    except Exception as exc:  # reported to the daemon; the old model/scene stays
+        send(LoadFailed(req_id, f"{type(exc).__name__}: {exc}"))
+        return
+    send(Loaded(req_id, result))
+
+
+def _frame(send: Callable[[FromWorker], None], state: _WorkerState, shm: FrameSlots | None,
+           refiner: Refiner, request: FrameRequest) -> None:
+    """The frame `request` asks for, into its slot, answered `FrameDone` (or `FrameFailed`);
+    then its refinement, when the view asks for a tier above the network's."""
+    seq, view, slot = request.seq, request.view, request.slot
+    if state.model is None and state.scene is not None and view.quality != "network":
+
+        def first(message: FrameMessage) -> None:
+            if slot is not None and shm is not None:
+                message = shm.write(slot, message)
+            send(FrameDone(seq, message.ready(time.monotonic())))
+
+        refiner.start_without_model(seq, view, state, first)
+        return
+    try:
+        message = state.frame(view)
+        network = message.grey
+        if slot is not None and shm is not None:
+            message = shm.write(slot, message)
+        # When the frame was whole in its slot (CLOCK_MONOTONIC, shared by both processes):
+        # the daemon's "late" counts from here.
+        send(FrameDone(seq, message.ready(time.monotonic())))
+    except Exception as exc:
+        send(FrameFailed(seq, f"{type(exc).__name__}: {exc}"))
+        return
+    if network is not None:
+        refiner.start(seq, view, state, network)

@@ -29,8 +29,19 @@ from nhfd.daemon.views import ViewSlot
 from nhfd.drivers.slm import SimulatedSLM
 from nhfd.frame_message import FrameMessage, Region, StageTimes
 from nhfd.views import Orbit, View
+from nhfd.worker_messages import (
+    FrameDone,
+    FrameRequest,
+    Loaded,
+    LoadFailed,
+    LoadModel,
+    LoadScene,
+    Stop,
+    WorkerReady,
+)
 
 from .conftest import bench_config, wait_until
+from .fake_loads import fake_load
 
 CRASH_DEG = -111.0
 
@@ -41,28 +52,28 @@ def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
 
     shms = [shared_memory.SharedMemory(name=n) for n in slots["names"]]
     h, w = config_data["slm"]["height_px"] // 2, config_data["slm"]["width_px"] // 2
-    conn.send(("ready", os.getpid()))
+    conn.send(WorkerReady(os.getpid()))
     while True:
         try:
             msg = conn.recv()
         except EOFError:
             return
-        if msg[0] == "stop":
-            return
-        if msg[0] in ("model", "scene"):
-            kind, req_id, path = msg
-            if Path(path + ".refuse").exists():
-                conn.send((kind, req_id, False, f"ValueError: {path} refused"))
-            else:
-                conn.send((kind, req_id, True, {"path": path, "variant": "float"}))
-            continue
-        _, seq, view, slot = msg
-        if view.camera.azimuth_deg == CRASH_DEG:
-            os._exit(3)
-        np.ndarray((3, h, w), np.uint8, buffer=shms[slot].buf)[...] = seq % 256
-        conn.send(("frame", seq, FrameMessage(Region(h // 2, w // 2, h, w, 0, 0), (3, h, w), None,
-                                              StageTimes(render_s=0.001), (0.0, 0.0, 0.0),
-                                              slot=slot, ready_s=time.monotonic())))
+        match msg:
+            case Stop():
+                return
+            case LoadModel(req_id=req_id, path=path) | LoadScene(req_id=req_id, path=path):
+                if Path(path + ".refuse").exists():
+                    conn.send(LoadFailed(req_id, f"ValueError: {path} refused"))
+                else:
+                    conn.send(Loaded(req_id, fake_load(msg)))
+            case FrameRequest(seq=seq, view=view, slot=slot):
+                if view.camera.azimuth_deg == CRASH_DEG:
+                    os._exit(3)
+                np.ndarray((3, h, w), np.uint8, buffer=shms[slot].buf)[...] = seq % 256
+                conn.send(FrameDone(seq, FrameMessage(
+                    Region(h // 2, w // 2, h, w, 0, 0), (3, h, w), None,
+                    StageTimes(render_s=0.001), (0.0, 0.0, 0.0), slot=slot,
+                    ready_s=time.monotonic())))
 
 
 def orbit(azimuth_deg: float) -> View:
@@ -118,30 +129,36 @@ def load_in_thread(link: FrameLink, *loads: tuple[str, str]) -> list[Any]:
     return results
 
 
+def recording(base: type, prefix: str, writers: dict[str, set[int]]) -> type:
+    """`base` with every attribute write recorded in `writers` (name -> writing threads)."""
+
+    class Recording(base):  # type: ignore[misc, valid-type]
+        def __setattr__(self, name: str, value: Any) -> None:
+            writers.setdefault(f"{prefix}{name}", set()).add(threading.get_ident())
+            super().__setattr__(name, value)
+
+    return Recording
+
+
 def test_every_field_is_written_by_the_control_loops_thread(short_dir, monkeypatch):
     # Before: the load job's thread started the worker and wrote model_path, model_info,
-    # scene_path, state and sent_seq = 0 ("resend") while the control loop read them.
+    # scene_path, state and sent_seq = 0 ("resend") while the control loop read them. The link
+    # and each of its parts (the load queue, the pacer, the capture relay) are watched.
     writers: dict[str, set[int]] = {}
-
-    class Recording(FrameLink):
-        def __setattr__(self, name: str, value: Any) -> None:
-            writers.setdefault(name, set()).add(threading.get_ident())
-            super().__setattr__(name, value)
-
-    class RecordingWorker(frame_link.FrameWorker):
-        def __setattr__(self, name: str, value: Any) -> None:
-            writers.setdefault(f"worker.{name}", set()).add(threading.get_ident())
-            super().__setattr__(name, value)
-
-    monkeypatch.setattr(frame_link, "FrameWorker", RecordingWorker)
-    owner, link = make_link(short_dir, Recording)
+    for module, name, prefix in ((frame_link, "FrameWorker", "worker."),
+                                 (frame_link, "LoadQueue", "loads."),
+                                 (frame_link, "FramePacer", "pacer."),
+                                 (frame_link, "CaptureRelay", "relay.")):
+        monkeypatch.setattr(module, name, recording(getattr(module, name), prefix, writers))
+    owner, link = make_link(short_dir, recording(FrameLink, "", writers))
     (short_dir / "bad.onnx.refuse").touch()
     try:
         assert link.state == LinkState.IDLE and link.worker.pid is None
         results = load_in_thread(link, ("scene", "a.ply"), ("model", "a.onnx"),
                                  ("model", str(short_dir / "bad.onnx")))
-        assert results[:2] == [{"path": "a.ply", "variant": "float"},
-                               {"path": "a.onnx", "variant": "float"}]
+        assert [r.path for r in results[:2]] == ["a.ply", "a.onnx"]
+        assert link.model is results[1] and link.model.variant == "float"
+        assert link.scene is results[0] and link.scene.center == (0.0, 0.0, 0.0)
         assert isinstance(results[2], ValueError) and "bad.onnx refused" in str(results[2])
         # the refused model changed nothing: the one before it serves
         assert (link.model_path, link.scene_path) == ("a.onnx", "a.ply")
@@ -150,8 +167,8 @@ def test_every_field_is_written_by_the_control_loops_thread(short_dir, monkeypat
     finally:
         link.close()
     main = {threading.get_ident()}
-    assert {"state", "model_path", "scene_path", "model_info", "sent_seq",
-            "worker.pid"} <= set(writers)
+    assert {"state", "loads.model_path", "loads.scene_path", "loads.model", "loads.scene",
+            "sent_seq", "worker.pid", "pacer.shown_seq", "pacer.waiting"} <= set(writers)
     assert {name: ids for name, ids in writers.items() if ids != main} == {}
 
 

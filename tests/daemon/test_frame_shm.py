@@ -20,6 +20,7 @@ from nhfd.pipeline.frame import compute_frame
 from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import Scene, scene_frame
 from nhfd.scene.io import read_scene
+from nhfd.worker_messages import FrameDone
 
 from .test_frames import FRONT_VIEW, small_config
 
@@ -42,10 +43,10 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_se
     config = small_config(daemon={"frame_cache_frames": 0})
     host = _Host(config)
     link = host.frame_link()
-    received: list[tuple] = []
+    received: list[Any] = []
     receive = link.worker.receive
 
-    def spy() -> list[tuple]:
+    def spy() -> list[Any]:
         msgs = receive()
         received.extend(msgs)
         return msgs
@@ -67,11 +68,11 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_se
                 assert not host.errors, host.errors
                 assert time.monotonic() < deadline, "no frame"
                 time.sleep(0.002)
-            msg = next(m for m in received if m[0] == "frame" and m[1] == seq)
+            msg = next(m for m in received if isinstance(m, FrameDone) and m.seq == seq)
             # The pipe message says where the frame is; the arrays are not in it.
             assert arrays_in(msg) == []
             assert len(pickle.dumps(msg)) < 2000
-            message = msg[2]
+            message = msg.message
             assert message.slot in range(SLOTS) and message.grey is None
 
             settings = frame_settings(config, model.info, CalibrationStore.of(config).active(),
@@ -99,7 +100,7 @@ def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny, our_
     config = small_config(daemon={"frame_cache_frames": 0, "frame_transport": "pickle"})
     host = _Host(config)
     link = host.frame_link()
-    received: list[tuple] = []
+    received: list[Any] = []
     receive = link.worker.receive
     link.worker.receive = lambda: (msgs := receive(), received.extend(msgs))[0]
     try:
@@ -111,10 +112,11 @@ def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny, our_
             link.step()
             assert time.monotonic() < deadline, "no frame"
             time.sleep(0.002)
-        msg = next(m for m in received if m[0] == "frame")
-        assert arrays_in(msg) == ["2.grey.ndarray", "2.rgb.ndarray"] and msg[2].slot is None
-        r = msg[2].region
+        msg = next(m for m in received if isinstance(m, FrameDone))
+        assert arrays_in(msg) == ["message.grey.ndarray", "message.rgb.ndarray"]
+        assert msg.message.slot is None
+        r = msg.message.region
         shown = host.slm.last_frame[:, r.rows, r.cols]
-        assert np.array_equal(shown, msg[2].grey)
+        assert np.array_equal(shown, msg.message.grey)
     finally:
         link.close()

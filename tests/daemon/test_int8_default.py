@@ -113,10 +113,10 @@ def served(pair, int8_psnr_db: float, **daemon):
 
 def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
     with served(pair, 29.7) as (host, link):
-        info = link.model_info
-        assert info["variant"] == "int8" and info["served"] == str(pair["int8"].resolve())
-        assert info["inference"] == "onnxruntime"  # "auto" on the CPU
-        assert "model-int8.onnx loses 0.30 dB" in info["variant_reason"]
+        info = link.model
+        assert info.variant == "int8" and info.served == str(pair["int8"].resolve())
+        assert info.inference == "onnxruntime"  # "auto" on the CPU
+        assert "model-int8.onnx loses 0.30 dB" in info.variant_reason
         status = link.status()
         assert status["model_variant"] == "int8"
         show_a_frame(host, link)
@@ -127,16 +127,16 @@ def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
         status = link.status()
         assert status["model_variant"] == "float"
         assert "loses 0.70 dB of held-out PSNR, more than 0.5 dB" in status["model_variant_reason"]
-        assert link.model_info["served"] == str(pair["float"].resolve())
+        assert link.model.served == str(pair["float"].resolve())
 
 
 def test_torch_inference_serves_the_float_model_and_says_so(pair):
     """daemon.inference = "torch": int8 arithmetic is onnxruntime's, so the float model serves
     (frames and all), and the model's status names what runs the network and why."""
     with served(pair, 29.9, inference="torch") as (host, link):
-        info = link.model_info
-        assert (info["inference"], info["providers"]) == ("torch", ["torch"])
-        assert info["inference_reason"] == 'daemon.inference = "torch": the network in torch on cpu'
-        assert info["variant"] == "float" and info["served"] == str(pair["float"].resolve())
-        assert "daemon.inference = 'torch'" in info["variant_reason"]
+        info = link.model
+        assert (info.inference, info.providers) == ("torch", ("torch",))
+        assert info.inference_reason == 'daemon.inference = "torch": the network in torch on cpu'
+        assert info.variant == "float" and info.served == str(pair["float"].resolve())
+        assert "daemon.inference = 'torch'" in info.variant_reason
         show_a_frame(host, link)

@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import pytest
 
 from nhfd.daemon.service import Daemon
+from nhfd.worker_messages import FrameFailed
 
 from .conftest import bench_config
 
@@ -96,7 +97,7 @@ def test_the_frame_workers_pipe_wakes_the_loop_and_leaves_the_selector_when_not_
     d.step(0.0)
     fd = here.fileno()
     assert fd in d.server.selector.get_map()
-    there.send(("frame_error", 7, "a message from the worker"))
+    there.send(FrameFailed(7, "a message from the worker"))
     t0 = time.monotonic()
     d.step(30.0)  # woken by the pipe, and the message collected in the same step
     assert time.monotonic() - t0 < 15

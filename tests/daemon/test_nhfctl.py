@@ -7,6 +7,7 @@ import re
 import subprocess
 import sys
 import time
+from types import SimpleNamespace
 
 import pytest
 
@@ -133,13 +134,16 @@ def test_status_prints_the_model_as_one_line(running: Running, capsys, monkeypat
             "mapping": {"kind": "linear"}, "pose_envelope": {"azimuth_deg": [-20, 20]},
             "parameters": 123456, "train_steps": 10000, "scene_sha256": "ab" * 32,
             "providers": ["CUDAExecutionProvider", "CPUExecutionProvider"], "loaded_s": 1.0}
-    monkeypatch.setattr(running.daemon.frames, "model_info", info)
+    def served(report: dict) -> SimpleNamespace:  # status's "model" is its to_json()
+        return SimpleNamespace(to_json=lambda: report, variant=None, variant_reason=None)
+
+    monkeypatch.setattr(running.daemon.frames.loads, "model", served(info))
     assert main(["--socket", str(running.socket), "status"]) == 0
     lines = [x for x in capsys.readouterr().out.splitlines() if x.startswith("model ")]
     assert lines == ["model    fast-v3.onnx (profile fast; trained 1024 x 576 px; "
                      "CUDAExecutionProvider, CPUExecutionProvider)"]
     checked = dict(info, checked_sizes_hw=[[576, 1024], [1080, 1920]])
-    monkeypatch.setattr(running.daemon.frames, "model_info", checked)
+    monkeypatch.setattr(running.daemon.frames.loads, "model", served(checked))
     assert main(["--socket", str(running.socket), "status"]) == 0
     assert ("model    fast-v3.onnx (profile fast; trained 1024 x 576 px; CUDAExecutionProvider, "
             "CPUExecutionProvider; checked at 1024 x 576 px, 1920 x 1080 px)\n"

@@ -19,7 +19,7 @@ import numpy as np
 
 from nhfd.calibration import CalibrationStore
 from nhfd.config import Config, _overlay
-from nhfd.daemon import frame_link
+from nhfd.daemon import frame_link, pacing
 from nhfd.daemon.frame_link import FrameEvents, FrameLink, LinkState
 from nhfd.daemon.panel import Panel
 from nhfd.daemon.views import ViewSlot
@@ -29,8 +29,18 @@ from nhfd.drivers.framebuffer import FBIO_WAITFORVSYNC, FramebufferSLM
 from nhfd.drivers.slm import SimulatedSLM
 from nhfd.frame_message import FrameMessage, Region, StageTimes
 from nhfd.views import Orbit, View
+from nhfd.worker_messages import (
+    FrameDone,
+    FrameRequest,
+    Loaded,
+    LoadModel,
+    LoadScene,
+    Stop,
+    WorkerReady,
+)
 
 from .conftest import bench_config, wait_until
+from .fake_loads import fake_load
 
 REFRESH_HZ = 10.0  # a slow panel: a loaded test machine keeps to its refreshes with room
 # Views the fake worker treats otherwise, by their azimuth: it dies (exit code 3); its frame's
@@ -52,18 +62,19 @@ def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
     shms = [shared_memory.SharedMemory(name=n) for n in slots["names"]]
     panel_h, panel_w = config_data["slm"]["height_px"], config_data["slm"]["width_px"]
     h, w = panel_h // 2, panel_w // 2
-    conn.send(("ready", os.getpid()))
+    conn.send(WorkerReady(os.getpid()))
     while True:
         try:
             msg = conn.recv()
         except EOFError:
             return
-        if msg[0] == "stop":
+        if isinstance(msg, Stop):
             return
-        if msg[0] in ("model", "scene"):
-            conn.send((msg[0], msg[1], True, {"path": msg[2]}))
+        if isinstance(msg, LoadModel | LoadScene):
+            conn.send(Loaded(msg.req_id, fake_load(msg)))
             continue
-        _, seq, view, slot = msg
+        assert isinstance(msg, FrameRequest)
+        seq, view, slot = msg.seq, msg.view, msg.slot
         azimuth = view.camera.azimuth_deg
         if azimuth == CRASH_DEG:
             os._exit(3)
@@ -75,7 +86,7 @@ def worker_main(conn: Any, config_data: dict[str, Any], calibration: Any = None,
             region = Region(0, 0, 4 * panel_h, 4 * panel_w, 0, 0)
         message = FrameMessage(region, (3, region.height, region.width), None, StageTimes(),
                                (0.0, 0.0, 0.0), slot=slot, ready_s=time.monotonic())
-        conn.send(("frame", seq, message))
+        conn.send(FrameDone(seq, message))
 
 
 class Host:
@@ -106,7 +117,7 @@ def running_link(root: Path) -> tuple[Host, FrameLink]:
     host = Host(config)
     link = FrameLink(config, host.calibration, host.views, lambda: host.panel, host.events(),
                      worker_module=__name__)
-    link.model_path, link.scene_path = "fake.onnx", "fake.ply"
+    link.loads.model_path, link.loads.scene_path = "fake.onnx", "fake.ply"
     link.start()
     deadline = time.monotonic() + 20
     while link.state != LinkState.RUNNING:
@@ -133,20 +144,20 @@ def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir, o
     sent: list[tuple[int, int | None]] = []  # (slot named in a request, slot the daemon holds)
     send = link.worker.send
 
-    def spy(msg: tuple) -> None:
-        if msg[0] == "frame":
-            sent.append((msg[3], None if link.waiting is None else link.waiting.message.slot))
+    def spy(msg: Any) -> None:
+        if isinstance(msg, FrameRequest):
+            sent.append((msg.slot, None if link.waiting is None else link.waiting.message.slot))
         send(msg)
 
     link.worker.send = spy
     show_starts: list[float] = []  # when each frame began to go out (what pacing schedules)
-    show = link._show
+    show = link.pacer._show
 
     def timed_show(*args: Any) -> None:
         show(*args)
         show_starts.append(link.last_show_s)
 
-    link._show = timed_show
+    link.pacer._show = timed_show
     try:
         start = time.monotonic()
         views = iter(range(1, 100000))
@@ -168,7 +179,7 @@ def test_frames_faster_than_the_refresh_are_paced_fresh_and_counted(short_dir, o
         # from back to back: unpaced, these requests would write every few ms.
         assert s["frames_shown"] == len(written) == len(show_starts) >= 5
         assert s["frames_shown"] <= elapsed / period_s + 1
-        assert np.diff(show_starts).min() >= period_s - frame_link.DUE_SLACK_S
+        assert np.diff(show_starts).min() >= period_s - pacing.DUE_SLACK_S
         assert np.diff(written).min() >= 0.9 * period_s
         # Every view is shown or dropped by latest wins (overtaken before it was computed):
         # views were requested ~500 times faster than the panel shows them.
@@ -249,7 +260,7 @@ def test_closing_forgets_a_frame_waiting_for_its_refresh(short_dir, monkeypatch,
     # A view sent well before its refresh (a wide send margin): its frame waits as `waiting`.
     # Its slot is unlinked with the worker on close, so the link must not keep it, nor wake
     # the loop for it.
-    monkeypatch.setattr(frame_link, "SEND_MARGIN_S", 0.08)
+    monkeypatch.setattr(pacing, "SEND_MARGIN_S", 0.08)
     host, link = running_link(short_dir)
     try:
         first = host.views.submit(orbit(1.0))

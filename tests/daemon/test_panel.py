@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from nhfd.calibration import CalibrationStore
-from nhfd.daemon import arming, colour, frame_link, methods
+from nhfd.daemon import arming, colour, frame_link, methods, pacing
 from nhfd.daemon import panel as panel_module
 from nhfd.daemon.panel import Panel, blank_pattern
 from nhfd.daemon.service import Daemon
@@ -153,6 +153,7 @@ def used(path: Path, name: str, via: str | None = None) -> set[str]:
     ("colour.py", colour.ShownViews, "shown", None),
     ("arming.py", arming.NavigatorState, "navigation", "self"),
     ("frame_link.py", frame_link.ViewSource, "views", "self"),
+    ("pacing.py", pacing.ViewSource, "views", "self"),
 ])
 def test_each_protocol_names_what_its_module_uses_of_another_part(module, declared, name, via):
     assert used(DAEMON / module, name, via) <= members(declared)

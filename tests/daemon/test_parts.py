@@ -25,12 +25,15 @@ import nhfd.daemon
 from nhfd.daemon.arming import ArmingGate
 from nhfd.daemon.audit import AuditLog
 from nhfd.daemon.bench import Bench
+from nhfd.daemon.capture_relay import CaptureRelay
 from nhfd.daemon.dispatch import Dispatcher
 from nhfd.daemon.errors import ErrorList
 from nhfd.daemon.frame_link import FrameLink, FrameWorker
 from nhfd.daemon.guardian_link import LaserLink
 from nhfd.daemon.jobs import JobRunner
+from nhfd.daemon.load_queue import LoadQueue
 from nhfd.daemon.navigation import NavigatorInput
+from nhfd.daemon.pacing import FramePacer
 from nhfd.daemon.panel import Panel
 from nhfd.daemon.recording import SessionRecorder
 from nhfd.daemon.server import LineServer
@@ -45,8 +48,9 @@ SOURCES = sorted(DAEMON.glob("*.py"))
 ALLOWED_PRIVATE: dict[tuple[str, str], str] = {}
 
 # The parts the daemon wires, whose constructors must not take it.
-PARTS = (Panel, Bench, FrameLink, FrameWorker, ArmingGate, NavigatorInput, LaserLink, ViewSlot,
-         SessionRecorder, AuditLog, JobRunner, ErrorList, Dispatcher, LineServer)
+PARTS = (Panel, Bench, FrameLink, FrameWorker, LoadQueue, FramePacer, CaptureRelay, ArmingGate,
+         NavigatorInput, LaserLink, ViewSlot, SessionRecorder, AuditLog, JobRunner, ErrorList,
+         Dispatcher, LineServer)
 DAEMON_NAMES = {"daemon", "d", "host"}
 
 

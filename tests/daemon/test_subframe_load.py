@@ -16,6 +16,7 @@ import sys
 import time
 
 from nhfd.config import Config, _overlay
+from nhfd.worker_messages import BetterFrame
 
 from .conftest import Running, wait_until
 from .test_frame_shm import arrays_in
@@ -46,7 +47,7 @@ def test_the_largest_k_under_a_cpu_burner_keeps_every_heartbeat_on_time(short_di
                    "subframes": K_MAX, "planes": 2}}))
     r = Running(config, short_dir)
     burner = None
-    received: list[tuple] = []
+    received: list[BetterFrame] = []
     try:
         c = r.client()
         c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
@@ -54,9 +55,9 @@ def test_the_largest_k_under_a_cpu_burner_keeps_every_heartbeat_on_time(short_di
         wait_for_frames(c)
         receive = r.daemon.frames.worker.receive  # a spy on what crosses the pipe
 
-        def spy() -> list[tuple]:
+        def spy() -> list:
             msgs = receive()
-            received.extend(m for m in msgs if m[0] == "refined")
+            received.extend(m for m in msgs if isinstance(m, BetterFrame))
             return msgs
 
         r.daemon.frames.worker.receive = spy

@@ -165,7 +165,7 @@ def test_the_worker_refuses_an_unchecked_window_at_load_unless_allowed(unchecked
                                             r"was checked at; checked: 64 x 64"):
         refusing.load_model(str(unchecked))
     assert refusing.model is None  # nothing replaced
-    info = state(True).load_model(str(unchecked))
+    info = state(True).load_model(str(unchecked)).to_json()  # status's "model"
     assert info["window_hw"] == [128, 192] and info["checked_sizes_hw"] == [[64, 64]]
     assert info["checked_sizes_recorded"] is False  # an older export: the training window only
     assert "allow_unchecked_sizes" in info["size_warning"]

@@ -17,6 +17,7 @@ from nhfd.config import Config
 from nhfd.models.export import ModelOverBudget
 from nhfd.models.metadata import InvalidMetadata
 from nhfd.pipeline.worker import _serve, _WorkerState, check_inference
+from nhfd.worker_messages import Loaded, LoadFailed, LoadModel, ModelLoaded, Stop, WorkerReady
 from tests.models.test_hostile_models import SHIPPED, hostile_copy, setting, with_huge_tensor
 
 # The shipped model's training window (checked), and a budget far above what its session takes
@@ -38,7 +39,8 @@ def serving(shipped: Path) -> _WorkerState:
         {"daemon": {"model_memory_mb": BUDGET_MB, "frame_size_px": FRAME}}))
     info = state.load_model(str(shipped))
     # what the load's probe measured travels to status, below the budget
-    assert 0 < info["load_memory_mb"] < BUDGET_MB
+    assert 0 < info.load_memory_mb < BUDGET_MB
+    assert info.to_json()["load_memory_mb"] == info.load_memory_mb
     return state
 
 
@@ -93,15 +95,17 @@ def test_the_worker_replies_with_each_refusal_and_keeps_the_model(shipped, tmp_p
                                                                                  "session"))
     daemon_end, worker_end = multiprocessing.Pipe()
     for i, path in enumerate((shipped, nan_scale, huge), 1):
-        daemon_end.send(("model", i, str(path)))
-    daemon_end.send(("stop",))
-    _serve(worker_end, state, None)  # handles the batch in order, returns at "stop"
-    assert daemon_end.recv()[0] == "ready"
-    replies = {r[1]: r for r in (daemon_end.recv() for _ in range(3))}
-    assert replies[1][2] is True and replies[1][3]["path"] == str(shipped)
-    assert replies[2][2] is False
-    assert replies[2][3].startswith("InvalidMetadata: ")
-    assert "nan.onnx: metadata amplitude_scale = nan: expected a finite number" in replies[2][3]
-    assert replies[3][2] is False and replies[3][3].startswith("ModelOverBudget: ")
-    assert f"daemon.model_memory_mb = {BUDGET_MB} MB" in replies[3][3]
+        daemon_end.send(LoadModel(i, str(path)))
+    daemon_end.send(Stop())
+    _serve(worker_end, state, None)  # handles the batch in order, returns at Stop
+    assert isinstance(daemon_end.recv(), WorkerReady)
+    replies = {r.req_id: r for r in (daemon_end.recv() for _ in range(3))}
+    assert isinstance(replies[1], Loaded) and isinstance(replies[1].result, ModelLoaded)
+    assert replies[1].result.path == str(shipped)
+    assert replies[1].result.info == state.model.info  # the ModelInfo itself crossed
+    assert isinstance(replies[2], LoadFailed)
+    assert replies[2].error.startswith("InvalidMetadata: ")
+    assert "nan.onnx: metadata amplitude_scale = nan: expected a finite number" in replies[2].error
+    assert isinstance(replies[3], LoadFailed) and replies[3].error.startswith("ModelOverBudget: ")
+    assert f"daemon.model_memory_mb = {BUDGET_MB} MB" in replies[3].error
     assert state.model_id == 1 and str(state.model.path) == str(shipped)
