@@ -5,7 +5,8 @@ enforces it, docs/architecture.md explains it):
 
   L0 vocabulary    config, spec, calibration, device_settings, and the values the frame path
                    passes: views (`View`), model_info (`ModelInfo`), frame_message
-                   (`FrameMessage`, `Region`) (torch-free: the daemon, the laser guardian and
+                   (`FrameMessage`, `Region`), worker_messages (the frame worker's pipe)
+                   (torch-free: the daemon, the laser guardian and
                    `nhfctl` load these and nothing heavier)
   L1 compute       optics (the wave-optics core), scene (splats, cameras, rasteriser),
      and devices   drivers (installed from the repository's drivers/ folder)

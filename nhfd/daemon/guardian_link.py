@@ -283,10 +283,14 @@ class LaserLink:
         the emission session."""
         self.end_session(f"lasers off ({why})")
         client = self._require()
-        # No heartbeat here: `off` needs none, and a first heartbeat would start the guardian's
-        # watchdog before the control loop runs (start-up opens slow devices in between).
-        client.all_off()  # the guardian reads back too, and raises if it could not confirm
-        status = client.status()
+        # Under the socket's lock: a bench job still switching a diode (a citl step at
+        # shutdown) must not interleave its request with these, or each reads the other's reply.
+        with self._lock:
+            # No heartbeat here: `off` needs none, and a first heartbeat would start the
+            # guardian's watchdog before the control loop runs (start-up opens slow devices in
+            # between).
+            client.all_off()  # the guardian reads back too, and raises if it could not confirm
+            status = client.status()
         on = {ch: c for ch, c in status["channels"].items()
               if c["enabled"] or abs(c["power_pct"]) > self.settings.readback_tolerance_pct}
         if on or status["armed"]:
