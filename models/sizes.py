@@ -210,6 +210,20 @@ def _tiles(n: int, t: int, margin: int) -> list[tuple[int, int, int]]:
             for p in starts]
 
 
+# Input pixels per batched tile call: a few full-panel inputs' worth, so a batch's activations
+# stay within a few hundred MB for the networks the project builds.
+TILE_BATCH_PX = 1 << 22
+
+
+def _tiles_per_call(session: Any, tile_hw: tuple[int, int]) -> int:
+    """How many tiles of `tile_hw` go into one call: as many as `TILE_BATCH_PX` allows, within
+    the graph's batch dimension (an export's dynamic batch allows up to 64; a graph whose batch
+    is fixed takes one at a time)."""
+    dim = session.get_inputs()[0].shape[0]
+    limit = 64 if not isinstance(dim, int) else max(1, dim)
+    return max(1, min(limit, TILE_BATCH_PX // (tile_hw[0] * tile_hw[1])))
+
+
 def _round_up(n: int, m: int) -> int:
     return n + (-n) % m
 
@@ -245,11 +259,17 @@ def tile_check(session: Any, meta: dict[str, Any], hw: tuple[int, int],
         return 0.0, (f"finite outputs of shape [1, {colours}, {h}, {w}] only: the receptive "
                      f"margin {margin} px leaves no tile smaller than the size to compare with")
     worst = 0.0
-    for r0, rlo, rhi in _tiles(h, t[0], margin):
-        for c0, clo, chi in _tiles(w, t[1], margin):
-            tile = _run(session, np.ascontiguousarray(x[..., r0:r0 + t[0], c0:c0 + t[1]]))
-            for a, b in zip(full, tile, strict=True):
-                diff = np.abs(a[..., rlo:rhi, clo:chi] - b[..., rlo - r0:rhi - r0,
+    spans = [(r, c) for r in _tiles(h, t[0], margin) for c in _tiles(w, t[1], margin)]
+    # The tiles run in batches (one call per batch, not per tile: a small model's full panel
+    # is over a thousand tiles, and each call's overhead was most of the check's time).
+    per_call = _tiles_per_call(session, t)
+    for k in range(0, len(spans), per_call):
+        batch = spans[k:k + per_call]
+        tiles = _run(session, np.concatenate(
+            [x[..., r0:r0 + t[0], c0:c0 + t[1]] for (r0, _, _), (c0, _, _) in batch]))
+        for i, ((r0, rlo, rhi), (c0, clo, chi)) in enumerate(batch):
+            for a, b in zip(full, tiles, strict=True):
+                diff = np.abs(a[..., rlo:rhi, clo:chi] - b[i:i + 1, :, rlo - r0:rhi - r0,
                                                             clo - c0:chi - c0])
                 worst = max(worst, float(diff.max()) if np.isfinite(diff).all() else np.inf)
     return worst, (f"the same graph on overlapping {wxh(t)} tiles of a seeded input, compared "

@@ -116,6 +116,34 @@ def test_the_onnx_only_check_passes_the_graph_and_catches_a_wrong_shape(exported
         assert not bad <= SIZE_TOLERANCE
 
 
+def test_the_tile_check_batches_its_tiles_and_finds_what_one_at_a_time_finds(exported,
+                                                                             monkeypatch):
+    """Tiles go through the graph in batches (its dynamic batch dimension); one tile per call
+    (a graph with a fixed batch) sees the same differences, and the same wrong pixel."""
+    import onnxruntime as ort
+
+    from nhfd.models import sizes
+
+    session = ort.InferenceSession(str(exported.path), providers=["CPUExecutionProvider"])
+    meta = OnnxModel(exported.path).metadata
+    hw = (160, 232)
+    assert sizes._tiles_per_call(session, (32, 48)) == 64  # dynamic batch: up to 64 at a time
+    batched, _ = tile_check(session, meta, hw)
+    wrong_batched, _ = tile_check(_WrongAt(session, hw, 0.01), meta, hw)
+    monkeypatch.setattr(sizes, "TILE_BATCH_PX", 1)  # one tile per call
+    single, _ = tile_check(session, meta, hw)
+    wrong_single, _ = tile_check(_WrongAt(session, hw, 0.01), meta, hw)
+    assert batched == pytest.approx(single, abs=1e-6) and single < 1e-5
+    assert wrong_batched == pytest.approx(wrong_single, rel=1e-6)
+
+    class _FixedBatch:
+        def get_inputs(self):
+            return [type("Input", (), {"shape": [1, 4, "h", "w"]})()]
+
+    monkeypatch.undo()
+    assert sizes._tiles_per_call(_FixedBatch(), (32, 48)) == 1
+
+
 def test_check_sizes_cli_records_onnx_only_checks_atomically(unchecked, tmp_path, capsys):
     from nhfd.cli.main import main
 
