@@ -13,6 +13,7 @@ import sys
 import time
 from pathlib import Path
 
+from nhfd.calibration import Calibration
 from nhfd.cli.args import parse_wxh
 from nhfd.config import Config, load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
@@ -29,6 +30,8 @@ from nhfd.models.sizes import (
     sizes_to_check,
 )
 from nhfd.models.train import load_run, training_device
+from nhfd.pipeline import tune
+from nhfd.pipeline.view import scene_from_file
 from nhfd.scene.cameras import parse_axis
 from nhfd.scene.io import SCENE_SUFFIXES
 
@@ -95,6 +98,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--run", help="the run folder it was exported from: compare with its torch "
                    "network (default: the ONNX-only tile check)")
     c.set_defaults(handler=run_check_sizes)
+    t = cmds.add_parser("tune", help="tune a scene's model through one bench's model",
+                        description=tune.__doc__,
+                        formatter_class=argparse.RawDescriptionHelpFormatter)  # fmt: skip
+    t.add_argument("model", help="the exported model (.onnx) to tune (not changed)")
+    t.add_argument("--scene", required=True, help="the splat scene the model was built from")
+    t.add_argument("--calibration", required=True, help="the bench's calibration.toml")
+    t.add_argument("--out", required=True, help="output folder: model.onnx, tune.json and "
+                   "checkpoint.pt (an interrupted run resumes from it)")
+    t.add_argument("--dataset", help="the model's dataset folder, for its training poses "
+                   "(default: the poses the model records)")
+    d = tune.TuneSettings()
+    t.add_argument("--steps", type=int, default=d.steps, help=f"steps (default {d.steps})")
+    t.add_argument("--seconds", type=float, default=d.seconds,
+                   help=f"at most this long in all (default {d.seconds:g})")
+    t.add_argument("--views", type=int, default=d.views,
+                   help=f"training views (default {d.views})")
+    t.add_argument("--size", default=f"{d.window_hw[1]}x{d.window_hw[0]}",
+                   help="the frame window WxH (default %(default)s)")
+    t.add_argument("--ssim-weight", type=float, default=d.ssim_weight,
+                   help=f"the structural term's weight beside the MSE (default {d.ssim_weight:g})")
+    t.add_argument("--device", default=d.device, help="cpu or cuda[:N] (default cpu)")
+    t.add_argument("--config", help="configuration file (default: the search order)")
+    t.set_defaults(handler=run_model_tune)
 
 
 def run_model_build(args: argparse.Namespace) -> int:
@@ -200,6 +226,19 @@ def _load(client: Client, method: str, path: Path, timeout_s: float) -> None:
         raise RuntimeError(f"{method} {path}: {state.get('error') or state['state']}"
                            " (the daemon reads files only inside daemon.scene_dirs and "
                            "daemon.model_dirs: see --scene-dir, --model-dir)")
+
+
+def run_model_tune(args: argparse.Namespace) -> int:
+    """`nhfd model tune`: the settings checked, then `nhfd.pipeline.tune.tune_model`."""
+    config = load_config(args.config).config
+    w, h = parse_wxh(args.size)
+    settings = tune.TuneSettings(steps=args.steps, seconds=args.seconds, views=args.views,
+                                 window_hw=(h, w), ssim_weight=args.ssim_weight,
+                                 device=args.device)
+    cal = Calibration.load(args.calibration)
+    res = tune.tune_model(args.model, scene_from_file(args.scene), args.scene, cal, args.out,
+                          settings, config=config, dataset=args.dataset)
+    return 0 if res is not None else 1
 
 
 def run_check_sizes(args: argparse.Namespace) -> int:

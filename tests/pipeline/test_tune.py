@@ -1,0 +1,381 @@
+"""`nhfd model tune` (nhfd.pipeline.tune): the differentiable coding is the frame path, a model
+tuned through a twin's bench model scores higher through it on views tuning never saw, bad input
+is refused with nothing written, a non-finite loss keeps the last good checkpoint, and a resumed
+run is the uninterrupted one.
+
+The case: the shipped donut model on a 64 x 48 window, with the simulated bench's truth as its
+calibration (`TrueBench` with a pupil aberration and its illumination profile), and six
+training poses recorded in a copy of the model (the shipped file records none); the held-out
+views lie between them."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import onnx
+import pytest
+import torch
+
+from nhfd.benchmarks.quality import captured_quality
+from nhfd.calib.citl import CameraLoop
+from nhfd.calib.sim import sim_devices, sim_panel_hw
+from nhfd.calibration import Calibration
+from nhfd.cli.main import main
+from nhfd.config import Config
+from nhfd.drivers.simcamera import TrueBench
+from nhfd.models.export import load_model
+from nhfd.models.metadata import METADATA_KEY
+from nhfd.models.sizes import read_metadata
+from nhfd.models.torch_model import TorchModel
+from nhfd.optics import grey_to_phase, phase_to_grey
+from nhfd.pipeline import tune as T
+from nhfd.pipeline.encoder import Encoder, reference_field
+from nhfd.pipeline.frame import compute_frame, infer, render_view
+from nhfd.pipeline.refine import prepare
+from nhfd.pipeline.settings import frame_settings
+from nhfd.pipeline.view import scene_from_file, view_pose
+from nhfd.scene.cameras import orbit, orbit_position
+from nhfd.views import Orbit, View
+
+REPO = Path(__file__).resolve().parents[2]
+MODEL = REPO / "models" / "nhf-donut-512.onnx"
+SCENE = REPO / "models" / "scenes" / "donut.ply"
+OTHER_SCENE = REPO / "models" / "scenes" / "tabletop.spz"
+WINDOW_HW = (48, 64)
+PANEL_HW = sim_panel_hw(WINDOW_HW)
+# Training poses: fractions of the envelope's azimuth and elevation; held-out ones between.
+TRAIN = [(f, g) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7)]
+HELD_OUT = [(0.35, 0.5), (0.65, 0.5)]
+
+
+def truth_calibration(bench: TrueBench) -> Calibration:
+    """What a perfect fit of `bench` would give: its phase tables, focus offsets, illumination
+    and relay aberration (the geometry, which the bench model does not use, left plain)."""
+    zero = (0.0, 0.0, 0.0)
+    return Calibration(
+        wavelengths_m=bench.wavelengths_m, pitch_m=bench.pitch_m, phase_sign=bench.phase_sign,
+        phase_tables_rad=bench.phase_tables, phase_table_std_rad=zero,
+        stage_scale=bench.stage_scale, stage_scale_std=0.0,
+        stage_at_slm_mm=bench.stage_at_slm_mm, stage_at_slm_std_mm=0.0,
+        z_offset_m=bench.z_offset_m, z_offset_std_m=zero, magnification=bench.magnification,
+        magnification_std=0.0, rotation_deg=bench.rotation_deg, rotation_std_deg=0.0,
+        mirror_x=bench.mirror_x, shift_px=(0.0, 0.0), intensity=(1.0, 1.0, 1.0),
+        intensity_std=zero, source_waist_m=(bench.source_waist_m,) * 3, source_waist_std_m=zero,
+        source_centre_m=(bench.source_offset_m,) * 3, source_centre_std_m=((0.0, 0.0),) * 3,
+        zernike_rad=bench.zernike_rad, zernike_std_rad=(0.0,) * len(bench.zernike_rad),
+        zernike_wavelength_m=bench.wavelengths_m[1])
+
+
+BENCH = TrueBench(zernike_rad=(0.3, -0.2, 0.15))
+CAL = truth_calibration(BENCH)
+
+
+def envelope_view(meta: dict, f: float, g: float) -> tuple[float, float, float]:
+    env = meta["pose_envelope"]
+    (a0, a1), (e0, e1) = env["azimuth_deg"], env["elevation_deg"]
+    return a0 + (a1 - a0) * f, e0 + (e1 - e0) * g, sum(env["distance"]) / 2
+
+
+def write_model(path: Path, **changes: object) -> Path:
+    """The shipped model with `changes` to its metadata (None removes a key)."""
+    m = onnx.load(str(MODEL))
+    for p in m.metadata_props:
+        if p.key == METADATA_KEY:
+            meta = json.loads(p.value)
+            for k, v in changes.items():
+                if v is None:
+                    meta.pop(k, None)
+                else:
+                    meta[k] = v
+            p.value = json.dumps(meta)
+    onnx.save(m, str(path))
+    return path
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return scene_from_file(SCENE)
+
+
+@pytest.fixture(scope="module")
+def meta() -> dict:
+    return read_metadata(MODEL)
+
+
+@pytest.fixture(scope="module")
+def model_file(tmp_path_factory, scene, meta) -> Path:
+    """The shipped model recording TRAIN as its training poses."""
+    c = np.asarray(scene.frame.center)
+    positions = [list(orbit_position(c, *envelope_view(meta, f, g), scene.frame.up))
+                 for f, g in TRAIN]
+    return write_model(tmp_path_factory.mktemp("model") / "donut.onnx",
+                       train_poses={"center": list(c), "positions": positions})
+
+
+def settings(**kw: object) -> T.TuneSettings:
+    base = dict(window_hw=WINDOW_HW, views=1, steps=4, checkpoint_every=1)
+    return T.TuneSettings(**{**base, **kw})  # type: ignore[arg-type]
+
+
+def run(model_file: Path, scene, out: Path, s: T.TuneSettings, **kw: object):
+    return T.tune_model(model_file, scene, SCENE, CAL, out, s, panel_hw=PANEL_HW,
+                        check_sizes=False, say=lambda _m: None, **kw)  # type: ignore[arg-type]
+
+
+def test_the_differentiable_coding_is_the_frame_paths(scene, meta) -> None:
+    """For one network output: the coding's grey levels are the frame path's (`compute_frame`
+    under the calibration), its field is the encoder's to float32 rounding, the coded phase it
+    differentiates quantises to the same levels within the coders' tolerance
+    (tests/optics/test_coders_against_reference.py: one level apart, next to a decision), and
+    its gradient is the coded phase's (a directional derivative against central differences)."""
+    config = Config.model_validate({"daemon": {"frame_size_px": [WINDOW_HW[1], WINDOW_HW[0]]}})
+    model = load_model(MODEL, config)
+    s = dataclasses.replace(frame_settings(config, model.info, CAL), panel_hw=PANEL_HW)
+    enc = Encoder(s)
+    assert s.zernike_rad and s.source_profile  # the calibrated path, pupil and gain map
+    view = View(Orbit(*envelope_view(meta, 0.4, 0.5)))
+    frame = compute_frame(view, scene, model, enc)
+    amp, phase = infer(model, render_view(view, scene, model.info, s.window_hw))
+    ref = reference_field(amp, phase, s.amplitude_scale)
+    coding = T.DifferentiableCoding(enc)
+    shown, grey = coding(ref)
+    assert grey.shape == frame.grey.shape
+    assert np.array_equal(grey, frame.grey)  # the frame's own levels, bit for bit
+    panel = grey_to_phase(torch.from_numpy(grey), enc.curves, sign=s.phase_sign,
+                          invert=s.grey_invert)
+    assert torch.allclose(shown.detach(), panel, rtol=0, atol=1e-5)  # theta + (panel - theta)
+    exact = enc.to_slm(ref)
+    slm = coding.to_slm(ref)
+    assert float((slm - exact).abs().max() / exact.abs().max()) < 1e-5
+    # The surrogate the gradient is taken of quantises to the frame's levels (empty pixels show
+    # the zero pattern, which it does not code).
+    theta = coding.coded_phase(exact)
+    g2 = phase_to_grey(theta, enc.curves, sign=s.phase_sign, invert=s.grey_invert).numpy()
+    u = exact * coding.gain
+    coded = (u.abs() / s.amplitude_scale >= coding.empty).numpy()
+    differ = (g2 != frame.grey) & coded
+    assert differ.mean() <= 2e-3, differ.mean()
+    # Neighbouring levels on each curve's circle (a short stroke leaves a gap at the wrap).
+    gaps = []
+    for c in enc.curves:
+        on = np.sort(np.remainder(np.asarray(c.phase_rad), 2 * math.pi))
+        gaps.append(np.diff(np.append(on, on[0] + 2 * math.pi)).max())
+    p2 = grey_to_phase(torch.from_numpy(g2), enc.curves, sign=s.phase_sign, invert=s.grey_invert)
+    d = (torch.remainder(p2 - panel + math.pi, 2 * math.pi) - math.pi).abs().numpy()
+    assert d[differ].max(initial=0.0) <= max(gaps) + 1e-6
+    # The gradient: d/dt sum(w cos(theta(ref + t v))) at t = 0, with no zero_below threshold
+    # to cross; the propagation is linear, so the central difference (in float64, of the coded
+    # phase of A ref + t A v) needs no float32 propagation of a perturbed field.
+    coding = T.DifferentiableCoding(Encoder(dataclasses.replace(s, zero_below=0.0)))
+    g = torch.Generator().manual_seed(5)
+    w = torch.rand(theta.shape, generator=g, dtype=torch.float64)
+    v = torch.polar(torch.rand(ref.shape, generator=g),
+                    torch.rand(ref.shape, generator=g) * 2 * math.pi) * 0.05 * s.amplitude_scale
+    x = ref.clone().requires_grad_(True)
+    (w * torch.cos(coding.coded_phase(coding.to_slm(x).to(torch.complex128)))).sum().backward()
+    analytic = float((x.grad.conj() * v).real.sum())  # torch's conjugate Wirtinger gradient
+    a_ref, a_v = (coding.to_slm(f).detach().to(torch.complex128) for f in (ref, v))
+
+    def f(t: float) -> float:
+        return float((w * torch.cos(coding.coded_phase(a_ref + t * a_v))).sum())
+
+    numeric = (f(1e-4) - f(-1e-4)) / 2e-4
+    # Measured: -25.91968 against -25.91967.
+    assert analytic == pytest.approx(numeric, rel=1e-3), (analytic, numeric)
+
+
+TUNED_SETTINGS = settings(views=3, steps=30, checkpoint_every=10)
+
+
+@pytest.fixture(scope="module")
+def tuned(tmp_path_factory, scene, model_file) -> T.TuneResult:
+    """The model tuned on 3 of the 6 training poses for 30 steps."""
+    res = run(model_file, scene, tmp_path_factory.mktemp("tuned") / "out", TUNED_SETTINGS)
+    assert res is not None and res.steps == 30
+    return res
+
+
+def test_a_tuned_model_scores_higher_through_the_bench_model_on_held_out_views(
+        scene, meta, model_file, tuned) -> None:
+    """3 of the 6 training poses, 30 steps; the 2 held-out views between them, never seen.
+    Measured: the training views 20.82 -> 22.29 dB (SSIM 0.843 -> 0.858); held out 21.78 /
+    21.23 -> 22.34 / 22.14 dB, SSIM 0.863 / 0.852 -> 0.866 / 0.856."""
+    s, res = TUNED_SETTINGS, tuned
+    untuned = TorchModel(model_file)
+    tuned = TorchModel(res.path)
+    held = [View(Orbit(*envelope_view(meta, f, g))) for f, g in HELD_OUT]
+    views = T.prepare_views(held, scene, untuned, Config(), CAL, s, PANEL_HW,
+                            say=lambda _m: None)
+    before = T.bench_scores(untuned.module, views, untuned.amplitude_scale)
+    after = T.bench_scores(tuned.module, views, tuned.amplitude_scale)
+    for (b_db, b_ssim), (a_db, a_ssim) in zip(before, after, strict=True):
+        assert a_db > b_db + 0.2, (before, after)
+        assert a_ssim > b_ssim - 0.005, (before, after)
+    assert np.mean([a[0] for a in after]) > np.mean([b[0] for b in before]) + 0.4
+    # The file: the input's metadata, plus what it was tuned for; it serves as any model does.
+    got, want = read_metadata(res.path), read_metadata(model_file)
+    record = got.pop("tuned_for")
+    want.pop("checked_sizes", None)
+    assert got == want
+    assert record["calibration_sha256"] == T.calibration_sha256(CAL)
+    assert record["calibration"] == CAL.label and record["date"] and record["steps"] == 30
+    assert load_model(res.path, Config()).info.amplitude_scale == untuned.amplitude_scale
+    assert (res.path.parent / "tune.json").is_file()
+
+
+def test_a_tuned_models_frames_capture_better_on_the_simulated_bench(scene, meta, model_file,
+                                                                     tuned) -> None:
+    """The frame path's frames (`compute_frame`) of one held-out view, shown on the twin and
+    captured by its simulated camera at the content planes: what the bench model leaves out
+    (fill factor, gaps, crosstalk, unmodulated light, the camera) is there. Measured on 6
+    held-out views (this one first): 17.95 / 17.86 / 17.03 / 17.69 / 17.40 / 17.59 -> 19.26 /
+    19.21 / 18.99 / 18.93 / 19.02 / 19.15 dB, SSIM 0.501 -> 0.530 in the mean, higher on
+    each."""
+    roi = BENCH.roi_for_panel(PANEL_HW)
+    col, row = BENCH.slm_to_camera_px(0.0, 0.0)
+    cal = dataclasses.replace(CAL, shift_px=(col - roi[1], row - roi[0]),
+                              fitted_on={"camera_pitch_m": BENCH.camera_pitch_m})
+    view = View(Orbit(*envelope_view(meta, *HELD_OUT[0])))
+    p = prepare(Config(), view, scene, info=TorchModel(model_file).info, calibration=cal,
+                window_hw=WINDOW_HW, panel_hw=PANEL_HW, planes=TUNED_SETTINGS.planes)
+    got = {}
+    with sim_devices(BENCH, PANEL_HW) as devices:
+        loop = CameraLoop(devices, cal, p.encoder)
+        for name, path in (("untuned", model_file), ("tuned", tuned.path)):
+            grey = compute_frame(view, scene, TorchModel(path), p.encoder).grey
+            got[name] = captured_quality(loop, p, grey)
+    assert got["tuned"]["psnr_db"] > got["untuned"]["psnr_db"] + 0.5, got
+    assert got["tuned"]["ssim"] > got["untuned"]["ssim"], got
+
+
+def _nothing_written(out: Path) -> None:
+    assert not out.exists(), sorted(out.rglob("*"))
+
+
+def test_bad_settings_are_refused_naming_the_setting_and_range() -> None:
+    with pytest.raises(T.TuneError, match=r"steps \(--steps\) = 0: must be in 1\.\.1000000"):
+        settings(steps=0)
+    with pytest.raises(T.TuneError, match=r"views \(--views\) = 0: must be in 1\.\.1024"):
+        settings(views=0)
+    with pytest.raises(T.TuneError, match=r"seconds \(--seconds\) = nan"):
+        settings(seconds=float("nan"))
+    with pytest.raises(T.TuneError, match=r"size \(--size\) width = 8: must be in 16\.\.4096"):
+        settings(window_hw=(48, 8))
+    with pytest.raises(T.TuneError, match=r"device \(--device\) = 'tpu'"):
+        settings(device="tpu")
+
+
+def test_bad_input_is_refused_with_nothing_written(tmp_path, scene, model_file) -> None:
+    out = tmp_path / "out"
+    other = truth_calibration(dataclasses.replace(BENCH, wavelengths_m=(640e-9, 532e-9,
+                                                                        450e-9)))
+    with pytest.raises(T.TuneError, match=r"--calibration: .*bench\.wavelengths_m\[0\] = "
+                                          r"6\.4e-07 m, expected 6\.6e-07 m"):
+        T.tune_model(model_file, scene, SCENE, other, out, settings(), panel_hw=PANEL_HW,
+                     say=lambda _m: None)
+    _nothing_written(out)
+    with pytest.raises(T.TuneError, match=r"views \(--views\) = 7: must be in 1\.\.6 "):
+        run(model_file, scene, out, settings(views=7))
+    _nothing_written(out)
+    with pytest.raises(T.TuneError, match=r"no training poses \(train_poses\).*--dataset"):
+        run(MODEL, scene, out, settings())  # the shipped file records none
+    _nothing_written(out)
+    bare = write_model(tmp_path / "bare.onnx", scene_sha256=None, source_scene_sha256=None)
+    with pytest.raises(T.TuneError, match=r"records no scene \(scene_sha256\)"):
+        run(bare, scene, out, settings())
+    _nothing_written(out)
+    with pytest.raises(T.TuneError, match=r"--scene .*tabletop\.spz: not the scene"):
+        T.tune_model(model_file, scene, OTHER_SCENE, CAL, out, settings(), panel_hw=PANEL_HW)
+    _nothing_written(out)
+    # The CLI: refused before anything is read.
+    rc = main(["model", "tune", str(model_file), "--scene", str(SCENE), "--calibration",
+               str(tmp_path / "none.toml"), "--out", str(out), "--steps", "0"])
+    assert rc == 2
+    _nothing_written(out)
+
+
+def test_a_non_finite_loss_keeps_the_last_good_checkpoint(tmp_path, scene, model_file,
+                                                          monkeypatch) -> None:
+    """The 4th call of the loss (1 scores the start, then steps 0, 1, 2) is NaN: steps 0 and 1
+    were good and checkpointed; the checkpoint stays at step 2, named, and no model is written."""
+    calls = []
+    real = T.stack_loss
+
+    def nan_at_step_2(seen, target, mask=None):
+        calls.append(1)
+        loss = real(seen, target, mask)
+        return loss * float("nan") if len(calls) == 4 else loss
+
+    monkeypatch.setattr(T, "stack_loss", nan_at_step_2)
+    out = tmp_path / "out"
+    with pytest.raises(T.TuneError, match=r"non-finite loss at step 2 .*the last good "
+                                          r"checkpoint is .*checkpoint\.pt \(step 2\)"):
+        run(model_file, scene, out, settings(steps=6))
+    ckpt = torch.load(out / T.CHECKPOINT, weights_only=False)
+    assert ckpt["step"] == 2
+    assert all(torch.isfinite(v).all() for v in ckpt["state"].values())
+    assert not (out / T.TUNED).exists()
+
+
+def test_a_resumed_run_gives_the_uninterrupted_runs_weights(tmp_path, scene, model_file) -> None:
+    s = settings(steps=4, checkpoint_every=3)
+    straight = run(model_file, scene, tmp_path / "a", s)
+    assert straight is not None
+    assert run(model_file, scene, tmp_path / "b", s, stop_after=2) is None
+    assert not (tmp_path / "b" / T.TUNED).exists()
+    assert torch.load(tmp_path / "b" / T.CHECKPOINT, weights_only=False)["step"] == 2
+    resumed = run(model_file, scene, tmp_path / "b", s)
+    assert resumed is not None and resumed.steps == 4
+    a = torch.load(tmp_path / "a" / T.CHECKPOINT, weights_only=False)
+    b = torch.load(tmp_path / "b" / T.CHECKPOINT, weights_only=False)
+    assert a["step"] == b["step"] == 4
+    for k, v in a["state"].items():
+        assert torch.equal(v, b["state"][k]), k
+    assert [h[2] for h in a["history"]] == [h[2] for h in b["history"]]
+    # Another setting is not resumed: refused, naming it.
+    with pytest.raises(T.TuneError, match=r"another settings"):
+        run(model_file, scene, tmp_path / "b", settings(steps=4, ssim_weight=0.5))
+
+
+def test_the_views_are_the_datasets_training_split(tmp_path, scene, meta) -> None:
+    """With --dataset, the training split of its manifest (the held-out splits never), each
+    pose as the view whose camera it is; a manifest not the model's is refused."""
+    c = np.asarray(scene.frame.center)
+    poses = []
+    for az in (-20.0, 0.0, 15.0, 30.0, 40.0):
+        r, t = orbit(c, az, 20.0, 0.7, scene.frame.up)
+        poses.append({"R": r.tolist(), "t": t.tolist()})
+    manifest = {"poses": poses, "splits": {"train": [0, 2, 4], "val": [1], "test": [3]}}
+    (tmp_path / "manifest.json").write_text(json.dumps(manifest))
+    sha = T.sha256_file(tmp_path / "manifest.json")
+    views = T.training_poses_of({**meta, "dataset_manifest_sha256": sha}, scene, tmp_path)
+    assert len(views) == 3
+    for v, i in zip(views, (0, 2, 4), strict=True):
+        r, t = view_pose(v, scene.frame)
+        assert np.allclose(r, poses[i]["R"], atol=1e-9) and np.allclose(t, poses[i]["t"],
+                                                                        atol=1e-9)
+    assert T.choose_views(views, 2) == [views[0], views[2]]
+    with pytest.raises(T.TuneError, match=r"--dataset .*not the one the model was trained on"):
+        T.training_poses_of({**meta, "dataset_manifest_sha256": "0" * 64}, scene, tmp_path)
+
+
+def test_the_command_tunes_and_writes_a_checked_model(tmp_path, model_file, capsys) -> None:
+    """`nhfd model tune` end to end (the configured panel; sizes checked again): progress lines
+    with a time estimate, the tuned file with its record and its checked sizes."""
+    cal = CAL.save(tmp_path / "calibration.toml")
+    out = tmp_path / "out"
+    rc = main(["model", "tune", str(model_file), "--scene", str(SCENE), "--calibration",
+               str(cal), "--out", str(out), "--steps", "2", "--views", "1", "--size", "64x48"])
+    printed = capsys.readouterr().out
+    assert rc == 0, printed
+    assert "view 1/1 prepared" in printed and "step 2/2" in printed and "left" in printed
+    got = read_metadata(out / T.TUNED)
+    assert got["tuned_for"]["calibration_sha256"] == T.calibration_sha256(Calibration.load(cal))
+    assert got["tuned_for"]["steps"] == 2
+    assert [e["hw"] for e in got["checked_sizes"]] == \
+        [e["hw"] for e in read_metadata(model_file)["checked_sizes"]]
+    assert all(e["ok"] for e in got["checked_sizes"])
