@@ -298,7 +298,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", type=Path, default=DEFAULT_SCENE)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="the PNG to write")
     p.add_argument("--frame-size", type=size, default=[],
-                   help="hologram window WxH (daemon.frame_size_px; default: the model's "
+                   help="hologram window WxH (daemon.frames.size_px; default: the model's "
                         "training size, as `nhfd demo`)")
     p.add_argument("--depth-mm", type=float, default=1.0,
                    help="hologram depth the camera is focused on (mm from the reference plane)")

@@ -193,7 +193,7 @@ def test_cross_field_errors_name_the_key_not_a_section_dict(tmp_path, text, mess
         ("[optics]\nwavelengths_nm = [660.0, nan, 450.0]\n", "optics.wavelengths_nm.1 = nan"),
         ("[optics]\nz0_mm = inf\n", "optics.z0_mm = inf"),
         ("[optics]\nvolume_mm = [nan, 3.0]\n", "optics.volume_mm.0 = nan"),
-        ("[daemon]\nfocus_range_mm = [-5.0, inf]\n", "daemon.focus_range_mm.1 = inf"),
+        ("[daemon]\nfocus_range_mm = [-5.0, inf]\n", "daemon.bench.focus_range_mm.1 = inf"),
         ("[devices.apt]\nsoft_limits_mm = [nan, 25.0]\n", "devices.apt.soft_limits_mm.0 = nan"),
     ],
 )
@@ -266,7 +266,7 @@ def test_serve_exits_2_on_a_cross_field_error(tmp_path, capsys, monkeypatch):
     lab = write(tmp_path, "[daemon]\nframe_size_px = [4096, 2160]\n", "lab.toml")
     assert main(["serve", "--config", str(lab)]) == 2
     err = capsys.readouterr().err
-    assert err == (f"nhfd serve: error: {lab}: daemon.frame_size_px = [4096, 2160] does not fit "
+    assert err == (f"nhfd serve: error: {lab}: daemon.frames.size_px = [4096, 2160] does not fit "
                    "the panel 1920 x 1080 (slm.width_px x height_px)\n")
 
 
@@ -292,13 +292,13 @@ NO_AUTO = ("cpu", "cuda", "cuda:N")
     ],
 )
 def test_device_choice_returns_the_normalised_name(value, cuda_count, allowed, name):
-    assert device_choice(value, "daemon.device", cuda_count=cuda_count, allowed=allowed) == name
+    assert device_choice(value, "daemon.frames.device", cuda_count=cuda_count, allowed=allowed) == name
 
 
 @pytest.mark.parametrize(
     ("value", "cuda_count", "setting", "allowed", "message"),
     [
-        *[(bad, count, "daemon.device", DEVICES, rf"daemon\.device = {re.escape(repr(bad))}: "
+        *[(bad, count, "daemon.frames.device", DEVICES, rf"daemon\.device = {re.escape(repr(bad))}: "
            + re.escape(ALL_DEVICES))
           for bad in ("gpu", "cuda:x", "cudaXYZ", "cuda:-1", "", "cuda:", "cpu:0", "auto:1")
           for count in (None, 0, 2)],
@@ -307,7 +307,7 @@ def test_device_choice_returns_the_normalised_name(value, cuda_count, allowed, n
          r"use \"auto\" or \"cpu\""),
         ("cuda:1", 1, "device", DEVICES,
          r"device = 'cuda:1': torch \S+ sees 1 CUDA device \(index 0\); use \"auto\" or \"cpu\""),
-        ("cuda", 0, "daemon.device", DEVICES,
+        ("cuda", 0, "daemon.frames.device", DEVICES,
          r"daemon\.device = 'cuda': torch \S+ sees 0 CUDA devices \(a CPU-only build, no GPU, "
          r"or no driver\); use \"auto\" or \"cpu\""),
         # a setting that takes no "auto" lists what it takes, and offers only the CPU
@@ -327,8 +327,8 @@ def test_device_choice_refuses_naming_the_setting_the_value_and_what_is_allowed(
 
 
 def test_daemon_device_is_checked_by_name_when_the_file_is_read(tmp_path):
-    assert check_file(write(tmp_path, "[daemon]\ndevice = 'cuda:3'\n")).daemon.device == "cuda:3"
+    assert check_file(write(tmp_path, "[daemon]\ndevice = 'cuda:3'\n")).daemon.frames.device == "cuda:3"
     path = write(tmp_path, "[daemon]\ndevice = 'gpu'\n")
     with pytest.raises(ConfigError) as info:
         check_file(path)
-    assert str(info.value) == f"{path}: daemon.device = 'gpu': {ALL_DEVICES}"
+    assert str(info.value) == f"{path}: daemon.frames.device = 'gpu': {ALL_DEVICES}"

@@ -9,7 +9,7 @@ and are not counted. The frame cache is off: every view is computed.
 
 --transport shm,pickle measures both ways frames cross from the worker in one run (shared-memory
 slots, the default, or the arrays pickled through the pipe), and --int8 never,auto the float model
-and the int8 sibling the daemon would serve (`daemon.int8`); each combination in its own worker,
+and the int8 sibling the daemon would serve (`daemon.frames.int8`); each combination in its own worker,
 all given the same views in turn (a loaded machine loads them alike). --device cpu,cuda adds the
 device the same way (each result records the device its worker computed on, and the GPU's name),
 and --frame-size-px W H, repeated, measures each window size in turn. The panel's refresh
@@ -82,11 +82,11 @@ REST_SEED = 20261127
 class Variant(NamedTuple):
     """One worker's settings in a side-by-side run (None: the configuration's)."""
 
-    transport: str | None = None  # daemon.frame_transport
-    int8: str | None = None  # daemon.int8
-    device: str | None = None  # daemon.device
-    inference: str | None = None  # daemon.inference
-    cuda_graphs: bool | None = None  # daemon.cuda_graphs
+    transport: str | None = None  # daemon.frames.transport
+    int8: str | None = None  # daemon.frames.int8
+    device: str | None = None  # daemon.frames.device
+    inference: str | None = None  # daemon.frames.inference
+    cuda_graphs: bool | None = None  # daemon.frames.cuda_graphs
     quality: str | None = None  # the tier each view asks for (None: network)
 
 
@@ -101,21 +101,21 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--warmup", type=int, default=3, help="views not counted")
     p.add_argument("--json", default="out/bench/pipeline.json", help="JSON results file")
     p.add_argument("--device", help="comma list of devices to compare, each auto, cpu, cuda or "
-                   "cuda:N (default: daemon.device)")
+                   "cuda:N (default: daemon.frames.device)")
     p.add_argument("--frame-size-px", type=int, nargs=2, metavar=("W", "H"), action="append",
-                   help="hologram window (daemon.frame_size_px), repeatable: each size measured "
+                   help="hologram window (daemon.frames.size_px), repeatable: each size measured "
                         "in turn (default: the configuration's)")
     p.add_argument("--transport", default="shm",
                    help=f"comma list of frame transports to compare: {', '.join(FRAME_TRANSPORTS)} "
                         "(default shm)")
     p.add_argument("--int8", default=None,
-                   help=f"comma list of daemon.int8 settings to compare: {', '.join(INT8_MODES)} "
+                   help=f"comma list of daemon.frames.int8 settings to compare: {', '.join(INT8_MODES)} "
                         "(default: the configuration's)")
     p.add_argument("--inference", default=None,
                    help=f"comma list of what runs the network, to compare: "
-                        f"{', '.join(INFERENCES)} (daemon.inference; default: the configuration's)")
+                        f"{', '.join(INFERENCES)} (daemon.frames.inference; default: the configuration's)")
     p.add_argument("--cuda-graphs", default=None,
-                   help="comma list of on, off: daemon.cuda_graphs to compare on a CUDA device "
+                   help="comma list of on, off: daemon.frames.cuda_graphs to compare on a CUDA device "
                         "(default: the configuration's)")
     p.add_argument("--quality", default=None,
                    help=f"comma list of tiers the views ask for, to compare: "
@@ -185,7 +185,7 @@ def measure(config: Config, model: Path, scene: Path, views: int, warmup: int, *
 def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, warmup: int,
                          variants: list[tuple[str | None, ...]],
                          rest_ms: tuple[float, float] = (0.0, 0.0)) -> list[dict[str, Any]]:
-    """`model` under each `Variant` (transport, daemon.int8[, daemon.device]; None: the
+    """`model` under each `Variant` (transport, daemon.frames.int8[, daemon.frames.device]; None: the
     configuration's) of `variants`, each in its own worker, all started first and then given the
     same views in turn, one frame at a time (the order rotating per view): on a loaded machine
     the variants see the same load and their medians compare. A variant with a `quality` is
@@ -257,7 +257,7 @@ def _variant_config(config: Config, v: Variant) -> Config:
 
 def _check_fits(daemon: DaemonSettings, slm: SLMSettings, model: Path, info: ModelInfo) -> None:
     """Refuse a frame window larger than the panel before a worker starts for it (the
-    configuration checked daemon.frame_size_px; `frame_window_hw` checks the model's training
+    configuration checked daemon.frames.size_px; `frame_window_hw` checks the model's training
     size that stands in for an empty one)."""
     try:
         frame_window_hw(daemon, slm, info)
@@ -401,7 +401,7 @@ def _devices(text: str) -> list[str]:
         device = resolve_device(item, "--device")
         if item.lower() != "auto":
             check_cuda_frames(item, device, ort.get_available_providers(), "--device")
-    return [item.lower() for item in items]  # daemon.device's spelling
+    return [item.lower() for item in items]  # daemon.frames.device's spelling
 
 
 def _size_configs(config: Config, sizes: list[list[int]] | None) -> list[Config]:
@@ -480,13 +480,13 @@ def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: s
     """The README-ready figures: the machine, the command, one table row per result (the total
     median and p99, view to panel, then each stage's median)."""
     gpus = "; ".join(f"{d}: {n}" for d, n in (machine.get("cuda_devices") or {}).items())
-    # the CPU path's threads are the worker's (daemon.worker_threads), not the machine's cores
+    # the CPU path's threads are the worker's (daemon.frames.worker_threads), not the machine's cores
     threads = sorted({r["worker_threads"] for r in results})
     lines = [f"Machine: {machine['cpu']}, {machine['cores']} cores; torch "
              f"{machine.get('torch', 'absent')}, onnxruntime {machine['onnxruntime']} "
              f"({', '.join(machine['onnx_providers_available'])})"
              + (f"; {gpus}" if gpus else "") + f"; frame worker threads "
-             f"{', '.join(map(str, threads))} (daemon.worker_threads); nhfd {__version__}.",
+             f"{', '.join(map(str, threads))} (daemon.frames.worker_threads); nhfd {__version__}.",
              f"Command: `{command}`", "",
              "| " + " | ".join(TABLE_COLUMNS) + " |",
              "|" + "---|" * 7 + "---:|" * (len(TABLE_COLUMNS) - 7)]
@@ -507,8 +507,8 @@ def _print(r: dict[str, Any], daemon: DaemonSettings) -> None:
     s = r["stages"]
     print(f"{r['model']} ({r['profile']}, {r['size_wh'][0]} x {r['size_wh'][1]}), "
           f"device {_device_label(r)}, {r['views']} views, worker threads "
-          f"{daemon.worker_threads}, frames by {r['transport']}, serving {r['variant']} "
-          f"{r['served']} (daemon.int8 = {r['int8']}: {r['variant_reason']}):")
+          f"{daemon.frames.worker_threads}, frames by {r['transport']}, serving {r['variant']} "
+          f"{r['served']} (daemon.frames.int8 = {r['int8']}: {r['variant_reason']}):")
     if r["device_setting"] != r["device"]:  # "auto", or a fall back: say why
         print(f"  device: {r['device_reason']}")
     print(f"  network: {r['inference_reason']}")

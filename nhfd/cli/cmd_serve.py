@@ -29,11 +29,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "nhfctl.",
     )
     p.add_argument("--config", help="configuration file")
-    p.add_argument("--scene", help="scene to load at start (inside daemon.scene_dirs)")
-    p.add_argument("--runtime-dir", help="runtime directory (overrides daemon.runtime_dir)")
+    p.add_argument("--scene", help="scene to load at start (inside daemon.paths.scene_dirs)")
+    p.add_argument("--runtime-dir", help="runtime directory (overrides daemon.server.runtime_dir)")
     p.add_argument("--record", metavar="FILE",
                    help="record every bench-changing request to FILE (JSON lines; overrides "
-                   "daemon.record); `nhfd replay FILE` plays it back")
+                   "daemon.audit.record); `nhfd replay FILE` plays it back")
     p.set_defaults(handler=_serve)
 
 
@@ -55,7 +55,7 @@ def _serve(args: argparse.Namespace) -> int:
         print("nhfd serve: error: daemon.web.enabled = true needs the web extra: "
               "pip install 'nhfd[web]'", file=sys.stderr)
         return 2
-    service.setup_logging(config.daemon.log_format)
+    service.setup_logging(config.daemon.audit.log_format)
     daemon = service.Daemon(config)
     try:
         daemon.start()

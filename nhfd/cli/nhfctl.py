@@ -8,7 +8,7 @@ numba or onnxruntime (a test checks `sys.modules`): a control command answers at
 busy, refuses or does not answer within a second, they switch the lasers off through the laser
 guardian (or on the port), as `nhfd laser-off` does, and say which path did it. They exit 0 only
 when every channel was read back off. `laser arm` with a confirmation configured
-(`daemon.arm_confirm`) prints what the person at the bench must do and waits for the arm's job.
+(`daemon.arming.confirm`) prints what the person at the bench must do and waits for the arm's job.
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 epilog="Error codes:\n" + describe_codes(),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--socket", help="control socket (default: from the configuration)")
-    p.add_argument("--config", help="configuration file whose daemon.runtime_dir to use")
+    p.add_argument("--config", help="configuration file whose daemon.server.runtime_dir to use")
     p.add_argument("--tcp", metavar="HOST:PORT", help="TCP instead of the socket (a host other "
                    "than loopback only with --tls or --tls-ca)")
     p.add_argument("--token-file", help="TCP token file")
@@ -114,16 +114,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("status", help="devices, laser, scene, model, view, errors, jobs")
     sn = sub.add_parser("snapshot", help="capture the camera to a PNG")
-    sn.add_argument("--out", help="file name inside daemon.snapshot_dir")
+    sn.add_argument("--out", help="file name inside daemon.paths.snapshot_dir")
     sn.add_argument("--frames", type=int)
     sn.add_argument("--wait", action="store_true", help="wait for the job to finish")
     sub.add_parser("blank", help="show the blank (zero-amplitude) pattern")
     sub.add_parser("stop", help="stop the stage and running jobs")
     sub.add_parser("shutdown", help="shut the daemon down cleanly with lasers off")
-    ls = sub.add_parser("load-scene", help="load a scene (inside daemon.scene_dirs); waits for "
+    ls = sub.add_parser("load-scene", help="load a scene (inside daemon.paths.scene_dirs); waits for "
                         "the load and exits 1 with its error when it fails")
     ls.add_argument("path")
-    lm = sub.add_parser("load-model", help="load an exported model (inside daemon.model_dirs; "
+    lm = sub.add_parser("load-model", help="load an exported model (inside daemon.paths.model_dirs; "
                         "validated, the old one keeps running on failure); waits for the load "
                         "and exits 1 with its error when it fails")
     lm.add_argument("path")

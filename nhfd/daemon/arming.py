@@ -3,7 +3,7 @@
 **Authority** comes from what the kernel vouches for about a Unix-socket peer: its uid
 (SO_PEERCRED, read at accept by `server.peer_credentials`). That uid's groups come from the user
 database (its primary group and `os.getgrouplist`), not from the peer process. They are checked
-against `daemon.arm_users` and `daemon.arm_groups`; with both empty, only the daemon's own
+against `daemon.arming.users` and `daemon.arming.groups`; with both empty, only the daemon's own
 (effective) user may arm. Arming is refused over TCP whatever the token, and the web view never
 sends it.
 
@@ -18,7 +18,7 @@ view runs in the daemon's process, as its user, and never sends `arm` anyway.
 lines of Python) *is* that user to the kernel: nothing on this socket can tell it from a person
 at the bench. That is what the confirmation is for.
 
-**Confirmation** (`daemon.arm_confirm`): with "serial" a key switch on `arm_confirm_port`'s CTS or
+**Confirmation** (`daemon.arming.confirm`): with "serial" a key switch on `arm_confirm_port`'s CTS or
 DSR line (`nhfd.drivers.keyswitch`; "simulated" hosts the twin) must be turned on after the request
 (seen off, then on). With "spacemouse", a navigator button must go down after the request. Either
 way it must happen within `arm_confirm_timeout_s`. The wait runs as a bench job
@@ -56,7 +56,7 @@ from .server import Connection, forwarded_by_ssh
 
 log = logging.getLogger("nhfd.daemon.arming")
 
-SIMULATED_PORT = "simulated"  # daemon.arm_confirm_port: the daemon hosts a simulated key switch
+SIMULATED_PORT = "simulated"  # daemon.arming.confirm_port: the daemon hosts a simulated key switch
 POLL_S = 0.02  # how often the confirmation input is sampled while an arm waits
 
 
@@ -112,7 +112,7 @@ def allowed_description(settings: DaemonSettings, daemon_uid: int) -> str:
     if not settings.arm_users and not settings.arm_groups:
         return f"the daemon's own user, {_who(daemon_uid)}, over the Unix socket"
     return (f"users {list(settings.arm_users)} and members of groups {list(settings.arm_groups)}"
-            " (daemon.arm_users, daemon.arm_groups), over the Unix socket")
+            " (daemon.arming.users, daemon.arming.groups), over the Unix socket")
 
 
 def arm_refusal(peer: Mapping[str, Any], settings: DaemonSettings,
@@ -127,10 +127,10 @@ def arm_refusal(peer: Mapping[str, Any], settings: DaemonSettings,
         if uid == daemon_uid:
             return None
         name = user_name(uid)
-        return (f"{_who(uid)} may not arm the lasers: daemon.arm_users and daemon.arm_groups "
+        return (f"{_who(uid)} may not arm the lasers: daemon.arming.users and daemon.arming.groups "
                 f"are empty, so only the daemon's own user may ({_who(daemon_uid)}); to allow "
-                f"it, add {name or uid!r} to daemon.arm_users or one of its groups to "
-                "daemon.arm_groups")
+                f"it, add {name or uid!r} to daemon.arming.users or one of its groups to "
+                "daemon.arming.groups")
     name = user_name(uid)
     if name is not None and name in users:
         return None
@@ -142,19 +142,19 @@ def arm_refusal(peer: Mapping[str, Any], settings: DaemonSettings,
         except KeyError:  # no such group (warned at start): it admits no one
             continue
     mine = ", ".join(sorted(group_name(g) for g in gids)) or "none"
-    return (f"{_who(uid)} may not arm the lasers: not in daemon.arm_users = {users}, and none "
-            f"of its groups ({mine}) is in daemon.arm_groups = {groups}; to allow it, add "
+    return (f"{_who(uid)} may not arm the lasers: not in daemon.arming.users = {users}, and none "
+            f"of its groups ({mine}) is in daemon.arming.groups = {groups}; to allow it, add "
             "the user or one of its groups there")
 
 
 def check_confirm_settings(settings: DaemonSettings, navigator_backend: str) -> None:
     """ConfigError naming the keys when a confirmation is configured without its input."""
     if settings.arm_confirm == "serial" and not settings.arm_confirm_port.strip():
-        raise ConfigError("daemon.arm_confirm = 'serial' needs daemon.arm_confirm_port: the "
+        raise ConfigError("daemon.arming.confirm = 'serial' needs daemon.arming.confirm_port: the "
                           "serial device whose CTS or DSR line the key switch drives (e.g. "
                           f"/dev/serial/by-id/...), or {SIMULATED_PORT!r} for the simulated one")
     if settings.arm_confirm == "spacemouse" and navigator_backend == "none":
-        raise ConfigError("daemon.arm_confirm = 'spacemouse' needs a navigator: devices.navigator "
+        raise ConfigError("daemon.arming.confirm = 'spacemouse' needs a navigator: devices.navigator "
                           "= 'spacemouse' (or 'simulated' on the simulated bench), not 'none'")
 
 
@@ -261,13 +261,13 @@ class ArmingGate:
             try:
                 pwd.getpwnam(user)
             except KeyError:
-                log.warning("daemon.arm_users names %r, which is no user here: it admits no one",
+                log.warning("daemon.arming.users names %r, which is no user here: it admits no one",
                             user)
         for group in settings.arm_groups:
             try:
                 grp.getgrnam(group)
             except KeyError:
-                log.warning("daemon.arm_groups names %r, which is no group here: it admits no "
+                log.warning("daemon.arming.groups names %r, which is no group here: it admits no "
                             "one", group)
 
     # -- requests ------------------------------------------------------------------------------
@@ -295,14 +295,14 @@ class ArmingGate:
 
     def authorise_emission(self, conn: Connection, what: str) -> None:
         """RpcError(FORBIDDEN) when `conn` is a remote peer (TCP, the web view's clients) asking
-        for `what`, something that makes a laser emit, and `daemon.remote_emission` is false:
+        for `what`, something that makes a laser emit, and `daemon.arming.remote_emission` is false:
         a person at the bench starts emission, as they arm. `laser off` and `disarm` are never
         asked about."""
         if conn.remote and not self.settings.remote_emission:
             raise RpcError(FORBIDDEN, f"{what} makes a laser emit, and {conn.describe()} may not "
-                           "start that (daemon.remote_emission = false): ask from the bench's "
+                           "start that (daemon.arming.remote_emission = false): ask from the bench's "
                            "machine (nhfctl over the Unix socket), or set "
-                           "daemon.remote_emission = true", {"field": "daemon.remote_emission",
+                           "daemon.arming.remote_emission = true", {"field": "daemon.arming.remote_emission",
                                                              "allowed": "the Unix socket"})
 
     def arm(self, conn: Connection, duration_s: float) -> dict[str, Any]:
@@ -366,7 +366,7 @@ class ArmingGate:
             return _KeyTurn(KeySwitch(self._key_opener, self.settings.arm_confirm_line,
                                       self.settings.arm_confirm_port.strip()))
         if self.navigation.navigator is None:
-            raise RpcError(NOT_AVAILABLE, "daemon.arm_confirm = 'spacemouse', but no navigator "
+            raise RpcError(NOT_AVAILABLE, "daemon.arming.confirm = 'spacemouse', but no navigator "
                            f"is open ({self.navigation.error or 'devices.navigator'}): nothing "
                            "at the bench can confirm an arm", {"device": "navigator"})
         return _ButtonPress(self.navigation)
@@ -406,7 +406,7 @@ class ArmingGate:
                 if time.monotonic() - start >= timeout_s:
                     raise ArmNotConfirmed(
                         f"no confirmation from {source.what} within {timeout_s:g} s "
-                        f"(daemon.arm_confirm_timeout_s): the lasers stay disarmed"
+                        f"(daemon.arming.confirm_timeout_s): the lasers stay disarmed"
                         f"{source.hint()}")
                 time.sleep(POLL_S)
             return time.monotonic() - start

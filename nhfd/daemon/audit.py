@@ -41,7 +41,7 @@ def _clip(text: str, limit: int) -> str:
 
 def audit_path(settings: DaemonSettings, base_dir: Path, env: Mapping[str, str],
                runtime_dir: Path) -> Path:
-    """Where the daemon's audit log goes: `daemon.audit_log` (relative to `base_dir`), else
+    """Where the daemon's audit log goes: `daemon.audit.file` (relative to `base_dir`), else
     systemd's $LOGS_DIRECTORY, else the runtime directory; the file `audit.jsonl`."""
     if settings.audit_log:
         return base_dir / Path(settings.audit_log).expanduser()
@@ -62,7 +62,7 @@ class AuditLog:
     def __init__(self, path: Path | None, *, summary_s: float, max_bytes: int,
                  backups: int) -> None:
         """`path` None: nothing is written until `open` (a daemon before start: it opens the
-        file once it holds its lock). The limits come from `daemon.audit_summary_s`,
+        file once it holds its lock). The limits come from `daemon.audit.summary_s`,
         `audit_max_bytes` and `audit_backups` (`for_settings`)."""
         self.path: Path | None = None
         self._file: IO[str] | None = None

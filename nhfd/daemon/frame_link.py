@@ -142,7 +142,7 @@ class ViewSource(Protocol):
 
 
 def worker_environment(settings: DaemonSettings) -> dict[str, str]:
-    """The worker's thread counts (`daemon.worker_threads`, `worker_threading_layer`), for its
+    """The worker's thread counts (`daemon.frames.worker_threads`, `worker_threading_layer`), for its
     environment: read once, when torch, numba and onnxruntime load in the spawned process, so
     they must be there before its first import."""
     threads = str(int(settings.worker_threads))
@@ -206,7 +206,7 @@ class FrameWorker:
     def __init__(self, config: Config, module: str = WORKER_MODULE) -> None:
         """`config`: the whole configuration, which the worker gets (it builds its frame
         settings from `[slm]`, `[optics]`, `[coding]`, `[daemon]` and the calibration); here
-        `daemon.frame_transport` and the panel's size (`[slm]`, the slots). `module`: the
+        `daemon.frames.transport` and the panel's size (`[slm]`, the slots). `module`: the
         worker's module, spawned by name."""
         self.config = config
         self.module = module
@@ -217,7 +217,7 @@ class FrameWorker:
         # Loads sent, by request id, until the worker answers. Only the control loop sends:
         # load jobs hand their loads to it (`FrameLink._load`), so the pipe needs no lock.
         self.pending: dict[int, LoadRequest] = {}
-        self.transport = str(config.daemon.frame_transport)
+        self.transport = str(config.daemon.frames.transport)
         self.shms: list[shared_memory.SharedMemory] = []
         self.free_slots: list[int] = []
         self.refine_shms: list[shared_memory.SharedMemory] = []
@@ -484,7 +484,7 @@ class FrameLink:
     counters. Load jobs run on threads of their own: `load_model` and `load_scene` only queue a
     `LoadRequest` and wait for the control loop to fill in its outcome, so every field here is
     written by the control loop alone. A queued load goes out at the loop's next step (within
-    `daemon.tick_s`)."""
+    `daemon.arming.heartbeat_s`)."""
 
     def __init__(self, config: Config, views: ViewSource, panel: Callable[[], PanelView],
                  events: FrameEvents, worker_module: str = WORKER_MODULE) -> None:

@@ -26,7 +26,7 @@ TOKEN_NAME = "tcp.token"
 
 def control_socket(configured_runtime_dir: str = "",
                    env: Mapping[str, str] | None = None) -> Path:
-    """The control socket in the runtime directory (`daemon.runtime_dir`, else the default one
+    """The control socket in the runtime directory (`daemon.server.runtime_dir`, else the default one
     for this user and environment)."""
     return runtime_dir(configured_runtime_dir, env) / SOCKET_NAME
 
@@ -40,7 +40,7 @@ def socket_path(socket_arg: str | None, config: Config | Callable[[], Config]) -
         return str(socket_arg)
     if callable(config):
         config = config()
-    return str(control_socket(config.daemon.runtime_dir))
+    return str(control_socket(config.daemon.server.runtime_dir))
 
 
 def resolve_dirs(dirs: Sequence[str], base: Path) -> list[Path]:

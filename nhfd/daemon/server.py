@@ -19,8 +19,8 @@ out:
 - Descriptors. `accept` failing for want of file descriptors (EMFILE, ENFILE) pauses that
   listener for `ACCEPT_BACKOFF_S` (logged once per episode); existing clients are still served.
 
-The TCP port listens on loopback unless `daemon.tcp_host` says otherwise, and then only with TLS
-(`daemon.tls_cert`, `daemon.tls_key`): a token never crosses a network in clear. The TLS handshake
+The TCP port listens on loopback unless `daemon.server.tcp_host` says otherwise, and then only with TLS
+(`daemon.server.tls_cert`, `daemon.server.tls_key`): a token never crosses a network in clear. The TLS handshake
 runs non-blocking in the same loop, so a slow or silent peer holds an unauthenticated slot until
 its deadline, never the loop.
 """
@@ -192,8 +192,8 @@ class LineServer:
                  max_pending_bytes: int = 4 << 20,
                  clock: Callable[[], float] = time.monotonic) -> None:
         if tcp_port and tcp_host not in LOOPBACK_HOSTS and tls is None:
-            raise ValueError(f"daemon.tcp_host = {tcp_host!r} is not loopback: listening "
-                             "elsewhere needs TLS, set daemon.tls_cert and daemon.tls_key")
+            raise ValueError(f"daemon.server.tcp_host = {tcp_host!r} is not loopback: listening "
+                             "elsewhere needs TLS, set daemon.server.tls_cert and daemon.server.tls_key")
         self.handler = handler
         self.unix_path = unix_path
         self.socket_group = socket_group
@@ -254,7 +254,7 @@ class LineServer:
             except (KeyError, PermissionError) as exc:
                 unix.close()
                 path.unlink()
-                raise RuntimeError(f"daemon.socket_group = {self.socket_group!r}: {exc}") from None
+                raise RuntimeError(f"daemon.server.socket_group = {self.socket_group!r}: {exc}") from None
         self._add_listener(unix, "unix")
         if self.tcp_port:
             family, _, _, _, address = socket.getaddrinfo(
@@ -423,7 +423,7 @@ class LineServer:
         if len(self._unauthenticated) >= self.max_unauthenticated:
             return busy_error("max_unauthenticated", self.max_unauthenticated,
                               "TCP connections waiting to authenticate",
-                              f", each dropped after daemon.auth_timeout_s = "
+                              f", each dropped after daemon.server.auth_timeout_s = "
                               f"{self.auth_timeout_s:g} s")
         return None
 
@@ -434,7 +434,7 @@ class LineServer:
                 if conn.authed:
                     del pool[fd]
                 elif now - conn.accepted_s >= self.auth_timeout_s:
-                    self._note(f"dropped: no auth within daemon.auth_timeout_s = "
+                    self._note(f"dropped: no auth within daemon.server.auth_timeout_s = "
                                f"{self.auth_timeout_s:g} s", conn.who)
                     self._drop(conn)
 
@@ -559,7 +559,7 @@ class LineServer:
         return bytes(data)
 
     def _overflow(self, conn: Connection) -> None:
-        self._note(f"dropped: more than daemon.max_buffered_bytes = {self._inbuf_cap} bytes "
+        self._note(f"dropped: more than daemon.server.max_buffered_bytes = {self._inbuf_cap} bytes "
                    "received and not yet handled", conn.who)
         self._drop(conn)
 
@@ -610,7 +610,7 @@ class LineServer:
 
     def _oversize(self, conn: Connection) -> None:
         err = RpcError(INVALID_REQUEST, f"line longer than {self.max_line_bytes} bytes "
-                       "(daemon.max_line_bytes); skipped",
+                       "(daemon.server.max_line_bytes); skipped",
                        {"field": "line", "allowed": f"at most {self.max_line_bytes} bytes"})
         self._send(conn, protocol.dumps(protocol.error_reply(None, err)))
 

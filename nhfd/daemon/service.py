@@ -6,7 +6,7 @@ zero-amplitude pattern), stage (identified, never moved), camera -> sockets -> R
 
 The loop (main thread): serve requests, heartbeat to the guardian, feed systemd's watchdog,
 write audit summaries. It sleeps in `select` until the next thing due (`wait_s`): the heartbeat
-every `daemon.tick_s`, or the navigator's next read; a request or the frame worker's pipe wakes it
+every `daemon.arming.heartbeat_s`, or the navigator's next read; a request or the frame worker's pipe wakes it
 at once. So an idle daemon wakes only for its heartbeats, and a stuck loop stops both the
 heartbeat (the guardian switches the lasers off) and the watchdog (systemd restarts the unit; its
 stop hook runs `nhfd laser-off`).
@@ -100,15 +100,15 @@ def setup_logging(fmt: str, level: int = logging.INFO) -> None:
 
 
 def _raise_open_files(wanted: int) -> None:
-    """The soft limit on open files up to `wanted` (daemon.open_files; the hard limit caps it):
+    """The soft limit on open files up to `wanted` (daemon.paths.open_files; the hard limit caps it):
     a distribution's default soft limit of 1024 is what 1,100 idle connections once hit."""
     soft, hard = raise_open_files(wanted)
     shown = "unlimited" if hard == resource.RLIM_INFINITY else str(hard)
     if soft != resource.RLIM_INFINITY and soft < wanted:
-        log.warning("open files: soft limit %d, below daemon.open_files = %d (the hard limit "
+        log.warning("open files: soft limit %d, below daemon.paths.open_files = %d (the hard limit "
                     "is %s; raise it, e.g. LimitNOFILE= in the unit)", soft, wanted, shown)
     else:
-        log.info("open files: soft limit %s (daemon.open_files = %d, hard limit %s)",
+        log.info("open files: soft limit %s (daemon.paths.open_files = %d, hard limit %s)",
                  "unlimited" if soft == resource.RLIM_INFINITY else soft, wanted, shown)
 
 
@@ -132,7 +132,7 @@ def _take_lock(path: Path) -> IO[str]:
 
 def tcp_token(settings: DaemonSettings, base_dir: Path, runtime_dir: Path
               ) -> tuple[str, Path | None]:
-    """The TCP clients' token: read from `daemon.tcp_token_file` (relative to `base_dir`), or
+    """The TCP clients' token: read from `daemon.server.tcp_token_file` (relative to `base_dir`), or
     made and written, mode 0600, to `tcp.token` in the runtime directory. Returns the token and
     the file made for it (the daemon removes it at stop), None when it was read."""
     if settings.tcp_token_file:
@@ -238,7 +238,7 @@ class Daemon:
         # place: the parts below hold them from here).
         self.errors = ErrorList()  # status "errors": what the parts report
         self.audit = AuditLog.for_settings(c)
-        self.recorder = SessionRecorder()  # daemon.record / serve --record
+        self.recorder = SessionRecorder()  # daemon.audit.record / serve --record
         self.laser = LaserLink(config.devices.readybeam, config.devices.laser, c.guardian,
                                self.audit, refresh_s=c.laser_refresh_s,
                                runtime_dir=self.runtime_dir, socket_group=c.socket_group,
@@ -363,7 +363,7 @@ class Daemon:
         next read if sooner. Everything else wakes it: requests (the server's sockets) and
         frames, loads and crashes (the worker's pipe is in the same selector). What other
         threads queue for the loop (a lost SLM output, a reloaded model's resend) waits at most
-        until the next heartbeat, `daemon.tick_s`, as it did when the loop woke every tick."""
+        until the next heartbeat, `daemon.arming.heartbeat_s`, as it did when the loop woke every tick."""
         due = self._next_beat_s
         if self.navigation.navigator is not None:
             due = min(due, self.navigation.next_read_s)
@@ -388,7 +388,7 @@ class Daemon:
         if now >= self._next_beat_s:
             # Once per tick however many requests woke the loop: a storm of set_view must not
             # turn into a storm of guardian round trips.
-            self._next_beat_s = now + self.config.daemon.tick_s
+            self._next_beat_s = now + self.config.daemon.arming.heartbeat_s
             self.laser.heartbeat(now)
             self.notifier.watchdog(now)
             self.audit.tick()

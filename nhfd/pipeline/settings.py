@@ -102,7 +102,7 @@ def zero_pattern(s: FrameSettings) -> np.ndarray:
 
 def frame_window_hw(daemon: DaemonSettings, slm: SLMSettings, info: ModelInfo
                     ) -> tuple[int, int]:
-    """The frames' window (height, width) in pixels: `daemon.frame_size_px` [W, H], or the
+    """The frames' window (height, width) in pixels: `daemon.frames.size_px` [W, H], or the
     model's training size when that is empty; any size up to the panel (`slm.width_px` x
     `height_px`), the whole panel included (the frame worker then refuses a size the model was
     not checked at: `nhfd.models.sizes`)."""
@@ -113,8 +113,8 @@ def frame_window_hw(daemon: DaemonSettings, slm: SLMSettings, info: ModelInfo
     ph, pw = slm.height_px, slm.width_px
     if h > ph or w > pw:
         raise ValueError(f"frame window {w} x {h} (the model's training size: "
-                         f"daemon.frame_size_px is empty) does not fit the panel {pw} x {ph} "
-                         f"(slm.width_px x height_px); set daemon.frame_size_px to at most "
+                         f"daemon.frames.size_px is empty) does not fit the panel {pw} x {ph} "
+                         f"(slm.width_px x height_px); set daemon.frames.size_px to at most "
                          f"[{pw}, {ph}]")
     return h, w
 
@@ -126,7 +126,7 @@ def frame_settings(config: Config, info: ModelInfo, calibration: Calibration | N
     and aberrations replace them; `nhfd.calibration.active_calibration` gives the configured
     one). The optics (z0, aperture, wavelengths, pitch) are the model's: `load_model` has
     already checked they match the configuration. The window is the model's training size
-    unless `daemon.frame_size_px` says otherwise (the trained fx is kept either way).
+    unless `daemon.frames.size_px` says otherwise (the trained fx is kept either way).
 
     `config`: the whole configuration, because a frame's settings join four sections: `[slm]`
     (panel, phase stroke, sign, inversion), `[coding]` (`zero_below`), `[optics]` (`padding`)

@@ -4,7 +4,7 @@
                        /login, sets an HttpOnly SameSite=Strict cookie); 401 without it
     GET  /ws           the WebSocket (the cookie again; 401 before the upgrade without it, 403
                        from another origin): state pushed every push_interval_s, operations in
-    GET  /snapshots/N  a snapshot PNG the page asked for (daemon.snapshot_dir)
+    GET  /snapshots/N  a snapshot PNG the page asked for (daemon.paths.snapshot_dir)
     GET  /static/...   the page's script and style
 
 Pushed: {"type": "state", "status": <the daemon's status>, "fps": frames per second shown,
@@ -280,7 +280,7 @@ def serve_web_view(settings: DaemonSettings, *, socket_path: Path, runtime_dir: 
     web_settings = settings.web
     token, made = web_token(web_settings, runtime_dir=runtime_dir, daemon_token=tcp_token,
                             base_dir=base_dir)
-    # A connection that has not sent a request within daemon.auth_timeout_s is dropped, as an
+    # A connection that has not sent a request within daemon.server.auth_timeout_s is dropped, as an
     # unauthenticated TCP client of the daemon is; refusals go to the daemon's audit log.
     view = WebView(web_settings, socket_path=socket_path, token=token,
                    snapshot_dir=resolve_dirs([settings.snapshot_dir], base_dir)[0],

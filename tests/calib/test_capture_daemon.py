@@ -1,6 +1,6 @@
 """`nhfd calib capture` through a real daemon on the simulated bench: the calibration methods
 (show_pattern, stage_move, capture), a short capture that is interrupted and resumed, images equal
-to the direct path's, and paths outside daemon.pattern_dirs refused."""
+to the direct path's, and paths outside daemon.paths.pattern_dirs refused."""
 
 from __future__ import annotations
 
@@ -115,7 +115,7 @@ def test_capture_through_the_daemon(daemon: tuple[Running, Path]) -> None:
     # the noise.
     rec = recs[2]
     direct = SimBenchIO(true, PANEL_HW, exposure_s=0.005, roi=tuple(r.daemon.config.daemon
-                                                                    .camera_roi_px))
+                                                                    .bench.camera_roi_px))
     direct.capture_dark(4)
     direct.show(np.load(out / manifest["frames"]["dots"]))
     direct.move_stage(rec["stage_mm"])

@@ -1,7 +1,7 @@
 """Arming follows authority, not a process name (issue 32, item 2).
 
 Who may arm is the Unix-socket peer's uid as the kernel reports it (SO_PEERCRED) and that uid's
-groups, against `daemon.arm_users` / `arm_groups` (default: the daemon's own user). A relay that
+groups, against `daemon.arming.users` / `arm_groups` (default: the daemon's own user). A relay that
 runs as an allowed user is that user to the kernel, so an optional confirmation by a person at
 the bench (a key switch on a serial line, a navigator button) must come within
 `arm_confirm_timeout_s`: the wait is a bench job, and the control loop goes on meanwhile. Every
@@ -87,7 +87,7 @@ def test_by_default_only_the_daemons_own_uid_may_arm_and_a_refusal_names_uid_and
     name = pwd.getpwuid(uid).pw_name if uid in {p.pw_uid for p in pwd.getpwall()} else None
     assert why is not None and why.startswith(f"uid {uid} (")
     assert (f"({name})" if name else "(no user entry)") in why
-    assert "daemon.arm_users and daemon.arm_groups are empty" in why
+    assert "daemon.arming.users and daemon.arming.groups are empty" in why
     assert f"only the daemon's own user may (uid {ME} ({MY_NAME}))" in why
     # A uid the user database does not know is refused too, saying so.
     assert "(no user entry)" in arm_refusal({"uid": 3_999_999}, s, ME)
@@ -100,7 +100,7 @@ def test_arm_users_replace_the_default_by_name():
     # Listed users only: the daemon's own user is no longer implied.
     why = arm_refusal({"uid": ME}, settings(arm_users=["no-such-user-nhfd"]), ME)
     assert why is not None and f"uid {ME} ({MY_NAME}) may not arm" in why
-    assert "daemon.arm_users = ['no-such-user-nhfd']" in why and "daemon.arm_groups = []" in why
+    assert "daemon.arming.users = ['no-such-user-nhfd']" in why and "daemon.arming.groups = []" in why
 
 
 def test_membership_of_any_of_the_uids_groups_allows_arming():
@@ -115,7 +115,7 @@ def test_membership_of_any_of_the_uids_groups_allows_arming():
     other = foreign_group()
     if other is not None:
         why = arm_refusal({"uid": ME}, settings(arm_groups=[other]), ME)
-        assert why is not None and f"daemon.arm_groups = [{other!r}]" in why
+        assert why is not None and f"daemon.arming.groups = [{other!r}]" in why
         assert grp.getgrgid(entry.pw_gid).gr_name in why  # the user's groups, named
 
 
@@ -141,8 +141,8 @@ def test_tcp_and_the_web_views_connection_are_refused_whatever_their_uid():
 
 
 def test_a_confirmation_without_its_input_is_a_configuration_error_naming_the_keys():
-    with pytest.raises(ConfigError, match=r"daemon.arm_confirm = 'serial' needs "
-                       r"daemon.arm_confirm_port"):
+    with pytest.raises(ConfigError, match=r"daemon.arming.confirm = 'serial' needs "
+                       r"daemon.arming.confirm_port"):
         check_confirm_settings(settings(arm_confirm="serial"), "none")
     with pytest.raises(ConfigError, match=r"'spacemouse' needs a navigator: devices.navigator"):
         gate_of(settings(arm_confirm="spacemouse"), "none")
@@ -164,7 +164,7 @@ def test_a_peer_whose_uid_is_not_allowed_is_refused_and_audited(short_dir, mecom
         monkeypatch.setattr(server_module, "peer_credentials", real)
         assert info.value.name == "forbidden"
         assert info.value.message.startswith(f"uid {uid} (")
-        assert "daemon.arm_users" in info.value.message
+        assert "daemon.arming.users" in info.value.message
         assert info.value.data["allowed"] == (f"the daemon's own user, uid {ME} ({MY_NAME}), "
                                               "over the Unix socket")
         with r.client() as c:
@@ -186,7 +186,7 @@ def test_arm_groups_decide_over_the_socket(short_dir, mecom_twin, member):
         if member:
             assert c.call("laser", action="arm", duration_s=30.0)["armed"] is True
             return
-        with pytest.raises(RpcError, match=re.escape(f"daemon.arm_groups = [{group!r}]")) as info:
+        with pytest.raises(RpcError, match=re.escape(f"daemon.arming.groups = [{group!r}]")) as info:
             c.call("laser", action="arm", duration_s=30.0)
         assert info.value.name == "forbidden"
         assert c.status()["laser"]["armed"] is False
@@ -248,7 +248,7 @@ def test_a_relay_as_the_same_user_cannot_arm_when_the_confirmation_is_not_given(
             job = c.wait_job(reply["job"], timeout_s=10)
         assert job["state"] == "failed"
         assert job["error"] == (f"ArmNotConfirmed: no confirmation from {KEY} within 1 s "
-                                "(daemon.arm_confirm_timeout_s): the lasers stay disarmed")
+                                "(daemon.arming.confirm_timeout_s): the lasers stay disarmed")
         with r.client() as c:
             assert c.status()["laser"]["armed"] is False
             with pytest.raises(RpcError, match="arm"):

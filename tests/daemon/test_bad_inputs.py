@@ -140,7 +140,7 @@ def test_bench_pipeline_refuses_a_frame_size_larger_than_the_panel(tiny, tmp_pat
                "--json", str(tmp_path / "out.json")])
     err = capsys.readouterr().err
     assert rc == 2 and "Traceback" not in err
-    assert "daemon.frame_size_px" in err and "1920" in err and "1080" in err
+    assert "daemon.frames.size_px" in err and "1920" in err and "1080" in err
 
 
 def write_calibration(path: Path, *, stage_at_slm_mm: float = 5.0,

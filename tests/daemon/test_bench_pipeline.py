@@ -52,7 +52,7 @@ def test_each_device_is_its_own_worker_given_the_same_views(bench):
     for r in results:
         # What the worker reported computing on: "auto" chose the CPU here (no CUDA), and why.
         assert r["device"] == "cpu" and r["gpu"] is None
-        assert r["device_reason"] == f"daemon.device = {r['device_setting']!r}: the CPU"
+        assert r["device_reason"] == f"daemon.frames.device = {r['device_setting']!r}: the CPU"
         assert r["views"] == 2
     for a, b in zip(results[::2], results[1::2], strict=True):  # cpu and auto of one size
         assert [row["azimuth_deg"] for row in a["rows"]] == [
@@ -132,7 +132,7 @@ def test_what_runs_the_network_is_compared_side_by_side(tiny, tmp_path):
     results = json.loads(out.read_text())["results"]
     assert [(r["inference"], r["onnx_providers"]) for r in results] == [
         ("onnxruntime", ["CPUExecutionProvider"]), ("torch", ["torch"])]
-    assert results[1]["inference_reason"] == ('daemon.inference = "torch": the network in torch '
+    assert results[1]["inference_reason"] == ('daemon.frames.inference = "torch": the network in torch '
                                               "on cpu")
     assert [row["azimuth_deg"] for row in results[0]["rows"]] == [
         row["azimuth_deg"] for row in results[1]["rows"]]
@@ -149,5 +149,5 @@ def test_a_model_larger_than_the_panel_is_refused_before_any_worker_starts(tiny,
                  str(tiny["model"]), "--scene", str(tiny["scene"]), "--views", "1"]) == 2
     err = capsys.readouterr().err
     assert (f"{tiny['model']}: frame window 96 x 64 (the model's training size: "
-            "daemon.frame_size_px is empty) does not fit the panel 64 x 48") in err, err
+            "daemon.frames.size_px is empty) does not fit the panel 64 x 48") in err, err
     assert started == []

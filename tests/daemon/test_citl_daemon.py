@@ -156,7 +156,7 @@ def test_a_new_view_stops_the_captures(short_dir, tiny):
 
 
 @pytest.mark.parametrize(("change", "named"), [
-    ({"daemon": {"colour_mode": "single"}}, "daemon.colour_mode is 'single': citl needs "
+    ({"daemon": {"colour_mode": "single"}}, "daemon.frames.colour_mode is 'single': citl needs "
                                            "'capture'"),
     ({"devices": {"camera": "none"}}, "citl needs the bench's camera (devices.camera"),
     ({"calibration": {"file": ""}}, "citl needs a calibration (calibration.file)"),

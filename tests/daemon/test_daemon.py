@@ -35,7 +35,7 @@ def raw_session(path, lines: list[bytes], expect: int, timeout_s: float = 5.0) -
 
 
 def test_protocol_errors_on_the_wire(running: Running):
-    cap = running.daemon.config.daemon.max_line_bytes
+    cap = running.daemon.config.daemon.server.max_line_bytes
     replies = raw_session(running.socket, [
         b'{"jsonrpc":"2.0","method":"status"\n',                                  # malformed
         b'{"jsonrpc":"2.0","method":"focus","params":{"z_mm":NaN},"id":2}\n',
@@ -80,7 +80,7 @@ def test_batches_can_be_refused_with_a_clear_error(short_dir, mecom_twin):
 def test_ten_thousand_bad_requests_leave_the_daemon_serving_and_unchanged(running, mecom_twin):
     c = running.client()
     before = c.status()
-    cap = running.daemon.config.daemon.max_line_bytes
+    cap = running.daemon.config.daemon.server.max_line_bytes
     lines, expected = bad_requests(10_000, seed=7, cap=cap)
     with socket.socket(socket.AF_UNIX) as s:
         s.settimeout(20)

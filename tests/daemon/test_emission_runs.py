@@ -151,7 +151,7 @@ def test_a_tls_peer_may_not_start_emission_by_default(short_dir, tiny):
                 ask()
             assert info.value.name == "forbidden"
             assert ("makes a laser emit, and a TCP peer at 127.0.0.1:" in info.value.message
-                    and "(daemon.remote_emission = false)" in info.value.message), info.value
+                    and "(daemon.arming.remote_emission = false)" in info.value.message), info.value
         assert remote.status()["laser"]["channels"]["red"]["power_pct"] == 0.0
         # What it may still do: views that do not emit, power 0, and laser off (1 ms here).
         remote.call("set_view", pose=FRONT_POSE, quality="sgd")

@@ -180,7 +180,7 @@ def test_an_unavailable_execution_provider_is_refused_listing_the_available_ones
     with pytest.raises(ValueError) as info:
         open_model(str(tiny["model"]), config, threads=1)
     message = str(info.value)
-    assert "daemon.onnx_providers: TensorrtExecutionProvider not available" in message
+    assert "daemon.frames.onnx_providers: TensorrtExecutionProvider not available" in message
     assert "available: " + ", ".join(available) in message
     # a model opened outside the daemon refuses one too, by name, not as an unreadable file
     with pytest.raises(ValueError, match="providers: TensorrtExecutionProvider not available"):

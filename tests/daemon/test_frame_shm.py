@@ -94,7 +94,7 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_se
 
 
 def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny, our_segments):
-    """`daemon.frame_transport = "pickle"` (kept for `nhfd bench pipeline --transport`): no
+    """`daemon.frames.transport = "pickle"` (kept for `nhfd bench pipeline --transport`): no
     segments, the grey in the message."""
     config = small_config(daemon={"frame_cache_frames": 0, "frame_transport": "pickle"})
     host = _Host(config)

@@ -205,7 +205,7 @@ def test_a_fake_guardian_that_answers_all_off_is_refused_by_the_daemon(short_dir
 def test_a_runtime_directory_of_another_owner_or_mode_is_refused(short_dir, mecom_twin):
     run = short_dir / "run"
     run.mkdir()
-    run.chmod(0o770)  # group-writable, and no daemon.socket_group configured
+    run.chmod(0o770)  # group-writable, and no daemon.server.socket_group configured
     daemon = Daemon(bench_config(short_dir, mecom_twin), base_dir=short_dir, env={},
                     handle_signals=False)
     with pytest.raises(Exception, match=f"{run} is group-writable .*mode 0770.*socket_group"):

@@ -120,8 +120,8 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
             reply = refusal_over(addr, cert)
             assert reply["id"] is None and reply["error"]["code"] == protocol.BUSY.code
             assert ("too many TCP connections waiting to authenticate "
-                    "(daemon.max_unauthenticated = 3") in reply["error"]["message"]
-            assert reply["error"]["data"] == {"field": "daemon.max_unauthenticated",
+                    "(daemon.server.max_unauthenticated = 3") in reply["error"]["message"]
+            assert reply["error"]["data"] == {"field": "daemon.server.max_unauthenticated",
                                               "allowed": "at most 3 at once"}
         late = [socket.create_connection(addr, timeout=5) for _ in range(9)]
         silent += late
@@ -136,7 +136,7 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
             for line in answers.values():
                 err = json.loads(line)["error"]
                 assert err["code"] == protocol.BUSY.code
-                assert "daemon.max_unauthenticated = 3" in err["message"]
+                assert "daemon.server.max_unauthenticated = 3" in err["message"]
         assert server.client_counts()["unauthenticated"] == 3
         # The Unix socket is untouched: status, and the lasers off with the twin dark.
         with r.client() as c:
@@ -145,7 +145,7 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
         assert mecom_twin.emitting() == OFF
         # The deadline: every silent connection is closed by the daemon, and the slots are
         # free again for a client with the token.
-        clock.offset_s = config.daemon.auth_timeout_s
+        clock.offset_s = config.daemon.server.auth_timeout_s
         wait_until(lambda: all(closed_by_peer(s) for s in silent), 10,
                    "the silent connections to be dropped")
         wait_until(lambda: server.client_counts() == {"unix": 0, "tcp": 0,
@@ -156,7 +156,7 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
         # Authenticated clients fill max_tcp_clients; the next one hears so in its protocol.
         reply = refusal_over(addr, cert)
         assert reply["error"]["code"] == protocol.BUSY.code
-        assert reply["error"]["message"] == ("too many TCP clients (daemon.max_tcp_clients = 6); "
+        assert reply["error"]["message"] == ("too many TCP clients (daemon.server.max_tcp_clients = 6); "
                                              "retry later")
         with r.client() as c:
             assert c.status()["daemon"]["state"] == "ready"
@@ -198,7 +198,7 @@ def test_unix_clients_past_max_clients_get_the_busy_line(short_dir, mecom_twin):
                 reply = json.loads(third.recv(4096).split(b"\n")[0])
             assert reply["error"]["code"] == protocol.BUSY.code
             assert reply["error"]["message"] == ("too many clients on the Unix socket "
-                                                 "(daemon.max_clients = 2); retry later")
+                                                 "(daemon.server.max_clients = 2); retry later")
     finally:
         r.stop()
 
@@ -293,7 +293,7 @@ def test_a_newline_flood_and_an_endless_line_stay_bounded_and_the_heartbeat_keep
         assert peak[0] <= c.max_buffered_bytes, peak[0]
         assert server.peak_buffered_bytes <= c.max_buffered_bytes
         assert newline_drops, ("the newline flooders were never dropped", server.refused, peak)
-        reason = (f"dropped: more than daemon.max_buffered_bytes = {c.max_buffered_bytes} "
+        reason = (f"dropped: more than daemon.server.max_buffered_bytes = {c.max_buffered_bytes} "
                   "bytes received and not yet handled")
         assert server.refused[reason] >= 2  # the TCP and the Unix flooder, each at least once
         # Logged once, with the peer, however many times flooders were dropped.
@@ -487,7 +487,7 @@ def test_the_daemon_raises_its_soft_open_files_limit_at_start(short_dir, mecom_t
     _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if hard != resource.RLIM_INFINITY and hard < 1024:
         pytest.skip(f"the hard limit on open files here is {hard}")
-    wanted = Config.model_validate(_overlay({}, {})).daemon.open_files
+    wanted = Config.model_validate(_overlay({}, {})).daemon.paths.open_files
     expected = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
     cfg = write_config(short_dir, mecom_twin)
 
@@ -513,7 +513,7 @@ def test_the_daemon_raises_its_soft_open_files_limit_at_start(short_dir, mecom_t
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
         log = proc.stderr.read()
-        assert f"open files: soft limit {expected} (daemon.open_files = {wanted}" in log
+        assert f"open files: soft limit {expected} (daemon.paths.open_files = {wanted}" in log
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -523,7 +523,7 @@ def test_the_daemon_raises_its_soft_open_files_limit_at_start(short_dir, mecom_t
 def test_the_unit_sets_the_open_files_limit_to_the_default_open_files():
     unit = (REPO / "packaging" / "systemd" / "nhfd.service").read_text()
     lines = [line for line in unit.splitlines() if line.startswith("LimitNOFILE=")]
-    default = Config.model_validate(_overlay({}, {})).daemon.open_files
+    default = Config.model_validate(_overlay({}, {})).daemon.paths.open_files
     assert lines == [f"LimitNOFILE={default}"]
     assert f"open_files = {default}" in default_text()
 

@@ -64,7 +64,7 @@ def fake_daemon(path: Path, how: str) -> Iterator[list[bytes]]:
                 return
             conns.append(conn)
             busy = {"jsonrpc": "2.0", "error": {"code": 1001, "message": "too many clients "
-                                                "(daemon.max_clients = 1)"}}
+                                                "(daemon.server.max_clients = 1)"}}
             if how == "full":
                 conn.sendall(json.dumps({**busy, "id": None}).encode() + b"\n")
                 conn.close()
@@ -116,7 +116,7 @@ def test_a_daemon_that_is_busy_or_silent_is_bypassed(short_dir, mecom_twin, caps
         result = json.loads(out.out)
         assert result["all_off"] is True and result["switched_off_by"] == "guardian"
         # "full": the busy line, or a broken pipe when the hang-up came before the request.
-        why = {"busy": "the daemon refused: busy: too many clients (daemon.max_clients = 1)",
+        why = {"busy": "the daemon refused: busy: too many clients (daemon.server.max_clients = 1)",
                "full": f"nhfd serve at {short_dir / 'c.sock'}: ",
                "silent": f"nhfd serve at {short_dir / 'c.sock'} did not answer"}[how]
         assert why in result["daemon"] and why in out.err

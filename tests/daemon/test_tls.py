@@ -124,8 +124,8 @@ def test_a_certificate_for_another_host_fails_the_name_check(short_dir, mecom_tw
 def test_listening_beyond_loopback_needs_tls():
     with pytest.raises(ConfigError) as info:
         validate({"daemon": {"tcp_port": 7700, "tcp_host": "0.0.0.0"}}, "lab.toml")
-    assert ("daemon.tcp_host = '0.0.0.0' is not loopback" in str(info.value)
-            and "daemon.tls_cert and daemon.tls_key" in str(info.value))
+    assert ("daemon.server.tcp_host = '0.0.0.0' is not loopback" in str(info.value)
+            and "daemon.server.tls_cert and daemon.server.tls_key" in str(info.value))
     with pytest.raises(ConfigError, match=r"give both daemon\.tls_cert and daemon\.tls_key"):
         validate({"daemon": {"tls_cert": "bench.pem"}}, "lab.toml")
     with pytest.raises(ValueError, match=r"daemon\.tls_cert and daemon\.tls_key"):
@@ -142,7 +142,7 @@ def test_an_unloadable_certificate_names_the_keys(tmp_path):
     from nhfd.daemon.server import server_tls_context
 
     (tmp_path / "c.pem").write_text("not a certificate")
-    with pytest.raises(ValueError, match=r"daemon.tls_cert = .*c.pem.*cannot load") as info:
+    with pytest.raises(ValueError, match=r"daemon.server.tls_cert = .*c.pem.*cannot load") as info:
         server_tls_context(tmp_path / "c.pem", tmp_path / "k.pem")
     assert isinstance(info.value, ValueError) and not isinstance(info.value, ssl.SSLError)
 

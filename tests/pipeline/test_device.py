@@ -1,4 +1,4 @@
-"""One frame path on any device (issue 23): `daemon.device` resolution, the onnxruntime providers
+"""One frame path on any device (issue 23): `daemon.frames.device` resolution, the onnxruntime providers
 and TensorRT engine cache a CUDA device gets, and the device path's arithmetic (torch coding,
 network input, I/O binding) checked on the CPU against the CPU path it must reproduce. The tests
 that need a GPU skip without one."""
@@ -51,7 +51,7 @@ CPU_CUDA_TRT = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecut
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
 
-# -- daemon.device -----------------------------------------------------------------------------
+# -- daemon.frames.device -----------------------------------------------------------------------------
 
 def test_auto_picks_cuda_only_where_torch_sees_it():
     assert resolve_device("auto", cuda_count=0) == torch.device("cpu")
@@ -81,8 +81,8 @@ def test_a_device_name_outside_the_allowed_ones_lists_them(bad):
 
 
 def test_the_configuration_checks_daemon_device():
-    assert small_config().daemon.device == "auto"
-    assert small_config(daemon={"device": "cuda:1"}).daemon.device == "cuda:1"
+    assert small_config().daemon.frames.device == "auto"
+    assert small_config(daemon={"device": "cuda:1"}).daemon.frames.device == "cuda:1"
     with pytest.raises(ValueError, match=r"device = 'gpu': must be one of auto, cpu, cuda, "
                                          r"cuda:N"):
         small_config(daemon={"device": "gpu"})
@@ -92,7 +92,7 @@ def test_the_configuration_checks_daemon_device():
 # torch about; None: the name only). Each must raise `device_choice`'s own message, word for word.
 CUDA_COUNT = torch.cuda.device_count() if torch.cuda.is_available() else 0
 DEVICE_SITES = {
-    "daemon.device (pipeline)": (lambda v: resolve_device(v), "daemon.device", DEVICES,
+    "daemon.frames.device (pipeline)": (lambda v: resolve_device(v), "daemon.frames.device", DEVICES,
                                  CUDA_COUNT),
     "bench pipeline --device": (lambda v: resolve_device(v, "--device"), "--device", DEVICES,
                                 CUDA_COUNT),
@@ -103,7 +103,7 @@ DEVICE_SITES = {
     "dataset build --device": (check_device, "--device", DEVICES, CUDA_COUNT),
     "onnx providers": (lambda v: execution_providers(v, ["CPUExecutionProvider"],
                                                      ["CPUExecutionProvider"]),
-                       "daemon.device", ("cpu", "cuda", "cuda:N"), None),
+                       "daemon.frames.device", ("cpu", "cuda", "cuda:N"), None),
 }
 
 
@@ -339,7 +339,7 @@ def test_the_device_path_on_the_cpu_gives_the_cpu_paths_frame(donut):
 
 
 def test_inference_in_torch_gives_onnxruntimes_frames(donut):
-    """daemon.inference = "torch": the worker opens a TorchModel, and its frames, on the CPU path
+    """daemon.frames.inference = "torch": the worker opens a TorchModel, and its frames, on the CPU path
     and on the device path, are onnxruntime's (one grey level apart at most, where the network's
     float32 rounding moves a phase across a level boundary)."""
     from nhfd.models.torch_model import TorchModel
@@ -578,14 +578,14 @@ def test_what_runs_the_network(inference, device, providers, backend):
 
     got, why = inference_backend(inference, torch.device(device), providers)
     assert got == backend
-    assert why.startswith(f'daemon.inference = "{inference}": ') and why.endswith(device)
+    assert why.startswith(f'daemon.frames.inference = "{inference}": ') and why.endswith(device)
     if inference == "auto" and backend == "torch":
         assert "this onnxruntime has no CUDAExecutionProvider" in why
 
 
 def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(monkeypatch):
     """A workstation whose torch sees a GPU but whose onnxruntime is the CPU build: "auto"
-    computes frames on the GPU with torch running the network, unless daemon.inference asks for
+    computes frames on the GPU with torch running the network, unless daemon.frames.inference asks for
     onnxruntime: then "auto" serves frames on the CPU and says why, and "cuda" named
     explicitly is refused. Without gsplat, "auto" stays on the CPU."""
     from nhfd.pipeline import device as device_mod
@@ -594,7 +594,7 @@ def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
     cpu_ort = ["CPUExecutionProvider"]
     device, why = device_mod.frame_device("auto", cpu_ort)
-    assert device == torch.device("cuda", 0) and why == "daemon.device = 'auto': cuda:0"
+    assert device == torch.device("cuda", 0) and why == "daemon.frames.device = 'auto': cuda:0"
     device, why = device_mod.frame_device("auto", cpu_ort, inference="onnxruntime")
     assert device == torch.device("cpu")
     assert "no CUDAExecutionProvider" in why and why.endswith("computing frames on the CPU")
@@ -603,7 +603,7 @@ def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(
                                          r"CUDAExecutionProvider"):
         device_mod.frame_device("cuda", cpu_ort, inference="onnxruntime")
     device, why = device_mod.frame_device("auto", CPU_CUDA_TRT)
-    assert device == torch.device("cuda", 0) and why == "daemon.device = 'auto': cuda:0"
+    assert device == torch.device("cuda", 0) and why == "daemon.frames.device = 'auto': cuda:0"
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: False)
     device, why = device_mod.frame_device("auto", CPU_CUDA_TRT)
     assert device == torch.device("cpu") and "gsplat" in why
@@ -668,7 +668,7 @@ def test_cuda_graphs_capture_nothing_off_cuda_and_the_setting_is_a_boolean():
 
 @needs_cuda
 def test_cuda_graphs_replay_the_eager_frames_view_after_view(donut, monkeypatch, record_property):
-    """daemon.cuda_graphs: the stages after the render, captured once and replayed, give the
+    """daemon.frames.cuda_graphs: the stages after the render, captured once and replayed, give the
     eager path's frame for each of several views in turn (a replay that kept its first inputs
     would show the first view's frame again), and every stage was captured."""
     from nhfd.pipeline import frame as frame_mod

@@ -1,5 +1,5 @@
 """The whole 1920 x 1080 panel on the CPU: one frame of the shipped model with the window set to
-the panel (`daemon.frame_size_px = [1920, 1080]`), as the frame worker computes it.
+the panel (`daemon.frames.size_px = [1920, 1080]`), as the frame worker computes it.
 
 At that size the region is the panel itself (the kernel's margin is clipped by its edges), and
 the propagation runs on the FFT lengths the full panel really uses: "auto" padding takes the

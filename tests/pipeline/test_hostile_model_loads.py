@@ -1,6 +1,6 @@
 """The frame worker's load path against hostile model files (issue 32, items 8 and 9): a model
 whose metadata the frame path cannot use, or whose session needs more than
-daemon.model_memory_mb, is refused, the refusal names the field or the budget, and the model
+daemon.paths.model_memory_mb, is refused, the refusal names the field or the budget, and the model
 already serving stays (the same object, the same model id), loaded and answering."""
 
 from __future__ import annotations
@@ -103,5 +103,5 @@ def test_the_worker_replies_with_each_refusal_and_keeps_the_model(shipped, tmp_p
     assert replies[2][3].startswith("InvalidMetadata: ")
     assert "nan.onnx: metadata amplitude_scale = nan: expected a finite number" in replies[2][3]
     assert replies[3][2] is False and replies[3][3].startswith("ModelOverBudget: ")
-    assert f"daemon.model_memory_mb = {BUDGET_MB} MB" in replies[3][3]
+    assert f"daemon.paths.model_memory_mb = {BUDGET_MB} MB" in replies[3][3]
     assert state.model_id == 1 and str(state.model.path) == str(shipped)

@@ -1,7 +1,7 @@
 """Hostile scene files (issue 32, items 6 and 7): every reader bounds what it reads and inflates
 by the count the file declares, refuses counts above `max_gaussians`, reads only regular files,
 keeps a scene's references inside its own folder; the daemon reads a scene in a child process
-under `[daemon] scene_memory_mb` and `[daemon] max_gaussians`.
+under `[daemon.paths] scene_memory_mb` and `[daemon.paths] max_gaussians`.
 
 Each hostile file is built here, small on disk. Where a test measures memory it is the peak
 that `tracemalloc` sees (Python objects and numpy arrays) while the file is read: a bounded
@@ -459,7 +459,7 @@ def test_the_daemons_load_scene_applies_max_gaussians_and_scene_memory_mb(tmp_pa
         job = load(host, "zeros.spz")
         assert job.state == "failed"
         assert job.error.startswith(f"SceneFileError: {tmp_path / 'zeros.spz'}: reading the "
-                                    "scene needs more than daemon.scene_memory_mb = 64 MiB")
+                                    "scene needs more than daemon.paths.scene_memory_mb = 64 MiB")
         assert host.frames.loaded == [] and host.scene is None
     finally:
         host.load_jobs.close()

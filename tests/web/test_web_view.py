@@ -189,7 +189,7 @@ def test_the_page_shows_the_bench_and_steers_it_but_never_arms(bench, browser):
     wait.until(lambda d: "ARMED" in d.find_element(By.ID, "armed").text)
     assert " s left" in browser.find_element(By.ID, "armed").text
 
-    # The snapshot button: a capture saved in daemon.snapshot_dir, offered for download, and the
+    # The snapshot button: a capture saved in daemon.paths.snapshot_dir, offered for download, and the
     # page's camera thumbnail is that capture.
     browser.find_element(By.ID, "snapshot").click()
     link = wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, "#snapshot-result a"))[0]
