@@ -18,7 +18,8 @@ with a reference to `SIZE_TOLERANCE` (max abs difference over amplitude and phas
 
 Each result goes into the model's metadata as a `checked_sizes` entry
 (`nhfd.models.metadata.checked_size_entry`), written atomically. The frame worker refuses a
-window whose padded size is not among them (`window_check`) unless `daemon.frames.allow_unchecked_sizes`.
+window whose padded size is not among them (`window_check`) unless
+`daemon.frames.allow_unchecked_sizes`.
 """
 
 from __future__ import annotations

@@ -57,7 +57,7 @@ class Bench:
     def __init__(self, config: Config) -> None:
         """`config`: the devices (`[devices]`) at the panel's size and pitch (`[slm]`); the
         camera region (`daemon.bench.camera_roi_px`); the panel's colour mode and coding (its
-        `Panel` reads `[daemon]`, `[slm]` and the active calibration)."""
+        `Panel` reads `[daemon.frames]`, `[slm]` and the active calibration)."""
         self.config = config
         self.laser_twin: Any = None  # the guardian's simulated laser, for the simulated camera
         self.slm: Any = None

@@ -71,8 +71,8 @@ class Dispatcher:
     def _batch(self, conn: Connection, batch: list[Any]) -> bytes | None:
         cap = self.max_batch
         if cap == 0:
-            err = RpcError(INVALID_REQUEST, "batches are not supported (daemon.server.max_batch = 0); "
-                           "send one request per line")
+            err = RpcError(INVALID_REQUEST, "batches are not supported "
+                           "(daemon.server.max_batch = 0); send one request per line")
         elif not batch:
             err = RpcError(INVALID_REQUEST, "empty batch")
         elif len(batch) > cap:

@@ -142,12 +142,12 @@ class ViewSource(Protocol):
 
 
 def worker_environment(settings: DaemonSettings) -> dict[str, str]:
-    """The worker's thread counts (`daemon.frames.worker_threads`, `worker_threading_layer`), for its
-    environment: read once, when torch, numba and onnxruntime load in the spawned process, so
+    """The worker's thread counts (`daemon.frames.worker_threads`, `worker_threading_layer`), for
+    its environment: read once, when torch, numba and onnxruntime load in the spawned process, so
     they must be there before its first import."""
-    threads = str(int(settings.worker_threads))
+    threads = str(int(settings.frames.worker_threads))
     env = {var: threads for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
-    env["NUMBA_THREADING_LAYER"] = str(settings.worker_threading_layer)
+    env["NUMBA_THREADING_LAYER"] = str(settings.frames.worker_threading_layer)
     return env
 
 

@@ -111,7 +111,7 @@ class RpcContext:
     from its parts (`Daemon.rpc`), and a method touches nothing else. Not the daemon: no
     method can reach its lifecycle, its loop or another part's insides."""
 
-    config: Config  # [daemon] limits and colour mode, [slm] size, the focus calibration
+    config: Config  # [daemon.*] limits and colour mode, [slm] size, the focus calibration
     base_dir: Path  # relative paths in requests and settings are taken from here
     scene_dirs: list[Path]  # where load_scene may read (resolved, `paths.resolve_dirs`)
     model_dirs: list[Path]  # where load_model may read
@@ -195,7 +195,7 @@ def no_model_hint(quality: str, frames: Frames, load_jobs: JobRunner) -> str | N
 
 
 def _focus(ctx: RpcContext, conn: Connection, p: Params) -> Any:
-    cfg = ctx.config.daemon
+    cfg = ctx.config.daemon.bench
     low, high = cfg.focus_range_mm
     z_mm = p.number("z_mm", low, high)
     home = p.boolean("home", False)
@@ -257,14 +257,14 @@ def _laser(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     if action == "power":
         power_pct = p.number("power_pct", 0.0, 100.0)
         p.done()
-        check_laser_command(ctx.config.daemon, action, channel, power_pct)
+        check_laser_command(ctx.config.daemon.frames, action, channel, power_pct)
         if power_pct > 0 and link.status().get("armed"):
             ctx.arming.authorise_emission(conn, f"a {channel} power of {power_pct:g} % while "
                                                 "armed")
         applied = link.power(channel, power_pct)
         return {"channel": channel, "power_pct": applied, "capped": applied < power_pct}
     p.done()
-    check_laser_command(ctx.config.daemon, action, channel, None)
+    check_laser_command(ctx.config.daemon.frames, action, channel, None)
     if action == "enable":
         ctx.arming.authorise_emission(conn, f"enabling the {channel} diode")
     if action == "enable" and ctx.bench.slm_lost is not None:
@@ -524,9 +524,10 @@ def _load_scene(ctx: RpcContext, conn: Connection, p: Params) -> Any:
 
     def run(job: Job) -> dict[str, Any]:
         # Refuses a file that is not a plausible scene (SceneFileError names the rule), holds
-        # more than daemon.paths.max_gaussians or needs more than daemon.paths.scene_memory_mb before the
-        # worker is asked: the old scene keeps rendering. Read in a child process (scene_check
-        # says why), so neither the daemon's memory nor its control loop pays for the file.
+        # more than daemon.paths.max_gaussians or needs more than daemon.paths.scene_memory_mb
+        # before the worker is asked: the old scene keeps rendering. Read in a child process
+        # (scene_check says why), so neither the daemon's memory nor its control loop pays for the
+        # file.
         counts = read_scene_counts(path, ctx.config.daemon.paths.max_gaussians,
                                    ctx.config.daemon.paths.scene_memory_mb, job.check)
         job.check()
@@ -565,7 +566,8 @@ def _job(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     job = ctx.bench_jobs.get(job_id) or ctx.load_jobs.get(job_id)
     if job is None:
         raise RpcError(NO_SUCH_JOB, f"no job {job_id} (finished jobs are kept: "
-                       f"daemon.paths.jobs_kept = {ctx.config.daemon.paths.jobs_kept})", {"field": "id"})
+                       f"daemon.paths.jobs_kept = {ctx.config.daemon.paths.jobs_kept})",
+                       {"field": "id"})
     return job.to_json()
 
 

@@ -66,7 +66,7 @@ class Panel:
     """What the SLM shows, and the one way to change it (see the module's docstring)."""
 
     def __init__(self, config: Config, devices: PanelDevices) -> None:
-        """`config`: the panel's size and curves (`[slm]`), the colour mode (`[daemon]`) and
+        """`config`: the panel's size and curves (`[slm]`), the colour mode (`[daemon.frames]`) and
         the active calibration (`[calibration]`, whose curves code the blank). `devices`: the
         SLM it drives and why there is none (the bench)."""
         self.config = config
@@ -116,7 +116,7 @@ class Panel:
         """View `seq`'s full-panel frame ([3, H, W] uint8) in the colour mode; it reaches the
         SLM unless the panel is held. Returns the frame as shown (what `resume` shows again);
         raises what the SLM raises. FrameLink's one way onto the panel."""
-        c = self.config.daemon
+        c = self.config.daemon.frames
         frame = panel_for_mode(frame, c.colour_mode, c.single_colour)
         if self.devices.slm is not None and not self.held:
             self.devices.slm.show(frame)
@@ -128,7 +128,7 @@ class Panel:
     def show_pattern(self, frame: np.ndarray, name: str) -> None:
         """A calibration frame ([3, H, W] uint8, the panel's size) in the colour mode, instead
         of the view until the next set_view or blank."""
-        c = self.config.daemon
+        c = self.config.daemon.frames
         self._slm().show(panel_for_mode(frame, c.colour_mode, c.single_colour))
         self.showing = f"pattern {name}"
         self.current = f"calibration pattern {name}"

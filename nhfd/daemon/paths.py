@@ -26,8 +26,8 @@ TOKEN_NAME = "tcp.token"
 
 def control_socket(configured_runtime_dir: str = "",
                    env: Mapping[str, str] | None = None) -> Path:
-    """The control socket in the runtime directory (`daemon.server.runtime_dir`, else the default one
-    for this user and environment)."""
+    """The control socket in the runtime directory (`daemon.server.runtime_dir`, else the default
+    one for this user and environment)."""
     return runtime_dir(configured_runtime_dir, env) / SOCKET_NAME
 
 

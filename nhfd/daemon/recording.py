@@ -1,7 +1,7 @@
 """Session recording and replay: every bench-changing request, timed, as JSON lines.
 
-The recording (`daemon.audit.record` or `nhfd serve --record FILE`) starts with a header line, then one
-line per request that changed the bench and succeeded:
+The recording (`daemon.audit.record` or `nhfd serve --record FILE`) starts with a header line, then
+one line per request that changed the bench and succeeded:
 
     {"nhfd_session": 1, "version": "...", "started_unix_s": 1790000000.0}
     {"t_s": 0.412, "unix_s": ..., "method": "set_view", "params": {...}, "who": {...}}

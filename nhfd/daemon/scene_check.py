@@ -118,8 +118,9 @@ def read_scene_counts(path: Path, max_gaussians: int, memory_mb: int,
         return result["counts"]
     kind, message = result["type"], result["message"]
     if kind == "MemoryError":
-        raise SceneFileError(f"{path}: reading the scene needs more than daemon.paths.scene_memory_mb "
-                             f"= {memory_mb} MiB (allowed: 64 to 1048576 MiB)")
+        raise SceneFileError(f"{path}: reading the scene needs more than "
+                             f"daemon.paths.scene_memory_mb = {memory_mb} MiB (allowed: 64 to "
+                             "1048576 MiB)")
     cls = SceneFileError if kind == "SceneFileError" else getattr(builtins, kind, None)
     if not (isinstance(cls, type) and issubclass(cls, Exception)):
         cls = RuntimeError

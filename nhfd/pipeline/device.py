@@ -7,8 +7,8 @@ fall back to the CPU (a bench configured for the GPU that quietly ran 20x slower
 nothing of why). On CUDA every stage of a frame runs on the GPU and only the uint8 panel region
 (and the uint8 preview of the rendered view) crosses to the host: `HostCopy` copies it
 asynchronously into pinned memory and waits for that copy alone. `inference_backend` says
-what runs the network there (`daemon.frames.inference`: onnxruntime, or torch where onnxruntime has no
-CUDA provider).
+what runs the network there (`daemon.frames.inference`: onnxruntime, or torch where onnxruntime has
+no CUDA provider).
 """
 
 from __future__ import annotations

@@ -125,7 +125,8 @@ def compute_frame_on_device(view: View, scene: Scene, model: Any, encoder: Encod
         raise ValueError(f"the model runs on {model_device}, the encoder on {dev}: load both "
                          "for one device (daemon.frames.device)")
     clock = StageClock(dev)
-    graphs = encoder.graphs  # each stage after the render one CUDA graph (daemon.frames.cuda_graphs)
+    # each stage after the render one CUDA graph (daemon.frames.cuda_graphs)
+    graphs = encoder.graphs
     with torch.no_grad():
         rgb, depth, alpha = render_on_device(view, scene, model.info, s.window_hw, dev)
         clock.stage("render")

@@ -121,8 +121,8 @@ def worker_device(value: str, inference: str = "auto") -> tuple[torch.device, st
 def worker_inference(daemon: DaemonSettings) -> tuple[str, str]:
     """`inference_backend` for the configured device and `daemon.frames.inference`: ("onnxruntime" |
     "torch", why)."""
-    device, _ = worker_device(daemon.device, daemon.inference)
-    return inference_backend(daemon.inference, device, ort.get_available_providers())
+    device, _ = worker_device(daemon.frames.device, daemon.frames.inference)
+    return inference_backend(daemon.frames.inference, device, ort.get_available_providers())
 
 
 def open_model(path: str, config: Config, threads: int) -> Any:
@@ -145,15 +145,15 @@ def open_model(path: str, config: Config, threads: int) -> Any:
     # configured for CUDA that quietly ran on the CPU would be 10x slower with nothing but a
     # warning to say why; the load fails instead and the previous model keeps running.
     d = config.daemon
-    providers = check_providers(list(d.onnx_providers), ort.get_available_providers(),
+    providers = check_providers(list(d.frames.onnx_providers), ort.get_available_providers(),
                                 "daemon.frames.onnx_providers")
     # A CUDA device torch lacks, or one named without its frame path installed: ValueError.
-    device, _ = worker_device(d.device, d.inference)
-    memory_mb = int(d.model_memory_mb)
+    device, _ = worker_device(d.frames.device, d.frames.inference)
+    memory_mb = int(d.paths.model_memory_mb)
     meta, input_name = read_model_metadata(path, max_bytes=memory_mb << 20,
                                            setting=MEMORY_SETTING)
     info = parse_model_info(meta, path, input_name)
-    window_hw = frame_window_hw(d, config.slm, info)
+    window_hw = frame_window_hw(d.frames, config.slm, info)
     torch_inference = worker_inference(d)[0] == "torch"
     m = info.input_multiple
     shape, want = trial_input(4 if input_name == "rgbd" else 3, m, window_hw)
@@ -171,7 +171,7 @@ def open_model(path: str, config: Config, threads: int) -> Any:
     elif device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
         model = load_model(path, config, threads=threads, providers=tuple(providers),
                            device=device, input_hw=window_hw,
-                           engine_cache_dir=d.engine_cache_dir or None)
+                           engine_cache_dir=d.frames.engine_cache_dir or None)
     else:  # validates; raises ModelMismatch etc.
         model = load_model(path, config, threads=threads, providers=tuple(providers))
     # reported in status (model_info): what to compare daemon.paths.model_memory_mb with
@@ -241,20 +241,20 @@ def model_info(model: Any, path: str) -> dict[str, Any]:
 def cpu_path(daemon: DaemonSettings) -> bool:
     """Whether the frames' inference runs in onnxruntime on the CPU: its CPU provider first, no
     CUDA device asked for (`daemon.frames.device`, where this nhfd has it), and not in torch."""
-    if worker_device(daemon.device, daemon.inference)[0].type != "cpu":
+    if worker_device(daemon.frames.device, daemon.frames.inference)[0].type != "cpu":
         return False
     if worker_inference(daemon)[0] != "onnxruntime":
         return False
-    return daemon.onnx_providers[0] == "CPUExecutionProvider"
+    return daemon.frames.onnx_providers[0] == "CPUExecutionProvider"
 
 
 def choose_variant(path: str, daemon: DaemonSettings, int8_metadata: dict[str, Any] | None
                    ) -> tuple[str, str]:
     """("int8" | "float", why) for the float model at `path` whose int8 sibling has the nhfd
-    metadata `int8_metadata` (None: no sibling). `daemon.frames.int8`: "never", "always" (whenever the
-    sibling exists), "auto": the sibling's own metadata must record a held-out loss against
+    metadata `int8_metadata` (None: no sibling). `daemon.frames.int8`: "never", "always" (whenever
+    the sibling exists), "auto": the sibling's own metadata must record a held-out loss against
     this very float file (its SHA-256) within INT8_MAX_LOSS_DB (`int8_within_loss`)."""
-    mode = daemon.int8
+    mode = daemon.frames.int8
     sibling = int8_sibling(path).name
     if mode == "never":
         return "float", "daemon.frames.int8 = \"never\""
@@ -371,8 +371,8 @@ class _WorkerState:
         int8 model that fails to load or to infer falls back to the float one, saying why)."""
         daemon = self.config.daemon
         model = open_model(path, self.config, self.threads)
-        window_hw = frame_window_hw(daemon, self.config.slm, model.info)
-        allow = daemon.allow_unchecked_sizes
+        window_hw = frame_window_hw(daemon.frames, self.config.slm, model.info)
+        allow = daemon.frames.allow_unchecked_sizes
         # UncheckedSize names the size, the checked ones and daemon.frames.allow_unchecked_sizes
         warning = window_check(model.info, window_hw, path, allow=allow)
         check_inference(model, window_hw, path)
@@ -380,7 +380,7 @@ class _WorkerState:
         sibling = int8_sibling(path)
         if Path(path).stem.endswith("-int8") or HELDOUT_KEY in model.metadata:
             variant, why = "int8", "the model given is an int8 model"
-        elif daemon.int8 != "never" and sibling.is_file() and cpu_path(daemon):
+        elif daemon.frames.int8 != "never" and sibling.is_file() and cpu_path(daemon):
             try:
                 q = open_model(str(sibling), self.config, self.threads)
                 variant, why = choose_variant(path, daemon, q.metadata)
@@ -396,7 +396,7 @@ class _WorkerState:
         self.encoders.clear()
         # recorded False: an older export, only its training window counts as checked
         checked, recorded = served.info.checked_sizes_hw()
-        device, device_why = worker_device(daemon.device, daemon.inference)
+        device, device_why = worker_device(daemon.frames.device, daemon.frames.inference)
         info = model_info(served, path)
         info["inference"], info["inference_reason"] = worker_inference(daemon)
         info.update(variant=variant, variant_reason=why,

@@ -73,7 +73,8 @@ def check_count(path: Path | str, what: str, count: object, max_gaussians: int,
     if count > max_gaussians:
         raise SceneFileError(
             f"{path}: {what} declares {count:,} {unit}, more than the limit of "
-            f"{max_gaussians:,} Gaussians (max_gaussians; the daemon's [daemon.paths] max_gaussians)"
+            f"{max_gaussians:,} Gaussians (max_gaussians; the daemon's [daemon.paths] "
+            "max_gaussians)"
         )
     return count
 
