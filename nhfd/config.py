@@ -540,9 +540,10 @@ class ArmingSettings(_Section):
     laser_refresh_s: Annotated[float, Field(ge=0.05, le=60)] = 1.0
 
 
-class FrameSettings(_Section):
+class FramesSettings(_Section):
     """`[daemon.frames]`: the model served and the frame window, the frame worker (threads,
-    device, inference, cache, transport) and the colour timing of what it shows."""
+    device, inference, cache, transport) and the colour timing of what it shows. (Not
+    `nhfd.pipeline.settings.FrameSettings`, one frame's settings built from several sections.)"""
 
     # Model loaded at start ("" = none; then `load_model`). Its metadata must match [optics].
     model: str = ""
@@ -596,12 +597,12 @@ class FrameSettings(_Section):
     cuda_graphs: bool = True
 
     @model_validator(mode="after")
-    def _device_named(self) -> FrameSettings:
+    def _device_named(self) -> FramesSettings:
         device_choice(self.device, "device", cuda_count=None)  # the name; torch sees at load
         return self
 
     @model_validator(mode="after")
-    def _size_is_width_and_height(self) -> FrameSettings:
+    def _size_is_width_and_height(self) -> FramesSettings:
         if len(self.size_px) not in (0, 2):
             raise ValueError(f"size_px = {self.size_px}: give [width, height] or []")
         return self
@@ -695,7 +696,7 @@ class DaemonSettings(_Section):
     # Arming, its confirmation, and the laser guardian.
     arming: ArmingSettings = ArmingSettings()
     # The model, the frame worker and the colour timing.
-    frames: FrameSettings = FrameSettings()
+    frames: FramesSettings = FramesSettings()
     # The audit log, log lines and the session recording.
     audit: AuditSettings = AuditSettings()
     # Paths requests may use, and the budgets of loads and jobs.
@@ -1014,7 +1015,10 @@ def toml_text(data: Mapping[str, Any], prefix: str = "") -> str:
         if isinstance(value, Mapping):
             name = f"{prefix}{_toml_key(key)}"
             body = toml_text(value, f"{name}.")
-            out += ("\n" if out else "") + f"[{name}]\n" + body
+            own = any(not isinstance(v, Mapping) for v in value.values())
+            # a table of tables needs no header of its own; an empty one does, to exist
+            chunk = (f"[{name}]\n" if own or not value else "") + body
+            out += ("\n" if out else "") + chunk
     return out
 
 

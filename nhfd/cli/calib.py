@@ -2,8 +2,8 @@
 
 `capture` runs through the daemon (`nhfd serve` owns the devices; simulated by default): the
 daemon's panel size and wavelengths from `status`, frames shown with `show_pattern` (so --out must
-lie inside its daemon.paths.pattern_dirs), raw stage moves, laser power/enable (arm first, or --arm),
-linear .npy captures. `--direct` drives the simulated twins in this process instead (a
+lie inside its daemon.paths.pattern_dirs), raw stage moves, laser power/enable (arm first, or
+--arm), linear .npy captures. `--direct` drives the simulated twins in this process instead (a
 `TrueBench`, optionally randomised with `--sim-seed`). `fit` writes calibration.toml; `report`
 writes PNGs next to the capture.
 """

@@ -161,10 +161,10 @@ def serve(config: Config, scene: Path, out: Path, model_name: str,
     both are copied there first (the original scene: the daemon takes its up axis from its
     format, as the build did).
 
-    `config`: the configuration, whose `[daemon]` section names the folders and, through
+    `config`: the configuration, whose `[daemon.paths]` names the folders and, through
     `nhfd.daemon.paths.socket_path` (which takes the configuration, as nhfctl's commands do),
     the control socket."""
-    d = config.daemon
+    d = config.daemon.paths
     model_dir = Path(args.model_dir or d.model_dirs[0])
     scene_dir = Path(args.scene_dir or d.scene_dirs[0])
     socket = socket_path(args.socket, config)  # as nhfctl finds it

@@ -41,15 +41,18 @@ def _serve(args: argparse.Namespace) -> int:
     loaded = load_config(args.config)  # a ConfigError: one line, exit 2 (nhfd.cli.main)
     config = loaded.config
     check_files(config, str(loaded.path or "packaged default"))
-    update = {}
+    # The flags replace one key each, in its section (daemon.paths.scene, daemon.server.runtime_dir,
+    # daemon.audit.record).
+    settings = config.daemon
+    sections = {}
     if args.scene:
-        update["scene"] = args.scene
+        sections["paths"] = settings.paths.model_copy(update={"scene": args.scene})
     if args.runtime_dir:
-        update["runtime_dir"] = args.runtime_dir
+        sections["server"] = settings.server.model_copy(update={"runtime_dir": args.runtime_dir})
     if args.record:
-        update["record"] = args.record
-    if update:
-        config = config.model_copy(update={"daemon": config.daemon.model_copy(update=update)})
+        sections["audit"] = settings.audit.model_copy(update={"record": args.record})
+    if sections:
+        config = config.model_copy(update={"daemon": settings.model_copy(update=sections)})
     web = config.daemon.web
     if web.enabled and importlib.util.find_spec("aiohttp") is None:
         print("nhfd serve: error: daemon.web.enabled = true needs the web extra: "
