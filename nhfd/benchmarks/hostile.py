@@ -130,8 +130,8 @@ def free_port() -> int:
 class HostileBench(Bench):
     """`safety.Bench` with what an attack needs: a TCP port, the web view with a token file,
     and its own copies of the model and scene, so hostile files written beside them lie inside
-    daemon.paths.model_dirs and daemon.paths.scene_dirs. Without a model the whole temporary root is the
-    scene and model directory (the hostile scenes go in root/scenes)."""
+    daemon.paths.model_dirs and daemon.paths.scene_dirs. Without a model the whole temporary root is
+    the scene and model directory (the hostile scenes go in root/scenes)."""
 
     def __init__(self, *, model: Path | None = None, scene: Path | None = None,
                  tcp: bool = False, web: bool = False) -> None:
@@ -163,7 +163,7 @@ class HostileBench(Bench):
     def _start(self) -> None:
         """The configuration, then `nhfd serve` on it."""
         text = config_text(self.root, self.model, self.scene, DEVICES, self.twin.port_path)
-        # config_text ends inside [daemon]: these keys join it.
+        # config_text ends inside [daemon.server]: these keys join it.
         if self.tcp_port is not None:
             text += f"tcp_port = {self.tcp_port}\n"
         if self.web_token is not None:
@@ -172,9 +172,10 @@ class HostileBench(Bench):
             token_file.chmod(0o600)
             text += (f"[daemon.web]\nenabled = true\nport = {self.web_port}\n"
                      f'token_file = "{token_file}"\n')
-        parsed = tomllib.loads(text)["daemon"]
+        parsed = tomllib.loads(text)["daemon"]["server"]
         if parsed.get("tcp_port", 0) != (self.tcp_port or 0):
-            raise RuntimeError("config_text no longer ends in [daemon]: tcp_port went elsewhere")
+            raise RuntimeError("config_text no longer ends in [daemon.server]: tcp_port went "
+                               "elsewhere")
         self.config_path = self.root / "nhfd.toml"
         self.config_path.write_text(text)
         self.log = (self.root / "serve.log").open("w")

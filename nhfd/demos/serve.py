@@ -155,15 +155,18 @@ def demo_config(base: Config, *, model: Path, scene: Path, runtime: Path, captur
                     "camera": "simulated", "navigator": "none",
                     "readybeam": {"guardian": {"socket_path": str(runtime / "laser.sock")}},
                     "camera_settings": {"exposure_s": EXPOSURE_S, "channels": "mono"}},
-        "daemon": {"runtime_dir": str(runtime / "run"), "guardian": "spawn",
-                   "scene_dirs": [str(scene.parent.resolve())],
-                   "model_dirs": [str(model.parent.resolve())],
-                   "snapshot_dir": str(captures.resolve()),
-                   "audit_log": str(runtime / "audit.jsonl"),
-                   "scene": str(scene.resolve()), "model": str(model.resolve()),
-                   "camera_roi_px": list(roi),
-                   # The stage reading that focuses the camera on the reference plane (green).
-                   "stage_at_reference_mm": round(truth.stage_mm_for(z0_m, 1), 6)},
+        "daemon": {"server": {"runtime_dir": str(runtime / "run")},
+                   "arming": {"guardian": "spawn"},
+                   "paths": {"scene_dirs": [str(scene.parent.resolve())],
+                             "model_dirs": [str(model.parent.resolve())],
+                             "snapshot_dir": str(captures.resolve()),
+                             "scene": str(scene.resolve())},
+                   "audit": {"file": str(runtime / "audit.jsonl")},
+                   "frames": {"model": str(model.resolve())},
+                   "bench": {"camera_roi_px": list(roi),
+                             # The stage reading that focuses the camera on the reference plane
+                             # (green).
+                             "stage_at_reference_mm": round(truth.stage_mm_for(z0_m, 1), 6)}},
         # The refined sweep's budget: a few seconds on 2 cores at the model's window.
         "refine": {"iterations": REFINE_ITERATIONS, "seconds": 60.0},
     }
