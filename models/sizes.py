@@ -276,7 +276,7 @@ def window_check(info: ModelInfo, window_hw: tuple[int, int], source: str, *,
            "training window counts as checked)")
     msg = (f"{source}: frame window {wxh(window_hw)}{padded} is not a size this model was "
            f"checked at; checked: {checked}{why}. Check it with `nhfd model check-sizes "
-           f"{source} --sizes {window_hw[1]}x{window_hw[0]}`, or set [daemon] "
+           f"{source} --sizes {window_hw[1]}x{window_hw[0]}`, or set [daemon.frames] "
            "allow_unchecked_sizes = true to serve it unchecked")
     if allow:
         return msg

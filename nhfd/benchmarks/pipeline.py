@@ -196,7 +196,7 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
 
     `config`: the whole configuration, because each worker runs under all of it (the frame
     pipeline joins `[daemon]`, `[slm]`, `[optics]`, `[coding]` and `[calibration]`), with the
-    variant's `[daemon]` settings and `[slm]` refresh on top (`_variant_config`)."""
+    variant's `[daemon.frames]` settings and `[slm]` refresh on top (`_variant_config`)."""
     info = OnnxModel(model).info
     variants = [Variant(*v) for v in variants]
     configs = [_variant_config(config, v) for v in variants]

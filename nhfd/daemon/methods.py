@@ -239,7 +239,7 @@ def _laser(ctx: RpcContext, conn: Connection, p: Params) -> Any:
         cap_s = link.settings.arm_max_s
         duration_s = p.number("duration_s", 0.0, cap_s, low_open=True)
         p.done()
-        # Who may arm (the kernel's uid, daemon.arming.users / arm_groups; never over TCP) and the
+        # Who may arm (the kernel's uid, daemon.arming.users / groups; never over TCP) and the
         # optional confirmation at the bench (a pending job): nhfd/daemon/arming.py.
         return ctx.arming.arm(conn, duration_s)
     if action in ("disarm", "off"):
