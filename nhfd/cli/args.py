@@ -17,6 +17,8 @@ from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
+from nhfd.config import ConfigMigrationWarning
+
 MAX_SIDE_PX = 16384
 # The scene formats, as help texts name them (every suffix `nhfd.scene.io` reads; a test holds
 # the two together).
@@ -87,8 +89,6 @@ def config_warnings_as_lines(prog: str) -> Iterator[None]:
     """Inside: a configuration warning (`nhfd.config.ConfigMigrationWarning`, a key read from
     its old place) is printed to stderr as one line, `prog: warning: message`, not as Python's
     warning with its source line; other warnings are shown as before."""
-    from nhfd.config import ConfigMigrationWarning
-
     shown = warnings.showwarning
 
     def show(message: Warning | str, category: type[Warning], filename: str, lineno: int,

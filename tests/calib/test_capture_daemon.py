@@ -29,8 +29,9 @@ PANEL_HW = (128, 128)
 
 def daemon_config(root: Path) -> Any:
     roi = list(TrueBench().roi_for_panel(PANEL_HW))  # the daemon's simulated camera's bench
-    config = bench_config(root, None, colour_mode="hw-sync", camera_roi_px=roi,
-                          pattern_dirs=[str(root / "calib")])
+    config = bench_config(root, None, frames={"colour_mode": "hw-sync"},
+                          bench={"camera_roi_px": roi},
+                          paths={"pattern_dirs": [str(root / "calib")]})
     d = config.devices
     devices = d.model_copy(update={
         "camera": "simulated",

@@ -25,7 +25,7 @@ height_px = 128
 [optics]
 hologram_width_px = 96
 hologram_height_px = 64
-[daemon]
+[daemon.frames]
 allow_unchecked_sizes = true
 """
 SIZES_WH = ([96, 64], [64, 48])
@@ -132,8 +132,8 @@ def test_what_runs_the_network_is_compared_side_by_side(tiny, tmp_path):
     results = json.loads(out.read_text())["results"]
     assert [(r["inference"], r["onnx_providers"]) for r in results] == [
         ("onnxruntime", ["CPUExecutionProvider"]), ("torch", ["torch"])]
-    assert results[1]["inference_reason"] == ('daemon.frames.inference = "torch": the network in torch '
-                                              "on cpu")
+    assert results[1]["inference_reason"] == ('daemon.frames.inference = "torch": the network in '
+                                              "torch on cpu")
     assert [row["azimuth_deg"] for row in results[0]["rows"]] == [
         row["azimuth_deg"] for row in results[1]["rows"]]
     assert "--inference onnxruntime,torch" in out.with_suffix(".md").read_text().splitlines()[1]

@@ -15,7 +15,8 @@ from .conftest import Running, bench_config, wait_until
 
 
 def colour_config(root, twin, mode: str, **devices):
-    config = bench_config(root, twin, colour_mode=mode, camera_roi_px=[1000, 1200, 16, 16])
+    config = bench_config(root, twin, frames={"colour_mode": mode},
+                          bench={"camera_roi_px": [1000, 1200, 16, 16]})
     slm_output = config.devices.slm_output.model_copy(update={"settle_ms": 20.0})
     return config.model_copy(update={"devices": config.devices.model_copy(
         update={"slm_output": slm_output, **devices})})

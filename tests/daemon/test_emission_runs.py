@@ -126,8 +126,8 @@ def _tls_citl(short_dir, tiny, remote_emission: bool) -> tuple[Running, Client]:
     cert, key = self_signed(short_dir, "bench")
     base = citl_config(short_dir, tiny)
     config = Config.model_validate(_overlay(base.model_dump(), {"daemon": {
-        "tcp_port": free_port(), "tls_cert": str(cert), "tls_key": str(key),
-        "remote_emission": remote_emission}}))
+        "server": {"tcp_port": free_port(), "tls_cert": str(cert), "tls_key": str(key)},
+        "arming": {"remote_emission": remote_emission}}}))
     r = Running(config, short_dir)
     c = r.client()
     c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))

@@ -91,7 +91,7 @@ def test_connect_mode_reports_an_unresponsive_guardian_as_unknown_never_off(shor
     guardian = spawn_guardian(settings, socket_path=sock, stderr=subprocess.DEVNULL)
     r = None
     try:
-        r = Running(bench_config(short_dir, mecom_twin, guardian="connect"), short_dir)
+        r = Running(bench_config(short_dir, mecom_twin, arming={"guardian": "connect"}), short_dir)
         with r.client() as c:
             light_red(c, mecom_twin)
             assert c.status()["laser"]["guardian"]["spawned"] is False
@@ -270,7 +270,7 @@ def test_a_found_guardian_driving_another_port_is_refused_by_name(short_dir, mec
 
 
 def test_the_tcp_token_is_removed_at_shutdown(short_dir, mecom_twin):
-    r = Running(bench_config(short_dir, mecom_twin, tcp_port=free_port()), short_dir)
+    r = Running(bench_config(short_dir, mecom_twin, server={"tcp_port": free_port()}), short_dir)
     token = short_dir / "run" / "tcp.token"
     try:
         assert token.stat().st_mode & 0o777 == 0o600

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from nhfd.config import Config, _overlay, default_text
+from nhfd.config import Config, ServerSettings, _overlay, default_text
 from nhfd.daemon import protocol
 from nhfd.daemon.client import Client
 from nhfd.daemon.protocol import RpcError
@@ -97,8 +97,9 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
         extra = {"tls_cert": str(cert), "tls_key": str(key)}
     # Four Unix slots and twelve silent TCP peers: under a shared cap the silent peers would
     # take every slot (the old daemon answered the Unix client `busy`).
-    config = bench_config(short_dir, mecom_twin, tcp_port=free_port(), max_clients=4,
-                          max_tcp_clients=6, max_unauthenticated=3, auth_timeout_s=5.0, **extra)
+    config = bench_config(short_dir, mecom_twin,
+                          server={"tcp_port": free_port(), "max_clients": 4, "max_tcp_clients": 6,
+                                  "max_unauthenticated": 3, "auth_timeout_s": 5.0}, **extra)
     r = Running(config, short_dir)
     silent: list[socket.socket] = []
     remotes: list[Client] = []
@@ -156,8 +157,8 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
         # Authenticated clients fill max_tcp_clients; the next one hears so in its protocol.
         reply = refusal_over(addr, cert)
         assert reply["error"]["code"] == protocol.BUSY.code
-        assert reply["error"]["message"] == ("too many TCP clients (daemon.server.max_tcp_clients = 6); "
-                                             "retry later")
+        assert reply["error"]["message"] == ("too many TCP clients "
+                                             "(daemon.server.max_tcp_clients = 6); retry later")
         with r.client() as c:
             assert c.status()["daemon"]["state"] == "ready"
     finally:
@@ -187,7 +188,7 @@ def refusal_over(addr: tuple[str, int], cert: Path | None) -> dict:
 
 
 def test_unix_clients_past_max_clients_get_the_busy_line(short_dir, mecom_twin):
-    r = Running(bench_config(short_dir, mecom_twin, max_clients=2), short_dir)
+    r = Running(bench_config(short_dir, mecom_twin, server={"max_clients": 2}), short_dir)
     try:
         with r.client() as a, r.client() as b:
             a.status()
@@ -226,8 +227,8 @@ def _flood(make_sock, payload: bytes, stop: threading.Event, drops: list[int]) -
 
 def test_a_newline_flood_and_an_endless_line_stay_bounded_and_the_heartbeat_keeps_its_period(
         short_dir, mecom_twin, caplog):
-    config = bench_config(short_dir, mecom_twin, tcp_port=free_port())
-    c = config.daemon
+    config = bench_config(short_dir, mecom_twin, server={"tcp_port": free_port()})
+    c = config.daemon.server
     r = Running(config, short_dir)
     stop = threading.Event()
     threads: list[threading.Thread] = []
@@ -285,7 +286,7 @@ def test_a_newline_flood_and_an_endless_line_stay_bounded_and_the_heartbeat_keep
         gaps = [b - a for a, b in itertools.pairwise(during)]
         timeout_s = config.devices.readybeam.guardian.heartbeat_timeout_s
         # The guardian disarms after heartbeat_timeout_s (0.5 s) without a heartbeat; the loop
-        # sends one every tick_s (0.1 s), late by at most a tick budget and one request.
+        # sends one every heartbeat_s (0.1 s), late by at most a tick budget and one request.
         assert len(during) >= 10 and max(gaps) < timeout_s, (len(during), max(gaps))
         assert answered >= 5
         # The bound: nothing held more than max_buffered_bytes unhandled (the old daemon grew
@@ -293,8 +294,8 @@ def test_a_newline_flood_and_an_endless_line_stay_bounded_and_the_heartbeat_keep
         assert peak[0] <= c.max_buffered_bytes, peak[0]
         assert server.peak_buffered_bytes <= c.max_buffered_bytes
         assert newline_drops, ("the newline flooders were never dropped", server.refused, peak)
-        reason = (f"dropped: more than daemon.server.max_buffered_bytes = {c.max_buffered_bytes} "
-                  "bytes received and not yet handled")
+        reason = (f"dropped: more than daemon.server.max_buffered_bytes = "
+                  f"{c.max_buffered_bytes} bytes received and not yet handled")
         assert server.refused[reason] >= 2  # the TCP and the Unix flooder, each at least once
         # Logged once, with the peer, however many times flooders were dropped.
         logged = [r.getMessage() for r in caplog.records if r.getMessage().startswith(reason)]
@@ -328,7 +329,8 @@ class _Stepped:
             self.now += per_line_s
             return line + b"\n"
 
-        self.server = LineServer(handler, unix_path=root / "s.sock", **kw)
+        self.server = LineServer(handler, unix_path=root / "s.sock",
+                                 settings=ServerSettings(**kw))
         self.server.clock = lambda: self.now
         self.server.listen()
 

@@ -24,9 +24,10 @@ from nhfd.pipeline.worker import choose_variant
 from .test_frames import FRONT_VIEW, small_config
 
 
-def with_int8(config: Config, mode: str, **daemon) -> Config:
+def with_int8(config: Config, mode: str, **frames) -> Config:
+    """`config` with daemon.frames.int8 = `mode` and the other `[daemon.frames]` keys given."""
     return Config.model_validate(_overlay(config.model_dump(),
-                                          {"daemon": {"int8": mode, **daemon}}))
+                                          {"daemon": {"frames": {"int8": mode, **frames}}}))
 
 
 def show_a_frame(host, link, timeout_s: float = 30.0) -> None:
@@ -97,10 +98,11 @@ def test_the_record_travels_in_the_int8_files_metadata(pair):
 
 
 @contextlib.contextmanager
-def served(pair, int8_psnr_db: float, **daemon):
+def served(pair, int8_psnr_db: float, **frames):
     """A frame link serving the pair's float model (the int8 one beside it records a held-out
-    PSNR of `int8_psnr_db` against 30 dB), with `daemon` settings; closed after."""
-    host = _Host(small_config(daemon={"frame_cache_frames": 0, **daemon}))
+    PSNR of `int8_psnr_db` against 30 dB), with `frames` as `[daemon.frames]` keys; closed
+    after."""
+    host = _Host(small_config(daemon={"frames": {"cache_frames": 0, **frames}}))
     link = host.frame_link()
     try:
         record_heldout_loss(pair["int8"], pair["float"], float_psnr_db=30.0,
@@ -131,12 +133,13 @@ def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
 
 
 def test_torch_inference_serves_the_float_model_and_says_so(pair):
-    """daemon.frames.inference = "torch": int8 arithmetic is onnxruntime's, so the float model serves
-    (frames and all), and the model's status names what runs the network and why."""
+    """daemon.frames.inference = "torch": int8 arithmetic is onnxruntime's, so the float model
+    serves (frames and all), and the model's status names what runs the network and why."""
     with served(pair, 29.9, inference="torch") as (host, link):
         info = link.model_info
         assert (info["inference"], info["providers"]) == ("torch", ["torch"])
-        assert info["inference_reason"] == 'daemon.frames.inference = "torch": the network in torch on cpu'
+        assert info["inference_reason"] == ('daemon.frames.inference = "torch": the network in '
+                                            "torch on cpu")
         assert info["variant"] == "float" and info["served"] == str(pair["float"].resolve())
         assert "daemon.frames.inference = 'torch'" in info["variant_reason"]
         show_a_frame(host, link)

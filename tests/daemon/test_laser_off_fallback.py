@@ -91,7 +91,7 @@ def test_with_no_daemon_the_guardian_switches_off(short_dir, mecom_twin, capsys,
     # Where the daemon would live, from the configuration: its socket is absent, its guardian
     # (laser.sock in the same runtime directory) is there.
     config = short_dir / "nhfd.toml"
-    config.write_text(f'[daemon]\nruntime_dir = "{short_dir}"\n')
+    config.write_text(f'[daemon.server]\nruntime_dir = "{short_dir}"\n')
     with lit_guardian(short_dir / "laser.sock", mecom_twin) as controller:
         code = main(["--config", str(config), "laser", action])
         out = capsys.readouterr()
@@ -138,7 +138,7 @@ def test_a_daemon_that_answers_switches_off_itself_and_says_so(running: Running,
 
 def test_lasers_not_confirmed_off_is_a_failure(short_dir, capsys):
     config = short_dir / "nhfd.toml"
-    config.write_text(f'[daemon]\nruntime_dir = "{short_dir}"\n')
+    config.write_text(f'[daemon.server]\nruntime_dir = "{short_dir}"\n')
     assert main(["--config", str(config), "laser", "off"]) == 3
     err = capsys.readouterr().err
     assert "nhfctl laser off: error: lasers NOT confirmed off: no laser guardian at " in err

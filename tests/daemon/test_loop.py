@@ -1,6 +1,7 @@
 """The control loop's scheduling: idle, it sleeps in select until the next heartbeat (one per
-`daemon.arming.heartbeat_s`, however many requests woke it); a request or the frame worker's pipe wakes it
-at once. Facts about the schedule, not CPU figures (those are `nhfd bench load`'s idle phase)."""
+`daemon.arming.heartbeat_s`, however many requests woke it); a request or the frame worker's pipe
+wakes it at once. Facts about the schedule, not CPU figures (those are `nhfd bench load`'s idle
+phase)."""
 
 from __future__ import annotations
 

@@ -223,7 +223,8 @@ def test_only_regular_files_within_the_budget_and_without_external_data_are_read
 
 
 def test_the_probe_measures_the_shipped_model_within_a_small_budget(shipped):
-    probe = probe_model(shipped, 64, [SHIPPED_INPUT], threads=1, setting="daemon.paths.model_memory_mb")
+    probe = probe_model(shipped, 64, [SHIPPED_INPUT], threads=1,
+                        setting="daemon.paths.model_memory_mb")
     assert probe["run_error"] is None and probe["skipped"] == []
     # a session and a 288 x 512 run of the 43k-parameter network: tens of MB, not more
     assert 0 < probe["peak_mb"] < 64

@@ -1,6 +1,6 @@
-"""`TorchModel` (`daemon.frames.inference = "torch"`): a model file's network rebuilt as a torch module
-gives what onnxruntime gives for the same file, at the training window and the full panel, and a
-file whose graph it would not reproduce is refused at load."""
+"""`TorchModel` (`daemon.frames.inference = "torch"`): a model file's network rebuilt as a torch
+module gives what onnxruntime gives for the same file, at the training window and the full panel,
+and a file whose graph it would not reproduce is refused at load."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
-"""One frame path on any device (issue 23): `daemon.frames.device` resolution, the onnxruntime providers
-and TensorRT engine cache a CUDA device gets, and the device path's arithmetic (torch coding,
-network input, I/O binding) checked on the CPU against the CPU path it must reproduce. The tests
-that need a GPU skip without one."""
+"""One frame path on any device (issue 23): `daemon.frames.device` resolution, the onnxruntime
+providers and TensorRT engine cache a CUDA device gets, and the device path's arithmetic (torch
+coding, network input, I/O binding) checked on the CPU against the CPU path it must reproduce. The
+tests that need a GPU skip without one."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ CPU_CUDA_TRT = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecut
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
 
-# -- daemon.frames.device -----------------------------------------------------------------------------
+# -- daemon.frames.device ----------------------------------------------------------------------
 
 def test_auto_picks_cuda_only_where_torch_sees_it():
     assert resolve_device("auto", cuda_count=0) == torch.device("cpu")
@@ -82,18 +82,18 @@ def test_a_device_name_outside_the_allowed_ones_lists_them(bad):
 
 def test_the_configuration_checks_daemon_device():
     assert small_config().daemon.frames.device == "auto"
-    assert small_config(daemon={"device": "cuda:1"}).daemon.frames.device == "cuda:1"
+    assert small_config(daemon={"frames": {"device": "cuda:1"}}).daemon.frames.device == "cuda:1"
     with pytest.raises(ValueError, match=r"device = 'gpu': must be one of auto, cpu, cuda, "
                                          r"cuda:N"):
-        small_config(daemon={"device": "gpu"})
+        small_config(daemon={"frames": {"device": "gpu"}})
 
 
 # Every place a device name is checked, as (call, setting, allowed kinds, CUDA devices it asks
 # torch about; None: the name only). Each must raise `device_choice`'s own message, word for word.
 CUDA_COUNT = torch.cuda.device_count() if torch.cuda.is_available() else 0
 DEVICE_SITES = {
-    "daemon.frames.device (pipeline)": (lambda v: resolve_device(v), "daemon.frames.device", DEVICES,
-                                 CUDA_COUNT),
+    "daemon.frames.device (pipeline)": (lambda v: resolve_device(v), "daemon.frames.device",
+                                        DEVICES, CUDA_COUNT),
     "bench pipeline --device": (lambda v: resolve_device(v, "--device"), "--device", DEVICES,
                                 CUDA_COUNT),
     "model build --device": (build_resolve_device, "--device", DEVICES, CUDA_COUNT),
@@ -290,7 +290,7 @@ def donut() -> dict:
         pytest.skip(f"{MODEL.name} or {SCENE.name} absent")
     # The default configuration: the shipped model's optics.
     config = Config.model_validate(_overlay(tomllib.loads(default_text()),
-                                            {"daemon": {"frame_size_px": [96, 64]}}))
+                                            {"daemon": {"frames": {"size_px": [96, 64]}}}))
     model = load_model(MODEL, config, threads=1)
     load = read_scene(SCENE)
     scene = Scene(load.gaussians, scene_frame(load.gaussians, str(SCENE)))
@@ -339,15 +339,15 @@ def test_the_device_path_on_the_cpu_gives_the_cpu_paths_frame(donut):
 
 
 def test_inference_in_torch_gives_onnxruntimes_frames(donut):
-    """daemon.frames.inference = "torch": the worker opens a TorchModel, and its frames, on the CPU path
-    and on the device path, are onnxruntime's (one grey level apart at most, where the network's
-    float32 rounding moves a phase across a level boundary)."""
+    """daemon.frames.inference = "torch": the worker opens a TorchModel, and its frames, on the CPU
+    path and on the device path, are onnxruntime's (one grey level apart at most, where the
+    network's float32 rounding moves a phase across a level boundary)."""
     from nhfd.models.torch_model import TorchModel
     from nhfd.pipeline.worker import open_model
 
     d = donut
-    config = Config.model_validate(_overlay(d["config"].model_dump(),
-                                            {"daemon": {"inference": "torch", "device": "cpu"}}))
+    config = Config.model_validate(_overlay(d["config"].model_dump(), {"daemon": {"frames": {
+        "inference": "torch", "device": "cpu"}}}))
     model = open_model(str(MODEL), config, 1)
     assert isinstance(model, TorchModel) and model.providers == ["torch"]
     want = compute_frame(d["view"], d["scene"], d["model"], Encoder(d["settings"]))
@@ -363,7 +363,7 @@ def test_the_worker_refuses_a_cuda_device_torch_does_not_see(donut):
     from nhfd.pipeline.worker import open_model
 
     config = Config.model_validate(_overlay(donut["config"].model_dump(),
-                                            {"daemon": {"device": "cuda"}}))
+                                            {"daemon": {"frames": {"device": "cuda"}}}))
     with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': torch \S+ sees 0 CUDA"):
         open_model(str(MODEL), config, 1)
 
@@ -418,7 +418,8 @@ def test_host_copy_on_the_cpu_hands_back_the_tensors_memory():
 def _cuda_config(config: Config) -> Config:
     """`config` with frames on cuda:0 and the network in what "auto" picks there: onnxruntime's
     CUDA or TensorRT provider where the installed onnxruntime has one, else torch."""
-    return Config.model_validate(_overlay(config.model_dump(), {"daemon": {"device": "cuda:0"}}))
+    return Config.model_validate(_overlay(config.model_dump(),
+                                          {"daemon": {"frames": {"device": "cuda:0"}}}))
 
 
 # Below this amplitude (of the coding's full scale) a pixel's double-phase pair sums to almost
@@ -585,8 +586,8 @@ def test_what_runs_the_network(inference, device, providers, backend):
 
 def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(monkeypatch):
     """A workstation whose torch sees a GPU but whose onnxruntime is the CPU build: "auto"
-    computes frames on the GPU with torch running the network, unless daemon.frames.inference asks for
-    onnxruntime: then "auto" serves frames on the CPU and says why, and "cuda" named
+    computes frames on the GPU with torch running the network, unless daemon.frames.inference asks
+    for onnxruntime: then "auto" serves frames on the CPU and says why, and "cuda" named
     explicitly is refused. Without gsplat, "auto" stays on the CPU."""
     from nhfd.pipeline import device as device_mod
 
@@ -663,7 +664,7 @@ def test_cuda_graphs_capture_nothing_off_cuda_and_the_setting_is_a_boolean():
     assert Encoder(SETTINGS, device="cpu", cuda_graphs=True).graphs.enabled is False
     with pytest.raises(ValueError, match="cuda_graphs"):
         Config.model_validate(_overlay(tomllib.loads(default_text()),
-                                       {"daemon": {"cuda_graphs": "sometimes"}}))
+                                       {"daemon": {"frames": {"cuda_graphs": "sometimes"}}}))
 
 
 @needs_cuda

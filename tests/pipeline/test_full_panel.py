@@ -37,7 +37,7 @@ PANEL_HW = (1080, 1920)
 
 @pytest.fixture(scope="module")
 def panel():
-    config = Config.model_validate({"daemon": {"frame_size_px": [PANEL_HW[1], PANEL_HW[0]]}})
+    config = Config.model_validate({"daemon": {"frames": {"size_px": [PANEL_HW[1], PANEL_HW[0]]}}})
     model = load_model(MODEL, config)
     settings = frame_settings(config, model.info, None)
     encoder = Encoder(settings)
@@ -141,7 +141,7 @@ def test_the_window_is_any_size_up_to_the_panel_and_a_larger_training_size_is_re
 
     meta = OnnxModel(MODEL).info  # trained at 512 x 288
     assert meta.train_size_hw == (288, 512)
-    whole = Config.model_validate({"daemon": {"frame_size_px": [1920, 1080]}})
+    whole = Config.model_validate({"daemon": {"frames": {"size_px": [1920, 1080]}}})
     assert frame_window_hw(whole.daemon, whole.slm, meta) == PANEL_HW
     default = Config()
     assert frame_window_hw(default.daemon, default.slm, meta) == (288, 512)  # empty: training size

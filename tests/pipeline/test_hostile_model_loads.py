@@ -35,7 +35,7 @@ def shipped() -> Path:
 def serving(shipped: Path) -> _WorkerState:
     """A worker state serving the shipped model under a BUDGET_MB model budget."""
     state = _WorkerState(Config.model_validate(
-        {"daemon": {"model_memory_mb": BUDGET_MB, "frame_size_px": FRAME}}))
+        {"daemon": {"paths": {"model_memory_mb": BUDGET_MB}, "frames": {"size_px": FRAME}}}))
     info = state.load_model(str(shipped))
     # what the load's probe measured travels to status, below the budget
     assert 0 < info["load_memory_mb"] < BUDGET_MB
@@ -86,7 +86,7 @@ def test_a_model_that_needs_more_than_the_budget_is_refused_without_allocating_i
 def test_the_worker_replies_with_each_refusal_and_keeps_the_model(shipped, tmp_path):
     """Through the worker's message loop, as the daemon's `load_model` reaches it."""
     state = _WorkerState(Config.model_validate(
-        {"daemon": {"model_memory_mb": BUDGET_MB, "frame_size_px": FRAME}}))
+        {"daemon": {"paths": {"model_memory_mb": BUDGET_MB}, "frames": {"size_px": FRAME}}}))
     nan_scale = hostile_copy(shipped, tmp_path / "nan.onnx",
                              meta=setting("amplitude_scale", math.nan))
     huge = hostile_copy(shipped, tmp_path / "huge.onnx", graph=with_huge_tensor((8192, 16384),

@@ -441,7 +441,7 @@ def test_the_daemons_load_scene_applies_max_gaussians_and_scene_memory_mb(tmp_pa
         return job
 
     for limit in (63, 64):
-        host = _Host(tmp_path, max_gaussians=limit)
+        host = _Host(tmp_path, paths={"max_gaussians": limit})
         try:
             job = load(host, "tiny.spz")
         finally:
@@ -454,7 +454,7 @@ def test_the_daemons_load_scene_applies_max_gaussians_and_scene_memory_mb(tmp_pa
             assert job.state == "done", job.error
             assert host.frames.loaded == [str(tmp_path / "tiny.spz")]
             assert host.scene["gaussians"] == 64
-    host = _Host(tmp_path, scene_memory_mb=64)
+    host = _Host(tmp_path, paths={"scene_memory_mb": 64})
     try:
         job = load(host, "zeros.spz")
         assert job.state == "failed"
