@@ -205,7 +205,7 @@ def test_only_regular_files_within_the_budget_and_without_external_data_are_read
         read_model_metadata(link)
     size = shipped.stat().st_size
     with pytest.raises(ModelOverBudget, match=rf"{size / 2**20:.1f} MB, more than "
-                                              r"daemon\.model_memory_mb = 0\.125 MB"):
+                                              r"daemon\.paths\.model_memory_mb = 0\.125 MB"):
         read_model_file(shipped, max_bytes=2**20 // 8, setting="daemon.paths.model_memory_mb")
     assert read_model_file(shipped, max_bytes=size).graph.input[0].name == "rgbd"
 
@@ -254,7 +254,7 @@ def test_a_probe_that_dies_is_a_refusal_naming_the_budget(shipped, monkeypatch):
     # What a C++ runtime that aborts on a failed allocation looks like from here.
     monkeypatch.setattr(export, "PROBE_SCRIPT", "import os, signal\n"
                                                 "os.kill(os.getpid(), signal.SIGKILL)\n")
-    with pytest.raises(ModelOverBudget, match=r"limited to daemon\.model_memory_mb = 64 MB, "
+    with pytest.raises(ModelOverBudget, match=r"limited to daemon\.paths\.model_memory_mb = 64 MB, "
                                               r"ended with signal SIGKILL"):
         probe_model(shipped, 64, [SHIPPED_INPUT], setting="daemon.paths.model_memory_mb")
 

@@ -64,19 +64,20 @@ def test_auto_picks_cuda_only_where_torch_sees_it():
 
 
 def test_a_cuda_device_torch_does_not_see_is_refused_naming_the_setting():
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:0': torch \S+ sees 0 CUDA "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda:0': torch \S+ sees 0 "
+                                         r"CUDA "
                                          r"devices \(a CPU-only build, no GPU, or no driver\); "
                                          r"use \"auto\" or \"cpu\"$"):
         resolve_device("cuda:0", cuda_count=0)
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:3': torch \S+ sees 2 CUDA "
-                                         r"devices \(indices 0\.\.1\)"):
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda:3': torch \S+ sees 2 "
+                                         r"CUDA devices \(indices 0\.\.1\)"):
         resolve_device("cuda:3", cuda_count=2)
 
 
 @pytest.mark.parametrize("bad", ["gpu", "cuda:", "cpu:0", "cuda:-1", "auto:1", ""])
 def test_a_device_name_outside_the_allowed_ones_lists_them(bad):
-    with pytest.raises(ValueError, match=rf"daemon\.device = {bad!r}: must be one of auto, cpu, "
-                                         r"cuda, cuda:N \(N: a CUDA device index\)$"):
+    with pytest.raises(ValueError, match=rf"daemon\.frames\.device = {bad!r}: must be one of auto, "
+                                         r"cpu, cuda, cuda:N \(N: a CUDA device index\)$"):
         resolve_device(bad, cuda_count=1)
 
 
@@ -132,8 +133,8 @@ def test_the_cpu_keeps_the_configured_providers_and_refuses_missing_ones():
     available = ["AzureExecutionProvider", "CPUExecutionProvider"]
     assert execution_providers("cpu", available, ["CPUExecutionProvider"]) == \
         ["CPUExecutionProvider"]
-    with pytest.raises(ValueError, match=r"daemon\.onnx_providers: CUDAExecutionProvider not "
-                                         r"available in this onnxruntime; available: "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.onnx_providers: CUDAExecutionProvider "
+                                         r"not available in this onnxruntime; available: "
                                          r"AzureExecutionProvider, CPUExecutionProvider"):
         execution_providers("cpu", available, ["CUDAExecutionProvider", "CPUExecutionProvider"])
 
@@ -186,8 +187,8 @@ def test_cuda_without_tensorrt_runs_on_the_cuda_provider_and_without_it_is_refus
     got = execution_providers("cuda", ["CUDAExecutionProvider", "CPUExecutionProvider"],
                               ["CPUExecutionProvider"], model_sha256=SHA, gpu_name=H100)
     assert got == [(CUDA, {"device_id": 0}), "CPUExecutionProvider"]
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:0': this onnxruntime has no "
-                                         r"CUDAExecutionProvider \(available: "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda:0': this onnxruntime has "
+                                         r"no CUDAExecutionProvider \(available: "
                                          r"CPUExecutionProvider\); install onnxruntime-gpu"):
         execution_providers("cuda:0", ["CPUExecutionProvider"], ["CPUExecutionProvider"])
 
@@ -196,8 +197,8 @@ def test_configured_gpu_providers_choose_among_them_in_their_order():
     got = execution_providers("cuda:0", CPU_CUDA_TRT, ["CUDAExecutionProvider",
                                                        "CPUExecutionProvider"])
     assert got == [(CUDA, {"device_id": 0}), "CPUExecutionProvider"]
-    with pytest.raises(ValueError, match=r"daemon\.onnx_providers: TensorrtExecutionProvider not "
-                                         r"available"):
+    with pytest.raises(ValueError, match=r"daemon\.frames\.onnx_providers: "
+                                         r"TensorrtExecutionProvider not available"):
         execution_providers("cuda:0", ["CUDAExecutionProvider", "CPUExecutionProvider"],
                             [TENSORRT, "CPUExecutionProvider"])
 
@@ -364,7 +365,7 @@ def test_the_worker_refuses_a_cuda_device_torch_does_not_see(donut):
 
     config = Config.model_validate(_overlay(donut["config"].model_dump(),
                                             {"daemon": {"frames": {"device": "cuda"}}}))
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': torch \S+ sees 0 CUDA"):
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda': torch \S+ sees 0 CUDA"):
         open_model(str(MODEL), config, 1)
 
 
@@ -546,20 +547,21 @@ def test_cuda_frames_without_gsplat_or_onnxruntime_gpu_are_refused_before_a_mode
 
     gpu = torch.device("cuda", 0)
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
-    with pytest.raises(ValueError, match=r"daemon\.device = cuda:0 with daemon\.inference = "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = cuda:0 with "
+                                         r"daemon\.frames\.inference = "
                                          r"\"onnxruntime\": this onnxruntime has no "
                                          r"CUDAExecutionProvider \(available: "
                                          r"CPUExecutionProvider\); install onnxruntime-gpu in "
-                                         r"place of onnxruntime, or set daemon\.inference to "
-                                         r"\"auto\" or \"torch\""):
+                                         r"place of onnxruntime, or set daemon\.frames\.inference "
+                                         r"to \"auto\" or \"torch\""):
         device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"],
                                      inference="onnxruntime")
     # "auto" and "torch" inference need no CUDA provider: torch runs the network
     device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"])
     device_mod.check_cuda_frames("cuda", gpu, ["CPUExecutionProvider"], inference="torch")
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: False)
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': CUDA frames render with "
-                                         r"gsplat, which does not import here; pip install "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda': CUDA frames render "
+                                         r"with gsplat, which does not import here; pip install "
                                          r"'nhfd\[gpu\]'"):
         device_mod.check_cuda_frames("cuda", gpu, CPU_CUDA_TRT)
     device_mod.check_cuda_frames("cpu", torch.device("cpu"), [])  # the CPU needs neither
@@ -599,7 +601,8 @@ def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(
     device, why = device_mod.frame_device("auto", cpu_ort, inference="onnxruntime")
     assert device == torch.device("cpu")
     assert "no CUDAExecutionProvider" in why and why.endswith("computing frames on the CPU")
-    with pytest.raises(ValueError, match=r"daemon\.device = cuda:0 with daemon\.inference = "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = cuda:0 with "
+                                         r"daemon\.frames\.inference = "
                                          r"\"onnxruntime\": this onnxruntime has no "
                                          r"CUDAExecutionProvider"):
         device_mod.frame_device("cuda", cpu_ort, inference="onnxruntime")

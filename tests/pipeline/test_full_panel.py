@@ -142,12 +142,13 @@ def test_the_window_is_any_size_up_to_the_panel_and_a_larger_training_size_is_re
     meta = OnnxModel(MODEL).info  # trained at 512 x 288
     assert meta.train_size_hw == (288, 512)
     whole = Config.model_validate({"daemon": {"frames": {"size_px": [1920, 1080]}}})
-    assert frame_window_hw(whole.daemon, whole.slm, meta) == PANEL_HW
+    assert frame_window_hw(whole.daemon.frames, whole.slm, meta) == PANEL_HW
     default = Config()
-    assert frame_window_hw(default.daemon, default.slm, meta) == (288, 512)  # empty: training size
+    # empty: the training size
+    assert frame_window_hw(default.daemon.frames, default.slm, meta) == (288, 512)
     small = Config.model_validate({"slm": {"width_px": 400, "height_px": 200}, "optics": {
         "hologram_width_px": 256, "hologram_height_px": 128}})
     with pytest.raises(ValueError, match=r"^frame window 512 x 288 \(the model's training size: "
-                       r"daemon\.frame_size_px is empty\) does not fit the panel 400 x 200 .*"
-                       r"set daemon\.frame_size_px to at most \[400, 200\]$"):
-        frame_window_hw(small.daemon, small.slm, meta)
+                       r"daemon\.frames\.size_px is empty\) does not fit the panel 400 x 200 .*"
+                       r"set daemon\.frames\.size_px to at most \[400, 200\]$"):
+        frame_window_hw(small.daemon.frames, small.slm, meta)

@@ -74,7 +74,7 @@ def test_a_model_that_needs_more_than_the_budget_is_refused_without_allocating_i
                         graph=with_huge_tensor((8192, 16384), at))
     peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     with pytest.raises(ModelOverBudget, match=rf"huge-{at}\.onnx: its test inference needs "
-                                              rf"more memory than daemon\.model_memory_mb = "
+                                              rf"more memory than daemon\.paths\.model_memory_mb = "
                                               rf"{BUDGET_MB} MB allows"):
         state.load_model(str(path))
     # Today this process folded or ran the 512 MiB tensor (1 GB resident at the fold): here it

@@ -399,7 +399,7 @@ def zero_spz(tmp_path: Path, n: int) -> Path:
 def test_the_daemons_scene_read_is_bounded_by_its_memory_budget(tmp_path: Path) -> None:
     path = zero_spz(tmp_path, 1_000_000)  # 20 MB of data, over 100 MB while decoding
     with pytest.raises(SceneFileError, match=rf"{path}: reading the scene needs more than "
-                                             r"daemon\.scene_memory_mb = 64 MiB"):
+                                             r"daemon\.paths\.scene_memory_mb = 64 MiB"):
         read_scene_counts(path, MAX_GAUSSIANS, 64)
     # The same read with room to decode gets as far as the file's content.
     with pytest.raises(SceneFileError, match=rf"{path}: not a plausible scene"):
