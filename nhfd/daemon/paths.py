@@ -33,8 +33,8 @@ def control_socket(configured_runtime_dir: str = "",
 
 def socket_path(socket_arg: str | None, config: Config | Callable[[], Config]) -> str:
     """The control socket a command talks to: its `--socket` when given, else the configured
-    daemon's (`config.daemon.runtime_dir`, by the daemon's own rules). `config` may be a function
-    that loads the configuration: it is then called only when no `--socket` is given, so a
+    daemon's (`config.daemon.server.runtime_dir`, by the daemon's own rules). `config` may be a
+    function that loads the configuration: it is then called only when no `--socket` is given, so a
     command given one reads no configuration."""
     if socket_arg:
         return str(socket_arg)

@@ -111,7 +111,7 @@ def test_a_cuda_result_is_named_by_its_gpu_in_the_header_the_table_and_the_machi
                "gpu": pipeline._gpu("cuda:0")}
     machine = pipeline._machine([cpu_run, gpu_run])
     assert machine["cuda_devices"] == {"cuda:0": h100}
-    pipeline._print(gpu_run, pipeline.Config().daemon)
+    pipeline._print(gpu_run, pipeline.Config().daemon.frames)
     assert f"device cuda:0 ({h100}, CUDA graphs), 2 views" in capsys.readouterr().out
     eager = {**gpu_run, "cuda_graphs": False}  # --cuda-graphs on,off: the rows say which
     md = pipeline._markdown([cpu_run, gpu_run, eager], machine, "nhfd bench pipeline")

@@ -99,7 +99,7 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
     # take every slot (the old daemon answered the Unix client `busy`).
     config = bench_config(short_dir, mecom_twin,
                           server={"tcp_port": free_port(), "max_clients": 4, "max_tcp_clients": 6,
-                                  "max_unauthenticated": 3, "auth_timeout_s": 5.0}, **extra)
+                                  "max_unauthenticated": 3, "auth_timeout_s": 5.0, **extra})
     r = Running(config, short_dir)
     silent: list[socket.socket] = []
     remotes: list[Client] = []
