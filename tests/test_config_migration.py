@@ -280,3 +280,14 @@ def test_the_docs_table_is_the_table():
     section = text.split("## Settings moved in this release", 1)[1].split("\n## ", 1)[0]
     rows = re.findall(r"^\| `daemon\.(\w+)` \| `daemon\.([\w.]+)` \|$", section, re.MULTILINE)
     assert rows == list(DAEMON_KEYS_MOVED.items())
+
+
+def test_the_toml_writer_reads_back_equal():
+    """What config check prints is read back as it was: the whole packaged default (tables of
+    tables, empty tables, lists of lists), and strings TOML wants escaped."""
+    default = tomllib.loads(default_text())
+    assert tomllib.loads(toml_text(default)) == default
+    odd = {"s": 'q"\\\n\t\x01\x7fé', "t": {"a.b": {"k": [1, 2.5, True, "x"]}, "e": {}}}
+    assert tomllib.loads(toml_text(odd)) == odd
+    with pytest.raises(ValueError, match="nan: not finite"):
+        toml_text({"x": float("nan")})
