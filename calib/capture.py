@@ -134,7 +134,7 @@ class DaemonBenchIO:
     """The bench through a running daemon (`nhfd.daemon.client.Client`, standard library only).
 
     Frames are written as .npy into `work_dir` (which must lie inside the daemon's
-    `daemon.pattern_dirs`) and shown with `show_pattern`; the stage moves with `stage_move`
+    `daemon.paths.pattern_dirs`) and shown with `show_pattern`; the stage moves with `stage_move`
     (raw positions, no calibration mapping); the lasers through `laser` power / enable /
     disable (arming is a person's act: done here only when `arm_s` is given, and only over the
     Unix socket); images come back from `capture` as linear .npy files. Each job is waited for.
@@ -225,7 +225,7 @@ class DaemonBenchIO:
                     raise CaptureError("the lasers are not armed: arm them (nhfctl laser arm) "
                                        "or pass --arm SECONDS")
                 reply = self._call("laser", action="arm", duration_s=float(self.arm_s))
-                if reply.get("pending"):  # daemon.arm_confirm: a person confirms at the bench
+                if reply.get("pending"):  # daemon.arming.confirm: a person confirms at the bench
                     print(reply.get("prompt", "confirm the arm at the bench"), flush=True)
                     self._wait_job("laser arm", reply["job"])
         for c, (name, pw) in enumerate(zip(names, powers, strict=True)):

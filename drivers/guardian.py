@@ -569,7 +569,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--port", help="laser port path (overrides the settings)")
     parser.add_argument("--socket", help="socket path (overrides the settings)")
     parser.add_argument("--group-writable-dir", action="store_true",
-                        help="accept a group-writable socket directory (daemon.socket_group)")
+                        help="accept a group-writable socket directory "
+                             "(daemon.server.socket_group)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s laser-guardian %(levelname)s %(message)s")

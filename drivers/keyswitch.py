@@ -1,5 +1,5 @@
 """A key switch on a serial port's modem-status line: a person at the bench confirms an arm
-(`daemon.arm_confirm = "serial"`).
+(`daemon.arming.confirm = "serial"`).
 
 Wiring: the switch connects one of the port's outputs (DTR or RTS; the driver asserts both while
 the port is open) to the configured input, CTS or DSR. The input therefore reads asserted only

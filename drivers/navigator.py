@@ -10,7 +10,7 @@ dead-zone edge to full deflection, times the configured maximum.
 
 `presses` counts button presses (a button going down) report by report, so a press and release
 that arrive between two reads still count: the daemon's arm confirmation
-(`daemon.arm_confirm = "spacemouse"`) waits for it to grow. The simulated navigator is pressed by
+(`daemon.arming.confirm = "spacemouse"`) waits for it to grow. The simulated navigator is pressed by
 `press()`.
 
 Lifecycle (the base class, for every backend): `read()` on a navigator that was closed raises

@@ -39,7 +39,7 @@ def runtime_dir(configured: str = "", env: Mapping[str, str] | None = None) -> P
 
 def check_private_dir(path: str | os.PathLike[str], *, group_writable_ok: bool = False) -> None:
     """UnsafeDirectory unless `path` is a directory owned by this user that nobody else may write
-    to (its group may, when `group_writable_ok`: the configured daemon.socket_group)."""
+    to (its group may, when `group_writable_ok`: the configured daemon.server.socket_group)."""
     path = Path(path)
     try:
         st = path.stat()
@@ -47,7 +47,7 @@ def check_private_dir(path: str | os.PathLike[str], *, group_writable_ok: bool =
         raise UnsafeDirectory(f"{path}: no such directory") from None
     mode = stat.S_IMODE(st.st_mode)
     rule = (f"it must belong to uid {os.getuid()} and be writable by no one else "
-            "(group-writable only with daemon.socket_group set)")
+            "(group-writable only with daemon.server.socket_group set)")
     problem = None
     if not stat.S_ISDIR(st.st_mode):
         problem = "is not a directory"

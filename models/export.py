@@ -149,7 +149,7 @@ def compare_with_torch(net, onnx_path: str | Path, sizes_hw: list[tuple[int, int
     return worst, sizes
 
 
-# Where a model runs unless told otherwise (the daemon takes `daemon.onnx_providers`).
+# Where a model runs unless told otherwise (the daemon takes `daemon.frames.onnx_providers`).
 CPU_ONLY = ("CPUExecutionProvider",)
 TENSORRT, CUDA = "TensorrtExecutionProvider", "CUDAExecutionProvider"
 # The providers that run a graph on a CUDA device, in the order a CUDA device prefers them:
@@ -178,7 +178,7 @@ def check_providers(wanted: Sequence[Provider], available: list[str],
 
 
 def default_engine_cache_dir(environ: dict[str, str] | None = None) -> Path:
-    """Where TensorRT engines go when `daemon.engine_cache_dir` is "": $XDG_CACHE_HOME/nhfd/
+    """Where TensorRT engines go when `daemon.frames.engine_cache_dir` is "": $XDG_CACHE_HOME/nhfd/
     tensorrt, else ~/.cache/nhfd/tensorrt."""
     env = os.environ if environ is None else environ
     base = env.get("XDG_CACHE_HOME") or str(Path(env.get("HOME") or Path.home()) / ".cache")
@@ -208,8 +208,8 @@ def engine_cache_key(model_sha256: str, input_shape: Sequence[int] | None, gpu_n
 
 
 def execution_providers(device: str, available: list[str], configured: Sequence[str], *,
-                        setting: str = "daemon.onnx_providers", device_setting: str =
-                        "daemon.device", engine_cache_dir: str | Path | None = None,
+                        setting: str = "daemon.frames.onnx_providers", device_setting: str =
+                        "daemon.frames.device", engine_cache_dir: str | Path | None = None,
                         model_sha256: str = "", input_name: str = "rgb",
                         input_shape: Sequence[int] | None = None, gpu_name: str = "",
                         tensorrt_fp16: bool = False) -> list[Provider]:
@@ -680,12 +680,12 @@ def load_model(path: str | Path, config: Config | None = None, *, threads: int =
                engine_cache_dir: str | Path | None = None) -> OnnxModel:
     """Load an exported model; with a configuration, refuse one trained for other optics.
     `device`, `input_hw`, `engine_cache_dir`: `OnnxModel`'s (a CUDA device's errors name
-    daemon.device when a config is given).
+    daemon.frames.device when a config is given).
 
     `config`: the whole configuration the model is to serve under (None: no check), because the
     optics it must match span two sections, `[optics]` and `[slm]`'s pitch
-    (`expected_from_config`), and its device is `daemon.device`."""
+    (`expected_from_config`), and its device is `daemon.frames.device`."""
     expected = expected_from_config(config.optics, config.slm) if config is not None else None
     return OnnxModel(path, expected=expected, threads=threads, providers=providers,
                      device=device, input_hw=input_hw, engine_cache_dir=engine_cache_dir,
-                     device_setting="daemon.device" if config is not None else "device")
+                     device_setting="daemon.frames.device" if config is not None else "device")

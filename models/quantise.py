@@ -8,7 +8,7 @@ convolutions are a smaller share of the time.
 
 `record_heldout_loss` writes what `nhfd eval` measured of an int8 model and its float model into
 the int8 file's own metadata (`nhfd model build` does, at its eval stage): the daemon serves the
-int8 sibling by that record (`daemon.int8`, docs/frames.md).
+int8 sibling by that record (`daemon.frames.int8`, docs/frames.md).
 """
 
 from __future__ import annotations

@@ -18,7 +18,8 @@ with a reference to `SIZE_TOLERANCE` (max abs difference over amplitude and phas
 
 Each result goes into the model's metadata as a `checked_sizes` entry
 (`nhfd.models.metadata.checked_size_entry`), written atomically. The frame worker refuses a
-window whose padded size is not among them (`window_check`) unless `daemon.allow_unchecked_sizes`.
+window whose padded size is not among them (`window_check`) unless
+`daemon.frames.allow_unchecked_sizes`.
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from nhfd.models.metadata import (
 )
 
 # The setting that lets the daemon serve a window its model was not checked at.
-ALLOW_SETTING = "daemon.allow_unchecked_sizes"
+ALLOW_SETTING = "daemon.frames.allow_unchecked_sizes"
 _SEED = 0
 
 # (h, w) -> max abs difference from the reference at that input size
@@ -281,7 +282,7 @@ def window_check(info: ModelInfo, window_hw: tuple[int, int], source: str, *,
                  allow: bool) -> str | None:
     """None when the frame window (h, w px; padded to the model's input multiple) is a size the
     model `info` was checked at (`ModelInfo.checked_sizes_hw`); otherwise the reason: raised as
-    `UncheckedSize` unless `allow` (`daemon.allow_unchecked_sizes`), then returned as a
+    `UncheckedSize` unless `allow` (`daemon.frames.allow_unchecked_sizes`), then returned as a
     warning."""
     m = info.input_multiple
     run_hw = padded_hw(window_hw, m)
@@ -295,7 +296,7 @@ def window_check(info: ModelInfo, window_hw: tuple[int, int], source: str, *,
            "training window counts as checked)")
     msg = (f"{source}: frame window {wxh(window_hw)}{padded} is not a size this model was "
            f"checked at; checked: {checked}{why}. Check it with `nhfd model check-sizes "
-           f"{source} --sizes {window_hw[1]}x{window_hw[0]}`, or set [daemon] "
+           f"{source} --sizes {window_hw[1]}x{window_hw[0]}`, or set [daemon.frames] "
            "allow_unchecked_sizes = true to serve it unchecked")
     if allow:
         return msg

@@ -1,4 +1,4 @@
-"""A model file served by torch instead of onnxruntime: `TorchModel` (`daemon.inference`).
+"""A model file served by torch instead of onnxruntime: `TorchModel` (`daemon.frames.inference`).
 
 Why: a GPU workstation has a CUDA torch (every other stage of a frame needs it) but often not
 onnxruntime-gpu, whose wheels are built for one CUDA and cuDNN major version each, and a bench
@@ -83,7 +83,7 @@ class TorchModel:
         quantised = sorted({n.op_type for n in graph.node} & QUANTISED_OPS)
         if quantised:
             raise NotAModel(f"{name}: an int8 model ({', '.join(quantised)}): it serves with "
-                            "onnxruntime on the CPU, not with daemon.inference = \"torch\"")
+                            "onnxruntime on the CPU, not with daemon.frames.inference = \"torch\"")
         weights = {i.name: numpy_helper.to_array(i) for i in graph.initializer}
         self.module = _rebuild(self.metadata, weights, name)
         worst = _compare(self.module, reference, self.channels, self.multiple)
@@ -91,7 +91,7 @@ class TorchModel:
         if not worst <= tol:  # NaN fails too
             raise NotAModel(f"{name}: rebuilt as a torch module, it differs from the file's own "
                             f"graph by {worst:.3g} (at most {tol:g} allowed): serve it with "
-                            "daemon.inference = \"onnxruntime\"")
+                            "daemon.frames.inference = \"onnxruntime\"")
         self.module = self.module.to(self.device)
         self.input_shape: list[Any] = ["batch", self.channels, "height", "width"]
         self.providers = [TORCH_PROVIDER]
@@ -133,7 +133,7 @@ def _rebuild(metadata: dict, weights: dict[str, np.ndarray], name: str) -> Servi
     spec_json = metadata.get("net")
     if not isinstance(spec_json, dict):
         raise NotAModel(f"{name}: its metadata has no network spec (\"net\"): exported by an "
-                        "older nhfd; serve it with daemon.inference = \"onnxruntime\"")
+                        "older nhfd; serve it with daemon.frames.inference = \"onnxruntime\"")
     try:
         spec = NetSpec(**spec_json)
     except (TypeError, ValueError) as exc:

@@ -10,10 +10,12 @@ This module imports no torch: control commands read the configuration too.
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import re
 import tomllib
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass
 from importlib import resources
@@ -38,6 +40,11 @@ DEFAULT_NAME = "packaged default"
 
 class ConfigError(ValueError):
     """A configuration file is missing, unreadable or invalid; the message says where and why."""
+
+
+class ConfigMigrationWarning(UserWarning):
+    """A configuration file set a key at a place it has moved from (`DAEMON_KEYS_MOVED`): the
+    value was read from there, and the message names the key's new place."""
 
 
 def _finite(name: str, values: list[float]) -> list[float]:
@@ -378,8 +385,9 @@ class WebSettings(_Section):
     # PEM certificate (chain) and private key for HTTPS ("" = plain HTTP, loopback only).
     tls_cert: str = ""
     tls_key: str = ""
-    # File holding the token the page asks for ("" = the daemon's TCP token when daemon.tcp_port
-    # is on, else <runtime_dir>/web.token, created mode 0600 at start and removed at stop).
+    # File holding the token the page asks for ("" = the daemon's TCP token when
+    # daemon.server.tcp_port is on, else <runtime_dir>/web.token, created mode 0600 at start and
+    # removed at stop).
     token_file: str = ""
     # How often the page's state and thumbnails are pushed (s), and the thumbnails' longest side.
     push_interval_s: Annotated[float, Field(ge=0.05, le=10)] = 0.5
@@ -403,7 +411,8 @@ INT8_MODES = ("auto", "never", "always")
 FRAME_TRANSPORTS = ("shm", "pickle")
 INFERENCES = ("auto", "onnxruntime", "torch")
 
-# The device names a setting or flag may take (daemon.device, --device, [model.train] device):
+# The device names a setting or flag may take (daemon.frames.device, --device, [model.train]
+# device):
 # `device_choice` checks one, `nhfd.pipeline.device.resolve_device` turns one into a torch device.
 DEVICES = ("auto", "cpu", "cuda", "cuda:N")
 DEVICE_PATTERN = re.compile(r"auto|cpu|cuda(:[0-9]+)?")  # matched whole (fullmatch)
@@ -455,11 +464,9 @@ def _torch_sees(cuda_count: int) -> str:
     return f"{torch} sees {cuda_count} CUDA devices (indices 0..{cuda_count - 1})"
 
 
-class DaemonSettings(_Section):
-    """`nhfd serve`: control sockets, where files may be read and written, focus mapping.
-
-    Relative paths are taken from the daemon's working directory (the unit's WorkingDirectory).
-    """
+class ServerSettings(_Section):
+    """`[daemon.server]`: the control socket, the TCP port (and its TLS), and the bounds on
+    what clients may hold of the control loop (connections, lines, buffers, time per pass)."""
 
     # Runtime directory for the control socket, the lock and the TCP token ("" = systemd's
     # $RUNTIME_DIRECTORY, else $XDG_RUNTIME_DIR/nhfd, else /tmp/nhfd-<uid>).
@@ -477,8 +484,6 @@ class DaemonSettings(_Section):
     # PEM certificate (chain) and private key: the TCP port speaks TLS ("" = plain, loopback only).
     tls_cert: str = ""
     tls_key: str = ""
-    # The live web view (nhfd.web), off by default.
-    web: WebSettings = WebSettings()
     # Longest request line accepted (bytes); Unix-socket clients connected at once (remote
     # peers never take these slots); requests in one batch.
     max_line_bytes: Annotated[int, Field(ge=1024, le=16_777_216)] = 65536
@@ -495,75 +500,61 @@ class DaemonSettings(_Section):
     lines_per_poll: Annotated[int, Field(ge=1, le=4096)] = 64
     # The most time one control-loop pass spends serving clients before the heartbeat (s).
     tick_budget_s: Annotated[float, Field(ge=0.005, le=1.0)] = 0.05
-    # The soft limit on open files is raised to this at start (or to the hard limit, if lower).
-    open_files: Annotated[int, Field(ge=256, le=1 << 20)] = 8192
+
+    @model_validator(mode="after")
+    def _tls_elsewhere(self) -> ServerSettings:
+        problem = _tls_problem(self.tcp_host, self.tls_cert, self.tls_key, "daemon.server.")
+        if problem:
+            raise ValueError(problem.replace("host =", "tcp_host =", 1))
+        return self
+
+
+class ArmingSettings(_Section):
+    """`[daemon.arming]`: who may arm the lasers, the bench's confirmation of each arm, whether
+    remote peers may start emission, and the laser guardian (how it is found, its heartbeat,
+    how often the channels are read back)."""
+
     # Who may arm the lasers, from the kernel's word on the Unix-socket peer (SO_PEERCRED): user
     # names, and groups whose members may ([] and [] = the daemon's own user only). Never over
     # TCP or the web view.
-    arm_users: list[str] = []
-    arm_groups: list[str] = []
+    users: list[str] = []
+    groups: list[str] = []
     # A person at the bench confirms each arm: "none", "spacemouse" (a button of the configured
-    # navigator) or "serial" (a key switch on arm_confirm_port's CTS or DSR line; the port
-    # "simulated" hosts a twin), within arm_confirm_timeout_s of the request.
-    arm_confirm: Literal["none", "spacemouse", "serial"] = "none"
-    arm_confirm_timeout_s: Annotated[float, Field(ge=1, le=120)] = 10.0
-    arm_confirm_port: str = ""
-    arm_confirm_line: Literal["cts", "dsr"] = "cts"
+    # navigator) or "serial" (a key switch on confirm_port's CTS or DSR line; the port
+    # "simulated" hosts a twin), within confirm_timeout_s of the request.
+    confirm: Literal["none", "spacemouse", "serial"] = "none"
+    confirm_timeout_s: Annotated[float, Field(ge=1, le=120)] = 10.0
+    confirm_port: str = ""
+    confirm_line: Literal["cts", "dsr"] = "cts"
     # Whether a TCP or web-view peer may start what makes a laser emit (a citl view, a
     # capture-mode snapshot, a power change or an enable while armed); off and disarm always.
     remote_emission: bool = False
-    # Scenes: the most Gaussians a scene may declare, and the memory a scene load may take (MB).
-    max_gaussians: Annotated[int, Field(ge=1, le=1_000_000_000)] = 20_000_000
-    scene_memory_mb: Annotated[int, Field(ge=64, le=1 << 20)] = 8192
-    # Models: the memory a candidate model's first session may take (MB); more is refused and
-    # the serving model stays.
-    model_memory_mb: Annotated[int, Field(ge=64, le=1 << 20)] = 4096
-    # Heartbeat period (s): the control loop sends the laser guardian's heartbeat this often and
-    # sleeps otherwise until an event; at most a quarter of the guardian's heartbeat timeout.
-    tick_s: Annotated[float, Field(ge=0.005, le=0.25)] = 0.1
     # "auto": use a running laser guardian, else start one; "spawn": always start one; "connect":
     # only use a running one (e.g. a separate service).
     guardian: Literal["auto", "spawn", "connect"] = "auto"
+    # Heartbeat period (s): the control loop sends the laser guardian's heartbeat this often and
+    # sleeps otherwise until an event; at most a quarter of the guardian's heartbeat timeout.
+    heartbeat_s: Annotated[float, Field(ge=0.005, le=0.25)] = 0.1
     # How often the laser's channels are read back for `status` (s).
     laser_refresh_s: Annotated[float, Field(ge=0.05, le=60)] = 1.0
-    # Scene loaded at start ("" = none); directories load_scene may read from.
-    scene: str = ""
-    scene_dirs: list[str] = ["scenes"]
-    # Directories load_model may read from; directory snapshots are written into.
-    model_dirs: list[str] = ["models"]
-    snapshot_dir: str = "out/snapshots"
-    # Directories show_pattern may read calibration frames (.npy) from and capture may write
-    # images (.npy) into (`nhfd calib capture` through the daemon: its --out lies inside one).
-    pattern_dirs: list[str] = ["calib"]
-    # Audit log, JSON lines ("" = $LOGS_DIRECTORY/audit.jsonl under systemd, else
-    # <runtime_dir>/audit.jsonl).
-    audit_log: str = ""
-    # The audit log is rotated when it would pass audit_max_bytes (audit.jsonl -> .1 -> ...,
-    # audit_backups kept), so it never holds more than audit_max_bytes * (audit_backups + 1).
-    audit_max_bytes: Annotated[int, Field(ge=4096, le=2**40)] = 10_485_760
-    audit_backups: Annotated[int, Field(ge=1, le=100)] = 5
-    # Repeated set_view from one caller, and repeated refusals of one method with one error
-    # code from anyone, are written once per window of this length (s) plus "N more like this".
-    audit_summary_s: Annotated[float, Field(ge=0.1, le=3600)] = 1.0
-    # Log lines on stderr: "logfmt" (key=value) or "json".
-    log_format: Literal["logfmt", "json"] = "logfmt"
-    # Focus without a calibration file: stage_mm = stage_at_reference_mm + z_mm, with z_mm (the
-    # hologram depth from the reference plane) limited to focus_range_mm.
-    stage_at_reference_mm: Annotated[float, Field(ge=-1000, le=1000)] = 12.5
-    focus_range_mm: Annotated[list[float], Field(min_length=2, max_length=2)] = [-5.0, 5.0]
-    # Finished jobs kept for `status`.
-    jobs_kept: Annotated[int, Field(ge=1, le=10000)] = 32
+
+
+class FramesSettings(_Section):
+    """`[daemon.frames]`: the model served and the frame window, the frame worker (threads,
+    device, inference, cache, transport) and the colour timing of what it shows. (Not
+    `nhfd.pipeline.settings.FrameSettings`, one frame's settings built from several sections.)"""
+
     # Model loaded at start ("" = none; then `load_model`). Its metadata must match [optics].
     model: str = ""
     # Hologram window rendered and propagated per frame, [width, height] in pixels ([] = the
     # model's training size). The trained fx is kept, so another size shows more or less of the
     # scene at the same scale.
-    frame_size_px: Annotated[list[Pixels], Field(max_length=2)] = []
+    size_px: Annotated[list[Pixels], Field(max_length=2)] = []
     # Serve a frame window whose size (padded to the model's input multiple) is not among the
     # model's checked_sizes (`nhfd model check-sizes`); false: such a model load is refused.
     allow_unchecked_sizes: bool = False
     # Frames kept by the frame worker, keyed by view and settings (a revisited view is instant).
-    frame_cache_frames: Annotated[int, Field(ge=0, le=1024)] = 16
+    cache_frames: Annotated[int, Field(ge=0, le=1024)] = 16
     # Threads of the frame worker process for torch (intra-op; inter-op is 1), numba and
     # onnxruntime (intra-op; inter-op 1, spinning off), and numba's threading layer.
     worker_threads: Annotated[int, Field(ge=1, le=256)] = 2
@@ -578,27 +569,19 @@ class DaemonSettings(_Section):
     int8: Literal[INT8_MODES] = "auto"
     # How frames cross from the frame worker: "shm" (shared-memory slots, only a small message
     # on the pipe) or "pickle" (the arrays pickled through the pipe; for comparison).
-    frame_transport: Literal[FRAME_TRANSPORTS] = "shm"
-    # Colour timing (docs/design.md, "The hardware"): "single" (daemon.single_colour's pattern in
-    # every channel, only that diode may be on), "capture" (snapshots step through the colours:
-    # all off, the colour's pattern, settle, that diode on, capture, off; clients only set
-    # powers) or "hw-sync" (each colour's pattern in its own channel, lasers modulated by the
-    # SLM's sync).
+    transport: Literal[FRAME_TRANSPORTS] = "shm"
+    # Colour timing (docs/design.md, "The hardware"): "single" (daemon.frames.single_colour's
+    # pattern in every channel, only that diode may be on), "capture" (snapshots step through
+    # the colours: all off, the colour's pattern, settle, that diode on, capture, off; clients
+    # only set powers) or "hw-sync" (each colour's pattern in its own channel, lasers modulated
+    # by the SLM's sync).
     colour_mode: Literal["single", "capture", "hw-sync"] = "hw-sync"
     single_colour: Literal["red", "green", "blue"] = "green"
-    # How often the control loop reads the navigator (devices.navigator) and moves the view (s).
-    navigator_period_s: Annotated[float, Field(ge=0.005, le=1.0)] = 0.05
-    # Session recording: every bench-changing request, timed, as JSON lines ("" = off;
-    # `nhfd serve --record FILE` sets it); `nhfd replay FILE` plays it against a daemon.
-    record: str = ""
-    # The simulated camera's sensor region, [top, left, height, width] in sensor pixels ([] =
-    # the whole sensor). A small region keeps simulated captures fast; real cameras ignore it.
-    camera_roi_px: Annotated[list[Annotated[int, Field(ge=0, le=65536)]],
-                             Field(max_length=4)] = []
     # Where the frame worker computes frames: "auto" (the first CUDA device when torch sees one
     # and gsplat is installed, else the CPU), "cpu", "cuda" or "cuda:N". On CUDA every stage runs
-    # on the GPU (gsplat, the network as daemon.inference says, propagation, coding) and only the
-    # uint8 panel region crosses to the host; a CUDA device torch does not see fails the load.
+    # on the GPU (gsplat, the network as daemon.frames.inference says, propagation, coding) and
+    # only the uint8 panel region crosses to the host; a CUDA device torch does not see fails the
+    # load.
     device: str = "auto"
     # TensorRT engines built for the frame worker, one folder per model hash, input shape and GPU
     # ("" = $XDG_CACHE_HOME/nhfd/tensorrt, else ~/.cache/nhfd/tensorrt).
@@ -613,33 +596,171 @@ class DaemonSettings(_Section):
     cuda_graphs: bool = True
 
     @model_validator(mode="after")
-    def _device_named(self) -> DaemonSettings:
+    def _device_named(self) -> FramesSettings:
         device_choice(self.device, "device", cuda_count=None)  # the name; torch sees at load
         return self
 
     @model_validator(mode="after")
-    def _focus_range_ordered(self) -> DaemonSettings:
+    def _size_is_width_and_height(self) -> FramesSettings:
+        if len(self.size_px) not in (0, 2):
+            raise ValueError(f"size_px = {self.size_px}: give [width, height] or []")
+        return self
+
+
+class AuditSettings(_Section):
+    """`[daemon.audit]`: the audit log (where, its rotation, its summaries), the log lines'
+    format, and the session recording."""
+
+    # Audit log, JSON lines ("" = $LOGS_DIRECTORY/audit.jsonl under systemd, else
+    # <runtime_dir>/audit.jsonl).
+    file: str = ""
+    # The audit log is rotated when it would pass max_bytes (audit.jsonl -> .1 -> ..., backups
+    # kept), so it never holds more than max_bytes * (backups + 1).
+    max_bytes: Annotated[int, Field(ge=4096, le=2**40)] = 10_485_760
+    backups: Annotated[int, Field(ge=1, le=100)] = 5
+    # Repeated set_view from one caller, and repeated refusals of one method with one error
+    # code from anyone, are written once per window of this length (s) plus "N more like this".
+    summary_s: Annotated[float, Field(ge=0.1, le=3600)] = 1.0
+    # Log lines on stderr: "logfmt" (key=value) or "json".
+    log_format: Literal["logfmt", "json"] = "logfmt"
+    # Session recording: every bench-changing request, timed, as JSON lines ("" = off;
+    # `nhfd serve --record FILE` sets it); `nhfd replay FILE` plays it against a daemon.
+    record: str = ""
+
+
+class PathSettings(_Section):
+    """`[daemon.paths]`: the scene loaded at start, the directories requests may read from and
+    write into, and the budgets of what they load and keep (Gaussians, memory, jobs, files)."""
+
+    # Scene loaded at start ("" = none); directories load_scene may read from.
+    scene: str = ""
+    scene_dirs: list[str] = ["scenes"]
+    # Directories load_model may read from; directory snapshots are written into.
+    model_dirs: list[str] = ["models"]
+    snapshot_dir: str = "out/snapshots"
+    # Directories show_pattern may read calibration frames (.npy) from and capture may write
+    # images (.npy) into (`nhfd calib capture` through the daemon: its --out lies inside one).
+    pattern_dirs: list[str] = ["calib"]
+    # Scenes: the most Gaussians a scene may declare, and the memory a scene load may take (MB).
+    max_gaussians: Annotated[int, Field(ge=1, le=1_000_000_000)] = 20_000_000
+    scene_memory_mb: Annotated[int, Field(ge=64, le=1 << 20)] = 8192
+    # Models: the memory a candidate model's first session may take (MB); more is refused and
+    # the serving model stays.
+    model_memory_mb: Annotated[int, Field(ge=64, le=1 << 20)] = 4096
+    # Finished jobs kept for `status`.
+    jobs_kept: Annotated[int, Field(ge=1, le=10000)] = 32
+    # The soft limit on open files is raised to this at start (or to the hard limit, if lower).
+    open_files: Annotated[int, Field(ge=256, le=1 << 20)] = 8192
+
+
+class BenchSettings(_Section):
+    """`[daemon.bench]`: the focus mapping without a calibration, the navigator's period and the
+    simulated camera's sensor region."""
+
+    # Focus without a calibration file: stage_mm = stage_at_reference_mm + z_mm, with z_mm (the
+    # hologram depth from the reference plane) limited to focus_range_mm.
+    stage_at_reference_mm: Annotated[float, Field(ge=-1000, le=1000)] = 12.5
+    focus_range_mm: Annotated[list[float], Field(min_length=2, max_length=2)] = [-5.0, 5.0]
+    # How often the control loop reads the navigator (devices.navigator) and moves the view (s).
+    navigator_period_s: Annotated[float, Field(ge=0.005, le=1.0)] = 0.05
+    # The simulated camera's sensor region, [top, left, height, width] in sensor pixels ([] =
+    # the whole sensor). A small region keeps simulated captures fast; real cameras ignore it.
+    camera_roi_px: Annotated[list[Annotated[int, Field(ge=0, le=65536)]],
+                             Field(max_length=4)] = []
+
+    @model_validator(mode="after")
+    def _focus_range_ordered(self) -> BenchSettings:
         low, high = _finite("focus_range_mm", self.focus_range_mm)
         if not low < high:
             raise ValueError(f"focus_range_mm = {self.focus_range_mm}: needs min < max")
-        if len(self.frame_size_px) not in (0, 2):
-            raise ValueError(f"frame_size_px = {self.frame_size_px}: give [width, height] or []")
+        return self
+
+    @model_validator(mode="after")
+    def _camera_roi_is_a_region(self) -> BenchSettings:
         if len(self.camera_roi_px) not in (0, 4) or (
                 self.camera_roi_px and min(self.camera_roi_px[2:]) < 1):
             raise ValueError(f"camera_roi_px = {self.camera_roi_px}: give [top, left, height, "
                              "width] (height and width >= 1) or []")
-        problem = _tls_problem(self.tcp_host, self.tls_cert, self.tls_key, "daemon.")
-        if problem:
-            raise ValueError(problem.replace("host =", "tcp_host =", 1))
         return self
+
+
+class DaemonSettings(_Section):
+    """`nhfd serve`: one section per part of the daemon, each part handed its own.
+
+    Relative paths are taken from the daemon's working directory (the unit's WorkingDirectory).
+    """
+
+    # The sockets, TCP and TLS, and the control loop's serving budget.
+    server: ServerSettings = ServerSettings()
+    # Arming, its confirmation, and the laser guardian.
+    arming: ArmingSettings = ArmingSettings()
+    # The model, the frame worker and the colour timing.
+    frames: FramesSettings = FramesSettings()
+    # The audit log, log lines and the session recording.
+    audit: AuditSettings = AuditSettings()
+    # Paths requests may use, and the budgets of loads and jobs.
+    paths: PathSettings = PathSettings()
+    # The focus mapping, the navigator and the simulated camera's region.
+    bench: BenchSettings = BenchSettings()
+    # The live web view (nhfd.web), off by default.
+    web: WebSettings = WebSettings()
+
+
+# Where each key of the flat `[daemon]` table before the sections went: old key -> its dotted
+# key under [daemon] now. The one place the mapping lives: `migrate_daemon_keys` moves a file's
+# old keys with it, `nhfd config check` prints the moved file, the docs' table
+# (docs/daemon.md, "Settings moved in this release") is tested against it.
+DAEMON_KEYS_MOVED: dict[str, str] = {
+    **{key: f"server.{key}" for key in (
+        "runtime_dir", "socket_group", "tcp_port", "tcp_token_file", "tcp_host", "tls_cert",
+        "tls_key", "max_line_bytes", "max_clients", "max_batch", "max_tcp_clients",
+        "max_unauthenticated", "auth_timeout_s", "max_buffered_bytes", "lines_per_poll",
+        "tick_budget_s")},
+    "arm_users": "arming.users",
+    "arm_groups": "arming.groups",
+    "arm_confirm": "arming.confirm",
+    "arm_confirm_timeout_s": "arming.confirm_timeout_s",
+    "arm_confirm_port": "arming.confirm_port",
+    "arm_confirm_line": "arming.confirm_line",
+    "remote_emission": "arming.remote_emission",
+    "guardian": "arming.guardian",
+    "tick_s": "arming.heartbeat_s",
+    "laser_refresh_s": "arming.laser_refresh_s",
+    "model": "frames.model",
+    "frame_size_px": "frames.size_px",
+    "allow_unchecked_sizes": "frames.allow_unchecked_sizes",
+    "frame_cache_frames": "frames.cache_frames",
+    "worker_threads": "frames.worker_threads",
+    "worker_threading_layer": "frames.worker_threading_layer",
+    "onnx_providers": "frames.onnx_providers",
+    "int8": "frames.int8",
+    "frame_transport": "frames.transport",
+    "colour_mode": "frames.colour_mode",
+    "single_colour": "frames.single_colour",
+    "device": "frames.device",
+    "engine_cache_dir": "frames.engine_cache_dir",
+    "inference": "frames.inference",
+    "cuda_graphs": "frames.cuda_graphs",
+    "audit_log": "audit.file",
+    "audit_max_bytes": "audit.max_bytes",
+    "audit_backups": "audit.backups",
+    "audit_summary_s": "audit.summary_s",
+    "log_format": "audit.log_format",
+    "record": "audit.record",
+    **{key: f"paths.{key}" for key in (
+        "scene", "scene_dirs", "model_dirs", "snapshot_dir", "pattern_dirs", "max_gaussians",
+        "scene_memory_mb", "model_memory_mb", "jobs_kept", "open_files")},
+    **{key: f"bench.{key}" for key in (
+        "stage_at_reference_mm", "focus_range_mm", "navigator_period_s", "camera_roi_px")},
+}
 
 
 class CalibrationSettings(_Section):
     """`[calibration]`: the calibration.toml the daemon applies ("" = none)."""
 
     # calibration.toml written by `nhfd calib fit` ("" = none: the configured phase curves, sign
-    # and daemon.stage_at_reference_mm focus mapping apply). The daemon applies its phase curves
-    # and sign, and maps focus through its depth -> stage fit.
+    # and daemon.bench.stage_at_reference_mm focus mapping apply). The daemon applies its phase
+    # curves and sign, and maps focus through its depth -> stage fit.
     file: str = ""
 
 
@@ -729,19 +850,21 @@ class Config(_Section):
 def cross_field_problems(config: Config) -> list[str]:
     """The rules that join sections, each problem naming its keys (`Config` validation applies
     them; `nhfd serve` and `nhfd config check` both see them there)."""
-    o, s, d = config.optics, config.slm, config.daemon
+    o, s = config.optics, config.slm
+    frames, arming = config.daemon.frames, config.daemon.arming
     panel = f"the panel {s.width_px} x {s.height_px} (slm.width_px x height_px)"
     problems = []
     if o.hologram_width_px > s.width_px or o.hologram_height_px > s.height_px:
         problems.append(f"optics.hologram_width_px x hologram_height_px = {o.hologram_width_px} "
                         f"x {o.hologram_height_px} does not fit {panel}")
-    if d.frame_size_px and (d.frame_size_px[0] > s.width_px or d.frame_size_px[1] > s.height_px):
-        problems.append(f"daemon.frame_size_px = {d.frame_size_px} does not fit {panel}")
-    # The control loop sends the guardian's heartbeat once per tick: a late tick or two must not
-    # let the guardian switch the lasers off under a healthy daemon.
+    size = frames.size_px
+    if size and (size[0] > s.width_px or size[1] > s.height_px):
+        problems.append(f"daemon.frames.size_px = {size} does not fit {panel}")
+    # The control loop sends the guardian's heartbeat once per heartbeat_s: a late beat or two
+    # must not let the guardian switch the lasers off under a healthy daemon.
     timeout_s = config.devices.readybeam.guardian.heartbeat_timeout_s
-    if d.tick_s * HEARTBEATS_PER_TIMEOUT > timeout_s:
-        problems.append(f"daemon.tick_s = {d.tick_s:g} s: must be at most 1/"
+    if arming.heartbeat_s * HEARTBEATS_PER_TIMEOUT > timeout_s:
+        problems.append(f"daemon.arming.heartbeat_s = {arming.heartbeat_s:g} s: must be at most 1/"
                         f"{HEARTBEATS_PER_TIMEOUT} of devices.readybeam.guardian."
                         f"heartbeat_timeout_s = {timeout_s:g} s")
     return problems
@@ -753,12 +876,14 @@ HEARTBEATS_PER_TIMEOUT = 4
 
 @dataclass(frozen=True)
 class LoadedConfig:
-    """A validated configuration, the file it came from (None: the packaged default) and, for
-    every dotted key, where its value came from."""
+    """A validated configuration, the file it came from (None: the packaged default), for
+    every dotted key where its value came from, and the keys the file set at an old place that
+    were moved to their new one, as (old, new) dotted keys (`migrate_daemon_keys`)."""
 
     config: Config
     path: Path | None
     sources: dict[str, str]
+    migrations: tuple[tuple[str, str], ...] = ()
 
 
 def default_text() -> str:
@@ -812,6 +937,97 @@ def _overlay(base: dict[str, Any], top: Mapping[str, Any]) -> dict[str, Any]:
         else:
             merged[key] = value
     return merged
+
+
+def migrate_daemon_keys(user: Mapping[str, Any], origin: str
+                        ) -> tuple[dict[str, Any], list[tuple[str, str]]]:
+    """One parsed file (`user`, before the overlay on the default) with every old flat key
+    under `[daemon]` moved to its section (`DAEMON_KEYS_MOVED`), and the moves as (old, new)
+    dotted keys in the file's order. Nothing else changes; nothing is warned here
+    (`load_config` warns once per move).
+
+    A file that sets a key at both its old and its new place raises `ConfigError` naming both:
+    which one it meant is not ours to guess."""
+    out = dict(user)
+    daemon = user.get("daemon")
+    if not isinstance(daemon, Mapping) or not any(k in DAEMON_KEYS_MOVED for k in daemon):
+        return out, []
+    kept: dict[str, Any] = {}
+    moves: list[tuple[str, str]] = []
+    clashes: list[str] = []
+    for key, value in daemon.items():
+        if key not in DAEMON_KEYS_MOVED:
+            # a section the file already has is copied, so moving into it changes no input
+            kept[key] = dict(value) if isinstance(value, Mapping) else value
+    for old, value in daemon.items():
+        if old not in DAEMON_KEYS_MOVED:
+            continue
+        section, name = DAEMON_KEYS_MOVED[old].split(".")
+        new = f"daemon.{section}.{name}"
+        target = kept.setdefault(section, {})
+        if not isinstance(target, dict):
+            raise ConfigError(f"{origin}: daemon.{old} moves to {new}, but daemon.{section} = "
+                              f"{target!r} is not a table")
+        if name in target:
+            clashes.append(f"daemon.{old} = {value!r} and {new} = {target[name]!r} are both set "
+                           f"({new} is daemon.{old}'s new place): keep only {new}")
+            continue
+        target[name] = value
+        moves.append((f"daemon.{old}", new))
+    if clashes:
+        raise ConfigError(f"{origin}: " + "; ".join(clashes))
+    out["daemon"] = kept
+    return out, moves
+
+
+def _toml_key(key: str) -> str:
+    return key if re.fullmatch(r"[A-Za-z0-9_-]+", key) else json.dumps(key)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    if isinstance(value, float):
+        if not math.isfinite(value):  # validation refuses these before anything is printed
+            raise ValueError(f"{value!r}: not finite")
+        return repr(value)
+    if isinstance(value, str):
+        # a JSON string is a TOML basic string, but for DEL, which TOML wants escaped
+        return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007f")
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, Mapping):
+        return "{" + ", ".join(f"{_toml_key(k)} = {_toml_value(v)}"
+                               for k, v in value.items()) + "}"
+    # dates and times: tomllib reads them; no setting takes one
+    raise ValueError(f"{value!r}: a {type(value).__name__}, which no setting takes")
+
+
+def toml_text(data: Mapping[str, Any], prefix: str = "") -> str:
+    """`data` (a parsed configuration, or part of one) as TOML that `tomllib` reads back equal:
+    each table's own values first, then its subtables under their dotted headers."""
+    lines = [f"{_toml_key(k)} = {_toml_value(v)}" for k, v in data.items()
+             if not isinstance(v, Mapping)]
+    out = "\n".join(lines) + ("\n" if lines else "")
+    for key, value in data.items():
+        if isinstance(value, Mapping):
+            name = f"{prefix}{_toml_key(key)}"
+            body = toml_text(value, f"{name}.")
+            own = any(not isinstance(v, Mapping) for v in value.values())
+            # a table of tables needs no header of its own; an empty one does, to exist
+            chunk = (f"[{name}]\n" if own or not value else "") + body
+            out += ("\n" if out else "") + chunk
+    return out
+
+
+def migrated_text(path: str | os.PathLike[str]) -> tuple[str, list[tuple[str, str]]]:
+    """The file at `path` as TOML with its old keys in their new places (only what the file
+    itself sets, values as they were; its comments are not kept), and the moves."""
+    user = _parse(_read(Path(path)), str(path))
+    migrated, moves = migrate_daemon_keys(user, str(path))
+    return toml_text(migrated), moves
 
 
 def _leaves(data: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
@@ -870,16 +1086,24 @@ def load_config(
     path = find_config(explicit, env, cwd)
     sources = dict.fromkeys(_leaves(default), DEFAULT_NAME)
     data = default
+    moves: list[tuple[str, str]] = []
     if path is not None:
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as exc:
-            raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
-        user = _parse(text, str(path))
+        user, moves = migrate_daemon_keys(_parse(_read(path), str(path)), str(path))
+        for old, new in moves:
+            warnings.warn(f"{path}: {old} is now {new}; read from its old place (nhfd config "
+                          "check prints the file migrated)", ConfigMigrationWarning,
+                          stacklevel=2)
         data = _overlay(default, user)
-        sources.update(dict.fromkeys(_leaves(user), str(path)))
+        sources.update(dict.fromkeys(_leaves(user), str(path)))  # the keys' new places
     config = validate(data, str(path) if path else DEFAULT_NAME)
-    return LoadedConfig(config=config, path=path, sources=sources)
+    return LoadedConfig(config=config, path=path, sources=sources, migrations=tuple(moves))
+
+
+def _read(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
 
 
 def check_file(path: str | os.PathLike[str]) -> Config:

@@ -74,7 +74,7 @@ class ModelLoaded:
     path                    the model file the load asked for (the float model)
     info                    the served model's metadata (`ModelInfo`, checked at its load)
     served                  the file serving frames: `path`, or its int8 sibling
-    variant, variant_reason "float" or "int8", and why (`daemon.int8`, the recorded loss)
+    variant, variant_reason "float" or "int8", and why (`daemon.frames.int8`, the recorded loss)
     providers               onnxruntime's providers in order, or ("torch",)
     inference, inference_reason  what runs the network ("onnxruntime" | "torch"), and why
     device, device_reason   the torch device frames are computed on ("cpu", "cuda:0"), and why

@@ -240,7 +240,7 @@ def _frame_parts(w: int, h: int, device: str) -> dict[str, Any]:
     from nhfd.views import Orbit, View
 
     config = Config.model_validate(_overlay(tomllib.loads(default_text()), {
-        "daemon": {"frame_size_px": [w, h], "device": device}}))
+        "daemon": {"frames": {"size_px": [w, h], "device": device}}}))
     model = open_model(str(MODEL), config, 2)
     load = read_scene(SCENE)
     scene = Scene(load.gaussians, scene_frame(load.gaussians, str(SCENE)))

@@ -105,13 +105,15 @@ def bench_config(root: Path, model: Path, scene: Path, meta: dict[str, Any],
                     "camera": "simulated", "navigator": "none"},
         "devices.readybeam.guardian": {"socket_path": str(root / "laser.sock")},
         "devices.camera_settings": {"exposure_s": EXPOSURE_S, "channels": "mono"},
-        "daemon": {"runtime_dir": str(root / "run"), "guardian": "spawn",
-                   "scene_dirs": [str(scene.parent)], "model_dirs": [str(model.parent)],
-                   "snapshot_dir": str(root / "snaps"), "audit_log": str(root / "audit.jsonl"),
-                   "scene": str(scene), "model": str(model), "frame_size_px": frame_size,
-                   "camera_roi_px": [int(v) for v in roi],
-                   "stage_at_reference_mm": round(truth.stage_mm_for(float(meta["z0_m"]), 1),
-                                                  6)},
+        "daemon.server": {"runtime_dir": str(root / "run")},
+        "daemon.arming": {"guardian": "spawn"},
+        "daemon.paths": {"scene_dirs": [str(scene.parent)], "model_dirs": [str(model.parent)],
+                         "snapshot_dir": str(root / "snaps"), "scene": str(scene)},
+        "daemon.audit": {"file": str(root / "audit.jsonl")},
+        "daemon.frames": {"model": str(model), "size_px": frame_size},
+        "daemon.bench": {"camera_roi_px": [int(v) for v in roi],
+                         "stage_at_reference_mm": round(truth.stage_mm_for(float(meta["z0_m"]),
+                                                                           1), 6)},
         "daemon.web": {"enabled": True, "host": "127.0.0.1", "port": port,
                        "push_interval_s": 0.5},
     }
@@ -298,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--scene", type=Path, default=DEFAULT_SCENE)
     p.add_argument("--out", type=Path, default=DEFAULT_OUT, help="the PNG to write")
     p.add_argument("--frame-size", type=size, default=[],
-                   help="hologram window WxH (daemon.frame_size_px; default: the model's "
+                   help="hologram window WxH (daemon.frames.size_px; default: the model's "
                         "training size, as `nhfd demo`)")
     p.add_argument("--depth-mm", type=float, default=1.0,
                    help="hologram depth the camera is focused on (mm from the reference plane)")

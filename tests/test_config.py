@@ -156,26 +156,37 @@ def test_cli_show_and_check(tmp_path, capsys, monkeypatch):
     ("text", "message"),
     [
         (
-            "[daemon]\nframe_size_px = [4096, 2160]\n",
-            r": daemon\.frame_size_px = \[4096, 2160\] does not fit the panel 1920 x 1080 "
+            "[daemon.frames]\nsize_px = [4096, 2160]\n",
+            r": daemon\.frames\.size_px = \[4096, 2160\] does not fit the panel 1920 x 1080 "
             r"\(slm\.width_px x height_px\)$",
         ),
         (
-            "[slm]\nwidth_px = 1000\n[optics]\nhologram_width_px = 1000\n[daemon]\n"
-            "frame_size_px = [1024, 576]\n",
-            r": daemon\.frame_size_px = \[1024, 576\] does not fit the panel 1000 x 1080",
+            "[slm]\nwidth_px = 1000\n[optics]\nhologram_width_px = 1000\n[daemon.frames]\n"
+            "size_px = [1024, 576]\n",
+            r": daemon\.frames\.size_px = \[1024, 576\] does not fit the panel 1000 x 1080",
         ),
         (
-            "[daemon]\ntick_s = 0.2\n",
-            r": daemon\.tick_s = 0\.2 s: must be at most 1/4 of "
+            "[daemon.arming]\nheartbeat_s = 0.2\n",
+            r": daemon\.arming\.heartbeat_s = 0\.2 s: must be at most 1/4 of "
             r"devices\.readybeam\.guardian\.heartbeat_timeout_s = 0\.5 s$",
         ),
         (
-            "[daemon]\ntick_s = 0.05\n[devices.readybeam.guardian]\nheartbeat_timeout_s = 0.1\n",
-            r": daemon\.tick_s = 0\.05 s: must be at most 1/4 of .*= 0\.1 s$",
+            "[daemon.arming]\nheartbeat_s = 0.05\n[devices.readybeam.guardian]\n"
+            "heartbeat_timeout_s = 0.1\n",
+            r": daemon\.arming\.heartbeat_s = 0\.05 s: must be at most 1/4 of .*= 0\.1 s$",
         ),
         ("[optics]\nvolume_mm = [3.0, -3.0]\n", r": optics\.volume_mm = \[3\.0, -3\.0\]: needs"),
-        ("[daemon]\nfocus_range_mm = [2.0, 1.0]\n", r": daemon\.focus_range_mm = \[2\.0, 1\.0\]"),
+        ("[daemon.bench]\nfocus_range_mm = [2.0, 1.0]\n",
+         r": daemon\.bench\.focus_range_mm = \[2\.0, 1\.0\]: needs min < max"),
+        ("[daemon.bench]\ncamera_roi_px = [0, 0, 0, 16]\n",
+         r": daemon\.bench\.camera_roi_px = \[0, 0, 0, 16\]: give \[top, left, height, width\]"),
+        ("[daemon.frames]\nsize_px = [1024]\n",
+         r": daemon\.frames\.size_px = \[1024\]: give \[width, height\] or \[\]"),
+        ("[daemon.server]\ntls_cert = 'bench.pem'\n",
+         r": daemon\.server\.tls_cert = 'bench\.pem', tls_key = '': give both "
+         r"daemon\.server\.tls_cert and daemon\.server\.tls_key, or neither"),
+        ("[daemon.server]\ntcp_host = '0.0.0.0'\n",
+         r": daemon\.server\.tcp_host = '0\.0\.0\.0' is not loopback"),
         ("[model]\nprofile = 'huge'\n", r": model\.profile = 'huge': not one of the profiles"),
         ("[devices.apt]\nsoft_limits_mm = [5.0, 1.0]\n", r": devices\.apt\.soft_limits_mm = "),
     ],
@@ -193,7 +204,7 @@ def test_cross_field_errors_name_the_key_not_a_section_dict(tmp_path, text, mess
         ("[optics]\nwavelengths_nm = [660.0, nan, 450.0]\n", "optics.wavelengths_nm.1 = nan"),
         ("[optics]\nz0_mm = inf\n", "optics.z0_mm = inf"),
         ("[optics]\nvolume_mm = [nan, 3.0]\n", "optics.volume_mm.0 = nan"),
-        ("[daemon]\nfocus_range_mm = [-5.0, inf]\n", "daemon.focus_range_mm.1 = inf"),
+        ("[daemon.bench]\nfocus_range_mm = [-5.0, inf]\n", "daemon.bench.focus_range_mm.1 = inf"),
         ("[devices.apt]\nsoft_limits_mm = [nan, 25.0]\n", "devices.apt.soft_limits_mm.0 = nan"),
     ],
 )
@@ -263,10 +274,10 @@ def test_config_check_and_serve_refuse_a_corrupt_calibration(tmp_path, capsys, m
 
 def test_serve_exits_2_on_a_cross_field_error(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr("nhfd.daemon.service.Daemon", _NoDaemon)
-    lab = write(tmp_path, "[daemon]\nframe_size_px = [4096, 2160]\n", "lab.toml")
+    lab = write(tmp_path, "[daemon.frames]\nsize_px = [4096, 2160]\n", "lab.toml")
     assert main(["serve", "--config", str(lab)]) == 2
     err = capsys.readouterr().err
-    assert err == (f"nhfd serve: error: {lab}: daemon.frame_size_px = [4096, 2160] does not fit "
+    assert err == (f"nhfd serve: error: {lab}: daemon.frames.size_px = [4096, 2160] does not fit "
                    "the panel 1920 x 1080 (slm.width_px x height_px)\n")
 
 
@@ -292,14 +303,15 @@ NO_AUTO = ("cpu", "cuda", "cuda:N")
     ],
 )
 def test_device_choice_returns_the_normalised_name(value, cuda_count, allowed, name):
-    assert device_choice(value, "daemon.device", cuda_count=cuda_count, allowed=allowed) == name
+    assert device_choice(value, "daemon.frames.device", cuda_count=cuda_count,
+                         allowed=allowed) == name
 
 
 @pytest.mark.parametrize(
     ("value", "cuda_count", "setting", "allowed", "message"),
     [
-        *[(bad, count, "daemon.device", DEVICES, rf"daemon\.device = {re.escape(repr(bad))}: "
-           + re.escape(ALL_DEVICES))
+        *[(bad, count, "daemon.frames.device", DEVICES,
+           rf"daemon\.frames\.device = {re.escape(repr(bad))}: " + re.escape(ALL_DEVICES))
           for bad in ("gpu", "cuda:x", "cudaXYZ", "cuda:-1", "", "cuda:", "cpu:0", "auto:1")
           for count in (None, 0, 2)],
         ("cuda:2", 2, "--device", DEVICES,
@@ -307,9 +319,9 @@ def test_device_choice_returns_the_normalised_name(value, cuda_count, allowed, n
          r"use \"auto\" or \"cpu\""),
         ("cuda:1", 1, "device", DEVICES,
          r"device = 'cuda:1': torch \S+ sees 1 CUDA device \(index 0\); use \"auto\" or \"cpu\""),
-        ("cuda", 0, "daemon.device", DEVICES,
-         r"daemon\.device = 'cuda': torch \S+ sees 0 CUDA devices \(a CPU-only build, no GPU, "
-         r"or no driver\); use \"auto\" or \"cpu\""),
+        ("cuda", 0, "daemon.frames.device", DEVICES,
+         r"daemon\.frames\.device = 'cuda': torch \S+ sees 0 CUDA devices \(a CPU-only build, "
+         r"no GPU, or no driver\); use \"auto\" or \"cpu\""),
         # a setting that takes no "auto" lists what it takes, and offers only the CPU
         ("auto", 2, "--device", NO_AUTO,
          r"--device = 'auto': must be one of cpu, cuda, cuda:N \(N: a CUDA device index\)"),
@@ -327,8 +339,9 @@ def test_device_choice_refuses_naming_the_setting_the_value_and_what_is_allowed(
 
 
 def test_daemon_device_is_checked_by_name_when_the_file_is_read(tmp_path):
-    assert check_file(write(tmp_path, "[daemon]\ndevice = 'cuda:3'\n")).daemon.device == "cuda:3"
-    path = write(tmp_path, "[daemon]\ndevice = 'gpu'\n")
+    config = check_file(write(tmp_path, "[daemon.frames]\ndevice = 'cuda:3'\n"))
+    assert config.daemon.frames.device == "cuda:3"
+    path = write(tmp_path, "[daemon.frames]\ndevice = 'gpu'\n")
     with pytest.raises(ConfigError) as info:
         check_file(path)
-    assert str(info.value) == f"{path}: daemon.device = 'gpu': {ALL_DEVICES}"
+    assert str(info.value) == f"{path}: daemon.frames.device = 'gpu': {ALL_DEVICES}"

@@ -56,10 +56,10 @@ def test_the_flags_reach_the_daemon_configuration(tmp_path, captured):
     assert (call["model"], call["scene"]) == (model, scene)
     cfg, _, info = demo.demo_config(call["config"], model=call["model"], scene=call["scene"],
                                     runtime=tmp_path / "rt", captures=tmp_path / "cap")
-    assert cfg.daemon.model == str(model.resolve())
-    assert cfg.daemon.scene == str(scene.resolve())
-    assert str(scene.parent.resolve()) in cfg.daemon.scene_dirs
-    assert str(model.parent.resolve()) in cfg.daemon.model_dirs
+    assert cfg.daemon.frames.model == str(model.resolve())
+    assert cfg.daemon.paths.scene == str(scene.resolve())
+    assert str(scene.parent.resolve()) in cfg.daemon.paths.scene_dirs
+    assert str(model.parent.resolve()) in cfg.daemon.paths.model_dirs
     assert info.train_size_hw == (288, 512)
 
 

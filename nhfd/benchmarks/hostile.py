@@ -23,7 +23,7 @@ the largest gap come from `status.laser.guardian`.
 
 Scenarios (names for --scenarios):
   idle             nothing: the baseline.
-  tcp-lockout      100 plain TCP connections to daemon.tcp_port that never send a byte; each
+  tcp-lockout      100 plain TCP connections to daemon.server.tcp_port that never send a byte; each
                    the daemon closes or refuses is opened again 1 s later.
   newline-flood    two peers, one on TCP (never authenticated) and one on the Unix socket, each
                    sending b"\\n" * 2^20 in a loop, reconnecting whenever dropped.
@@ -34,7 +34,7 @@ Scenarios (names for --scenarios):
   web-flood        one token holder sending the page's `{"id", "op": "stop"}` over its
                    WebSocket as fast as it can, reconnecting when closed (needs aiohttp).
   hostile-scenes   load_scene of each hostile file, built small in a folder of
-                   daemon.scene_dirs, repeated for the window: a gzip-bomb .spz, a zstd .spz
+                   daemon.paths.scene_dirs, repeated for the window: a gzip-bomb .spz, a zstd .spz
                    declaring 2^28 points, a .sog zip bomb, a .glb with byteStride 0 and count
                    2^28, a .gltf whose buffer is ../outside.bin, one whose buffer is /dev/zero,
                    an ASCII .ply declaring 4e9 vertices. Each must be refused, naming its cause.
@@ -130,8 +130,8 @@ def free_port() -> int:
 class HostileBench(Bench):
     """`safety.Bench` with what an attack needs: a TCP port, the web view with a token file,
     and its own copies of the model and scene, so hostile files written beside them lie inside
-    daemon.model_dirs and daemon.scene_dirs. Without a model the whole temporary root is the
-    scene and model directory (the hostile scenes go in root/scenes)."""
+    daemon.paths.model_dirs and daemon.paths.scene_dirs. Without a model the whole temporary root is
+    the scene and model directory (the hostile scenes go in root/scenes)."""
 
     def __init__(self, *, model: Path | None = None, scene: Path | None = None,
                  tcp: bool = False, web: bool = False) -> None:
@@ -163,7 +163,7 @@ class HostileBench(Bench):
     def _start(self) -> None:
         """The configuration, then `nhfd serve` on it."""
         text = config_text(self.root, self.model, self.scene, DEVICES, self.twin.port_path)
-        # config_text ends inside [daemon]: these keys join it.
+        # config_text ends inside [daemon.server]: these keys join it.
         if self.tcp_port is not None:
             text += f"tcp_port = {self.tcp_port}\n"
         if self.web_token is not None:
@@ -172,9 +172,10 @@ class HostileBench(Bench):
             token_file.chmod(0o600)
             text += (f"[daemon.web]\nenabled = true\nport = {self.web_port}\n"
                      f'token_file = "{token_file}"\n')
-        parsed = tomllib.loads(text)["daemon"]
+        parsed = tomllib.loads(text)["daemon"]["server"]
         if parsed.get("tcp_port", 0) != (self.tcp_port or 0):
-            raise RuntimeError("config_text no longer ends in [daemon]: tcp_port went elsewhere")
+            raise RuntimeError("config_text no longer ends in [daemon.server]: tcp_port went "
+                               "elsewhere")
         self.config_path = self.root / "nhfd.toml"
         self.config_path.write_text(text)
         self.log = (self.root / "serve.log").open("w")

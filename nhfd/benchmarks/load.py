@@ -131,13 +131,16 @@ def config_text(root: Path, model: Path | None, scene: Path | None,
         # A pty has no modem lines: the stage's line reset is skipped there.
         "[devices.apt]", f'port = "{stage_port}"', f"rts_reset = {str(not stage_port).lower()}",
         "[devices.readybeam.guardian]", f'socket_path = "{root / "laser.sock"}"',
-        "[daemon]", f'runtime_dir = "{root / "run"}"', 'guardian = "spawn"',
-        f'audit_log = "{root / "audit.jsonl"}"', f'snapshot_dir = "{root / "snaps"}"',
+        "[daemon.arming]", 'guardian = "spawn"',
+        "[daemon.audit]", f'file = "{root / "audit.jsonl"}"',
+        "[daemon.paths]", f'snapshot_dir = "{root / "snaps"}"',
         f"scene_dirs = {json.dumps(dirs['scene_dirs'])}",
         f"model_dirs = {json.dumps(dirs['model_dirs'])}",
     ]
     if model and scene:
-        lines += [f'model = "{model}"', f'scene = "{scene}"']
+        lines += [f'scene = "{scene}"', "[daemon.frames]", f'model = "{model}"']
+    # [daemon.server] last: a caller's server keys (tcp_port, nhfd.benchmarks.hostile) join it.
+    lines += ["[daemon.server]", f'runtime_dir = "{root / "run"}"']
     return "\n".join(lines) + "\n"
 
 

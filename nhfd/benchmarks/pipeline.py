@@ -9,9 +9,9 @@ and are not counted. The frame cache is off: every view is computed.
 
 --transport shm,pickle measures both ways frames cross from the worker in one run (shared-memory
 slots, the default, or the arrays pickled through the pipe), and --int8 never,auto the float model
-and the int8 sibling the daemon would serve (`daemon.int8`); each combination in its own worker,
-all given the same views in turn (a loaded machine loads them alike). --device cpu,cuda adds the
-device the same way (each result records the device its worker computed on, and the GPU's name),
+and the int8 sibling the daemon would serve (`daemon.frames.int8`); each combination in its own
+worker, all given the same views in turn (a loaded machine loads them alike). --device cpu,cuda adds
+the device the same way (each result records the device its worker computed on, and the GPU's name),
 and --frame-size-px W H, repeated, measures each window size in turn. The panel's refresh
 pacing is off here (slm.refresh_hz at its maximum): the figure is the pipeline's, not the
 panel's.
@@ -57,7 +57,7 @@ from nhfd.config import (
     INT8_MODES,
     REFRESH_HZ_MAX,
     Config,
-    DaemonSettings,
+    FramesSettings,
     SLMSettings,
     _overlay,
     load_config,
@@ -83,11 +83,11 @@ REST_SEED = 20261127
 class Variant(NamedTuple):
     """One worker's settings in a side-by-side run (None: the configuration's)."""
 
-    transport: str | None = None  # daemon.frame_transport
-    int8: str | None = None  # daemon.int8
-    device: str | None = None  # daemon.device
-    inference: str | None = None  # daemon.inference
-    cuda_graphs: bool | None = None  # daemon.cuda_graphs
+    transport: str | None = None  # daemon.frames.transport
+    int8: str | None = None  # daemon.frames.int8
+    device: str | None = None  # daemon.frames.device
+    inference: str | None = None  # daemon.frames.inference
+    cuda_graphs: bool | None = None  # daemon.frames.cuda_graphs
     quality: str | None = None  # the tier each view asks for (None: network)
 
 
@@ -102,22 +102,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--warmup", type=int, default=3, help="views not counted")
     p.add_argument("--json", default="out/bench/pipeline.json", help="JSON results file")
     p.add_argument("--device", help="comma list of devices to compare, each auto, cpu, cuda or "
-                   "cuda:N (default: daemon.device)")
+                   "cuda:N (default: daemon.frames.device)")
     p.add_argument("--frame-size-px", type=int, nargs=2, metavar=("W", "H"), action="append",
-                   help="hologram window (daemon.frame_size_px), repeatable: each size measured "
+                   help="hologram window (daemon.frames.size_px), repeatable: each size measured "
                         "in turn (default: the configuration's)")
     p.add_argument("--transport", default="shm",
                    help=f"comma list of frame transports to compare: {', '.join(FRAME_TRANSPORTS)} "
                         "(default shm)")
     p.add_argument("--int8", default=None,
-                   help=f"comma list of daemon.int8 settings to compare: {', '.join(INT8_MODES)} "
-                        "(default: the configuration's)")
+                   help="comma list of daemon.frames.int8 settings to compare: "
+                        f"{', '.join(INT8_MODES)} (default: the configuration's)")
     p.add_argument("--inference", default=None,
                    help=f"comma list of what runs the network, to compare: "
-                        f"{', '.join(INFERENCES)} (daemon.inference; default: the configuration's)")
+                        f"{', '.join(INFERENCES)} (daemon.frames.inference; default: the "
+                        "configuration's)")
     p.add_argument("--cuda-graphs", default=None,
-                   help="comma list of on, off: daemon.cuda_graphs to compare on a CUDA device "
-                        "(default: the configuration's)")
+                   help="comma list of on, off: daemon.frames.cuda_graphs to compare on a CUDA "
+                        "device (default: the configuration's)")
     p.add_argument("--quality", default=None,
                    help=f"comma list of tiers the views ask for, to compare: "
                         f"{', '.join(QUALITY_TIERS)} (default network)")
@@ -188,8 +189,8 @@ def measure(config: Config, model: Path, scene: Path, views: int, warmup: int, *
 def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, warmup: int,
                          variants: list[tuple[str | None, ...]],
                          rest_ms: tuple[float, float] = (0.0, 0.0)) -> list[dict[str, Any]]:
-    """`model` under each `Variant` (transport, daemon.int8[, daemon.device]; None: the
-    configuration's) of `variants`, each in its own worker, all started first and then given the
+    """`model` under each `Variant` (transport, daemon.frames.int8[, daemon.frames.device]; None:
+    the configuration's) of `variants`, each in its own worker, all started first and then given the
     same views in turn, one frame at a time (the order rotating per view): on a loaded machine
     the variants see the same load and their medians compare. A variant with a `quality` is
     shown each view at that tier first, then rests a seeded random time in `rest_ms` (one
@@ -198,14 +199,14 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
 
     `config`: the whole configuration, because each worker runs under all of it (the frame
     pipeline joins `[daemon]`, `[slm]`, `[optics]`, `[coding]` and `[calibration]`), with the
-    variant's `[daemon]` settings and `[slm]` refresh on top (`_variant_config`)."""
+    variant's `[daemon.frames]` settings and `[slm]` refresh on top (`_variant_config`)."""
     info = OnnxModel(model).info
     variants = [Variant(*v) for v in variants]
     configs = [_variant_config(config, v) for v in variants]
     rests_s = np.random.default_rng(REST_SEED).uniform(rest_ms[0] * 1e-3, rest_ms[1] * 1e-3,
                                                         warmup + views)
     for cfg in configs:  # before any worker starts
-        _check_fits(cfg.daemon, cfg.slm, model, info)
+        _check_fits(cfg.daemon.frames, cfg.slm, model, info)
     runs = []
     try:
         for cfg in configs:
@@ -236,35 +237,35 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
     finally:
         for _cfg, _host, link, _rows in runs:
             link.close()
-    return [{**_result(model, info, cfg.daemon, rows, report), "quality": v.quality or "network",
-             "rest_ms": list(rest_ms)}
+    return [{**_result(model, info, cfg.daemon.frames, rows, report),
+             "quality": v.quality or "network", "rest_ms": list(rest_ms)}
             for (cfg, _host, _link, rows), report, v in zip(runs, reports, variants, strict=True)]
 
 
 def _variant_config(config: Config, v: Variant) -> Config:
     """The configuration one worker runs under: the variant's settings, no frame cache (every
     view computed) and no refresh pacing (the bench times the pipeline, not the panel)."""
-    daemon: dict[str, Any] = {"frame_cache_frames": 0}
+    frames: dict[str, Any] = {"cache_frames": 0}  # [daemon.frames]
     if v.transport is not None:
-        daemon["frame_transport"] = v.transport
+        frames["transport"] = v.transport
     if v.int8 is not None:
-        daemon["int8"] = v.int8
+        frames["int8"] = v.int8
     if v.device is not None:
-        daemon["device"] = v.device
+        frames["device"] = v.device
     if v.inference is not None:
-        daemon["inference"] = v.inference
+        frames["inference"] = v.inference
     if v.cuda_graphs is not None:
-        daemon["cuda_graphs"] = v.cuda_graphs
-    overlay = {"daemon": daemon, "slm": {"refresh_hz": REFRESH_HZ_MAX}}
+        frames["cuda_graphs"] = v.cuda_graphs
+    overlay = {"daemon": {"frames": frames}, "slm": {"refresh_hz": REFRESH_HZ_MAX}}
     return Config.model_validate(_overlay(config.model_dump(), overlay))
 
 
-def _check_fits(daemon: DaemonSettings, slm: SLMSettings, model: Path, info: ModelInfo) -> None:
+def _check_fits(frames: FramesSettings, slm: SLMSettings, model: Path, info: ModelInfo) -> None:
     """Refuse a frame window larger than the panel before a worker starts for it (the
-    configuration checked daemon.frame_size_px; `frame_window_hw` checks the model's training
+    configuration checked daemon.frames.size_px; `frame_window_hw` checks the model's training
     size that stands in for an empty one)."""
     try:
-        frame_window_hw(daemon, slm, info)
+        frame_window_hw(frames, slm, info)
     except ValueError as exc:
         raise ValueError(f"{model}: {exc}") from None
 
@@ -303,10 +304,10 @@ def _rest(link: Any, host: _Host, seconds: float) -> None:
         time.sleep(0.001)
 
 
-def _result(model: Path, model_info: ModelInfo, daemon: DaemonSettings,
+def _result(model: Path, model_info: ModelInfo, frames: FramesSettings,
             rows: list[dict[str, float]], info: dict[str, Any]) -> dict[str, Any]:
     """One worker's figures, with what it served and the device it computed on (its model
-    status: `device`, `device_reason`); `daemon`: the `[daemon]` section it ran under."""
+    status: `device`, `device_reason`); `frames`: the `[daemon.frames]` it ran under."""
     h, w = model_info.train_size_hw
     summary = {k: {"median_ms": float(np.median([r[k] for r in rows])),
                    "p90_ms": float(np.percentile([r[k] for r in rows], 90)),
@@ -314,10 +315,10 @@ def _result(model: Path, model_info: ModelInfo, daemon: DaemonSettings,
                for k in (*STAGES, "total")}
     device = info.get("device")
     return {"model": str(model), "profile": model_info.profile,
-            "size_wh": list(daemon.frame_size_px) or [w, h],
-            "transport": daemon.frame_transport, "int8": daemon.int8,
-            "worker_threads": daemon.worker_threads,
-            "device_setting": daemon.device, "device": device, "cuda_graphs": daemon.cuda_graphs,
+            "size_wh": list(frames.size_px) or [w, h],
+            "transport": frames.transport, "int8": frames.int8,
+            "worker_threads": frames.worker_threads,
+            "device_setting": frames.device, "device": device, "cuda_graphs": frames.cuda_graphs,
             "device_reason": info.get("device_reason"), "gpu": _gpu(device),
             "onnx_providers": info.get("providers"), "inference": info.get("inference"),
             "inference_reason": info.get("inference_reason"),
@@ -367,7 +368,7 @@ def run(args: argparse.Namespace) -> int:
             for r in measure_side_by_side(cfg, model, Path(args.scene), args.views,
                                           args.warmup, variants, rest_ms):
                 results.append(r)
-                _print(r, cfg.daemon)
+                _print(r, cfg.daemon.frames)
     machine = _machine(results)
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -405,7 +406,7 @@ def _devices(text: str) -> list[str]:
         device = resolve_device(item, "--device")
         if item.lower() != "auto":
             check_cuda_frames(item, device, ort.get_available_providers(), "--device")
-    return [item.lower() for item in items]  # daemon.device's spelling
+    return [item.lower() for item in items]  # daemon.frames.device's spelling
 
 
 def _size_configs(config: Config, sizes: list[list[int]] | None) -> list[Config]:
@@ -414,7 +415,7 @@ def _size_configs(config: Config, sizes: list[list[int]] | None) -> list[Config]
     if not sizes:
         return [config]
     return [Config.model_validate(_overlay(config.model_dump(),
-                                           {"daemon": {"frame_size_px": list(size)}}))
+                                           {"daemon": {"frames": {"size_px": list(size)}}}))
             for size in sizes]
 
 
@@ -484,13 +485,14 @@ def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: s
     """The README-ready figures: the machine, the command, one table row per result (the total
     median and p99, view to panel, then each stage's median)."""
     gpus = "; ".join(f"{d}: {n}" for d, n in (machine.get("cuda_devices") or {}).items())
-    # the CPU path's threads are the worker's (daemon.worker_threads), not the machine's cores
+    # the CPU path's threads are the worker's (daemon.frames.worker_threads), not the machine's
+    # cores
     threads = sorted({r["worker_threads"] for r in results})
     lines = [f"Machine: {machine['cpu']}, {machine['cores']} cores; torch "
              f"{machine.get('torch', 'absent')}, onnxruntime {machine['onnxruntime']} "
              f"({', '.join(machine['onnx_providers_available'])})"
              + (f"; {gpus}" if gpus else "") + f"; frame worker threads "
-             f"{', '.join(map(str, threads))} (daemon.worker_threads); nhfd {__version__}.",
+             f"{', '.join(map(str, threads))} (daemon.frames.worker_threads); nhfd {__version__}.",
              f"Command: `{command}`", "",
              "| " + " | ".join(TABLE_COLUMNS) + " |",
              "|" + "---|" * 7 + "---:|" * (len(TABLE_COLUMNS) - 7)]
@@ -505,14 +507,14 @@ def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: s
     return "\n".join(lines) + "\n"
 
 
-def _print(r: dict[str, Any], daemon: DaemonSettings) -> None:
-    """One result `r` as the command prints it; `daemon`: the `[daemon]` section it ran
+def _print(r: dict[str, Any], frames: FramesSettings) -> None:
+    """One result `r` as the command prints it; `frames`: the `[daemon.frames]` it ran
     under."""
     s = r["stages"]
     print(f"{r['model']} ({r['profile']}, {r['size_wh'][0]} x {r['size_wh'][1]}), "
           f"device {_device_label(r)}, {r['views']} views, worker threads "
-          f"{daemon.worker_threads}, frames by {r['transport']}, serving {r['variant']} "
-          f"{r['served']} (daemon.int8 = {r['int8']}: {r['variant_reason']}):")
+          f"{frames.worker_threads}, frames by {r['transport']}, serving {r['variant']} "
+          f"{r['served']} (daemon.frames.int8 = {r['int8']}: {r['variant_reason']}):")
     if r["device_setting"] != r["device"]:  # "auto", or a fall back: say why
         print(f"  device: {r['device_reason']}")
     print(f"  network: {r['inference_reason']}")

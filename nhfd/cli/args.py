@@ -8,10 +8,16 @@ as one line and exits 2.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import re
+import sys
+import warnings
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
+
+from nhfd.config import ConfigMigrationWarning
 
 MAX_SIDE_PX = 16384
 # The scene formats, as help texts name them (every suffix `nhfd.scene.io` reads; a test holds
@@ -76,3 +82,24 @@ class LazyCommands(argparse._SubParsersAction):
                  values: Any, option_string: str | None = None) -> None:
         self.load(values[0])
         super().__call__(parser, namespace, values, option_string)
+
+
+@contextlib.contextmanager
+def config_warnings_as_lines(prog: str) -> Iterator[None]:
+    """Inside: a configuration warning (`nhfd.config.ConfigMigrationWarning`, a key read from
+    its old place) is printed to stderr as one line, `prog: warning: message`, not as Python's
+    warning with its source line; other warnings are shown as before."""
+    shown = warnings.showwarning
+
+    def show(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+             file: Any = None, line: str | None = None) -> None:
+        if issubclass(category, ConfigMigrationWarning):
+            print(f"{prog}: warning: {message}", file=sys.stderr)
+        else:
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        warnings.showwarning = shown

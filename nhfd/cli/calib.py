@@ -2,8 +2,8 @@
 
 `capture` runs through the daemon (`nhfd serve` owns the devices; simulated by default): the
 daemon's panel size and wavelengths from `status`, frames shown with `show_pattern` (so --out must
-lie inside its daemon.pattern_dirs), raw stage moves, laser power/enable (arm first, or --arm),
-linear .npy captures. `--direct` drives the simulated twins in this process instead (a
+lie inside its daemon.paths.pattern_dirs), raw stage moves, laser power/enable (arm first, or
+--arm), linear .npy captures. `--direct` drives the simulated twins in this process instead (a
 `TrueBench`, optionally randomised with `--sim-seed`). `fit` writes calibration.toml; `report`
 writes PNGs next to the capture.
 """
@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--direct", action="store_true",
                    help="drive the simulated twins in this process, not the daemon")
     c.add_argument("--socket", help="daemon control socket (default: from the configuration)")
-    c.add_argument("--config", help="configuration file whose daemon.runtime_dir to use")
+    c.add_argument("--config", help="configuration file whose daemon.server.runtime_dir to use")
     c.add_argument("--arm", type=float, default=None, metavar="SECONDS",
                    help="arm the lasers for this long when they are not armed (Unix socket; "
                         "default: they must be armed already)")

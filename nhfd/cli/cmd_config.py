@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from pathlib import Path
 
 from nhfd.calibration import check_calibration_file
-from nhfd.config import check_file, load_config
+from nhfd.config import check_file, load_config, migrated_text
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -23,7 +24,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     show.add_argument("--json", action="store_true", help="machine-readable output")
     show.set_defaults(handler=_show)
     check = verbs.add_parser("check", help="validate a configuration file")
-    check.add_argument("file", nargs="?", help="file to check (default: the one found by search)")
+    check.add_argument("file", nargs="?", help="file to check (default: the one found by search); "
+                       "one with keys at their old places is printed migrated, to paste")
     check.set_defaults(handler=_check)
 
 
@@ -56,13 +58,25 @@ def _show(args: argparse.Namespace) -> int:
 
 def _check(args: argparse.Namespace) -> int:
     """What `nhfd serve` refuses at start is refused here: every value, every rule that joins
-    sections (in the model), and the calibration file it names, opened."""
+    sections (in the model), and the calibration file it names, opened. A valid file that sets
+    keys at their old places (`nhfd.config.DAEMON_KEYS_MOVED`) is then printed with them in
+    their new places: the file's own keys and values only, after a comment line naming the
+    moves, so the lab can paste it over the old one."""
     if args.file:
         check_calibration_file(check_file(args.file), args.file)
-        print(f"{args.file}: ok")
+        path: Path | None = Path(args.file)
+        origin = args.file
     else:
         loaded = load_config()
-        origin = str(loaded.path or "packaged default")
+        path = loaded.path
+        origin = str(path or "packaged default")
         check_calibration_file(loaded.config, origin)
-        print(f"{origin}: ok")
+    print(f"{origin}: ok")
+    if path is not None:
+        text, moves = migrated_text(path)
+        if moves:
+            moved = ", ".join(f"{old} -> {new}" for old, new in moves)
+            print(f"# {origin} sets {len(moves)} keys at their old places ({moved}); the file "
+                  "migrated (its keys and values; its comments are not kept):")
+            print(text, end="")
     return 0

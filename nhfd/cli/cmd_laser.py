@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from nhfd.config import DaemonSettings, load_config
+from nhfd.config import ServerSettings, load_config
 from nhfd.device_settings import LaserSettings
 from nhfd.drivers.errors import DeviceError, PortBusy
 from nhfd.drivers.guardian import (
@@ -76,23 +76,23 @@ def _common(p: argparse.ArgumentParser) -> None:
     where.add_argument("--usb-serial", help="USB serial number of the laser's port")
 
 
-def _settings(args: argparse.Namespace) -> tuple[LaserSettings, DaemonSettings | None]:
+def _settings(args: argparse.Namespace) -> tuple[LaserSettings, ServerSettings | None]:
     return laser_settings(args.config, port=args.port or "", usb_serial=args.usb_serial or "",
                           guardian_socket=args.socket or "", prog=f"nhfd {args.command}")
 
 
 def laser_settings(config: str | None = None, *, port: str = "", usb_serial: str = "",
                    guardian_socket: str = "", prog: str = "nhfd laser-off"
-                   ) -> tuple[LaserSettings, DaemonSettings | None]:
+                   ) -> tuple[LaserSettings, ServerSettings | None]:
     """LaserSettings from the configuration's [devices.readybeam], with a port and guardian
-    socket given on the command line on top, and the [daemon] section (runtime directory, socket
+    socket given on the command line on top, and [daemon.server] (runtime directory, socket
     group; None when the configuration could not be read). A broken configuration file must not
     stop an emergency off, so it is reported (as `prog`) and the defaults are used."""
 
-    settings, daemon = LaserSettings(), None
+    settings, server = LaserSettings(), None
     try:
         loaded = load_config(config).config
-        settings, daemon = loaded.devices.readybeam, loaded.daemon
+        settings, server = loaded.devices.readybeam, loaded.daemon.server
     except Exception as exc:
         print(f"{prog}: warning: configuration not used: {exc}", file=sys.stderr)
     update: dict[str, Any] = {}
@@ -102,7 +102,7 @@ def laser_settings(config: str | None = None, *, port: str = "", usb_serial: str
         update.update(usb_serial=usb_serial, port="")
     if guardian_socket:
         update["guardian"] = settings.guardian.model_copy(update={"socket_path": guardian_socket})
-    return (settings.model_copy(update=update) if update else settings), daemon
+    return (settings.model_copy(update=update) if update else settings), server
 
 
 def _off_through_guardian(settings: LaserSettings, path: Path, group_ok: bool, timeout_s: float,
@@ -168,9 +168,9 @@ class OffOutcome:
 
 
 def _laser_off(args: argparse.Namespace) -> int:
-    settings, daemon = _settings(args)
-    path = socket_path_for(settings, runtime_dir(daemon.runtime_dir if daemon else ""))
-    outcome = switch_all_off(settings, path, daemon, timeout_s=args.timeout_s)
+    settings, server = _settings(args)
+    path = socket_path_for(settings, runtime_dir(server.runtime_dir if server else ""))
+    outcome = switch_all_off(settings, path, server, timeout_s=args.timeout_s)
     if outcome.confirmed:
         print(f"all laser channels off ({outcome.how})")
         return 0
@@ -178,14 +178,16 @@ def _laser_off(args: argparse.Namespace) -> int:
     return 1
 
 
-def switch_all_off(settings: LaserSettings, path: Path, daemon: DaemonSettings | None, *,
+def switch_all_off(settings: LaserSettings, path: Path, server: ServerSettings | None, *,
                    timeout_s: float = 3.0, prog: str = "nhfd laser-off",
                    port_hint: str = "--port or --usb-serial") -> OffOutcome:
     """Every laser channel off without the daemon: through the guardian at `path` if it can be
     trusted, else directly on the configured port (a hung nhfd guardian of this user is killed
     first, which frees it). Notes on the way go to stderr as `prog`; `port_hint` says where a
-    port would be given when none is configured."""
-    group_ok = bool(daemon and daemon.socket_group)
+    port would be given when none is configured. `server`: `[daemon.server]` (its socket
+    group lets the guardian's directory be group-writable; None: the configuration could not
+    be read)."""
+    group_ok = bool(server and server.socket_group)
     try:
         return OffOutcome(True, _off_through_guardian(settings, path, group_ok, timeout_s,
                                                       prog))
@@ -223,7 +225,7 @@ def switch_all_off(settings: LaserSettings, path: Path, daemon: DaemonSettings |
 def _guardian(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.INFO, stream=sys.stderr,
                         format="%(asctime)s laser-guardian %(levelname)s %(message)s")
-    settings, daemon = _settings(args)
+    settings, server = _settings(args)
     # The same socket the daemon of this configuration looks for (its runtime directory).
-    path = socket_path_for(settings, runtime_dir(daemon.runtime_dir if daemon else ""))
-    return run(settings, str(path), group_writable_ok=bool(daemon and daemon.socket_group))
+    path = socket_path_for(settings, runtime_dir(server.runtime_dir if server else ""))
+    return run(settings, str(path), group_writable_ok=bool(server and server.socket_group))

@@ -56,7 +56,7 @@ LOAD_TIMEOUT_S = 600.0
 CHECK_SIZES_HELP = """\
 Run the model at each size and record the result in its metadata (checked_sizes), which the
 daemon reads: it refuses a frame window whose size the model was not checked at unless
-[daemon] allow_unchecked_sizes = true. With --run, each size is compared with the run's torch
+[daemon.frames] allow_unchecked_sizes = true. With --run, each size is compared with the run's torch
 network (as `nhfd export` does); without, the full-size inference is compared with the same
 graph run on overlapping tiles of the training window's size, beyond its receptive margin (a
 convolutional network computes the same function at every size away from its borders), and
@@ -83,9 +83,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="then load the scene and the model into the running daemon")
     b.add_argument("--socket", help="the daemon's control socket (default: the configured one)")
     b.add_argument("--model-dir", help="folder the daemon loads models from, to copy the model "
-                   "into (default: the first of daemon.model_dirs, from here)")
+                   "into (default: the first of daemon.paths.model_dirs, from here)")
     b.add_argument("--scene-dir", help="folder the daemon loads scenes from, to copy the scene "
-                   "into (default: the first of daemon.scene_dirs, from here)")
+                   "into (default: the first of daemon.paths.scene_dirs, from here)")
     b.add_argument("--no-progress", action="store_true", help="no progress bars")
     b.add_argument("--config", help="nhfd.toml to read the recipes and the optics from")
     b.set_defaults(handler=run_model_build)
@@ -187,10 +187,10 @@ def serve(config: Config, scene: Path, out: Path, model_name: str,
     both are copied there first (the original scene: the daemon takes its up axis from its
     format, as the build did).
 
-    `config`: the configuration, whose `[daemon]` section names the folders and, through
+    `config`: the configuration, whose `[daemon.paths]` names the folders and, through
     `nhfd.daemon.paths.socket_path` (which takes the configuration, as nhfctl's commands do),
     the control socket."""
-    d = config.daemon
+    d = config.daemon.paths
     model_dir = Path(args.model_dir or d.model_dirs[0])
     scene_dir = Path(args.scene_dir or d.scene_dirs[0])
     socket = socket_path(args.socket, config)  # as nhfctl finds it
@@ -224,8 +224,8 @@ def _load(client: Client, method: str, path: Path, timeout_s: float) -> None:
                            f"{timeout_s:g} s (`nhfctl job {job}` follows it)")
     if state["state"] != "done":
         raise RuntimeError(f"{method} {path}: {state.get('error') or state['state']}"
-                           " (the daemon reads files only inside daemon.scene_dirs and "
-                           "daemon.model_dirs: see --scene-dir, --model-dir)")
+                           " (the daemon reads files only inside daemon.paths.scene_dirs and "
+                           "daemon.paths.model_dirs: see --scene-dir, --model-dir)")
 
 
 def run_model_tune(args: argparse.Namespace) -> int:

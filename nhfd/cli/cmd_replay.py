@@ -25,7 +25,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("file", help="session recording (JSON lines)")
     p.add_argument("--socket", help="control socket (default: from the configuration)")
-    p.add_argument("--config", help="configuration file whose daemon.runtime_dir to use")
+    p.add_argument("--config", help="configuration file whose daemon.server.runtime_dir to use")
     p.add_argument("--speed", type=float, default=1.0,
                    help="time scale of the recorded spacing (0 = no waiting; default 1)")
     p.add_argument("--include-shutdown", action="store_true",

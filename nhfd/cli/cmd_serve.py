@@ -30,11 +30,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         "nhfctl.",
     )
     p.add_argument("--config", help="configuration file")
-    p.add_argument("--scene", help="scene to load at start (inside daemon.scene_dirs)")
-    p.add_argument("--runtime-dir", help="runtime directory (overrides daemon.runtime_dir)")
+    p.add_argument("--scene", help="scene to load at start (inside daemon.paths.scene_dirs)")
+    p.add_argument("--runtime-dir", help="runtime directory (overrides daemon.server.runtime_dir)")
     p.add_argument("--record", metavar="FILE",
                    help="record every bench-changing request to FILE (JSON lines; overrides "
-                   "daemon.record); `nhfd replay FILE` plays it back")
+                   "daemon.audit.record); `nhfd replay FILE` plays it back")
     p.set_defaults(handler=_serve)
 
 
@@ -42,21 +42,24 @@ def _serve(args: argparse.Namespace) -> int:
     loaded = load_config(args.config)  # a ConfigError: one line, exit 2 (nhfd.cli.main)
     config = loaded.config
     calibration = check_calibration_file(config, str(loaded.path or "packaged default"))
-    update = {}
+    # The flags replace one key each, in its section (daemon.paths.scene, daemon.server.runtime_dir,
+    # daemon.audit.record).
+    settings = config.daemon
+    sections = {}
     if args.scene:
-        update["scene"] = args.scene
+        sections["paths"] = settings.paths.model_copy(update={"scene": args.scene})
     if args.runtime_dir:
-        update["runtime_dir"] = args.runtime_dir
+        sections["server"] = settings.server.model_copy(update={"runtime_dir": args.runtime_dir})
     if args.record:
-        update["record"] = args.record
-    if update:
-        config = config.model_copy(update={"daemon": config.daemon.model_copy(update=update)})
+        sections["audit"] = settings.audit.model_copy(update={"record": args.record})
+    if sections:
+        config = config.model_copy(update={"daemon": settings.model_copy(update=sections)})
     web = config.daemon.web
     if web.enabled and importlib.util.find_spec("aiohttp") is None:
         print("nhfd serve: error: daemon.web.enabled = true needs the web extra: "
               "pip install 'nhfd[web]'", file=sys.stderr)
         return 2
-    service.setup_logging(config.daemon.log_format)
+    service.setup_logging(config.daemon.audit.log_format)
     daemon = service.Daemon(config, calibration=calibration)
     try:
         daemon.start()

@@ -186,7 +186,7 @@ def _record_int8_loss(float_path: Path, int8_path: Path, data_dir: str,
                       views: int | None) -> dict:
     """Held-out PSNR of the float and the int8 model on `data_dir`'s interpolation and
     extrapolation views (at most `views` per split; None: all), recorded in the int8 file
-    (`record_heldout_loss`): `daemon.int8 = "auto"` serves it on the CPU within
+    (`record_heldout_loss`): `daemon.frames.int8 = "auto"` serves it on the CPU within
     INT8_MAX_LOSS_DB (`int8_within_loss`)."""
     data = HoloData(data_dir, splits=("interp", "extrap"),
                     max_views={"interp": views, "extrap": views} if views else None)

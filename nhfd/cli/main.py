@@ -14,7 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from nhfd import __version__
-from nhfd.cli.args import SCENE_FORMATS, Command, LazyCommands
+from nhfd.cli.args import SCENE_FORMATS, Command, LazyCommands, config_warnings_as_lines
 from nhfd.config import ConfigError
 
 # In the order --help lists them; each help line is the one its module registers (a test checks).
@@ -61,7 +61,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args.handler(args) or 0)
+        with config_warnings_as_lines(f"nhfd {args.command}"):
+            return int(args.handler(args) or 0)
     except (ConfigError, ValueError, FileNotFoundError) as exc:
         print(f"nhfd {args.command}: error: {exc}", file=sys.stderr)
         return 2

@@ -8,7 +8,7 @@ numba or onnxruntime (a test checks `sys.modules`): a control command answers at
 busy, refuses or does not answer within a second, they switch the lasers off through the laser
 guardian (or on the port), as `nhfd laser-off` does, and say which path did it. They exit 0 only
 when every channel was read back off. `laser arm` with a confirmation configured
-(`daemon.arm_confirm`) prints what the person at the bench must do and waits for the arm's job.
+(`daemon.arming.confirm`) prints what the person at the bench must do and waits for the arm's job.
 """
 
 from __future__ import annotations
@@ -22,9 +22,10 @@ from pathlib import Path
 from typing import Any
 
 from nhfd.cli import human
+from nhfd.cli.args import config_warnings_as_lines
 from nhfd.cli.cmd_laser import laser_settings, switch_all_off
 from nhfd.cli.human import fields, view_words
-from nhfd.config import DaemonSettings, load_config
+from nhfd.config import ServerSettings, load_config
 from nhfd.daemon.client import LOOPBACK_HOSTS, Client, DaemonUnavailable, TLSFailure
 from nhfd.daemon.paths import socket_path
 from nhfd.daemon.protocol import RpcError, describe_codes
@@ -61,7 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
                                 epilog="Error codes:\n" + describe_codes(),
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--socket", help="control socket (default: from the configuration)")
-    p.add_argument("--config", help="configuration file whose daemon.runtime_dir to use")
+    p.add_argument("--config", help="configuration file whose daemon.server.runtime_dir to use")
     p.add_argument("--tcp", metavar="HOST:PORT", help="TCP instead of the socket (a host other "
                    "than loopback only with --tls or --tls-ca)")
     p.add_argument("--token-file", help="TCP token file")
@@ -117,18 +118,18 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("status", help="devices, laser, scene, model, view, errors, jobs")
     sn = sub.add_parser("snapshot", help="capture the camera to a PNG")
-    sn.add_argument("--out", help="file name inside daemon.snapshot_dir")
+    sn.add_argument("--out", help="file name inside daemon.paths.snapshot_dir")
     sn.add_argument("--frames", type=int)
     sn.add_argument("--wait", action="store_true", help="wait for the job to finish")
     sub.add_parser("blank", help="show the blank (zero-amplitude) pattern")
     sub.add_parser("stop", help="stop the stage and running jobs")
     sub.add_parser("shutdown", help="shut the daemon down cleanly with lasers off")
-    ls = sub.add_parser("load-scene", help="load a scene (inside daemon.scene_dirs); waits for "
-                        "the load and exits 1 with its error when it fails")
+    ls = sub.add_parser("load-scene", help="load a scene (inside daemon.paths.scene_dirs); waits "
+                        "for the load and exits 1 with its error when it fails")
     ls.add_argument("path")
-    lm = sub.add_parser("load-model", help="load an exported model (inside daemon.model_dirs; "
-                        "validated, the old one keeps running on failure); waits for the load "
-                        "and exits 1 with its error when it fails")
+    lm = sub.add_parser("load-model", help="load an exported model (inside "
+                        "daemon.paths.model_dirs; validated, the old one keeps running on "
+                        "failure); waits for the load and exits 1 with its error when it fails")
     lm.add_argument("path")
     for load in (ls, lm):
         # A load is a job; without waiting, a refused file would exit 0 and look loaded.
@@ -343,14 +344,14 @@ def _remote(args: argparse.Namespace) -> bool:
 
 
 def _guardian_socket(args: argparse.Namespace, settings: LaserSettings,
-                     daemon: DaemonSettings | None) -> Path:
+                     server: ServerSettings | None) -> Path:
     """--guardian-socket; else the configured guardian socket; else laser.sock in the daemon's
     runtime directory (the one --socket lies in, or the configured one)."""
     if args.guardian_socket:
         return Path(args.guardian_socket)
     if args.socket:
         return socket_path_for(settings, Path(args.socket).parent)
-    return socket_path_for(settings, runtime_dir(daemon.runtime_dir if daemon else ""))
+    return socket_path_for(settings, runtime_dir(server.runtime_dir if server else ""))
 
 
 def _laser_off(args: argparse.Namespace) -> int:
@@ -380,9 +381,9 @@ def _laser_off(args: argparse.Namespace) -> int:
         return 3 if unavailable else 1
     print(f"{cmd}: the daemon did not switch the lasers off ({reason}); switching them off "
           "through the laser guardian", file=sys.stderr, flush=True)
-    settings, daemon = laser_settings(args.config, prog=cmd)
-    path = _guardian_socket(args, settings, daemon)
-    outcome = switch_all_off(settings, path, daemon, timeout_s=3.0, prog=cmd,
+    settings, server = laser_settings(args.config, prog=cmd)
+    path = _guardian_socket(args, settings, server)
+    outcome = switch_all_off(settings, path, server, timeout_s=3.0, prog=cmd,
                              port_hint="devices.readybeam.port, or nhfd laser-off --port")
     if not outcome.confirmed:
         print(f"{cmd}: error: lasers NOT confirmed off: {outcome.how}", file=sys.stderr)
@@ -433,6 +434,11 @@ def _wait_view(client: Client, args: argparse.Namespace, placed: dict[str, Any])
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    with config_warnings_as_lines("nhfctl"):
+        return _main(args)
+
+
+def _main(args: argparse.Namespace) -> int:
     cmd = args.command
     if cmd == "laser" and args.action in ("off", "disarm"):
         try:

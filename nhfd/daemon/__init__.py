@@ -13,9 +13,9 @@ pipeline as a separate, spawned process and talks to it over a pipe.
   protocol  JSON-RPC 2.0 framing, parameter validation and THE table of error codes
   server    the Unix-socket (and optional loopback TCP) line server, with its bounds: slots,
             deadlines, buffered bytes, lines and time per pass
-  arming    who may arm (the kernel's uid against daemon.arm_users / arm_groups) and the
+  arming    who may arm (the kernel's uid against daemon.arming.users / groups) and the
             optional confirmation at the bench (a key switch or a navigator button)
-  scene_check  a scene file read in a child process under daemon.scene_memory_mb before the
+  scene_check  a scene file read in a child process under daemon.paths.scene_memory_mb before the
             frame worker loads it
   client    the reference Python client (standard library only: `nhfctl` uses it)
   panel     what the SLM shows: view frames, the blank (zero-amplitude) pattern, calibration

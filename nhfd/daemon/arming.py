@@ -3,7 +3,7 @@
 **Authority** comes from what the kernel vouches for about a Unix-socket peer: its uid
 (SO_PEERCRED, read at accept by `server.peer_credentials`). That uid's groups come from the user
 database (its primary group and `os.getgrouplist`), not from the peer process. They are checked
-against `daemon.arm_users` and `daemon.arm_groups`; with both empty, only the daemon's own
+against `daemon.arming.users` and `daemon.arming.groups`; with both empty, only the daemon's own
 (effective) user may arm. Arming is refused over TCP whatever the token, and the web view never
 sends it.
 
@@ -18,10 +18,10 @@ view runs in the daemon's process, as its user, and never sends `arm` anyway.
 lines of Python) *is* that user to the kernel: nothing on this socket can tell it from a person
 at the bench. That is what the confirmation is for.
 
-**Confirmation** (`daemon.arm_confirm`): with "serial" a key switch on `arm_confirm_port`'s CTS or
+**Confirmation** (`daemon.arming.confirm`): with "serial" a key switch on `confirm_port`'s CTS or
 DSR line (`nhfd.drivers.keyswitch`; "simulated" hosts the twin) must be turned on after the request
 (seen off, then on). With "spacemouse", a navigator button must go down after the request. Either
-way it must happen within `arm_confirm_timeout_s`. The wait runs as a bench job
+way it must happen within `confirm_timeout_s`. The wait runs as a bench job
 (`JobRunner`), never in the control loop, so requests and the guardian's heartbeat go on. The
 `laser arm` reply comes at once, `{"armed": false, "pending": true, "job": N, ...}`; `job N` (and
 `status.jobs`) shows the wait, and the job ends `done` (armed, for `duration_s` from the
@@ -43,7 +43,7 @@ import time
 from collections.abc import Mapping
 from typing import Any, Protocol
 
-from nhfd.config import ConfigError, DaemonSettings
+from nhfd.config import ArmingSettings, ConfigError
 from nhfd.drivers.errors import DeviceError
 from nhfd.drivers.keyswitch import KeySwitch, LinesOpener, open_serial_lines
 from nhfd.drivers.twins.keyswitch_twin import KeySwitchTwin
@@ -56,7 +56,7 @@ from .server import Connection, forwarded_by_ssh
 
 log = logging.getLogger("nhfd.daemon.arming")
 
-SIMULATED_PORT = "simulated"  # daemon.arm_confirm_port: the daemon hosts a simulated key switch
+SIMULATED_PORT = "simulated"  # daemon.arming.confirm_port: the daemon hosts a simulated key switch
 POLL_S = 0.02  # how often the confirmation input is sampled while an arm waits
 
 
@@ -107,30 +107,30 @@ def _who(uid: int) -> str:
     return f"uid {uid} ({name})" if name else f"uid {uid} (no user entry)"
 
 
-def allowed_description(settings: DaemonSettings, daemon_uid: int) -> str:
+def allowed_description(settings: ArmingSettings, daemon_uid: int) -> str:
     """Who may arm under these settings, in words."""
-    if not settings.arm_users and not settings.arm_groups:
+    if not settings.users and not settings.groups:
         return f"the daemon's own user, {_who(daemon_uid)}, over the Unix socket"
-    return (f"users {list(settings.arm_users)} and members of groups {list(settings.arm_groups)}"
-            " (daemon.arm_users, daemon.arm_groups), over the Unix socket")
+    return (f"users {list(settings.users)} and members of groups {list(settings.groups)}"
+            " (daemon.arming.users, daemon.arming.groups), over the Unix socket")
 
 
-def arm_refusal(peer: Mapping[str, Any], settings: DaemonSettings,
+def arm_refusal(peer: Mapping[str, Any], settings: ArmingSettings,
                 daemon_uid: int) -> str | None:
     """None when the Unix-socket peer (`peer_credentials`) may arm; otherwise why not, naming the
     uid and user and the settings that would allow it."""
     uid = peer.get("uid")
     if not isinstance(uid, int):
         return "the peer's uid is unknown (no SO_PEERCRED): arming needs the Unix socket"
-    users, groups = list(settings.arm_users), list(settings.arm_groups)
+    users, groups = list(settings.users), list(settings.groups)
     if not users and not groups:
         if uid == daemon_uid:
             return None
         name = user_name(uid)
-        return (f"{_who(uid)} may not arm the lasers: daemon.arm_users and daemon.arm_groups "
+        return (f"{_who(uid)} may not arm the lasers: daemon.arming.users and daemon.arming.groups "
                 f"are empty, so only the daemon's own user may ({_who(daemon_uid)}); to allow "
-                f"it, add {name or uid!r} to daemon.arm_users or one of its groups to "
-                "daemon.arm_groups")
+                f"it, add {name or uid!r} to daemon.arming.users or one of its groups to "
+                "daemon.arming.groups")
     name = user_name(uid)
     if name is not None and name in users:
         return None
@@ -142,20 +142,21 @@ def arm_refusal(peer: Mapping[str, Any], settings: DaemonSettings,
         except KeyError:  # no such group (warned at start): it admits no one
             continue
     mine = ", ".join(sorted(group_name(g) for g in gids)) or "none"
-    return (f"{_who(uid)} may not arm the lasers: not in daemon.arm_users = {users}, and none "
-            f"of its groups ({mine}) is in daemon.arm_groups = {groups}; to allow it, add "
+    return (f"{_who(uid)} may not arm the lasers: not in daemon.arming.users = {users}, and none "
+            f"of its groups ({mine}) is in daemon.arming.groups = {groups}; to allow it, add "
             "the user or one of its groups there")
 
 
-def check_confirm_settings(settings: DaemonSettings, navigator_backend: str) -> None:
+def check_confirm_settings(settings: ArmingSettings, navigator_backend: str) -> None:
     """ConfigError naming the keys when a confirmation is configured without its input."""
-    if settings.arm_confirm == "serial" and not settings.arm_confirm_port.strip():
-        raise ConfigError("daemon.arm_confirm = 'serial' needs daemon.arm_confirm_port: the "
+    if settings.confirm == "serial" and not settings.confirm_port.strip():
+        raise ConfigError("daemon.arming.confirm = 'serial' needs daemon.arming.confirm_port: the "
                           "serial device whose CTS or DSR line the key switch drives (e.g. "
                           f"/dev/serial/by-id/...), or {SIMULATED_PORT!r} for the simulated one")
-    if settings.arm_confirm == "spacemouse" and navigator_backend == "none":
-        raise ConfigError("daemon.arm_confirm = 'spacemouse' needs a navigator: devices.navigator "
-                          "= 'spacemouse' (or 'simulated' on the simulated bench), not 'none'")
+    if settings.confirm == "spacemouse" and navigator_backend == "none":
+        raise ConfigError("daemon.arming.confirm = 'spacemouse' needs a navigator: "
+                          "devices.navigator = 'spacemouse' (or 'simulated' on the simulated "
+                          "bench), not 'none'")
 
 
 # -- confirmation inputs ------------------------------------------------------------------------
@@ -229,10 +230,10 @@ class ArmingGate:
     One per daemon (`Daemon.arming`). At most one arm waits for confirmation at a time; `cancel`
     (from `laser off` / `disarm`) guarantees it does not arm afterwards."""
 
-    def __init__(self, settings: DaemonSettings, navigator_backend: str, *, laser: LaserLink,
+    def __init__(self, settings: ArmingSettings, navigator_backend: str, *, laser: LaserLink,
                  audit: AuditLog, bench_jobs: JobRunner, navigation: NavigatorState,
                  daemon_uid: int | None = None, key_opener: LinesOpener | None = None) -> None:
-        """`settings`: `[daemon]` (who may arm, the confirmation and its input).
+        """`settings`: `[daemon.arming]` (who may arm, the confirmation and its input).
         `navigator_backend`: `devices.navigator` (a SpaceMouse confirmation needs one).
         `laser`: what arms. `audit`: where each outcome is written. `bench_jobs`: the runner
         a confirmation waits on (BUSY when its queue is full). `navigation`: the navigator a
@@ -246,10 +247,10 @@ class ArmingGate:
         self.navigation = navigation
         self.daemon_uid = os.geteuid() if daemon_uid is None else daemon_uid
         self.twin: KeySwitchTwin | None = None
-        port = settings.arm_confirm_port.strip()
-        if settings.arm_confirm == "serial" and key_opener is None:
+        port = settings.confirm_port.strip()
+        if settings.confirm == "serial" and key_opener is None:
             if port == SIMULATED_PORT:
-                self.twin = KeySwitchTwin(settings.arm_confirm_line, port=SIMULATED_PORT)
+                self.twin = KeySwitchTwin(settings.confirm_line, port=SIMULATED_PORT)
                 key_opener = self.twin.opener
             else:
                 key_opener = functools.partial(open_serial_lines, port)
@@ -257,17 +258,17 @@ class ArmingGate:
         self._lock = threading.Lock()
         self._pending: Job | None = None
         self.listening: int | None = None  # the job whose confirmation window is open now
-        for user in settings.arm_users:
+        for user in settings.users:
             try:
                 pwd.getpwnam(user)
             except KeyError:
-                log.warning("daemon.arm_users names %r, which is no user here: it admits no one",
+                log.warning("daemon.arming.users names %r, which is no user here: it admits no one",
                             user)
-        for group in settings.arm_groups:
+        for group in settings.groups:
             try:
                 grp.getgrnam(group)
             except KeyError:
-                log.warning("daemon.arm_groups names %r, which is no group here: it admits no "
+                log.warning("daemon.arming.groups names %r, which is no group here: it admits no "
                             "one", group)
 
     # -- requests ------------------------------------------------------------------------------
@@ -295,27 +296,28 @@ class ArmingGate:
 
     def authorise_emission(self, conn: Connection, what: str) -> None:
         """RpcError(FORBIDDEN) when `conn` is a remote peer (TCP, the web view's clients) asking
-        for `what`, something that makes a laser emit, and `daemon.remote_emission` is false:
-        a person at the bench starts emission, as they arm. `laser off` and `disarm` are never
-        asked about."""
+        for `what`, something that makes a laser emit, and `daemon.arming.remote_emission` is
+        false: a person at the bench starts emission, as they arm. `laser off` and `disarm` are
+        never asked about."""
         if conn.remote and not self.settings.remote_emission:
             raise RpcError(FORBIDDEN, f"{what} makes a laser emit, and {conn.describe()} may not "
-                           "start that (daemon.remote_emission = false): ask from the bench's "
-                           "machine (nhfctl over the Unix socket), or set "
-                           "daemon.remote_emission = true", {"field": "daemon.remote_emission",
-                                                             "allowed": "the Unix socket"})
+                           "start that (daemon.arming.remote_emission = false): ask from the "
+                           "bench's machine (nhfctl over the Unix socket), or set "
+                           "daemon.arming.remote_emission = true",
+                           {"field": "daemon.arming.remote_emission",
+                            "allowed": "the Unix socket"})
 
     def arm(self, conn: Connection, duration_s: float) -> dict[str, Any]:
         """The `laser arm` request: armed now (no confirmation configured), or a pending job
         that waits for the person at the bench."""
         self.authorise(conn)
         uid = conn.peer.get("uid")
-        if self.settings.arm_confirm == "none":
+        if self.settings.confirm == "none":
             reply = self.laser.arm(duration_s)
             return {"armed": True, "armed_remaining_s": reply.get("armed_remaining_s"),
                     "by_uid": uid}
         source = self._source()
-        timeout_s = self.settings.arm_confirm_timeout_s
+        timeout_s = self.settings.confirm_timeout_s
         who = conn.who
         with self._lock:
             pending = self._pending
@@ -352,7 +354,7 @@ class ArmingGate:
         """The confirmation configured, the arm waiting for it (its job) and whether its
         window is open now."""
         job = self._pending
-        return {"confirm": self.settings.arm_confirm,
+        return {"confirm": self.settings.confirm,
                 "pending_job": job.id if job is not None and not job.done.is_set() else None,
                 "listening": self.listening is not None}
 
@@ -361,19 +363,19 @@ class ArmingGate:
     def _source(self) -> _KeyTurn | _ButtonPress:
         """The configured input, or NOT_AVAILABLE (at once, not after the wait) when it cannot
         be read."""
-        if self.settings.arm_confirm == "serial":
+        if self.settings.confirm == "serial":
             assert self._key_opener is not None  # set in __init__ for "serial"
-            return _KeyTurn(KeySwitch(self._key_opener, self.settings.arm_confirm_line,
-                                      self.settings.arm_confirm_port.strip()))
+            return _KeyTurn(KeySwitch(self._key_opener, self.settings.confirm_line,
+                                      self.settings.confirm_port.strip()))
         if self.navigation.navigator is None:
-            raise RpcError(NOT_AVAILABLE, "daemon.arm_confirm = 'spacemouse', but no navigator "
+            raise RpcError(NOT_AVAILABLE, "daemon.arming.confirm = 'spacemouse', but no navigator "
                            f"is open ({self.navigation.error or 'devices.navigator'}): nothing "
                            "at the bench can confirm an arm", {"device": "navigator"})
         return _ButtonPress(self.navigation)
 
     def _wait_and_arm(self, who: dict[str, Any], duration_s: float,
                       source: _KeyTurn | _ButtonPress, job: Job) -> dict[str, Any]:
-        timeout_s = self.settings.arm_confirm_timeout_s
+        timeout_s = self.settings.confirm_timeout_s
         try:
             waited_s = self._wait(source, job, timeout_s)
             with self._lock:
@@ -406,7 +408,7 @@ class ArmingGate:
                 if time.monotonic() - start >= timeout_s:
                     raise ArmNotConfirmed(
                         f"no confirmation from {source.what} within {timeout_s:g} s "
-                        f"(daemon.arm_confirm_timeout_s): the lasers stay disarmed"
+                        f"(daemon.arming.confirm_timeout_s): the lasers stay disarmed"
                         f"{source.hint()}")
                 time.sleep(POLL_S)
             return time.monotonic() - start

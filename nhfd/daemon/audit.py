@@ -25,7 +25,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import IO, Any
 
-from nhfd.config import DaemonSettings
+from nhfd.config import AuditSettings
 
 from .protocol import sanitise
 
@@ -39,12 +39,12 @@ def _clip(text: str, limit: int) -> str:
     return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} chars)"
 
 
-def audit_path(settings: DaemonSettings, base_dir: Path, env: Mapping[str, str],
+def audit_path(settings: AuditSettings, base_dir: Path, env: Mapping[str, str],
                runtime_dir: Path) -> Path:
-    """Where the daemon's audit log goes: `daemon.audit_log` (relative to `base_dir`), else
+    """Where the daemon's audit log goes: `daemon.audit.file` (relative to `base_dir`), else
     systemd's $LOGS_DIRECTORY, else the runtime directory; the file `audit.jsonl`."""
-    if settings.audit_log:
-        return base_dir / Path(settings.audit_log).expanduser()
+    if settings.file:
+        return base_dir / Path(settings.file).expanduser()
     logs = env.get("LOGS_DIRECTORY")
     return (Path(logs.split(":")[0]) if logs else runtime_dir) / "audit.jsonl"
 
@@ -62,8 +62,8 @@ class AuditLog:
     def __init__(self, path: Path | None, *, summary_s: float, max_bytes: int,
                  backups: int) -> None:
         """`path` None: nothing is written until `open` (a daemon before start: it opens the
-        file once it holds its lock). The limits come from `daemon.audit_summary_s`,
-        `audit_max_bytes` and `audit_backups` (`for_settings`)."""
+        file once it holds its lock). The limits come from `daemon.audit.summary_s`,
+        `max_bytes` and `backups` (`for_settings`)."""
         self.path: Path | None = None
         self._file: IO[str] | None = None
         self._size = 0
@@ -77,10 +77,10 @@ class AuditLog:
             self.open(path)
 
     @classmethod
-    def for_settings(cls, settings: DaemonSettings, path: Path | None = None) -> AuditLog:
-        """An audit log with `[daemon]`'s limits (`path` None: opened later, `open`)."""
-        return cls(path, summary_s=settings.audit_summary_s, max_bytes=settings.audit_max_bytes,
-                   backups=settings.audit_backups)
+    def for_settings(cls, settings: AuditSettings, path: Path | None = None) -> AuditLog:
+        """An audit log with `[daemon.audit]`'s limits (`path` None: opened later, `open`)."""
+        return cls(path, summary_s=settings.summary_s, max_bytes=settings.max_bytes,
+                   backups=settings.backups)
 
     def open(self, path: Path) -> None:
         """Start writing to `path` (appending; its folder made). The parts that write to this

@@ -42,13 +42,13 @@ def focus_stage_mm(z_mm: float, stage_at_reference_mm: float) -> float:
 def stage_mm_for_focus(config: Config, calibration: CalibrationStore, z_mm: float) -> float:
     """The stage position (mm) that focuses the camera `z_mm` of hologram depth from the
     reference plane: the active calibration's fitted mapping (green's focus) when there is
-    one, else `focus_stage_mm` from `daemon.stage_at_reference_mm`. A configured calibration
-    that cannot be applied raises its `CalibrationFileError`. `config`: `optics.z0_m` and the
-    uncalibrated mapping."""
+    one, else `focus_stage_mm` from `daemon.bench.stage_at_reference_mm`. A configured
+    calibration that cannot be applied raises its `CalibrationFileError`. `config`:
+    `optics.z0_m` and the uncalibrated mapping."""
     cal = calibration.active()
     if cal is not None:
         return cal.stage_mm_for(config.optics.z0_m + z_mm * 1e-3, 1)
-    return focus_stage_mm(z_mm, config.daemon.stage_at_reference_mm)
+    return focus_stage_mm(z_mm, config.daemon.bench.stage_at_reference_mm)
 
 
 class Bench:
@@ -57,8 +57,8 @@ class Bench:
 
     def __init__(self, config: Config, calibration: CalibrationStore) -> None:
         """`config`: the devices (`[devices]`) at the panel's size and pitch (`[slm]`); the
-        camera region (`daemon.camera_roi_px`); the panel's colour mode and coding (its
-        `Panel` reads `[daemon]`, `[slm]` and `calibration`'s curves)."""
+        camera region (`daemon.bench.camera_roi_px`); the panel's colour mode and coding (its
+        `Panel` reads `[daemon.frames]`, `[slm]` and `calibration`'s curves)."""
         self.config = config
         self.laser_twin: Any = None  # the guardian's simulated laser, for the simulated camera
         self.slm: Any = None
@@ -97,10 +97,10 @@ class Bench:
         self._monitor.start()
 
     def _apply_camera_roi(self) -> None:
-        """Give the simulated camera the configured sensor region (daemon.camera_roi_px): the
+        """Give the simulated camera the configured sensor region (daemon.bench.camera_roi_px): the
         camera is rebuilt, because its fixed-pattern noise is drawn for its region at
         creation."""
-        roi = list(self.config.daemon.camera_roi_px)
+        roi = list(self.config.daemon.bench.camera_roi_px)
         if not roi or self.camera is None or self.config.devices.camera != "simulated":
             return
         with contextlib.suppress(Exception):

@@ -50,9 +50,9 @@ def citl_ended(reason: str) -> str:
 def citl_problem(config: Config, calibration: CalibrationStore, bench: Any) -> str | None:
     """Why this daemon cannot serve `citl` views (None: it can): the colour mode, the devices
     and the calibration it needs (in `calibration`), each named by its setting."""
-    if config.daemon.colour_mode != "capture":
-        return (f"daemon.colour_mode is {config.daemon.colour_mode!r}: citl needs 'capture' "
-                "(the daemon switches each diode on alone for its captures)")
+    if config.daemon.frames.colour_mode != "capture":
+        return (f"daemon.frames.colour_mode is {config.daemon.frames.colour_mode!r}: citl needs "
+                "'capture' (the daemon switches each diode on alone for its captures)")
     for name in ("slm", "stage", "camera"):
         if getattr(bench, name, None) is None:
             why = bench.errors.get(name) if hasattr(bench, "errors") else None

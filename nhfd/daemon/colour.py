@@ -1,7 +1,7 @@
 """Colour modes (docs/design.md, "The hardware": Colour timing): what the panel shows per colour,
 which diodes a client may switch, and the capture-mode snapshot sequence.
 
-  single   one colour (daemon.single_colour): its pattern in every HDMI channel, and only its
+  single   one colour (daemon.frames.single_colour): its pattern in every HDMI channel, and only its
            diode may be enabled or given power. The safe choice for a bench without sync wiring.
   capture  software field-sequential colour, for snapshots only: a MeCom command takes ~5 ms
            plus USB latency and the liquid crystal needs its settle time, so switching diodes per
@@ -26,7 +26,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from nhfd.config import DaemonSettings
+from nhfd.config import FramesSettings
 from nhfd.device_settings import COLOURS
 
 from .audit import AuditLog
@@ -54,10 +54,10 @@ def panel_for_mode(frame: np.ndarray, mode: str, colour: str) -> np.ndarray:
     return out.transpose(2, 0, 1)
 
 
-def check_laser_command(settings: DaemonSettings, action: str, channel: str | None,
+def check_laser_command(settings: FramesSettings, action: str, channel: str | None,
                         power_pct: float | None) -> None:
-    """Refuse what the colour mode (`daemon.colour_mode`, `single_colour`) forbids, before
-    anything reaches the guardian."""
+    """Refuse what the colour mode (`daemon.frames.colour_mode`, `single_colour`) forbids, before
+    anything reaches the guardian. `settings`: `[daemon.frames]`."""
     c = settings
     mode = c.colour_mode
     if mode == "single" and channel is not None and channel != c.single_colour:

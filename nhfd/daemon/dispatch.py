@@ -43,7 +43,7 @@ class Dispatcher:
                  on_error: Callable[[str, str], None], on_change: Callable[[], None],
                  methods: Mapping[str, Method] = METHODS) -> None:
         """`context`: what the methods act on. `audit`, `recorder`: where bench-changing
-        requests are written. `max_batch`: `daemon.max_batch` (0: batches refused).
+        requests are written. `max_batch`: `daemon.server.max_batch` (0: batches refused).
         `stopping()`: whether the daemon is shutting down (only `while_stopping` methods are
         served then). `on_error(source, message)`: a method that failed inside the daemon, for
         `status`. `on_change()`: an audited method succeeded (the bench, or the lasers, may
@@ -71,8 +71,8 @@ class Dispatcher:
     def _batch(self, conn: Connection, batch: list[Any]) -> bytes | None:
         cap = self.max_batch
         if cap == 0:
-            err = RpcError(INVALID_REQUEST, "batches are not supported (daemon.max_batch = 0); "
-                           "send one request per line")
+            err = RpcError(INVALID_REQUEST, "batches are not supported "
+                           "(daemon.server.max_batch = 0); send one request per line")
         elif not batch:
             err = RpcError(INVALID_REQUEST, "empty batch")
         elif len(batch) > cap:

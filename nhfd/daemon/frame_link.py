@@ -71,7 +71,7 @@ from typing import Any
 import numpy as np
 
 from nhfd.calibration import Calibration, CalibrationStore
-from nhfd.config import Config, DaemonSettings
+from nhfd.config import Config, FramesSettings
 from nhfd.frame_message import CaptureReply, CaptureRequest, FrameMessage, RefinedFrame
 from nhfd.worker_messages import (
     FROM_WORKER,
@@ -140,13 +140,13 @@ __all__ = [
 # -- the worker process, seen from the daemon --------------------------------------------------
 
 
-def worker_environment(settings: DaemonSettings) -> dict[str, str]:
-    """The worker's thread counts (`daemon.worker_threads`, `worker_threading_layer`), for its
-    environment: read once, when torch, numba and onnxruntime load in the spawned process, so
+def worker_environment(frames: FramesSettings) -> dict[str, str]:
+    """The worker's thread counts (`daemon.frames.worker_threads`, `worker_threading_layer`), for
+    its environment: read once, when torch, numba and onnxruntime load in the spawned process, so
     they must be there before its first import."""
-    threads = str(int(settings.worker_threads))
+    threads = str(int(frames.worker_threads))
     env = {var: threads for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")}
-    env["NUMBA_THREADING_LAYER"] = str(settings.worker_threading_layer)
+    env["NUMBA_THREADING_LAYER"] = str(frames.worker_threading_layer)
     return env
 
 
@@ -171,7 +171,7 @@ class FrameWorker:
                  module: str = WORKER_MODULE) -> None:
         """`config`: the whole configuration, which the worker gets (it builds its frame
         settings from `[slm]`, `[optics]`, `[coding]`, `[daemon]` and the calibration file);
-        here `daemon.frame_transport` and the panel's size (`[slm]`, the slots).
+        here `daemon.frames.transport` and the panel's size (`[slm]`, the slots).
         `calibration`: the daemon's; the worker gets the version accepted here at its start.
         `module`: the worker's module, spawned by name."""
         self.config = config
@@ -181,7 +181,7 @@ class FrameWorker:
         self.conn: Any = None
         self.pid: int | None = None
         self.ready = False
-        self.transport = str(config.daemon.frame_transport)
+        self.transport = str(config.daemon.frames.transport)
         self.shms: list[shared_memory.SharedMemory] = []
         self.free_slots: list[int] = []
         self.refine_shms: list[shared_memory.SharedMemory] = []
@@ -194,7 +194,8 @@ class FrameWorker:
             ctx = mp.get_context("spawn")
             here, there = ctx.Pipe(duplex=True)
             self.process = ctx.Process(target=run_by_name,
-                                       args=(self.module, worker_environment(self.config.daemon),
+                                       args=(self.module,
+                                             worker_environment(self.config.daemon.frames),
                                              there, self.config.model_dump(),
                                              _accepted(self.calibration), slots),
                                        name="nhfd-frame-worker", daemon=True)
@@ -381,7 +382,7 @@ class FrameLink:
     counters. Load jobs run on threads of their own: `load_model` and `load_scene` only queue a
     `LoadRequest` and wait for the control loop to fill in its outcome, so every field here is
     written by the control loop alone. A queued load goes out at the loop's next step (within
-    `daemon.tick_s`).
+    `daemon.arming.heartbeat_s`).
 
     Its parts: `loads` (a `LoadQueue`), `pacer` (a `FramePacer`), `relay` (a `CaptureRelay`);
     what they hold reads through here too (`model`, `shown_seq`, `refinement`, `wake_s`, ...)."""

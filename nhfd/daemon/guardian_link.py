@@ -13,8 +13,8 @@ guardian's 0600 token file. Anything else is refused by name, and start fails.
 A heartbeat that gets no answer within `guardian.heartbeat_reply_timeout_s` means a hung
 guardian: one the daemon started (or adopted from a killed daemon, verified as ours in /proc) is
 SIGKILLed and replaced by a new one, which opens the port and switches everything off (read
-back). With `daemon.guardian = "connect"` the guardian belongs to someone else: the daemon says
-"laser state unknown: guardian unresponsive" and never claims the lasers are off.
+back). With `daemon.arming.guardian = "connect"` the guardian belongs to someone else: the daemon
+says "laser state unknown: guardian unresponsive" and never claims the lasers are off.
 
 Laser state changes the guardian makes by itself (arming expiry, a tripped heartbeat) are seen in
 the heartbeat replies and written to the audit log.
@@ -180,7 +180,7 @@ class LaserLink:
         if self.client is None:
             if self.mode == "connect":
                 raise GuardianUnavailable(f"no laser guardian at {self.socket_path} and "
-                                          "daemon.guardian = 'connect'")
+                                          "daemon.arming.guardian = 'connect'")
             self._spawn()
         self.all_off_confirmed("start")
 
@@ -191,7 +191,7 @@ class LaserLink:
         if not self.socket_path.exists():
             if self.mode == "connect":
                 raise GuardianUnavailable(f"no laser guardian at {self.socket_path} and "
-                                          "daemon.guardian = 'connect'")
+                                          "daemon.arming.guardian = 'connect'")
             return
         try:
             self._open_client()

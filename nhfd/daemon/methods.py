@@ -12,7 +12,7 @@ so a bad request changes nothing.
   show_pattern {path}                                 -> {showing, shape} a calibration frame
                                                          (.npy uint8 [3, H, W], [H, W, 3] or
                                                          [H, W], the panel's size, inside
-                                                         daemon.pattern_dirs) instead of the
+                                                         daemon.paths.pattern_dirs) instead of the
                                                          view until the next set_view / blank
   stage_move   {position_mm, home?}                   -> {job, stage_mm} raw stage move (no
                                                          calibration mapping), soft limits
@@ -21,7 +21,7 @@ so a bad request changes nothing.
                                                          captures and stores the dark frame,
                                                          lasers off) and its saturation mask
                                                          (<stem>.saturated.npy), inside
-                                                         daemon.pattern_dirs or snapshot_dir
+                                                         daemon.paths.pattern_dirs or snapshot_dir
   load_scene   {path}                                 -> {job}
   load_model   {path}                                 -> {job} (old model kept on failure)
   job          {id}                                   -> one job's state
@@ -112,7 +112,7 @@ class RpcContext:
     from its parts (`Daemon.rpc`), and a method touches nothing else. Not the daemon: no
     method can reach its lifecycle, its loop or another part's insides."""
 
-    config: Config  # [daemon] limits and colour mode, [slm] size
+    config: Config  # [daemon.*] limits and colour mode, [slm] size
     calibration: CalibrationStore  # the focus mapping, whether citl can run
     base_dir: Path  # relative paths in requests and settings are taken from here
     scene_dirs: list[Path]  # where load_scene may read (resolved, `paths.resolve_dirs`)
@@ -130,7 +130,7 @@ class RpcContext:
     load_jobs: JobRunner
     status: Callable[[], dict[str, Any]]  # the daemon's whole `status`
     request_shutdown: Callable[[str], None]  # the daemon's, with the reason
-    tcp_token: str | None = None  # set at start when daemon.tcp_port is
+    tcp_token: str | None = None  # set at start when daemon.server.tcp_port is
     scene: dict[str, Any] | None = None  # the loaded scene (status "scene"), set by load_scene
     snapshot_numbers: Iterator[int] = field(default_factory=lambda: itertools.count(1))
 
@@ -197,7 +197,7 @@ def no_model_hint(quality: str, frames: Frames, load_jobs: JobRunner) -> str | N
 
 
 def _focus(ctx: RpcContext, conn: Connection, p: Params) -> Any:
-    cfg = ctx.config.daemon
+    cfg = ctx.config.daemon.bench
     low, high = cfg.focus_range_mm
     z_mm = p.number("z_mm", low, high)
     home = p.boolean("home", False)
@@ -241,7 +241,7 @@ def _laser(ctx: RpcContext, conn: Connection, p: Params) -> Any:
         cap_s = link.settings.arm_max_s
         duration_s = p.number("duration_s", 0.0, cap_s, low_open=True)
         p.done()
-        # Who may arm (the kernel's uid, daemon.arm_users / arm_groups; never over TCP) and the
+        # Who may arm (the kernel's uid, daemon.arming.users / groups; never over TCP) and the
         # optional confirmation at the bench (a pending job): nhfd/daemon/arming.py.
         return ctx.arming.arm(conn, duration_s)
     if action in ("disarm", "off"):
@@ -259,14 +259,14 @@ def _laser(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     if action == "power":
         power_pct = p.number("power_pct", 0.0, 100.0)
         p.done()
-        check_laser_command(ctx.config.daemon, action, channel, power_pct)
+        check_laser_command(ctx.config.daemon.frames, action, channel, power_pct)
         if power_pct > 0 and link.status().get("armed"):
             ctx.arming.authorise_emission(conn, f"a {channel} power of {power_pct:g} % while "
                                                 "armed")
         applied = link.power(channel, power_pct)
         return {"channel": channel, "power_pct": applied, "capped": applied < power_pct}
     p.done()
-    check_laser_command(ctx.config.daemon, action, channel, None)
+    check_laser_command(ctx.config.daemon.frames, action, channel, None)
     if action == "enable":
         ctx.arming.authorise_emission(conn, f"enabling the {channel} diode")
     if action == "enable" and ctx.bench.slm_lost is not None:
@@ -318,7 +318,7 @@ def _snapshot(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     if path.suffix.lower() != ".png":
         raise bad_param("path", f"{raw!r} does not end in .png", "a .png file name")
     _camera(ctx)  # refuse now, not in the job
-    lit_by_daemon = ctx.config.daemon.colour_mode == "capture"
+    lit_by_daemon = ctx.config.daemon.frames.colour_mode == "capture"
     if lit_by_daemon:  # it switches each diode on in turn
         ctx.arming.authorise_emission(conn, "a capture-mode snapshot")
     session = ctx.laser.session  # a laser off or stop before it runs ends it
@@ -526,11 +526,12 @@ def _load_scene(ctx: RpcContext, conn: Connection, p: Params) -> Any:
 
     def run(job: Job) -> dict[str, Any]:
         # Refuses a file that is not a plausible scene (SceneFileError names the rule), holds
-        # more than daemon.max_gaussians or needs more than daemon.scene_memory_mb before the
-        # worker is asked: the old scene keeps rendering. Read in a child process (scene_check
-        # says why), so neither the daemon's memory nor its control loop pays for the file.
-        counts = read_scene_counts(path, ctx.config.daemon.max_gaussians,
-                                   ctx.config.daemon.scene_memory_mb, job.check)
+        # more than daemon.paths.max_gaussians or needs more than daemon.paths.scene_memory_mb
+        # before the worker is asked: the old scene keeps rendering. Read in a child process
+        # (scene_check says why), so neither the daemon's memory nor its control loop pays for the
+        # file.
+        counts = read_scene_counts(path, ctx.config.daemon.paths.max_gaussians,
+                                   ctx.config.daemon.paths.scene_memory_mb, job.check)
         job.check()
         info = {"path": str(path), **counts, "loaded_s": time.time()}
         # The frame worker loads its own copy (it renders in another process).
@@ -567,7 +568,8 @@ def _job(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     job = ctx.bench_jobs.get(job_id) or ctx.load_jobs.get(job_id)
     if job is None:
         raise RpcError(NO_SUCH_JOB, f"no job {job_id} (finished jobs are kept: "
-                       f"daemon.jobs_kept = {ctx.config.daemon.jobs_kept})", {"field": "id"})
+                       f"daemon.paths.jobs_kept = {ctx.config.daemon.paths.jobs_kept})",
+                       {"field": "id"})
     return job.to_json()
 
 

@@ -1,6 +1,6 @@
 """Navigator input: a 6-DoF puck moves the view continuously through the `set_view` path.
 
-Every `daemon.navigator_period_s` the control loop reads the navigator's velocities and turns
+Every `daemon.bench.navigator_period_s` the control loop reads the navigator's velocities and turns
 them into a relative move of the current view over the time since the last read: for an orbit,
 yaw changes the azimuth, pitch the elevation and the z translation the radius; for a pose, the
 camera-frame translation and rotation. The move goes through the same validation
@@ -68,7 +68,7 @@ class NavigatorInput:
     def __init__(self, devices: DeviceSettings, period_s: float, views: ViewSlot,
                  audit: AuditLog, recorder: SessionRecorder) -> None:
         """`devices`: `[devices]` (which navigator, and the SpaceMouse's settings).
-        `period_s`: how often it is read (`daemon.navigator_period_s`). `views`: the slot its
+        `period_s`: how often it is read (`daemon.bench.navigator_period_s`). `views`: the slot its
         moves go to (the current view read from it). `audit`, `recorder`: where each move is
         written, as the navigator's (`WHO`)."""
         self.devices = devices

@@ -67,9 +67,9 @@ class Panel:
 
     def __init__(self, config: Config, devices: PanelDevices,
                  calibration: CalibrationStore) -> None:
-        """`config`: the panel's size and curves (`[slm]`) and the colour mode (`[daemon]`).
-        `devices`: the SLM it drives and why there is none (the bench). `calibration`: the
-        active calibration, whose curves code the blank."""
+        """`config`: the panel's size and curves (`[slm]`) and the colour mode
+        (`[daemon.frames]`). `devices`: the SLM it drives and why there is none (the bench).
+        `calibration`: the active calibration, whose curves code the blank."""
         self.config = config
         self.calibration = calibration
         self.devices = devices
@@ -118,7 +118,7 @@ class Panel:
         """View `seq`'s full-panel frame ([3, H, W] uint8) in the colour mode; it reaches the
         SLM unless the panel is held. Returns the frame as shown (what `resume` shows again);
         raises what the SLM raises. FrameLink's one way onto the panel."""
-        c = self.config.daemon
+        c = self.config.daemon.frames
         frame = panel_for_mode(frame, c.colour_mode, c.single_colour)
         if self.devices.slm is not None and not self.held:
             self.devices.slm.show(frame)
@@ -130,7 +130,7 @@ class Panel:
     def show_pattern(self, frame: np.ndarray, name: str) -> None:
         """A calibration frame ([3, H, W] uint8, the panel's size) in the colour mode, instead
         of the view until the next set_view or blank."""
-        c = self.config.daemon
+        c = self.config.daemon.frames
         self._slm().show(panel_for_mode(frame, c.colour_mode, c.single_colour))
         self.showing = f"pattern {name}"
         self.current = f"calibration pattern {name}"

@@ -26,21 +26,21 @@ TOKEN_NAME = "tcp.token"
 
 def control_socket(configured_runtime_dir: str = "",
                    env: Mapping[str, str] | None = None) -> Path:
-    """The control socket in the runtime directory (`daemon.runtime_dir`, else the default one
-    for this user and environment)."""
+    """The control socket in the runtime directory (`daemon.server.runtime_dir`, else the default
+    one for this user and environment)."""
     return runtime_dir(configured_runtime_dir, env) / SOCKET_NAME
 
 
 def socket_path(socket_arg: str | None, config: Config | Callable[[], Config]) -> str:
     """The control socket a command talks to: its `--socket` when given, else the configured
-    daemon's (`config.daemon.runtime_dir`, by the daemon's own rules). `config` may be a function
-    that loads the configuration: it is then called only when no `--socket` is given, so a
+    daemon's (`config.daemon.server.runtime_dir`, by the daemon's own rules). `config` may be a
+    function that loads the configuration: it is then called only when no `--socket` is given, so a
     command given one reads no configuration."""
     if socket_arg:
         return str(socket_arg)
     if callable(config):
         config = config()
-    return str(control_socket(config.daemon.runtime_dir))
+    return str(control_socket(config.daemon.server.runtime_dir))
 
 
 def resolve_dirs(dirs: Sequence[str], base: Path) -> list[Path]:

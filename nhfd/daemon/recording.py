@@ -1,7 +1,7 @@
 """Session recording and replay: every bench-changing request, timed, as JSON lines.
 
-The recording (`daemon.record` or `nhfd serve --record FILE`) starts with a header line, then one
-line per request that changed the bench and succeeded:
+The recording (`daemon.audit.record` or `nhfd serve --record FILE`) starts with a header line, then
+one line per request that changed the bench and succeeded:
 
     {"nhfd_session": 1, "version": "...", "started_unix_s": 1790000000.0}
     {"t_s": 0.412, "unix_s": ..., "method": "set_view", "params": {...}, "who": {...}}
@@ -43,7 +43,7 @@ def view_params(view: dict[str, Any]) -> dict[str, Any]:
 
 class SessionRecorder:
     """The session recording. `path` None: it records nothing until `open` (the daemon makes
-    one at construction and opens it at start when `daemon.record` names a file, so the parts
+    one at construction and opens it at start when `daemon.audit.record` names a file, so the parts
     that record hold it from the first)."""
 
     def __init__(self, path: Path | None = None) -> None:

@@ -1,13 +1,13 @@
 """A scene file read in a child process under a memory budget, for the daemon's load_scene.
 
 Why a child process: a scene file is untrusted input, and reading one costs memory and CPU in
-proportion to what it declares (up to `[daemon] max_gaussians` Gaussians, a few hundred bytes
+proportion to what it declares (up to `[daemon.paths] max_gaussians` Gaussians, a few hundred bytes
 each while decoding). Read in the daemon, as load_scene did, that memory is the daemon's and a
 long decode holds the GIL against the control loop that feeds the laser guardian's heartbeat
 (a 12 MB .spz bomb took the daemon to 4.9 GB and stalled the loop 5 s, issue 32). In a child:
 
 * its address space is limited (RLIMIT_AS) to what the interpreter holds after its imports
-  plus `[daemon] scene_memory_mb`: a file that needs more fails there with MemoryError, which
+  plus `[daemon.paths] scene_memory_mb`: a file that needs more fails there with MemoryError, which
   is reported as the budget it exceeded, and the daemon's memory does not move;
 * the daemon's thread only waits on a pipe, so the control loop keeps its time;
 * a cancelled job (`stop`) or one past its time kills the child.
@@ -85,7 +85,7 @@ def read_scene_counts(path: Path, max_gaussians: int, memory_mb: int,
     """`read_scene(path, max_gaussians).counts()`, computed in a child process whose memory
     beyond its imports is limited to `memory_mb` MiB. Raises what the read raised (a
     SceneFileError naming the file and the problem; an OSError by its type), a SceneFileError
-    naming `[daemon] scene_memory_mb` when the read needs more memory, TimeoutError past
+    naming `[daemon.paths] scene_memory_mb` when the read needs more memory, TimeoutError past
     `timeout_s`. `check` is called while waiting (a job's cancel check): whatever it raises
     ends the child first."""
     proc = subprocess.Popen(
@@ -118,8 +118,9 @@ def read_scene_counts(path: Path, max_gaussians: int, memory_mb: int,
         return result["counts"]
     kind, message = result["type"], result["message"]
     if kind == "MemoryError":
-        raise SceneFileError(f"{path}: reading the scene needs more than daemon.scene_memory_mb "
-                             f"= {memory_mb} MiB (allowed: 64 to 1048576 MiB)")
+        raise SceneFileError(f"{path}: reading the scene needs more than "
+                             f"daemon.paths.scene_memory_mb = {memory_mb} MiB (allowed: 64 to "
+                             "1048576 MiB)")
     cls = SceneFileError if kind == "SceneFileError" else getattr(builtins, kind, None)
     if not (isinstance(cls, type) and issubclass(cls, Exception)):
         cls = RuntimeError

@@ -19,10 +19,13 @@ out:
 - Descriptors. `accept` failing for want of file descriptors (EMFILE, ENFILE) pauses that
   listener for `ACCEPT_BACKOFF_S` (logged once per episode); existing clients are still served.
 
-The TCP port listens on loopback unless `daemon.tcp_host` says otherwise, and then only with TLS
-(`daemon.tls_cert`, `daemon.tls_key`): a token never crosses a network in clear. The TLS handshake
-runs non-blocking in the same loop, so a slow or silent peer holds an unauthenticated slot until
-its deadline, never the loop.
+The TCP port listens on loopback unless `daemon.server.tcp_host` says otherwise, and then only
+with TLS (`daemon.server.tls_cert`, `daemon.server.tls_key`): a token never crosses a network in
+clear. The TLS handshake runs non-blocking in the same loop, so a slow or silent peer holds an
+unauthenticated slot until its deadline, never the loop.
+
+The socket, the port and every bound above but `max_pending_bytes` are `[daemon.server]`'s
+(`nhfd.config.ServerSettings`), which the server takes whole.
 """
 
 from __future__ import annotations
@@ -46,12 +49,13 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from nhfd.config import ServerSettings
+
 from . import protocol
 from .protocol import BUSY, INTERNAL_ERROR, INVALID_REQUEST, RpcError
 
 log = logging.getLogger("nhfd.daemon.server")
 
-LOOPBACK = "127.0.0.1"
 LOOPBACK_HOSTS = ("127.0.0.1", "::1", "localhost")
 
 # One recv per connection per poll reads at most this much: a fast sender cannot make a single
@@ -69,7 +73,7 @@ REFUSAL_LOG_EVERY_S = 60.0
 
 
 def server_tls_context(cert_path: str | os.PathLike[str], key_path: str | os.PathLike[str],
-                       section: str = "daemon") -> ssl.SSLContext:
+                       section: str = "daemon.server") -> ssl.SSLContext:
     """A server context (TLS 1.2 at least) from PEM files; ValueError naming the settings
     (`section`.tls_cert and .tls_key) when they cannot be loaded."""
     ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
@@ -174,43 +178,49 @@ def forwarded_by_ssh(peer: dict[str, Any]) -> bool:
 
 
 def busy_error(setting: str, limit: int, what: str, extra: str = "") -> RpcError:
-    """The `busy` refusal of a connection over a cap, naming the setting and its value."""
-    return RpcError(BUSY, f"too many {what} (daemon.{setting} = {limit}){extra}; retry later",
-                    {"field": f"daemon.{setting}", "allowed": f"at most {limit} at once"})
+    """The `busy` refusal of a connection over a cap, naming the setting (a key of
+    `[daemon.server]`) and its value."""
+    return RpcError(BUSY, f"too many {what} (daemon.server.{setting} = {limit}){extra}; retry "
+                    "later", {"field": f"daemon.server.{setting}",
+                              "allowed": f"at most {limit} at once"})
 
 
 class LineServer:
-    """The line server (the module's docstring): the Unix socket at `unix_path`, TCP on `tcp_port`
-    (0: none) at `tcp_host`, TLS with `tls`; each complete line goes to `handler(connection, line)`,
-    whose reply bytes (None: none) are sent back. Sizes in bytes, times in seconds of `clock`."""
-    def __init__(self, handler: Handler, *, unix_path: Path, socket_group: str = "",
-                 tcp_port: int = 0, tcp_host: str = LOOPBACK, tls: ssl.SSLContext | None = None,
-                 max_line_bytes: int = 65536, max_clients: int = 64,
-                 max_tcp_clients: int = 16, max_unauthenticated: int = 4,
-                 auth_timeout_s: float = 5.0, max_buffered_bytes: int = 1 << 20,
-                 lines_per_poll: int = 64, tick_budget_s: float = 0.05,
-                 max_pending_bytes: int = 4 << 20,
+    """The line server (the module's docstring): the Unix socket at `unix_path`, TCP on
+    `settings.tcp_port` (0: none) at `settings.tcp_host`, TLS with `tls`; each complete line goes
+    to `handler(connection, line)`, whose reply bytes (None: none) are sent back. Sizes in bytes,
+    times in seconds of `clock`."""
+    def __init__(self, handler: Handler, *, unix_path: Path,
+                 settings: ServerSettings | None = None,
+                 tls: ssl.SSLContext | None = None, max_pending_bytes: int = 4 << 20,
                  clock: Callable[[], float] = time.monotonic) -> None:
-        if tcp_port and tcp_host not in LOOPBACK_HOSTS and tls is None:
-            raise ValueError(f"daemon.tcp_host = {tcp_host!r} is not loopback: listening "
-                             "elsewhere needs TLS, set daemon.tls_cert and daemon.tls_key")
+        """`settings`: `[daemon.server]` (the socket's group, the TCP port and host, and the
+        bounds on clients; its TLS files are the caller's to load into `tls`); None: the
+        defaults."""
+        s = settings = ServerSettings() if settings is None else settings
+        if s.tcp_port and s.tcp_host not in LOOPBACK_HOSTS and tls is None:
+            # validation refuses this too; a copied configuration skips validation
+            raise ValueError(f"daemon.server.tcp_host = {s.tcp_host!r} is not loopback: "
+                             "listening elsewhere needs TLS, set daemon.server.tls_cert and "
+                             "daemon.server.tls_key")
         self.handler = handler
         self.unix_path = unix_path
-        self.socket_group = socket_group
-        self.tcp_port = tcp_port
-        self.tcp_host = tcp_host
+        self.settings = settings
+        self.socket_group = s.socket_group
+        self.tcp_port = s.tcp_port
+        self.tcp_host = s.tcp_host
         self.tls = tls
-        self.max_line_bytes = max_line_bytes
-        self.max_clients = max_clients  # Unix-socket clients only
-        self.max_tcp_clients = max_tcp_clients
-        self.max_unauthenticated = max_unauthenticated
-        self.auth_timeout_s = auth_timeout_s
-        self.max_buffered_bytes = max_buffered_bytes
+        self.max_line_bytes = s.max_line_bytes
+        self.max_clients = s.max_clients  # Unix-socket clients only
+        self.max_tcp_clients = s.max_tcp_clients
+        self.max_unauthenticated = s.max_unauthenticated
+        self.auth_timeout_s = s.auth_timeout_s
+        self.max_buffered_bytes = s.max_buffered_bytes
         # One line of the allowed length always fits, whatever the two settings say, so a peer
         # sending one is answered ("line longer than ...") rather than dropped.
-        self._inbuf_cap = max(max_buffered_bytes, max_line_bytes + 1)
-        self.lines_per_poll = lines_per_poll
-        self.tick_budget_s = tick_budget_s
+        self._inbuf_cap = max(s.max_buffered_bytes, s.max_line_bytes + 1)
+        self.lines_per_poll = s.lines_per_poll
+        self.tick_budget_s = s.tick_budget_s
         self.max_pending_bytes = max_pending_bytes
         self.clock = clock  # the deadlines' clock (tests may step it)
         self.selector = selectors.DefaultSelector()
@@ -254,7 +264,8 @@ class LineServer:
             except (KeyError, PermissionError) as exc:
                 unix.close()
                 path.unlink()
-                raise RuntimeError(f"daemon.socket_group = {self.socket_group!r}: {exc}") from None
+                raise RuntimeError(f"daemon.server.socket_group = {self.socket_group!r}: "
+                                   f"{exc}") from None
         self._add_listener(unix, "unix")
         if self.tcp_port:
             family, _, _, _, address = socket.getaddrinfo(
@@ -423,7 +434,7 @@ class LineServer:
         if len(self._unauthenticated) >= self.max_unauthenticated:
             return busy_error("max_unauthenticated", self.max_unauthenticated,
                               "TCP connections waiting to authenticate",
-                              f", each dropped after daemon.auth_timeout_s = "
+                              f", each dropped after daemon.server.auth_timeout_s = "
                               f"{self.auth_timeout_s:g} s")
         return None
 
@@ -434,7 +445,7 @@ class LineServer:
                 if conn.authed:
                     del pool[fd]
                 elif now - conn.accepted_s >= self.auth_timeout_s:
-                    self._note(f"dropped: no auth within daemon.auth_timeout_s = "
+                    self._note(f"dropped: no auth within daemon.server.auth_timeout_s = "
                                f"{self.auth_timeout_s:g} s", conn.who)
                     self._drop(conn)
 
@@ -559,7 +570,7 @@ class LineServer:
         return bytes(data)
 
     def _overflow(self, conn: Connection) -> None:
-        self._note(f"dropped: more than daemon.max_buffered_bytes = {self._inbuf_cap} bytes "
+        self._note(f"dropped: more than daemon.server.max_buffered_bytes = {self._inbuf_cap} bytes "
                    "received and not yet handled", conn.who)
         self._drop(conn)
 
@@ -610,7 +621,7 @@ class LineServer:
 
     def _oversize(self, conn: Connection) -> None:
         err = RpcError(INVALID_REQUEST, f"line longer than {self.max_line_bytes} bytes "
-                       "(daemon.max_line_bytes); skipped",
+                       "(daemon.server.max_line_bytes); skipped",
                        {"field": "line", "allowed": f"at most {self.max_line_bytes} bytes"})
         self._send(conn, protocol.dumps(protocol.error_reply(None, err)))
 

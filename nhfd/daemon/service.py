@@ -6,10 +6,10 @@ zero-amplitude pattern), stage (identified, never moved), camera -> sockets -> R
 
 The loop (main thread): serve requests, heartbeat to the guardian, feed systemd's watchdog,
 write audit summaries. It sleeps in `select` until the next thing due (`wait_s`): the heartbeat
-every `daemon.tick_s`, or the navigator's next read; a request or the frame worker's pipe wakes it
-at once. So an idle daemon wakes only for its heartbeats, and a stuck loop stops both the
-heartbeat (the guardian switches the lasers off) and the watchdog (systemd restarts the unit; its
-stop hook runs `nhfd laser-off`).
+every `daemon.arming.heartbeat_s`, or the navigator's next read; a request or the frame worker's
+pipe wakes it at once. So an idle daemon wakes only for its heartbeats, and a stuck loop stops both
+the heartbeat (the guardian switches the lasers off) and the watchdog (systemd restarts the unit;
+its stop hook runs `nhfd laser-off`).
 
 Exit paths and the lasers:
   shutdown / SIGTERM / SIGINT / an exception in the loop -> `close()`: lasers off via the
@@ -40,7 +40,7 @@ from typing import IO, Any
 
 from nhfd import __version__
 from nhfd.calibration import CalibrationStore
-from nhfd.config import Config, ConfigError, DaemonSettings, cross_field_problems
+from nhfd.config import Config, ConfigError, ServerSettings, cross_field_problems
 from nhfd.frame_message import CaptureReply, CaptureRequest
 
 from .arming import ArmingGate
@@ -100,15 +100,15 @@ def setup_logging(fmt: str, level: int = logging.INFO) -> None:
 
 
 def _raise_open_files(wanted: int) -> None:
-    """The soft limit on open files up to `wanted` (daemon.open_files; the hard limit caps it):
-    a distribution's default soft limit of 1024 is what 1,100 idle connections once hit."""
+    """The soft limit on open files up to `wanted` (daemon.paths.open_files; the hard limit caps
+    it): a distribution's default soft limit of 1024 is what 1,100 idle connections once hit."""
     soft, hard = raise_open_files(wanted)
     shown = "unlimited" if hard == resource.RLIM_INFINITY else str(hard)
     if soft != resource.RLIM_INFINITY and soft < wanted:
-        log.warning("open files: soft limit %d, below daemon.open_files = %d (the hard limit "
+        log.warning("open files: soft limit %d, below daemon.paths.open_files = %d (the hard limit "
                     "is %s; raise it, e.g. LimitNOFILE= in the unit)", soft, wanted, shown)
     else:
-        log.info("open files: soft limit %s (daemon.open_files = %d, hard limit %s)",
+        log.info("open files: soft limit %s (daemon.paths.open_files = %d, hard limit %s)",
                  "unlimited" if soft == resource.RLIM_INFINITY else soft, wanted, shown)
 
 
@@ -130,9 +130,9 @@ def _take_lock(path: Path) -> IO[str]:
     return f
 
 
-def tcp_token(settings: DaemonSettings, base_dir: Path, runtime_dir: Path
+def tcp_token(settings: ServerSettings, base_dir: Path, runtime_dir: Path
               ) -> tuple[str, Path | None]:
-    """The TCP clients' token: read from `daemon.tcp_token_file` (relative to `base_dir`), or
+    """The TCP clients' token: read from `daemon.server.tcp_token_file` (relative to `base_dir`), or
     made and written, mode 0600, to `tcp.token` in the runtime directory. Returns the token and
     the file made for it (the daemon removes it at stop), None when it was read."""
     if settings.tcp_token_file:
@@ -147,10 +147,10 @@ def tcp_token(settings: DaemonSettings, base_dir: Path, runtime_dir: Path
 
 def calibration_status(config: Config, calibration: CalibrationStore,
                        note_error: Callable[[str, str], None]) -> dict[str, Any]:
-    """`status.calibration`: the focus mapping in use (`config.daemon`'s without a calibration)
-    and the calibration it comes from; a refused hot swap (the accepted version kept) is also
-    noted once with `note_error`."""
-    c = config.daemon
+    """`status.calibration`: the focus mapping in use (`config.daemon.bench`'s without a
+    calibration) and the calibration it comes from; a refused hot swap (the accepted version
+    kept) is also noted once with `note_error`."""
+    c = config.daemon.bench
     try:
         cal = calibration.active()
     except ValueError as exc:  # unreadable, with no accepted version to keep
@@ -234,7 +234,7 @@ class Daemon:
         self.env = dict(os.environ if env is None else env)
         self.base_dir = (base_dir or Path.cwd()).resolve()
         c = config.daemon
-        self.runtime_dir = runtime_dir(c.runtime_dir, self.env)
+        self.runtime_dir = runtime_dir(c.server.runtime_dir, self.env)
         self.socket_path = self.runtime_dir / SOCKET_NAME
         self.notifier = Notifier(self.env)
         self._shutdown = threading.Event()
@@ -242,11 +242,12 @@ class Daemon:
         # The audit log and the session recording write nothing until start opens them (in
         # place: the parts below hold them from here).
         self.errors = ErrorList()  # status "errors": what the parts report
-        self.audit = AuditLog.for_settings(c)
-        self.recorder = SessionRecorder()  # daemon.record / serve --record
-        self.laser = LaserLink(config.devices.readybeam, config.devices.laser, c.guardian,
-                               self.audit, refresh_s=c.laser_refresh_s,
-                               runtime_dir=self.runtime_dir, socket_group=c.socket_group,
+        self.audit = AuditLog.for_settings(c.audit)
+        self.recorder = SessionRecorder()  # daemon.audit.record / serve --record
+        self.laser = LaserLink(config.devices.readybeam, config.devices.laser,
+                               c.arming.guardian, self.audit,
+                               refresh_s=c.arming.laser_refresh_s, runtime_dir=self.runtime_dir,
+                               socket_group=c.server.socket_group,
                                on_session_end=self._emission_ended)
         # opened at start, with the guardian's simulated laser
         self.bench = Bench(config, self.calibration)
@@ -259,26 +260,28 @@ class Daemon:
             shown=self.views.mark_applied, error=self.errors.note,
             crashed=self._frame_worker_crashed, slm_lost=self.bench.note_slm_lost,
             capture=self._citl_capture))
-        self.bench_jobs = JobRunner("bench", kept=c.jobs_kept, on_finish=self._job_finished)
-        self.load_jobs = JobRunner("load", kept=c.jobs_kept, on_finish=self._job_finished)
-        self.navigation = NavigatorInput(config.devices, c.navigator_period_s, self.views,
+        kept = c.paths.jobs_kept
+        self.bench_jobs = JobRunner("bench", kept=kept, on_finish=self._job_finished)
+        self.load_jobs = JobRunner("load", kept=kept, on_finish=self._job_finished)
+        self.navigation = NavigatorInput(config.devices, c.bench.navigator_period_s, self.views,
                                          self.audit, self.recorder)
         # Who may arm and the bench's confirmation (a ConfigError here names the missing input).
-        self.arming = ArmingGate(c, config.devices.navigator, laser=self.laser,
+        self.arming = ArmingGate(c.arming, config.devices.navigator, laser=self.laser,
                                  audit=self.audit, bench_jobs=self.bench_jobs,
                                  navigation=self.navigation)
         self.rpc = RpcContext(
             config=config, calibration=self.calibration, base_dir=self.base_dir,
-            scene_dirs=resolve_dirs(c.scene_dirs, self.base_dir),
-            model_dirs=resolve_dirs(c.model_dirs, self.base_dir),
-            snapshot_dirs=resolve_dirs([c.snapshot_dir], self.base_dir),
-            pattern_dirs=resolve_dirs(c.pattern_dirs, self.base_dir),
+            scene_dirs=resolve_dirs(c.paths.scene_dirs, self.base_dir),
+            model_dirs=resolve_dirs(c.paths.model_dirs, self.base_dir),
+            snapshot_dirs=resolve_dirs([c.paths.snapshot_dir], self.base_dir),
+            pattern_dirs=resolve_dirs(c.paths.pattern_dirs, self.base_dir),
             audit=self.audit, laser=self.laser, arming=self.arming, bench=self.bench,
             panel=self.panel, views=self.views, frames=self.frames, bench_jobs=self.bench_jobs,
             load_jobs=self.load_jobs, status=self.status,
             request_shutdown=self.request_shutdown)
         self.dispatcher = Dispatcher(self.rpc, self.audit, self.recorder,
-                                     max_batch=c.max_batch, stopping=self._shutdown.is_set,
+                                     max_batch=c.server.max_batch,
+                                     stopping=self._shutdown.is_set,
                                      on_error=self.errors.note, on_change=self.beat_soon)
         self.server: LineServer | None = None
         self.state = "starting"
@@ -303,44 +306,39 @@ class Daemon:
 
     def _start(self) -> None:
         c = self.config.daemon
+        server = c.server
         problems = cross_field_problems(self.config)  # a copied config skips validation
         if problems:
             raise ConfigError("; ".join(problems))
         self.calibration.active()  # a configured but unreadable file stops the start here
-        _raise_open_files(c.open_files)  # before anything opens sockets or devices
+        _raise_open_files(c.paths.open_files)  # before anything opens sockets or devices
         # Another user could have made /tmp/nhfd-<uid> first, with a fake guardian in it.
-        make_private_dir(self.runtime_dir, group_writable_ok=bool(c.socket_group), mode=0o750)
+        make_private_dir(self.runtime_dir, group_writable_ok=bool(server.socket_group),
+                         mode=0o750)
         self._lock_file = _take_lock(self.runtime_dir / LOCK_NAME)
-        self.audit.open(audit_path(c, self.base_dir, self.env, self.runtime_dir))
+        self.audit.open(audit_path(c.audit, self.base_dir, self.env, self.runtime_dir))
         self.audit.write({"who": "daemon", "pid": os.getpid()}, "start",
                          version=__version__, runtime_dir=str(self.runtime_dir))
-        if c.record:
-            self.recorder.open(self.base_dir / Path(c.record).expanduser())
+        if c.audit.record:
+            self.recorder.open(self.base_dir / Path(c.audit.record).expanduser())
         self.notifier.status("starting: laser guardian")
         self.laser.start()  # every channel off and read back, or this raises
         self.notifier.status("starting: devices")
         self.bench.open(laser_twin=self.laser.twin)
         self.navigation.open()
         # The configured scene and model load as a client's load_scene and load_model would.
-        for method, path in (("load_scene", c.scene), ("load_model", c.model)):
+        for method, path in (("load_scene", c.paths.scene), ("load_model", c.frames.model)):
             if path:
                 METHODS[method].func(self.rpc, Connection(None, "config", {}),  # type: ignore[arg-type]
                                      Params({"path": path}))
-        if c.tcp_port:
-            self.rpc.tcp_token, self._token_written = tcp_token(c, self.base_dir,
+        if server.tcp_port:
+            self.rpc.tcp_token, self._token_written = tcp_token(server, self.base_dir,
                                                                 self.runtime_dir)
-        tls = (server_tls_context(self.base_dir / Path(c.tls_cert).expanduser(),
-                                  self.base_dir / Path(c.tls_key).expanduser())
-               if c.tcp_port and c.tls_cert else None)
+        tls = (server_tls_context(self.base_dir / Path(server.tls_cert).expanduser(),
+                                  self.base_dir / Path(server.tls_key).expanduser())
+               if server.tcp_port and server.tls_cert else None)
         self.server = LineServer(self.dispatcher.handle_line, unix_path=self.socket_path,
-                                 socket_group=c.socket_group, tcp_port=c.tcp_port,
-                                 tcp_host=c.tcp_host, tls=tls,
-                                 max_line_bytes=c.max_line_bytes, max_clients=c.max_clients,
-                                 max_tcp_clients=c.max_tcp_clients,
-                                 max_unauthenticated=c.max_unauthenticated,
-                                 auth_timeout_s=c.auth_timeout_s,
-                                 max_buffered_bytes=c.max_buffered_bytes,
-                                 lines_per_poll=c.lines_per_poll, tick_budget_s=c.tick_budget_s)
+                                 settings=server, tls=tls)
         self.server.listen()
         if self.signals is not None:
             self.signals.install(self.server)
@@ -369,7 +367,8 @@ class Daemon:
         next read if sooner. Everything else wakes it: requests (the server's sockets) and
         frames, loads and crashes (the worker's pipe is in the same selector). What other
         threads queue for the loop (a lost SLM output, a reloaded model's resend) waits at most
-        until the next heartbeat, `daemon.tick_s`, as it did when the loop woke every tick."""
+        until the next heartbeat, `daemon.arming.heartbeat_s`, as it did when the loop woke every
+        tick."""
         due = self._next_beat_s
         if self.navigation.navigator is not None:
             due = min(due, self.navigation.next_read_s)
@@ -394,7 +393,7 @@ class Daemon:
         if now >= self._next_beat_s:
             # Once per tick however many requests woke the loop: a storm of set_view must not
             # turn into a storm of guardian round trips.
-            self._next_beat_s = now + self.config.daemon.tick_s
+            self._next_beat_s = now + self.config.daemon.arming.heartbeat_s
             self.laser.heartbeat(now)
             self.notifier.watchdog(now)
             self.audit.tick()
@@ -619,7 +618,7 @@ class Daemon:
                                if self.server and self.server.tcp_address else None),
                        "clients": len(self.server.connections) if self.server else 0,
                        # whether TCP and web-view peers may start emission
-                       "remote_emission": c.remote_emission},
+                       "remote_emission": c.arming.remote_emission},
             "laser": laser,
             "devices": devices,
             "display": self.panel.current,
@@ -627,7 +626,8 @@ class Daemon:
                       "height_px": self.config.slm.height_px,
                       "pitch_m": self.config.slm.pitch_m,
                       "wavelengths_m": list(self.config.optics.wavelengths_m)},
-            "colour": {"mode": c.colour_mode, "single_colour": c.single_colour},
+            "colour": {"mode": c.frames.colour_mode,
+                       "single_colour": c.frames.single_colour},
             "scene": self.rpc.scene,
             "model": self.frames.model.to_json() if self.frames.model else "none loaded",
             "calibration": calibration_status(self.config, self.calibration, self.errors.note),

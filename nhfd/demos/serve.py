@@ -156,15 +156,18 @@ def demo_config(base: Config, *, model: Path, scene: Path, runtime: Path, captur
                     "camera": "simulated", "navigator": "none",
                     "readybeam": {"guardian": {"socket_path": str(runtime / "laser.sock")}},
                     "camera_settings": {"exposure_s": EXPOSURE_S, "channels": "mono"}},
-        "daemon": {"runtime_dir": str(runtime / "run"), "guardian": "spawn",
-                   "scene_dirs": [str(scene.parent.resolve())],
-                   "model_dirs": [str(model.parent.resolve())],
-                   "snapshot_dir": str(captures.resolve()),
-                   "audit_log": str(runtime / "audit.jsonl"),
-                   "scene": str(scene.resolve()), "model": str(model.resolve()),
-                   "camera_roi_px": list(roi),
-                   # The stage reading that focuses the camera on the reference plane (green).
-                   "stage_at_reference_mm": round(truth.stage_mm_for(z0_m, 1), 6)},
+        "daemon": {"server": {"runtime_dir": str(runtime / "run")},
+                   "arming": {"guardian": "spawn"},
+                   "paths": {"scene_dirs": [str(scene.parent.resolve())],
+                             "model_dirs": [str(model.parent.resolve())],
+                             "snapshot_dir": str(captures.resolve()),
+                             "scene": str(scene.resolve())},
+                   "audit": {"file": str(runtime / "audit.jsonl")},
+                   "frames": {"model": str(model.resolve())},
+                   "bench": {"camera_roi_px": list(roi),
+                             # The stage reading that focuses the camera on the reference plane
+                             # (green).
+                             "stage_at_reference_mm": round(truth.stage_mm_for(z0_m, 1), 6)}},
         # The refined sweep's budget: a few seconds on 2 cores at the model's window.
         "refine": {"iterations": REFINE_ITERATIONS, "seconds": 60.0},
     }
@@ -392,7 +395,7 @@ def focal_gif(network: list[tuple[float, np.ndarray]], refined: list[tuple[float
         draw = ImageDraw.Draw(grey)
         draw.text((3, 1), f"network {network[k][0] * 1e3:+.1f} mm", fill=255)
         draw.text((pair[0].shape[1] + 7, 1), "sgd-refined", fill=255)
-        draw.text((3, top.shape[0] + 5), "near: network, sgd   far: network, sgd", fill=255)
+        draw.text((3, top.shape[0] + 5), "near region, enlarged (far below)", fill=255)
         frames.append(grey.convert("P", palette=Image.Palette.ADAPTIVE, colors=64))
     frames[0].save(path, save_all=True, append_images=frames[1:], duration=frame_ms, loop=0,
                    optimize=True)
@@ -400,21 +403,29 @@ def focal_gif(network: list[tuple[float, np.ndarray]], refined: list[tuple[float
 
 def region_insets(images: list[np.ndarray], masks: list[np.ndarray], width_px: int
                   ) -> tuple[np.ndarray, int]:
-    """The near and far regions (each mask's box) of each image in `images` (values in [0, 1],
-    one shape), side by side region by region, image by image, 4 px apart on white, each
-    enlarged by the one whole factor (at least 1) that fits them all into `width_px`:
-    (`[H, width_px]` canvas, the factor)."""
+    """The regions (each mask's box, a row each: near, far) of each image in `images` (values
+    in [0, 1], one shape; a column each), on white with 4 px gaps, enlarged by the one whole
+    factor (at least 1) that fits a row into `width_px`; a region wider than its column even at
+    factor 1 shows its central part at 1:1. (`[H, width_px]` canvas, the factor)."""
     boxes = [_box(m, pad=4) for m in masks]
-    crops = [img[box] for box in boxes for img in images]
-    gaps = 4 * (len(crops) - 1)
-    factor = max(1, (width_px - gaps) // max(1, sum(c.shape[1] for c in crops)))
-    canvas = np.ones((max(c.shape[0] for c in crops) * factor, width_px))
-    left = 0
-    for crop in crops:
-        big = np.kron(crop, np.ones((factor, factor)))[:, : max(0, width_px - left)]
-        canvas[: big.shape[0], left : left + big.shape[1]] = big
-        left += big.shape[1] + 4
-    return canvas, factor
+    n = len(images)
+    column = (width_px - 4 * (n - 1)) // n
+    widest = max(b[1].stop - b[1].start for b in boxes)
+    factor = max(1, column // widest)
+    rows = []
+    for box in boxes:
+        row_h = (box[0].stop - box[0].start) * factor
+        row = np.ones((row_h, width_px))
+        for i, img in enumerate(images):
+            big = np.kron(img[box], np.ones((factor, factor)))
+            cut = max(0, (big.shape[1] - column) // 2)  # the central part where it is wider
+            big = big[:, cut : cut + column]
+            left = i * (column + 4)
+            row[:, left : left + big.shape[1]] = big
+        rows.append(row)
+    gaps = [np.ones((4, width_px))] * (len(rows) - 1)
+    return np.vstack([x for pair in zip(rows, [*gaps, None], strict=True) for x in pair
+                      if x is not None]), factor
 
 
 def _bin2(image: np.ndarray) -> np.ndarray:

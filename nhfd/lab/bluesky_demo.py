@@ -64,11 +64,13 @@ def sim_config(root: Path, truth: TrueBench) -> Config:
                     "slm_output": {"settle_ms": 1.0},
                     "apt": {"enable_settle_s": 0.0, "velocity_mm_s": 50.0,
                             "acceleration_mm_s2": 100.0, "require_homed": False}},
-        "daemon": {"runtime_dir": str(root / "run"), "guardian": "spawn",
-                   "snapshot_dir": str(root / "snaps"), "pattern_dirs": [str(root / "calib")],
-                   "audit_log": str(root / "audit.jsonl"),
-                   "camera_roi_px": list(truth.roi_for_panel(PANEL_HW)),
-                   "stage_at_reference_mm": truth.stage_at_slm_mm},
+        "daemon": {"server": {"runtime_dir": str(root / "run")},
+                   "arming": {"guardian": "spawn"},
+                   "paths": {"snapshot_dir": str(root / "snaps"),
+                             "pattern_dirs": [str(root / "calib")]},
+                   "audit": {"file": str(root / "audit.jsonl")},
+                   "bench": {"camera_roi_px": list(truth.roi_for_panel(PANEL_HW)),
+                             "stage_at_reference_mm": truth.stage_at_slm_mm}},
     }
     return Config.model_validate(_overlay(tomllib.loads(default_text()), user))
 

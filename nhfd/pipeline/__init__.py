@@ -13,7 +13,8 @@ own process by name and talks to it over a pipe (`nhfd.daemon.frame_link`); the 
             it lies inside the model's trained poses (`envelope_warnings`)
   encoder   `Encoder`: the reference-plane field -> the SLM plane (`nhfd.optics.region`) ->
             double-phase coding -> calibrated phase -> grey, uint8
-  device    `daemon.device` -> a torch device (`resolve_device`), the pinned asynchronous host
+  device    `daemon.frames.device` -> a torch device (`resolve_device`), the pinned asynchronous
+  host
             copy of a CUDA frame (`HostCopy`), CUDA-event stage times (`StageClock`)
   refine    frames better than the network's: `exact` (the view's light-field inversion),
             `sgd` (the SLM phase optimised through the calibrated bench model, `BenchForward`),

@@ -1,4 +1,4 @@
-"""Where frames are computed: `daemon.device` -> a torch device, and the one host copy a CUDA
+"""Where frames are computed: `daemon.frames.device` -> a torch device, and the one host copy a CUDA
 frame makes (issue 23).
 
 `resolve_device("auto" | "cpu" | "cuda" | "cuda:N")`: "auto" is the first CUDA device when
@@ -7,8 +7,8 @@ fall back to the CPU (a bench configured for the GPU that quietly ran 20x slower
 nothing of why). On CUDA every stage of a frame runs on the GPU and only the uint8 panel region
 (and the uint8 preview of the rendered view) crosses to the host: `HostCopy` copies it
 asynchronously into pinned memory and waits for that copy alone. `inference_backend` says
-what runs the network there (`daemon.inference`: onnxruntime, or torch where onnxruntime has no
-CUDA provider).
+what runs the network there (`daemon.frames.inference`: onnxruntime, or torch where onnxruntime has
+no CUDA provider).
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ from nhfd.config import device_choice
 from nhfd.models.export import CUDA
 from nhfd.scene import gsplat_backend
 
-SETTING = "daemon.device"
+SETTING = "daemon.frames.device"
 log = logging.getLogger(__name__)
 
 
@@ -41,13 +41,13 @@ def resolve_device(value: str | torch.device, setting: str = SETTING, *,
     return torch.device(device_choice(value, setting, cuda_count=count))
 
 
-INFERENCE_SETTING = "daemon.inference"
+INFERENCE_SETTING = "daemon.frames.inference"
 
 
 def inference_backend(inference: str, device: torch.device, onnx_providers: list[str],
                       setting: str = SETTING) -> tuple[str, str]:
     """("onnxruntime" | "torch", why): what runs the network on `device` for
-    `daemon.inference` = `inference`, given the providers this onnxruntime has.
+    `daemon.frames.inference` = `inference`, given the providers this onnxruntime has.
 
     "auto" is onnxruntime (on the CPU, 2.4x faster than torch for these networks) except on a CUDA
     device whose onnxruntime has no CUDA provider (the CPU build beside a CUDA torch, or a bench
@@ -206,11 +206,11 @@ def _cuda_mark(device: torch.device) -> Any:
 # encoder's kernels and scratch buffers and the caching allocator's blocks all settle on the
 # first runs, and none of them may happen inside a capture.
 GRAPH_WARMUP_RUNS = 3
-GRAPHS_SETTING = "daemon.cuda_graphs"
+GRAPHS_SETTING = "daemon.frames.cuda_graphs"
 
 
 class CudaGraphs:
-    """Frame stages replayed as CUDA graphs (`daemon.cuda_graphs`), one per stage and input
+    """Frame stages replayed as CUDA graphs (`daemon.frames.cuda_graphs`), one per stage and input
     shape: after `GRAPH_WARMUP_RUNS` eager runs on a side stream, the stage's kernels are
     captured once, and each later frame copies its inputs into the graph's own and replays the
     whole stage with one launch. A 1920 x 1080 frame launches a few hundred small kernels; on an

@@ -34,10 +34,10 @@ class Encoder:
                  device: torch.device | str = "cpu", *, device_coding: bool | None = None,
                  cuda_graphs: bool = False) -> None:
         """`device`: where propagation and coding run ("cpu", "cuda:N", or a torch device;
-        "auto" as `daemon.device`). `device_coding`: code with `device_grey` (torch) instead of
-        numba's pass; the default is True exactly on CUDA (tests set it on the CPU to check the
-        device path's arithmetic against the CPU's). `cuda_graphs` (`daemon.cuda_graphs`): the
-        device frame path replays its stages as CUDA graphs (`graphs`; no effect on the CPU)."""
+        "auto" as `daemon.frames.device`). `device_coding`: code with `device_grey` (torch) instead
+        of numba's pass; the default is True exactly on CUDA (tests set it on the CPU to check the
+        device path's arithmetic against the CPU's). `cuda_graphs` (`daemon.frames.cuda_graphs`):
+        the device frame path replays its stages as CUDA graphs (`graphs`; no effect on the CPU)."""
         self.device = resolve_device(device, "device")
         self.device_coding = (self.device.type != "cpu" if device_coding is None
                               else bool(device_coding))

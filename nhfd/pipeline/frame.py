@@ -14,13 +14,13 @@
 The daemon adds the fifth stage, output: the coded region pasted into the precomputed
 zero-amplitude pattern of the full panel, shown on the SLM.
 
-The encoder's device (`Encoder(settings, device=...)`, `daemon.device`) decides where: on the
+The encoder's device (`Encoder(settings, device=...)`, `daemon.frames.device`) decides where: on the
 CPU the stages above as they always ran (numba render and coding, onnxruntime on NumPy arrays,
 torch propagation). With `encoder.device_coding` (every CUDA device) the frame stays on the
 device: gsplat renders, the network input is built there, onnxruntime binds device memory
 (`OnnxModel.run_on`), the propagation and `device_grey` run there, and only the uint8 region
 and the uint8 preview of the view cross to the host, in one asynchronous pinned copy; the stage
-times come from CUDA events (the copy counts in coding). With `daemon.cuda_graphs` each stage
+times come from CUDA events (the copy counts in coding). With `daemon.frames.cuda_graphs` each stage
 after the render is replayed as one CUDA graph (`nhfd.pipeline.device.CudaGraphs`), and the
 grey region comes back in the SLM's interleaved `[h, w, 3]` layout.
 """
@@ -123,9 +123,10 @@ def compute_frame_on_device(view: View, scene: Scene, model: Any, encoder: Encod
     model_device = getattr(model, "device", None)
     if model_device is not None and torch.device(model_device) != dev:
         raise ValueError(f"the model runs on {model_device}, the encoder on {dev}: load both "
-                         "for one device (daemon.device)")
+                         "for one device (daemon.frames.device)")
     clock = StageClock(dev)
-    graphs = encoder.graphs  # each stage after the render one CUDA graph (daemon.cuda_graphs)
+    # each stage after the render one CUDA graph (daemon.frames.cuda_graphs)
+    graphs = encoder.graphs
     with torch.no_grad():
         rgb, depth, alpha = render_on_device(view, scene, model.info, s.window_hw, dev)
         clock.stage("render")

@@ -10,7 +10,7 @@ import numpy as np
 
 from nhfd import spec
 from nhfd.calibration import Calibration, panel_coding
-from nhfd.config import Config, DaemonSettings, SLMSettings
+from nhfd.config import Config, FramesSettings, SLMSettings
 from nhfd.frame_message import Region
 from nhfd.model_info import ModelInfo
 from nhfd.optics import Aperture
@@ -100,21 +100,21 @@ def zero_pattern(s: FrameSettings) -> np.ndarray:
     return spec.zero_pattern(s.panel_hw, s.curves(), s.phase_sign, s.grey_invert)
 
 
-def frame_window_hw(daemon: DaemonSettings, slm: SLMSettings, info: ModelInfo
+def frame_window_hw(frames: FramesSettings, slm: SLMSettings, info: ModelInfo
                     ) -> tuple[int, int]:
-    """The frames' window (height, width) in pixels: `daemon.frame_size_px` [W, H], or the
+    """The frames' window (height, width) in pixels: `daemon.frames.size_px` [W, H], or the
     model's training size when that is empty; any size up to the panel (`slm.width_px` x
     `height_px`), the whole panel included (the frame worker then refuses a size the model was
     not checked at: `nhfd.models.sizes`)."""
-    size = list(daemon.frame_size_px)
+    size = list(frames.size_px)
     if size:  # the configuration checked it fits the panel
         return int(size[1]), int(size[0])
     h, w = info.train_size_hw
     ph, pw = slm.height_px, slm.width_px
     if h > ph or w > pw:
         raise ValueError(f"frame window {w} x {h} (the model's training size: "
-                         f"daemon.frame_size_px is empty) does not fit the panel {pw} x {ph} "
-                         f"(slm.width_px x height_px); set daemon.frame_size_px to at most "
+                         f"daemon.frames.size_px is empty) does not fit the panel {pw} x {ph} "
+                         f"(slm.width_px x height_px); set daemon.frames.size_px to at most "
                          f"[{pw}, {ph}]")
     return h, w
 
@@ -126,12 +126,12 @@ def frame_settings(config: Config, info: ModelInfo, calibration: Calibration | N
     and aberrations replace them; `nhfd.calibration.CalibrationStore` gives the configured
     one). The optics (z0, aperture, wavelengths, pitch) are the model's: `load_model` has
     already checked they match the configuration. The window is the model's training size
-    unless `daemon.frame_size_px` says otherwise (the trained fx is kept either way).
+    unless `daemon.frames.size_px` says otherwise (the trained fx is kept either way).
 
     `config`: the whole configuration, because a frame's settings join four sections: `[slm]`
     (panel, phase stroke, sign, inversion), `[coding]` (`zero_below`), `[optics]` (`padding`)
-    and `[daemon]` (`frame_size_px`)."""
-    window_hw = frame_window_hw(config.daemon, config.slm, info)
+    and `[daemon.frames]` (`size_px`)."""
+    window_hw = frame_window_hw(config.daemon.frames, config.slm, info)
     s = config.slm
     _, sign, invert = panel_coding(s, calibration)
     base = FrameSettings(

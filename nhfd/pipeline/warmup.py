@@ -59,7 +59,7 @@ def warm_frame_path() -> dict[str, Any]:
     """One frame of the shipped donut through the shipped model on a 96 x 64 window, on the
     CPU: its stage seconds, the seconds in all, and `kernel_cache()` after it."""
     t0 = time.perf_counter()
-    config = Config.model_validate({"daemon": {"frame_size_px": list(WINDOW_WH)}})
+    config = Config.model_validate({"daemon": {"frames": {"size_px": list(WINDOW_WH)}}})
     model = load_model(MODEL, config)
     scene = scene_from_file(SCENE)
     env = model.info.pose_envelope

@@ -34,7 +34,7 @@ later), or `FrameCancelled` when a load or a newer view came first.
 The view is an `nhfd.views.View` and a frame's message an `nhfd.frame_message.FrameMessage`:
 L0 values both processes import, read by name.
 
-Frames cross in shared memory (`daemon.frame_transport = "shm"`): the daemon creates the slots
+Frames cross in shared memory (`daemon.frames.transport = "shm"`): the daemon creates the slots
 (`multiprocessing.shared_memory`, each sized for the whole panel, so any region fits), names
 them to the worker at spawn, and names the slot each frame request may write; the worker owns
 that slot until its reply, the daemon from then until it has copied the frame out. The message
@@ -127,7 +127,7 @@ TEST_GREY = 0.5
 BETTER_WAIT_S = 0.05
 FINAL_WAIT_S = 2.0
 # The setting a model's load memory is bounded by (`open_model`), named in its refusals.
-MEMORY_SETTING = "daemon.model_memory_mb"
+MEMORY_SETTING = "daemon.paths.model_memory_mb"
 
 
 def _set_threads(threads: int) -> None:
@@ -146,10 +146,10 @@ def worker_device(value: str, inference: str = "auto") -> tuple[torch.device, st
 
 
 def worker_inference(daemon: DaemonSettings) -> tuple[str, str]:
-    """`inference_backend` for the configured device and `daemon.inference`: ("onnxruntime" |
+    """`inference_backend` for the configured device and `daemon.frames.inference`: ("onnxruntime" |
     "torch", why)."""
-    device, _ = worker_device(daemon.device, daemon.inference)
-    return inference_backend(daemon.inference, device, ort.get_available_providers())
+    device, _ = worker_device(daemon.frames.device, daemon.frames.inference)
+    return inference_backend(daemon.frames.inference, device, ort.get_available_providers())
 
 
 def open_model(path: str, config: Config, threads: int) -> Any:
@@ -158,7 +158,7 @@ def open_model(path: str, config: Config, threads: int) -> Any:
     do not spin (`nhfd.models.export.session_options`), or a `TorchModel` where
     `worker_inference` says torch.
 
-    Before this process creates a session, the file is read within `daemon.model_memory_mb`
+    Before this process creates a session, the file is read within `daemon.paths.model_memory_mb`
     (a regular file no larger, no external data), its metadata checked field by field, and its
     session created and test-run on the frame window in a child process limited to that memory
     (`nhfd.models.export.probe_model`): a model that needs more is refused (`ModelOverBudget`)
@@ -172,15 +172,15 @@ def open_model(path: str, config: Config, threads: int) -> Any:
     # configured for CUDA that quietly ran on the CPU would be 10x slower with nothing but a
     # warning to say why; the load fails instead and the previous model keeps running.
     d = config.daemon
-    providers = check_providers(list(d.onnx_providers), ort.get_available_providers(),
-                                "daemon.onnx_providers")
+    providers = check_providers(list(d.frames.onnx_providers), ort.get_available_providers(),
+                                "daemon.frames.onnx_providers")
     # A CUDA device torch lacks, or one named without its frame path installed: ValueError.
-    device, _ = worker_device(d.device, d.inference)
-    memory_mb = int(d.model_memory_mb)
+    device, _ = worker_device(d.frames.device, d.frames.inference)
+    memory_mb = int(d.paths.model_memory_mb)
     meta, input_name = read_model_metadata(path, max_bytes=memory_mb << 20,
                                            setting=MEMORY_SETTING)
     info = parse_model_info(meta, path, input_name)
-    window_hw = frame_window_hw(d, config.slm, info)
+    window_hw = frame_window_hw(d.frames, config.slm, info)
     torch_inference = worker_inference(d)[0] == "torch"
     m = info.input_multiple
     shape, want = trial_input(4 if input_name == "rgbd" else 3, m, window_hw)
@@ -198,10 +198,11 @@ def open_model(path: str, config: Config, threads: int) -> Any:
     elif device.type == "cuda":  # providers chosen for the GPU, engines built for the frames' size
         model = load_model(path, config, threads=threads, providers=tuple(providers),
                            device=device, input_hw=window_hw,
-                           engine_cache_dir=d.engine_cache_dir or None)
+                           engine_cache_dir=d.frames.engine_cache_dir or None)
     else:  # validates; raises ModelMismatch etc.
         model = load_model(path, config, threads=threads, providers=tuple(providers))
-    # reported in status (ModelLoaded.load_memory_mb): what to compare daemon.model_memory_mb with
+    # reported in status (ModelLoaded.load_memory_mb): what to compare
+    # daemon.paths.model_memory_mb with
     model.load_memory_mb = round(probe["peak_mb"], 1)
     return model
 
@@ -258,33 +259,33 @@ def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
 
 def cpu_path(daemon: DaemonSettings) -> bool:
     """Whether the frames' inference runs in onnxruntime on the CPU: its CPU provider first, no
-    CUDA device asked for (`daemon.device`, where this nhfd has it), and not in torch."""
-    if worker_device(daemon.device, daemon.inference)[0].type != "cpu":
+    CUDA device asked for (`daemon.frames.device`, where this nhfd has it), and not in torch."""
+    if worker_device(daemon.frames.device, daemon.frames.inference)[0].type != "cpu":
         return False
     if worker_inference(daemon)[0] != "onnxruntime":
         return False
-    return daemon.onnx_providers[0] == "CPUExecutionProvider"
+    return daemon.frames.onnx_providers[0] == "CPUExecutionProvider"
 
 
 def choose_variant(path: str, daemon: DaemonSettings, int8_metadata: dict[str, Any] | None
                    ) -> tuple[str, str]:
     """("int8" | "float", why) for the float model at `path` whose int8 sibling has the nhfd
-    metadata `int8_metadata` (None: no sibling). `daemon.int8`: "never", "always" (whenever the
-    sibling exists), "auto": the sibling's own metadata must record a held-out loss against
+    metadata `int8_metadata` (None: no sibling). `daemon.frames.int8`: "never", "always" (whenever
+    the sibling exists), "auto": the sibling's own metadata must record a held-out loss against
     this very float file (its SHA-256) within INT8_MAX_LOSS_DB (`int8_within_loss`)."""
-    mode = daemon.int8
+    mode = daemon.frames.int8
     sibling = int8_sibling(path).name
     if mode == "never":
-        return "float", "daemon.int8 = \"never\""
+        return "float", "daemon.frames.int8 = \"never\""
     if not cpu_path(daemon):
-        return "float", (f"int8 serves only on the CPU path (daemon.onnx_providers = "
-                         f"{list(daemon.onnx_providers)}, daemon.device = "
-                         f"{daemon.device!r}, daemon.inference = "
-                         f"{daemon.inference!r})")
+        return "float", (f"int8 serves only on the CPU path (daemon.frames.onnx_providers = "
+                         f"{list(daemon.frames.onnx_providers)}, daemon.frames.device = "
+                         f"{daemon.frames.device!r}, daemon.frames.inference = "
+                         f"{daemon.frames.inference!r})")
     if int8_metadata is None:
         return "float", f"no int8 model beside it ({sibling})"
     if mode == "always":
-        return "int8", f"daemon.int8 = \"always\" ({sibling})"
+        return "int8", f"daemon.frames.int8 = \"always\" ({sibling})"
     record = int8_metadata.get(HELDOUT_KEY)
     if not isinstance(record, dict) or "loss_vs_float_db" not in record:
         return "float", (f"{sibling} records no held-out loss against the float model (`nhfd "
@@ -375,7 +376,7 @@ class _WorkerState:
     def __init__(self, config: Config, calibration: CalibrationStore | None = None) -> None:
         self.config = config
         self.calibration = calibration or CalibrationStore.of(config)
-        self.threads = int(config.daemon.worker_threads)
+        self.threads = int(config.daemon.frames.worker_threads)
         self.model: Any = None
         self.model_id = 0
         self.scene: Scene | None = None
@@ -384,7 +385,7 @@ class _WorkerState:
         # (view, model id, scene id) -> the frame with its arrays: a view is a frozen value, so
         # it keys the cache itself (equal views, equal keys)
         self.cache: OrderedDict[tuple[View, int, int], FrameMessage] = OrderedDict()
-        self.cache_size = int(config.daemon.frame_cache_frames)
+        self.cache_size = int(config.daemon.frames.cache_frames)
 
     def load_model(self, path: str) -> ModelLoaded:
         """The float model at `path`, or its int8 sibling where `choose_variant` says so (an
@@ -392,16 +393,16 @@ class _WorkerState:
         what the daemon reports of it (the served model's `ModelInfo` and how it serves)."""
         daemon = self.config.daemon
         model = open_model(path, self.config, self.threads)
-        window_hw = frame_window_hw(daemon, self.config.slm, model.info)
-        allow = daemon.allow_unchecked_sizes
-        # UncheckedSize names the size, the checked ones and daemon.allow_unchecked_sizes
+        window_hw = frame_window_hw(daemon.frames, self.config.slm, model.info)
+        allow = daemon.frames.allow_unchecked_sizes
+        # UncheckedSize names the size, the checked ones and daemon.frames.allow_unchecked_sizes
         warning = window_check(model.info, window_hw, path, allow=allow)
         check_inference(model, window_hw, path)
         served, variant, why = model, "float", ""
         sibling = int8_sibling(path)
         if Path(path).stem.endswith("-int8") or HELDOUT_KEY in model.metadata:
             variant, why = "int8", "the model given is an int8 model"
-        elif daemon.int8 != "never" and sibling.is_file() and cpu_path(daemon):
+        elif daemon.frames.int8 != "never" and sibling.is_file() and cpu_path(daemon):
             try:
                 q = open_model(str(sibling), self.config, self.threads)
                 variant, why = choose_variant(path, daemon, q.metadata)
@@ -417,7 +418,7 @@ class _WorkerState:
         self.encoders.clear()
         # recorded False: an older export, only its training window counts as checked
         checked, recorded = served.info.checked_sizes_hw()
-        device, device_why = worker_device(daemon.device, daemon.inference)
+        device, device_why = worker_device(daemon.frames.device, daemon.frames.inference)
         inference, inference_why = worker_inference(daemon)
         return ModelLoaded(
             path=path, info=served.info, served=str(sibling) if variant == "int8" else path,
@@ -429,9 +430,9 @@ class _WorkerState:
             load_memory_mb=getattr(served, "load_memory_mb", None), size_warning=warning or "")
 
     def load_scene(self, path: str) -> SceneLoaded:
-        """The scene file at `path`, read within `daemon.max_gaussians`: its counts, centre and
-        up axis."""
-        load = read_scene(path, self.config.daemon.max_gaussians)
+        """The scene file at `path`, read within `daemon.paths.max_gaussians`: its counts,
+        centre and up axis."""
+        load = read_scene(path, self.config.daemon.paths.max_gaussians)
         frame = scene_frame(load.gaussians, path)
         self.scene = Scene(load.gaussians, frame)
         self.scene_id += 1
@@ -445,15 +446,15 @@ class _WorkerState:
             settings = frame_settings(self.config, self.model.info,
                                       self.calibration.active(), refocus_m=refocus_m)
             self.encoders[refocus_m] = Encoder(settings, device=self.model.device,
-                                               cuda_graphs=self.config.daemon.cuda_graphs)
+                                               cuda_graphs=self.config.daemon.frames.cuda_graphs)
         return self.encoders[refocus_m]
 
     def frame(self, view: View) -> FrameMessage:
         """The frame for `view`, holding its arrays (computed, or from the frame cache)."""
         if self.model is None:
-            raise RuntimeError("no model loaded (load_model, or daemon.model)")
+            raise RuntimeError("no model loaded (load_model, or daemon.frames.model)")
         if self.scene is None:
-            raise RuntimeError("no scene loaded (load_scene, or daemon.scene)")
+            raise RuntimeError("no scene loaded (load_scene, or daemon.paths.scene)")
         view = view.with_quality("network")  # the tiers above refine this frame (`Refiner`)
         key = (view, self.model_id, self.scene_id)
         if key in self.cache:
@@ -586,8 +587,8 @@ class Refiner:
             t0 = time.perf_counter()
             config = self.config
             window_hw = (config.optics.hologram_height_px, config.optics.hologram_width_px)
-            if config.daemon.frame_size_px:
-                window_hw = (config.daemon.frame_size_px[1], config.daemon.frame_size_px[0])
+            if config.daemon.frames.size_px:
+                window_hw = (config.daemon.frames.size_px[1], config.daemon.frames.size_px[0])
             # A newer view cancels it between its stages and between the light field's
             # elemental views (`stop`), so the newer view's exact frame starts at once.
             p = prepare(config, view, scene, window_hw=window_hw,
@@ -611,7 +612,7 @@ def worker_main(conn: Any, config_data: dict[str, Any],
     the file on disk is refused, as in the daemon). `slots`: the daemon's shared-memory slots
     ({"names": [...], "bytes": n}; None: frames are pickled through the pipe)."""
     config = Config.model_validate(config_data)
-    _set_threads(int(config.daemon.worker_threads))
+    _set_threads(int(config.daemon.frames.worker_threads))
     state = _WorkerState(config, CalibrationStore.of(config, accepted=calibration))
     shm = (FrameSlots(slots["names"], slots["bytes"], slots.get("refine_names", ()),
                       slots.get("refine_bytes", 0)) if slots else None)

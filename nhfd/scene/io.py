@@ -134,7 +134,7 @@ def read_scene(path: PathLike, max_gaussians: int = MAX_GAUSSIANS) -> SceneLoad:
 
     Raises `SceneFileError` naming the file and the problem for anything unreadable, for a file
     declaring more than `max_gaussians` Gaussians (default MAX_GAUSSIANS, the default of
-    `[daemon] max_gaussians`), and for a file whose content is not a plausible scene
+    `[daemon.paths] max_gaussians`), and for a file whose content is not a plausible scene
     (`check_plausible`); ValueError for a `max_gaussians` outside [1, 1e9]. Every reader bounds
     what it reads and decompresses by the declared count (`nhfd.scene.limits`).
     """

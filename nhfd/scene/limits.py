@@ -5,7 +5,7 @@ declare billions of Gaussians, inflate to gigabytes or point at `/dev/zero`. Eve
 `nhfd.scene` therefore:
 
 * refuses a declared Gaussian count above `max_gaussians` (`check_count`; the default,
-  `MAX_GAUSSIANS`, is the default of `[daemon] max_gaussians`) before it allocates anything
+  `MAX_GAUSSIANS`, is the default of `[daemon.paths] max_gaussians`) before it allocates anything
   sized by that count;
 * reads only regular files (`open_regular`: a FIFO would block `open()` forever, `/dev/zero`
   never ends, a directory is not data), and reads them with a byte cap (`read_capped`);
@@ -40,7 +40,7 @@ __all__ = [
 ]
 
 # The default maximum number of Gaussians a file may declare: the default of the daemon's
-# `[daemon] max_gaussians` (nhfd.config.DaemonSettings), so a file `nhfd scene info` reads is
+# `[daemon.paths] max_gaussians` (nhfd.config.DaemonSettings), so a file `nhfd scene info` reads is
 # one the daemon, left at its defaults, reads too.
 MAX_GAUSSIANS = 20_000_000
 # The largest value `max_gaussians` may be given (the setting's own upper bound).
@@ -73,7 +73,8 @@ def check_count(path: Path | str, what: str, count: object, max_gaussians: int,
     if count > max_gaussians:
         raise SceneFileError(
             f"{path}: {what} declares {count:,} {unit}, more than the limit of "
-            f"{max_gaussians:,} Gaussians (max_gaussians; the daemon's [daemon] max_gaussians)"
+            f"{max_gaussians:,} Gaussians (max_gaussians; the daemon's [daemon.paths] "
+            "max_gaussians)"
         )
     return count
 
@@ -130,7 +131,7 @@ def contained(folder: Path, ref: str, scene: Path | str, what: str) -> Path:
     """The file that `ref` (a relative name from a scene file) names in `folder`, resolved,
     symlinks included; SceneFileError naming the reference when it resolves outside `folder`
     (`../`, an absolute path, a symlink out) or cannot be resolved. Only a name inside the
-    scene's own folder is read: the daemon checks the scene's path against daemon.scene_dirs,
+    scene's own folder is read: the daemon checks the scene's path against daemon.paths.scene_dirs,
     and a reference must not reach past that check."""
     try:
         base = folder.resolve()

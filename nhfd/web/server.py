@@ -4,7 +4,7 @@
                        /login, sets an HttpOnly SameSite=Strict cookie); 401 without it
     GET  /ws           the WebSocket (the cookie again; 401 before the upgrade without it, 403
                        from another origin): state pushed every push_interval_s, operations in
-    GET  /snapshots/N  a snapshot PNG the page asked for (daemon.snapshot_dir)
+    GET  /snapshots/N  a snapshot PNG the page asked for (daemon.paths.snapshot_dir)
     GET  /static/...   the page's script and style
 
 Pushed: {"type": "state", "status": <the daemon's status>, "fps": frames per second shown,
@@ -272,20 +272,22 @@ def web_token(settings: WebSettings, *, runtime_dir: Path, daemon_token: str | N
 def serve_web_view(settings: DaemonSettings, *, socket_path: Path, runtime_dir: Path,
                    base_dir: Path, tcp_token: str | None, audit: AuditLog) -> WebView:
     """Start the web view of a started daemon in this process: `settings` is its `[daemon]`
-    (`web`, `snapshot_dir`, `auth_timeout_s`, `audit_summary_s`), `socket_path` the Unix
-    socket the page's requests go to, `runtime_dir` where a token file is made when none is
-    configured, `base_dir` what relative paths are taken from, `tcp_token` the daemon's TCP
-    token (the page asks for it when it has one), `audit` the daemon's audit log (refusals go
-    there). `stop()` it before the daemon ends."""
+    (`web`, `paths.snapshot_dir`, `server.auth_timeout_s`, `audit.summary_s`: four of its
+    sections, so it takes them all), `socket_path` the Unix socket the page's requests go to,
+    `runtime_dir` where a token file is made when none is configured, `base_dir` what relative
+    paths are taken from, `tcp_token` the daemon's TCP token (the page asks for it when it has
+    one), `audit` the daemon's audit log (refusals go there). `stop()` it before the daemon
+    ends."""
     web_settings = settings.web
     token, made = web_token(web_settings, runtime_dir=runtime_dir, daemon_token=tcp_token,
                             base_dir=base_dir)
-    # A connection that has not sent a request within daemon.auth_timeout_s is dropped, as an
-    # unauthenticated TCP client of the daemon is; refusals go to the daemon's audit log.
+    # A connection that has not sent a request within daemon.server.auth_timeout_s is dropped, as
+    # an unauthenticated TCP client of the daemon is; refusals go to the daemon's audit log.
     view = WebView(web_settings, socket_path=socket_path, token=token,
-                   snapshot_dir=resolve_dirs([settings.snapshot_dir], base_dir)[0],
+                   snapshot_dir=resolve_dirs([settings.paths.snapshot_dir], base_dir)[0],
                    base_dir=base_dir, token_file_made=made, audit=audit,
-                   idle_timeout_s=settings.auth_timeout_s, summary_s=settings.audit_summary_s)
+                   idle_timeout_s=settings.server.auth_timeout_s,
+                   summary_s=settings.audit.summary_s)
     view.token_source = made or (
         base_dir / web_settings.token_file if web_settings.token_file
         else runtime_dir / "tcp.token")

@@ -1,6 +1,6 @@
 """`nhfd calib capture` through a real daemon on the simulated bench: the calibration methods
 (show_pattern, stage_move, capture), a short capture that is interrupted and resumed, images equal
-to the direct path's, and paths outside daemon.pattern_dirs refused."""
+to the direct path's, and paths outside daemon.paths.pattern_dirs refused."""
 
 from __future__ import annotations
 
@@ -29,8 +29,9 @@ PANEL_HW = (128, 128)
 
 def daemon_config(root: Path) -> Any:
     roi = list(TrueBench().roi_for_panel(PANEL_HW))  # the daemon's simulated camera's bench
-    config = bench_config(root, None, colour_mode="hw-sync", camera_roi_px=roi,
-                          pattern_dirs=[str(root / "calib")])
+    config = bench_config(root, None, frames={"colour_mode": "hw-sync"},
+                          bench={"camera_roi_px": roi},
+                          paths={"pattern_dirs": [str(root / "calib")]})
     d = config.devices
     devices = d.model_copy(update={
         "camera": "simulated",
@@ -115,7 +116,7 @@ def test_capture_through_the_daemon(daemon: tuple[Running, Path]) -> None:
     # the noise.
     rec = recs[2]
     direct = SimBenchIO(true, PANEL_HW, exposure_s=0.005, roi=tuple(r.daemon.config.daemon
-                                                                    .camera_roi_px))
+                                                                    .bench.camera_roi_px))
     direct.capture_dark(4)
     direct.show(np.load(out / manifest["frames"]["dots"]))
     direct.move_stage(rec["stage_mm"])

@@ -139,9 +139,9 @@ def test_through_the_daemon_a_capture_right_after_show_pattern_sees_the_new_fram
 
     root = Path(tempfile.mkdtemp(prefix="nhfd-t-", dir="/tmp"))  # short: a Unix socket
     true = TrueBench()
-    config = bench_config(root, None, colour_mode="hw-sync",
-                          camera_roi_px=list(true.roi_for_panel((PANEL, PANEL))),
-                          pattern_dirs=[str(root / "calib")])
+    config = bench_config(root, None, frames={"colour_mode": "hw-sync"},
+                          bench={"camera_roi_px": list(true.roi_for_panel((PANEL, PANEL)))},
+                          paths={"pattern_dirs": [str(root / "calib")]})
     d = config.devices
     devices = d.model_copy(update={
         "camera": "simulated",

@@ -41,7 +41,8 @@ def free_port() -> int:
 
 def bench_config(root: Path, twin: MecomTwin | None, **daemon: Any) -> Config:
     """A small simulated bench: 64 x 36 panel, no camera, the laser twin given (or the
-    daemon's own simulated laser when None), everything under `root`."""
+    daemon's own simulated laser when None), everything under `root`; `daemon`: sections of
+    `[daemon]` on top (server={"tcp_port": ...}), merged key by key with this bench's."""
     for sub in ("scenes", "models", "snaps"):
         (root / sub).mkdir(exist_ok=True)
     laser: dict[str, Any] = {
@@ -57,10 +58,12 @@ def bench_config(root: Path, twin: MecomTwin | None, **daemon: Any) -> Config:
                     "camera": "none", "readybeam": laser,
                     "apt": {"enable_settle_s": 0.0, "reply_timeout_s": 0.5,
                             "velocity_mm_s": 2.0}},
-        "daemon": {"runtime_dir": str(root / "run"), "scene_dirs": [str(root / "scenes")],
-                   "model_dirs": [str(root / "models")], "snapshot_dir": str(root / "snaps"),
-                   **daemon},
+        "daemon": {"server": {"runtime_dir": str(root / "run")},
+                   "paths": {"scene_dirs": [str(root / "scenes")],
+                             "model_dirs": [str(root / "models")],
+                             "snapshot_dir": str(root / "snaps")}},
     }
+    user = _overlay(user, {"daemon": daemon})
     return Config.model_validate(_overlay(tomllib.loads(default_text()), user))
 
 

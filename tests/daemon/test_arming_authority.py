@@ -1,10 +1,10 @@
 """Arming follows authority, not a process name (issue 32, item 2).
 
 Who may arm is the Unix-socket peer's uid as the kernel reports it (SO_PEERCRED) and that uid's
-groups, against `daemon.arm_users` / `arm_groups` (default: the daemon's own user). A relay that
+groups, against `daemon.arming.users` / `groups` (default: the daemon's own user). A relay that
 runs as an allowed user is that user to the kernel, so an optional confirmation by a person at
 the bench (a key switch on a serial line, a navigator button) must come within
-`arm_confirm_timeout_s`: the wait is a bench job, and the control loop goes on meanwhile. Every
+`confirm_timeout_s`: the wait is a bench job, and the control loop goes on meanwhile. Every
 claim about light is read from the laser twin's emission record.
 """
 
@@ -27,7 +27,7 @@ import pytest
 
 import nhfd.daemon.server as server_module
 from nhfd.cli.nhfctl import main
-from nhfd.config import ConfigError, DaemonSettings
+from nhfd.config import ArmingSettings, ConfigError
 from nhfd.daemon.arming import ArmingGate, arm_refusal, check_confirm_settings, groups_of
 from nhfd.daemon.protocol import RpcError
 from nhfd.daemon.server import Connection
@@ -39,8 +39,9 @@ MY_NAME = pwd.getpwuid(ME).pw_name
 KEY = "the key switch (CTS of simulated)"
 
 
-def settings(**daemon: Any) -> DaemonSettings:
-    return DaemonSettings(**daemon)
+def settings(**arming: Any) -> ArmingSettings:
+    """`[daemon.arming]` with the keys given."""
+    return ArmingSettings(**arming)
 
 
 def other_uid() -> int:
@@ -63,9 +64,10 @@ def audit(root: Path) -> list[dict[str, Any]]:
 
 
 @contextlib.contextmanager
-def daemon(short_dir: Path, twin: Any, *, navigator: str | None = None, **settings_: Any
+def daemon(short_dir: Path, twin: Any, *, navigator: str | None = None, **arming: Any
            ) -> Iterator[Running]:  # fmt: skip
-    config = bench_config(short_dir, twin, **settings_)
+    """A running daemon with `arming` as its `[daemon.arming]` keys."""
+    config = bench_config(short_dir, twin, arming=arming)
     if navigator is not None:
         config = config.model_copy(update={"devices": config.devices.model_copy(
             update={"navigator": navigator})})
@@ -87,7 +89,7 @@ def test_by_default_only_the_daemons_own_uid_may_arm_and_a_refusal_names_uid_and
     name = pwd.getpwuid(uid).pw_name if uid in {p.pw_uid for p in pwd.getpwall()} else None
     assert why is not None and why.startswith(f"uid {uid} (")
     assert (f"({name})" if name else "(no user entry)") in why
-    assert "daemon.arm_users and daemon.arm_groups are empty" in why
+    assert "daemon.arming.users and daemon.arming.groups are empty" in why
     assert f"only the daemon's own user may (uid {ME} ({MY_NAME}))" in why
     # A uid the user database does not know is refused too, saying so.
     assert "(no user entry)" in arm_refusal({"uid": 3_999_999}, s, ME)
@@ -95,12 +97,13 @@ def test_by_default_only_the_daemons_own_uid_may_arm_and_a_refusal_names_uid_and
     assert "uid is unknown" in arm_refusal({}, s, ME)
 
 
-def test_arm_users_replace_the_default_by_name():
-    assert arm_refusal({"uid": ME}, settings(arm_users=[MY_NAME]), ME) is None
+def test_arming_users_replace_the_default_by_name():
+    assert arm_refusal({"uid": ME}, settings(users=[MY_NAME]), ME) is None
     # Listed users only: the daemon's own user is no longer implied.
-    why = arm_refusal({"uid": ME}, settings(arm_users=["no-such-user-nhfd"]), ME)
+    why = arm_refusal({"uid": ME}, settings(users=["no-such-user-nhfd"]), ME)
     assert why is not None and f"uid {ME} ({MY_NAME}) may not arm" in why
-    assert "daemon.arm_users = ['no-such-user-nhfd']" in why and "daemon.arm_groups = []" in why
+    assert "daemon.arming.users = ['no-such-user-nhfd']" in why
+    assert "daemon.arming.groups = []" in why
 
 
 def test_membership_of_any_of_the_uids_groups_allows_arming():
@@ -111,19 +114,19 @@ def test_membership_of_any_of_the_uids_groups_allows_arming():
     for gid in sorted(mine):
         name = grp.getgrgid(gid).gr_name
         # Another uid as the daemon's: only the group can be what allows it.
-        assert arm_refusal({"uid": ME}, settings(arm_groups=[name]), ME + 1) is None, name
+        assert arm_refusal({"uid": ME}, settings(groups=[name]), ME + 1) is None, name
     other = foreign_group()
     if other is not None:
-        why = arm_refusal({"uid": ME}, settings(arm_groups=[other]), ME)
-        assert why is not None and f"daemon.arm_groups = [{other!r}]" in why
+        why = arm_refusal({"uid": ME}, settings(groups=[other]), ME)
+        assert why is not None and f"daemon.arming.groups = [{other!r}]" in why
         assert grp.getgrgid(entry.pw_gid).gr_name in why  # the user's groups, named
 
 
-def gate_of(daemon_settings: DaemonSettings, navigator_backend: str = "none") -> ArmingGate:
+def gate_of(arming: ArmingSettings, navigator_backend: str = "none") -> ArmingGate:
     """A gate for what is decided before anything arms (authority, the settings' checks): its
     collaborators are never called."""
     unused: Any = None
-    return ArmingGate(daemon_settings, navigator_backend, laser=unused, audit=unused,
+    return ArmingGate(arming, navigator_backend, laser=unused, audit=unused,
                       bench_jobs=unused, navigation=unused)
 
 
@@ -141,12 +144,12 @@ def test_tcp_and_the_web_views_connection_are_refused_whatever_their_uid():
 
 
 def test_a_confirmation_without_its_input_is_a_configuration_error_naming_the_keys():
-    with pytest.raises(ConfigError, match=r"daemon.arm_confirm = 'serial' needs "
-                       r"daemon.arm_confirm_port"):
-        check_confirm_settings(settings(arm_confirm="serial"), "none")
+    with pytest.raises(ConfigError, match=r"daemon.arming.confirm = 'serial' needs "
+                       r"daemon.arming.confirm_port"):
+        check_confirm_settings(settings(confirm="serial"), "none")
     with pytest.raises(ConfigError, match=r"'spacemouse' needs a navigator: devices.navigator"):
-        gate_of(settings(arm_confirm="spacemouse"), "none")
-    gate_of(settings(arm_confirm="spacemouse"), "simulated")  # a navigator: fine
+        gate_of(settings(confirm="spacemouse"), "none")
+    gate_of(settings(confirm="spacemouse"), "simulated")  # a navigator: fine
 
 
 def test_a_peer_whose_uid_is_not_allowed_is_refused_and_audited(short_dir, mecom_twin,
@@ -164,7 +167,7 @@ def test_a_peer_whose_uid_is_not_allowed_is_refused_and_audited(short_dir, mecom
         monkeypatch.setattr(server_module, "peer_credentials", real)
         assert info.value.name == "forbidden"
         assert info.value.message.startswith(f"uid {uid} (")
-        assert "daemon.arm_users" in info.value.message
+        assert "daemon.arming.users" in info.value.message
         assert info.value.data["allowed"] == (f"the daemon's own user, uid {ME} ({MY_NAME}), "
                                               "over the Unix socket")
         with r.client() as c:
@@ -177,16 +180,17 @@ def test_a_peer_whose_uid_is_not_allowed_is_refused_and_audited(short_dir, mecom
 
 
 @pytest.mark.parametrize("member", [True, False])
-def test_arm_groups_decide_over_the_socket(short_dir, mecom_twin, member):
+def test_arming_groups_decide_over_the_socket(short_dir, mecom_twin, member):
     group = grp.getgrgid(pwd.getpwuid(ME).pw_gid).gr_name if member else foreign_group()
     if group is None:
         pytest.skip("this user is a member of every group here")
-    # The daemon runs as this user: with arm_groups set, the group alone decides.
-    with daemon(short_dir, mecom_twin, arm_groups=[group]) as r, r.client() as c:
+    # The daemon runs as this user: with daemon.arming.groups set, the group alone decides.
+    with daemon(short_dir, mecom_twin, groups=[group]) as r, r.client() as c:
         if member:
             assert c.call("laser", action="arm", duration_s=30.0)["armed"] is True
             return
-        with pytest.raises(RpcError, match=re.escape(f"daemon.arm_groups = [{group!r}]")) as info:
+        with pytest.raises(RpcError,
+                           match=re.escape(f"daemon.arming.groups = [{group!r}]")) as info:
             c.call("laser", action="arm", duration_s=30.0)
         assert info.value.name == "forbidden"
         assert c.status()["laser"]["armed"] is False
@@ -238,8 +242,8 @@ def test_a_relay_as_the_same_user_cannot_arm_when_the_confirmation_is_not_given(
                                                                                 mecom_twin):
     from nhfd.daemon.client import Client
 
-    with daemon(short_dir, mecom_twin, arm_confirm="serial", arm_confirm_port="simulated",
-                arm_confirm_timeout_s=1.0) as r, relay(short_dir / "relay.sock",
+    with daemon(short_dir, mecom_twin, confirm="serial", confirm_port="simulated",
+                confirm_timeout_s=1.0) as r, relay(short_dir / "relay.sock",
                                                       r.socket) as proc:
         with Client(short_dir / "relay.sock") as c:
             reply = c.call("laser", action="arm", duration_s=30.0)
@@ -248,7 +252,7 @@ def test_a_relay_as_the_same_user_cannot_arm_when_the_confirmation_is_not_given(
             job = c.wait_job(reply["job"], timeout_s=10)
         assert job["state"] == "failed"
         assert job["error"] == (f"ArmNotConfirmed: no confirmation from {KEY} within 1 s "
-                                "(daemon.arm_confirm_timeout_s): the lasers stay disarmed")
+                                "(daemon.arming.confirm_timeout_s): the lasers stay disarmed")
         with r.client() as c:
             assert c.status()["laser"]["armed"] is False
             with pytest.raises(RpcError, match="arm"):
@@ -262,8 +266,8 @@ def test_a_relay_as_the_same_user_cannot_arm_when_the_confirmation_is_not_given(
 
 def test_the_key_switch_confirms_while_the_loop_runs_on_and_a_key_left_on_must_turn(
         short_dir, mecom_twin):
-    with daemon(short_dir, mecom_twin, arm_confirm="serial", arm_confirm_port="simulated",
-                arm_confirm_timeout_s=20.0) as r, r.client() as c:
+    with daemon(short_dir, mecom_twin, confirm="serial", confirm_port="simulated",
+                confirm_timeout_s=20.0) as r, r.client() as c:
         twin = r.daemon.arming.twin
         twin.turn(True)  # left on from before: it does not confirm by itself
         reply = c.call("laser", action="arm", duration_s=30.0)
@@ -294,8 +298,8 @@ def test_the_key_switch_confirms_while_the_loop_runs_on_and_a_key_left_on_must_t
 
 
 def test_laser_off_cancels_an_arm_waiting_for_its_confirmation(short_dir, mecom_twin):
-    with daemon(short_dir, mecom_twin, arm_confirm="serial", arm_confirm_port="simulated",
-                arm_confirm_timeout_s=20.0) as r, r.client() as c:
+    with daemon(short_dir, mecom_twin, confirm="serial", confirm_port="simulated",
+                confirm_timeout_s=20.0) as r, r.client() as c:
         reply = c.call("laser", action="arm", duration_s=30.0)
         with pytest.raises(RpcError, match=r"already waiting for its confirmation") as info:
             c.call("laser", action="arm", duration_s=30.0)
@@ -311,8 +315,8 @@ def test_laser_off_cancels_an_arm_waiting_for_its_confirmation(short_dir, mecom_
 
 
 def test_a_navigator_button_confirms_an_arm(short_dir, mecom_twin):
-    with daemon(short_dir, mecom_twin, navigator="simulated", arm_confirm="spacemouse",
-                arm_confirm_timeout_s=20.0) as r, r.client() as c:
+    with daemon(short_dir, mecom_twin, navigator="simulated", confirm="spacemouse",
+                confirm_timeout_s=20.0) as r, r.client() as c:
         reply = c.call("laser", action="arm", duration_s=30.0)
         assert reply["confirm"] == "a button of the navigator (SimulatedNavigator)"
         wait_until(lambda: r.daemon.arming.listening == reply["job"], 5, "the arm's wait")
@@ -323,8 +327,8 @@ def test_a_navigator_button_confirms_an_arm(short_dir, mecom_twin):
 
 
 def test_nhfctl_laser_arm_says_what_the_bench_must_do_and_waits(short_dir, mecom_twin, capsys):
-    with daemon(short_dir, mecom_twin, arm_confirm="serial", arm_confirm_port="simulated",
-                arm_confirm_timeout_s=20.0) as r:
+    with daemon(short_dir, mecom_twin, confirm="serial", confirm_port="simulated",
+                confirm_timeout_s=20.0) as r:
         codes: list[int] = []
         t = threading.Thread(target=lambda: codes.append(main(
             ["--socket", str(r.socket), "laser", "arm", "--duration-s", "30"])))

@@ -21,8 +21,8 @@ def _lines(run_dir: Path) -> list[dict]:
 
 def test_twenty_thousand_refusals_stay_under_the_limit_with_exact_counts(short_dir, mecom_twin):
     max_bytes, backups = 65536, 1
-    r = Running(bench_config(short_dir, mecom_twin, audit_max_bytes=max_bytes,
-                             audit_backups=backups), short_dir)
+    r = Running(bench_config(short_dir, mecom_twin,
+                             audit={"max_bytes": max_bytes, "backups": backups}), short_dir)
     sent = {("focus", -32602): 0, ("laser", -32602): 0}
     pad = "x" * 2000  # what a client sends to fill the disk
     try:

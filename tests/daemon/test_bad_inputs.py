@@ -65,8 +65,8 @@ def test_a_model_that_cannot_take_the_frames_is_refused_and_the_old_one_keeps_ru
     from .test_frames import daemon_config, wait_for_frames
 
     config = daemon_config(short_dir, mecom_twin, tiny,
-                           scene=str(short_dir / "scenes" / "cloud.ply"),
-                           model=str(short_dir / "models" / "tiny.onnx"))
+                           paths={"scene": str(short_dir / "scenes" / "cloud.ply")},
+                           frames={"model": str(short_dir / "models" / "tiny.onnx")})
     r = Running(config, short_dir)
     try:
         c = r.client()
@@ -105,14 +105,13 @@ def test_check_inference_passes_the_good_model_and_names_each_mismatch(tiny, tmp
 
 
 def _bench_config(tmp_path: Path, **daemon: object) -> Path:
-    import json
+    """SMALL with `daemon`'s sections (e.g. frames={"size_px": ...}) as a TOML file."""
+    from nhfd.config import toml_text
 
     from .test_frames import SMALL
 
-    lines = [f"[{section}]\n" + "".join(f"{k} = {json.dumps(v)}\n" for k, v in values.items())
-             for section, values in ({**SMALL, "daemon": daemon} if daemon else SMALL).items()]
     path = tmp_path / "nhfd.toml"
-    path.write_text("\n".join(lines))
+    path.write_text(toml_text({**SMALL, "daemon": daemon} if daemon else SMALL))
     return path
 
 
@@ -133,14 +132,14 @@ def test_bench_pipeline_with_a_bad_model_exits_2_with_the_refusal(tiny, tmp_path
 def test_bench_pipeline_refuses_a_frame_size_larger_than_the_panel(tiny, tmp_path, capsys):
     from nhfd.cli.main import main
 
-    config = _bench_config(tmp_path, frame_size_px=[4096, 2160])
+    config = _bench_config(tmp_path, frames={"size_px": [4096, 2160]})
     config.write_text(config.read_text().replace("width_px = 192", "width_px = 1920")
                       .replace("height_px = 128", "height_px = 1080"))
     rc = main(["bench", "pipeline", "--model", str(tiny["model"]), "--config", str(config),
                "--json", str(tmp_path / "out.json")])
     err = capsys.readouterr().err
     assert rc == 2 and "Traceback" not in err
-    assert "daemon.frame_size_px" in err and "1920" in err and "1080" in err
+    assert "daemon.frames.size_px" in err and "1920" in err and "1080" in err
 
 
 def write_calibration(path: Path, *, stage_at_slm_mm: float = 5.0,
@@ -241,8 +240,8 @@ def test_a_scene_of_random_data_is_refused_and_dropped_counts_reach_status(
     from .test_frames import daemon_config, wait_for_frames
 
     scenes = short_dir / "scenes"
-    config = daemon_config(short_dir, mecom_twin, tiny, scene=str(scenes / "cloud.ply"),
-                           model=str(short_dir / "models" / "tiny.onnx"))
+    config = daemon_config(short_dir, mecom_twin, tiny, paths={"scene": str(scenes / "cloud.ply")},
+                           frames={"model": str(short_dir / "models" / "tiny.onnx")})
     r = Running(config, short_dir)
     try:
         c = r.client()
@@ -279,9 +278,9 @@ def test_the_frame_worker_keeps_the_daemons_calibration_when_the_file_is_swapped
     from .test_frames import daemon_config, wait_for_frames
 
     path = write_calibration(short_dir / "calibration.toml")
-    config = _with_calibration(daemon_config(short_dir, mecom_twin, tiny,
-                                             scene=str(short_dir / "scenes" / "cloud.ply"),
-                                             model=str(short_dir / "models" / "tiny.onnx")), path)
+    config = _with_calibration(daemon_config(
+        short_dir, mecom_twin, tiny, paths={"scene": str(short_dir / "scenes" / "cloud.ply")},
+        frames={"model": str(short_dir / "models" / "tiny.onnx")}), path)
     r = Running(config, short_dir)
     try:
         c = r.client()

@@ -60,7 +60,7 @@ def test_idle_and_newline_flood_rows_json_and_table(tmp_path):
         assert_safe(row)
     assert idle["refused"] == 0 and idle["attack"] == {}
     # Both peers really flooded, and the daemon's input bounds dropped each of them (a peer
-    # past daemon.max_buffered_bytes is dropped; the attacker reconnects and counts it).
+    # past daemon.server.max_buffered_bytes is dropped; the attacker reconnects and counts it).
     for peer in ("tcp", "unix"):
         counts = flood["attack"][peer]
         assert counts["mib_sent"] > 1 and counts["dropped"] >= 1, counts

@@ -25,7 +25,7 @@ height_px = 128
 [optics]
 hologram_width_px = 96
 hologram_height_px = 64
-[daemon]
+[daemon.frames]
 allow_unchecked_sizes = true
 """
 SIZES_WH = ([96, 64], [64, 48])
@@ -52,7 +52,7 @@ def test_each_device_is_its_own_worker_given_the_same_views(bench):
     for r in results:
         # What the worker reported computing on: "auto" chose the CPU here (no CUDA), and why.
         assert r["device"] == "cpu" and r["gpu"] is None
-        assert r["device_reason"] == f"daemon.device = {r['device_setting']!r}: the CPU"
+        assert r["device_reason"] == f"daemon.frames.device = {r['device_setting']!r}: the CPU"
         assert r["views"] == 2
     for a, b in zip(results[::2], results[1::2], strict=True):  # cpu and auto of one size
         assert [row["azimuth_deg"] for row in a["rows"]] == [
@@ -111,7 +111,7 @@ def test_a_cuda_result_is_named_by_its_gpu_in_the_header_the_table_and_the_machi
                "gpu": pipeline._gpu("cuda:0")}
     machine = pipeline._machine([cpu_run, gpu_run])
     assert machine["cuda_devices"] == {"cuda:0": h100}
-    pipeline._print(gpu_run, pipeline.Config().daemon)
+    pipeline._print(gpu_run, pipeline.Config().daemon.frames)
     assert f"device cuda:0 ({h100}, CUDA graphs), 2 views" in capsys.readouterr().out
     eager = {**gpu_run, "cuda_graphs": False}  # --cuda-graphs on,off: the rows say which
     md = pipeline._markdown([cpu_run, gpu_run, eager], machine, "nhfd bench pipeline")
@@ -132,8 +132,8 @@ def test_what_runs_the_network_is_compared_side_by_side(tiny, tmp_path):
     results = json.loads(out.read_text())["results"]
     assert [(r["inference"], r["onnx_providers"]) for r in results] == [
         ("onnxruntime", ["CPUExecutionProvider"]), ("torch", ["torch"])]
-    assert results[1]["inference_reason"] == ('daemon.inference = "torch": the network in torch '
-                                              "on cpu")
+    assert results[1]["inference_reason"] == ('daemon.frames.inference = "torch": the network in '
+                                              "torch on cpu")
     assert [row["azimuth_deg"] for row in results[0]["rows"]] == [
         row["azimuth_deg"] for row in results[1]["rows"]]
     assert "--inference onnxruntime,torch" in out.with_suffix(".md").read_text().splitlines()[1]
@@ -149,5 +149,5 @@ def test_a_model_larger_than_the_panel_is_refused_before_any_worker_starts(tiny,
                  str(tiny["model"]), "--scene", str(tiny["scene"]), "--views", "1"]) == 2
     err = capsys.readouterr().err
     assert (f"{tiny['model']}: frame window 96 x 64 (the model's training size: "
-            "daemon.frame_size_px is empty) does not fit the panel 64 x 48") in err, err
+            "daemon.frames.size_px is empty) does not fit the panel 64 x 48") in err, err
     assert started == []

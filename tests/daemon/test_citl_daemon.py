@@ -45,7 +45,7 @@ def truth_calibration(bench: TrueBench, roi: tuple[int, int, int, int]) -> Calib
 
 
 def citl_config(root: Path, tiny, **refine) -> Config:
-    base = daemon_config(root, None, tiny, colour_mode="capture")
+    base = daemon_config(root, None, tiny, frames={"colour_mode": "capture"})
     bench = TrueBench()
     panel_hw = (base.slm.height_px, base.slm.width_px)
     roi = bench.roi_for_panel(panel_hw)
@@ -53,7 +53,7 @@ def citl_config(root: Path, tiny, **refine) -> Config:
     return Config.model_validate(_overlay(base.model_dump(), {
         "devices": {"camera": "simulated", "slm_output": {"settle_ms": 5.0},
                     "apt": {"velocity_mm_s": 50.0}},
-        "daemon": {"camera_roi_px": list(roi)},
+        "daemon": {"bench": {"camera_roi_px": list(roi)}},
         "calibration": {"file": str(cal)},
         "refine": {**REFINE, **refine}}))
 
@@ -156,8 +156,8 @@ def test_a_new_view_stops_the_captures(short_dir, tiny):
 
 
 @pytest.mark.parametrize(("change", "named"), [
-    ({"daemon": {"colour_mode": "single"}}, "daemon.colour_mode is 'single': citl needs "
-                                           "'capture'"),
+    ({"daemon": {"frames": {"colour_mode": "single"}}},
+     "daemon.frames.colour_mode is 'single': citl needs 'capture'"),
     ({"devices": {"camera": "none"}}, "citl needs the bench's camera (devices.camera"),
     ({"calibration": {"file": ""}}, "citl needs a calibration (calibration.file)"),
 ])

@@ -15,7 +15,8 @@ from .conftest import Running, bench_config, wait_until
 
 
 def colour_config(root, twin, mode: str, **devices):
-    config = bench_config(root, twin, colour_mode=mode, camera_roi_px=[1000, 1200, 16, 16])
+    config = bench_config(root, twin, frames={"colour_mode": mode},
+                          bench={"camera_roi_px": [1000, 1200, 16, 16]})
     slm_output = config.devices.slm_output.model_copy(update={"settle_ms": 20.0})
     return config.model_copy(update={"devices": config.devices.model_copy(
         update={"slm_output": slm_output, **devices})})
@@ -46,7 +47,7 @@ def test_capture_mode_lights_one_diode_at_a_time_for_its_own_pattern(short_dir):
         assert "colour_mode 'capture'" in info.value.message
         # A recognisable three-colour frame on the panel: a different pattern per channel.
         base = np.stack([np.full(bench.slm.shape, 40 * (i + 1), np.uint8) for i in range(3)])
-        r.daemon.frames.last_frame = base
+        r.daemon.frames.pacer.last_frame = base  # what the frame link last showed
         # What the camera saw at each grab: the diodes on, and the panel's three channels.
         seen: list[tuple[float, dict, np.ndarray]] = []
         camera = bench.camera

@@ -35,7 +35,7 @@ def raw_session(path, lines: list[bytes], expect: int, timeout_s: float = 5.0) -
 
 
 def test_protocol_errors_on_the_wire(running: Running):
-    cap = running.daemon.config.daemon.max_line_bytes
+    cap = running.daemon.config.daemon.server.max_line_bytes
     replies = raw_session(running.socket, [
         b'{"jsonrpc":"2.0","method":"status"\n',                                  # malformed
         b'{"jsonrpc":"2.0","method":"focus","params":{"z_mm":NaN},"id":2}\n',
@@ -68,7 +68,7 @@ def test_protocol_errors_on_the_wire(running: Running):
 
 
 def test_batches_can_be_refused_with_a_clear_error(short_dir, mecom_twin):
-    r = Running(bench_config(short_dir, mecom_twin, max_batch=0), short_dir)
+    r = Running(bench_config(short_dir, mecom_twin, server={"max_batch": 0}), short_dir)
     try:
         (reply,) = raw_session(r.socket, [b'[{"jsonrpc":"2.0","method":"status","id":1}]\n'], 1)
         assert reply["error"]["code"] == -32600
@@ -80,7 +80,7 @@ def test_batches_can_be_refused_with_a_clear_error(short_dir, mecom_twin):
 def test_ten_thousand_bad_requests_leave_the_daemon_serving_and_unchanged(running, mecom_twin):
     c = running.client()
     before = c.status()
-    cap = running.daemon.config.daemon.max_line_bytes
+    cap = running.daemon.config.daemon.server.max_line_bytes
     lines, expected = bad_requests(10_000, seed=7, cap=cap)
     with socket.socket(socket.AF_UNIX) as s:
         s.settimeout(20)
@@ -156,7 +156,7 @@ def test_eight_clients_storming_set_view_end_on_the_last_sequence_number(running
 def test_arming_only_over_the_unix_socket_and_everything_audited(short_dir, mecom_twin):
     from nhfd.daemon.client import Client
 
-    r = Running(bench_config(short_dir, mecom_twin, tcp_port=free_port()), short_dir)
+    r = Running(bench_config(short_dir, mecom_twin, server={"tcp_port": free_port()}), short_dir)
     try:
         addr = r.daemon.server.tcp_address
         assert addr[0] == "127.0.0.1"

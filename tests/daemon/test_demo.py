@@ -96,9 +96,10 @@ def test_the_demo_waits_on_a_job_as_the_client_does():
 
 
 def test_the_gif_shows_each_region_enlarged_by_a_whole_factor(tmp_path):
-    """The sweep's regions, cropped to their boxes and enlarged, side by side below the
-    overview: every inset pixel is its crop's pixel repeated factor x factor, in the order
-    near (network, sgd), far (network, sgd); and the GIF's frames hold them at that size."""
+    """The sweep's regions, cropped to their boxes and enlarged, below the overview: a row per
+    region (near, far), a column per frame (network, sgd), every inset pixel its crop's pixel
+    repeated factor x factor; a region wider than its column shows its central part at 1:1; and
+    the GIF's frames hold them at that size."""
     from PIL import Image
 
     from nhfd.demos.serve import focal_gif, region_insets
@@ -107,15 +108,17 @@ def test_the_gif_shows_each_region_enlarged_by_a_whole_factor(tmp_path):
     net, ref = rng.random((90, 140)), rng.random((90, 140))
     near, far = np.zeros((90, 140), bool), np.zeros((90, 140), bool)
     near[10:30, 20:50], far[50:80, 90:130] = True, True
+    nbox, fbox = np.s_[6:34, 16:54], np.s_[46:84, 86:134]  # the masks' boxes, padded by 4
     canvas, factor = region_insets([net, ref], [near, far], width_px=500)
-    # boxes padded by 4: 38 and 48 px wide, twice each, 3 gaps of 4: 2 * 86 * f + 12 <= 500
-    assert factor == 2 and canvas.shape == (38 * 2, 500)
-    crops = [net[6:34, 16:54], ref[6:34, 16:54], net[46:84, 86:134], ref[46:84, 86:134]]
-    left = 0
-    for crop in crops:
+    # columns of (500 - 4) // 2 = 248 px; the widest box, 48 px, fits 5 times
+    assert factor == 5 and canvas.shape == (28 * 5 + 4 + 38 * 5, 500)
+    for (top, box), (left, img) in [((t, b), (c, i)) for t, b in ((0, nbox), (144, fbox))
+                                    for c, i in ((0, net), (252, ref))]:
+        crop = np.kron(img[box], np.ones((5, 5)))
         h, w = crop.shape
-        assert np.array_equal(canvas[: 2 * h, left : left + 2 * w], np.kron(crop, np.ones((2, 2))))
-        left += 2 * w + 4
+        assert np.array_equal(canvas[top : top + h, left : left + w], crop)
+    narrow, one = region_insets([net, ref], [near, far], width_px=60)  # columns of 28 px
+    assert one == 1 and np.array_equal(narrow[:28, :28], net[nbox][:, 5:33])  # the centre
     # Through the demo's GIF: the overview pair is binned 2 x 2, the insets sit below it.
     sweep = [(z, np.rot90(img, 2)) for z, img in ((-1e-3, net), (1e-3, ref))]
     regions = {"near": {"mask_camera": np.rot90(near, 2)}, "far": {"mask_camera": np.rot90(far, 2)}}
@@ -123,5 +126,5 @@ def test_the_gif_shows_each_region_enlarged_by_a_whole_factor(tmp_path):
     gif = Image.open(tmp_path / "s.gif")
     assert gif.n_frames == 2  # near to far and back: 2 depths make 2 frames
     # the content's box (pad 12: rows 0:90, cols 8:140) binned to 45 x 66, twice and a 4 px gap;
-    # below, 4 px on, the insets at factor 1 (172 px of crops do not fit twice into 136)
-    assert gif.size == (66 + 4 + 66, 45 + 4 + 38)
+    # below, 4 px on, the insets in 66 px columns at factor 1: rows of 28 and 38, 4 apart
+    assert gif.size == (66 + 4 + 66, 45 + 4 + 28 + 4 + 38)

@@ -126,8 +126,8 @@ def _tls_citl(short_dir, tiny, remote_emission: bool) -> tuple[Running, Client]:
     cert, key = self_signed(short_dir, "bench")
     base = citl_config(short_dir, tiny)
     config = Config.model_validate(_overlay(base.model_dump(), {"daemon": {
-        "tcp_port": free_port(), "tls_cert": str(cert), "tls_key": str(key),
-        "remote_emission": remote_emission}}))
+        "server": {"tcp_port": free_port(), "tls_cert": str(cert), "tls_key": str(key)},
+        "arming": {"remote_emission": remote_emission}}}))
     r = Running(config, short_dir)
     c = r.client()
     c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
@@ -151,7 +151,7 @@ def test_a_tls_peer_may_not_start_emission_by_default(short_dir, tiny):
                 ask()
             assert info.value.name == "forbidden"
             assert ("makes a laser emit, and a TCP peer at 127.0.0.1:" in info.value.message
-                    and "(daemon.remote_emission = false)" in info.value.message), info.value
+                    and "(daemon.arming.remote_emission = false)" in info.value.message), info.value
         assert remote.status()["laser"]["channels"]["red"]["power_pct"] == 0.0
         # What it may still do: views that do not emit, power 0, and laser off (1 ms here).
         remote.call("set_view", pose=FRONT_POSE, quality="sgd")

@@ -97,7 +97,7 @@ def test_stage_port_vanishing_is_an_error_and_it_reconnects(running: Running, me
 
 def test_camera_timeout_fails_the_snapshot_and_recovers(short_dir: Path):
     # The simulated camera images the daemon's own simulated laser twin, SLM and stage.
-    config = bench_config(short_dir, None, camera_roi_px=[1000, 1200, 16, 16])
+    config = bench_config(short_dir, None, bench={"camera_roi_px": [1000, 1200, 16, 16]})
     config = config.model_copy(update={"devices": config.devices.model_copy(update={
         "camera": "simulated",
         "camera_settings": config.devices.camera_settings.model_copy(
@@ -135,7 +135,8 @@ def test_garbage_model_file_is_refused_and_the_old_model_keeps_running(short_dir
 
     model = short_dir / "models" / "tiny.onnx"
     config = daemon_config(short_dir, mecom_twin, tiny,
-                           scene=str(short_dir / "scenes" / "cloud.ply"), model=str(model))
+                           paths={"scene": str(short_dir / "scenes" / "cloud.ply")},
+                           frames={"model": str(model)})
     r = Running(config, short_dir)
     try:
         c = r.client()
@@ -174,14 +175,14 @@ def test_an_unavailable_execution_provider_is_refused_listing_the_available_ones
 
     available = ort.get_available_providers()
     assert check_providers(["CPUExecutionProvider"], available) == ["CPUExecutionProvider"]
-    config = small_config(daemon={"onnx_providers": ["TensorrtExecutionProvider",
-                                                     "CPUExecutionProvider"]})
+    config = small_config(daemon={"frames": {"onnx_providers": ["TensorrtExecutionProvider",
+                                                     "CPUExecutionProvider"]}})
     if "TensorrtExecutionProvider" in available:
         pytest.skip("this onnxruntime has TensorRT")
     with pytest.raises(ValueError) as info:
         open_model(str(tiny["model"]), config, threads=1)
     message = str(info.value)
-    assert "daemon.onnx_providers: TensorrtExecutionProvider not available" in message
+    assert "daemon.frames.onnx_providers: TensorrtExecutionProvider not available" in message
     assert "available: " + ", ".join(available) in message
     # a model opened outside the daemon refuses one too, by name, not as an unreadable file
     with pytest.raises(ValueError, match="providers: TensorrtExecutionProvider not available"):

@@ -40,7 +40,7 @@ def arrays_in(obj: Any) -> list[str]:
 
 
 def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_segments):
-    config = small_config(daemon={"frame_cache_frames": 0})
+    config = small_config(daemon={"frames": {"cache_frames": 0}})
     host = _Host(config)
     link = host.frame_link()
     received: list[Any] = []
@@ -95,9 +95,9 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_se
 
 
 def test_the_pickle_transport_still_carries_the_arrays_in_the_message(tiny, our_segments):
-    """`daemon.frame_transport = "pickle"` (kept for `nhfd bench pipeline --transport`): no
+    """`daemon.frames.transport = "pickle"` (kept for `nhfd bench pipeline --transport`): no
     segments, the grey in the message."""
-    config = small_config(daemon={"frame_cache_frames": 0, "frame_transport": "pickle"})
+    config = small_config(daemon={"frames": {"cache_frames": 0, "transport": "pickle"}})
     host = _Host(config)
     link = host.frame_link()
     received: list[Any] = []

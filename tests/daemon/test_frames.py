@@ -257,8 +257,8 @@ def test_a_worker_crash_is_an_error_in_status_and_turns_the_lasers_off(short_dir
     from .conftest import Running, wait_until
 
     config = daemon_config(short_dir, mecom_twin, tiny,
-                           scene=str(short_dir / "scenes" / "cloud.ply"),
-                           model=str(short_dir / "models" / "tiny.onnx"))
+                           paths={"scene": str(short_dir / "scenes" / "cloud.ply")},
+                           frames={"model": str(short_dir / "models" / "tiny.onnx")})
     r = Running(config, short_dir)  # model and scene from the configuration this time
     try:
         c = r.client()

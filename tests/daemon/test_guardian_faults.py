@@ -91,7 +91,7 @@ def test_connect_mode_reports_an_unresponsive_guardian_as_unknown_never_off(shor
     guardian = spawn_guardian(settings, socket_path=sock, stderr=subprocess.DEVNULL)
     r = None
     try:
-        r = Running(bench_config(short_dir, mecom_twin, guardian="connect"), short_dir)
+        r = Running(bench_config(short_dir, mecom_twin, arming={"guardian": "connect"}), short_dir)
         with r.client() as c:
             light_red(c, mecom_twin)
             assert c.status()["laser"]["guardian"]["spawned"] is False
@@ -205,7 +205,7 @@ def test_a_fake_guardian_that_answers_all_off_is_refused_by_the_daemon(short_dir
 def test_a_runtime_directory_of_another_owner_or_mode_is_refused(short_dir, mecom_twin):
     run = short_dir / "run"
     run.mkdir()
-    run.chmod(0o770)  # group-writable, and no daemon.socket_group configured
+    run.chmod(0o770)  # group-writable, and no daemon.server.socket_group configured
     daemon = Daemon(bench_config(short_dir, mecom_twin), base_dir=short_dir, env={},
                     handle_signals=False)
     with pytest.raises(Exception, match=f"{run} is group-writable .*mode 0770.*socket_group"):
@@ -270,7 +270,7 @@ def test_a_found_guardian_driving_another_port_is_refused_by_name(short_dir, mec
 
 
 def test_the_tcp_token_is_removed_at_shutdown(short_dir, mecom_twin):
-    r = Running(bench_config(short_dir, mecom_twin, tcp_port=free_port()), short_dir)
+    r = Running(bench_config(short_dir, mecom_twin, server={"tcp_port": free_port()}), short_dir)
     token = short_dir / "run" / "tcp.token"
     try:
         assert token.stat().st_mode & 0o777 == 0o600

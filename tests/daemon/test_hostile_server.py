@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from nhfd.config import Config, _overlay, default_text
+from nhfd.config import Config, ServerSettings, _overlay, default_text
 from nhfd.daemon import protocol
 from nhfd.daemon.client import Client
 from nhfd.daemon.protocol import RpcError
@@ -97,8 +97,9 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
         extra = {"tls_cert": str(cert), "tls_key": str(key)}
     # Four Unix slots and twelve silent TCP peers: under a shared cap the silent peers would
     # take every slot (the old daemon answered the Unix client `busy`).
-    config = bench_config(short_dir, mecom_twin, tcp_port=free_port(), max_clients=4,
-                          max_tcp_clients=6, max_unauthenticated=3, auth_timeout_s=5.0, **extra)
+    config = bench_config(short_dir, mecom_twin,
+                          server={"tcp_port": free_port(), "max_clients": 4, "max_tcp_clients": 6,
+                                  "max_unauthenticated": 3, "auth_timeout_s": 5.0, **extra})
     r = Running(config, short_dir)
     silent: list[socket.socket] = []
     remotes: list[Client] = []
@@ -120,8 +121,8 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
             reply = refusal_over(addr, cert)
             assert reply["id"] is None and reply["error"]["code"] == protocol.BUSY.code
             assert ("too many TCP connections waiting to authenticate "
-                    "(daemon.max_unauthenticated = 3") in reply["error"]["message"]
-            assert reply["error"]["data"] == {"field": "daemon.max_unauthenticated",
+                    "(daemon.server.max_unauthenticated = 3") in reply["error"]["message"]
+            assert reply["error"]["data"] == {"field": "daemon.server.max_unauthenticated",
                                               "allowed": "at most 3 at once"}
         late = [socket.create_connection(addr, timeout=5) for _ in range(9)]
         silent += late
@@ -136,7 +137,7 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
             for line in answers.values():
                 err = json.loads(line)["error"]
                 assert err["code"] == protocol.BUSY.code
-                assert "daemon.max_unauthenticated = 3" in err["message"]
+                assert "daemon.server.max_unauthenticated = 3" in err["message"]
         assert server.client_counts()["unauthenticated"] == 3
         # The Unix socket is untouched: status, and the lasers off with the twin dark.
         with r.client() as c:
@@ -145,7 +146,7 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
         assert mecom_twin.emitting() == OFF
         # The deadline: every silent connection is closed by the daemon, and the slots are
         # free again for a client with the token.
-        clock.offset_s = config.daemon.auth_timeout_s
+        clock.offset_s = config.daemon.server.auth_timeout_s
         wait_until(lambda: all(closed_by_peer(s) for s in silent), 10,
                    "the silent connections to be dropped")
         wait_until(lambda: server.client_counts() == {"unix": 0, "tcp": 0,
@@ -156,8 +157,8 @@ def test_silent_tcp_peers_cannot_lock_out_the_unix_socket_and_go_at_their_deadli
         # Authenticated clients fill max_tcp_clients; the next one hears so in its protocol.
         reply = refusal_over(addr, cert)
         assert reply["error"]["code"] == protocol.BUSY.code
-        assert reply["error"]["message"] == ("too many TCP clients (daemon.max_tcp_clients = 6); "
-                                             "retry later")
+        assert reply["error"]["message"] == ("too many TCP clients "
+                                             "(daemon.server.max_tcp_clients = 6); retry later")
         with r.client() as c:
             assert c.status()["daemon"]["state"] == "ready"
     finally:
@@ -187,7 +188,7 @@ def refusal_over(addr: tuple[str, int], cert: Path | None) -> dict:
 
 
 def test_unix_clients_past_max_clients_get_the_busy_line(short_dir, mecom_twin):
-    r = Running(bench_config(short_dir, mecom_twin, max_clients=2), short_dir)
+    r = Running(bench_config(short_dir, mecom_twin, server={"max_clients": 2}), short_dir)
     try:
         with r.client() as a, r.client() as b:
             a.status()
@@ -198,7 +199,7 @@ def test_unix_clients_past_max_clients_get_the_busy_line(short_dir, mecom_twin):
                 reply = json.loads(third.recv(4096).split(b"\n")[0])
             assert reply["error"]["code"] == protocol.BUSY.code
             assert reply["error"]["message"] == ("too many clients on the Unix socket "
-                                                 "(daemon.max_clients = 2); retry later")
+                                                 "(daemon.server.max_clients = 2); retry later")
     finally:
         r.stop()
 
@@ -226,8 +227,8 @@ def _flood(make_sock, payload: bytes, stop: threading.Event, drops: list[int]) -
 
 def test_a_newline_flood_and_an_endless_line_stay_bounded_and_the_heartbeat_keeps_its_period(
         short_dir, mecom_twin, caplog):
-    config = bench_config(short_dir, mecom_twin, tcp_port=free_port())
-    c = config.daemon
+    config = bench_config(short_dir, mecom_twin, server={"tcp_port": free_port()})
+    c = config.daemon.server
     r = Running(config, short_dir)
     stop = threading.Event()
     threads: list[threading.Thread] = []
@@ -285,7 +286,7 @@ def test_a_newline_flood_and_an_endless_line_stay_bounded_and_the_heartbeat_keep
         gaps = [b - a for a, b in itertools.pairwise(during)]
         timeout_s = config.devices.readybeam.guardian.heartbeat_timeout_s
         # The guardian disarms after heartbeat_timeout_s (0.5 s) without a heartbeat; the loop
-        # sends one every tick_s (0.1 s), late by at most a tick budget and one request.
+        # sends one every heartbeat_s (0.1 s), late by at most a tick budget and one request.
         assert len(during) >= 10 and max(gaps) < timeout_s, (len(during), max(gaps))
         assert answered >= 5
         # The bound: nothing held more than max_buffered_bytes unhandled (the old daemon grew
@@ -293,8 +294,8 @@ def test_a_newline_flood_and_an_endless_line_stay_bounded_and_the_heartbeat_keep
         assert peak[0] <= c.max_buffered_bytes, peak[0]
         assert server.peak_buffered_bytes <= c.max_buffered_bytes
         assert newline_drops, ("the newline flooders were never dropped", server.refused, peak)
-        reason = (f"dropped: more than daemon.max_buffered_bytes = {c.max_buffered_bytes} "
-                  "bytes received and not yet handled")
+        reason = (f"dropped: more than daemon.server.max_buffered_bytes = "
+                  f"{c.max_buffered_bytes} bytes received and not yet handled")
         assert server.refused[reason] >= 2  # the TCP and the Unix flooder, each at least once
         # Logged once, with the peer, however many times flooders were dropped.
         logged = [r.getMessage() for r in caplog.records if r.getMessage().startswith(reason)]
@@ -328,7 +329,8 @@ class _Stepped:
             self.now += per_line_s
             return line + b"\n"
 
-        self.server = LineServer(handler, unix_path=root / "s.sock", **kw)
+        self.server = LineServer(handler, unix_path=root / "s.sock",
+                                 settings=ServerSettings(**kw))
         self.server.clock = lambda: self.now
         self.server.listen()
 
@@ -487,7 +489,7 @@ def test_the_daemon_raises_its_soft_open_files_limit_at_start(short_dir, mecom_t
     _, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
     if hard != resource.RLIM_INFINITY and hard < 1024:
         pytest.skip(f"the hard limit on open files here is {hard}")
-    wanted = Config.model_validate(_overlay({}, {})).daemon.open_files
+    wanted = Config.model_validate(_overlay({}, {})).daemon.paths.open_files
     expected = wanted if hard == resource.RLIM_INFINITY else min(wanted, hard)
     cfg = write_config(short_dir, mecom_twin)
 
@@ -513,7 +515,7 @@ def test_the_daemon_raises_its_soft_open_files_limit_at_start(short_dir, mecom_t
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=10) == 0
         log = proc.stderr.read()
-        assert f"open files: soft limit {expected} (daemon.open_files = {wanted}" in log
+        assert f"open files: soft limit {expected} (daemon.paths.open_files = {wanted}" in log
     finally:
         if proc.poll() is None:
             proc.kill()
@@ -523,7 +525,7 @@ def test_the_daemon_raises_its_soft_open_files_limit_at_start(short_dir, mecom_t
 def test_the_unit_sets_the_open_files_limit_to_the_default_open_files():
     unit = (REPO / "packaging" / "systemd" / "nhfd.service").read_text()
     lines = [line for line in unit.splitlines() if line.startswith("LimitNOFILE=")]
-    default = Config.model_validate(_overlay({}, {})).daemon.open_files
+    default = Config.model_validate(_overlay({}, {})).daemon.paths.open_files
     assert lines == [f"LimitNOFILE={default}"]
     assert f"open_files = {default}" in default_text()
 

@@ -1,5 +1,5 @@
 """The int8 sibling of a model is served on the CPU by the held-out loss recorded in its own
-metadata (`daemon.int8`): within 0.5 dB of its float model, int8; more, none or for another
+metadata (`daemon.frames.int8`): within 0.5 dB of its float model, int8; more, none or for another
 float file, the float model; status says which and why."""
 
 from __future__ import annotations
@@ -24,9 +24,10 @@ from nhfd.pipeline.worker import choose_variant
 from .test_frames import FRONT_VIEW, small_config
 
 
-def with_int8(config: Config, mode: str, **daemon) -> Config:
+def with_int8(config: Config, mode: str, **frames) -> Config:
+    """`config` with daemon.frames.int8 = `mode` and the other `[daemon.frames]` keys given."""
     return Config.model_validate(_overlay(config.model_dump(),
-                                          {"daemon": {"int8": mode, **daemon}}))
+                                          {"daemon": {"frames": {"int8": mode, **frames}}}))
 
 
 def show_a_frame(host, link, timeout_s: float = 30.0) -> None:
@@ -66,7 +67,7 @@ def test_the_choice_follows_the_recorded_loss_and_the_setting(tmp_path):
     # The setting decides over the record.
     assert choose_variant(str(f), with_int8(auto, "never").daemon, record(0.1, f))[0] == "float"
     assert choose_variant(str(f), with_int8(auto, "always").daemon, record(0.7, f)) == (
-        "int8", 'daemon.int8 = "always" (model-int8.onnx)')
+        "int8", 'daemon.frames.int8 = "always" (model-int8.onnx)')
     cuda = with_int8(auto, "auto", onnx_providers=["CUDAExecutionProvider",
                                                    "CPUExecutionProvider"])
     variant, why = choose_variant(str(f), cuda.daemon, record(0.1, f))
@@ -97,10 +98,11 @@ def test_the_record_travels_in_the_int8_files_metadata(pair):
 
 
 @contextlib.contextmanager
-def served(pair, int8_psnr_db: float, **daemon):
+def served(pair, int8_psnr_db: float, **frames):
     """A frame link serving the pair's float model (the int8 one beside it records a held-out
-    PSNR of `int8_psnr_db` against 30 dB), with `daemon` settings; closed after."""
-    host = _Host(small_config(daemon={"frame_cache_frames": 0, **daemon}))
+    PSNR of `int8_psnr_db` against 30 dB), with `frames` as `[daemon.frames]` keys; closed
+    after."""
+    host = _Host(small_config(daemon={"frames": {"cache_frames": 0, **frames}}))
     link = host.frame_link()
     try:
         record_heldout_loss(pair["int8"], pair["float"], float_psnr_db=30.0,
@@ -131,12 +133,13 @@ def test_the_worker_serves_int8_within_half_a_db_and_float_beyond(pair):
 
 
 def test_torch_inference_serves_the_float_model_and_says_so(pair):
-    """daemon.inference = "torch": int8 arithmetic is onnxruntime's, so the float model serves
-    (frames and all), and the model's status names what runs the network and why."""
+    """daemon.frames.inference = "torch": int8 arithmetic is onnxruntime's, so the float model
+    serves (frames and all), and the model's status names what runs the network and why."""
     with served(pair, 29.9, inference="torch") as (host, link):
         info = link.model
         assert (info.inference, info.providers) == ("torch", ("torch",))
-        assert info.inference_reason == 'daemon.inference = "torch": the network in torch on cpu'
+        assert info.inference_reason == ('daemon.frames.inference = "torch": the network in '
+                                         "torch on cpu")
         assert info.variant == "float" and info.served == str(pair["float"].resolve())
-        assert "daemon.inference = 'torch'" in info.variant_reason
+        assert "daemon.frames.inference = 'torch'" in info.variant_reason
         show_a_frame(host, link)

@@ -64,7 +64,7 @@ def fake_daemon(path: Path, how: str) -> Iterator[list[bytes]]:
                 return
             conns.append(conn)
             busy = {"jsonrpc": "2.0", "error": {"code": 1001, "message": "too many clients "
-                                                "(daemon.max_clients = 1)"}}
+                                                "(daemon.server.max_clients = 1)"}}
             if how == "full":
                 conn.sendall(json.dumps({**busy, "id": None}).encode() + b"\n")
                 conn.close()
@@ -91,7 +91,7 @@ def test_with_no_daemon_the_guardian_switches_off(short_dir, mecom_twin, capsys,
     # Where the daemon would live, from the configuration: its socket is absent, its guardian
     # (laser.sock in the same runtime directory) is there.
     config = short_dir / "nhfd.toml"
-    config.write_text(f'[daemon]\nruntime_dir = "{short_dir}"\n')
+    config.write_text(f'[daemon.server]\nruntime_dir = "{short_dir}"\n')
     with lit_guardian(short_dir / "laser.sock", mecom_twin) as controller:
         code = main(["--config", str(config), "laser", action])
         out = capsys.readouterr()
@@ -116,7 +116,7 @@ def test_a_daemon_that_is_busy_or_silent_is_bypassed(short_dir, mecom_twin, caps
         result = json.loads(out.out)
         assert result["all_off"] is True and result["switched_off_by"] == "guardian"
         # "full": the busy line, or a broken pipe when the hang-up came before the request.
-        why = {"busy": "the daemon refused: busy: too many clients (daemon.max_clients = 1)",
+        why = {"busy": "the daemon refused: busy: too many clients (daemon.server.max_clients = 1)",
                "full": f"nhfd serve at {short_dir / 'c.sock'}: ",
                "silent": f"nhfd serve at {short_dir / 'c.sock'} did not answer"}[how]
         assert why in result["daemon"] and why in out.err
@@ -138,7 +138,7 @@ def test_a_daemon_that_answers_switches_off_itself_and_says_so(running: Running,
 
 def test_lasers_not_confirmed_off_is_a_failure(short_dir, capsys):
     config = short_dir / "nhfd.toml"
-    config.write_text(f'[daemon]\nruntime_dir = "{short_dir}"\n')
+    config.write_text(f'[daemon.server]\nruntime_dir = "{short_dir}"\n')
     assert main(["--config", str(config), "laser", "off"]) == 3
     err = capsys.readouterr().err
     assert "nhfctl laser off: error: lasers NOT confirmed off: no laser guardian at " in err

@@ -1,6 +1,7 @@
 """The control loop's scheduling: idle, it sleeps in select until the next heartbeat (one per
-`daemon.tick_s`, however many requests woke it); a request or the frame worker's pipe wakes it
-at once. Facts about the schedule, not CPU figures (those are `nhfd bench load`'s idle phase)."""
+`daemon.arming.heartbeat_s`, however many requests woke it); a request or the frame worker's pipe
+wakes it at once. Facts about the schedule, not CPU figures (those are `nhfd bench load`'s idle
+phase)."""
 
 from __future__ import annotations
 
@@ -51,7 +52,7 @@ def stepped(short_dir, mecom_twin):
 
 def test_idle_the_loop_sleeps_until_the_next_heartbeat(stepped):
     d, beats = stepped.d, stepped.beats
-    tick = d.config.daemon.tick_s
+    tick = d.config.daemon.arming.heartbeat_s
     d.step(d.wait_s(time.monotonic()))  # the first heartbeat is due at once
     assert len(beats) == 1
     now = time.monotonic()
@@ -67,7 +68,7 @@ def test_idle_the_loop_sleeps_until_the_next_heartbeat(stepped):
 
 def test_a_request_is_answered_at_once_and_sends_no_extra_heartbeat(stepped):
     d, beats = stepped.d, stepped.beats
-    tick = d.config.daemon.tick_s
+    tick = d.config.daemon.arming.heartbeat_s
     d.step(0.0)
     assert len(beats) == 1
     with socket.socket(socket.AF_UNIX) as s:

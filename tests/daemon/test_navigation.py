@@ -14,7 +14,7 @@ from .conftest import Running, bench_config, wait_until
 
 def navigator_config(root, twin):
     """The small simulated bench with the simulated navigator, read every 20 ms."""
-    config = bench_config(root, twin, navigator_period_s=0.02)
+    config = bench_config(root, twin, bench={"navigator_period_s": 0.02})
     return config.model_copy(update={"devices": config.devices.model_copy(
         update={"navigator": "simulated"})})
 

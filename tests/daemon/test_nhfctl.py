@@ -162,7 +162,8 @@ def test_the_socket_is_the_given_one_else_the_configured_daemons(tmp_path):
 
     def load():
         loads.append(1)
-        return SimpleNamespace(daemon=SimpleNamespace(runtime_dir=str(tmp_path / "rt")))
+        return SimpleNamespace(daemon=SimpleNamespace(
+            server=SimpleNamespace(runtime_dir=str(tmp_path / "rt"))))
 
     assert socket_path("/elsewhere/c.sock", load) == "/elsewhere/c.sock" and loads == []
     assert socket_path(None, load) == str(tmp_path / "rt" / SOCKET_NAME) and loads == [1]

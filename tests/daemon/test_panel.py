@@ -49,7 +49,7 @@ def frame_of(panel: Panel, *levels: int) -> np.ndarray:
 
 def test_blank_view_and_pattern_take_turns(short_dir):
     slm = RecordingSLM()
-    panel = make_panel(short_dir, slm, colour_mode="hw-sync")
+    panel = make_panel(short_dir, slm, frames={"colour_mode": "hw-sync"})
     assert (panel.current, panel.showing, panel.held) == ("blank", "nothing", False)
     panel.blank()
     assert np.array_equal(slm.last, blank_pattern(panel.config, None))
@@ -81,7 +81,7 @@ def test_blank_view_and_pattern_take_turns(short_dir):
 
 def test_a_capture_sequence_holds_the_panel_one_colour_at_a_time(short_dir):
     slm = RecordingSLM()
-    panel = make_panel(short_dir, slm, colour_mode="capture")
+    panel = make_panel(short_dir, slm, frames={"colour_mode": "capture"})
     view = frame_of(panel, 10, 20, 30)
     with panel.hold():
         assert panel.held
@@ -96,7 +96,7 @@ def test_a_capture_sequence_holds_the_panel_one_colour_at_a_time(short_dir):
 
 def test_single_mode_shows_its_colour_in_every_channel(short_dir):
     slm = RecordingSLM()
-    panel = make_panel(short_dir, slm, colour_mode="single", single_colour="red")
+    panel = make_panel(short_dir, slm, frames={"colour_mode": "single", "single_colour": "red"})
     panel.show_view(frame_of(panel, 10, 20, 30), 1)
     assert (slm.last == 10).all()
     panel.show_pattern(frame_of(panel, 7, 8, 9), "p.npy")

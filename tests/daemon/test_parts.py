@@ -9,7 +9,8 @@ Read from the source with `ast`, so that a new module is checked without being l
   what they use, the way slmsuite's do, and python-microscope's devices know nothing of the
   server that hosts them;
 - no part imports `nhfd.daemon.service`: only the daemon knows the daemon;
-- the parts' constructors take typed settings, never `config: Any`.
+- the parts' constructors take typed settings, never `config: Any`; each takes its own section
+  of `[daemon]` (`ArmingSettings`, `AuditSettings`, ...), not the whole `DaemonSettings`.
 """
 
 from __future__ import annotations
@@ -155,7 +156,7 @@ def test_only_the_daemon_knows_the_daemon(path):
 
 @pytest.mark.parametrize("path", SOURCES, ids=lambda p: p.name)
 def test_settings_are_typed(path):
-    """A function takes the settings section it uses (`DaemonSettings`, `SLMSettings`, ...) or
+    """A function takes the settings section it uses (`ServerSettings`, `SLMSettings`, ...) or
     the typed `Config` where it needs several, never `config: Any` (issue 33, item 5)."""
     untyped = []
     for node in ast.walk(ast.parse(path.read_text())):
@@ -167,3 +168,26 @@ def test_settings_are_typed(path):
                         annotation in ("", "Any") or "Any" in annotation.split(" | ")):
                     untyped.append(f"{node.name}({arg.arg}: {annotation or 'unannotated'})")
     assert untyped == []
+
+
+# Functions of the control plane allowed to take the whole `DaemonSettings`, each with why:
+# the web view's start reads four sections.
+WHOLE_DAEMON_SETTINGS = {("server.py", "serve_web_view")}
+
+
+@pytest.mark.parametrize("path", [*SOURCES, WEB_SERVER],
+                         ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_each_part_takes_its_own_section_of_the_daemon_settings(path):
+    """`[daemon]` is one section per part (`nhfd.config.DaemonSettings`): a function of the
+    daemon or the web view takes the section it reads, not all of them; the web view's start,
+    which reads four, is the one that takes them all."""
+    whole = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
+            args = node.args
+            for arg in [*args.posonlyargs, *args.args, *args.kwonlyargs]:
+                annotation = ast.unparse(arg.annotation) if arg.annotation is not None else ""
+                if re.search(r"\bDaemonSettings\b", annotation):
+                    whole.append((path.name, node.name))
+    allowed = WHOLE_DAEMON_SETTINGS
+    assert [w for w in whole if w not in allowed] == []

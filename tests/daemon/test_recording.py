@@ -38,7 +38,7 @@ def test_a_replayed_session_ends_in_the_same_state(short_dir):
     record = short_dir / "session.jsonl"
     (short_dir / "a").mkdir()
     (short_dir / "b").mkdir()
-    a = Running(fast_stage(bench_config(short_dir / "a", None, record=str(record))),
+    a = Running(fast_stage(bench_config(short_dir / "a", None, audit={"record": str(record)})),
                 short_dir / "a")
     try:
         c = a.client()

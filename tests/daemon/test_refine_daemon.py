@@ -102,7 +102,7 @@ def test_bad_tiers_are_refused_and_nothing_changes(short_dir, mecom_twin, tiny):
             c.call("set_view", pose=FRONT_POSE, quality="best")
         # citl on a bench that cannot serve it: the setting that stands in the way is named.
         with pytest.raises(RpcError, match=r"quality: 'citl' cannot be served here: "
-                                           r"daemon.colour_mode is 'hw-sync': citl needs "
+                                           r"daemon.frames.colour_mode is 'hw-sync': citl needs "
                                            r"'capture'.*; allowed: network, exact or sgd"):
             c.call("set_view", pose=FRONT_POSE, quality="citl")
         assert c.status()["view"] == before

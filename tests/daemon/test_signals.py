@@ -33,8 +33,9 @@ reply_timeout_s = 0.2
 [devices.readybeam.guardian]
 socket_path = "{root / 'laser.sock'}"
 heartbeat_timeout_s = 0.5
-[daemon]
+[daemon.server]
 runtime_dir = "{root / 'run'}"
+[daemon.paths]
 scene_dirs = ["{root / 'scenes'}"]
 model_dirs = ["{root / 'models'}"]
 snapshot_dir = "{root / 'snaps'}"

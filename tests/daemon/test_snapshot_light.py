@@ -28,7 +28,7 @@ def _snapshot(c) -> dict:
 def test_a_snapshot_says_when_nothing_emitted_and_has_a_preview(short_dir, tiny):
     base = citl_config(short_dir, tiny)  # the simulated bench with its camera
     config = Config.model_validate(_overlay(base.model_dump(),
-                                            {"daemon": {"colour_mode": "hw-sync"}}))
+                                            {"daemon": {"frames": {"colour_mode": "hw-sync"}}}))
     r = Running(config, short_dir)
     try:
         c = r.client()

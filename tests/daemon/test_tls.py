@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 
 from nhfd.cli import nhfctl
-from nhfd.config import ConfigError, validate
+from nhfd.config import ConfigError, ServerSettings, validate
 from nhfd.daemon.client import Client, TLSFailure
 from nhfd.daemon.protocol import RpcError
 from nhfd.daemon.server import LineServer, forwarded_by_ssh, peer_credentials
@@ -61,8 +61,8 @@ def test_tls_with_the_token_is_served_and_arming_is_still_refused(short_dir, mec
                                                                    capsys):
     cert, key = self_signed(short_dir, "bench")
     other, _ = self_signed(short_dir, "impostor")
-    config = bench_config(short_dir, mecom_twin, tcp_port=free_port(), tls_cert=str(cert),
-                          tls_key=str(key))
+    config = bench_config(short_dir, mecom_twin, server={
+        "tcp_port": free_port(), "tls_cert": str(cert), "tls_key": str(key)})
     r = Running(config, short_dir)
     try:
         addr = r.daemon.server.tcp_address
@@ -111,8 +111,8 @@ def mecom_twin_channels(r: Running) -> list[dict]:
 
 def test_a_certificate_for_another_host_fails_the_name_check(short_dir, mecom_twin):
     cert, key = self_signed(short_dir, "elsewhere", host="10.1.2.3")
-    r = Running(bench_config(short_dir, mecom_twin, tcp_port=free_port(), tls_cert=str(cert),
-                             tls_key=str(key)), short_dir)
+    r = Running(bench_config(short_dir, mecom_twin, server={
+        "tcp_port": free_port(), "tls_cert": str(cert), "tls_key": str(key)}), short_dir)
     try:
         with pytest.raises(TLSFailure) as failure:
             Client(tcp=r.daemon.server.tcp_address, tls_ca=cert)
@@ -123,14 +123,16 @@ def test_a_certificate_for_another_host_fails_the_name_check(short_dir, mecom_tw
 
 def test_listening_beyond_loopback_needs_tls():
     with pytest.raises(ConfigError) as info:
-        validate({"daemon": {"tcp_port": 7700, "tcp_host": "0.0.0.0"}}, "lab.toml")
-    assert ("daemon.tcp_host = '0.0.0.0' is not loopback" in str(info.value)
-            and "daemon.tls_cert and daemon.tls_key" in str(info.value))
-    with pytest.raises(ConfigError, match=r"give both daemon\.tls_cert and daemon\.tls_key"):
-        validate({"daemon": {"tls_cert": "bench.pem"}}, "lab.toml")
-    with pytest.raises(ValueError, match=r"daemon\.tls_cert and daemon\.tls_key"):
-        LineServer(lambda conn, line: None, unix_path=Path("/nonexistent"), tcp_port=7700,
-                   tcp_host="0.0.0.0")
+        validate({"daemon": {"server": {"tcp_port": 7700, "tcp_host": "0.0.0.0"}}}, "lab.toml")
+    assert ("daemon.server.tcp_host = '0.0.0.0' is not loopback" in str(info.value)
+            and "daemon.server.tls_cert and daemon.server.tls_key" in str(info.value))
+    with pytest.raises(ConfigError, match=r"give both daemon\.server\.tls_cert and "
+                       r"daemon\.server\.tls_key"):
+        validate({"daemon": {"server": {"tls_cert": "bench.pem"}}}, "lab.toml")
+    # A copied configuration skips validation: the server refuses the host itself.
+    unchecked = ServerSettings.model_construct(tcp_port=7700, tcp_host="0.0.0.0")
+    with pytest.raises(ValueError, match=r"daemon\.server\.tls_cert and daemon\.server\.tls_key"):
+        LineServer(lambda conn, line: None, unix_path=Path("/nonexistent"), settings=unchecked)
 
 
 def test_the_client_never_sends_a_token_in_clear_beyond_loopback():
@@ -142,7 +144,7 @@ def test_an_unloadable_certificate_names_the_keys(tmp_path):
     from nhfd.daemon.server import server_tls_context
 
     (tmp_path / "c.pem").write_text("not a certificate")
-    with pytest.raises(ValueError, match=r"daemon.tls_cert = .*c.pem.*cannot load") as info:
+    with pytest.raises(ValueError, match=r"daemon.server.tls_cert = .*c.pem.*cannot load") as info:
         server_tls_context(tmp_path / "c.pem", tmp_path / "k.pem")
     assert isinstance(info.value, ValueError) and not isinstance(info.value, ssl.SSLError)
 

@@ -20,9 +20,10 @@ _PROBE = textwrap.dedent("""
     root = Path(tempfile.mkdtemp(prefix="nhfd-t-", dir="/tmp"))
     user = {"devices": {"laser": "none", "slm": "none", "stage": "none", "camera": "none",
                         "navigator": "none"},
-            "daemon": {"runtime_dir": str(root / "run")}}
+            "daemon": {"server": {"runtime_dir": str(root / "run")}}}
     config = Config.model_validate(_overlay(tomllib.loads(default_text()), user))
-    assert (config.daemon.model, config.daemon.scene, config.calibration.file) == ("", "", "")
+    assert (config.daemon.frames.model, config.daemon.paths.scene,
+            config.calibration.file) == ("", "", "")
     daemon = Daemon(config, base_dir=root, env={}, handle_signals=False)
     daemon.start()
     loop = threading.Thread(target=daemon.run, daemon=True)

@@ -63,8 +63,8 @@ def test_blank_surround_and_coded_zero_are_one_pattern_under_a_calibration(
     from .conftest import Running, wait_until
 
     base = daemon_config(short_dir, mecom_twin, tiny,
-                         scene=str(short_dir / "scenes" / "cloud.ply"),
-                         model=str(short_dir / "models" / "tiny.onnx"))
+                         paths={"scene": str(short_dir / "scenes" / "cloud.ply")},
+                         frames={"model": str(short_dir / "models" / "tiny.onnx")})
     path = write_measured_calibration(short_dir / "calibration.toml", base)
     config = Config.model_validate(_overlay(base.model_dump(),
                                             {"calibration": {"file": str(path)}}))

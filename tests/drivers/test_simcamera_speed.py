@@ -96,7 +96,7 @@ def test_the_fast_image_follows_the_frame_the_stage_and_the_colour() -> None:
 
 def test_the_fast_image_is_the_reference_on_the_full_panel_and_sensor() -> None:
     """The product's sizes: the 1920 x 1080 panel, the default camera's whole 2048 x 2448
-    sensor (daemon.camera_roi_px = []), one diode lit as citl lights it."""
+    sensor (daemon.bench.camera_roi_px = []), one diode lit as citl lights it."""
     bench = TrueBench()
     shown = Shown(random_frame(0, FULL_PANEL_HW), (0.0, 1.0, 0.0), bench.stage_at_slm_mm + 0.2)
     cam = camera(bench, shown, None)

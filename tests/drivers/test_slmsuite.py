@@ -129,8 +129,8 @@ def test_the_camera_flags_the_top_level_of_the_devices_bit_depth_and_scales_gain
 
 
 def slmsuite_daemon_config(root: Path) -> Any:
-    config = bench_config(root, None, colour_mode="single", single_colour="green",
-                          pattern_dirs=[str(root / "calib")])
+    config = bench_config(root, None, frames={"colour_mode": "single", "single_colour": "green"},
+                          paths={"pattern_dirs": [str(root / "calib")]})
     suite = SlmsuiteSettings(
         slm_kwargs={"resolution": [N, N], "pitch_um": [8.0, 8.0],
                     "gamma_sim": [float(v) for v in TRUE_WAVES]},

@@ -59,7 +59,7 @@ def test_focus_scan_documents_readbacks_and_refocus(sim: SimBench) -> None:
 
     # The descriptor: the camera's image as a float32 array of the camera region's shape.
     keys = next(d for n, d in docs if n == "descriptor")["data_keys"]
-    *_, h, w = sim.daemon.config.daemon.camera_roi_px
+    *_, h, w = sim.daemon.config.daemon.bench.camera_roi_px
     assert keys["camera_image"]["dtype"] == "array"
     assert keys["camera_image"]["shape"] == [h, w]
     assert keys["camera_image"]["dtype_numpy"] == "<f4"
@@ -75,7 +75,7 @@ def test_focus_scan_documents_readbacks_and_refocus(sim: SimBench) -> None:
     assert np.abs(table["focus_mm"] - requested).max() <= resolution_mm
     # The stage really moved (uncalibrated: stage = reference + z), as each capture recorded it
     # and as the twin holds it now.
-    reference_mm = sim.daemon.config.daemon.stage_at_reference_mm
+    reference_mm = sim.daemon.config.daemon.bench.stage_at_reference_mm
     assert np.abs(table["camera_stage_mm"] - (reference_mm + requested)).max() <= resolution_mm
     assert sim.daemon.bench.stage.twin.position_mm == pytest.approx(reference_mm + STOP_MM,
                                                                     abs=resolution_mm)

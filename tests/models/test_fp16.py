@@ -229,8 +229,8 @@ def test_the_tradeoff_table_says_when_the_gpu_column_is_not_measured(capsys):
 
 
 def test_the_fp16_model_on_cuda_matches_the_float_model(pair):
-    """On a GPU the fp16 file runs where `daemon.inference = "auto"` runs it: onnxruntime's CUDA
-    provider (float16 kernels) where the installed onnxruntime has one, else torch (float32
+    """On a GPU the fp16 file runs where `daemon.frames.inference = "auto"` runs it: onnxruntime's
+    CUDA provider (float16 kernels) where the installed onnxruntime has one, else torch (float32
     arithmetic on the float16 weights, `nhfd.models.torch_model`). Either way its outputs are
     the float model's on the CPU."""
     import onnxruntime as ort

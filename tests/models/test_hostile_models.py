@@ -205,8 +205,8 @@ def test_only_regular_files_within_the_budget_and_without_external_data_are_read
         read_model_metadata(link)
     size = shipped.stat().st_size
     with pytest.raises(ModelOverBudget, match=rf"{size / 2**20:.1f} MB, more than "
-                                              r"daemon\.model_memory_mb = 0\.125 MB"):
-        read_model_file(shipped, max_bytes=2**20 // 8, setting="daemon.model_memory_mb")
+                                              r"daemon\.paths\.model_memory_mb = 0\.125 MB"):
+        read_model_file(shipped, max_bytes=2**20 // 8, setting="daemon.paths.model_memory_mb")
     assert read_model_file(shipped, max_bytes=size).graph.input[0].name == "rgbd"
 
     def outside(model: onnx.ModelProto) -> None:
@@ -223,7 +223,8 @@ def test_only_regular_files_within_the_budget_and_without_external_data_are_read
 
 
 def test_the_probe_measures_the_shipped_model_within_a_small_budget(shipped):
-    probe = probe_model(shipped, 64, [SHIPPED_INPUT], threads=1, setting="daemon.model_memory_mb")
+    probe = probe_model(shipped, 64, [SHIPPED_INPUT], threads=1,
+                        setting="daemon.paths.model_memory_mb")
     assert probe["run_error"] is None and probe["skipped"] == []
     # a session and a 288 x 512 run of the 43k-parameter network: tens of MB, not more
     assert 0 < probe["peak_mb"] < 64
@@ -240,9 +241,9 @@ def test_the_probe_refuses_a_graph_that_allocates_past_the_budget_without_the_ca
     assert path.stat().st_size < 300_000  # a small file
     peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     with pytest.raises(ModelOverBudget) as refused:
-        probe_model(path, 256, [SHIPPED_INPUT], setting="daemon.model_memory_mb")
+        probe_model(path, 256, [SHIPPED_INPUT], setting="daemon.paths.model_memory_mb")
     message = str(refused.value)
-    assert "needs more memory than daemon.model_memory_mb = 256 MB allows" in message
+    assert "needs more memory than daemon.paths.model_memory_mb = 256 MB allows" in message
     assert "ConstantOfShape node: Failed to allocate memory" in message
     assert str(8192 * 16384 * 4) in message  # the size that was asked for
     # this process never held it (its own peak grew by far less than the 512 MiB)
@@ -253,9 +254,9 @@ def test_a_probe_that_dies_is_a_refusal_naming_the_budget(shipped, monkeypatch):
     # What a C++ runtime that aborts on a failed allocation looks like from here.
     monkeypatch.setattr(export, "PROBE_SCRIPT", "import os, signal\n"
                                                 "os.kill(os.getpid(), signal.SIGKILL)\n")
-    with pytest.raises(ModelOverBudget, match=r"limited to daemon\.model_memory_mb = 64 MB, "
+    with pytest.raises(ModelOverBudget, match=r"limited to daemon\.paths\.model_memory_mb = 64 MB, "
                                               r"ended with signal SIGKILL"):
-        probe_model(shipped, 64, [SHIPPED_INPUT], setting="daemon.model_memory_mb")
+        probe_model(shipped, 64, [SHIPPED_INPUT], setting="daemon.paths.model_memory_mb")
 
 
 def test_a_graph_onnxruntime_cannot_open_is_not_a_model_in_the_probe(shipped, tmp_path):

@@ -346,7 +346,7 @@ def test_serve_tells_a_load_that_timed_out_from_one_that_failed():
     with pytest.raises(RuntimeError) as e:
         _load(Scripted("failed", "path = 'm.onnx' resolves outside"), "load_model", m, 0.1)
     assert str(e.value).startswith("load_model /models/m.onnx: path = 'm.onnx' resolves outside "
-                                   "(the daemon reads files only inside daemon.scene_dirs")
+                                   "(the daemon reads files only inside daemon.paths.scene_dirs")
 
 
 def test_serve_loads_the_scene_and_the_model_into_a_running_daemon(built, tmp_path_factory):

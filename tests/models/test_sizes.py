@@ -186,7 +186,7 @@ def test_the_worker_refuses_an_unchecked_window_at_load_unless_allowed(unchecked
 
     def state(allow: bool) -> _WorkerState:
         return _WorkerState(Config.model_validate(
-            {"daemon": {"frame_size_px": [192, 128], "allow_unchecked_sizes": allow}}))
+            {"daemon": {"frames": {"size_px": [192, 128], "allow_unchecked_sizes": allow}}}))
 
     refusing = state(False)
     with pytest.raises(UncheckedSize, match=r"frame window 192 x 128 is not a size this model "

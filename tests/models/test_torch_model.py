@@ -1,6 +1,6 @@
-"""`TorchModel` (`daemon.inference = "torch"`): a model file's network rebuilt as a torch module
-gives what onnxruntime gives for the same file, at the training window and the full panel, and a
-file whose graph it would not reproduce is refused at load."""
+"""`TorchModel` (`daemon.frames.inference = "torch"`): a model file's network rebuilt as a torch
+module gives what onnxruntime gives for the same file, at the training window and the full panel,
+and a file whose graph it would not reproduce is refused at load."""
 
 from __future__ import annotations
 
@@ -130,7 +130,7 @@ def test_a_graph_the_rebuild_does_not_reproduce_is_refused(shipped, tmp_path):
     msg = str(e.value)
     assert msg.startswith(f"{path}: rebuilt as a torch module, it differs from the file's own "
                           "graph by ")
-    assert 'daemon.inference = "onnxruntime"' in msg
+    assert 'daemon.frames.inference = "onnxruntime"' in msg
     # the difference named is the real one: phases are O(1) rad, doubling them moves them a lot
     assert float(msg.split("graph by ")[1].split()[0]) > 0.1
 

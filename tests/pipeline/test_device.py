@@ -1,7 +1,7 @@
-"""One frame path on any device (issue 23): `daemon.device` resolution, the onnxruntime providers
-and TensorRT engine cache a CUDA device gets, and the device path's arithmetic (torch coding,
-network input, I/O binding) checked on the CPU against the CPU path it must reproduce. The tests
-that need a GPU skip without one."""
+"""One frame path on any device (issue 23): `daemon.frames.device` resolution, the onnxruntime
+providers and TensorRT engine cache a CUDA device gets, and the device path's arithmetic (torch
+coding, network input, I/O binding) checked on the CPU against the CPU path it must reproduce. The
+tests that need a GPU skip without one."""
 
 from __future__ import annotations
 
@@ -51,7 +51,7 @@ CPU_CUDA_TRT = ["TensorrtExecutionProvider", "CUDAExecutionProvider", "CPUExecut
 needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
 
 
-# -- daemon.device -----------------------------------------------------------------------------
+# -- daemon.frames.device ----------------------------------------------------------------------
 
 def test_auto_picks_cuda_only_where_torch_sees_it():
     assert resolve_device("auto", cuda_count=0) == torch.device("cpu")
@@ -64,36 +64,37 @@ def test_auto_picks_cuda_only_where_torch_sees_it():
 
 
 def test_a_cuda_device_torch_does_not_see_is_refused_naming_the_setting():
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:0': torch \S+ sees 0 CUDA "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda:0': torch \S+ sees 0 "
+                                         r"CUDA "
                                          r"devices \(a CPU-only build, no GPU, or no driver\); "
                                          r"use \"auto\" or \"cpu\"$"):
         resolve_device("cuda:0", cuda_count=0)
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:3': torch \S+ sees 2 CUDA "
-                                         r"devices \(indices 0\.\.1\)"):
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda:3': torch \S+ sees 2 "
+                                         r"CUDA devices \(indices 0\.\.1\)"):
         resolve_device("cuda:3", cuda_count=2)
 
 
 @pytest.mark.parametrize("bad", ["gpu", "cuda:", "cpu:0", "cuda:-1", "auto:1", ""])
 def test_a_device_name_outside_the_allowed_ones_lists_them(bad):
-    with pytest.raises(ValueError, match=rf"daemon\.device = {bad!r}: must be one of auto, cpu, "
-                                         r"cuda, cuda:N \(N: a CUDA device index\)$"):
+    with pytest.raises(ValueError, match=rf"daemon\.frames\.device = {bad!r}: must be one of auto, "
+                                         r"cpu, cuda, cuda:N \(N: a CUDA device index\)$"):
         resolve_device(bad, cuda_count=1)
 
 
 def test_the_configuration_checks_daemon_device():
-    assert small_config().daemon.device == "auto"
-    assert small_config(daemon={"device": "cuda:1"}).daemon.device == "cuda:1"
+    assert small_config().daemon.frames.device == "auto"
+    assert small_config(daemon={"frames": {"device": "cuda:1"}}).daemon.frames.device == "cuda:1"
     with pytest.raises(ValueError, match=r"device = 'gpu': must be one of auto, cpu, cuda, "
                                          r"cuda:N"):
-        small_config(daemon={"device": "gpu"})
+        small_config(daemon={"frames": {"device": "gpu"}})
 
 
 # Every place a device name is checked, as (call, setting, allowed kinds, CUDA devices it asks
 # torch about; None: the name only). Each must raise `device_choice`'s own message, word for word.
 CUDA_COUNT = torch.cuda.device_count() if torch.cuda.is_available() else 0
 DEVICE_SITES = {
-    "daemon.device (pipeline)": (lambda v: resolve_device(v), "daemon.device", DEVICES,
-                                 CUDA_COUNT),
+    "daemon.frames.device (pipeline)": (lambda v: resolve_device(v), "daemon.frames.device",
+                                        DEVICES, CUDA_COUNT),
     "bench pipeline --device": (lambda v: resolve_device(v, "--device"), "--device", DEVICES,
                                 CUDA_COUNT),
     "model build --device": (build_resolve_device, "--device", DEVICES, CUDA_COUNT),
@@ -103,7 +104,7 @@ DEVICE_SITES = {
     "dataset build --device": (check_device, "--device", DEVICES, CUDA_COUNT),
     "onnx providers": (lambda v: execution_providers(v, ["CPUExecutionProvider"],
                                                      ["CPUExecutionProvider"]),
-                       "daemon.device", ("cpu", "cuda", "cuda:N"), None),
+                       "daemon.frames.device", ("cpu", "cuda", "cuda:N"), None),
 }
 
 
@@ -132,8 +133,8 @@ def test_the_cpu_keeps_the_configured_providers_and_refuses_missing_ones():
     available = ["AzureExecutionProvider", "CPUExecutionProvider"]
     assert execution_providers("cpu", available, ["CPUExecutionProvider"]) == \
         ["CPUExecutionProvider"]
-    with pytest.raises(ValueError, match=r"daemon\.onnx_providers: CUDAExecutionProvider not "
-                                         r"available in this onnxruntime; available: "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.onnx_providers: CUDAExecutionProvider "
+                                         r"not available in this onnxruntime; available: "
                                          r"AzureExecutionProvider, CPUExecutionProvider"):
         execution_providers("cpu", available, ["CUDAExecutionProvider", "CPUExecutionProvider"])
 
@@ -186,8 +187,8 @@ def test_cuda_without_tensorrt_runs_on_the_cuda_provider_and_without_it_is_refus
     got = execution_providers("cuda", ["CUDAExecutionProvider", "CPUExecutionProvider"],
                               ["CPUExecutionProvider"], model_sha256=SHA, gpu_name=H100)
     assert got == [(CUDA, {"device_id": 0}), "CPUExecutionProvider"]
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda:0': this onnxruntime has no "
-                                         r"CUDAExecutionProvider \(available: "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda:0': this onnxruntime has "
+                                         r"no CUDAExecutionProvider \(available: "
                                          r"CPUExecutionProvider\); install onnxruntime-gpu"):
         execution_providers("cuda:0", ["CPUExecutionProvider"], ["CPUExecutionProvider"])
 
@@ -196,8 +197,8 @@ def test_configured_gpu_providers_choose_among_them_in_their_order():
     got = execution_providers("cuda:0", CPU_CUDA_TRT, ["CUDAExecutionProvider",
                                                        "CPUExecutionProvider"])
     assert got == [(CUDA, {"device_id": 0}), "CPUExecutionProvider"]
-    with pytest.raises(ValueError, match=r"daemon\.onnx_providers: TensorrtExecutionProvider not "
-                                         r"available"):
+    with pytest.raises(ValueError, match=r"daemon\.frames\.onnx_providers: "
+                                         r"TensorrtExecutionProvider not available"):
         execution_providers("cuda:0", ["CUDAExecutionProvider", "CPUExecutionProvider"],
                             [TENSORRT, "CPUExecutionProvider"])
 
@@ -290,7 +291,7 @@ def donut() -> dict:
         pytest.skip(f"{MODEL.name} or {SCENE.name} absent")
     # The default configuration: the shipped model's optics.
     config = Config.model_validate(_overlay(tomllib.loads(default_text()),
-                                            {"daemon": {"frame_size_px": [96, 64]}}))
+                                            {"daemon": {"frames": {"size_px": [96, 64]}}}))
     model = load_model(MODEL, config, threads=1)
     load = read_scene(SCENE)
     scene = Scene(load.gaussians, scene_frame(load.gaussians, str(SCENE)))
@@ -339,15 +340,15 @@ def test_the_device_path_on_the_cpu_gives_the_cpu_paths_frame(donut):
 
 
 def test_inference_in_torch_gives_onnxruntimes_frames(donut):
-    """daemon.inference = "torch": the worker opens a TorchModel, and its frames, on the CPU path
-    and on the device path, are onnxruntime's (one grey level apart at most, where the network's
-    float32 rounding moves a phase across a level boundary)."""
+    """daemon.frames.inference = "torch": the worker opens a TorchModel, and its frames, on the CPU
+    path and on the device path, are onnxruntime's (one grey level apart at most, where the
+    network's float32 rounding moves a phase across a level boundary)."""
     from nhfd.models.torch_model import TorchModel
     from nhfd.pipeline.worker import open_model
 
     d = donut
-    config = Config.model_validate(_overlay(d["config"].model_dump(),
-                                            {"daemon": {"inference": "torch", "device": "cpu"}}))
+    config = Config.model_validate(_overlay(d["config"].model_dump(), {"daemon": {"frames": {
+        "inference": "torch", "device": "cpu"}}}))
     model = open_model(str(MODEL), config, 1)
     assert isinstance(model, TorchModel) and model.providers == ["torch"]
     want = compute_frame(d["view"], d["scene"], d["model"], Encoder(d["settings"]))
@@ -363,8 +364,8 @@ def test_the_worker_refuses_a_cuda_device_torch_does_not_see(donut):
     from nhfd.pipeline.worker import open_model
 
     config = Config.model_validate(_overlay(donut["config"].model_dump(),
-                                            {"daemon": {"device": "cuda"}}))
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': torch \S+ sees 0 CUDA"):
+                                            {"daemon": {"frames": {"device": "cuda"}}}))
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda': torch \S+ sees 0 CUDA"):
         open_model(str(MODEL), config, 1)
 
 
@@ -418,7 +419,8 @@ def test_host_copy_on_the_cpu_hands_back_the_tensors_memory():
 def _cuda_config(config: Config) -> Config:
     """`config` with frames on cuda:0 and the network in what "auto" picks there: onnxruntime's
     CUDA or TensorRT provider where the installed onnxruntime has one, else torch."""
-    return Config.model_validate(_overlay(config.model_dump(), {"daemon": {"device": "cuda:0"}}))
+    return Config.model_validate(_overlay(config.model_dump(),
+                                          {"daemon": {"frames": {"device": "cuda:0"}}}))
 
 
 # Below this amplitude (of the coding's full scale) a pixel's double-phase pair sums to almost
@@ -545,20 +547,21 @@ def test_cuda_frames_without_gsplat_or_onnxruntime_gpu_are_refused_before_a_mode
 
     gpu = torch.device("cuda", 0)
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
-    with pytest.raises(ValueError, match=r"daemon\.device = cuda:0 with daemon\.inference = "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = cuda:0 with "
+                                         r"daemon\.frames\.inference = "
                                          r"\"onnxruntime\": this onnxruntime has no "
                                          r"CUDAExecutionProvider \(available: "
                                          r"CPUExecutionProvider\); install onnxruntime-gpu in "
-                                         r"place of onnxruntime, or set daemon\.inference to "
-                                         r"\"auto\" or \"torch\""):
+                                         r"place of onnxruntime, or set daemon\.frames\.inference "
+                                         r"to \"auto\" or \"torch\""):
         device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"],
                                      inference="onnxruntime")
     # "auto" and "torch" inference need no CUDA provider: torch runs the network
     device_mod.check_cuda_frames("auto", gpu, ["CPUExecutionProvider"])
     device_mod.check_cuda_frames("cuda", gpu, ["CPUExecutionProvider"], inference="torch")
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: False)
-    with pytest.raises(ValueError, match=r"daemon\.device = 'cuda': CUDA frames render with "
-                                         r"gsplat, which does not import here; pip install "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = 'cuda': CUDA frames render "
+                                         r"with gsplat, which does not import here; pip install "
                                          r"'nhfd\[gpu\]'"):
         device_mod.check_cuda_frames("cuda", gpu, CPU_CUDA_TRT)
     device_mod.check_cuda_frames("cpu", torch.device("cpu"), [])  # the CPU needs neither
@@ -578,15 +581,15 @@ def test_what_runs_the_network(inference, device, providers, backend):
 
     got, why = inference_backend(inference, torch.device(device), providers)
     assert got == backend
-    assert why.startswith(f'daemon.inference = "{inference}": ') and why.endswith(device)
+    assert why.startswith(f'daemon.frames.inference = "{inference}": ') and why.endswith(device)
     if inference == "auto" and backend == "torch":
         assert "this onnxruntime has no CUDAExecutionProvider" in why
 
 
 def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(monkeypatch):
     """A workstation whose torch sees a GPU but whose onnxruntime is the CPU build: "auto"
-    computes frames on the GPU with torch running the network, unless daemon.inference asks for
-    onnxruntime: then "auto" serves frames on the CPU and says why, and "cuda" named
+    computes frames on the GPU with torch running the network, unless daemon.frames.inference asks
+    for onnxruntime: then "auto" serves frames on the CPU and says why, and "cuda" named
     explicitly is refused. Without gsplat, "auto" stays on the CPU."""
     from nhfd.pipeline import device as device_mod
 
@@ -594,16 +597,17 @@ def test_auto_keeps_frames_on_the_cpu_where_the_gpu_frame_path_is_not_installed(
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: True)
     cpu_ort = ["CPUExecutionProvider"]
     device, why = device_mod.frame_device("auto", cpu_ort)
-    assert device == torch.device("cuda", 0) and why == "daemon.device = 'auto': cuda:0"
+    assert device == torch.device("cuda", 0) and why == "daemon.frames.device = 'auto': cuda:0"
     device, why = device_mod.frame_device("auto", cpu_ort, inference="onnxruntime")
     assert device == torch.device("cpu")
     assert "no CUDAExecutionProvider" in why and why.endswith("computing frames on the CPU")
-    with pytest.raises(ValueError, match=r"daemon\.device = cuda:0 with daemon\.inference = "
+    with pytest.raises(ValueError, match=r"daemon\.frames\.device = cuda:0 with "
+                                         r"daemon\.frames\.inference = "
                                          r"\"onnxruntime\": this onnxruntime has no "
                                          r"CUDAExecutionProvider"):
         device_mod.frame_device("cuda", cpu_ort, inference="onnxruntime")
     device, why = device_mod.frame_device("auto", CPU_CUDA_TRT)
-    assert device == torch.device("cuda", 0) and why == "daemon.device = 'auto': cuda:0"
+    assert device == torch.device("cuda", 0) and why == "daemon.frames.device = 'auto': cuda:0"
     monkeypatch.setattr(device_mod.gsplat_backend, "available", lambda: False)
     device, why = device_mod.frame_device("auto", CPU_CUDA_TRT)
     assert device == torch.device("cpu") and "gsplat" in why
@@ -663,12 +667,12 @@ def test_cuda_graphs_capture_nothing_off_cuda_and_the_setting_is_a_boolean():
     assert Encoder(SETTINGS, device="cpu", cuda_graphs=True).graphs.enabled is False
     with pytest.raises(ValueError, match="cuda_graphs"):
         Config.model_validate(_overlay(tomllib.loads(default_text()),
-                                       {"daemon": {"cuda_graphs": "sometimes"}}))
+                                       {"daemon": {"frames": {"cuda_graphs": "sometimes"}}}))
 
 
 @needs_cuda
 def test_cuda_graphs_replay_the_eager_frames_view_after_view(donut, monkeypatch, record_property):
-    """daemon.cuda_graphs: the stages after the render, captured once and replayed, give the
+    """daemon.frames.cuda_graphs: the stages after the render, captured once and replayed, give the
     eager path's frame for each of several views in turn (a replay that kept its first inputs
     would show the first view's frame again), and every stage was captured."""
     from nhfd.pipeline import frame as frame_mod

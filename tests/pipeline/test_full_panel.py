@@ -1,5 +1,5 @@
 """The whole 1920 x 1080 panel on the CPU: one frame of the shipped model with the window set to
-the panel (`daemon.frame_size_px = [1920, 1080]`), as the frame worker computes it.
+the panel (`daemon.frames.size_px = [1920, 1080]`), as the frame worker computes it.
 
 At that size the region is the panel itself (the kernel's margin is clipped by its edges), and
 the propagation runs on the FFT lengths the full panel really uses: "auto" padding takes the
@@ -37,7 +37,7 @@ PANEL_HW = (1080, 1920)
 
 @pytest.fixture(scope="module")
 def panel():
-    config = Config.model_validate({"daemon": {"frame_size_px": [PANEL_HW[1], PANEL_HW[0]]}})
+    config = Config.model_validate({"daemon": {"frames": {"size_px": [PANEL_HW[1], PANEL_HW[0]]}}})
     model = load_model(MODEL, config)
     settings = frame_settings(config, model.info, None)
     encoder = Encoder(settings)
@@ -141,13 +141,14 @@ def test_the_window_is_any_size_up_to_the_panel_and_a_larger_training_size_is_re
 
     meta = OnnxModel(MODEL).info  # trained at 512 x 288
     assert meta.train_size_hw == (288, 512)
-    whole = Config.model_validate({"daemon": {"frame_size_px": [1920, 1080]}})
-    assert frame_window_hw(whole.daemon, whole.slm, meta) == PANEL_HW
+    whole = Config.model_validate({"daemon": {"frames": {"size_px": [1920, 1080]}}})
+    assert frame_window_hw(whole.daemon.frames, whole.slm, meta) == PANEL_HW
     default = Config()
-    assert frame_window_hw(default.daemon, default.slm, meta) == (288, 512)  # empty: training size
+    # empty: the training size
+    assert frame_window_hw(default.daemon.frames, default.slm, meta) == (288, 512)
     small = Config.model_validate({"slm": {"width_px": 400, "height_px": 200}, "optics": {
         "hologram_width_px": 256, "hologram_height_px": 128}})
     with pytest.raises(ValueError, match=r"^frame window 512 x 288 \(the model's training size: "
-                       r"daemon\.frame_size_px is empty\) does not fit the panel 400 x 200 .*"
-                       r"set daemon\.frame_size_px to at most \[400, 200\]$"):
-        frame_window_hw(small.daemon, small.slm, meta)
+                       r"daemon\.frames\.size_px is empty\) does not fit the panel 400 x 200 .*"
+                       r"set daemon\.frames\.size_px to at most \[400, 200\]$"):
+        frame_window_hw(small.daemon.frames, small.slm, meta)

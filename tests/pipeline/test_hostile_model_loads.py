@@ -1,6 +1,6 @@
 """The frame worker's load path against hostile model files (issue 32, items 8 and 9): a model
 whose metadata the frame path cannot use, or whose session needs more than
-daemon.model_memory_mb, is refused, the refusal names the field or the budget, and the model
+daemon.paths.model_memory_mb, is refused, the refusal names the field or the budget, and the model
 already serving stays (the same object, the same model id), loaded and answering."""
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def shipped() -> Path:
 def serving(shipped: Path) -> _WorkerState:
     """A worker state serving the shipped model under a BUDGET_MB model budget."""
     state = _WorkerState(Config.model_validate(
-        {"daemon": {"model_memory_mb": BUDGET_MB, "frame_size_px": FRAME}}))
+        {"daemon": {"paths": {"model_memory_mb": BUDGET_MB}, "frames": {"size_px": FRAME}}}))
     info = state.load_model(str(shipped))
     # what the load's probe measured travels to status, below the budget
     assert 0 < info.load_memory_mb < BUDGET_MB
@@ -76,7 +76,7 @@ def test_a_model_that_needs_more_than_the_budget_is_refused_without_allocating_i
                         graph=with_huge_tensor((8192, 16384), at))
     peak_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     with pytest.raises(ModelOverBudget, match=rf"huge-{at}\.onnx: its test inference needs "
-                                              rf"more memory than daemon\.model_memory_mb = "
+                                              rf"more memory than daemon\.paths\.model_memory_mb = "
                                               rf"{BUDGET_MB} MB allows"):
         state.load_model(str(path))
     # Today this process folded or ran the 512 MiB tensor (1 GB resident at the fold): here it
@@ -88,7 +88,7 @@ def test_a_model_that_needs_more_than_the_budget_is_refused_without_allocating_i
 def test_the_worker_replies_with_each_refusal_and_keeps_the_model(shipped, tmp_path):
     """Through the worker's message loop, as the daemon's `load_model` reaches it."""
     state = _WorkerState(Config.model_validate(
-        {"daemon": {"model_memory_mb": BUDGET_MB, "frame_size_px": FRAME}}))
+        {"daemon": {"paths": {"model_memory_mb": BUDGET_MB}, "frames": {"size_px": FRAME}}}))
     nan_scale = hostile_copy(shipped, tmp_path / "nan.onnx",
                              meta=setting("amplitude_scale", math.nan))
     huge = hostile_copy(shipped, tmp_path / "huge.onnx", graph=with_huge_tensor((8192, 16384),
@@ -107,5 +107,5 @@ def test_the_worker_replies_with_each_refusal_and_keeps_the_model(shipped, tmp_p
     assert replies[2].error.startswith("InvalidMetadata: ")
     assert "nan.onnx: metadata amplitude_scale = nan: expected a finite number" in replies[2].error
     assert isinstance(replies[3], LoadFailed) and replies[3].error.startswith("ModelOverBudget: ")
-    assert f"daemon.model_memory_mb = {BUDGET_MB} MB" in replies[3].error
+    assert f"daemon.paths.model_memory_mb = {BUDGET_MB} MB" in replies[3].error
     assert state.model_id == 1 and str(state.model.path) == str(shipped)

@@ -239,7 +239,7 @@ def test_exact_and_sgd_beat_the_network_frame_on_the_shipped_scene() -> None:
     network: the view's own light-field inversion) and sgd from the network's frame both score
     above the network's double-phase frame against the exact target. Measured: network 29.7 dB,
     exact 34.9 dB, sgd 42.4 dB after 30 steps."""
-    config = Config.model_validate({"daemon": {"frame_size_px": [160, 96]}})
+    config = Config.model_validate({"daemon": {"frames": {"size_px": [160, 96]}}})
     model = load_model(MODEL, config)
     enc = Encoder(frame_settings(config, model.info, None))
     load = read_scene(SCENE)

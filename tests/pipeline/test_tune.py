@@ -132,7 +132,8 @@ def test_the_differentiable_coding_is_the_frame_paths(scene, meta) -> None:
     differentiates quantises to the same levels within the coders' tolerance
     (tests/optics/test_coders_against_reference.py: one level apart, next to a decision), and
     its gradient is the coded phase's (a directional derivative against central differences)."""
-    config = Config.model_validate({"daemon": {"frame_size_px": [WINDOW_HW[1], WINDOW_HW[0]]}})
+    config = Config.model_validate({"daemon": {"frames": {"size_px": [WINDOW_HW[1],
+                                                                       WINDOW_HW[0]]}}})
     model = load_model(MODEL, config)
     s = dataclasses.replace(frame_settings(config, model.info, CAL), panel_hw=PANEL_HW)
     enc = Encoder(s)

@@ -1,7 +1,7 @@
 """Hostile scene files (issue 32, items 6 and 7): every reader bounds what it reads and inflates
 by the count the file declares, refuses counts above `max_gaussians`, reads only regular files,
 keeps a scene's references inside its own folder; the daemon reads a scene in a child process
-under `[daemon] scene_memory_mb` and `[daemon] max_gaussians`.
+under `[daemon.paths] scene_memory_mb` and `[daemon.paths] max_gaussians`.
 
 Each hostile file is built here, small on disk. Where a test measures memory it is the peak
 that `tracemalloc` sees (Python objects and numpy arrays) while the file is read: a bounded
@@ -44,6 +44,7 @@ from nhfd.scene.io import (
     save_compressed_ply,
     save_splat,
 )
+from nhfd.worker_messages import SceneLoaded
 
 from .test_formats import FIXTURES, make_glb, one_gaussian_body, one_splat_glb, split_glb
 
@@ -399,7 +400,7 @@ def zero_spz(tmp_path: Path, n: int) -> Path:
 def test_the_daemons_scene_read_is_bounded_by_its_memory_budget(tmp_path: Path) -> None:
     path = zero_spz(tmp_path, 1_000_000)  # 20 MB of data, over 100 MB while decoding
     with pytest.raises(SceneFileError, match=rf"{path}: reading the scene needs more than "
-                                             r"daemon\.scene_memory_mb = 64 MiB"):
+                                             r"daemon\.paths\.scene_memory_mb = 64 MiB"):
         read_scene_counts(path, MAX_GAUSSIANS, 64)
     # The same read with room to decode gets as far as the file's content.
     with pytest.raises(SceneFileError, match=rf"{path}: not a plausible scene"):
@@ -417,9 +418,9 @@ class _Frames:
     def __init__(self) -> None:
         self.loaded: list[str] = []
 
-    def load_scene(self, path: str) -> dict[str, object]:
+    def load_scene(self, path: str) -> SceneLoaded:
         self.loaded.append(path)
-        return {"path": path}
+        return SceneLoaded(path, 64, 64, 0, "", (0.0, 0.0, 0.0), "+z")
 
 
 class _Host:
@@ -441,7 +442,7 @@ def test_the_daemons_load_scene_applies_max_gaussians_and_scene_memory_mb(tmp_pa
         return job
 
     for limit in (63, 64):
-        host = _Host(tmp_path, max_gaussians=limit)
+        host = _Host(tmp_path, paths={"max_gaussians": limit})
         try:
             job = load(host, "tiny.spz")
         finally:
@@ -454,12 +455,12 @@ def test_the_daemons_load_scene_applies_max_gaussians_and_scene_memory_mb(tmp_pa
             assert job.state == "done", job.error
             assert host.frames.loaded == [str(tmp_path / "tiny.spz")]
             assert host.scene["gaussians"] == 64
-    host = _Host(tmp_path, scene_memory_mb=64)
+    host = _Host(tmp_path, paths={"scene_memory_mb": 64})
     try:
         job = load(host, "zeros.spz")
         assert job.state == "failed"
         assert job.error.startswith(f"SceneFileError: {tmp_path / 'zeros.spz'}: reading the "
-                                    "scene needs more than daemon.scene_memory_mb = 64 MiB")
+                                    "scene needs more than daemon.paths.scene_memory_mb = 64 MiB")
         assert host.frames.loaded == [] and host.scene is None
     finally:
         host.load_jobs.close()

@@ -39,8 +39,9 @@ camera = "none"
 stage = "none"
 [devices.readybeam.guardian]
 socket_path = "{short_dir / 'laser.sock'}"
-[daemon]
+[daemon.server]
 runtime_dir = "{run}"
+[daemon.paths]
 snapshot_dir = "{short_dir / 'snaps'}"
 [daemon.web]
 enabled = true

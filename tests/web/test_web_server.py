@@ -175,7 +175,7 @@ def test_https_with_a_self_signed_certificate(tmp_path):
 def test_preview_is_the_panel_every_kth_pixel_and_refuses_bad_parameters():
     root = Path(tempfile.mkdtemp(prefix="nhfd-p-", dir="/tmp"))
     (root / "calib").mkdir()
-    r = Running(bench_config(root, None, pattern_dirs=[str(root / "calib")]), root)
+    r = Running(bench_config(root, None, paths={"pattern_dirs": [str(root / "calib")]}), root)
     try:
         c = r.client()
         assert c.call("preview", source="camera") == {"source": "camera", "available": False}

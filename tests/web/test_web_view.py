@@ -57,8 +57,9 @@ def rings(h: int, w: int) -> np.ndarray:
 def bench():
     root = Path(tempfile.mkdtemp(prefix="nhfd-w-", dir="/tmp"))
     (root / "calib").mkdir()
-    config = bench_config(root, None, pattern_dirs=[str(root / "calib")],
-                          camera_roi_px=[1000, 1200, 24, 32], stage_at_reference_mm=0.0,
+    config = bench_config(root, None, paths={"pattern_dirs": [str(root / "calib")]},
+                          bench={"camera_roi_px": [1000, 1200, 24, 32],
+                                 "stage_at_reference_mm": 0.0},
                           web={"port": 0, "push_interval_s": 0.2})
     config = config.model_copy(update={"devices": config.devices.model_copy(
         update={"camera": "simulated"})})
@@ -189,8 +190,8 @@ def test_the_page_shows_the_bench_and_steers_it_but_never_arms(bench, browser):
     wait.until(lambda d: "ARMED" in d.find_element(By.ID, "armed").text)
     assert " s left" in browser.find_element(By.ID, "armed").text
 
-    # The snapshot button: a capture saved in daemon.snapshot_dir, offered for download, and the
-    # page's camera thumbnail is that capture.
+    # The snapshot button: a capture saved in daemon.paths.snapshot_dir, offered for download, and
+    # the page's camera thumbnail is that capture.
     browser.find_element(By.ID, "snapshot").click()
     link = wait.until(lambda d: d.find_elements(By.CSS_SELECTOR, "#snapshot-result a"))[0]
     name = link.text
