@@ -19,12 +19,15 @@ them, so everything that applies a calibration stays free of torch.
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
+import json
 import logging
 import math
 import numbers
 import threading
 import tomllib
-from dataclasses import dataclass, field
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -350,6 +353,31 @@ def _dump(doc: dict[str, Any], prefix: str = "") -> str:
             name = f"{prefix}{k}"
             out += f"\n[{name}]\n" + _dump(v, f"{name}.")
     return out
+
+
+def fingerprint(cal: Calibration) -> str:
+    """SHA-256 (hex) over a calibration's fitted values (every field but `source`, where it was
+    loaded from): the same fit gives the same fingerprint wherever its file lies. A tuned model
+    records the fingerprint of the calibration it was tuned for (`tuned_for`)."""
+    values = asdict(cal)
+    values.pop("source", None)
+    return hashlib.sha256(json.dumps(values, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def other_bench(tuned_for: Mapping[str, Any] | None, cal: Calibration | None) -> str | None:
+    """Why a model tuned for one bench does not fit the calibration `cal` in use (None: it fits,
+    or the model was not tuned, `tuned_for` None): the message names both, the model's by its
+    calibration's label, fingerprint and date."""
+    if not tuned_for:
+        return None
+    want = str(tuned_for.get("calibration_sha256", ""))
+    if cal is not None and fingerprint(cal) == want:
+        return None
+    theirs = (f"calibration {tuned_for.get('calibration', '?')} (fitted values {want[:12]}, "
+              f"tuned {tuned_for.get('date', '?')})")
+    ours = (f"calibration {cal.label} (fitted values {fingerprint(cal)[:12]})" if cal is not None
+            else "no calibration (calibration.file is empty)")
+    return f"the model was tuned for {theirs}; this bench applies {ours}"
 
 
 def panel_coding(slm: SLMSettings, cal: Calibration | None

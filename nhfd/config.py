@@ -553,6 +553,10 @@ class FramesSettings(_Section):
     # Serve a frame window whose size (padded to the model's input multiple) is not among the
     # model's checked_sizes (`nhfd model check-sizes`); false: such a model load is refused.
     allow_unchecked_sizes: bool = False
+    # Serve a model tuned for another bench's calibration (its metadata's tuned_for names it,
+    # `nhfd model tune`), or one tuned for a bench while none is configured; false: such a model
+    # load is refused, naming both, and the model in service stays. `status` says when it is on.
+    allow_other_bench: bool = False
     # Frames kept by the frame worker, keyed by view and settings (a revisited view is instant).
     cache_frames: Annotated[int, Field(ge=0, le=1024)] = 16
     # Threads of the frame worker process for torch (intra-op; inter-op is 1), numba and

@@ -34,6 +34,8 @@ from nhfd.views import View
 
 # The model variants a load may serve (`nhfd.pipeline.worker.choose_variant`).
 VARIANTS = ("float", "int8")
+# What `status` shows of a tuned model's bench (its metadata's `tuned_for`).
+TUNED_FOR_SHOWN = ("calibration", "calibration_sha256", "date")
 
 
 def _index(owner: str, name: str, value: Any, *, optional: bool = False) -> None:
@@ -85,6 +87,9 @@ class ModelLoaded:
     load_memory_mb          what its session and test run took in the load's probe (MB), or
                             None where not measured
     size_warning            why the frame window is not a checked size, where allowed ("": it is)
+    tuned_for               the bench a tuned model was tuned for (its metadata's record:
+                            calibration label, fingerprint, date), or None: not tuned
+    bench_warning           why it serves on another bench (`daemon.frames.allow_other_bench`)
     """
 
     path: str
@@ -103,6 +108,8 @@ class ModelLoaded:
     loaded_s: float
     load_memory_mb: float | None = None
     size_warning: str = ""
+    tuned_for: dict[str, Any] | None = None
+    bench_warning: str = ""
 
     def __post_init__(self) -> None:
         _typed("model loaded", "info", self.info, ModelInfo)
@@ -128,6 +135,10 @@ class ModelLoaded:
             "device_reason": self.device_reason}
         if self.size_warning:
             out["size_warning"] = self.size_warning
+        out["tuned_for"] = (None if not self.tuned_for else
+                            {k: self.tuned_for.get(k) for k in TUNED_FOR_SHOWN})
+        if self.bench_warning:
+            out["bench_warning"] = self.bench_warning
         return out
 
 

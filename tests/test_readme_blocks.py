@@ -97,3 +97,18 @@ def test_the_dial_block_runs_as_written_and_the_readme_quotes_it():
                                        r"\d+ frames swapped in; .+", quoted.group(1)), quoted
         frame = np.load(root / "out" / "refine" / "frame.npy")
         assert frame.dtype == np.uint8 and frame.shape[:2] == (1, 3)
+
+
+@NEEDS_VENV
+def test_the_scene_block_runs_as_written():
+    """`scene info` and `scene render` on the scenes a clone has: the renders written at the
+    sizes asked for, the depth map beside the first."""
+    block = readme_block("## Bringing a scene")
+    with tempfile.TemporaryDirectory(prefix="nhfd-readme-", dir="/tmp") as tmp:
+        root = Path(tmp)
+        out = run_block(block, root)
+        assert "gaussians     45624" in out and "render it:" in out, out
+        assert Image.open(root / "view.png").size == (1024, 576)  # scene render's default
+        depth = np.load(root / "depth.npy")
+        assert depth.shape == (576, 1024) and np.isfinite(depth).any()
+        assert Image.open(root / "t.png").size == (1024, 576)

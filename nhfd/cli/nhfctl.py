@@ -312,6 +312,9 @@ def human_model(model: Any) -> str:
         [model["checked_size_hw"]] if model.get("checked_size_hw") else [])
     if checked:
         parts.append("checked at " + ", ".join(_size(hw) for hw in checked))
+    tuned = model.get("tuned_for")
+    if tuned:
+        parts.append(f"tuned for calibration {tuned.get('calibration')} ({tuned.get('date')})")
     return f"{name} ({'; '.join(p for p in parts if p)})"
 
 

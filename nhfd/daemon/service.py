@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from nhfd import __version__
-from nhfd.calibration import CalibrationStore
+from nhfd.calibration import CalibrationStore, other_bench
 from nhfd.config import Config, ConfigError, ServerSettings, cross_field_problems
 from nhfd.frame_message import CaptureReply, CaptureRequest
 
@@ -588,11 +588,22 @@ class Daemon:
         self.errors.note("frame worker", message)
 
     def _view_warnings(self) -> list[str]:
-        """What `status` warns of the view requested: one that shows nothing."""
+        """What `status` warns of the view requested (one that shows nothing) and of the model
+        serving it (tuned for another bench than the calibration in use now)."""
         view = self.views.view
         hint = None if view is None else no_model_hint(view.quality, self.frames,
                                                        self.load_jobs)
-        return [hint] if hint else []
+        model = self.frames.model
+        other = None
+        if model is not None and model.tuned_for:
+            try:
+                other = other_bench(model.tuned_for, self.calibration.active())
+            except ValueError:  # an unreadable calibration: its own error says so
+                other = None
+        if other:
+            other = (model.bench_warning or f"{other}: the calibration changed since the model "
+                     "was loaded; it keeps serving until another model is loaded")
+        return [w for w in (hint, other) if w]
 
     def _emission_ended(self, reason: str) -> None:
         """An emission session ended (`LaserLink.end_session`; any thread): the citl run of the

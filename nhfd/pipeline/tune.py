@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import dataclasses
 import datetime as _dt
-import hashlib
 import json
 import math
 import os
@@ -41,7 +40,7 @@ import numpy as np
 import torch
 import torch.fft as fft
 
-from nhfd.calibration import Calibration, check_bench
+from nhfd.calibration import Calibration, check_bench, fingerprint
 from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
 from nhfd.models.inputs import network_input
@@ -134,14 +133,6 @@ class TuneSettings:
             d.pop(k)
         d["window_hw"] = list(self.window_hw)
         return d
-
-
-def calibration_sha256(cal: Calibration) -> str:
-    """SHA-256 (hex) over a calibration's fitted values (every field but where it was loaded
-    from): the same fit gives the same hash wherever its file lies."""
-    values = dataclasses.asdict(cal)
-    values.pop("source", None)
-    return hashlib.sha256(json.dumps(values, sort_keys=True, default=str).encode()).hexdigest()
 
 
 # -- the differentiable frame path ---------------------------------------------------------------
@@ -460,7 +451,7 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
     views = choose_views(training_poses_of(meta, scene, None if dataset is None
                                            else Path(dataset)), settings.views)
     model_sha = sha256_file(model_path)
-    cal_sha = calibration_sha256(calibration)
+    cal_sha = fingerprint(calibration)
     key = {"model_sha256": model_sha, "scene_sha256": scene_sha, "calibration_sha256": cal_sha,
            "settings": settings.key(), "panel_hw": list(panel_hw or ()),
            "views": [v.to_json() for v in views]}

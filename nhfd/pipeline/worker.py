@@ -68,7 +68,7 @@ import numpy as np
 import onnxruntime as ort
 import torch
 
-from nhfd.calibration import Calibration, CalibrationStore
+from nhfd.calibration import Calibration, CalibrationStore, other_bench
 from nhfd.config import Config, DaemonSettings
 from nhfd.dataset.build import sha256_file
 from nhfd.frame_message import CaptureReply, FrameMessage, RefinedFrame, StageTimes
@@ -398,6 +398,12 @@ class _WorkerState:
         # UncheckedSize names the size, the checked ones and daemon.frames.allow_unchecked_sizes
         warning = window_check(model.info, window_hw, path, allow=allow)
         check_inference(model, window_hw, path)
+        tuned_for = model.metadata.get("tuned_for") or None
+        other = other_bench(tuned_for, self.calibration.active())
+        if other and not daemon.frames.allow_other_bench:
+            raise ModelUnfit(f"{path}: {other}. Load a model tuned for this calibration (nhfd "
+                             "model tune), or set daemon.frames.allow_other_bench = true to "
+                             "serve it anyway")
         served, variant, why = model, "float", ""
         sibling = int8_sibling(path)
         if Path(path).stem.endswith("-int8") or HELDOUT_KEY in model.metadata:
@@ -427,7 +433,10 @@ class _WorkerState:
             device_reason=device_why, window_hw=window_hw, checked_sizes_hw=tuple(checked),
             checked_sizes_recorded=recorded, loaded_s=time.time(),
             # the memory its session and test run took in the load's probe (open_model)
-            load_memory_mb=getattr(served, "load_memory_mb", None), size_warning=warning or "")
+            load_memory_mb=getattr(served, "load_memory_mb", None), size_warning=warning or "",
+            tuned_for=dict(tuned_for) if tuned_for else None,
+            bench_warning=f"{other}: served because daemon.frames.allow_other_bench = true"
+            if other else "")
 
     def load_scene(self, path: str) -> SceneLoaded:
         """The scene file at `path`, read within `daemon.paths.max_gaussians`: its counts,

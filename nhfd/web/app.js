@@ -102,7 +102,8 @@ function showState(msg) {
     : (stage.error || "none"));
   text("display", s.display);
   text("scene", s.scene ? `${s.scene.path} (${s.scene.gaussians} Gaussians)` : "none");
-  text("model", typeof s.model === "string" ? s.model : `${s.model.path} (${s.model.profile || "?"})`);
+  text("model", typeof s.model === "string" ? s.model : `${s.model.path} (${s.model.profile || "?"})`
+    + (s.model.tuned_for ? `, tuned for calibration ${s.model.tuned_for.calibration}` : ""));
   const cal = s.calibration || {};
   text("calibration", cal.loaded ? `${cal.file}` : (cal.error || "none (uncalibrated focus mapping)"));
   text("fps", msg.fps === null ? "–" : `${msg.fps.toFixed(1)} frames/s (${s.frames.frames_shown} shown)`);

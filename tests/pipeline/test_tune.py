@@ -23,7 +23,7 @@ import torch
 from nhfd.benchmarks.quality import captured_quality
 from nhfd.calib.citl import CameraLoop
 from nhfd.calib.sim import sim_devices, sim_panel_hw
-from nhfd.calibration import Calibration
+from nhfd.calibration import Calibration, fingerprint
 from nhfd.cli.main import main
 from nhfd.config import Config
 from nhfd.drivers.simcamera import TrueBench
@@ -222,7 +222,7 @@ def test_a_tuned_model_scores_higher_through_the_bench_model_on_held_out_views(
     record = got.pop("tuned_for")
     want.pop("checked_sizes", None)
     assert got == want
-    assert record["calibration_sha256"] == T.calibration_sha256(CAL)
+    assert record["calibration_sha256"] == fingerprint(CAL)
     assert record["calibration"] == CAL.label and record["date"] and record["steps"] == 30
     assert load_model(res.path, Config()).info.amplitude_scale == untuned.amplitude_scale
     assert (res.path.parent / "tune.json").is_file()
@@ -375,7 +375,7 @@ def test_the_command_tunes_and_writes_a_checked_model(tmp_path, model_file, caps
     assert rc == 0, printed
     assert "view 1/1 prepared" in printed and "step 2/2" in printed and "left" in printed
     got = read_metadata(out / T.TUNED)
-    assert got["tuned_for"]["calibration_sha256"] == T.calibration_sha256(Calibration.load(cal))
+    assert got["tuned_for"]["calibration_sha256"] == fingerprint(Calibration.load(cal))
     assert got["tuned_for"]["steps"] == 2
     assert [e["hw"] for e in got["checked_sizes"]] == \
         [e["hw"] for e in read_metadata(model_file)["checked_sizes"]]
