@@ -135,7 +135,8 @@ def test_status_prints_the_model_as_one_line(running: Running, capsys, monkeypat
             "parameters": 123456, "train_steps": 10000, "scene_sha256": "ab" * 32,
             "providers": ["CUDAExecutionProvider", "CPUExecutionProvider"], "loaded_s": 1.0}
     def served(report: dict) -> SimpleNamespace:  # status's "model" is its to_json()
-        return SimpleNamespace(to_json=lambda: report, variant=None, variant_reason=None)
+        return SimpleNamespace(to_json=lambda: report, variant=None, variant_reason=None,
+                               tuned_for=report.get("tuned_for"), bench_warning="")
 
     monkeypatch.setattr(running.daemon.frames.loads, "model", served(info))
     assert main(["--socket", str(running.socket), "status"]) == 0
@@ -148,6 +149,12 @@ def test_status_prints_the_model_as_one_line(running: Running, capsys, monkeypat
     assert ("model    fast-v3.onnx (profile fast; trained 1024 x 576 px; CUDAExecutionProvider, "
             "CPUExecutionProvider; checked at 1024 x 576 px, 1920 x 1080 px)\n"
             in capsys.readouterr().out)
+    tuned = dict(info, tuned_for={"calibration": "bench-a.toml (2026-12-01)",
+                                  "calibration_sha256": "cd" * 32, "date": "2026-12-02"})
+    monkeypatch.setattr(running.daemon.frames.loads, "model", served(tuned))
+    assert main(["--socket", str(running.socket), "status"]) == 0
+    assert ("CPUExecutionProvider; tuned for calibration bench-a.toml (2026-12-01) "
+            "(2026-12-02))\n" in capsys.readouterr().out)
 
 
 def test_the_socket_is_the_given_one_else_the_configured_daemons(tmp_path):

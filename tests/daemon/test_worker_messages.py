@@ -205,7 +205,7 @@ def test_the_model_reports_itself_as_status_always_showed_it():
         "mapping", "pose_envelope", "parameters", "train_steps", "scene_sha256", "providers",
         "loaded_s", "load_memory_mb", "inference", "inference_reason", "variant",
         "variant_reason", "served", "window_hw", "checked_sizes_hw", "checked_sizes_recorded",
-        "device", "device_reason", "size_warning"]
+        "device", "device_reason", "size_warning", "tuned_for"]
     assert out == {"path": "/m/model.onnx", **INFO.status_json(),
                    "providers": ["CPUExecutionProvider"], "loaded_s": 1764650000.5,
                    "load_memory_mb": 24.3, "inference": "onnxruntime",
@@ -214,7 +214,7 @@ def test_the_model_reports_itself_as_status_always_showed_it():
                    "served": "/m/model-int8.onnx", "window_hw": [288, 512],
                    "checked_sizes_hw": [[288, 512], [576, 1024]],
                    "checked_sizes_recorded": True, "device": "cpu", "device_reason": "auto",
-                   "size_warning": "a warning"}
+                   "size_warning": "a warning", "tuned_for": None}
     assert "size_warning" not in dataclasses.replace(MODEL, size_warning="").to_json()
     assert SAMPLES[11].result.to_json() == {
         "path": "/s/donut.ply", "gaussians": 45624, "declared": 45624, "dropped": 0,
