@@ -364,6 +364,17 @@ def fingerprint(cal: Calibration) -> str:
     return hashlib.sha256(json.dumps(values, sort_keys=True, default=str).encode()).hexdigest()
 
 
+# What a tuned model records of the bench it was tuned for (its metadata's `tuned_for`, beside
+# the tuning's own figures), and what `status` shows of it.
+BENCH_RECORD_KEYS = ("calibration", "calibration_sha256", "date")
+
+
+def bench_record(cal: Calibration, date: str) -> dict[str, str]:
+    """The `BENCH_RECORD_KEYS` of a model tuned for `cal` on `date` (ISO 8601): the
+    calibration's label, its fingerprint, the date."""
+    return dict(zip(BENCH_RECORD_KEYS, (cal.label, fingerprint(cal), date), strict=True))
+
+
 def other_bench(tuned_for: Mapping[str, Any] | None, cal: Calibration | None) -> str | None:
     """Why a model tuned for one bench does not fit the calibration `cal` in use (None: it fits,
     or the model was not tuned, `tuned_for` None): the message names both, the model's by its
@@ -371,11 +382,12 @@ def other_bench(tuned_for: Mapping[str, Any] | None, cal: Calibration | None) ->
     if not tuned_for:
         return None
     want = str(tuned_for.get("calibration_sha256", ""))
-    if cal is not None and fingerprint(cal) == want:
+    have = fingerprint(cal) if cal is not None else None
+    if have == want:
         return None
     theirs = (f"calibration {tuned_for.get('calibration', '?')} (fitted values {want[:12]}, "
               f"tuned {tuned_for.get('date', '?')})")
-    ours = (f"calibration {cal.label} (fitted values {fingerprint(cal)[:12]})" if cal is not None
+    ours = (f"calibration {cal.label} (fitted values {have[:12]})" if cal is not None and have
             else "no calibration (calibration.file is empty)")
     return f"the model was tuned for {theirs}; this bench applies {ours}"
 

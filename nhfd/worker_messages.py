@@ -28,14 +28,14 @@ from typing import Any
 
 import numpy as np
 
+from nhfd.calibration import BENCH_RECORD_KEYS
 from nhfd.frame_message import CaptureReply, CaptureRequest, FrameMessage, RefinedFrame
 from nhfd.model_info import ModelInfo
 from nhfd.views import View
 
 # The model variants a load may serve (`nhfd.pipeline.worker.choose_variant`).
 VARIANTS = ("float", "int8")
-# What `status` shows of a tuned model's bench (its metadata's `tuned_for`).
-TUNED_FOR_SHOWN = ("calibration", "calibration_sha256", "date")
+
 
 
 def _index(owner: str, name: str, value: Any, *, optional: bool = False) -> None:
@@ -136,7 +136,7 @@ class ModelLoaded:
         if self.size_warning:
             out["size_warning"] = self.size_warning
         out["tuned_for"] = (None if not self.tuned_for else
-                            {k: self.tuned_for.get(k) for k in TUNED_FOR_SHOWN})
+                            {k: self.tuned_for.get(k) for k in BENCH_RECORD_KEYS})
         if self.bench_warning:
             out["bench_warning"] = self.bench_warning
         return out

@@ -54,6 +54,7 @@ from nhfd.optics import (
 )
 from nhfd.optics.pupil import apply_pupil, pupil_scales, pupil_transfer
 from nhfd.scene.lightfield import DepthMapping
+from nhfd.scene.raster import Render
 from nhfd.views import QUALITY_TIERS, View
 
 from .encoder import Encoder
@@ -500,8 +501,8 @@ class Prepared:
     without a model, `configured_info` with the view's own depth mapping and amplitude scale),
     the encoder, the view's exact reference field `[C, h, w]`, the target at its content
     planes, the bench model at those planes, the exact frame `[C, Hr, Wr]` uint8 and its
-    clipped fractions, the view's render (sRGB `[3, h, w]`, the preview) and the seconds all
-    that took."""
+    clipped fractions, the view's render (sRGB `[3, h, w]`, the preview; depth and alpha) and
+    the seconds all that took."""
 
     view: View
     info: ModelInfo
@@ -511,8 +512,13 @@ class Prepared:
     model: BenchForward
     exact_grey: np.ndarray
     clipped: tuple[float, ...]
-    rgb: np.ndarray
+    render: Render
     seconds: float
+
+    @property
+    def rgb(self) -> np.ndarray:
+        """The view's sRGB render `[3, h, w]` (the preview)."""
+        return self.render.rgb
 
 
 def prepare(config: Config, view: View, scene: Scene, *, info: ModelInfo | None = None,
@@ -575,7 +581,7 @@ def prepare(config: Config, view: View, scene: Scene, *, info: ModelInfo | None 
         exact_grey, clipped = encoder.code(encoder.to_slm(reference))
     poll()
     return Prepared(view, info, encoder, reference, target, BenchForward(encoder, at),
-                    exact_grey, tuple(clipped), r.rgb, time.perf_counter() - t0)
+                    exact_grey, tuple(clipped), r, time.perf_counter() - t0)
 
 
 def model_loss(p: Prepared, grey: np.ndarray) -> float:

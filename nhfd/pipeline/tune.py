@@ -40,7 +40,7 @@ import numpy as np
 import torch
 import torch.fft as fft
 
-from nhfd.calibration import Calibration, check_bench, fingerprint
+from nhfd.calibration import Calibration, bench_record, check_bench, fingerprint
 from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
 from nhfd.models.inputs import network_input
@@ -54,7 +54,6 @@ from nhfd.scene.cameras import look_at
 from nhfd.views import Pose, View
 
 from .encoder import Encoder, reference_field
-from .frame import render_view
 from .refine import Prepared, grey_phase, prepare, psnr_db, stack_loss
 from .view import Scene
 
@@ -67,8 +66,6 @@ SSIM_WEIGHT_RANGE = (0.0, 1.0)
 PLANES_RANGE = (1, 8)
 CHECKPOINT_EVERY_RANGE = (1, 100_000)
 WINDOW_RANGE_PX = (16, 4096)
-# The SSIM's box window (px), as training's structural term.
-SSIM_WINDOW_PX = 7
 # The gradient's norm is clipped to this: one view's step never throws the network far.
 GRAD_CLIP = 1.0
 CHECKPOINT = "checkpoint.pt"
@@ -209,7 +206,7 @@ class DifferentiableCoding:
 
 # -- the loss ----------------------------------------------------------------------------------
 
-def tune_loss(seen: torch.Tensor, p: Prepared, ssim_weight: float
+def tune_loss(seen: torch.Tensor, p: Prepared, ssim_weight: float, window_px: int
               ) -> tuple[torch.Tensor, float, float]:
     """The tuning loss of the intensities `seen` `[D, C, h, w]` the bench model gives for a
     view's frame: `stack_loss` (sgd's objective) + ssim_weight x (1 - SSIM), the SSIM over each
@@ -223,7 +220,7 @@ def tune_loss(seen: torch.Tensor, p: Prepared, ssim_weight: float
     gains = colour_gains(seen.detach(), target.intensity, m).to(seen.dtype)
     x = (seen * gains[:, None, None] / target.scale)[..., r0:r1, c0:c1].flatten(0, 1)
     y = (target.intensity / target.scale)[..., r0:r1, c0:c1].flatten(0, 1)
-    window = min(SSIM_WINDOW_PX, r1 - r0, c1 - c0)
+    window = min(window_px, r1 - r0, c1 - c0)
     ssim = box_ssim(x, y, window)
     return mse + ssim_weight * (1 - ssim), float(mse.detach()), float(ssim.detach())
 
@@ -300,13 +297,15 @@ def choose_views(poses: Sequence[View], n: int) -> list[View]:
 class TuneView:
     """A training view ready to tune on: the network's input `[1, C, H, W]` (padded to the
     network's multiple), the window (h, w), the prepared view (target, bench model, encoder)
-    and the differentiable coding over its encoder."""
+    and the differentiable coding over its encoder; the SSIM's box window (px: training's
+    structural term's, `[model.train] ssim_window_px`)."""
 
     view: View
     x: torch.Tensor
     hw: tuple[int, int]
     prepared: Prepared
     coding: DifferentiableCoding
+    ssim_window_px: int
 
 
 def prepare_views(views: Sequence[View], scene: Scene, model: TorchModel, config: Config,
@@ -322,13 +321,14 @@ def prepare_views(views: Sequence[View], scene: Scene, model: TorchModel, config
         p = prepare(config, view, scene, info=model.info, calibration=calibration,
                     window_hw=settings.window_hw, panel_hw=panel_hw, planes=settings.planes,
                     device=settings.device)
-        r = render_view(view, scene, model.info, settings.window_hw)
+        r = p.render  # the view as prepare rendered it, not rendered again
         x = network_input(r.rgb, model.inputs, depth=r.depth, alpha=r.alpha,
                           mapping=model.info.mapping_dict, volume_m=model.info.volume_m)
         t = torch.from_numpy(np.ascontiguousarray(x))[None].to(settings.device)
         h, w = t.shape[-2:]
         t = torch.nn.functional.pad(t, (0, (-w) % m, 0, (-h) % m))
-        out.append(TuneView(view, t, (h, w), p, DifferentiableCoding(p.encoder)))
+        out.append(TuneView(view, t, (h, w), p, DifferentiableCoding(p.encoder),
+                            config.model.train.ssim_window_px))
         say(f"view {i + 1}/{len(views)} prepared ({len(p.target.planes_m)} planes) in "
             f"{time.perf_counter() - t0:.1f} s")
     return out
@@ -343,7 +343,7 @@ def view_loss(net: torch.nn.Module, v: TuneView, amplitude_scale: float, ssim_we
     ref = reference_field(amp[0, :, :h, :w], phase[0, :, :h, :w], amplitude_scale)
     shown, _ = v.coding(ref)
     seen = v.prepared.model(shown[None]).mean(0)
-    return tune_loss(seen, v.prepared, ssim_weight)
+    return tune_loss(seen, v.prepared, ssim_weight, v.ssim_window_px)
 
 
 def bench_scores(net: torch.nn.Module, views: Sequence[TuneView], amplitude_scale: float
@@ -534,8 +534,7 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
     net.eval()
     after = bench_scores(net, tv, scale)
     tuned_for = {
-        "calibration": calibration.label, "calibration_sha256": cal_sha,
-        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        **bench_record(calibration, _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")),
         "source_model_sha256": model_sha, "steps": step, "seconds": round(elapsed, 1),
         "views": len(tv), "window_hw": list(settings.window_hw),
         "ssim_weight": settings.ssim_weight, "learning_rate": settings.learning_rate,

@@ -10,6 +10,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from nhfd.calibration import Calibration
 from nhfd.daemon.frame_link import PanelBuffer
 from nhfd.device_settings import CameraSettings
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
@@ -132,3 +133,30 @@ def amplitude_for(settings: FrameSettings, field: torch.Tensor) -> float:
 
 __all__ = ["PANEL_HW", "PLANES_M", "WINDOW_HW", "amplitude_for", "panel_frame",
            "sharpest_dz", "small", "spot_field", "stack_psnr", "target_field", "target_stack"]
+
+
+def truth_calibration(bench: TrueBench, roi: tuple[int, int, int, int] | None = None, *,
+                      illumination: bool = True) -> Calibration:
+    """What a perfect fit of `bench` would give: its phase tables, focus mapping and offsets,
+    geometry (the SLM centre's camera position on the region `roi`, [top, left, h, w]; None:
+    no shift) and, with `illumination`, its source profile and relay aberration. For tests
+    whose subject is not the fit: one that judges a learned part fits it from captures."""
+    zero = (0.0, 0.0, 0.0)
+    shift = (0.0, 0.0)
+    if roi is not None:
+        col, row = bench.slm_to_camera_px(0.0, 0.0)
+        shift = (col - roi[1], row - roi[0])
+    light = {} if not illumination else dict(
+        source_waist_m=(bench.source_waist_m,) * 3, source_waist_std_m=zero,
+        source_centre_m=(bench.source_offset_m,) * 3, source_centre_std_m=((0.0, 0.0),) * 3,
+        zernike_rad=bench.zernike_rad, zernike_std_rad=(0.0,) * len(bench.zernike_rad),
+        zernike_wavelength_m=bench.wavelengths_m[1])
+    return Calibration(
+        wavelengths_m=bench.wavelengths_m, pitch_m=bench.pitch_m, phase_sign=bench.phase_sign,
+        phase_tables_rad=bench.phase_tables, phase_table_std_rad=zero,
+        stage_scale=bench.stage_scale, stage_scale_std=0.0,
+        stage_at_slm_mm=bench.stage_at_slm_mm, stage_at_slm_std_mm=0.0,
+        z_offset_m=bench.z_offset_m, z_offset_std_m=zero, magnification=bench.magnification,
+        magnification_std=0.0, rotation_deg=bench.rotation_deg, rotation_std_deg=0.0,
+        mirror_x=bench.mirror_x, shift_px=shift, intensity=(1.0, 1.0, 1.0),
+        intensity_std=zero, fitted_on={"camera_pitch_m": bench.camera_pitch_m}, **light)

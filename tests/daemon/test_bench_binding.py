@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from nhfd.calibration import Calibration, fingerprint, other_bench
+from nhfd.calibration import Calibration, bench_record, fingerprint, other_bench
 from nhfd.config import Config
 from nhfd.pipeline.worker import ModelUnfit, _WorkerState
 from tests.daemon.test_bad_inputs import write_calibration
@@ -22,8 +22,7 @@ FRAME = [512, 288]  # the shipped model's training window (checked)
 
 def tuned_copy(tmp_path: Path, cal: Calibration) -> Path:
     """The shipped model with a `tuned_for` record naming `cal`, as `nhfd model tune` writes."""
-    record = {"calibration": cal.label, "calibration_sha256": fingerprint(cal),
-              "date": "2026-12-02T06:00:00+00:00", "steps": 1}
+    record = {**bench_record(cal, "2026-12-02T06:00:00+00:00"), "steps": 1}
     return hostile_copy(SHIPPED, tmp_path / "tuned.onnx", meta=setting("tuned_for", record))
 
 
@@ -101,8 +100,7 @@ def test_a_calibration_changed_under_a_tuned_model_is_a_warning_and_it_keeps_ser
     from .test_frames import daemon_config, wait_for_frames
 
     a = write_calibration(short_dir / "calibration.toml", stage_at_slm_mm=5.0)
-    record = {"calibration": Calibration.load(a).label,
-              "calibration_sha256": fingerprint(Calibration.load(a)), "date": "2026-12-02"}
+    record = bench_record(Calibration.load(a), "2026-12-02")
     (short_dir / "models").mkdir(exist_ok=True)
     model = hostile_copy(tiny["model"], short_dir / "models" / "tuned.onnx",
                          meta=setting("tuned_for", record))

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from nhfd.calibration import Calibration
 from nhfd.config import Config, _overlay
 from nhfd.daemon.protocol import RpcError
 from nhfd.device_settings import COLOURS
 from nhfd.drivers.simcamera import TrueBench
+from tests.calib.twin_stack import truth_calibration
 
 from .conftest import Running, wait_until
 from .test_colour import on_at
@@ -28,28 +28,12 @@ REFINE = {"iterations": 3, "seconds": 120.0, "tolerance": 0.0, "swap_every": 1, 
 POWERS = {"red": 5.0, "green": 4.0, "blue": 3.0}
 
 
-def truth_calibration(bench: TrueBench, roi: tuple[int, int, int, int]) -> Calibration:
-    """What a perfect fit of the simulated bench would give, on the camera region `roi`."""
-    col, row = bench.slm_to_camera_px(0.0, 0.0)
-    zero = (0.0, 0.0, 0.0)
-    return Calibration(
-        wavelengths_m=bench.wavelengths_m, pitch_m=bench.pitch_m, phase_sign=bench.phase_sign,
-        phase_tables_rad=bench.phase_tables, phase_table_std_rad=zero,
-        stage_scale=bench.stage_scale, stage_scale_std=0.0,
-        stage_at_slm_mm=bench.stage_at_slm_mm, stage_at_slm_std_mm=0.0,
-        z_offset_m=bench.z_offset_m, z_offset_std_m=zero, magnification=bench.magnification,
-        magnification_std=0.0, rotation_deg=bench.rotation_deg, rotation_std_deg=0.0,
-        mirror_x=bench.mirror_x, shift_px=(col - roi[1], row - roi[0]),
-        intensity=(1.0, 1.0, 1.0), intensity_std=zero,
-        fitted_on={"camera_pitch_m": bench.camera_pitch_m})
-
-
 def citl_config(root: Path, tiny, **refine) -> Config:
     base = daemon_config(root, None, tiny, frames={"colour_mode": "capture"})
     bench = TrueBench()
     panel_hw = (base.slm.height_px, base.slm.width_px)
     roi = bench.roi_for_panel(panel_hw)
-    cal = truth_calibration(bench, roi).save(root / "calibration.toml")
+    cal = truth_calibration(bench, roi, illumination=False).save(root / "calibration.toml")
     return Config.model_validate(_overlay(base.model_dump(), {
         "devices": {"camera": "simulated", "slm_output": {"settle_ms": 5.0},
                     "apt": {"velocity_mm_s": 50.0}},

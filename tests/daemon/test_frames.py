@@ -188,6 +188,14 @@ def daemon_config(root: Path, twin: Any, tiny: dict[str, Path], **daemon: Any) -
     return Config.model_validate(_overlay(base.model_dump(), SMALL))
 
 
+def serve_tiny(client: Any, root: Path) -> dict[str, Any]:
+    """Load the tiny scene and model that `daemon_config` copied under `root`, and wait for
+    the frame worker to serve them: its `status`."""
+    client.call("load_scene", path=str(root / "scenes" / "cloud.ply"))
+    client.call("load_model", path=str(root / "models" / "tiny.onnx"))
+    return wait_for_frames(client)
+
+
 def wait_for_frames(client: Any, timeout_s: float = 20.0) -> dict[str, Any]:
     from .conftest import wait_until
 
@@ -204,9 +212,7 @@ def test_worker_process_latest_wins_envelope_and_model_swap(short_dir, mecom_twi
     r = Running(daemon_config(short_dir, mecom_twin, tiny), short_dir)
     try:
         c = r.client()
-        c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
-        c.call("load_model", path=str(short_dir / "models" / "tiny.onnx"))
-        status = wait_for_frames(c)
+        status = serve_tiny(c, short_dir)
         pid = status["frames"]["pid"]
         # A separate process, started by spawn (a fresh interpreter), not a fork of the daemon.
         assert pid != os.getpid()

@@ -158,16 +158,23 @@ def test_only_the_daemon_knows_the_daemon(path):
 def test_settings_are_typed(path):
     """A function takes the settings section it uses (`ServerSettings`, `SLMSettings`, ...) or
     the typed `Config` where it needs several, never `config: Any` (issue 33, item 5)."""
-    untyped = []
+    untyped = [f"{function}({name}: {annotation or 'unannotated'})"
+               for function, name, annotation in _arguments(path)
+               if ("config" in name or "settings" in name)
+               and (annotation in ("", "Any") or "Any" in annotation.split(" | "))]
+    assert untyped == []
+
+
+def _arguments(path: Path) -> list[tuple[str, str, str]]:
+    """(function, argument, its annotation as written or "") of every function in `path`."""
+    out = []
     for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
             args = node.args
             for arg in [*args.posonlyargs, *args.args, *args.kwonlyargs]:
                 annotation = ast.unparse(arg.annotation) if arg.annotation is not None else ""
-                if ("config" in arg.arg or "settings" in arg.arg) and (
-                        annotation in ("", "Any") or "Any" in annotation.split(" | ")):
-                    untyped.append(f"{node.name}({arg.arg}: {annotation or 'unannotated'})")
-    assert untyped == []
+                out.append((node.name, arg.arg, annotation))
+    return out
 
 
 # Functions of the control plane allowed to take the whole `DaemonSettings`, each with why:
@@ -181,13 +188,6 @@ def test_each_part_takes_its_own_section_of_the_daemon_settings(path):
     """`[daemon]` is one section per part (`nhfd.config.DaemonSettings`): a function of the
     daemon or the web view takes the section it reads, not all of them; the web view's start,
     which reads four, is the one that takes them all."""
-    whole = []
-    for node in ast.walk(ast.parse(path.read_text())):
-        if isinstance(node, ast.FunctionDef | ast.AsyncFunctionDef):
-            args = node.args
-            for arg in [*args.posonlyargs, *args.args, *args.kwonlyargs]:
-                annotation = ast.unparse(arg.annotation) if arg.annotation is not None else ""
-                if re.search(r"\bDaemonSettings\b", annotation):
-                    whole.append((path.name, node.name))
-    allowed = WHOLE_DAEMON_SETTINGS
-    assert [w for w in whole if w not in allowed] == []
+    whole = {(path.name, function) for function, _, annotation in _arguments(path)
+             if re.search(r"\bDaemonSettings\b", annotation)}
+    assert whole - WHOLE_DAEMON_SETTINGS == set()

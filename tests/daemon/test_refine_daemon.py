@@ -14,7 +14,7 @@ from nhfd.daemon.methods import NO_MODEL
 from nhfd.daemon.protocol import RpcError
 
 from .conftest import Running, wait_until
-from .test_frames import FRONT_POSE, daemon_config, wait_for_frames
+from .test_frames import FRONT_POSE, daemon_config, serve_tiny
 
 REFINE = {"iterations": 2000, "seconds": 60.0, "tolerance": 0.0, "swap_every": 3, "planes": 2}
 
@@ -24,9 +24,7 @@ def _running(short_dir, mecom_twin, tiny) -> Running:
     config = Config.model_validate(_overlay(base.model_dump(), {"refine": REFINE}))
     r = Running(config, short_dir)
     c = r.client()
-    c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
-    c.call("load_model", path=str(short_dir / "models" / "tiny.onnx"))
-    wait_for_frames(c)
+    serve_tiny(c, short_dir)
     return r
 
 
@@ -117,9 +115,7 @@ def test_subframes_take_turns_on_the_panel(short_dir, mecom_twin, tiny):
     r = Running(config, short_dir)
     try:
         c = r.client()
-        c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
-        c.call("load_model", path=str(short_dir / "models" / "tiny.onnx"))
-        wait_for_frames(c)
+        serve_tiny(c, short_dir)
         c.call("set_view", pose=FRONT_POSE, quality="sgd")
         wait_until(lambda: (c.status()["frames"]["refine"] or {}).get("swaps", 0) >= 1, 60,
                    "a better pair of subframes")

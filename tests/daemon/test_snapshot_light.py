@@ -14,7 +14,7 @@ from nhfd.daemon.methods import NO_LIGHT
 
 from .conftest import Running, wait_until
 from .test_citl_daemon import citl_config
-from .test_frames import FRONT_POSE, wait_for_frames
+from .test_frames import FRONT_POSE, serve_tiny
 
 
 def _snapshot(c) -> dict:
@@ -32,9 +32,7 @@ def test_a_snapshot_says_when_nothing_emitted_and_has_a_preview(short_dir, tiny)
     r = Running(config, short_dir)
     try:
         c = r.client()
-        c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
-        c.call("load_model", path=str(short_dir / "models" / "tiny.onnx"))
-        wait_for_frames(c)
+        serve_tiny(c, short_dir)
         seq = c.call("set_view", pose=FRONT_POSE)["seq"]
         wait_until(lambda: c.status()["view"]["applied_seq"] == seq, 20, "the view")
         dark = _snapshot(c)

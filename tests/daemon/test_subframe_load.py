@@ -20,7 +20,7 @@ from nhfd.worker_messages import BetterFrame
 
 from .conftest import Running, wait_until
 from .test_frame_shm import arrays_in
-from .test_frames import FRONT_POSE, daemon_config, wait_for_frames
+from .test_frames import FRONT_POSE, daemon_config, serve_tiny
 
 K_MAX = 16  # refine.subframes' upper bound
 PANEL = {"width_px": 1920, "height_px": 1080}
@@ -50,9 +50,7 @@ def test_the_largest_k_under_a_cpu_burner_keeps_every_heartbeat_on_time(short_di
     received: list[BetterFrame] = []
     try:
         c = r.client()
-        c.call("load_scene", path=str(short_dir / "scenes" / "cloud.ply"))
-        c.call("load_model", path=str(short_dir / "models" / "tiny.onnx"))
-        wait_for_frames(c)
+        serve_tiny(c, short_dir)
         receive = r.daemon.frames.worker.receive  # a spy on what crosses the pipe
 
         def spy() -> list:

@@ -40,6 +40,7 @@ from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import scene_from_file, view_pose
 from nhfd.scene.cameras import orbit, orbit_position
 from nhfd.views import Orbit, View
+from tests.calib.twin_stack import truth_calibration
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "nhf-donut-512.onnx"
@@ -50,24 +51,6 @@ PANEL_HW = sim_panel_hw(WINDOW_HW)
 # Training poses: fractions of the envelope's azimuth and elevation; held-out ones between.
 TRAIN = [(f, g) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7)]
 HELD_OUT = [(0.35, 0.5), (0.65, 0.5)]
-
-
-def truth_calibration(bench: TrueBench) -> Calibration:
-    """What a perfect fit of `bench` would give: its phase tables, focus offsets, illumination
-    and relay aberration (the geometry, which the bench model does not use, left plain)."""
-    zero = (0.0, 0.0, 0.0)
-    return Calibration(
-        wavelengths_m=bench.wavelengths_m, pitch_m=bench.pitch_m, phase_sign=bench.phase_sign,
-        phase_tables_rad=bench.phase_tables, phase_table_std_rad=zero,
-        stage_scale=bench.stage_scale, stage_scale_std=0.0,
-        stage_at_slm_mm=bench.stage_at_slm_mm, stage_at_slm_std_mm=0.0,
-        z_offset_m=bench.z_offset_m, z_offset_std_m=zero, magnification=bench.magnification,
-        magnification_std=0.0, rotation_deg=bench.rotation_deg, rotation_std_deg=0.0,
-        mirror_x=bench.mirror_x, shift_px=(0.0, 0.0), intensity=(1.0, 1.0, 1.0),
-        intensity_std=zero, source_waist_m=(bench.source_waist_m,) * 3, source_waist_std_m=zero,
-        source_centre_m=(bench.source_offset_m,) * 3, source_centre_std_m=((0.0, 0.0),) * 3,
-        zernike_rad=bench.zernike_rad, zernike_std_rad=(0.0,) * len(bench.zernike_rad),
-        zernike_wavelength_m=bench.wavelengths_m[1])
 
 
 BENCH = TrueBench(zernike_rad=(0.3, -0.2, 0.15))

@@ -276,19 +276,15 @@ class ExposureHand(Protocol):
         """Whether the exposure begun is still running (it may end by itself)."""
 
 
-class LineHand:
-    """The model's line driven by hand, as the simulated camera drives it."""
-
-    def __init__(self, line: TriggerLine) -> None:
-        self.line = line
+class HandDriven:
+    """A hand whose exposures last exactly from `begin` to `end`: held high is begun and not
+    ended, one exposure is begun, EXPOSURE_S, ended."""
 
     def begin(self) -> None:
-        self.line.exposure_begins()
+        raise NotImplementedError
 
     def end(self) -> float:
-        at_s = self.line.clock()
-        self.line.exposure_ends(at_s)
-        return at_s
+        raise NotImplementedError
 
     def hold_high(self) -> None:
         self.begin()
@@ -303,6 +299,22 @@ class LineHand:
 
     def still_high(self) -> bool:
         return True  # until end()
+
+
+class LineHand(HandDriven):
+    """The model's line driven by hand, as the simulated camera drives it."""
+
+    def __init__(self, line: TriggerLine) -> None:
+        self.line = line
+
+    def begin(self) -> None:
+        self.line.exposure_begins()
+
+    def end(self) -> float:
+        at_s = self.line.clock()
+        self.line.exposure_ends(at_s)
+        return at_s
+
 
 
 class CameraHand:
@@ -387,7 +399,7 @@ class TemplateExposureInput(MyExposureInput):
         return self.pin.level
 
 
-class PinHand:
+class PinHand(HandDriven):
     """Sets the fake input's level; keeps the windows it made (a host input has no record)."""
 
     def __init__(self, pin: Pin, clock: Callable[[], float]) -> None:
@@ -408,19 +420,6 @@ class PinHand:
             self._since = None
         return self.windows[-1].end_s
 
-    def hold_high(self) -> None:
-        self.begin()
-
-    def release(self) -> None:
-        self.end()
-
-    def expose(self) -> None:
-        self.begin()
-        time.sleep(EXPOSURE_S)
-        self.end()
-
-    def still_high(self) -> bool:
-        return True  # until end()
 
 
 @dataclass
