@@ -22,6 +22,7 @@ from nhfd.models import build as mb
 from nhfd.models.build import STAGES, Recipe, run_build
 from nhfd.models.sizes import read_metadata
 from nhfd.models.train import TrainOptions
+from nhfd.pipeline import tune as tune_module
 from nhfd.scene.io import load_scene
 from tests.calib.twin_stack import truth_calibration
 
@@ -427,12 +428,17 @@ def test_build_with_a_calibration_tunes_the_model_as_its_last_stage(built, tmp_p
     """`nhfd model build --calibration FILE` on a finished build (a copy of the tiny one, its
     recipe given to the CLI): every build stage is skipped, then the model is tuned through that
     calibration (2 steps, 1 view, the build's window) into OUT/tuned/model.onnx, whose
-    `tuned_for` names it; OUT/model.onnx is not changed."""
+    `tuned_for` names it, and its checked sizes are checked again; OUT/model.onnx is not
+    changed. The size check itself is recorded, not run (2.5 min for the tiny model's 3 sizes
+    on a loaded 2-core machine; `nhfd model tune`'s own test runs it)."""
     out = tmp_path / "donut"
     shutil.copytree(built[0], out)
     before = (out / "model.onnx").read_bytes()
     monkeypatch.setattr(cmd_model.Recipe, "from_config",
                         classmethod(lambda _cls, *_a, **_k: tiny_recipe()))
+    checked: list[tuple[Path, list]] = []
+    monkeypatch.setattr(tune_module, "check_and_record",
+                        lambda path, sizes: checked.append((Path(path), list(sizes))))
     cal = truth_calibration(TrueBench())
     path = cal.save(tmp_path / "calibration.toml")
     rc = main(["model", "build", str(SCENE), "--out", str(out), "--no-progress",
@@ -447,6 +453,8 @@ def test_build_with_a_calibration_tunes_the_model_as_its_last_stage(built, tmp_p
     assert record["calibration"] == loaded.label and record["steps"] == 2
     assert record["window_hw"] == [32, 48]
     assert (out / "model.onnx").read_bytes() == before
+    want = [tuple(e["hw"]) for e in read_metadata(out / "model.onnx")["checked_sizes"]]
+    assert want and checked == [(out / cmd_model.TUNED_DIR / "model.onnx", want)]
 
 
 def test_build_refuses_a_bad_calibration_before_anything_is_written(tmp_path, capsys):
