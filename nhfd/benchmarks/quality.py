@@ -580,6 +580,7 @@ def run(args: argparse.Namespace) -> int:
                     "views": [v.to_json() for v in choose_views(poses, ts.views)],
                     "settings": ts.key(), "tuned_for": res.tuned_for}
             for i, view in enumerate(seeded_views(rng, args.views, scene, info, window_hw)):
+                arm_twin(devices)  # each view's captures within an arming (tuning outlasts one)
                 p = prepare(config, view, scene, info=info, calibration=calibration,
                             window_hw=window_hw, panel_hw=panel_hw, planes=base.planes)
                 views_json.append({"scene": name, "view": i, **view.to_json(),
