@@ -601,7 +601,7 @@ def run(args: argparse.Namespace) -> int:
                     grey = compute_frame(view, scene, tuned, p.encoder).grey
                     rows.append(_row(name, i, "tuned", 1, time.perf_counter() - t0, grey, p,
                                      loop, extra={"tune_s": result["tuned"][name]["tune_s"],
-                                                  "tune_steps_s": round(res.seconds, 1),
+                                                  "tune_steps_s": round(res.seconds, 3),
                                                   "tune_steps": res.steps}))
                 if "exact" in tiers:
                     rows.append(_row(name, i, "exact", 1, p.seconds, p.exact_grey, p, loop))
