@@ -52,7 +52,7 @@ SCENE = REPO / "models" / "scenes" / "donut.ply"
 OTHER_SCENE = REPO / "models" / "scenes" / "tabletop.spz"
 WINDOW_HW = (48, 64)
 # The window plus 32 px a side (a frame's region reaches 24 px beyond it): a twin's capture and
-# fit take about 25 s at this panel on 2 cores, 84 s with the bench's 64 px margin.
+# fit take 12 to 25 s at this panel on 2 cores, 84 s with the bench's 64 px margin.
 PANEL_HW = sim_panel_hw(WINDOW_HW, margin_px=32)
 # Training poses: fractions of the envelope's azimuth and elevation; held-out ones between.
 TRAIN = [(f, g) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7)]
@@ -265,8 +265,9 @@ def test_a_tuned_models_frames_capture_better_on_the_twin(twin, scene, model_fil
     factor, gaps, crosstalk, unmodulated light, the camera) is there, score higher than the
     untuned model's on each view. Measured: the first twin 17.46 / 18.57 -> 18.50 / 19.33 dB (SSIM
     0.458 / 0.572 -> 0.473 / 0.593), the second 12.84 / 13.52 -> 13.67 / 14.31 dB (SSIM 0.191 /
-    0.295 -> 0.223 / 0.335): gains of 0.76 to 1.04 dB. About 150 s a twin on a loaded 2-core
-    machine (the capture and fit, the tuning, the captures)."""
+    0.295 -> 0.223 / 0.335): gains of 0.76 to 1.04 dB. 21 and 40 s on an idle 2-core machine (the
+    second twin's capture and fit 12 s, its tuning 4 s, the captures about 20 s a twin); about
+    150 s a twin on a loaded one."""
     bench, cal, res = TWINS[twin], fitted(twin), tuned(twin)
     info = TorchModel(model_file).info
     views = seeded_views(np.random.default_rng(HELD_OUT_SEED), 2, scene, info, WINDOW_HW)
