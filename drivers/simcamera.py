@@ -28,11 +28,14 @@ tests/drivers/test_simcamera_speed.py).
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import time
+import tomllib
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -41,6 +44,7 @@ import torch.nn.functional as F
 
 from nhfd.config import Config
 from nhfd.optics import Aperture, KernelCache, PhaseCurve, propagate
+from nhfd.optics.aperture import SHAPES
 
 from .camera import Camera, CameraSettings, CameraTimeout, ResponseCurve
 from .errors import DeviceError
@@ -97,6 +101,80 @@ def camera_response(gamma: float, wiggle: float, bit_depth: int) -> ResponseCurv
 
 
 _CONFIG = Config()
+
+# What a twin's TOML (`TrueBench.from_toml`) may set, and the range each number must lie in
+# (inclusive; for a list, each element, and the list's length). `randomised_seed` starts from
+# `TrueBench.randomised(seed)` and the other keys override its draws.
+TWIN_TOML_NUMBERS: dict[str, tuple[float, float]] = {
+    "pitch_m": (1e-7, 1e-4), "wavelengths_m": (3e-7, 2e-6), "oversample": (1, 8),
+    "fill_factor": (0.01, 1.0), "gap_reflectance": (0.0, 1.0),
+    "crosstalk_sigma_m": (0.0, 2e-5), "phase_table_seed": (0, 2**31 - 1),
+    "phase_sign": (-1, 1), "zero_order_fraction": (0.0, 0.99),
+    "source_waist_m": (1e-4, 1.0), "source_offset_m": (-0.05, 0.05),
+    "zernike_rad": (-10.0, 10.0), "aperture_cutoff_per_px": (0.01, 0.5),
+    "magnification": (0.01, 100.0), "rotation_deg": (-360.0, 360.0),
+    "shift_m": (-0.05, 0.05), "stage_at_slm_mm": (-1000.0, 1000.0),
+    "z_offset_m": (-0.01, 0.01), "camera_pitch_m": (1e-7, 1e-4),
+    "sensor_hw_px": (16, 20000), "electrons_per_s": (0.0, 1e12),
+    "colour_matrix": (0.0, 1.0), "full_well_e": (1.0, 1e8), "bit_depth": (8, 16),
+    "response_gamma": (0.2, 5.0), "response_wiggle": (0.0, 0.1), "dark_level": (0.0, 0.5),
+    "dsnu": (0.0, 0.1), "dark_current_e_per_s": (0.0, 1e6), "prnu": (0.0, 0.5),
+    "read_noise_e": (0.0, 1e4), "noise_seed": (0, 2**62), "pattern_seed": (0, 2**62),
+    "phase_tables_rad": (-1000.0, 1000.0), "randomised_seed": (0, 2**62),
+}
+# Lists of a fixed length (None: any length up to the bound), and what holds whole numbers.
+_TWIN_TOML_LENGTHS: dict[str, tuple[int, int]] = {
+    "wavelengths_m": (3, 3), "source_offset_m": (2, 2), "zernike_rad": (0, 40),
+    "aperture_cutoff_per_px": (3, 3), "shift_m": (2, 2), "z_offset_m": (3, 3),
+    "sensor_hw_px": (2, 2), "electrons_per_s": (3, 3), "colour_matrix": (3, 3),
+    "phase_tables_rad": (3, 3),
+}
+_TWIN_TOML_INTS = ("oversample", "phase_table_seed", "phase_sign", "sensor_hw_px", "bit_depth",
+                   "noise_seed", "pattern_seed", "randomised_seed")
+_TWIN_TOML_BOOLS = ("mirror_x", "shot_noise")
+_TWIN_TOML_STRINGS = {"aperture_shape": SHAPES}
+
+
+def _twin_number(key: str, value: Any, where: str) -> float | int:
+    lo, hi = TWIN_TOML_NUMBERS[key]
+    whole = key in _TWIN_TOML_INTS
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and \
+        (not whole or isinstance(value, int)) and math.isfinite(value) and lo <= value <= hi
+    if not ok:
+        kind = "a whole number" if whole else "a number"
+        raise ValueError(f"{where}: {key} = {value!r}: must be {kind} in {lo:g}..{hi:g}")
+    return value
+
+
+def _twin_value(key: str, value: Any, where: str) -> Any:
+    """One TOML value parsed for field `key` (ValueError naming it and its range)."""
+    if key in _TWIN_TOML_BOOLS:
+        if not isinstance(value, bool):
+            raise ValueError(f"{where}: {key} = {value!r}: must be true or false")
+        return value
+    if key in _TWIN_TOML_STRINGS:
+        if value not in _TWIN_TOML_STRINGS[key]:
+            raise ValueError(f"{where}: {key} = {value!r}: must be one of "
+                             f"{', '.join(_TWIN_TOML_STRINGS[key])}")
+        return value
+    if key not in _TWIN_TOML_LENGTHS:
+        return _twin_number(key, value, where)
+    lo, hi = _TWIN_TOML_LENGTHS[key]
+    if not isinstance(value, list) or not lo <= len(value) <= hi:
+        n = str(lo) if lo == hi else f"{lo}..{hi}"
+        raise ValueError(f"{where}: {key} = {value!r}: must be a list of {n} values")
+    if key == "colour_matrix":
+        if any(not isinstance(r, list) or len(r) != 3 for r in value):
+            raise ValueError(f"{where}: {key}: must be 3 rows of 3 numbers")
+        return tuple(tuple(_twin_number(key, v, where) for v in r) for r in value)
+    if key == "phase_tables_rad":
+        if any(not isinstance(t, list) or len(t) != GREY_LEVELS for t in value):
+            raise ValueError(f"{where}: {key}: must be 3 tables (R, G, B) of {GREY_LEVELS} "
+                             "values")
+        return tuple(tuple(float(_twin_number(key, v, where)) for v in t) for t in value)
+    return tuple(_twin_number(key, v, where) for v in value)
+
+
 
 
 @dataclass(frozen=True)
@@ -223,6 +301,33 @@ class TrueBench:
         )
         drawn.update(overrides)
         return cls(**drawn)
+
+    @classmethod
+    def from_toml(cls, path: str | Path) -> TrueBench:
+        """A twin from a TOML file of `TrueBench` fields (top-level keys; lists for tuples),
+        the defaults for what it leaves out; `randomised_seed = N` starts from
+        `randomised(N)` instead. An unknown key, a value of the wrong kind or outside
+        `TWIN_TOML_NUMBERS`' range is refused with a ValueError naming the file, the key and
+        what it allows."""
+        path = Path(path)
+        try:
+            data = tomllib.loads(path.read_text())
+        except (OSError, UnicodeDecodeError) as exc:
+            raise ValueError(f"--twin {path}: cannot read it ({exc})") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ValueError(f"--twin {path}: not TOML ({exc})") from None
+        where = f"twin {path}"
+        fields = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(k for k in data if k not in fields and k != "randomised_seed")
+        if unknown:
+            raise ValueError(f"{where}: unknown key(s) {', '.join(unknown)}; allowed: "
+                             f"randomised_seed, {', '.join(sorted(fields))}")
+        values = {k: _twin_value(k, v, where) for k, v in data.items()}
+        seed = values.pop("randomised_seed", None)
+        try:
+            return cls(**values) if seed is None else cls.randomised(int(seed), **values)
+        except ValueError as exc:
+            raise ValueError(f"{where}: {exc}") from None
 
     # --- derived quantities -----------------------------------------------------------------
 

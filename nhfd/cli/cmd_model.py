@@ -13,7 +13,7 @@ import sys
 import time
 from pathlib import Path
 
-from nhfd.calibration import Calibration
+from nhfd.calibration import Calibration, check_bench
 from nhfd.cli.args import parse_wxh
 from nhfd.config import Config, load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
@@ -46,8 +46,15 @@ Interrupted builds resume (run the same command again): finished stages
 are skipped, the dataset keeps its shards and training its checkpoint. A folder built from
 another scene, recipe or settings is refused unless --force. Recipes: nhfd.toml
 [model.build.profiles] (quick: a first look in minutes; default: the shipped model's recipe).
-With --serve, the scene and the model are loaded into the running daemon (`nhfd serve`).
+With --calibration FILE, a last stage tunes the model through that bench's calibration (`nhfd
+model tune`, on the build's training poses) into OUT/tuned/model.onnx (resumed like the others);
+the calibration and the tuning's settings are checked before anything is built.
+With --serve, the scene and the model (the tuned one with --calibration) are loaded into the
+running daemon (`nhfd serve`).
 """
+# Where `nhfd model build --calibration` tunes the built model (model.onnx, tune.json,
+# checkpoint.pt).
+TUNED_DIR = "tuned"
 
 
 # How long --serve waits for the daemon to load the scene, then the model.
@@ -88,6 +95,17 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "into (default: the first of daemon.paths.scene_dirs, from here)")
     b.add_argument("--no-progress", action="store_true", help="no progress bars")
     b.add_argument("--config", help="nhfd.toml to read the recipes and the optics from")
+    d = tune.TuneSettings()
+    b.add_argument("--calibration", help="then tune the model through this bench's calibration "
+                   f"(nhfd model tune) as a last stage, into OUT/{TUNED_DIR}/model.onnx")
+    b.add_argument("--tune-steps", type=int, default=d.steps,
+                   help=f"the tuning's steps (default {d.steps})")
+    b.add_argument("--tune-seconds", type=float, default=d.seconds,
+                   help=f"the tuning's time budget, s (default {d.seconds:g})")
+    b.add_argument("--tune-views", type=int, default=d.views,
+                   help=f"training views to tune on (default {d.views})")
+    b.add_argument("--tune-size", default=f"{d.window_hw[1]}x{d.window_hw[0]}",
+                   help="the tuning's frame window WxH (default %(default)s)")
     b.set_defaults(handler=run_model_build)
     c = cmds.add_parser("check-sizes", help="check a model at more input sizes and record them",
                         description=CHECK_SIZES_HELP)  # fmt: skip
@@ -131,6 +149,7 @@ def run_model_build(args: argparse.Namespace) -> int:
     training_device(device, check_available=True)  # before hours of dataset, not after
     recipe = Recipe.from_config(config.model, args.profile, device=device,
                                 progress=not args.no_progress)  # fmt: skip
+    tuning = build_tuning(args, config)  # refused before anything is built
     scene = Path(args.scene)
     out = Path(args.out) if args.out else Path("builds") / f"{_stem(scene)}-{recipe.name}"
     t0 = time.perf_counter()
@@ -149,15 +168,55 @@ def run_model_build(args: argparse.Namespace) -> int:
           f"ran {', '.join(res.ran) or 'nothing'}"
           + (f", skipped {', '.join(res.skipped)}" if res.skipped else "")
           + f" in {time.perf_counter() - t0:.0f} s")
+    served, name = out / "model.onnx", f"nhf-{_stem(scene)}-{recipe.name}.onnx"
+    if tuning is not None:
+        cal, settings = tuning
+        t1 = time.perf_counter()
+        res = tune_built(out, scene, cal, settings, config)
+        print(f"tuned for {cal.label}: {res.path} ({res.steps} steps in "
+              f"{time.perf_counter() - t1:.0f} s)")
+        served, name = res.path, f"nhf-{_stem(scene)}-{recipe.name}-tuned.onnx"
     if args.serve:
         try:
-            serve(config, scene, out, f"nhf-{_stem(scene)}-{recipe.name}.onnx", args)
+            serve(config, scene, out, name, args, model_file=served)
         except (DaemonUnavailable, RpcError, RuntimeError) as exc:
             # The build is done and kept; only serving it failed.
             print(f"nhfd model build: --serve: {exc}; the model is built: {out / 'model.onnx'}",
                   file=sys.stderr)  # fmt: skip
             return 1
     return 0
+
+
+def build_tuning(args: argparse.Namespace, config: Config
+                 ) -> tuple[Calibration, tune.TuneSettings] | None:
+    """`--calibration`'s tuning stage, checked: the calibration loaded and fit for the
+    configuration's optics (`check_bench`), the settings in range (`TuneError`, a ValueError
+    naming the option); None without --calibration."""
+    if not args.calibration:
+        return None
+    w, h = parse_wxh(args.tune_size, "--tune-size")
+    settings = tune.TuneSettings(steps=args.tune_steps, seconds=args.tune_seconds,
+                                 views=args.tune_views, window_hw=(h, w))
+    cal = Calibration.load(args.calibration)
+    try:
+        check_bench(cal, config.optics.wavelengths_m, config.slm.pitch_m)
+    except ValueError as exc:
+        raise tune.TuneError(f"--calibration {args.calibration}: {exc}") from None
+    return cal, settings
+
+
+def tune_built(out: Path, scene: Path, calibration: Calibration, settings: tune.TuneSettings,
+               config: Config) -> tune.TuneResult:
+    """The build's last stage with --calibration: `OUT/model.onnx` tuned through
+    `calibration` into `OUT/tuned` (`nhfd.pipeline.tune.tune_model`; resumed from its
+    checkpoint), on the poses the model records, else its dataset's training split."""
+    model = out / "model.onnx"
+    recorded = (read_metadata(model).get("train_poses") or {}).get("positions")
+    res = tune.tune_model(model, scene_from_file(scene), scene, calibration, out / TUNED_DIR,
+                          settings, config=config, dataset=None if recorded else out / "dataset")
+    if res is None:  # only with stop_after, which is not given
+        raise RuntimeError(f"tuning into {out / TUNED_DIR} stopped early")
+    return res
 
 
 def _stem(scene: Path) -> str:
@@ -181,8 +240,9 @@ def _place(src: Path, folder: Path, name: str) -> Path:
 
 
 def serve(config: Config, scene: Path, out: Path, model_name: str,
-          args: argparse.Namespace) -> None:
-    """Load the scene and the float model into the running daemon, then show a view from the
+          args: argparse.Namespace, model_file: Path | None = None) -> None:
+    """Load the scene and the float model (`model_file`: another, the tuned one; default
+    OUT/model.onnx, with its int8 sibling) into the running daemon, then show a view from the
     middle of the trained poses. The daemon reads files only inside its configured folders, so
     both are copied there first (the original scene: the daemon takes its up axis from its
     format, as the build did).
@@ -195,9 +255,11 @@ def serve(config: Config, scene: Path, out: Path, model_name: str,
     scene_dir = Path(args.scene_dir or d.scene_dirs[0])
     socket = socket_path(args.socket, config)  # as nhfctl finds it
     with Client(socket, timeout_s=30.0) as c:  # no daemon: nothing is copied
-        model = _place(out / "model.onnx", model_dir, model_name)
+        source = model_file or out / "model.onnx"
+        model = _place(source, model_dir, model_name)
         # kept within INT8_MAX_LOSS_DB: the CPU serves it by default, found beside the float one
-        if (out / "model-int8.onnx").is_file():
+        # (not beside a tuned model: the int8 file has the untuned weights)
+        if source == out / "model.onnx" and (out / "model-int8.onnx").is_file():
             _place(out / "model-int8.onnx", model_dir, int8_sibling(model_name).name)
         scene_file = _place(scene, scene_dir, scene.name)
         for method, path in (("load_scene", scene_file), ("load_model", model)):

@@ -412,8 +412,8 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
                calibration: Calibration, out: str | Path, settings: TuneSettings, *,
                config: Config | None = None, dataset: str | Path | None = None,
                panel_hw: tuple[int, int] | None = None, check_sizes: bool = True,
-               stop_after: int | None = None, say: Callable[[str], None] = print
-               ) -> TuneResult | None:
+               stop_after: int | None = None, poses: Sequence[View] | None = None,
+               say: Callable[[str], None] = print) -> TuneResult | None:
     """Tune the exported model at `model_path` for `scene` through `calibration`'s bench model
     into `out`/model.onnx (module docstring). Refusals (`TuneError`, nothing written): settings
     out of range, a model without the scene's metadata (its scene hash, depth mapping and
@@ -423,7 +423,10 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
     non-finite loss stops with `TuneError` naming the last good checkpoint. `stop_after`: stop
     (without writing the model) after that many steps in all, as an interruption would (tests);
     then returns None. `check_sizes`: check the tuned file at its original model's
-    `checked_sizes` (the ONNX-only tile check) and record them."""
+    `checked_sizes` (the ONNX-only tile check) and record them. `poses`: the training poses
+    to choose the views from, for a model that records none and whose dataset is not at hand
+    (`nhfd bench quality`: a grid over its pose envelope); default the dataset's or the
+    model's recorded ones."""
     config = config or Config()
     model_path, out = Path(model_path), Path(out)
     # Everything that can be refused is, before anything is written.
@@ -448,8 +451,9 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
         check_bench(calibration, tuple(model.info.wavelengths_m), model.info.pitch_m)
     except ValueError as exc:
         raise TuneError(f"--calibration: {exc}") from None
-    views = choose_views(training_poses_of(meta, scene, None if dataset is None
-                                           else Path(dataset)), settings.views)
+    if poses is None:
+        poses = training_poses_of(meta, scene, None if dataset is None else Path(dataset))
+    views = choose_views(poses, settings.views)
     model_sha = sha256_file(model_path)
     cal_sha = fingerprint(calibration)
     key = {"model_sha256": model_sha, "scene_sha256": scene_sha, "calibration_sha256": cal_sha,

@@ -1,14 +1,20 @@
 """`nhfd bench quality`'s figures: the per-tier means, the paired goal checks (met or not, and
 a goal with nothing to compare reported as such), the twin's aberration added after its
-calibration, and the seeded views inside the model's pose envelope."""
+calibration, the seeded views inside the model's pose envelope, the twin's TOML and its
+refusals, and the tuned tier's row from a tiny run."""
 
 from __future__ import annotations
 
+import argparse
+import json
+import math
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
+from nhfd.benchmarks import quality as Q
 from nhfd.benchmarks.quality import (
     ENVELOPE_INSET,
     _zernike,
@@ -16,12 +22,16 @@ from nhfd.benchmarks.quality import (
     goal_checks,
     leaves_out,
     paired,
+    register,
     seeded_views,
     summarise,
     table,
 )
+from nhfd.calib.sim import sim_panel_hw
+from nhfd.calibration import fingerprint
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.model_info import PoseEnvelope
+from tests.calib.twin_stack import truth_calibration
 
 
 def _row(scene: str, view: int, tier: str, k: int, psnr: float, speckle: float,
@@ -120,3 +130,116 @@ def test_seeded_views_lie_inside_the_model_envelope_and_repeat_with_the_seed() -
         assert 10 + 2 <= o.elevation_deg <= 30 - 2
         assert 0.62 - 1e-12 <= o.radius <= 0.78 + 1e-12
     assert ENVELOPE_INSET == 0.1
+
+
+# -- the twin's TOML (`TrueBench.from_toml`) ----------------------------------------------------
+
+def _toml(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "twin.toml"
+    path.write_text(text)
+    return path
+
+
+def test_a_twin_toml_sets_its_fields_and_starts_from_a_randomised_twin(tmp_path) -> None:
+    twin = TrueBench.from_toml(_toml(tmp_path, 'randomised_seed = 7\nfill_factor = 0.9\n'
+                                     'zernike_rad = [0.2, -0.1]\nmirror_x = true\n'
+                                     'aperture_shape = "circle"\noversample = 3\n'))
+    assert twin == TrueBench.randomised(7, fill_factor=0.9, zernike_rad=(0.2, -0.1),
+                                        mirror_x=True, aperture_shape="circle", oversample=3)
+    plain = TrueBench.from_toml(_toml(tmp_path, "crosstalk_sigma_m = 2e-6\n"
+                                      "source_offset_m = [1e-4, -2e-4]\n"))
+    assert plain == TrueBench(crosstalk_sigma_m=2e-6, source_offset_m=(1e-4, -2e-4))
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    ("fill_factr = 0.9", r"unknown key\(s\) fill_factr; allowed: randomised_seed, "),
+    ("fill_factor = 1.5", r"fill_factor = 1\.5: must be a number in 0\.01\.\.1"),
+    ("fill_factor = nan", r"fill_factor = nan: must be a number in 0\.01\.\.1"),
+    ("fill_factor = 'high'", r"fill_factor = 'high': must be a number"),
+    ("oversample = 2.5", r"oversample = 2\.5: must be a whole number in 1\.\.8"),
+    ("zero_order_fraction = -0.1", r"zero_order_fraction = -0\.1: must be a number in 0\.\.0\.99"),
+    ("zernike_rad = [0.1, 11.0]", r"zernike_rad = 11\.0: must be a number in -10\.\.10"),
+    ("shift_m = [1e-5]", r"shift_m = \[1e-05\]: must be a list of 2 values"),
+    ("mirror_x = 1", r"mirror_x = 1: must be true or false"),
+    ("aperture_shape = 'hexagon'", r"aperture_shape = 'hexagon': must be one of square, circle"),
+    ("phase_sign = 0", r"phase_sign = 0: must be \+1 or -1"),
+    ("colour_matrix = [[1, 0], [0, 1]]", r"colour_matrix = .*: must be a list of 3 values"),
+    ("fill_factor = ", r"not TOML"),
+])
+def test_a_twin_toml_is_refused_naming_the_key_and_its_range(tmp_path, text, message) -> None:
+    path = _toml(tmp_path, text + "\n")
+    with pytest.raises(ValueError, match=message) as err:
+        TrueBench.from_toml(path)
+    assert str(path) in str(err.value)
+
+
+# -- the tuned tier -----------------------------------------------------------------------------
+
+def _bench_args(*argv: str) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    register(parser.add_subparsers())
+    return parser.parse_args(["quality", *argv])
+
+
+def test_the_tuned_tier_scores_the_model_tuned_through_the_runs_calibration(
+        tmp_path, monkeypatch) -> None:
+    """A tiny run (64 x 48, one seeded view, 2 tuning steps on 1 view) on a twin read from
+    --twin: the tuned row is the tuned model's frame captured at K = 1, tuned through the run's
+    calibration on training poses (the shipped model records none: the envelope's grid), never
+    the scored view. The calibration is the twin's truth here (the subject is the row; the fit
+    costs minutes at this panel and has its own tests)."""
+    monkeypatch.setattr(Q, "twin_calibration", lambda _folder, twin, panel_hw, **_kw:
+                        truth_calibration(twin, twin.roi_for_panel(panel_hw)))
+    twin_file = _toml(tmp_path, "randomised_seed = 7\nfill_factor = 0.9\n")
+    out = tmp_path / "quality.json"
+    args = _bench_args("--size", "64x48", "--views", "1", "--tiers", "network,tuned",
+                       "--subframes", "1,4", "--other-scene", "none", "--tune-steps", "2",
+                       "--tune-views", "1", "--unknown-zernike", "none", "--twin",
+                       str(twin_file), "--out", str(out), "--plot", "")
+    assert Q.run(args) == 0
+    result = json.loads(out.read_text())
+    assert result["twin"]["file"] == str(twin_file) and result["twin"]["seed"] is None
+    assert result["twin"]["fields"]["fill_factor"] == 0.9
+    rows = {(r["tier"], r["k"]): r for r in result["rows"]}
+    assert set(rows) == {("network", 1), ("tuned", 1)}  # K = 1 only, said in the record
+    assert "K = 1 only" in result["tuned_note"]
+    tuned, network = rows["tuned", 1], rows["network", 1]
+    assert tuned["tune_steps"] == 2 and tuned["tune_s"] > 0 and tuned["tune_steps_s"] > 0
+    for key in ("psnr_db", "ssim", "speckle", "model_psnr_db", "seconds"):
+        assert math.isfinite(tuned[key]), key
+    assert tuned["model_psnr_db"] != network["model_psnr_db"]  # another model's frame
+    record = result["tuned"]["donut"]
+    twin = TrueBench.from_toml(twin_file)
+    cal = truth_calibration(twin, twin.roi_for_panel(sim_panel_hw((48, 64))))
+    assert record["tuned_for"]["calibration_sha256"] == fingerprint(cal)
+    assert record["steps"] == 2 and len(record["views"]) == 1
+    scored = [{k: v for k, v in view.items() if k not in ("scene", "view", "planes_m")}
+              for view in result["views"]]
+    assert len(scored) == 1 and scored[0]["kind"] == "orbit"
+    assert not any(v in scored for v in record["views"])
+    assert Path(record["dir"], "model.onnx").is_file()
+    goals = {g["goal"]: g for g in result["goals"]}
+    assert goals[f"tuned (K=1) captured PSNR on the model's scene >= {Q.GOAL_TUNED_K1_DB:g} "
+                 "dB"]["diffs"] == [round(tuned["psnr_db"], 3)]
+    k4 = goals[f"tuned (K=4) captured PSNR >= {Q.GOAL_TUNED_K4_DB:g} dB"]
+    assert k4["pairs"] == 0 and k4["met"] is None
+
+
+def test_the_tuned_goals_are_checked_on_the_rows() -> None:
+    rows = [*ROWS, _row("donut", 0, "tuned", 1, 27.5, 0.2, 0.6),
+            _row("donut", 1, "tuned", 1, 26.9, 0.2, 0.7)]
+    for r in rows:
+        if r["tier"] == "tuned":
+            r["tune_steps_s"] = 600.0
+    goals = {g["goal"]: g for g in goal_checks(rows)}
+    g = goals["tuned (K=1) captured PSNR on the model's scene >= 27 dB"]
+    assert g["diffs"] == [27.5, 26.9] and g["mean_diff"] == pytest.approx(27.2) and g["met"]
+    g = goals["tuned (K=1) over sgd (K=1) >= 0 dB captured"]
+    assert g["diffs"] == [3.0, 3.9] and g["met"] is True
+    g = goals["tuned (K=1) SSIM >= the network's (paired)"]
+    assert g["met"] is True  # the rows' SSIM is PSNR / 40
+    ratio = next(v for k, v in goals.items() if k.startswith("tuned frame time"))
+    assert ratio["diffs"] == [1.2, 1.0] and ratio["met"] is True
+    assert next(v for k, v in goals.items() if k.startswith("`model tune` steps"))["met"]
+    assert goals["tuned (K=1) over the exact frame on another scene >= +2.5 dB "
+                 "captured"]["met"] is None  # the guitar has no model here

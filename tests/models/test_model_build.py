@@ -5,18 +5,26 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import shutil
 import struct
 from pathlib import Path
 from types import SimpleNamespace
 
 import pytest
 
+from nhfd.calibration import Calibration, fingerprint
+from nhfd.cli import cmd_model
+from nhfd.cli.main import main
 from nhfd.config import Config
 from nhfd.demos.serve import check_model_and_scene
+from nhfd.drivers.simcamera import TrueBench
 from nhfd.models import build as mb
 from nhfd.models.build import STAGES, Recipe, run_build
+from nhfd.models.sizes import read_metadata
 from nhfd.models.train import TrainOptions
+from nhfd.pipeline import tune as tune_module
 from nhfd.scene.io import load_scene
+from tests.calib.twin_stack import truth_calibration
 
 SCENE = Path(__file__).parents[1] / "data" / "formats" / "donut-crop.ply"
 # The bench a build is made for: the default configuration's [optics] and [slm].
@@ -413,3 +421,54 @@ def test_a_gpu_build_builds_its_dataset_on_that_gpu_or_says_why_not(monkeypatch)
     assert mb._dataset_device(ctx("cuda:0")) == ("cpu", 6)
     assert logged == ["dataset on the CPU: --device cuda:0: needs the gsplat package "
                       "(pip install 'nhfd[gpu]')"]
+
+
+def test_build_with_a_calibration_tunes_the_model_as_its_last_stage(built, tmp_path,
+                                                                     monkeypatch, capsys):
+    """`nhfd model build --calibration FILE` on a finished build (a copy of the tiny one, its
+    recipe given to the CLI): every build stage is skipped, then the model is tuned through that
+    calibration (2 steps, 1 view, the build's window) into OUT/tuned/model.onnx, whose
+    `tuned_for` names it, and its checked sizes are checked again; OUT/model.onnx is not
+    changed. The size check itself is recorded, not run (2.5 min for the tiny model's 3 sizes
+    on a loaded 2-core machine; `nhfd model tune`'s own test runs it)."""
+    out = tmp_path / "donut"
+    shutil.copytree(built[0], out)
+    before = (out / "model.onnx").read_bytes()
+    monkeypatch.setattr(cmd_model.Recipe, "from_config",
+                        classmethod(lambda _cls, *_a, **_k: tiny_recipe()))
+    checked: list[tuple[Path, list]] = []
+    monkeypatch.setattr(tune_module, "check_and_record",
+                        lambda path, sizes: checked.append((Path(path), list(sizes))))
+    cal = truth_calibration(TrueBench())
+    path = cal.save(tmp_path / "calibration.toml")
+    rc = main(["model", "build", str(SCENE), "--out", str(out), "--no-progress",
+               "--calibration", str(path), "--tune-steps", "2", "--tune-views", "1",
+               "--tune-size", "48x32"])
+    printed = capsys.readouterr().out
+    assert rc == 0, printed
+    assert "ran nothing" in printed and "tuned for" in printed
+    record = read_metadata(out / cmd_model.TUNED_DIR / "model.onnx")["tuned_for"]
+    loaded = Calibration.load(path)
+    assert record["calibration_sha256"] == fingerprint(loaded)
+    assert record["calibration"] == loaded.label and record["steps"] == 2
+    assert record["window_hw"] == [32, 48]
+    assert (out / "model.onnx").read_bytes() == before
+    want = [tuple(e["hw"]) for e in read_metadata(out / "model.onnx")["checked_sizes"]]
+    assert want and checked == [(out / cmd_model.TUNED_DIR / "model.onnx", want)]
+
+
+def test_build_refuses_a_bad_calibration_before_anything_is_written(tmp_path, capsys):
+    out = tmp_path / "o"
+    other = truth_calibration(TrueBench(wavelengths_m=(640e-9, 532e-9, 450e-9)))
+    bad = other.save(tmp_path / "other.toml")
+    assert main(["model", "build", str(SCENE), "--out", str(out), "--calibration",
+                 str(bad)]) == 2
+    assert "--calibration " in capsys.readouterr().err
+    assert main(["model", "build", str(SCENE), "--out", str(out), "--calibration",
+                 str(tmp_path / "missing.toml")]) == 2
+    capsys.readouterr()
+    good = truth_calibration(TrueBench()).save(tmp_path / "good.toml")
+    assert main(["model", "build", str(SCENE), "--out", str(out), "--calibration", str(good),
+                 "--tune-steps", "0"]) == 2
+    assert "steps (--steps) = 0: must be in 1..1000000" in capsys.readouterr().err
+    assert not out.exists()
