@@ -4,11 +4,10 @@ PYTHON ?= python3
 TORCH ?= torch==2.13.0
 VENV := .venv
 STAMP := $(VENV)/.nhfd-installed
-# One process by default: 12 minutes on 2 cores. PYTEST_WORKERS="-n 2 --dist loadfile" runs it
-# on two workers, a file each (about 9.5 minutes), but on a loaded 2-core machine a daemon run
-# inside a test process can then miss the guardian's 0.5 s heartbeat, and the guardian, rightly,
-# switches the lasers off under that test (seen once in three runs).
-PYTEST_WORKERS ?=
+# The suite in two runs: the tests that time a control loop (marked solo: heartbeat gaps, a
+# daemon thread beside a CPU burner) in one process with the machine to themselves, then the rest
+# on two pytest-xdist workers, a file each (PYTEST_WORKERS= runs those in one process too).
+PYTEST_WORKERS ?= -n 2 --dist loadfile
 
 .PHONY: demo test lint clean browser gpu-check gpu-prepare gpu-build
 
@@ -24,7 +23,8 @@ demo: $(STAMP)
 
 test: $(STAMP) browser
 	$(VENV)/bin/ruff check .
-	$(VENV)/bin/python -m pytest $(PYTEST_WORKERS)
+	$(VENV)/bin/python -m pytest -m "not solo" $(PYTEST_WORKERS); rest=$$?; \
+	$(VENV)/bin/python -m pytest -m solo; solo=$$?; test $$rest = 0 && test $$solo = 0
 
 clean:
 	rm -rf $(VENV) build dist *.egg-info out

@@ -225,6 +225,7 @@ def _flood(make_sock, payload: bytes, stop: threading.Event, drops: list[int]) -
             s.close()
 
 
+@pytest.mark.solo  # the heartbeat's gaps, measured: no other test's load beside it
 def test_a_newline_flood_and_an_endless_line_stay_bounded_and_the_heartbeat_keeps_its_period(
         short_dir, mecom_twin, caplog):
     config = bench_config(short_dir, mecom_twin, server={"tcp_port": free_port()})

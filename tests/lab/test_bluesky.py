@@ -35,6 +35,11 @@ from nhfd.lab.bluesky_demo import (
     simulated_bench,
 )
 
+# The daemon runs on a thread of this process with the guardian's 0.5 s heartbeat: another test's
+# load beside it once stalled it past that, and the guardian rightly switched the lasers off under
+# the scan. make test runs it alone.
+pytestmark = pytest.mark.solo
+
 START_MM, STOP_MM, POINTS = -0.5, 1.5, 5  # FOCUS_MM (0.5) is the middle point
 JOB_TIMEOUT_S = 30.0
 
