@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import math
 import struct
 from dataclasses import dataclass
@@ -35,6 +36,8 @@ from safetensors import SafetensorError
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 from torch import nn
+
+from nhfd.calibration import Calibration, parametric_fingerprint
 
 FORMAT = "nhfd-learned-bench"
 FORMAT_VERSION = 1
@@ -57,6 +60,8 @@ PITCH_REL_TOL = 1e-3
 # A pickle's first bytes (protocol 2-5) and a torch.save zip's.
 _PICKLE_PROTOCOLS = (2, 3, 4, 5)
 _ZIP_MAGIC = b"PK\x03\x04"
+
+log = logging.getLogger("nhfd.models.learned_bench")
 
 
 class LearnedWeightsError(ValueError):
@@ -285,7 +290,8 @@ def _check_optics(path: Path, meta: dict[str, str], optics: LearnedOptics) -> No
 
 
 def load_learned(path: Path | str, optics: LearnedOptics, *, sha256: str = "",
-                 device: torch.device | str = "cpu") -> LearnedBench:
+                 parametric_sha256: str = "", device: torch.device | str = "cpu"
+                 ) -> LearnedBench:
     """The learned bench in the safetensors file `path`, for a bench of `optics`, checked before
     it is trusted, each refusal a `LearnedWeightsError` naming the file and the problem:
 
@@ -296,7 +302,8 @@ def load_learned(path: Path | str, optics: LearnedOptics, *, sha256: str = "",
     - a header declaring more than MAX_HEADER_BYTES, a tensor over MAX_TENSOR_BYTES or beyond
       the file's end (truncated);
     - another format or version, architecture sizes out of range;
-    - weights for other optics (wavelengths, pitch, panel);
+    - weights for other optics (wavelengths, pitch, panel), or learned on top of another
+      parametric fit than `parametric_sha256` (its `parametric_fingerprint`; "" = not checked);
     - tensor names, shapes or dtypes (float32 only) other than the model's;
     - a NaN or infinite weight.
 
@@ -320,6 +327,11 @@ def load_learned(path: Path | str, optics: LearnedOptics, *, sha256: str = "",
         raise _refuse(path, f"format {meta.get('format')!r} version {meta.get('version')!r}: "
                             f"this nhfd reads {FORMAT!r} version {FORMAT_VERSION}")
     _check_optics(path, meta, optics)
+    if parametric_sha256:
+        on = _meta_value(path, meta, "parametric_sha256")
+        if on != parametric_sha256:
+            raise _refuse(path, f"learned on top of another calibration (parametric fit "
+                                f"{str(on)[:12]}..., this one's {parametric_sha256[:12]}...)")
     sizes = {}
     for key, (lo, hi) in (("hidden_channels", HIDDEN_RANGE),
                           ("unmodulated_grid", GRID_RANGE)):
@@ -343,10 +355,27 @@ def load_learned(path: Path | str, optics: LearnedOptics, *, sha256: str = "",
     return model.eval().to(device)
 
 
+def learned_of(cal: Calibration | None, optics: LearnedOptics, *,
+               device: torch.device | str = "cpu") -> tuple[LearnedBench | None, str | None]:
+    """The learned bench a calibration references, for a bench of `optics`: (the model, None);
+    (None, None) when it references none; (None, why) when its file is refused (logged): the
+    parametric model stays in use."""
+    path = cal.learned_path() if cal is not None else None
+    if cal is None or path is None:
+        return None, None
+    try:
+        return load_learned(path, optics, sha256=cal.learned_sha256,
+                            parametric_sha256=parametric_fingerprint(cal), device=device), None
+    except LearnedWeightsError as exc:
+        why = f"{exc}; the parametric bench model stays in use"
+        log.warning("%s", why)
+        return None, why
+
+
 def file_sha256(path: Path | str) -> str:
     """A file's SHA-256 (hex)."""
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()
 
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "LearnedBench", "LearnedOptics", "LearnedWeightsError",
-           "file_sha256", "load_learned", "save_learned"]
+           "file_sha256", "learned_of", "load_learned", "save_learned"]
