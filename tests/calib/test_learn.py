@@ -7,6 +7,7 @@ citl's loop: it never arms and never raises a power, and leaves every diode off.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -15,6 +16,7 @@ import pytest
 
 from nhfd.calib.learn import LearnPlan, LearnResult, learn
 from nhfd.calibration import Calibration
+from nhfd.cli.main import main
 from nhfd.config import Config
 from nhfd.device_settings import COLOURS
 from nhfd.drivers.factory import BenchDevices, make_bench
@@ -120,3 +122,29 @@ def test_the_files_are_written_and_the_calibration_uses_them(with_effects) -> No
     model, why = learned_of(cal, LearnedOptics(cal.wavelengths_m, cal.pitch_m, PANEL_HW))
     assert why is None and model is not None
     assert float(model.unmodulated.abs().max()) > 0.01  # it learned unmodulated light
+
+
+@pytest.mark.parametrize("field,value,allowed", [
+    ("held_out_plane", 3, r"0 <= i < 3"), ("held_out_patterns", 9, r"\[1, 8\]"),
+    ("planes_m", (0.0,), "2 to 16 planes"), ("learning_rate", 0.0, r"\(0, 1\]"),
+    ("settle_s", float("nan"), r"\[0, 60\] s")])
+def test_a_plan_out_of_range_is_refused_naming_the_value(field: str, value: object,
+                                                         allowed: str) -> None:
+    with pytest.raises(ValueError, match=rf"{field} = .*: must be {allowed}"):
+        dataclasses.replace(PLAN, **{field: value})
+
+
+def test_the_plan_states_its_count_and_a_real_benchs_time() -> None:
+    # 10 patterns x 3 planes: a stage move each (0.5 s) and 3 colours of settle, switch and
+    # exposure (0.1 + 0.02 + 0.005 s): 30 x 0.875 s = 26.25 s.
+    assert PLAN.captures == 90
+    assert PLAN.bench_seconds() == pytest.approx(26.25)
+    text = PLAN.describe()
+    assert "= 90 captures" in text and "about 0.4 min on a real bench" in text
+    assert "settle 100 ms" in text
+
+
+def test_learn_without_direct_says_what_is_built(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calib", "learn", "--out", "unused"]) == 2
+    assert "only --direct (the simulated bench in this process) is built" in \
+        capsys.readouterr().err
