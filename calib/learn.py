@@ -202,7 +202,7 @@ def learn_settings(config: Config, calibration: Calibration, window_hw: tuple[in
     return with_calibration(base, calibration)
 
 
-def _content(rng: np.random.Generator, kind: int, window_hw: tuple[int, int],
+def content_field(rng: np.random.Generator, kind: int, window_hw: tuple[int, int],
              planes_m: Sequence[float], s: FrameSettings) -> torch.Tensor:
     """A reference-plane field `[C, h, w]` complex64 of varied content: spots at the planes
     (kind 0) or a smooth random image at one plane (kind 1), each colour its own brightness."""
@@ -259,7 +259,7 @@ def training_patterns(encoder: Encoder, plan: LearnPlan, *,
     kinds: list[str] = []
     model = BenchForward(encoder, plan.planes_m)
     for i in range(plan.sgd_patterns):
-        ref = _content(rng, i % 2, s.window_hw, plan.planes_m, s)
+        ref = content_field(rng, i % 2, s.window_hw, plan.planes_m, s)
         with torch.no_grad():
             peak = float(encoder.to_slm(ref).abs().max())
         ref = ref * (CONTENT_PEAK * s.amplitude_scale / max(peak, 1e-12))
