@@ -443,7 +443,7 @@ def learn(devices: Any, calibration: Calibration, config: Config, plan: LearnPla
     """The whole step (the module's docstring): the plan printed, patterns, captures through
     `devices` (the bench's SLM, laser, stage, camera; a person armed the lasers and set the
     powers), the fit, the files into `out_dir` (None: none written) and the held-out
-    figures."""
+    figures (`LearnResult.lines()`, for the caller to print)."""
     if calibration.learned_file:
         calibration = dataclasses.replace(calibration, learned_file="", learned_sha256="")
     say(plan.describe())
@@ -457,8 +457,6 @@ def learn(devices: Any, calibration: Calibration, config: Config, plan: LearnPla
         weights, cal_path = write_learned(learned, calibration, out_dir, scores, plan)
     result = LearnResult(scores["held_out_patterns_db"], scores["held_out_plane_db"],
                          scores["train_loss"], weights, cal_path, data.seconds, scores["fit_s"])
-    for line in result.lines():
-        say(line)
     if out_dir is not None:
         (Path(out_dir) / "learn.json").write_text(json.dumps(
             {"held_out_patterns_db": result.held_out_patterns_db,
