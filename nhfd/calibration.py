@@ -27,7 +27,7 @@ import numbers
 import threading
 import tomllib
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -106,6 +106,11 @@ class Calibration:
     zernike_wavelength_m: float = 0.0
     # What the fit refused to determine, and why.
     refused: tuple[str, ...] = ()
+    # The learned bench on top of this fit (`nhfd calib learn`, docs/learned_bench.md): its
+    # safetensors file, a name beside the calibration file, and that file's SHA-256 (hex);
+    # "" = none (the parametric model alone).
+    learned_file: str = ""
+    learned_sha256: str = ""
     created: str = ""
     source: str = ""  # the file it was loaded from ("" when fitted in this process)
 
@@ -131,6 +136,16 @@ class Calibration:
                 raise ValueError(f"z_offset_m[{c}] = {z!r}: must be finite, |z| <= 0.05 m")
             if not (math.isfinite(k) and k > 0):
                 raise ValueError(f"intensity[{c}] = {k!r}: must be finite and > 0")
+        if self.learned_file or self.learned_sha256:
+            name = self.learned_file
+            if not name or "/" in name or "\\" in name or name.startswith(".") or \
+                    not name.endswith(".safetensors"):
+                raise ValueError(f"learned.file = {name!r}: must be a file name beside the "
+                                 "calibration ending in .safetensors (no folders, not hidden)")
+            if len(self.learned_sha256) != 64 or \
+                    any(ch not in "0123456789abcdef" for ch in self.learned_sha256):
+                raise ValueError(f"learned.sha256 = {self.learned_sha256!r}: must be 64 "
+                                 "lower-case hex digits")
 
     # -- what the daemon uses ------------------------------------------------------------------
 
@@ -174,6 +189,13 @@ class Calibration:
         (`z_m(stage, c)`): content of colour c shown that much further from the SLM is seen
         in focus together with green's."""
         return self.z_offset_m[colour] - self.z_offset_m[1]
+
+    def learned_path(self) -> Path | None:
+        """The learned bench's weights file (beside the calibration file it was loaded from),
+        or None when the calibration has none."""
+        if not self.learned_file:
+            return None
+        return (Path(self.source).parent if self.source else Path(".")) / self.learned_file
 
     @property
     def label(self) -> str:
@@ -221,6 +243,9 @@ class Calibration:
                             "wavelength_m": self.zernike_wavelength_m,
                             "pupil": "rho = |f| / aperture cutoff (cycles per SLM pixel)"}
                            if self.zernike_rad else {"fitted": False}),
+            **({"learned": {"file": self.learned_file, "sha256": self.learned_sha256,
+                            "format": "safetensors (docs/learned_bench.md)"}}
+               if self.learned_file else {}),
             "refused": {"reasons": list(self.refused)},
             "residuals": dict(self.residuals),
             "fitted_on": dict(self.fitted_on),
@@ -324,6 +349,9 @@ def _optional(doc: dict[str, Any]) -> dict[str, Any]:
                    zernike_std_rad=tuple(ab["zernike_std_rad"]),
                    zernike_wavelength_m=float(ab["wavelength_m"]))
     out["refused"] = tuple(doc.get("refused", {}).get("reasons", ()))
+    learned = doc.get("learned")
+    if learned is not None:
+        out.update(learned_file=str(learned["file"]), learned_sha256=str(learned["sha256"]))
     return out
 
 
@@ -361,7 +389,18 @@ def fingerprint(cal: Calibration) -> str:
     records the fingerprint of the calibration it was tuned for (`tuned_for`)."""
     values = asdict(cal)
     values.pop("source", None)
+    # The learned bench counts by its bytes' hash, not its name; without one the fingerprint
+    # is what it was before calibrations could have one.
+    values.pop("learned_file", None)
+    if not values.get("learned_sha256"):
+        values.pop("learned_sha256", None)
     return hashlib.sha256(json.dumps(values, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def parametric_fingerprint(cal: Calibration) -> str:
+    """The fingerprint of `cal`'s parametric fit alone (its learned bench left out): what a
+    learned bench records it was learned on top of."""
+    return fingerprint(replace(cal, learned_file="", learned_sha256=""))
 
 
 # What a tuned model records of the bench it was tuned for (its metadata's `tuned_for`, beside

@@ -798,6 +798,10 @@ class RefineSettings(_Section):
     planes: Annotated[int, Field(ge=1, le=16)] = 3
     # Progressive mode: a better frame replaces the one shown every this many iterations.
     swap_every: Annotated[int, Field(ge=1, le=10_000)] = 10
+    # The bench model sgd and citl refine through: "learned" uses the calibration's learned
+    # bench when it has one (`nhfd calib learn`, docs/learned_bench.md) and the parametric
+    # model otherwise; "parametric" always the parametric model.
+    bench_model: Literal["learned", "parametric"] = "learned"
 
 
 def _bounds(name: str) -> str:

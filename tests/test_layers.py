@@ -56,6 +56,20 @@ SEAMS = {
     # `scene info` and `scene render` load without it.
     "nhfd/cli/cmd_scene.py -> nhfd.dataset.envelope": "scene reduce only: the dataset envelope",
 }
+# The twin (the simulated camera; its `TrueBench` is the simulated bench's truth) may be imported
+# under calib/, nhfd/pipeline/ and models/ only by the simulated bench's I/O, listed here as
+# "file": why. Everything else there, the learned bench above all, learns only from captures
+# through the `Camera` interface and from the fitted calibration.
+TWIN = "nhfd.drivers.simcamera"
+TWIN_SCOPE = ("calib/", "nhfd/pipeline/", "models/")
+TWIN_IO = {
+    "calib/capture.py": "SimBenchIO: the calibration capture's simulated bench",
+    "calib/report.py": "the report's pictures: the fitted model imaged by the twin camera",
+    "calib/sim.py": "the simulated bench, calibrated, for nhfd refine --sim and nhfd bench",
+}
+# Modules that must not reach the twin through any chain of module-level imports.
+TWIN_FREE = ("nhfd.calib.learn", "nhfd.models.learned_bench", "nhfd.pipeline.refine",
+             "nhfd.calib.citl")
 # Violations being worked off (each entry "file -> imported module"); empty, and to stay so.
 ALLOWED: set[str] = set()
 
@@ -194,6 +208,56 @@ def seam_problems() -> list[str]:
             for e in EDGES
             if e.in_function and not e.type_checking and e.target.startswith("nhfd")
             and _key(e) not in SEAMS]
+
+
+def twin_problems(edges: list[Edge] | None = None,
+                  texts: dict[str, str] | None = None) -> list[str]:
+    """Imports of the twin, and names `TrueBench`, under TWIN_SCOPE outside TWIN_IO (any
+    import: module level, in a function, under TYPE_CHECKING); and a TWIN_FREE module that
+    reaches the twin through module-level imports."""
+    problems = []
+    for e in EDGES if edges is None else edges:
+        if e.path.startswith(TWIN_SCOPE) and e.path not in TWIN_IO and \
+                (e.target == TWIN or e.target.startswith(TWIN + ".")):
+            problems.append(f"{e.where()}: {_key(e)}: imports the twin outside the simulated "
+                            "bench's I/O (TWIN_IO)")
+    if texts is None:
+        texts = {str(p.relative_to(REPO)): p.read_text() for p in MODULES.values()}
+    for rel, text in texts.items():
+        if not rel.startswith(TWIN_SCOPE) or rel in TWIN_IO:
+            continue
+        for node in ast.walk(ast.parse(text, filename=rel)):
+            name = (node.id if isinstance(node, ast.Name) else
+                    node.attr if isinstance(node, ast.Attribute) else None)
+            if name == "TrueBench":
+                problems.append(f"{rel}:{node.lineno}: names the twin's TrueBench outside "
+                                "the simulated bench's I/O (TWIN_IO)")
+    if edges is None:
+        for module in TWIN_FREE:
+            chain = _module_level_closure(module).get(TWIN)
+            if chain:
+                problems.append(f"{module} reaches the twin: {' -> '.join(chain)}")
+    return problems
+
+
+def test_only_the_simulated_benchs_io_imports_the_twin():
+    assert not twin_problems(), "\n" + "\n".join(twin_problems())
+    for module in TWIN_FREE:
+        assert module in MODULES, module  # the list names real modules
+    assert all((REPO / rel).is_file() for rel in TWIN_IO), sorted(TWIN_IO)
+
+
+def test_the_twin_check_catches_a_learned_part_importing_the_twin():
+    for source in ("from nhfd.drivers.simcamera import TrueBench\n",
+                   "def f():\n    from nhfd.drivers import simcamera\n",
+                   "import nhfd.drivers.simcamera as s\n"):
+        edges = _edges("nhfd.calib.learn", "calib/learn.py", source)
+        assert twin_problems(edges, {}), source
+    # A twin handed in as a value and named: caught too.
+    assert twin_problems([], {"models/learned_bench.py": "def f(b):\n    return b.TrueBench\n"})
+    # The simulated bench's own I/O may.
+    edges = _edges("nhfd.calib.sim", "calib/sim.py", "from nhfd.drivers.simcamera import x\n")
+    assert not twin_problems(edges, {})
 
 
 def test_no_upward_or_forbidden_import():

@@ -1,11 +1,14 @@
-"""`nhfd calib capture|fit|report`: calibrate the bench against the simulation (issue 8).
+"""`nhfd calib capture|fit|report|learn`: calibrate the bench against the simulation.
 
 `capture` runs through the daemon (`nhfd serve` owns the devices; simulated by default): the
 daemon's panel size and wavelengths from `status`, frames shown with `show_pattern` (so --out must
 lie inside its daemon.paths.pattern_dirs), raw stage moves, laser power/enable (arm first, or
 --arm), linear .npy captures. `--direct` drives the simulated twins in this process instead (a
 `TrueBench`, optionally randomised with `--sim-seed`). `fit` writes calibration.toml; `report`
-writes PNGs next to the capture.
+writes PNGs next to the capture. `learn --direct` learns what the parametric model leaves out
+from captures on the simulated bench (docs/learned_bench.md): it prints the capture plan, captures,
+fits, writes the weights and the calibration referencing them, and prints the held-out PSNR,
+parametric against learned, per colour.
 """
 
 from __future__ import annotations
@@ -23,11 +26,13 @@ from nhfd.calib.capture import (
     daemon_spec,
 )
 from nhfd.calib.fit import fit_capture
+from nhfd.calib.learn import LearnPlan, learn
 from nhfd.calib.patterns import PatternSpec
 from nhfd.calib.report import write_report
+from nhfd.calib.sim import SIM_PANEL_MARGIN_PX, sim_devices, sim_panel_hw, twin_calibration
 from nhfd.calibration import Calibration
 from nhfd.cli.args import parse_wxh
-from nhfd.config import load_config
+from nhfd.config import Config, load_config
 from nhfd.daemon.client import Client
 from nhfd.daemon.paths import socket_path
 from nhfd.drivers.simcamera import TrueBench
@@ -72,6 +77,30 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--calibration", help="calibration.toml (default: fit now)")
     r.add_argument("-o", "--out", help="PNG folder (default DIR/report)")
     r.set_defaults(handler=run_report)
+    learn_p = cmds.add_parser("learn", help="learn what the parametric bench model leaves out, "
+                                            "from captures (docs/learned_bench.md)")
+    learn_p.add_argument("--direct", action="store_true",
+                         help="capture on the simulated bench in this process (required: the "
+                              "daemon's capture job is not built yet)")
+    learn_p.add_argument("--out", required=True,
+                         help="folder for learned.safetensors, calibration.toml (the "
+                              "calibration referencing it) and learn.json")
+    learn_p.add_argument("--calibration", default=None,
+                         help="the parametric calibration to learn on top of (default: the "
+                              "simulated bench's, fitted into OUT/parametric once and reused)")
+    learn_p.add_argument("--sim-seed", type=int, default=None,
+                         help="randomise the simulated bench with this seed (default: "
+                              "the packaged twin)")
+    learn_p.add_argument("--window", default="64x64", help="window WxH px (default 64x64)")
+    learn_p.add_argument("--patterns", type=int, default=None,
+                         help="sgd patterns (default 12; random 4 and structured 8 beside)")
+    learn_p.add_argument("--held-out", type=int, default=None,
+                         help="patterns held out for scoring (default 6)")
+    learn_p.add_argument("--steps", type=int, default=None, help="fit steps (default 150)")
+    learn_p.add_argument("--seed", type=int, default=0, help="patterns' and fit's seed")
+    learn_p.add_argument("--power", type=float, default=10.0,
+                         help="the simulated laser's power, %% (default 10: its cap)")
+    learn_p.set_defaults(handler=run_learn)
 
 
 def _say(msg: str) -> None:
@@ -130,4 +159,27 @@ def run_report(args: argparse.Namespace) -> int:
     cal = Calibration.load(args.calibration) if args.calibration else None
     for path in write_report(args.dir, cal, args.out):
         print(path)
+    return 0
+
+
+def run_learn(args: argparse.Namespace) -> int:
+    if not args.direct:
+        raise ValueError("nhfd calib learn: only --direct (the simulated bench in this process) "
+                         "is built; the daemon's capture job is not")
+    w, h = parse_wxh(args.window)
+    panel_hw = sim_panel_hw((h, w), SIM_PANEL_MARGIN_PX)
+    twin = TrueBench.randomised(args.sim_seed) if args.sim_seed is not None else TrueBench()
+    out = Path(args.out)
+    cal = (Calibration.load(args.calibration) if args.calibration else
+           twin_calibration(out / "parametric", twin, panel_hw, say=_say))
+    given = {"sgd_patterns": args.patterns, "held_out_patterns": args.held_out,
+             "steps": args.steps}
+    plan = LearnPlan(window_hw=(h, w), seed=args.seed,
+                     **{k: v for k, v in given.items() if v is not None})
+    with sim_devices(twin, panel_hw, power_pct=args.power) as devices:
+        result = learn(devices, cal, Config(), plan, out, panel_hw=panel_hw, say=_say)
+    print(f"wrote {result.weights} and {result.calibration} (capture {result.capture_s:.0f} s, "
+          f"fit {result.fit_s:.0f} s on the simulated bench)")
+    for line in result.lines():
+        print(line)
     return 0

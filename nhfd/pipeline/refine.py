@@ -44,6 +44,7 @@ from nhfd.holo import (
 )
 from nhfd.model_info import DepthMapping as InfoMapping
 from nhfd.model_info import ModelInfo
+from nhfd.models.learned_bench import LearnedBench, LearnedOptics, learned_of
 from nhfd.optics import (
     Aperture,
     colour_gains,
@@ -253,9 +254,14 @@ class BenchForward:
     z0 + refocus + the colour's focus offset + the plane's depth. What it leaves out (the
     pixels' fill factor, gaps and crosstalk, unmodulated light, the camera's colour and
     response) is what `citl`'s captures bring in. It runs on the encoder's device, as does
-    `refine` with it."""
+    `refine` with it.
 
-    def __init__(self, encoder: Encoder, planes_m: Sequence[float]) -> None:
+    `learned`: a learned bench (`nhfd.models.learned_bench`, docs/learned_bench.md) applied
+    around this model: its field leaving the panel replaces the unit-amplitude one, and its
+    target-plane network follows each colour's intensity. None: the parametric model alone."""
+
+    def __init__(self, encoder: Encoder, planes_m: Sequence[float],
+                 learned: LearnedBench | None = None) -> None:
         s, r = encoder.settings, encoder.region
         self.encoder = encoder
         self.device = encoder.device
@@ -270,6 +276,8 @@ class BenchForward:
         self.pupil_scales = pupil_scales(s.zernike_wavelength_m, s.wavelengths_m)
         # SLM -> each plane: the reverse of the encoder's propagation, plus the plane's depth.
         self.z_m = [[-zc + dz for dz in self.planes_m] for zc in s.colour_propagation_z_m]
+        self.learned = None if learned is None else learned.to(self.device)
+        self.box = (r.top, r.left, r.height, r.width)  # the region on the panel
 
     def __call__(self, phase: torch.Tensor, cancelled: Callable[[], bool] = _never
                  ) -> torch.Tensor:
@@ -289,7 +297,10 @@ class BenchForward:
         for c, lam in enumerate(s.wavelengths_m):
             if cancelled():
                 raise Cancelled
-            u = torch.polar(torch.ones_like(phase[:, c]), phase[:, c])  # [K, Hr, Wr]
+            if self.learned is None:
+                u = torch.polar(torch.ones_like(phase[:, c]), phase[:, c])  # [K, Hr, Wr]
+            else:
+                u = self.learned.slm_field(phase[:, c], c, self.box)
             if hooks:
                 u.register_hook(poll)
             if self.source is not None:
@@ -308,6 +319,8 @@ class BenchForward:
                           aperture=Aperture(s.aperture_shape, (self.cutoffs[c],)),  # type: ignore[arg-type]
                           padding=s.padding, cache=self.encoder.cache)  # [K, D, 1, Hr, Wr]
             intensity = v[..., 0, self.window[0], self.window[1]].abs().square()
+            if self.learned is not None:
+                intensity = self.learned.intensity(intensity, c)
             if hooks:
                 intensity.register_hook(poll)
             out.append(intensity)
@@ -514,6 +527,9 @@ class Prepared:
     clipped: tuple[float, ...]
     render: Render
     seconds: float
+    # Why the calibration's learned bench is not in use although asked for (a refused weights
+    # file: the parametric model refines), or "".
+    bench_refusal: str = ""
 
     @property
     def rgb(self) -> np.ndarray:
@@ -538,7 +554,9 @@ def prepare(config: Config, view: View, scene: Scene, *, info: ModelInfo | None 
     have (`amplitude_scale_of`). `config`: the whole configuration (frame settings join [slm],
     [coding], [optics], [daemon]); `window_hw` and `panel_hw` replace its window and panel
     when given. `device`: where the encoder and the bench model run. `cancelled()` is polled
-    between the stages and the light field's elemental views (`Cancelled`)."""
+    between the stages and the light field's elemental views (`Cancelled`). The bench model is
+    the calibration's learned bench when it has one and `refine.bench_model` is "learned"
+    (a refused weights file: the parametric model, the reason in `bench_refusal`)."""
     t0 = time.perf_counter()
 
     def poll(_done: int = 0, _total: int = 0) -> None:
@@ -580,8 +598,12 @@ def prepare(config: Config, view: View, scene: Scene, *, info: ModelInfo | None 
     with torch.no_grad():
         exact_grey, clipped = encoder.code(encoder.to_slm(reference))
     poll()
-    return Prepared(view, info, encoder, reference, target, BenchForward(encoder, at),
-                    exact_grey, tuple(clipped), r, time.perf_counter() - t0)
+    learned, refusal = (learned_of(calibration, LearnedOptics(s.wavelengths_m, s.pitch_m,
+                                                              s.panel_hw), device=device)
+                        if config.refine.bench_model == "learned" else (None, None))
+    return Prepared(view, info, encoder, reference, target,
+                    BenchForward(encoder, at, learned), exact_grey, tuple(clipped), r,
+                    time.perf_counter() - t0, refusal or "")
 
 
 def model_loss(p: Prepared, grey: np.ndarray) -> float:
