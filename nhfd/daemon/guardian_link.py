@@ -124,6 +124,9 @@ class LaserLink:
         self._session = 1
         self._ended: dict[int, str] = {}
         self._on_session_end = on_session_end
+        # Why every switch-on is refused from now on, whatever its session (`refuse_from_now`:
+        # a shutdown was asked), or None.
+        self._refusing: str | None = None
 
     @property
     def present(self) -> bool:
@@ -159,8 +162,19 @@ class LaserLink:
             except Exception:  # a report, never a reason for the off itself to fail
                 log.exception("emission session end hook")
 
+    def refuse_from_now(self, reason: str) -> None:
+        """Refuse every switch-on from now on, whatever its session (`reason`: why, as a run's
+        refusal says it). A shutdown's first act, asked perhaps from a signal handler in the
+        middle of this link's own work: so no lock, only an assignment. The session ends too
+        when the loop next steps (`end_session`); a run switching its diodes in turn must not
+        light the next one meanwhile."""
+        self._refusing = reason
+
     def check_session(self, session: int) -> None:
-        """EmissionEnded, saying what ended it, unless `session` is the session now."""
+        """EmissionEnded, saying what ended it, unless `session` is the session now (and no
+        shutdown refuses every switch-on)."""
+        if self._refusing is not None:
+            raise EmissionEnded(self._refusing)
         if session != self._session:
             raise EmissionEnded(self._ended.get(
                 session, "the lasers were switched off or re-armed since it was asked for"))

@@ -64,6 +64,8 @@ from .views import ViewSlot
 log = logging.getLogger("nhfd.daemon")
 
 SIGNAL_WAKE = ("signal",)  # the selector's tag of the signal wake-up socket
+# What a run that could emit is told once a shutdown is asked (its refusal, and status).
+SHUTDOWN_EMISSION_END = "lasers off: the daemon is shutting down"
 
 
 class AlreadyRunning(RuntimeError):
@@ -463,6 +465,10 @@ class Daemon:
         """Stop the loop (at its next step: lasers off first, then everything else)."""
         if not self._shutdown.is_set():
             self._shutdown_reason = reason
+            # From here no diode switches on: a run that could emit (citl's captures, a
+            # capture-mode snapshot) is refused at its next switch-on, not only once the loop's
+            # next step ends its session (a loaded machine let citl light green twice between).
+            self.laser.refuse_from_now(SHUTDOWN_EMISSION_END)
             log.info("shutting down: %s", reason)
             self._shutdown.set()
 
@@ -480,7 +486,7 @@ class Daemon:
         self.state = "stopping"
         # First: from here no run that could emit switches anything on (the lasers go off
         # below, and nothing resumes them).
-        self.laser.end_session("lasers off: the daemon is shutting down")
+        self.laser.end_session(SHUTDOWN_EMISSION_END)
         self.notifier.stopping()
         if self.server is not None:
             self.server.flush_all()  # the shutdown caller hears its reply

@@ -17,10 +17,12 @@ import pytest
 
 from nhfd.config import Config, _overlay
 from nhfd.daemon.client import Client
+from nhfd.daemon.guardian_link import EmissionEnded
 from nhfd.daemon.protocol import RpcError
+from nhfd.daemon.service import SHUTDOWN_EMISSION_END, Daemon
 from nhfd.device_settings import COLOURS
 
-from .conftest import Running, free_port, wait_until
+from .conftest import Running, bench_config, free_port, wait_until
 from .test_citl_daemon import POWERS, _citl_jobs, _running, citl_config
 from .test_frames import FRONT_POSE
 from .test_tls import self_signed
@@ -180,3 +182,29 @@ def test_remote_emission_true_lets_a_tls_peer_start_citl(short_dir, tiny):
     finally:
         remote.close()
         r.stop()
+
+
+def test_a_shutdown_refuses_the_next_switch_on_before_the_loop_steps_again(short_dir,
+                                                                         mecom_twin):
+    """A shutdown asked from another thread (an RPC, a signal) refuses the next switch-on of a
+    run at once, whatever its session, and names the shutdown. The loop ends the session only
+    at its next step; a loaded machine once let citl light green twice in between. Here the
+    loop never steps: the refusal is the shutdown's own."""
+    d = Daemon(bench_config(short_dir, mecom_twin), base_dir=short_dir, env={},
+               handle_signals=False)
+    d.start()
+    try:
+        d.laser.arm(60.0)
+        d.laser.power("green", 5.0)
+        session = d.laser.session
+        d.laser.enable("green", True, session=session)  # a run lights green, then red is next
+        d.laser.enable("green", False)
+        asked = mecom_twin.clock()
+        d.request_shutdown("test over")
+        assert d.laser.session == session  # the loop has not stepped: the session still holds
+        with pytest.raises(EmissionEnded, match=f"^{SHUTDOWN_EMISSION_END}$"):
+            d.laser.enable("red", True, session=session)
+        assert switch_ons(mecom_twin, asked) == []
+    finally:
+        d.close()
+    assert mecom_twin.emitting() == dict.fromkeys(COLOURS, 0.0)
