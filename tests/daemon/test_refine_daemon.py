@@ -126,6 +126,9 @@ def test_subframes_take_turns_on_the_panel(short_dir, mecom_twin, tiny):
         seen = set()
         deadline = time.monotonic() + 2.0
         while len(seen) < 2 and time.monotonic() < deadline:  # 60 Hz: a turn every ~17 ms
+            # The pair of now: sgd goes on swapping better pairs in meanwhile (a loaded machine
+            # once swapped one in between a copy taken once and the next turn).
+            greys = refinement.greys.copy()
             shown = r.daemon.bench.slm.last_frame[:, region.rows, region.cols]
             seen |= {i for i, g in enumerate(greys) if np.array_equal(shown, g)}
             time.sleep(0.004)
