@@ -98,14 +98,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     d = tune.TuneSettings()
     b.add_argument("--calibration", help="then tune the model through this bench's calibration "
                    f"(nhfd model tune) as a last stage, into OUT/{TUNED_DIR}/model.onnx")
-    b.add_argument("--tune-steps", type=int, default=d.steps,
-                   help=f"the tuning's steps (default {d.steps})")
-    b.add_argument("--tune-seconds", type=float, default=d.seconds,
-                   help=f"the tuning's time budget, s (default {d.seconds:g})")
-    b.add_argument("--tune-views", type=int, default=d.views,
-                   help=f"training views to tune on (default {d.views})")
-    b.add_argument("--tune-size", default=f"{d.window_hw[1]}x{d.window_hw[0]}",
-                   help="the tuning's frame window WxH (default %(default)s)")
+    tune_budget_arguments(b, d, "tune-")
     b.set_defaults(handler=run_model_build)
     c = cmds.add_parser("check-sizes", help="check a model at more input sizes and record them",
                         description=CHECK_SIZES_HELP)  # fmt: skip
@@ -127,18 +120,27 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--dataset", help="the model's dataset folder, for its training poses "
                    "(default: the poses the model records)")
     d = tune.TuneSettings()
-    t.add_argument("--steps", type=int, default=d.steps, help=f"steps (default {d.steps})")
-    t.add_argument("--seconds", type=float, default=d.seconds,
-                   help=f"at most this long in all (default {d.seconds:g})")
-    t.add_argument("--views", type=int, default=d.views,
-                   help=f"training views (default {d.views})")
-    t.add_argument("--size", default=f"{d.window_hw[1]}x{d.window_hw[0]}",
-                   help="the frame window WxH (default %(default)s)")
+    tune_budget_arguments(t, d)
     t.add_argument("--ssim-weight", type=float, default=d.ssim_weight,
                    help=f"the structural term's weight beside the MSE (default {d.ssim_weight:g})")
     t.add_argument("--device", default=d.device, help="cpu or cuda[:N] (default cpu)")
     t.add_argument("--config", help="configuration file (default: the search order)")
     t.set_defaults(handler=run_model_tune)
+
+
+def tune_budget_arguments(p: argparse.ArgumentParser, d: tune.TuneSettings,
+                          prefix: str = "") -> None:
+    """The tuning's budget and window, `--{prefix}steps`, `--{prefix}seconds`, `--{prefix}views`
+    and `--{prefix}size`, with `d`'s values as defaults (`nhfd model tune`; `nhfd model build`'s
+    last stage with the prefix "tune-")."""
+    p.add_argument(f"--{prefix}steps", type=int, default=d.steps,
+                   help=f"the tuning's steps (default {d.steps})")
+    p.add_argument(f"--{prefix}seconds", type=float, default=d.seconds,
+                   help=f"the tuning's time budget in all, s (default {d.seconds:g})")
+    p.add_argument(f"--{prefix}views", type=int, default=d.views,
+                   help=f"training views to tune on (default {d.views})")
+    p.add_argument(f"--{prefix}size", default=f"{d.window_hw[1]}x{d.window_hw[0]}",
+                   help="the tuning's frame window WxH (default %(default)s)")
 
 
 def run_model_build(args: argparse.Namespace) -> int:
