@@ -372,10 +372,5 @@ def learned_of(cal: Calibration | None, optics: LearnedOptics, *,
         return None, why
 
 
-def file_sha256(path: Path | str) -> str:
-    """A file's SHA-256 (hex)."""
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-
-
 __all__ = ["FORMAT", "FORMAT_VERSION", "LearnedBench", "LearnedOptics", "LearnedWeightsError",
-           "file_sha256", "learned_of", "load_learned", "save_learned"]
+           "learned_of", "load_learned", "save_learned"]
