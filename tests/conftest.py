@@ -61,17 +61,21 @@ TEST_DEADLINE_S = 30
 
 @pytest.fixture(autouse=True)
 def _deadline(request: pytest.FixtureRequest) -> Iterator[None]:
-    """SIGALRM interrupts any wait in the main thread after TEST_DEADLINE_S (a TimeoutError)."""
+    """SIGALRM interrupts any wait in the main thread after TEST_DEADLINE_S (a TimeoutError), or
+    the test's own `@pytest.mark.deadline_s(s)` (one that walks a daemon through several runs)."""
     if (request.node.path.parent.name not in DEADLINE_DIRS
             or threading.current_thread() is not threading.main_thread()):  # fmt: skip
         yield
         return
 
+    mark = request.node.get_closest_marker("deadline_s")
+    deadline_s = float(mark.args[0]) if mark else TEST_DEADLINE_S
+
     def expired(signum: int, frame: object) -> None:
-        raise TimeoutError(f"test exceeded {TEST_DEADLINE_S} s")
+        raise TimeoutError(f"test exceeded {deadline_s:g} s")
 
     old = signal.signal(signal.SIGALRM, expired)
-    signal.setitimer(signal.ITIMER_REAL, TEST_DEADLINE_S)
+    signal.setitimer(signal.ITIMER_REAL, deadline_s)
     try:
         yield
     finally:
