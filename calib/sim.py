@@ -13,7 +13,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from nhfd.calibration import Calibration, CalibrationFileError
-from nhfd.config import Config
+from nhfd.config import Config, DeviceSettings
 from nhfd.device_settings import COLOURS
 from nhfd.drivers.factory import BenchDevices, make_bench
 from nhfd.drivers.simcamera import TrueBench
@@ -82,13 +82,13 @@ def twin_calibration(folder: Path, twin: TrueBench, panel_hw: tuple[int, int], *
 
 
 @contextmanager
-def sim_devices(twin: TrueBench, panel_hw: tuple[int, int], *, power_pct: float = SIM_POWER_PCT
-                ) -> Iterator[BenchDevices]:
-    """The simulated bench over `twin` (the packaged default devices: all simulated, a mono
-    camera on the sensor region that holds the panel's image, as in its calibration), its
-    laser armed (`SIM_ARM_S`; `arm_twin` re-arms) with every colour at `power_pct`. Closing
-    switches every laser off."""
-    d = Config().devices
+def sim_devices(twin: TrueBench, panel_hw: tuple[int, int], *, power_pct: float = SIM_POWER_PCT,
+                devices: DeviceSettings | None = None) -> Iterator[BenchDevices]:
+    """The simulated bench over `twin` (`devices`, by default the packaged default devices: all
+    simulated; a mono camera on the sensor region that holds the panel's image, as in its
+    calibration), its laser armed (`SIM_ARM_S`; `arm_twin` re-arms) with every colour at
+    `power_pct`. Closing switches every laser off."""
+    d = devices if devices is not None else Config().devices
     d = d.model_copy(update={"camera_settings": d.camera_settings.model_copy(
         update={"channels": "mono"})})
     with make_bench(d, panel_hw[1], panel_hw[0], bench=twin,
