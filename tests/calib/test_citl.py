@@ -26,6 +26,7 @@ from nhfd.pipeline.settings import FrameSettings, with_calibration
 from tests.pipeline.test_refine import PLANES_M, spots
 
 from .conftest import PANEL_HW
+from .twin_stack import quick_devices
 
 POWER_PCT = 10.0  # the simulated laser's cap
 
@@ -43,9 +44,7 @@ def _encoder(fitted) -> Encoder:
 @contextmanager
 def _devices(bench: TrueBench, *, armed: bool) -> Iterator[BenchDevices]:
     twin = aberrated(bench, UNKNOWN_ZERNIKE_RAD)  # the coma and astigmatism the bench measures
-    d = Config().devices
-    d = d.model_copy(update={"camera_settings": d.camera_settings.model_copy(
-        update={"channels": "mono", "exposure_s": 0.005})})
+    d = quick_devices(exposure_s=0.005)
     with make_bench(d, PANEL_HW[1], PANEL_HW[0], bench=twin,
                     roi=twin.roi_for_panel(PANEL_HW)) as devices:
         if armed:

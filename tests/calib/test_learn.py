@@ -45,7 +45,7 @@ from nhfd.pipeline.refine import (
 )
 
 from .conftest import BENCH_SEED
-from .twin_stack import truth_calibration
+from .twin_stack import quick_devices, truth_calibration
 
 WINDOW_HW = (32, 32)
 PANEL_HW = (96, 96)
@@ -67,13 +67,7 @@ OFF = dict(fill_factor=1.0, crosstalk_sigma_m=0.0, zero_order_fraction=0.0, over
 def _devices(twin: TrueBench) -> Iterator[BenchDevices]:
     """The simulated bench over `twin`, fast (no settle time, a quick stage), armed by the test
     (a person's arming), each colour's power set."""
-    d = Config().devices
-    d = d.model_copy(update={
-        "camera_settings": d.camera_settings.model_copy(update={
-            "channels": "mono", "exposure_s": 0.005,
-            "pixel_pitch_um": twin.camera_pitch_m * 1e6}),
-        "slm_output": d.slm_output.model_copy(update={"settle_ms": 0.0}),
-        "apt": d.apt.model_copy(update={"velocity_mm_s": 50.0, "acceleration_mm_s2": 100.0})})
+    d = quick_devices(exposure_s=0.005, pixel_pitch_um=twin.camera_pitch_m * 1e6)
     with make_bench(d, PANEL_HW[1], PANEL_HW[0], bench=twin,
                     roi=twin.roi_for_panel(PANEL_HW)) as devices:
         devices.laser.arm(600)

@@ -4,6 +4,7 @@ the Pareto front."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import onnx
 import pytest
@@ -23,8 +24,24 @@ from nhfd.models.train import CHECKPOINT, train
 from tests.models.conftest import tiny_options
 
 
-def test_int8_keeps_the_layers_that_write_the_outputs_in_float(tiny_run, tmp_path):
-    model = onnx.load(str(export_onnx(tiny_run, tmp_path / "m.onnx").path))
+@pytest.fixture(scope="module")
+def int8_pair(tiny_data, tiny_run, tmp_path_factory) -> tuple[Path, Path]:
+    """The tiny run's float export and its int8 sibling (quantised once for this module: each
+    took 15 s)."""
+    from nhfd.models.data import HoloData
+    from nhfd.models.net import NetSpec
+    from nhfd.models.quantise import quantise_int8
+
+    out = tmp_path_factory.mktemp("int8")
+    src = export_onnx(tiny_run, out / "m.onnx").path
+    spec = NetSpec(**json.loads((tiny_run / "run.json").read_text())["net"])
+    dst = quantise_int8(src, out / "m-int8.onnx", HoloData(tiny_data), spec.multiple,
+                        spec.inputs)  # fmt: skip
+    return src, dst
+
+
+def test_int8_keeps_the_layers_that_write_the_outputs_in_float(int8_pair):
+    model = onnx.load(str(int8_pair[0]))
     heads, tail = output_nodes(model)
     by_name = {n.name: n for n in model.graph.node}
     assert len(heads) == 2 and {by_name[h].op_type for h in heads} == {"ConvTranspose"}
@@ -34,16 +51,8 @@ def test_int8_keeps_the_layers_that_write_the_outputs_in_float(tiny_run, tmp_pat
     assert {by_name[t].op_type for t in tail} >= {"Exp", "Log", "Max"}  # softplus's passes
 
 
-def test_int8_leaves_the_head_and_the_softplus_in_float(tiny_data, tiny_run, tmp_path):
-    from nhfd.models.data import HoloData
-    from nhfd.models.net import NetSpec
-    from nhfd.models.quantise import quantise_int8
-
-    src = export_onnx(tiny_run, tmp_path / "m.onnx").path
-    spec = NetSpec(**json.loads((tiny_run / "run.json").read_text())["net"])
-    dst = quantise_int8(src, tmp_path / "m-int8.onnx", HoloData(tiny_data), spec.multiple,
-                        spec.inputs)  # fmt: skip
-    q = onnx.load(str(dst))
+def test_int8_leaves_the_head_and_the_softplus_in_float(int8_pair):
+    q = onnx.load(str(int8_pair[1]))
     producer = {out: n for n in q.graph.node for out in n.output}
     # every path from the outputs back to the head: float nodes only, no (de)quantisation
     todo, seen = [o.name for o in q.graph.output], set()
@@ -227,18 +236,12 @@ def test_the_bench_end_to_end_on_a_tiny_dataset(tiny_data, tmp_path, capsys):
     assert (out / "tradeoff.png").is_file()
 
 
-def test_int8_checks_its_own_sizes_not_the_float_models(tiny_data, tiny_run, tmp_path):
+def test_int8_checks_its_own_sizes_not_the_float_models(int8_pair):
     """The float model's checked_sizes were measured against torch; the int8 graph is another
     model, so it gets the same sizes checked on itself (full run against tiles)."""
-    from nhfd.models.data import HoloData
-    from nhfd.models.net import NetSpec
-    from nhfd.models.quantise import quantise_int8
     from nhfd.models.sizes import read_metadata
 
-    src = export_onnx(tiny_run, tmp_path / "m.onnx").path
-    spec = NetSpec(**json.loads((tiny_run / "run.json").read_text())["net"])
-    dst = quantise_int8(src, tmp_path / "m-int8.onnx", HoloData(tiny_data), spec.multiple,
-                        spec.inputs)  # fmt: skip
+    src, dst = int8_pair
     float_sizes = read_metadata(src)["checked_sizes"]
     int8_sizes = read_metadata(dst)["checked_sizes"]
     assert [e["hw"] for e in int8_sizes] == [e["hw"] for e in float_sizes]

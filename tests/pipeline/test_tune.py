@@ -44,7 +44,7 @@ from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import scene_from_file, view_pose
 from nhfd.scene.cameras import orbit, orbit_position
 from nhfd.views import Orbit, View
-from tests.calib.twin_stack import truth_calibration
+from tests.calib.twin_stack import quick_devices, truth_calibration
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "nhf-donut-512.onnx"
@@ -74,11 +74,6 @@ TWINS = {
 # The bench's seeded views (`seeded_views`, as `nhfd bench quality` draws them) for the
 # captured check: inside the pose envelope, never a training pose.
 HELD_OUT_SEED = 0
-# The simulated devices with the stage at 50 mm/s (as the daemon's citl tests run it): at the
-# packaged 2 mm/s, moving to the planes was 16 of the captured check's 20 s a twin.
-_devices = Config().devices
-FAST_STAGE = _devices.model_copy(update={"apt": _devices.apt.model_copy(
-    update={"velocity_mm_s": 50.0})})
 # Each view's captured gain must pass this: half the smallest gain measured (0.76 dB).
 CAPTURED_MARGIN_DB = 0.4
 
@@ -277,7 +272,7 @@ def test_a_tuned_models_frames_capture_better_on_the_twin(twin, scene, model_fil
     info = TorchModel(model_file).info
     views = seeded_views(np.random.default_rng(HELD_OUT_SEED), 2, scene, info, WINDOW_HW)
     got: dict[str, list[dict]] = {"untuned": [], "tuned": []}
-    with sim_devices(bench, PANEL_HW, devices=FAST_STAGE) as devices:
+    with sim_devices(bench, PANEL_HW, devices=quick_devices()) as devices:
         for view in views:
             p = prepare(Config(), view, scene, info=info, calibration=cal, window_hw=WINDOW_HW,
                         panel_hw=PANEL_HW, planes=TUNED_SETTINGS.planes)
