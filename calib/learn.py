@@ -13,7 +13,9 @@
    captures of the training patterns at the training planes; held-out patterns and a held-out
    plane score it, parametric against learned, PSNR per colour.
 4. **The files**: the weights (safetensors) beside the calibration and the calibration
-   referencing them, each written atomically, the weights first.
+   referencing them, each written atomically, the weights first; the captures and the plan
+   beside them, so that `fidelity` (drawn by `nhfd calib report`) scores the fit again, per
+   colour and plane, from the files alone.
 
 Only the captures and the fitted calibration are read: nothing of the simulated bench.
 """
@@ -34,7 +36,7 @@ import torch
 
 from nhfd.calibration import Calibration, parametric_fingerprint
 from nhfd.config import Config, RefineSettings
-from nhfd.models.learned_bench import LearnedBench, LearnedOptics, save_learned
+from nhfd.models.learned_bench import LearnedBench, LearnedOptics, learned_of, save_learned
 from nhfd.optics import propagate
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.refine import (
@@ -49,6 +51,8 @@ from nhfd.pipeline.settings import FrameSettings, with_calibration
 from .citl import CameraLoop
 
 WEIGHTS_NAME = "learned.safetensors"
+CAPTURES_NAME = "captures.npz"
+RECORD_NAME = "learn.json"
 # Each colour's images above this percentile of its training captures count as 1 in the loss.
 SCALE_PERCENTILE = 99.5
 # The double-phase content's SLM amplitude peak (of the encoder's amplitude scale): nothing clips.
@@ -337,6 +341,13 @@ def _predict(model: BenchForward, phase: torch.Tensor, chunk: int = 8) -> torch.
         return torch.cat([model(phase[i : i + chunk]) for i in range(0, len(phase), chunk)])
 
 
+def split_patterns(plan: LearnPlan, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The held-out and the training patterns' indices (each sorted) of `n` patterns: a seeded
+    draw of `plan.held_out_patterns`, the same for the fit and for `fidelity`."""
+    order = np.random.default_rng(plan.seed + 1).permutation(n)
+    return np.sort(order[: plan.held_out_patterns]), np.sort(order[plan.held_out_patterns :])
+
+
 def fit_learned(encoder: Encoder, plan: LearnPlan, data: Captured, *,
                 say: Callable[[str], None] = print
                 ) -> tuple[LearnedBench, dict[str, Any]]:
@@ -344,10 +355,8 @@ def fit_learned(encoder: Encoder, plan: LearnPlan, data: Captured, *,
     its scores (`LearnResult`'s fields, as a dict) against the parametric model's."""
     torch.manual_seed(plan.seed)
     s = encoder.settings
-    n, d = len(data.grey), len(plan.planes_m)
-    order = np.random.default_rng(plan.seed + 1).permutation(n)
-    held = np.sort(order[: plan.held_out_patterns])
-    train = np.sort(order[plan.held_out_patterns :])
+    d = len(plan.planes_m)
+    held, train = split_patterns(plan, len(data.grey))
     planes_train = [i for i in range(d) if i != plan.held_out_plane]
     mask = window_mask(s.window_hw) & torch.as_tensor(data.valid)
     if int(mask.sum()) < 64:
@@ -458,9 +467,133 @@ def learn(devices: Any, calibration: Calibration, config: Config, plan: LearnPla
     result = LearnResult(scores["held_out_patterns_db"], scores["held_out_plane_db"],
                          scores["train_loss"], weights, cal_path, data.seconds, scores["fit_s"])
     if out_dir is not None:
-        (Path(out_dir) / "learn.json").write_text(json.dumps(
+        save_captured(data, Path(out_dir) / CAPTURES_NAME)
+        _write_atomic(Path(out_dir) / RECORD_NAME, json.dumps(
             {"held_out_patterns_db": result.held_out_patterns_db,
              "held_out_plane_db": result.held_out_plane_db, "train_loss": result.train_loss,
              "capture_s": round(result.capture_s, 2), "fit_s": round(result.fit_s, 2),
-             "plan": dataclasses.asdict(plan)}, indent=2))
+             "plan": dataclasses.asdict(plan), "settings": dataclasses.asdict(encoder.settings),
+             "captures": CAPTURES_NAME}, indent=2))
     return result
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def save_captured(data: Captured, path: Path | str) -> Path:
+    """The training set into `path` (uncompressed npz, atomically): the patterns, their kinds,
+    the captures and the pixels every capture saw."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.tmp.npz")
+    np.savez(tmp, grey=data.grey, kinds=np.asarray(data.kinds), images=data.images,
+             valid=data.valid, seconds=np.float64(data.seconds))
+    tmp.replace(path)
+    return path
+
+
+def load_captured(path: Path | str) -> Captured:
+    """A training set `save_captured` wrote, checked (ValueError naming the file and the
+    problem): uint8 patterns `[N, C, Hr, Wr]`, float32 captures `[N, D, C, h, w]`, finite, a
+    bool `[h, w]` mask, one kind per pattern; no pickled objects."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            grey, kinds, images = z["grey"], z["kinds"], z["images"]
+            valid, seconds = z["valid"], float(z["seconds"])
+    except (OSError, ValueError, KeyError) as exc:
+        raise ValueError(f"{path}: not a capture set of nhfd calib learn ({exc})") from None
+    problems = []
+    if grey.dtype != np.uint8 or grey.ndim != 4 or grey.shape[1] != 3:
+        problems.append(f"patterns {grey.dtype} {grey.shape}: must be uint8 [N, 3, H, W]")
+    if images.dtype != np.float32 or images.ndim != 5 or images.shape[0] != len(grey) \
+            or images.shape[2] != 3:
+        problems.append(f"captures {images.dtype} {images.shape}: must be float32 "
+                        f"[{len(grey)}, D, 3, h, w]")
+    elif not np.isfinite(images).all():
+        problems.append("captures hold NaN or Inf")
+    if valid.dtype != bool or valid.shape != images.shape[-2:]:
+        problems.append(f"mask {valid.dtype} {valid.shape}: must be bool {images.shape[-2:]}")
+    if kinds.shape != (len(grey),):
+        problems.append(f"{kinds.shape[0] if kinds.ndim else 0} kinds for {len(grey)} patterns")
+    if problems:
+        raise ValueError(f"{path}: " + "; ".join(problems))
+    return Captured(grey, tuple(str(k) for k in kinds), images, valid, seconds)
+
+
+def _tuples(value: Any) -> Any:
+    """JSON's lists back into the tuples the settings' dataclasses hold."""
+    return tuple(_tuples(v) for v in value) if isinstance(value, list) else value
+
+
+@dataclass(frozen=True)
+class Fidelity:
+    """A learned bench scored again from its folder (`fidelity`): the captures `captured`
+    `[N, D, C, h, w]` and what each model predicts of them, each prediction times its
+    least-squares gain per colour over every image (`parametric`, `learned`, the same shape);
+    the pixels scored `mask` `[h, w]`; the held-out patterns `held`; and per plane the PSNR
+    per colour of each model (`per_plane`: the held-out patterns at a training plane, every
+    pattern at the held-out plane, as `LearnResult` scores them)."""
+
+    plan: LearnPlan
+    captured: np.ndarray
+    parametric: np.ndarray
+    learned: np.ndarray
+    mask: np.ndarray
+    held: np.ndarray
+    per_plane: tuple[dict[str, Any], ...]
+
+    def to_json(self) -> dict[str, Any]:
+        """The scores (no images)."""
+        return {"planes_m": list(self.plan.planes_m), "held_out_plane": self.plan.held_out_plane,
+                "held_out_patterns": [int(i) for i in self.held], "per_plane": list(self.per_plane)}
+
+
+def _gained(pred: torch.Tensor, captured: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
+    out = pred.double().clone()
+    for c in range(pred.shape[2]):
+        x, y = pred[:, :, c][..., mask].double(), captured[:, :, c][..., mask].double()
+        out[:, :, c] *= float((x * y).sum()) / max(float((x * x).sum()), 1e-300)
+    return out.float().numpy()
+
+
+def fidelity(out_dir: Path | str) -> Fidelity:
+    """The learned bench in `out_dir` (what `learn` wrote: the calibration referencing the
+    weights, the captures, the record) scored again, parametric against learned. ValueError
+    naming the file when one is missing, refused (the weights' checks) or not `learn`'s."""
+    out = Path(out_dir)
+    record_path = out / RECORD_NAME
+    if not record_path.is_file():
+        raise ValueError(f"{out}: no {RECORD_NAME}: not a folder nhfd calib learn wrote")
+    record = json.loads(record_path.read_text())
+    if "settings" not in record:
+        raise ValueError(f"{record_path}: written before the captures were kept: run nhfd calib "
+                         "learn again")
+    plan = LearnPlan(**{k: _tuples(v) for k, v in record["plan"].items()})
+    settings = FrameSettings(**{k: _tuples(v) for k, v in record["settings"].items()})
+    cal = Calibration.load(out / "calibration.toml")
+    optics = LearnedOptics(tuple(settings.wavelengths_m), settings.pitch_m,
+                           tuple(settings.panel_hw))  # type: ignore[arg-type]
+    learned, why = learned_of(cal, optics)
+    if learned is None:
+        raise ValueError(f"{out / 'calibration.toml'}: {why or 'references no learned bench'}")
+    data = load_captured(out / record.get("captures", CAPTURES_NAME))
+    encoder = Encoder(settings)
+    mask = window_mask(settings.window_hw) & torch.as_tensor(data.valid)
+    images = torch.from_numpy(data.images)
+    phase = grey_phase(data.grey, encoder).float()
+    preds = {"parametric": _predict(BenchForward(encoder, plan.planes_m), phase),
+             "learned": _predict(BenchForward(encoder, plan.planes_m, learned), phase)}
+    held, _train = split_patterns(plan, len(data.grey))
+    rows = []
+    for i, z in enumerate(plan.planes_m):
+        every = i == plan.held_out_plane
+        idx = np.arange(len(data.grey)) if every else held
+        rows.append({"plane_m": z, "held_out": every,
+                     "scored": "every pattern" if every else "held-out patterns",
+                     **{name: psnr_per_colour(p[idx][:, i : i + 1], images[idx][:, i : i + 1],
+                                              mask) for name, p in preds.items()}})
+    return Fidelity(plan, data.images, _gained(preds["parametric"], images, mask),
+                    _gained(preds["learned"], images, mask), mask.numpy(), held, tuple(rows))

@@ -8,10 +8,19 @@
   the simulation is the twin camera (`nhfd.drivers.simcamera`) configured with the *fitted*
   parameters only (no zero order, gap, noise or crosstalk: what the fit does not model shows up
   in the residual), scaled to the capture by least squares.
+
+Of a folder `nhfd calib learn` wrote (`write_learned_report`), the learned bench against the
+parametric one on what the fit never saw (`nhfd.calib.learn.fidelity`):
+
+- `fidelity.png`: held-out patterns at a training plane and patterns at the held-out plane,
+  captured, each model's prediction and each model's residual, in false colour per laser;
+- `fidelity_psnr.png` and `fidelity.json`: PSNR per colour and plane, the two models side by
+  side.
 """
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +32,11 @@ from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 from .data import default_camera_pitch_m, load_capture
 from .fit import _fine_stack, fit_capture
 from .geometry import Geometry, detect_dots
+from .learn import RECORD_NAME, fidelity
 from .patterns import dot_layout
+
+# The rows of fidelity.png: (pattern, plane) pairs, at most this many.
+FIDELITY_ROWS = 4
 
 
 def simulate(cal: Calibration, frame: np.ndarray, stage_mm: float, colour: int,
@@ -124,4 +137,93 @@ def write_report(root: Path | str, cal: Calibration | None = None,
         fig.savefig(path, dpi=100)
         plt.close(fig)
         written.append(path)
+    return written
+
+
+def is_learn_folder(root: Path | str) -> bool:
+    """Whether `root` is a folder `nhfd calib learn` wrote (not a capture)."""
+    return (Path(root) / RECORD_NAME).is_file()
+
+
+def _rgb(image: np.ndarray, peak: np.ndarray) -> np.ndarray:
+    """`[C, h, w]` -> `[h, w, 3]` in 0..1, each laser's colour in its own channel."""
+    return np.clip(np.moveaxis(image / peak[:, None, None], 0, -1), 0.0, 1.0)
+
+
+def _fidelity_rows(fid) -> list[tuple[int, int]]:
+    """(pattern, plane) pairs: held-out patterns at the first and last training planes, then a
+    held-out and a training pattern at the held-out plane."""
+    d, hp = len(fid.plan.planes_m), fid.plan.held_out_plane
+    train_planes = [i for i in range(d) if i != hp]
+    others = [i for i in range(fid.captured.shape[0]) if i not in set(fid.held.tolist())]
+    rows = [(int(fid.held[0]), train_planes[0]), (int(fid.held[-1]), train_planes[-1]),
+            (int(fid.held[len(fid.held) // 2]), hp)]
+    if others:
+        rows.append((others[0], hp))
+    return rows[:FIDELITY_ROWS]
+
+
+def write_learned_report(root: Path | str, out: Path | str | None = None) -> list[Path]:
+    """Write the learned bench's fidelity report (the module's docstring) of the folder `root`
+    into `out` (default `root/report`); returns the paths written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fid = fidelity(root)
+    out = Path(out or Path(root) / "report")
+    out.mkdir(parents=True, exist_ok=True)
+    mask = fid.mask
+    # One scale per laser for every picture: the captures' 99.5th percentile inside the window.
+    peak = np.array([np.percentile(fid.captured[:, :, c][..., mask], 99.5) or 1.0
+                     for c in range(3)])
+    rows = _fidelity_rows(fid)
+    fig, axes = plt.subplots(len(rows), 5, figsize=(15, 3.1 * len(rows)), squeeze=False)
+    for r, (n, i) in enumerate(rows):
+        cap = fid.captured[n, i]
+        res = {k: np.abs(getattr(fid, k)[n, i] - cap) for k in ("parametric", "learned")}
+        worst = max(float(v[:, mask].max()) for v in res.values()) or 1.0
+        where = "held-out plane" if i == fid.plan.held_out_plane else "training plane"
+        cells = [(_rgb(cap, peak), f"captured: pattern {n}, {where} "
+                  f"{fid.plan.planes_m[i] * 1e3:+.2f} mm")]
+        for k in ("parametric", "learned"):
+            cells.append((_rgb(getattr(fid, k)[n, i], peak), f"{k} bench model"))
+        for k in ("parametric", "learned"):
+            err = float(np.mean(res[k][:, mask] ** 2 / peak[:, None] ** 2))
+            cells.append((_rgb(res[k], np.full(3, worst)),
+                          f"|{k} - captured|, {-10 * np.log10(max(err, 1e-12)):.1f} dB"))
+        for c, (img, title) in enumerate(cells):
+            axes[r, c].imshow(img)
+            axes[r, c].set_title(title, fontsize=8)
+            axes[r, c].axis("off")
+    fig.suptitle("the learned bench against the parametric one, on captures the fit never saw "
+                 "(residuals on one scale per row)", fontsize=10)
+    fig.tight_layout()
+    written = [out / "fidelity.png"]
+    fig.savefig(written[0], dpi=90)
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(8, 4))
+    labels = [f"{row['plane_m'] * 1e3:+.2f} mm{' (held out)' if row['held_out'] else ''}"
+              for row in fid.per_plane]
+    x = np.arange(len(labels))
+    for c, colour in enumerate("rgb"):
+        for k, (model, hatch) in enumerate((("parametric", "//"), ("learned", ""))):
+            ax.bar(x + (2 * c + k - 2.5) * 0.13, [row[model][c] for row in fid.per_plane], 0.13,
+                   color=colour, alpha=0.45 if model == "parametric" else 0.9, hatch=hatch,
+                   label=f"{'RGB'[c]} {model}")
+    ax.set_xticks(x, labels, fontsize=8)
+    ax.set_ylabel("PSNR against the captures (dB)")
+    ax.set_title("per colour and plane: held-out patterns at the training planes, every "
+                 "pattern at the held-out one", fontsize=9)
+    # Headroom above the tallest bar keeps the legend off the bars.
+    ax.set_ylim(0, 1.25 * max(max(row["learned"] + row["parametric"]) for row in fid.per_plane))
+    ax.legend(fontsize=7, ncol=3, loc="upper center")
+    fig.tight_layout()
+    written.append(out / "fidelity_psnr.png")
+    fig.savefig(written[-1], dpi=90)
+    plt.close(fig)
+    written.append(out / "fidelity.json")
+    written[-1].write_text(json.dumps(fid.to_json(), indent=2))
     return written

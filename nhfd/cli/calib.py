@@ -5,10 +5,11 @@ daemon's panel size and wavelengths from `status`, frames shown with `show_patte
 lie inside its daemon.paths.pattern_dirs), raw stage moves, laser power/enable (arm first, or
 --arm), linear .npy captures. `--direct` drives the simulated twins in this process instead (a
 `TrueBench`, optionally randomised with `--sim-seed`). `fit` writes calibration.toml; `report`
-writes PNGs next to the capture. `learn --direct` learns what the parametric model leaves out
-from captures on the simulated bench (docs/learned_bench.md): it prints the capture plan, captures,
-fits, writes the weights and the calibration referencing them, and prints the held-out PSNR,
-parametric against learned, per colour.
+writes PNGs next to the capture (or, of a folder `learn` wrote, the learned bench's fidelity).
+`learn --direct` learns what the parametric model leaves out from captures on the simulated
+bench (docs/learned_bench.md): it prints the capture plan, captures, fits, writes the weights,
+the calibration referencing them and the captures, prints the held-out PSNR, parametric against
+learned, per colour, and draws the fidelity report.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from nhfd.calib.capture import (
 from nhfd.calib.fit import fit_capture
 from nhfd.calib.learn import LearnPlan, learn
 from nhfd.calib.patterns import PatternSpec
-from nhfd.calib.report import write_report
+from nhfd.calib.report import is_learn_folder, write_learned_report, write_report
 from nhfd.calib.sim import SIM_PANEL_MARGIN_PX, sim_devices, sim_panel_hw, twin_calibration
 from nhfd.calibration import Calibration
 from nhfd.cli.args import parse_wxh
@@ -72,9 +73,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     f.add_argument("dir", help="capture directory")
     f.add_argument("-o", "--out", default="calibration.toml", help="calibration file")
     f.set_defaults(handler=run_fit)
-    r = cmds.add_parser("report", help="PNGs of a capture against its fit")
-    r.add_argument("dir", help="capture directory")
-    r.add_argument("--calibration", help="calibration.toml (default: fit now)")
+    r = cmds.add_parser("report", help="PNGs of a capture against its fit, or of a learned "
+                                       "bench against the parametric one")
+    r.add_argument("dir", help="a capture directory, or a folder `nhfd calib learn` wrote "
+                               "(fidelity.png, fidelity_psnr.png, fidelity.json)")
+    r.add_argument("--calibration", help="a capture's calibration.toml (default: fit now)")
     r.add_argument("-o", "--out", help="PNG folder (default DIR/report)")
     r.set_defaults(handler=run_report)
     learn_p = cmds.add_parser("learn", help="learn what the parametric bench model leaves out, "
@@ -156,8 +159,15 @@ def run_fit(args: argparse.Namespace) -> int:
 
 
 def run_report(args: argparse.Namespace) -> int:
-    cal = Calibration.load(args.calibration) if args.calibration else None
-    for path in write_report(args.dir, cal, args.out):
+    if is_learn_folder(args.dir):
+        if args.calibration:
+            raise ValueError(f"--calibration {args.calibration}: a learned bench's report uses "
+                             f"the calibration in {args.dir}")
+        paths = write_learned_report(args.dir, args.out)
+    else:
+        cal = Calibration.load(args.calibration) if args.calibration else None
+        paths = write_report(args.dir, cal, args.out)
+    for path in paths:
         print(path)
     return 0
 
@@ -182,4 +192,6 @@ def run_learn(args: argparse.Namespace) -> int:
           f"fit {result.fit_s:.0f} s on the simulated bench)")
     for line in result.lines():
         print(line)
+    for path in write_learned_report(out):
+        print(f"wrote {path}")
     return 0

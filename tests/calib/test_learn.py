@@ -10,7 +10,9 @@ leaves every diode off."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
+import shutil
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -18,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from PIL import Image
 
 from nhfd.calib.citl import CameraLoop
 from nhfd.calib.learn import (
@@ -25,6 +28,7 @@ from nhfd.calib.learn import (
     LearnPlan,
     LearnResult,
     content_field,
+    fidelity,
     learn,
     learn_settings,
 )
@@ -157,6 +161,52 @@ def test_the_plan_states_its_count_and_a_real_benchs_time() -> None:
     text = PLAN.describe()
     assert "= 90 captures" in text and "about 0.4 min on a real bench" in text
     assert "settle 100 ms" in text
+
+
+def test_the_report_scores_the_fit_again_from_its_folder(with_effects, tmp_path, capsys
+                                                       ) -> None:
+    """`nhfd calib report` of the folder learn wrote: the captures and the settings kept beside
+    the weights give the held-out plane's figures the fit printed, and every plane, held out or
+    not, favours the learned model; the pictures and the table are written."""
+    out = with_effects.weights.parent
+    fid = fidelity(out)
+    rows = {row["held_out"]: row for row in fid.per_plane}
+    assert [row["held_out"] for row in fid.per_plane] == [False, True, False]
+    for model in ("parametric", "learned"):
+        assert rows[True][model] == pytest.approx(with_effects.held_out_plane_db[model], abs=0.01)
+    for row in fid.per_plane:
+        assert min(q - p for p, q in zip(row["parametric"], row["learned"], strict=True)) > 3.0
+    # The predictions carry their gain: the learned one is nearer the captures inside the mask.
+    err = {k: float(((getattr(fid, k) - fid.captured)[..., fid.mask] ** 2).mean())
+           for k in ("parametric", "learned")}
+    assert err["learned"] < 0.5 * err["parametric"], err
+    assert main(["calib", "report", str(out), "-o", str(tmp_path / "r")]) == 0
+    printed = capsys.readouterr().out.split()
+    assert [Path(p).name for p in printed] == ["fidelity.png", "fidelity_psnr.png",
+                                               "fidelity.json"]
+    # 4 rows of 5 pictures at 3.1 in a row, 90 dpi
+    assert Image.open(tmp_path / "r" / "fidelity.png").size[1] == round(4 * 3.1 * 90)
+    table = json.loads((tmp_path / "r" / "fidelity.json").read_text())
+    assert table["per_plane"][1]["learned"] == list(rows[True]["learned"])
+
+
+def test_a_damaged_capture_set_is_refused_naming_the_file(with_effects, tmp_path) -> None:
+    src = with_effects.weights.parent
+    for name in ("calibration.toml", "learn.json", "learned.safetensors", "captures.npz"):
+        shutil.copy(src / name, tmp_path / name)
+    z = dict(np.load(tmp_path / "captures.npz"))
+    z["images"][0, 0, 0, 0, 0] = np.nan
+    np.savez(tmp_path / "captures.npz", **z)
+    with pytest.raises(ValueError, match=r"captures\.npz: captures hold NaN or Inf"):
+        fidelity(tmp_path)
+    z["images"] = np.asarray([object()], dtype=object)
+    np.savez(tmp_path / "captures.npz", **z)
+    with pytest.raises(ValueError, match=r"captures\.npz: not a capture set of nhfd calib learn "
+                                         r"\(Object arrays cannot be loaded"):
+        fidelity(tmp_path)
+    (tmp_path / "learn.json").unlink()
+    with pytest.raises(ValueError, match=r"no learn\.json: not a folder nhfd calib learn wrote"):
+        fidelity(tmp_path)
 
 
 def test_learn_without_direct_says_what_is_built(capsys: pytest.CaptureFixture[str]) -> None:
