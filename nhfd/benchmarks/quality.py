@@ -395,8 +395,8 @@ def _plot(path: Path, rows: Sequence[dict[str, Any]], summary: Sequence[dict[str
     import matplotlib.pyplot as plt
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
-    colours = {"network": "tab:grey", "exact": "tab:blue", "sgd": "tab:orange",
-               "citl": "tab:green"}
+    colours = {"network": "tab:grey", "tuned": "tab:purple", "exact": "tab:blue",
+               "sgd": "tab:orange", "citl": "tab:green"}
     markers = {1: "o", 2: "D", 4: "s", 8: "^"}
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
@@ -410,7 +410,7 @@ def _plot(path: Path, rows: Sequence[dict[str, Any]], summary: Sequence[dict[str
                            edgecolors="none")
         for s in summary:
             if s["scene"] == scene:
-                ax.scatter(s["seconds_mean"], s["psnr_db_mean"], color=colours.get(s["tier"]),
+                ax.scatter(s["seconds_mean"], s["psnr_db_mean"], color=colours.get(s["tier"], "k"),
                            marker=markers.get(s["k"], "v"), s=70, edgecolors="black",
                            linewidths=0.6, label=f"{s['tier']} K={s['k']}")
         ax.set_xscale("log")
