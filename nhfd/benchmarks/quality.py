@@ -20,6 +20,10 @@ the target's content planes:
            for a model that records none a grid over its pose envelope, never the seeded
            views scored here), K = 1 (the network emits one frame); its seconds are the
            frame's, the tuning's are recorded beside them
+  sgd-learned, tuned-learned
+           sgd and tuned through the learned bench (`nhfd calib learn` on the run's bench and
+           calibration, captured after the aberration was added; its folder beside the
+           calibration is reused when present); its capture and fit seconds are recorded
 
 The twin: `TrueBench.randomised(--bench-seed)`, or the fields of a TOML file (--twin FILE,
 `TrueBench.from_toml`).
@@ -46,6 +50,7 @@ import torch
 
 from nhfd.benchmarks.machine import describe
 from nhfd.calib.citl import CameraLoop
+from nhfd.calib.learn import RECORD_NAME, LearnPlan, learn
 from nhfd.calib.sim import arm_twin, sim_devices, sim_panel_hw, twin_calibration
 from nhfd.calibration import Calibration, fingerprint
 from nhfd.cli.args import parse_wxh
@@ -54,10 +59,12 @@ from nhfd.dataset.build import sha256_file
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.model_info import ModelInfo
 from nhfd.models.export import load_model
+from nhfd.models.learned_bench import LearnedOptics, learned_of
 from nhfd.models.sizes import read_metadata
 from nhfd.optics.quality import speckle_contrast, stack_quality
 from nhfd.pipeline.frame import compute_frame
 from nhfd.pipeline.refine import (
+    BenchForward,
     Prepared,
     Refined,
     citl_frame,
@@ -80,7 +87,10 @@ REPO = Path(__file__).resolve().parents[2]
 DONUT = REPO / "models" / "scenes" / "donut.ply"
 DONUT_MODEL = REPO / "models" / "nhf-donut-512.onnx"
 GUITAR = REPO.parent / "shared" / "data" / "scenes" / "guitar.compressed.ply"
-TIERS = ("network", "exact", "sgd", "citl", "tuned")
+TIERS = ("network", "exact", "sgd", "citl", "tuned", "sgd-learned", "tuned-learned")
+LEARNED_TIERS = ("sgd-learned", "tuned-learned")
+# Where the JSON keeps each tuned tier's tuning record.
+TUNED_RECORD = {"tuned": "tuned", "tuned-learned": "tuned_learned"}
 BENCH_SEED = 7
 # Coma and astigmatism (rad at green, Noll 5-7) the relay gains after its calibration.
 UNKNOWN_ZERNIKE_RAD = (0.5, -0.3, 0.4)
@@ -135,6 +145,10 @@ GOAL_TUNED_K4_DB = 32.5
 GOAL_TUNED_K4_SPECKLE = 0.10
 GOAL_TUNED_FRAME_TIME_RATIO = 1.2
 GOAL_TUNE_SECONDS = 900.0
+# Through the learned bench, K = 1 on the model's scene: sgd within 0.5 dB of citl's 30.33 dB
+# on the calibrated twin, the tuned network within 1 dB of it.
+GOAL_SGD_LEARNED_K1_DB = 29.8
+GOAL_TUNED_LEARNED_K1_DB = 29.3
 # Stand-in training poses for a model that records none and whose dataset is not given: this
 # grid of fractions of its pose envelope's azimuth and elevation at its mid distance (the
 # seeded views scored are drawn at random inside the envelope: never one of these).
@@ -181,6 +195,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tune-dataset", metavar="DIR",
                    help="the model's dataset, for its training poses (default: the poses the "
                         "model records, else a grid over its pose envelope)")
+    plan = LearnPlan()
+    p.add_argument("--learn-patterns", type=int, default=plan.sgd_patterns,
+                   help=f"the learned tiers' sgd training patterns (default {plan.sgd_patterns}; "
+                        f"{plan.random_patterns} random and {plan.structured_patterns} "
+                        "structured beside; `nhfd calib learn --patterns`)")
+    p.add_argument("--learn-steps", type=int, default=plan.steps,
+                   help=f"the learned bench's fit steps (default {plan.steps})")
     p.add_argument("--config", help="configuration file (default: the search order)")
     p.add_argument("--out", default="out/bench/quality.json", help="JSON file to write")
     p.add_argument("--calibration-dir", default=None,
@@ -261,7 +282,8 @@ def goal_checks(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
             check(f"{tier}: speckle contrast at K={ks[-1]} lower than at K=1",
                   paired(rows, "speckle", (tier, 1), (tier, ks[-1])), lambda d: d < 0, "")
     # The tuned tier: absolute goals as values ("diff" is the value itself).
-    model_scene = next((r["scene"] for r in rows if r["tier"] in ("network", "tuned")), None)
+    model_scene = next((r["scene"] for r in rows
+                        if r["tier"] in ("network", "tuned", "tuned-learned")), None)
 
     def values(key: str, tier: str, k: int, on_model_scene: bool) -> list[dict[str, Any]]:
         return [{"diff": float(r[key])} for r in rows if r["tier"] == tier and int(r["k"]) == k
@@ -291,6 +313,15 @@ def goal_checks(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
           [{"diff": v} for v in tunes.values()], lambda v: v <= GOAL_TUNE_SECONDS, "s")
     check("tuned (K=1) over sgd (K=1) >= 0 dB captured",
           paired(rows, "psnr_db", ("sgd", 1), ("tuned", 1)), lambda d: d >= 0, "dB")
+    # Through the learned bench: absolute on the model's scene, and paired against the same
+    # tier through the parametric one.
+    for tier, goal_db in (("sgd-learned", GOAL_SGD_LEARNED_K1_DB),
+                          ("tuned-learned", GOAL_TUNED_LEARNED_K1_DB)):
+        check(f"{tier} (K=1) captured PSNR on the model's scene >= {goal_db:g} dB",
+              values("psnr_db", tier, 1, True), lambda v, g=goal_db: v >= g, "dB")
+        base = tier.removesuffix("-learned")
+        check(f"{tier} (K=1) over {base} (K=1) >= 0 dB captured",
+              paired(rows, "psnr_db", (base, 1), (tier, 1)), lambda d: d >= 0, "dB")
     return checks
 
 
@@ -381,7 +412,7 @@ def _row(scene: str, view: int, tier: str, k: int, seconds: float, grey: np.ndar
         row["refine"] = refined.report.to_json()
         row["history"] = [[i, round(t, 3), loss] for i, t, loss in refined.history]
     row.update(extra or {})
-    print(f"  {scene} view {view} {tier:7s} K={k}: {seconds:7.1f} s/frame, captured "
+    print(f"  {scene} view {view} {tier:13s} K={k}: {seconds:7.1f} s/frame, captured "
           f"{q['psnr_db']:5.2f} dB, SSIM {q['ssim']:.3f}, speckle {q['speckle']:.3f} "
           f"(model {row['model_psnr_db']:.2f} dB)", flush=True)
     return row
@@ -396,7 +427,8 @@ def _plot(path: Path, rows: Sequence[dict[str, Any]], summary: Sequence[dict[str
 
     scenes = list(dict.fromkeys(r["scene"] for r in rows))
     colours = {"network": "tab:grey", "tuned": "tab:purple", "exact": "tab:blue",
-               "sgd": "tab:orange", "citl": "tab:green"}
+               "sgd": "tab:orange", "citl": "tab:green", "sgd-learned": "tab:red",
+               "tuned-learned": "tab:pink"}
     markers = {1: "o", 2: "D", 4: "s", 8: "^"}
     from matplotlib.ticker import FuncFormatter, NullFormatter
 
@@ -470,6 +502,46 @@ def tune_for_bench(model_path: Path, scene: Scene, scene_path: Path, calibration
     return res, time.perf_counter() - t0, folder
 
 
+def learn_for_bench(folder_root: Path, devices: Any, calibration: Calibration, config: Config,
+                    plan: LearnPlan, bench_record: dict[str, Any], panel_hw: tuple[int, int]
+                    ) -> tuple[Calibration, dict[str, Any]]:
+    """`nhfd calib learn` on the run's bench (`devices`, armed) on top of `calibration`, into a
+    folder under `folder_root` named by what it depends on (the calibration's fingerprint, the
+    bench as captured, the plan, the panel): a rerun with the same inputs reuses it. (The
+    calibration referencing the learned bench, its record: folder, reused or not, the capture
+    and fit seconds, the captures and a real bench's expected capture time, held-out PSNR.)"""
+    key = json.dumps({"calibration_sha256": fingerprint(calibration), "bench": bench_record,
+                      "plan": asdict(plan), "panel_hw": list(panel_hw)}, sort_keys=True,
+                     default=str)
+    folder = folder_root / f"learned-{hashlib.sha256(key.encode()).hexdigest()[:12]}"
+    cal_file, record_file = folder / "calibration.toml", folder / RECORD_NAME
+    reused = cal_file.is_file() and record_file.is_file()
+    if not reused:
+        res = learn(devices, calibration, config, plan, folder, panel_hw=panel_hw,
+                    say=lambda m: print(f"  learn: {m}", flush=True))
+        for line in res.lines():
+            print(f"  learn: {line}", flush=True)
+    record = json.loads(record_file.read_text())
+    return Calibration.load(cal_file), {
+        "dir": str(folder), "reused": reused, "capture_s": record["capture_s"],
+        "fit_s": record["fit_s"], "captures": plan.captures,
+        "bench_capture_s": round(plan.bench_seconds(), 1), "steps": plan.steps,
+        "held_out_patterns_db": record["held_out_patterns_db"],
+        "held_out_plane_db": record["held_out_plane_db"]}
+
+
+def through_learned(p: Prepared, calibration: Calibration) -> Prepared:
+    """The prepared view with the bench model replaced by `calibration`'s learned bench (its
+    weights checked for this bench's optics; a refused file raises, naming it)."""
+    s = p.encoder.settings
+    learned, refusal = learned_of(calibration, LearnedOptics(s.wavelengths_m, s.pitch_m,
+                                                             s.panel_hw), device=p.encoder.device)
+    if learned is None:
+        raise ValueError(f"{calibration.source or 'the calibration'}: no learned bench to "
+                         f"measure the learned tiers with ({refusal or 'it references none'})")
+    return replace(p, model=BenchForward(p.encoder, p.model.planes_m, learned))
+
+
 def _ks(text: str) -> list[int]:
     try:
         ks = sorted({int(v) for v in text.split(",") if v.strip()})
@@ -514,7 +586,7 @@ def run(args: argparse.Namespace) -> int:
                      for k, s in sgd_settings.items()}
     base = sgd_settings[ks[0]]
     tune_settings = None
-    if "tuned" in tiers:  # refused before anything is captured
+    if "tuned" in tiers or "tuned-learned" in tiers:  # refused before anything is captured
         tune_settings = TuneSettings(steps=args.tune_steps, seconds=args.tune_seconds,
                                      views=args.tune_views, window_hw=window_hw,
                                      planes=base.planes)
@@ -548,11 +620,30 @@ def run(args: argparse.Namespace) -> int:
         "calibration": {"dir": str(cal_dir), "seconds": round(calibration_s, 1)},
         "views": views_json, "rows": rows, "tuned": {},
     }
+    learned_plan = None
+    if any(t in tiers for t in LEARNED_TIERS):  # refused before anything is captured
+        learned_plan = LearnPlan(window_hw=window_hw, sgd_patterns=args.learn_patterns,
+                                 steps=args.learn_steps)
     if tune_settings is not None and ks != [1]:
         result["tuned_note"] = ("the tuned tier is measured at K = 1 only: the network emits "
                                 "one frame per inference")
     rng = np.random.default_rng(args.seed)
     with sim_devices(aberrated(twin, unknown_zernike), panel_hw) as devices:
+        learned_cal = None
+        if learned_plan is not None:
+            arm_twin(devices)
+            print(f"learning the bench on top of the calibration into {cal_dir}", flush=True)
+            learned_cal, result["learned"] = learn_for_bench(
+                cal_dir, devices, calibration, config, learned_plan,
+                {k: result["twin"][k] for k in ("seed", "file", "fields",
+                                                "added_after_calibration_zernike_rad")},
+                panel_hw)
+            rec = result["learned"]
+            print(f"learned bench: {rec['dir']} ({'reused' if rec['reused'] else 'learned'}; "
+                  f"capture {rec['capture_s']:.0f} s, fit {rec['fit_s']:.0f} s; a real bench's "
+                  f"capture about {rec['bench_capture_s'] / 60:.1f} min)", flush=True)
+        learned_config = config.model_copy(update={"refine": config.refine.model_copy(
+            update={"bench_model": "learned"})})
         for name, scene, model in runs:
             info = model.info if model is not None else None
             if model is not None:  # warm-up: the renderer's kernels, the session
@@ -561,25 +652,32 @@ def run(args: argparse.Namespace) -> int:
                                window_hw=(64, 96), panel_hw=sim_panel_hw((64, 96)),
                                planes=base.planes)
                 compute_frame(warm.view, scene, model, warm.encoder)
-            tuned = None
+            tuned: dict[str, tuple[Any, TuneResult]] = {}  # tier -> (model, its tuning)
             if tune_settings is not None and model is not None:
                 scene_path = Path(args.scene)
                 poses, poses_from = tuning_poses(read_metadata(args.model), scene, info,
                                                  args.tune_dataset)
                 ts = replace(tune_settings, views=min(tune_settings.views, len(poses)))
-                print(f"{name}: tuning through the run's calibration on {ts.views} of "
-                      f"{len(poses)} poses ({poses_from}), {ts.steps} steps", flush=True)
-                res, tune_s, folder = tune_for_bench(Path(args.model), scene, scene_path,
-                                                     calibration, ts, poses, out.parent / (
-                                                         f"{out.stem}-tune-{name}"),
-                                                     config, panel_hw)
-                tuned = load_model(res.path, config)
-                compute_frame(warm.view, scene, tuned, warm.encoder)  # its session warmed
-                result["tuned"][name] = {
-                    "dir": str(folder), "poses_from": poses_from, "tune_s": round(tune_s, 1),
-                    "steps": res.steps, "steps_s": round(res.seconds, 1),
-                    "views": [v.to_json() for v in choose_views(poses, ts.views)],
-                    "settings": ts.key(), "tuned_for": res.tuned_for}
+                for tier, cal, cfg, suffix in (("tuned", calibration, config, ""),
+                                               ("tuned-learned", learned_cal, learned_config,
+                                                "-learned")):
+                    if tier not in tiers:
+                        continue
+                    assert cal is not None
+                    bench = "learned" if suffix else "calibrated"
+                    print(f"{name}: {tier}: tuning through the run's {bench} bench on "
+                          f"{ts.views} of {len(poses)} poses ({poses_from}), {ts.steps} steps",
+                          flush=True)
+                    res, tune_s, folder = tune_for_bench(
+                        Path(args.model), scene, scene_path, cal, ts, poses,
+                        out.parent / f"{out.stem}-tune-{name}{suffix}", cfg, panel_hw)
+                    tuned[tier] = (load_model(res.path, config), res)
+                    compute_frame(warm.view, scene, tuned[tier][0], warm.encoder)  # warmed
+                    result.setdefault(TUNED_RECORD[tier], {})[name] = {
+                        "dir": str(folder), "poses_from": poses_from, "tune_s": round(tune_s, 1),
+                        "steps": res.steps, "steps_s": round(res.seconds, 1),
+                        "views": [v.to_json() for v in choose_views(poses, ts.views)],
+                        "settings": ts.key(), "tuned_for": res.tuned_for}
             for i, view in enumerate(seeded_views(rng, args.views, scene, info, window_hw)):
                 arm_twin(devices)  # each view's captures within an arming (tuning outlasts one)
                 p = prepare(config, view, scene, info=info, calibration=calibration,
@@ -596,18 +694,28 @@ def run(args: argparse.Namespace) -> int:
                     net_s = time.perf_counter() - t0
                     if "network" in tiers:
                         rows.append(_row(name, i, "network", 1, net_s, start, p, loop))
-                if tuned is not None:
+                p_learned = (through_learned(p, learned_cal) if learned_cal is not None
+                             else None)
+                for tier, (net, res) in tuned.items():
                     t0 = time.perf_counter()
-                    grey = compute_frame(view, scene, tuned, p.encoder).grey
-                    rows.append(_row(name, i, "tuned", 1, time.perf_counter() - t0, grey, p,
-                                     loop, extra={"tune_s": result["tuned"][name]["tune_s"],
-                                                  "tune_steps_s": round(res.seconds, 3),
-                                                  "tune_steps": res.steps}))
+                    grey = compute_frame(view, scene, net, p.encoder).grey
+                    record = result[TUNED_RECORD[tier]][name]
+                    rows.append(_row(name, i, tier, 1, time.perf_counter() - t0, grey,
+                                     p if tier == "tuned" else p_learned, loop,
+                                     extra={"tune_s": record["tune_s"],
+                                            "tune_steps_s": round(res.seconds, 3),
+                                            "tune_steps": res.steps}))
                 if "exact" in tiers:
                     rows.append(_row(name, i, "exact", 1, p.seconds, p.exact_grey, p, loop))
                 for k in ks:
+                    if p_learned is not None and "sgd-learned" in tiers:
+                        t0 = time.perf_counter()
+                        sgd = sgd_frame(p_learned, sgd_settings[k], start=start, seed=i)
+                        rows.append(_row(name, i, "sgd-learned", k,
+                                         p.seconds + net_s + time.perf_counter() - t0,
+                                         sgd.grey, p_learned, loop, sgd))
                     if "sgd" not in tiers and "citl" not in tiers:
-                        break
+                        continue
                     t0 = time.perf_counter()
                     sgd = sgd_frame(p, sgd_settings[k], start=start, seed=i)
                     sgd_s = p.seconds + net_s + time.perf_counter() - t0

@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
+from functools import partial
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -27,8 +29,9 @@ from nhfd.benchmarks.quality import (
     summarise,
     table,
 )
+from nhfd.calib.learn import LearnPlan
 from nhfd.calib.sim import sim_panel_hw
-from nhfd.calibration import fingerprint
+from nhfd.calibration import Calibration, fingerprint
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.model_info import PoseEnvelope
 from tests.calib.twin_stack import truth_calibration
@@ -243,3 +246,73 @@ def test_the_tuned_goals_are_checked_on_the_rows() -> None:
     assert next(v for k, v in goals.items() if k.startswith("`model tune` steps"))["met"]
     assert goals["tuned (K=1) over the exact frame on another scene >= +2.5 dB "
                  "captured"]["met"] is None  # the guitar has no model here
+
+
+def test_the_learned_tiers_refine_and_tune_through_a_bench_learned_in_the_run(
+        tmp_path, monkeypatch) -> None:
+    """A tiny run (64 x 48, one seeded view): the bench is learned on top of the run's
+    calibration from the twin's captures, into a folder beside it that a rerun reuses; sgd and
+    the tuned model run through it beside the parametric ones, the capture and fit seconds in
+    the record. The plan is shrunk (the subject is the rows; `nhfd calib learn` has its own
+    tests)."""
+    made: list[Calibration] = []  # the run's parametric calibration
+
+    def calibrated(_folder, twin, panel_hw, **_kw) -> Calibration:
+        made.append(truth_calibration(twin, twin.roi_for_panel(panel_hw)))
+        return made[-1]
+
+    monkeypatch.setattr(Q, "twin_calibration", calibrated)
+    plan = partial(LearnPlan, random_patterns=1, structured_patterns=2, held_out_patterns=1,
+                   planes_m=(-2e-4, 0.0, 2e-4), held_out_plane=1, batch=2)
+    monkeypatch.setattr(Q, "LearnPlan", plan)
+    out = tmp_path / "quality.json"
+    common = ("--size", "64x48", "--views", "1", "--subframes", "1", "--other-scene", "none",
+              "--unknown-zernike", "none", "--iterations", "3", "--learn-patterns", "1",
+              "--learn-steps", "3", "--calibration-dir", str(tmp_path / "cal"), "--plot", "")
+    assert Q.run(_bench_args(*common, "--tiers", "sgd,sgd-learned,tuned-learned",
+                             "--tune-steps", "2", "--tune-views", "1", "--out", str(out))) == 0
+    result = json.loads(out.read_text())
+    rows = {(r["tier"], r["k"]): r for r in result["rows"]}
+    assert set(rows) == {("sgd", 1), ("sgd-learned", 1), ("tuned-learned", 1)}
+    rec = result["learned"]
+    assert not rec["reused"] and rec["steps"] == 3
+    assert rec["captures"] == 4 * 3 * 3  # (1 sgd + 1 random + 2 structured) x 3 planes x RGB
+    assert rec["capture_s"] > 0 and rec["fit_s"] > 0
+    assert Path(rec["dir"]).parent == tmp_path / "cal"
+    parametric = Calibration.load(made[0].save(tmp_path / "parametric.toml"))  # as a file has it
+    learned = Calibration.load(Path(rec["dir"]) / "calibration.toml")
+    assert learned.learned_sha256  # on top of the run's fit, stamped when its file was written
+    assert replace(learned, learned_file="", learned_sha256="", created="", source="") == \
+        replace(parametric, created="", source="")
+    tuned_for = result["tuned_learned"]["donut"]["tuned_for"]
+    assert tuned_for["calibration_sha256"] == fingerprint(learned) != fingerprint(parametric)
+    # The learned bench's own estimate of the frames, not the parametric one's.
+    assert rows["sgd-learned", 1]["model_psnr_db"] != rows["sgd", 1]["model_psnr_db"]
+    for row in rows.values():
+        assert math.isfinite(row["psnr_db"]) and math.isfinite(row["model_psnr_db"])
+    goals = {g["goal"]: g for g in result["goals"]}
+    g = goals["sgd-learned (K=1) over sgd (K=1) >= 0 dB captured"]
+    assert g["diffs"] == [round(rows["sgd-learned", 1]["psnr_db"] - rows["sgd", 1]["psnr_db"],
+                                3)]
+    # A rerun with the same bench, calibration and plan reuses the learned bench.
+    again = tmp_path / "again.json"
+    assert Q.run(_bench_args(*common, "--tiers", "sgd-learned", "--out", str(again))) == 0
+    rec2 = json.loads(again.read_text())["learned"]
+    assert rec2["reused"] and rec2["dir"] == rec["dir"] and rec2["fit_s"] == rec["fit_s"]
+
+
+def test_the_learned_goals_are_checked_on_the_rows() -> None:
+    rows = [*ROWS, _row("donut", 0, "sgd-learned", 1, 30.0, 0.2),
+            _row("donut", 1, "sgd-learned", 1, 22.0, 0.2),
+            _row("donut", 0, "tuned", 1, 25.0, 0.2), _row("donut", 0, "tuned-learned", 1, 29.5,
+                                                         0.2)]
+    goals = {g["goal"]: g for g in goal_checks(rows)}
+    g = goals[f"sgd-learned (K=1) captured PSNR on the model's scene >= "
+              f"{Q.GOAL_SGD_LEARNED_K1_DB:g} dB"]
+    assert g["diffs"] == [30.0, 22.0] and g["met"] is False  # mean 26.0
+    g = goals["sgd-learned (K=1) over sgd (K=1) >= 0 dB captured"]
+    assert g["diffs"] == [5.5, -1.0] and g["mean_diff"] == pytest.approx(2.25) and g["met"]
+    g = goals["tuned-learned (K=1) over tuned (K=1) >= 0 dB captured"]
+    assert g["diffs"] == [4.5] and g["met"] is True
+    assert goals[f"tuned-learned (K=1) captured PSNR on the model's scene >= "
+                 f"{Q.GOAL_TUNED_LEARNED_K1_DB:g} dB"]["met"] is True
