@@ -313,6 +313,16 @@ def test_bad_input_is_refused_with_nothing_written(tmp_path, scene, model_file) 
         T.tune_model(model_file, scene, SCENE, other, out, settings(), panel_hw=PANEL_HW,
                      say=lambda _m: None)
     _nothing_written(out)
+    # A learned bench whose weights are refused: not tuned through the parametric model under
+    # the learned calibration's name.
+    (tmp_path / "learned.safetensors").write_bytes(b"\x80\x04not weights")
+    damaged = dataclasses.replace(CAL, source=str(tmp_path / "calibration.toml"),
+                                  learned_file="learned.safetensors", learned_sha256="0" * 64)
+    with pytest.raises(T.TuneError, match=r"--calibration: .*learned\.safetensors: SHA-256 .*"
+                                          r'another file; .*refine\.bench_model = "parametric"'):
+        T.tune_model(model_file, scene, SCENE, damaged, out, settings(), panel_hw=PANEL_HW,
+                     say=lambda _m: None)
+    _nothing_written(out)
     with pytest.raises(T.TuneError, match=r"views \(--views\) = 7: must be in 1\.\.6 "):
         run(model_file, scene, out, settings(views=7))
     _nothing_written(out)
