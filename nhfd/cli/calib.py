@@ -91,9 +91,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     learn_p.add_argument("--calibration", default=None,
                          help="the parametric calibration to learn on top of (default: the "
                               "simulated bench's, fitted into OUT/parametric once and reused)")
-    learn_p.add_argument("--sim-seed", type=int, default=None,
-                         help="randomise the simulated bench with this seed (default: "
-                              "the packaged twin)")
+    twin_g = learn_p.add_mutually_exclusive_group()
+    twin_g.add_argument("--sim-seed", type=int, default=None,
+                        help="randomise the simulated bench with this seed (default: "
+                             "the packaged twin)")
+    twin_g.add_argument("--twin", metavar="FILE", default=None,
+                        help="a TOML file of the simulated bench's fields (as `nhfd bench "
+                             "quality --twin`; `randomised_seed = N` starts from a seed's draws)")
     learn_p.add_argument("--window", default="64x64", help="window WxH px (default 64x64)")
     learn_p.add_argument("--patterns", type=int, default=None,
                          help="sgd patterns (default 12; random 4 and structured 8 beside)")
@@ -178,7 +182,8 @@ def run_learn(args: argparse.Namespace) -> int:
                          "is built; the daemon's capture job is not")
     w, h = parse_wxh(args.window)
     panel_hw = sim_panel_hw((h, w), SIM_PANEL_MARGIN_PX)
-    twin = TrueBench.randomised(args.sim_seed) if args.sim_seed is not None else TrueBench()
+    twin = (TrueBench.from_toml(args.twin) if args.twin else
+            TrueBench.randomised(args.sim_seed) if args.sim_seed is not None else TrueBench())
     out = Path(args.out)
     cal = (Calibration.load(args.calibration) if args.calibration else
            twin_calibration(out / "parametric", twin, panel_hw, say=_say))

@@ -209,6 +209,16 @@ def test_a_damaged_capture_set_is_refused_naming_the_file(with_effects, tmp_path
         fidelity(tmp_path)
 
 
+def test_a_twin_file_with_an_unknown_key_is_refused_before_anything_is_captured(
+        tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    twin = tmp_path / "twin.toml"
+    twin.write_text("randomised_seed = 21\nfill_fraction = 0.8\n")
+    out = tmp_path / "out"
+    assert main(["calib", "learn", "--direct", "--twin", str(twin), "--out", str(out)]) == 2
+    assert "unknown key(s) fill_fraction" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_learn_without_direct_says_what_is_built(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["calib", "learn", "--out", "unused"]) == 2
     assert "only --direct (the simulated bench in this process) is built" in \
