@@ -194,6 +194,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tune-views", type=int, default=tune_default.views,
                    help=f"training views to tune on (default {tune_default.views}, at most the "
                         "training poses there are)")
+    p.add_argument("--tune-ssim-weight", type=float, default=tune_default.ssim_weight,
+                   help=f"the tuning loss's structural term's weight beside the MSE (default "
+                        f"{tune_default.ssim_weight:g}; `nhfd model tune --ssim-weight`)")
     p.add_argument("--tune-dataset", metavar="DIR",
                    help="the model's dataset, for its training poses (default: the poses the "
                         "model records, else a grid over its pose envelope)")
@@ -591,7 +594,7 @@ def run(args: argparse.Namespace) -> int:
     if "tuned" in tiers or "tuned-learned" in tiers:  # refused before anything is captured
         tune_settings = TuneSettings(steps=args.tune_steps, seconds=args.tune_seconds,
                                      views=args.tune_views, window_hw=window_hw,
-                                     planes=base.planes)
+                                     planes=base.planes, ssim_weight=args.tune_ssim_weight)
     twin = TrueBench.from_toml(args.twin) if args.twin else TrueBench.randomised(args.bench_seed)
     out = Path(args.out)
     panel_hw = sim_panel_hw(window_hw)

@@ -197,7 +197,8 @@ def test_the_tuned_tier_scores_the_model_tuned_through_the_runs_calibration(
     out = tmp_path / "quality.json"
     args = _bench_args("--size", "64x48", "--views", "1", "--tiers", "network,tuned",
                        "--subframes", "1,4", "--other-scene", "none", "--tune-steps", "2",
-                       "--tune-views", "1", "--unknown-zernike", "none", "--twin",
+                       "--tune-views", "1", "--tune-ssim-weight", "0.05",
+                       "--unknown-zernike", "none", "--twin",
                        str(twin_file), "--out", str(out), "--plot", "")
     assert Q.run(args) == 0
     result = json.loads(out.read_text())
@@ -216,6 +217,7 @@ def test_the_tuned_tier_scores_the_model_tuned_through_the_runs_calibration(
     cal = truth_calibration(twin, twin.roi_for_panel(sim_panel_hw((48, 64))))
     assert record["tuned_for"]["calibration_sha256"] == fingerprint(cal)
     assert record["steps"] == 2 and len(record["views"]) == 1
+    assert record["settings"]["ssim_weight"] == 0.05 == record["tuned_for"]["ssim_weight"]
     scored = [{k: v for k, v in view.items() if k not in ("scene", "view", "planes_m")}
               for view in result["views"]]
     assert len(scored) == 1 and scored[0]["kind"] == "orbit"
