@@ -36,12 +36,14 @@ import torch
 
 from nhfd.calibration import Calibration, parametric_fingerprint
 from nhfd.config import Config, RefineSettings
-from nhfd.models.learned_bench import LearnedBench, LearnedOptics, learned_of, save_learned
+from nhfd.dataset.build import write_json_atomic
+from nhfd.models.learned_bench import LearnedBench, LearnedOptics, save_learned
 from nhfd.optics import propagate
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.refine import (
     BenchForward,
     grey_phase,
+    learned_bench_for,
     refine,
     target_from_field,
     window_mask,
@@ -306,6 +308,15 @@ def capture_set(devices: Any, calibration: Calibration, encoder: Encoder, plan: 
     return Captured(grey, tuple(kinds), np.stack(images), valid, time.perf_counter() - t0)
 
 
+def _colour_gain(seen: torch.Tensor, captured: torch.Tensor, mask: torch.Tensor, c: int
+                 ) -> tuple[float, torch.Tensor, torch.Tensor]:
+    """Colour `c`'s least-squares gain of `seen` onto `captured` (`[N, D, C, h, w]`) over every
+    image inside `mask`, and the two masked pixel vectors (float64)."""
+    x = seen[:, :, c][..., mask].double().flatten()
+    y = captured[:, :, c][..., mask].double().flatten()
+    return float(x @ y) / max(float(x @ x), 1e-300), x, y
+
+
 def psnr_per_colour(seen: torch.Tensor, captured: torch.Tensor, mask: torch.Tensor
                     ) -> tuple[float, float, float]:
     """PSNR (dB) per colour of predictions `seen` against captures `captured` (both
@@ -314,9 +325,7 @@ def psnr_per_colour(seen: torch.Tensor, captured: torch.Tensor, mask: torch.Tens
     free), the error in units of the colour's captured 99.5th percentile."""
     out = []
     for c in range(seen.shape[2]):
-        x = seen[:, :, c][..., mask].double().flatten()
-        y = captured[:, :, c][..., mask].double().flatten()
-        gain = float(x @ y) / max(float(x @ x), 1e-300)
+        gain, x, y = _colour_gain(seen, captured, mask, c)
         peak = float(torch.quantile(y[:16_000_000], SCALE_PERCENTILE / 100))
         mse = float(((gain * x - y) ** 2).mean()) / max(peak, 1e-300) ** 2
         out.append(min(120.0, -10 * math.log10(max(mse, 1e-12))))
@@ -468,19 +477,13 @@ def learn(devices: Any, calibration: Calibration, config: Config, plan: LearnPla
                          scores["train_loss"], weights, cal_path, data.seconds, scores["fit_s"])
     if out_dir is not None:
         save_captured(data, Path(out_dir) / CAPTURES_NAME)
-        _write_atomic(Path(out_dir) / RECORD_NAME, json.dumps(
-            {"held_out_patterns_db": result.held_out_patterns_db,
-             "held_out_plane_db": result.held_out_plane_db, "train_loss": result.train_loss,
-             "capture_s": round(result.capture_s, 2), "fit_s": round(result.fit_s, 2),
-             "plan": dataclasses.asdict(plan), "settings": dataclasses.asdict(encoder.settings),
-             "captures": CAPTURES_NAME}, indent=2))
+        write_json_atomic(Path(out_dir) / RECORD_NAME, {
+            "held_out_patterns_db": result.held_out_patterns_db,
+            "held_out_plane_db": result.held_out_plane_db, "train_loss": result.train_loss,
+            "capture_s": round(result.capture_s, 2), "fit_s": round(result.fit_s, 2),
+            "plan": dataclasses.asdict(plan), "settings": dataclasses.asdict(encoder.settings),
+            "captures": CAPTURES_NAME})
     return result
-
-
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
 
 
 def save_captured(data: Captured, path: Path | str) -> Path:
@@ -552,10 +555,10 @@ class Fidelity:
 
 
 def _gained(pred: torch.Tensor, captured: torch.Tensor, mask: torch.Tensor) -> np.ndarray:
+    """`pred` times each colour's gain onto `captured` (`_colour_gain`), as the PSNR scores it."""
     out = pred.double().clone()
     for c in range(pred.shape[2]):
-        x, y = pred[:, :, c][..., mask].double(), captured[:, :, c][..., mask].double()
-        out[:, :, c] *= float((x * y).sum()) / max(float((x * x).sum()), 1e-300)
+        out[:, :, c] *= _colour_gain(pred, captured, mask, c)[0]
     return out.float().numpy()
 
 
@@ -574,9 +577,7 @@ def fidelity(out_dir: Path | str) -> Fidelity:
     plan = LearnPlan(**{k: _tuples(v) for k, v in record["plan"].items()})
     settings = FrameSettings(**{k: _tuples(v) for k, v in record["settings"].items()})
     cal = Calibration.load(out / "calibration.toml")
-    optics = LearnedOptics(tuple(settings.wavelengths_m), settings.pitch_m,
-                           tuple(settings.panel_hw))  # type: ignore[arg-type]
-    learned, why = learned_of(cal, optics)
+    learned, why = learned_bench_for(cal, settings)
     if learned is None:
         raise ValueError(f"{out / 'calibration.toml'}: {why or 'references no learned bench'}")
     data = load_captured(out / record.get("captures", CAPTURES_NAME))

@@ -32,7 +32,7 @@ from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
 from .data import default_camera_pitch_m, load_capture
 from .fit import _fine_stack, fit_capture
 from .geometry import Geometry, detect_dots
-from .learn import RECORD_NAME, fidelity
+from .learn import RECORD_NAME, Fidelity, fidelity
 from .patterns import dot_layout
 
 # The rows of fidelity.png: (pattern, plane) pairs, at most this many.
@@ -154,7 +154,7 @@ def _rgb(image: np.ndarray, peak: np.ndarray) -> np.ndarray:
     return np.clip(np.moveaxis(image / peak[:, None, None], 0, -1), 0.0, 1.0)
 
 
-def _fidelity_rows(fid) -> list[tuple[int, int]]:
+def _fidelity_rows(fid: Fidelity) -> list[tuple[int, int]]:
     """(pattern, plane) pairs: held-out patterns at the first and last training planes, then a
     held-out and a training pattern at the held-out plane."""
     d, hp = len(fid.plan.planes_m), fid.plan.held_out_plane

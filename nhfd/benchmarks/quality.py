@@ -59,7 +59,6 @@ from nhfd.dataset.build import sha256_file
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.model_info import ModelInfo
 from nhfd.models.export import load_model
-from nhfd.models.learned_bench import LearnedOptics, learned_of
 from nhfd.models.sizes import read_metadata
 from nhfd.optics.quality import speckle_contrast, stack_quality
 from nhfd.pipeline.frame import compute_frame
@@ -68,6 +67,7 @@ from nhfd.pipeline.refine import (
     Prepared,
     Refined,
     citl_frame,
+    learned_bench_for,
     model_loss,
     prepare,
     psnr_db,
@@ -538,9 +538,7 @@ def learn_for_bench(folder_root: Path, devices: Any, calibration: Calibration, c
 def through_learned(p: Prepared, calibration: Calibration) -> Prepared:
     """The prepared view with the bench model replaced by `calibration`'s learned bench (its
     weights checked for this bench's optics; a refused file raises, naming it)."""
-    s = p.encoder.settings
-    learned, refusal = learned_of(calibration, LearnedOptics(s.wavelengths_m, s.pitch_m,
-                                                             s.panel_hw), device=p.encoder.device)
+    learned, refusal = learned_bench_for(calibration, p.encoder.settings, p.encoder.device)
     if learned is None:
         raise ValueError(f"{calibration.source or 'the calibration'}: no learned bench to "
                          f"measure the learned tiers with ({refusal or 'it references none'})")

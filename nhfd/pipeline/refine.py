@@ -60,7 +60,7 @@ from nhfd.views import QUALITY_TIERS, View
 
 from .encoder import Encoder
 from .frame import render_view
-from .settings import frame_settings
+from .settings import FrameSettings, frame_settings
 from .view import SCENE_FOV_X_DEG, Scene, render_camera
 
 # Pixels along the window's edge left out of the loss: the window's edge diffracts, and the
@@ -598,12 +598,21 @@ def prepare(config: Config, view: View, scene: Scene, *, info: ModelInfo | None 
     with torch.no_grad():
         exact_grey, clipped = encoder.code(encoder.to_slm(reference))
     poll()
-    learned, refusal = (learned_of(calibration, LearnedOptics(s.wavelengths_m, s.pitch_m,
-                                                              s.panel_hw), device=device)
+    learned, refusal = (learned_bench_for(calibration, s, device)
                         if config.refine.bench_model == "learned" else (None, None))
     return Prepared(view, info, encoder, reference, target,
                     BenchForward(encoder, at, learned), exact_grey, tuple(clipped), r,
                     time.perf_counter() - t0, refusal or "")
+
+
+def learned_bench_for(calibration: Calibration | None, settings: FrameSettings,
+                      device: torch.device | str = "cpu"
+                      ) -> tuple[LearnedBench | None, str | None]:
+    """The learned bench `calibration` references, checked for the optics of `settings` (its
+    wavelengths, pitch and panel): `nhfd.models.learned_bench.learned_of`'s (model, refusal)."""
+    optics = LearnedOptics(tuple(settings.wavelengths_m), settings.pitch_m,  # type: ignore[arg-type]
+                           tuple(settings.panel_hw))  # type: ignore[arg-type]
+    return learned_of(calibration, optics, device=device)
 
 
 def model_loss(p: Prepared, grey: np.ndarray) -> float:

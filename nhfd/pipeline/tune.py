@@ -40,17 +40,10 @@ import numpy as np
 import torch
 import torch.fft as fft
 
-from nhfd.calibration import (
-    Calibration,
-    bench_record,
-    check_bench,
-    fingerprint,
-    parametric_fingerprint,
-)
+from nhfd.calibration import Calibration, bench_record, check_bench, fingerprint
 from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
 from nhfd.models.inputs import network_input
-from nhfd.models.learned_bench import LearnedOptics, LearnedWeightsError, load_learned
 from nhfd.models.loss import box_ssim
 from nhfd.models.metadata import METADATA_KEY, expected_from_config, parse_metadata
 from nhfd.models.sizes import check_and_record
@@ -320,7 +313,8 @@ def prepare_views(views: Sequence[View], scene: Scene, model: TorchModel, config
                   panel_hw: tuple[int, int] | None = None,
                   say: Callable[[str], None] = print) -> list[TuneView]:
     """Each view prepared as `refine` prepares one (`prepare`: its exact target at its content
-    planes, the calibrated encoder and bench model), with the network's input."""
+    planes, the calibrated encoder and bench model), with the network's input. `TuneError`
+    when the calibration's learned bench is refused (before anything is written)."""
     out = []
     m = model.multiple
     for i, view in enumerate(views):
@@ -328,6 +322,10 @@ def prepare_views(views: Sequence[View], scene: Scene, model: TorchModel, config
         p = prepare(config, view, scene, info=model.info, calibration=calibration,
                     window_hw=settings.window_hw, panel_hw=panel_hw, planes=settings.planes,
                     device=settings.device)
+        if p.bench_refusal:  # tuned through the parametric model, recorded as the learned one
+            raise TuneError(f"--calibration: its learned bench is refused ({p.bench_refusal}): "
+                            "re-learn it (nhfd calib learn), or set refine.bench_model = "
+                            '"parametric" to tune through the parametric model')
         r = p.render  # the view as prepare rendered it, not rendered again
         x = network_input(r.rgb, model.inputs, depth=r.depth, alpha=r.alpha,
                           mapping=model.info.mapping_dict, volume_m=model.info.volume_m)
@@ -458,20 +456,6 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
         check_bench(calibration, tuple(model.info.wavelengths_m), model.info.pitch_m)
     except ValueError as exc:
         raise TuneError(f"--calibration: {exc}") from None
-    learned = calibration.learned_path()
-    if config.refine.bench_model == "learned" and learned is not None:
-        # `prepare` would fall back to the parametric model, and the tuned model would then
-        # record a learned bench it was never tuned through.
-        panel = tuple(panel_hw) if panel_hw else (config.slm.height_px, config.slm.width_px)
-        try:
-            load_learned(learned, LearnedOptics(tuple(model.info.wavelengths_m),
-                                                model.info.pitch_m, panel),
-                         sha256=calibration.learned_sha256,
-                         parametric_sha256=parametric_fingerprint(calibration))
-        except LearnedWeightsError as exc:
-            raise TuneError(f"--calibration: {exc}; re-learn it (nhfd calib learn), or set "
-                            'refine.bench_model = "parametric" to tune through the parametric '
-                            "model") from None
     if poses is None:
         poses = training_poses_of(meta, scene, None if dataset is None else Path(dataset))
     views = choose_views(poses, settings.views)

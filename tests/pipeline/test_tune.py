@@ -318,8 +318,9 @@ def test_bad_input_is_refused_with_nothing_written(tmp_path, scene, model_file) 
     (tmp_path / "learned.safetensors").write_bytes(b"\x80\x04not weights")
     damaged = dataclasses.replace(CAL, source=str(tmp_path / "calibration.toml"),
                                   learned_file="learned.safetensors", learned_sha256="0" * 64)
-    with pytest.raises(T.TuneError, match=r"--calibration: .*learned\.safetensors: SHA-256 .*"
-                                          r'another file; .*refine\.bench_model = "parametric"'):
+    with pytest.raises(T.TuneError, match=r"--calibration: its learned bench is refused \(.*"
+                                          r"learned\.safetensors: SHA-256 .*another file.*\): "
+                                          r'.*refine\.bench_model = "parametric"'):
         T.tune_model(model_file, scene, SCENE, damaged, out, settings(), panel_hw=PANEL_HW,
                      say=lambda _m: None)
     _nothing_written(out)
