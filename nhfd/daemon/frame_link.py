@@ -650,6 +650,7 @@ class FrameLink:
             case FrameCancelled():  # a load or a newer view overtook an exact frame
                 self._inflight_over()
                 self.pacer.counts.dropped += 1
+                self.pacer.counts.cancelled += 1
             case BetterFrame(seq=seq, frame=frame):
                 self.pacer.refined(seq, frame)
             case CaptureAsked(seq=seq, req_id=req_id, request=request):

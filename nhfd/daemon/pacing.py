@@ -141,11 +141,13 @@ class Refinement:
 class FrameCounts:
     """What `status.frames` counts (docs/frames.md): frames shown; views never computed because
     a newer one overtook them (latest wins), plus a frame waiting for its refresh when the
-    worker crashed; frames shown more than one refresh after the worker finished them; and the
-    ages (s, from the frame whole in its slot to the end of the panel write)."""
+    worker crashed; of those, the exact frames the worker cut short for a newer view or a load;
+    frames shown more than one refresh after the worker finished them; and the ages (s, from
+    the frame whole in its slot to the end of the panel write)."""
 
     shown: int = 0
     dropped: int = 0
+    cancelled: int = 0  # also counted in `dropped`
     late: int = 0
     last_age_s: float | None = None
     max_age_s: float = 0.0
@@ -445,7 +447,8 @@ class FramePacer:
         vsync = self.panel().vsync_detail  # the framebuffer's FBIO_WAITFORVSYNC, or why not
         if vsync:
             pacing += f"; {vsync}"
-        return {"frames_shown": c.shown, "frames_dropped": c.dropped, "frames_late": c.late,
+        return {"frames_shown": c.shown, "frames_dropped": c.dropped,
+                "frames_cancelled": c.cancelled, "frames_late": c.late,
                 "last_frame_age_ms": (None if c.last_age_s is None
                                       else round(c.last_age_s * 1e3, 3)),
                 "max_frame_age_ms": round(c.max_age_s * 1e3, 3),

@@ -190,7 +190,7 @@ def test_a_new_view_cancels_an_exact_frame_and_starts_at_once(short_dir, mecom_t
         wait_until(lambda: (c.status()["scene"] or {}).get("center") is not None, 30,
                    "the scene")
 
-        def shown_after(pose: dict, seen: list[int] | None = None) -> float:
+        def shown_after(pose: dict, seen: list[int] | None = None) -> None:
             t0 = time.monotonic()
             seq = c.call("set_view", pose=pose, quality="exact")["seq"]
             while (applied := c.status()["view"]["applied_seq"]) != seq:
@@ -198,21 +198,27 @@ def test_a_new_view_cancels_an_exact_frame_and_starts_at_once(short_dir, mecom_t
                     seen.append(applied)
                 assert time.monotonic() - t0 < 20, "no exact frame"
                 time.sleep(0.01)
-            return time.monotonic() - t0
 
         shown_after(FRONT_POSE)  # the first pays for building kernels
-        alone_s = shown_after(dict(FRONT_POSE, position=[0.02, 0.0, -2.0]))  # nothing before
+        t0 = time.monotonic()
+        shown_after(dict(FRONT_POSE, position=[0.02, 0.0, -2.0]))  # nothing before
+        alone_s = time.monotonic() - t0
+        assert c.status()["frames"]["frames_cancelled"] == 0
         older = c.call("set_view", pose=dict(FRONT_POSE, position=[0.04, 0.0, -2.0]),
                        quality="exact")["seq"]
         wait_until(lambda: r.daemon.frames.inflight is not None
                    and r.daemon.frames.inflight.seq == older, 5, "the older view computing")
         time.sleep(0.3 * alone_s)  # well into its inversion
         seen: list[int] = []
-        newer_s = shown_after(dict(FRONT_POSE, position=[-0.04, 0.0, -2.0]), seen)
-        # Waiting for the older frame to finish would take its remaining 70 % first.
-        assert newer_s < 1.35 * alone_s, (newer_s, alone_s)
-        assert older not in seen, (alone_s, newer_s, seen[:3], len(seen))
-        assert c.status()["frames"]["frames_dropped"] >= 1
+        shown_after(dict(FRONT_POSE, position=[-0.04, 0.0, -2.0]), seen)
+        # The worker cut the older frame short (it answered cancelled, not done: a cancel that
+        # came after the frame was whole would find nothing to cancel), so the newer view did
+        # not wait for it, and the older frame never reached the panel. A fact, not a time: a
+        # wall-clock ratio here failed on a loaded CI machine.
+        frames = c.status()["frames"]
+        assert frames["frames_cancelled"] == 1, frames
+        assert frames["frames_dropped"] >= 1
+        assert older not in seen, (alone_s, seen[:3], len(seen))
         assert c.status()["errors"] == []
     finally:
         r.stop()
