@@ -29,6 +29,12 @@ SIM_PANEL_MARGIN_PX = 64
 SIM_BENCH_SEED = 7  # TrueBench.randomised: phase sign -1, no mirror, M ~ 1.12
 SIM_POWER_PCT = 10.0  # the simulated laser's cap
 SIM_ARM_S = 900.0  # the longest arming the laser accepts
+# The in-process simulated bench's stage: the settings' caps (`devices.apt`). The twin's light
+# and panel are instantaneous, so at a real actuator's 2 mm/s and 50 ms settle the waits were
+# most of a capture's wall time (38 of 60 s in a learned-tier run); a real bench's time is the
+# plans' printed estimate, not the twin's.
+SIM_STAGE_VELOCITY_MM_S = 50.0
+SIM_STAGE_ACCELERATION_MM_S2 = 100.0
 
 
 def sim_panel_hw(window_hw: tuple[int, int], margin_px: int = SIM_PANEL_MARGIN_PX
@@ -81,14 +87,26 @@ def twin_calibration(folder: Path, twin: TrueBench, panel_hw: tuple[int, int], *
     return Calibration.load(toml)
 
 
+def quick_sim_devices(**camera: object) -> DeviceSettings:
+    """The packaged simulated devices made quick for the in-process simulated bench: a mono
+    camera (on the sensor region that holds the panel's image, as in its calibration;
+    `camera` sets more of its settings), no settle after a frame, the stage at
+    `SIM_STAGE_VELOCITY_MM_S` (homing too: the simulated controller homes at its velocity)."""
+    d = Config().devices
+    return d.model_copy(update={
+        "camera_settings": d.camera_settings.model_copy(update={"channels": "mono", **camera}),
+        "slm_output": d.slm_output.model_copy(update={"settle_ms": 0.0}),
+        "apt": d.apt.model_copy(update={"velocity_mm_s": SIM_STAGE_VELOCITY_MM_S,
+                                        "acceleration_mm_s2": SIM_STAGE_ACCELERATION_MM_S2})})
+
+
 @contextmanager
 def sim_devices(twin: TrueBench, panel_hw: tuple[int, int], *, power_pct: float = SIM_POWER_PCT,
                 devices: DeviceSettings | None = None) -> Iterator[BenchDevices]:
-    """The simulated bench over `twin` (`devices`, by default the packaged default devices: all
-    simulated; a mono camera on the sensor region that holds the panel's image, as in its
-    calibration), its laser armed (`SIM_ARM_S`; `arm_twin` re-arms) with every colour at
+    """The simulated bench over `twin` (`devices`, by default `quick_sim_devices()`; a mono
+    camera either way), its laser armed (`SIM_ARM_S`; `arm_twin` re-arms) with every colour at
     `power_pct`. Closing switches every laser off."""
-    d = devices if devices is not None else Config().devices
+    d = devices if devices is not None else quick_sim_devices()
     d = d.model_copy(update={"camera_settings": d.camera_settings.model_copy(
         update={"channels": "mono"})})
     with make_bench(d, panel_hw[1], panel_hw[0], bench=twin,

@@ -56,13 +56,16 @@ class SimulatedLaser(MecomLaser):
 
 
 class SimulatedStage(AptStage):
-    """The APT driver on an `AptTwin` it owns (a KDC101 with the settings' serial number)."""
+    """The APT driver on an `AptTwin` it owns (a KDC101 with the settings' serial number),
+    homing at the settings' `velocity_mm_s` (a real controller's homing velocity is its own
+    parameter, which the driver leaves as it is)."""
 
     def __init__(self, settings: StageSettings, *, clock: Clock = time.monotonic) -> None:
         serial = int(settings.usb_serial) if settings.usb_serial.isdigit() else 27000001
         self.twin = AptTwin(serial_number=serial, model=settings.allowed_models[0][:8],
                             channel=settings.channel, counts_per_mm=settings.counts_per_mm,
-                            time_unit_s=settings.time_unit_s, clock=clock)
+                            time_unit_s=settings.time_unit_s,
+                            home_velocity_mm_s=settings.velocity_mm_s, clock=clock)
         self.twin.start()
         super().__init__(settings, self.twin.opener())
 

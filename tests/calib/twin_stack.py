@@ -10,8 +10,9 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
+from nhfd.calib.sim import quick_sim_devices
 from nhfd.calibration import Calibration
-from nhfd.config import Config, DeviceSettings
+from nhfd.config import DeviceSettings
 from nhfd.daemon.frame_link import PanelBuffer
 from nhfd.device_settings import CameraSettings
 from nhfd.drivers.simcamera import SimulatedCamera, TrueBench
@@ -26,15 +27,8 @@ PLANES_M = (-0.6e-3, 0.0, 0.6e-3)
 
 
 def quick_devices(**camera: object) -> DeviceSettings:
-    """The packaged simulated devices made quick for tests: a mono camera (`camera` overrides
-    more of its settings), no settle after a frame, the stage at 50 mm/s and 100 mm/s^2. The
-    twin's light is instantaneous, and at the packaged 50 ms settle and 2 mm/s the waits were
-    most of a capture's time."""
-    d = Config().devices
-    return d.model_copy(update={
-        "camera_settings": d.camera_settings.model_copy(update={"channels": "mono", **camera}),
-        "slm_output": d.slm_output.model_copy(update={"settle_ms": 0.0}),
-        "apt": d.apt.model_copy(update={"velocity_mm_s": 50.0, "acceleration_mm_s2": 100.0})})
+    """The in-process simulated bench's quick devices (`quick_sim_devices`)."""
+    return quick_sim_devices(**camera)
 
 
 def target_field(settings: FrameSettings) -> torch.Tensor:

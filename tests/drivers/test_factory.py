@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 
+from nhfd.calib.sim import SIM_STAGE_VELOCITY_MM_S, quick_sim_devices
 from nhfd.config import Config, ConfigError, check_file
 from nhfd.drivers import factory
 from nhfd.drivers.framebuffer import FramebufferSLM
@@ -157,3 +158,21 @@ def test_make_bench_without_on_error_closes_what_it_opened_and_raises():
     d = devices(stage="apt")
     with pytest.raises(ValueError, match=r"devices\.apt: set usb_serial"):
         factory.make_bench(d, 8, 4)
+
+
+def test_the_simulated_stage_homes_at_its_settings_velocity():
+    """A simulated controller homes at the velocity its settings move at (the in-process
+    simulated bench runs at the settings' cap; the packaged default is a real actuator's)."""
+    d = Config().devices
+    for devices, mm_s in ((d, 2.0), (quick_sim_devices(), SIM_STAGE_VELOCITY_MM_S)):
+        assert devices.apt.velocity_mm_s == mm_s
+        clock = ManualClock()
+        stage = factory.make_stage(devices, clock=clock)
+        try:
+            assert stage.twin.home_speed == pytest.approx(mm_s * devices.apt.counts_per_mm)
+        finally:
+            stage.twin.close()
+    quick = quick_sim_devices()
+    assert quick.slm_output.settle_ms == 0.0 and quick.camera_settings.channels == "mono"
+    caps = [m.le for m in type(d.apt).model_fields["velocity_mm_s"].metadata if hasattr(m, "le")]
+    assert caps == [SIM_STAGE_VELOCITY_MM_S]  # the settings' cap
