@@ -3,10 +3,12 @@
 
 from __future__ import annotations
 
+import fcntl
 import os
+import shutil
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
@@ -47,6 +49,22 @@ def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
             report.longrepr = (f"{REQUIRE_CUDA_ENV}={os.environ[REQUIRE_CUDA_ENV]}: this test "
                                f"must run on CUDA here, but it skipped: {reason}")
     return report
+
+
+# The longest test files (minutes on 2 cores, measured with --durations), run first: the two
+# pytest-xdist workers take a file at a time in collection order (`--dist loadfile`), and one of
+# these collected last kept one worker busy for a minute and more after the other had finished.
+SLOW_FILES_FIRST = (
+    "test_readme_blocks.py", "pipeline/test_tune.py", "benchmarks/test_quality_bench.py",
+    "daemon/test_refine_daemon.py", "calib/test_learn.py", "daemon/test_emission_runs.py",
+    "daemon/test_citl_daemon.py", "models/test_model_build.py", "pipeline/test_warmup.py",
+    "daemon/test_bench_pipeline.py", "daemon/test_bad_inputs.py", "calib/test_recovery.py",
+)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    rank = {REPO / "tests" / name: i for i, name in enumerate(SLOW_FILES_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path, len(rank)))  # stable: the rest in order
 
 
 @pytest.fixture(autouse=True)
@@ -100,3 +118,26 @@ def mecom_twin() -> Iterator[MecomTwin]:
         yield twin
     finally:
         twin.close()
+
+
+def made_once(tmp_path_factory: pytest.TempPathFactory, name: str,
+              make: Callable[[Path], None]) -> Path:
+    """The folder `name`, filled by `make(folder)` once per test run: the pytest-xdist workers
+    of one run share it (the first to ask makes it under a lock, the others wait and read it),
+    so a session fixture that costs half a minute is not paid once per worker. A `make` that
+    fails leaves no folder: the next to ask tries again."""
+    base = tmp_path_factory.getbasetemp()
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base  # shared by workers
+    folder, done = root / name, root / f"{name}.done"
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)  # released when the file closes
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            try:
+                make(folder)
+            except BaseException:
+                shutil.rmtree(folder, ignore_errors=True)
+                raise
+            done.touch()
+    return folder

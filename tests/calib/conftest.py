@@ -1,8 +1,10 @@
-"""One simulated capture per test session (it is the slow part: ~100 images through the twin
-camera), on a bench drawn at random with a fixed seed, fitted once."""
+"""One simulated capture per test run (it is the slow part: ~100 images through the twin
+camera), on a bench drawn at random with a fixed seed, fitted once: both pytest-xdist workers
+read the one capture and its fitted calibration file (`made_once`)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -10,7 +12,9 @@ import pytest
 from nhfd.calib.capture import CapturePlan, SimBenchIO, capture
 from nhfd.calib.fit import fit_capture
 from nhfd.calib.patterns import PatternSpec
+from nhfd.calibration import Calibration
 from nhfd.drivers.simcamera import TrueBench
+from tests.conftest import made_once
 
 # Drawn by TrueBench.randomised: phase sign -1 and no mirror (both non-default), M ~ 1.12.
 BENCH_SEED = 7
@@ -35,11 +39,21 @@ def bench() -> TrueBench:
 
 @pytest.fixture(scope="session")
 def captured(bench: TrueBench, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("calib") / "capture"
-    capture(out, SimBenchIO(bench, PANEL_HW, noise_seed=3), small_spec(bench), small_plan(bench))
-    return out
+    def make(folder: Path) -> None:
+        capture(folder / "capture", SimBenchIO(bench, PANEL_HW, noise_seed=3), small_spec(bench),
+                small_plan(bench))
+
+    return made_once(tmp_path_factory, f"calib-capture-{BENCH_SEED}", make) / "capture"
 
 
 @pytest.fixture(scope="session")
-def fitted(captured: Path):
-    return fit_capture(captured)
+def fitted(captured: Path, tmp_path_factory: pytest.TempPathFactory) -> Calibration:
+    """The capture's fit, as its calibration file reads back (what the daemon applies)."""
+    def make(folder: Path) -> None:
+        cal = fit_capture(captured)
+        back = Calibration.load(cal.save(folder / "calibration.toml"))
+        # Every fitted value reads back exactly (test_files round-trips the loaded one again).
+        assert replace(back, created="", source="") == replace(cal, created="", source="")
+
+    folder = made_once(tmp_path_factory, f"calib-fit-{BENCH_SEED}", make)
+    return Calibration.load(folder / "calibration.toml")

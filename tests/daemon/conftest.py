@@ -21,6 +21,7 @@ from nhfd.daemon.client import Client
 from nhfd.daemon.frame_link import SHM_PREFIX
 from nhfd.daemon.service import Daemon
 from nhfd.drivers.twins.mecom_twin import MecomTwin
+from tests.conftest import made_once
 
 
 @pytest.fixture
@@ -131,12 +132,17 @@ def wait_until(condition: Any, timeout_s: float = 20.0, what: str = "condition")
 
 @pytest.fixture(scope="session")
 def tiny(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """A 2-step model exported to ONNX and a small Gaussian cloud, made once per session (~10 s)
-    and shared by every test file that needs the frame worker."""
+    """A 2-step model exported to ONNX and a small Gaussian cloud, made once per run (~10 s;
+    `made_once`: both pytest-xdist workers read the one pair) and shared by every test file
+    that needs the frame worker; the frame kernels compiled in this process."""
     from .test_frames import make_tiny_model, make_tiny_scene
 
-    root = tmp_path_factory.mktemp("tiny_model")
-    paths = {"model": make_tiny_model(root), "scene": make_tiny_scene(root / "cloud.ply")}
+    def make(root: Path) -> None:
+        make_tiny_model(root)
+        make_tiny_scene(root / "cloud.ply")
+
+    root = made_once(tmp_path_factory, "tiny_model", make)
+    paths = {"model": root / "tiny.onnx", "scene": root / "cloud.ply"}
     _compile_frame_kernels(paths)
     return paths
 
