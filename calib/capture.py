@@ -167,20 +167,17 @@ class DaemonBenchIO:
         return self._wait_job(method, self._call(method, **params)["job"])
 
     def _wait_job(self, method: str, job_id: int) -> dict[str, Any]:
-        import time
-
-        end = time.monotonic() + self.job_timeout_s
-        while True:
-            job = self._call("job", id=job_id)
-            if job["state"] == "done":
-                return job["result"]
-            if job["state"] in ("failed", "cancelled"):
-                raise CaptureError(f"daemon {method} job {job_id} {job['state']}: "
-                                   f"{job.get('error')}")
-            if time.monotonic() > end:
-                raise CaptureError(f"daemon {method} job {job_id} still {job['state']} after "
-                                   f"{self.job_timeout_s:g} s")
-            time.sleep(self.poll_s)
+        self.calls.append("job")
+        try:
+            job = self.client.wait_job(job_id, self.job_timeout_s, self.poll_s)
+        except RpcError as exc:
+            raise CaptureError(f"daemon refused job: {exc.message}") from None
+        if job["state"] == "done":
+            return job["result"]
+        if job["state"] in ("failed", "cancelled"):
+            raise CaptureError(f"daemon {method} job {job_id} {job['state']}: {job.get('error')}")
+        raise CaptureError(f"daemon {method} job {job_id} still {job['state']} after "
+                           f"{self.job_timeout_s:g} s")
 
     def show(self, frame: np.ndarray) -> None:
         """Show `frame` (uint8 `[H, W, 3]`) through `show_pattern`, as a .npy file in `work_dir`; a

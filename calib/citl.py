@@ -7,16 +7,21 @@ arming holds, switching each colour on in turn at the power already set and off 
 disarmed, expired or faulted, it stops with `CaptureStopped` before switching anything on, and
 every colour is off on every way out of a capture (`finally`; should switching one off fail, the
 laser's `all_off`, which zeroes the powers too).
+
+`DaemonCameraLoop` is the same loop through a running daemon: its `capture_stack` job is the
+daemon's citl capture sequence, under the same rules.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from nhfd.calibration import Calibration
+from nhfd.daemon.protocol import RpcError
 from nhfd.device_settings import COLOURS, citl_laser_refusal
 from nhfd.drivers.camera import colour_planes
 from nhfd.drivers.errors import DeviceError
@@ -124,3 +129,79 @@ class CameraLoop:
         finally:
             self._lights_out()
         return captured_window(images, saturated, self.geometry, self.encoder)
+
+
+class DaemonCameraLoop:
+    """A `nhfd.pipeline.refine.Capture` through a running daemon (`nhfd serve` owns the devices),
+    for `nhfd calib learn`: each call writes the K subframes into `work_dir` (which must lie
+    inside the daemon's `daemon.paths.pattern_dirs`) and waits for a `capture_stack` job, the
+    daemon's citl capture sequence (a held panel, the stage at each plane's focus through the
+    daemon's calibration, each diode alone on at the power a person set, never arming, every
+    diode off on every way out); the raw images it writes are mapped onto the window's SLM grid
+    through `calibration`'s geometry, as `CameraLoop`'s are. `calibration` must be the one the
+    daemon applies (its focus mapping moves the stage). A refusal or a failed job is
+    `CaptureStopped` with the daemon's reason."""
+
+    def __init__(self, client: Any, calibration: Calibration, encoder: Encoder,
+                 work_dir: Path | str, *, camera_pitch_m: float, frames: int = 0,
+                 job_timeout_s: float = 300.0, poll_s: float = 0.02) -> None:
+        self.client, self.calibration, self.encoder = client, calibration, encoder
+        self.work_dir = Path(work_dir).resolve()
+        self.geometry = calibrated_geometry(calibration, camera_pitch_m)
+        self.frames, self.job_timeout_s, self.poll_s = int(frames), job_timeout_s, poll_s
+        self.captures = 0
+
+    def _call(self, method: str, **params: Any) -> Any:
+        try:
+            return self.client.call(method, **params)
+        except RpcError as exc:
+            raise CaptureStopped(f"the daemon refused {method}: {exc.message}") from None
+
+    def __call__(self, grey: np.ndarray, planes_m: Sequence[float]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """As `CameraLoop.__call__`: the K subframes `grey` `[K, C, Hr, Wr]` uint8 captured at
+        `planes_m` (m from the reference plane) -> (`[D, C, h, w]` on the window, the pixels
+        the camera saw `[h, w]`)."""
+        s, r = self.encoder.settings, self.encoder.region
+        self.work_dir.mkdir(parents=True, exist_ok=True)
+        shown, out = self.work_dir / "stack.npy", self.work_dir / "stack.npz"
+        tmp = self.work_dir / ".stack.tmp.npy"
+        np.save(tmp, np.ascontiguousarray(grey, np.uint8))
+        tmp.replace(shown)
+        out.unlink(missing_ok=True)  # never an older pattern's images
+        params: dict[str, Any] = {
+            "path": str(shown), "top": r.top, "left": r.left, "out": str(out),
+            "z_m": [s.z0_m + s.refocus_m + float(dz) for dz in planes_m]}
+        if self.frames:
+            params["frames"] = self.frames
+        job_id = self._call("capture_stack", **params)["job"]
+        try:
+            job = self.client.wait_job(job_id, self.job_timeout_s, self.poll_s)
+        except RpcError as exc:
+            raise CaptureStopped(f"the daemon refused job: {exc.message}") from None
+        if job["state"] != "done":
+            raise CaptureStopped(f"the daemon's capture_stack job {job_id} {job['state']}"
+                                 + (f": {job['error']}" if job.get("error") else
+                                    f" after {self.job_timeout_s:g} s"))
+        images, saturated = read_stack(out, len(planes_m))
+        self.captures += images.shape[0] * images.shape[1]
+        return captured_window(images, saturated, self.geometry, self.encoder)
+
+
+def read_stack(path: Path, planes: int) -> tuple[np.ndarray, np.ndarray]:
+    """The images `[P, 3, Hc, Wc]` float32 and saturation (bool, the same shape) a
+    `capture_stack` job wrote to `path`, checked: `planes` planes, finite, no pickles;
+    CaptureStopped naming the file otherwise."""
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            images, saturated = z["images"], z["saturated"]
+    except (OSError, ValueError, KeyError) as exc:
+        raise CaptureStopped(f"{path}: not a capture_stack result ({exc})") from None
+    if (images.dtype != np.float32 or images.ndim != 4 or images.shape[:2] != (planes, 3)
+            or saturated.dtype != bool or saturated.shape != images.shape):
+        raise CaptureStopped(f"{path}: images {images.dtype} {list(images.shape)}, saturation "
+                             f"{saturated.dtype} {list(saturated.shape)}: expected float32 "
+                             f"[{planes}, 3, H, W] and bool of that shape")
+    if not np.isfinite(images).all():
+        raise CaptureStopped(f"{path}: the images hold NaN or Inf")
+    return images, saturated

@@ -5,10 +5,12 @@
    `sgd` frames of varied content (spots at the planes, smooth images), each refined a few
    steps through the parametric model; random grey levels; structured frames (gratings,
    blocks).
-2. **Captures** through the bench's `Camera` (`CameraLoop`, citl's loop: it never arms, never
-   sets a power, every diode off on every way out), each pattern at `LearnPlan.planes_m` per
+2. **Captures** through the bench's `Camera`, in this process (`CameraLoop`, citl's loop) or
+   through a running daemon (`DaemonCameraLoop`, its `capture_stack` job): never arming, never
+   setting a power, every diode off on every way out. Each pattern at `LearnPlan.planes_m` per
    colour, with the calibration's focus mapping and geometry, onto the window's SLM grid. The
-   plan (count, settle time, expected duration on a real bench) is printed first.
+   plan (count, settle time, expected duration on a real bench) is printed first; the captures
+   are kept pattern by pattern, and a stopped run resumes where it stopped.
 3. **The fit**: a `LearnedBench` around the calibration's `BenchForward`, by Adam on the
    captures of the training patterns at the training planes; held-out patterns and a held-out
    plane score it, parametric against learned, PSNR per colour.
@@ -23,6 +25,7 @@ Only the captures and the fitted calibration are read: nothing of the simulated 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import math
 import time
@@ -35,7 +38,7 @@ import numpy as np
 import torch
 
 from nhfd.calibration import Calibration, parametric_fingerprint
-from nhfd.config import Config, RefineSettings
+from nhfd.config import MAX_PLANES, Config, RefineSettings
 from nhfd.dataset.build import write_json_atomic
 from nhfd.models.learned_bench import LearnedBench, LearnedOptics, save_learned
 from nhfd.optics import propagate
@@ -54,6 +57,8 @@ from .citl import CameraLoop
 
 WEIGHTS_NAME = "learned.safetensors"
 CAPTURES_NAME = "captures.npz"
+# The capture set while it is taken, pattern by pattern: what a rerun resumes from.
+PARTIAL_NAME = "captures.partial.npz"
 RECORD_NAME = "learn.json"
 # Each colour's images above this percentile of its training captures count as 1 in the loss.
 SCALE_PERCENTILE = 99.5
@@ -98,9 +103,9 @@ class LearnPlan:
             ("window_hw", self.window_hw, len(self.window_hw) == 2
              and all(isinstance(n, int) and 16 <= n <= 4096 for n in self.window_hw),
              "2 integers in [16, 4096] px"),
-            ("planes_m", self.planes_m, 2 <= len(self.planes_m) <= 16
+            ("planes_m", self.planes_m, 2 <= len(self.planes_m) <= MAX_PLANES
              and all(math.isfinite(z) and abs(z) <= 0.05 for z in self.planes_m),
-             "2 to 16 planes, |z| <= 0.05 m"),
+             f"2 to {MAX_PLANES} planes, |z| <= 0.05 m"),
             ("held_out_plane", self.held_out_plane,
              0 <= self.held_out_plane < len(self.planes_m), f"0 <= i < {len(self.planes_m)}"),
             ("sgd_patterns", self.sgd_patterns, 0 <= self.sgd_patterns <= 10_000, "[0, 10000]"),
@@ -151,6 +156,12 @@ class LearnPlan:
                 f"settle {self.settle_s * 1e3:.0f} ms per pattern shown, stage move "
                 f"{self.stage_move_s:.2f} s, exposure {self.exposure_s * 1e3:.1f} ms: about "
                 f"{self.bench_seconds() / 60:.1f} min on a real bench")
+
+
+# The plan's fields that make the patterns and what is captured of them (the rest are the fit's,
+# the split's and the printed estimate's): a partial capture resumes only under the same.
+CAPTURE_FIELDS = ("window_hw", "planes_m", "sgd_patterns", "sgd_iterations", "random_patterns",
+                  "structured_patterns", "seed")
 
 
 @dataclass(frozen=True)
@@ -289,23 +300,73 @@ def training_patterns(encoder: Encoder, plan: LearnPlan, *,
     return np.stack(greys), tuple(kinds)
 
 
-def capture_set(devices: Any, calibration: Calibration, encoder: Encoder, plan: LearnPlan,
-                grey: np.ndarray, kinds: Sequence[str], *,
-                say: Callable[[str], None] = print) -> Captured:
+CaptureFor = Callable[[Encoder], Any]  # the encoder -> a `Capture` with a `captures` count
+
+
+def camera_loop(devices: Any, calibration: Calibration) -> CaptureFor:
+    """The captures through the bench's devices in this process (`CameraLoop`: never arms, never
+    sets a power, every diode off on every way out), for `learn`."""
+    return lambda encoder: CameraLoop(devices, calibration, encoder)
+
+
+def resume_key(plan: LearnPlan, settings: FrameSettings, calibration: Calibration) -> str:
+    """What a partial capture must have been taken with to be resumed: the plan's fields that
+    make the patterns and captures (not the fit's), the frame settings, the parametric fit."""
+    made = {k: v for k, v in dataclasses.asdict(plan).items() if k in CAPTURE_FIELDS}
+    text = json.dumps({"plan": made, "settings": dataclasses.asdict(settings),
+                       "calibration": parametric_fingerprint(calibration)},
+                      sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def capture_set(loop: Any, plan: LearnPlan, grey: np.ndarray, kinds: Sequence[str], *,
+                say: Callable[[str], None] = print, partial: Path | None = None,
+                key: str = "") -> Captured:
     """Each pattern of `grey` `[N, C, Hr, Wr]` captured at the plan's planes in each colour
-    through the bench's devices (`CameraLoop`: never arms, never sets a power, every diode off
-    on every way out; `CaptureStopped` when it cannot capture)."""
-    loop = CameraLoop(devices, calibration, encoder)
+    through `loop` (a `Capture`: `CameraLoop`, `DaemonCameraLoop`; `CaptureStopped` when it
+    cannot capture). With `partial`, what is captured is saved there after each pattern
+    (atomically, with `key`), and a partial set saved with the same `key` is taken up where it
+    stopped; one saved with another key is refused, not overwritten."""
+    done = load_partial(partial, key, grey, kinds) if partial is not None else None
+    images = [] if done is None else list(done.images)
+    valid = None if done is None else done.valid.copy()
+    seconds0 = 0.0 if done is None else done.seconds
+    if done is not None:
+        say(f"resuming: {len(images)} of {len(grey)} patterns captured ({partial})")
     t0 = time.perf_counter()
-    images, valid = [], np.ones(encoder.settings.window_hw, bool)
-    for i, g in enumerate(grey):
-        im, ok = loop(g[None], plan.planes_m)
+    for i in range(len(images), len(grey)):
+        im, ok = loop(grey[i][None], plan.planes_m)
         images.append(np.asarray(im, np.float32))
-        valid &= np.asarray(ok, bool)
+        valid = np.asarray(ok, bool).copy() if valid is None else valid & np.asarray(ok, bool)
+        seconds = seconds0 + time.perf_counter() - t0
+        if partial is not None:
+            save_captured(Captured(grey, tuple(kinds), np.stack(images), valid, seconds),
+                          partial, key=key)
         if (i + 1) % 8 == 0 or i + 1 == len(grey):
             say(f"captured {i + 1} / {len(grey)} patterns ({loop.captures} captures, "
-                f"{time.perf_counter() - t0:.1f} s)")
-    return Captured(grey, tuple(kinds), np.stack(images), valid, time.perf_counter() - t0)
+                f"{seconds:.1f} s)")
+    return Captured(grey, tuple(kinds), np.stack(images), valid,
+                    seconds0 + time.perf_counter() - t0)
+
+
+def load_partial(path: Path, key: str, grey: np.ndarray | None = None,
+                 kinds: Sequence[str] | None = None) -> Captured | None:
+    """The partial capture set at `path` when it was saved with `key` (None when there is none);
+    ValueError naming the file when it was saved with another plan, settings or calibration,
+    or (given `grey`, `kinds`) holds other patterns."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    data = load_captured(path, partial=True)
+    with np.load(path, allow_pickle=False) as z:
+        saved = str(z["key"]) if "key" in z.files else ""
+    other = saved != key or (grey is not None and not np.array_equal(data.grey, grey)) or (
+        kinds is not None and tuple(data.kinds) != tuple(kinds))
+    if other:
+        raise ValueError(f"{path}: {len(data.images)} patterns captured with another plan, "
+                         "frame settings or calibration: run again with the same options to "
+                         "resume, or remove the file to start over")
+    return data
 
 
 def _colour_gain(seen: torch.Tensor, captured: torch.Tensor, mask: torch.Tensor, c: int
@@ -455,19 +516,34 @@ def write_learned(learned: LearnedBench, calibration: Calibration, out_dir: Path
     return weights, path
 
 
-def learn(devices: Any, calibration: Calibration, config: Config, plan: LearnPlan,
+def learn(capture_for: CaptureFor, calibration: Calibration, config: Config, plan: LearnPlan,
           out_dir: Path | str | None, *, panel_hw: tuple[int, int],
           say: Callable[[str], None] = print) -> LearnResult:
     """The whole step (the module's docstring): the plan printed, patterns, captures through
-    `devices` (the bench's SLM, laser, stage, camera; a person armed the lasers and set the
-    powers), the fit, the files into `out_dir` (None: none written) and the held-out
-    figures (`LearnResult.lines()`, for the caller to print)."""
+    `capture_for(encoder)` (`camera_loop(devices, calibration)` in this process, a
+    `DaemonCameraLoop` through `nhfd serve`; a person armed the lasers and set the powers), the
+    fit, the files into `out_dir` (None: none written) and the held-out figures
+    (`LearnResult.lines()`, for the caller to print).
+
+    With `out_dir`, the captures are kept pattern by pattern in `PARTIAL_NAME` there: a run
+    stopped (disarmed lasers, a cancel, a failed fit) is resumed by the same command, its
+    patterns taken from the file, and only what is missing captured; the file goes once the
+    weights, the calibration and the whole capture set are written."""
     if calibration.learned_file:
         calibration = dataclasses.replace(calibration, learned_file="", learned_sha256="")
     say(plan.describe())
     encoder = Encoder(learn_settings(config, calibration, plan.window_hw, panel_hw))
-    grey, kinds = training_patterns(encoder, plan, say=say)
-    data = capture_set(devices, calibration, encoder, plan, grey, kinds, say=say)
+    partial = Path(out_dir) / PARTIAL_NAME if out_dir is not None else None
+    key = resume_key(plan, encoder.settings, calibration)
+    resumed = load_partial(partial, key) if partial is not None else None
+    if resumed is not None:
+        grey, kinds = resumed.grey, resumed.kinds
+    else:
+        grey, kinds = training_patterns(encoder, plan, say=say)
+    if partial is not None:
+        partial.parent.mkdir(parents=True, exist_ok=True)
+    data = capture_set(capture_for(encoder), plan, grey, kinds, say=say, partial=partial,
+                       key=key)
     say(f"fitting the learned bench ({plan.steps} steps, batch {plan.batch})")
     learned, scores = fit_learned(encoder, plan, data, say=say)
     weights = cal_path = None
@@ -476,31 +552,35 @@ def learn(devices: Any, calibration: Calibration, config: Config, plan: LearnPla
     result = LearnResult(scores["held_out_patterns_db"], scores["held_out_plane_db"],
                          scores["train_loss"], weights, cal_path, data.seconds, scores["fit_s"])
     if out_dir is not None:
-        save_captured(data, Path(out_dir) / CAPTURES_NAME)
+        save_captured(data, Path(out_dir) / CAPTURES_NAME, key=key)
         write_json_atomic(Path(out_dir) / RECORD_NAME, {
             "held_out_patterns_db": result.held_out_patterns_db,
             "held_out_plane_db": result.held_out_plane_db, "train_loss": result.train_loss,
             "capture_s": round(result.capture_s, 2), "fit_s": round(result.fit_s, 2),
             "plan": dataclasses.asdict(plan), "settings": dataclasses.asdict(encoder.settings),
             "captures": CAPTURES_NAME})
+        assert partial is not None
+        partial.unlink(missing_ok=True)
     return result
 
 
-def save_captured(data: Captured, path: Path | str) -> Path:
+def save_captured(data: Captured, path: Path | str, *, key: str = "") -> Path:
     """The training set into `path` (uncompressed npz, atomically): the patterns, their kinds,
-    the captures and the pixels every capture saw."""
+    the captures (of the first patterns only, in a partial set), the pixels every capture saw,
+    and the `resume_key` it was taken with."""
     path = Path(path)
     tmp = path.with_name(f".{path.stem}.tmp.npz")
     np.savez(tmp, grey=data.grey, kinds=np.asarray(data.kinds), images=data.images,
-             valid=data.valid, seconds=np.float64(data.seconds))
+             valid=data.valid, seconds=np.float64(data.seconds), key=np.asarray(key))
     tmp.replace(path)
     return path
 
 
-def load_captured(path: Path | str) -> Captured:
+def load_captured(path: Path | str, *, partial: bool = False) -> Captured:
     """A training set `save_captured` wrote, checked (ValueError naming the file and the
-    problem): uint8 patterns `[N, C, Hr, Wr]`, float32 captures `[N, D, C, h, w]`, finite, a
-    bool `[h, w]` mask, one kind per pattern; no pickled objects."""
+    problem): uint8 patterns `[N, C, Hr, Wr]`, float32 captures `[N, D, C, h, w]` (`partial`:
+    of the first 1 to N patterns), finite, a bool `[h, w]` mask, one kind per pattern; no
+    pickled objects."""
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -511,10 +591,11 @@ def load_captured(path: Path | str) -> Captured:
     problems = []
     if grey.dtype != np.uint8 or grey.ndim != 4 or grey.shape[1] != 3:
         problems.append(f"patterns {grey.dtype} {grey.shape}: must be uint8 [N, 3, H, W]")
-    if images.dtype != np.float32 or images.ndim != 5 or images.shape[0] != len(grey) \
-            or images.shape[2] != 3:
+    n = images.shape[0] if images.ndim == 5 else -1
+    count_ok = 1 <= n <= len(grey) if partial else n == len(grey)
+    if images.dtype != np.float32 or not count_ok or images.shape[2] != 3:
         problems.append(f"captures {images.dtype} {images.shape}: must be float32 "
-                        f"[{len(grey)}, D, 3, h, w]")
+                        f"[{'1..' if partial else ''}{len(grey)}, D, 3, h, w]")
     elif not np.isfinite(images).all():
         problems.append("captures hold NaN or Inf")
     if valid.dtype != bool or valid.shape != images.shape[-2:]:

@@ -770,6 +770,9 @@ class CalibrationSettings(_Section):
 
 # The frame tiers (`nhfd.views.QUALITY_TIERS`, where they are defined and described).
 Quality = Literal[QUALITY_TIERS]  # type: ignore[valid-type]
+# The most subframes a frame has and the most planes a refinement fits or a focal stack holds.
+MAX_SUBFRAMES = 16
+MAX_PLANES = 16
 
 
 class RefineSettings(_Section):
@@ -793,9 +796,9 @@ class RefineSettings(_Section):
     citl_learning_rate_rad: Annotated[float, Field(gt=0, le=1.0)] = 0.02
     # Time multiplexing: K subframes optimised jointly on their mean intensity and shown in
     # turn (one camera exposure spans the K flips).
-    subframes: Annotated[int, Field(ge=1, le=16)] = 1
+    subframes: Annotated[int, Field(ge=1, le=MAX_SUBFRAMES)] = 1
     # The planes fitted: this many depth quantiles of the view's content.
-    planes: Annotated[int, Field(ge=1, le=16)] = 3
+    planes: Annotated[int, Field(ge=1, le=MAX_PLANES)] = 3
     # Progressive mode: a better frame replaces the one shown every this many iterations.
     swap_every: Annotated[int, Field(ge=1, le=10_000)] = 10
     # The bench model sgd and citl refine through: "learned" uses the calibration's learned

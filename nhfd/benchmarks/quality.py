@@ -50,7 +50,7 @@ import torch
 
 from nhfd.benchmarks.machine import describe
 from nhfd.calib.citl import CameraLoop
-from nhfd.calib.learn import RECORD_NAME, LearnPlan, learn
+from nhfd.calib.learn import RECORD_NAME, LearnPlan, camera_loop, learn
 from nhfd.calib.sim import arm_twin, sim_devices, sim_panel_hw, twin_calibration
 from nhfd.calibration import Calibration, fingerprint
 from nhfd.cli.args import parse_wxh
@@ -522,8 +522,8 @@ def learn_for_bench(folder_root: Path, devices: Any, calibration: Calibration, c
     cal_file, record_file = folder / "calibration.toml", folder / RECORD_NAME
     reused = cal_file.is_file() and record_file.is_file()
     if not reused:
-        res = learn(devices, calibration, config, plan, folder, panel_hw=panel_hw,
-                    say=lambda m: print(f"  learn: {m}", flush=True))
+        res = learn(camera_loop(devices, calibration), calibration, config, plan, folder,
+                    panel_hw=panel_hw, say=lambda m: print(f"  learn: {m}", flush=True))
         for line in res.lines():
             print(f"  learn: {line}", flush=True)
     record = json.loads(record_file.read_text())

@@ -6,10 +6,12 @@ lie inside its daemon.paths.pattern_dirs), raw stage moves, laser power/enable (
 --arm), linear .npy captures. `--direct` drives the simulated twins in this process instead (a
 `TrueBench`, optionally randomised with `--sim-seed`). `fit` writes calibration.toml; `report`
 writes PNGs next to the capture (or, of a folder `learn` wrote, the learned bench's fidelity).
-`learn --direct` learns what the parametric model leaves out from captures on the simulated
-bench (docs/learned_bench.md): it prints the capture plan, captures, fits, writes the weights,
-the calibration referencing them and the captures, prints the held-out PSNR, parametric against
-learned, per colour, and draws the fidelity report.
+`learn` learns what the parametric model leaves out from captures (docs/learned_bench.md),
+through the daemon (its `capture_stack` job: the daemon's calibration, the powers a person set,
+never arming) or `--direct` on the simulated bench: it prints the capture plan, captures
+(resuming a stopped run from --out), fits, writes the weights, the calibration referencing them
+and the captures, prints the held-out PSNR, parametric against learned, per colour, and draws
+the fidelity report.
 """
 
 from __future__ import annotations
@@ -26,17 +28,26 @@ from nhfd.calib.capture import (
     capture,
     daemon_spec,
 )
+from nhfd.calib.citl import DaemonCameraLoop
 from nhfd.calib.fit import fit_capture
-from nhfd.calib.learn import LearnPlan, learn
+from nhfd.calib.learn import PARTIAL_NAME, LearnPlan, LearnResult, camera_loop, learn
 from nhfd.calib.patterns import PatternSpec
 from nhfd.calib.report import is_learn_folder, write_learned_report, write_report
-from nhfd.calib.sim import SIM_PANEL_MARGIN_PX, sim_devices, sim_panel_hw, twin_calibration
-from nhfd.calibration import Calibration
+from nhfd.calib.sim import (
+    SIM_PANEL_MARGIN_PX,
+    SIM_POWER_PCT,
+    sim_devices,
+    sim_panel_hw,
+    twin_calibration,
+)
+from nhfd.calibration import Calibration, fingerprint
 from nhfd.cli.args import parse_wxh
 from nhfd.config import Config, load_config
 from nhfd.daemon.client import Client
 from nhfd.daemon.paths import socket_path
 from nhfd.drivers.simcamera import TrueBench
+from nhfd.pipeline.encoder import Encoder
+from nhfd.pipeline.refine import CaptureStopped
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -83,30 +94,47 @@ def register(sub: argparse._SubParsersAction) -> None:
     learn_p = cmds.add_parser("learn", help="learn what the parametric bench model leaves out, "
                                             "from captures (docs/learned_bench.md)")
     learn_p.add_argument("--direct", action="store_true",
-                         help="capture on the simulated bench in this process (required: the "
-                              "daemon's capture job is not built yet)")
+                         help="capture on the simulated bench in this process (default: "
+                              "through the running daemon, nhfd serve)")
     learn_p.add_argument("--out", required=True,
                          help="folder for learned.safetensors, calibration.toml (the "
-                              "calibration referencing it) and learn.json")
+                              "calibration referencing it), learn.json and the captures; "
+                              "through the daemon it must lie inside its "
+                              "daemon.paths.pattern_dirs. A stopped run resumes from it")
     learn_p.add_argument("--calibration", default=None,
                          help="the parametric calibration to learn on top of (default: the "
-                              "simulated bench's, fitted into OUT/parametric once and reused)")
+                              "daemon's; with --direct, the simulated bench's, fitted into "
+                              "OUT/parametric once and reused)")
+    learn_p.add_argument("--socket", help="daemon control socket (default: from the "
+                                          "configuration)")
+    learn_p.add_argument("--config", help="configuration file (the daemon's: its optics, "
+                                          "coding and daemon.server.runtime_dir)")
+    learn_p.add_argument("--camera-pitch-um", type=float, default=None,
+                         help="through the daemon: the camera's pixel pitch in um, where the "
+                              "calibration did not record it (default: the configuration's "
+                              "devices.camera_settings.pixel_pitch_um)")
     twin_g = learn_p.add_mutually_exclusive_group()
     twin_g.add_argument("--sim-seed", type=int, default=None,
-                        help="randomise the simulated bench with this seed (default: "
-                             "the packaged twin)")
+                        help="--direct: randomise the simulated bench with this seed "
+                             "(default: the packaged twin)")
     twin_g.add_argument("--twin", metavar="FILE", default=None,
-                        help="a TOML file of the simulated bench's fields (as `nhfd bench "
-                             "quality --twin`; `randomised_seed = N` starts from a seed's draws)")
+                        help="--direct: a TOML file of the simulated bench's fields (as `nhfd "
+                             "bench quality --twin`; `randomised_seed = N` starts from a "
+                             "seed's draws)")
     learn_p.add_argument("--window", default="64x64", help="window WxH px (default 64x64)")
     learn_p.add_argument("--patterns", type=int, default=None,
                          help="sgd patterns (default 12; random 4 and structured 8 beside)")
+    learn_p.add_argument("--random", type=int, default=None,
+                         help="random grey-level patterns (default 4)")
+    learn_p.add_argument("--structured", type=int, default=None,
+                         help="structured patterns: gratings, blocks (default 8)")
     learn_p.add_argument("--held-out", type=int, default=None,
                          help="patterns held out for scoring (default 6)")
     learn_p.add_argument("--steps", type=int, default=None, help="fit steps (default 150)")
     learn_p.add_argument("--seed", type=int, default=0, help="patterns' and fit's seed")
-    learn_p.add_argument("--power", type=float, default=10.0,
-                         help="the simulated laser's power, %% (default 10: its cap)")
+    learn_p.add_argument("--power", type=float, default=None,
+                         help="--direct: the simulated laser's power, %% (default 10: its cap; "
+                              "through the daemon a person sets the powers)")
     learn_p.set_defaults(handler=run_learn)
 
 
@@ -176,27 +204,92 @@ def run_report(args: argparse.Namespace) -> int:
     return 0
 
 
-def run_learn(args: argparse.Namespace) -> int:
-    if not args.direct:
-        raise ValueError("nhfd calib learn: only --direct (the simulated bench in this process) "
-                         "is built; the daemon's capture job is not")
-    w, h = parse_wxh(args.window)
-    panel_hw = sim_panel_hw((h, w), SIM_PANEL_MARGIN_PX)
-    twin = (TrueBench.from_toml(args.twin) if args.twin else
-            TrueBench.randomised(args.sim_seed) if args.sim_seed is not None else TrueBench())
-    out = Path(args.out)
-    cal = (Calibration.load(args.calibration) if args.calibration else
-           twin_calibration(out / "parametric", twin, panel_hw, say=_say))
-    given = {"sgd_patterns": args.patterns, "held_out_patterns": args.held_out,
+def _learn_plan(args: argparse.Namespace, window_hw: tuple[int, int]) -> LearnPlan:
+    given = {"sgd_patterns": args.patterns, "random_patterns": args.random,
+             "structured_patterns": args.structured, "held_out_patterns": args.held_out,
              "steps": args.steps}
-    plan = LearnPlan(window_hw=(h, w), seed=args.seed,
+    return LearnPlan(window_hw=window_hw, seed=args.seed,
                      **{k: v for k, v in given.items() if v is not None})
-    with sim_devices(twin, panel_hw, power_pct=args.power) as devices:
-        result = learn(devices, cal, Config(), plan, out, panel_hw=panel_hw, say=_say)
+
+
+def _print_learned(result: LearnResult, out: Path, where: str) -> None:
     print(f"wrote {result.weights} and {result.calibration} (capture {result.capture_s:.0f} s, "
-          f"fit {result.fit_s:.0f} s on the simulated bench)")
+          f"fit {result.fit_s:.0f} s {where})")
     for line in result.lines():
         print(line)
     for path in write_learned_report(out):
         print(f"wrote {path}")
+
+
+def run_learn(args: argparse.Namespace) -> int:
+    w, h = parse_wxh(args.window)
+    out = Path(args.out)
+    if not args.direct:
+        return _learn_daemon(args, (h, w), out)
+    if args.socket or args.camera_pitch_um is not None:
+        raise ValueError(f"{'--socket' if args.socket else '--camera-pitch-um'}: for the "
+                         "daemon's bench, not with --direct")
+    panel_hw = sim_panel_hw((h, w), SIM_PANEL_MARGIN_PX)
+    twin = (TrueBench.from_toml(args.twin) if args.twin else
+            TrueBench.randomised(args.sim_seed) if args.sim_seed is not None else TrueBench())
+    cal = (Calibration.load(args.calibration) if args.calibration else
+           twin_calibration(out / "parametric", twin, panel_hw, say=_say))
+    plan = _learn_plan(args, (h, w))
+    power = SIM_POWER_PCT if args.power is None else args.power
+    with sim_devices(twin, panel_hw, power_pct=power) as devices:
+        result = learn(camera_loop(devices, cal), cal, Config(), plan, out, panel_hw=panel_hw,
+                       say=_say)
+    _print_learned(result, out, "on the simulated bench")
+    return 0
+
+
+def _daemon_calibration(status: dict, given: str | None) -> Calibration:
+    """The calibration the daemon applies (its `status.calibration`), which moves its stage:
+    `given` (a file) only when it is that one."""
+    info = status.get("calibration") or {}
+    if not info.get("loaded"):
+        raise ValueError("the daemon has no calibration (calibration.file): nhfd calib learn "
+                         "learns on top of one (nhfd calib capture, nhfd calib fit)"
+                         + (f"; {info['error']}" if info.get("error") else ""))
+    cal = Calibration.load(given or info["file"])
+    if given and fingerprint(cal) != info.get("sha256"):
+        raise ValueError(f"--calibration {given} is not the calibration the daemon applies "
+                         f"({info.get('file')}, created {info.get('created')}): its focus "
+                         "mapping moves the stage; give that file, or none")
+    return cal
+
+
+def _learn_daemon(args: argparse.Namespace, window_hw: tuple[int, int], out: Path) -> int:
+    for flag, value in (("--sim-seed", args.sim_seed), ("--twin", args.twin),
+                        ("--power", args.power)):
+        if value is not None:
+            raise ValueError(f"{flag}: for the simulated bench (--direct); through the daemon "
+                             "the bench is the daemon's and a person sets the powers")
+    config = load_config(args.config).config
+    sock = socket_path(args.socket, config)
+    pitch_um = args.camera_pitch_um or config.devices.camera_settings.pixel_pitch_um
+    plan = _learn_plan(args, window_hw)
+    try:
+        client = Client(sock, timeout_s=30.0)
+    except OSError as exc:
+        raise ValueError(f"cannot reach the daemon: {exc} (start nhfd serve, or pass --direct "
+                         "for the simulated bench in this process)") from None
+    with client:
+        status = client.status()
+        cal = _daemon_calibration(status, args.calibration)
+        panel = status["panel"]
+        panel_hw = (int(panel["height_px"]), int(panel["width_px"]))
+        work = out / "daemon"
+
+        def loop(encoder: Encoder) -> DaemonCameraLoop:
+            return DaemonCameraLoop(client, cal, encoder, work, camera_pitch_m=pitch_um * 1e-6)
+
+        try:
+            result = learn(loop, cal, config, plan, out, panel_hw=panel_hw, say=_say)
+        except CaptureStopped as exc:
+            kept = out / PARTIAL_NAME
+            raise ValueError(f"the capture stopped: {exc}" + (
+                f"; the patterns captured so far are kept in {kept}: run the same command "
+                "again to resume" if kept.is_file() else "")) from None
+    _print_learned(result, out, "through the daemon")
     return 0

@@ -1,5 +1,6 @@
-"""The daemon's half of the camera in the loop (`citl`, issue 34): one refinement step's
-captures on the bench, for the frame worker that optimises (`nhfd.pipeline.citl`).
+"""The daemon's half of the camera in the loop (`citl`): one refinement step's captures on the
+bench, for the frame worker that optimises (`nhfd.pipeline.citl`); the same sequence serves a
+client's focal-stack captures (`capture_stack`, for `nhfd calib learn`).
 
 `citl_capture` runs as a bench job. It holds the panel, and captures plane by plane (the stage
 at the calibration's focus for each). For each colour that has power, it switches that diode
@@ -47,19 +48,21 @@ def citl_ended(reason: str) -> str:
             "again once the lasers are armed")
 
 
-def citl_problem(config: Config, calibration: CalibrationStore, bench: Any) -> str | None:
-    """Why this daemon cannot serve `citl` views (None: it can): the colour mode, the devices
-    and the calibration it needs (in `calibration`), each named by its setting."""
+def citl_problem(config: Config, calibration: CalibrationStore, bench: Any,
+                 what: str = "citl") -> str | None:
+    """Why this daemon cannot serve `citl` views, or `what` else captures focal stacks with
+    `citl_capture` (None: it can): the colour mode, the devices and the calibration it needs
+    (in `calibration`), each named by its setting."""
     if config.daemon.frames.colour_mode != "capture":
-        return (f"daemon.frames.colour_mode is {config.daemon.frames.colour_mode!r}: citl needs "
-                "'capture' (the daemon switches each diode on alone for its captures)")
+        return (f"daemon.frames.colour_mode is {config.daemon.frames.colour_mode!r}: {what} "
+                "needs 'capture' (the daemon switches each diode on alone for its captures)")
     for name in ("slm", "stage", "camera"):
         if getattr(bench, name, None) is None:
             why = bench.errors.get(name) if hasattr(bench, "errors") else None
-            return f"citl needs the bench's {name} (devices.{name}: {why or 'none configured'})"
+            return f"{what} needs the bench's {name} (devices.{name}: {why or 'none configured'})"
     if calibration.active() is None:
-        return ("citl needs a calibration (calibration.file): it maps the camera onto the SLM "
-                "and the focus onto the stage")
+        return (f"{what} needs a calibration (calibration.file): it maps the camera onto the "
+                "SLM and the focus onto the stage")
     return None
 
 
@@ -79,15 +82,17 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config,
                  calibration: CalibrationStore, bench: CaptureBench,
                  panel: CapturePanel, laser: LaserLink, audit: AuditLog, shown: ShownViews,
                  wanted: Callable[[], bool], session: int,
-                 phase: Callable[[str], None] = lambda _what: None) -> CaptureReply:
+                 phase: Callable[[str], None] = lambda _what: None,
+                 what: str = "citl") -> CaptureReply:
     """One citl step's captures (see the module's docstring): images `[P, C, Hc, Wc]` float32
     (the subframes' mean per plane and colour, the stored dark frame subtracted) and their
     saturation. `wanted()` turns false when the worker moved on (a new view): the sequence stops
     between captures. `session`: the emission session of the view's request (EmissionEnded once
     it has ended). `phase(what)`: where the sequence is ("capturing green at plane 2 of 3"), for
-    `status`. Raises CitlStopped (or the device's error) without an answer to give."""
+    `status`. `what`: the run's name in the audit log and the refusals ("citl", "focal-stack
+    capture"). Raises CitlStopped (or the device's error) without an answer to give."""
     laser.check_session(session)
-    problem = citl_problem(config, calibration, bench)
+    problem = citl_problem(config, calibration, bench, what)
     if problem:
         raise CitlStopped(problem)
     cal = calibration.active()
@@ -127,7 +132,7 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config,
         laser.check_session(session)  # cut short by a laser off: not a capture to fit
         return cap
 
-    with diodes_in_turn(job, "citl", powers, panel=panel, laser=laser, audit=audit,
+    with diodes_in_turn(job, what, powers, panel=panel, laser=laser, audit=audit,
                         shown=shown, session=session) as light:
         for ch in COLOURS:
             laser.enable(ch, False)

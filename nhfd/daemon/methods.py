@@ -22,6 +22,14 @@ so a bad request changes nothing.
                                                          lasers off) and its saturation mask
                                                          (<stem>.saturated.npy), inside
                                                          daemon.paths.pattern_dirs or snapshot_dir
+  capture_stack {path, top, left, z_m, out, frames?}  -> {job, path}: K subframes (.npy uint8
+                                                         [K, 3, h, w] inside pattern_dirs) shown
+                                                         at (top, left) and captured at each
+                                                         depth z_m (m from the SLM; the
+                                                         calibration's focus) with each diode on
+                                                         alone, as citl's steps (colour_mode
+                                                         "capture"; never arms); out: a .npz of
+                                                         images [P, 3, Hc, Wc], saturated, z_m
   load_scene   {path}                                 -> {job}
   load_model   {path}                                 -> {job} (old model kept on failure)
   job          {id}                                   -> one job's state
@@ -57,15 +65,16 @@ from typing import Any, Protocol
 import numpy as np
 
 from nhfd.calibration import CalibrationFileError, CalibrationStore
-from nhfd.config import Config
+from nhfd.config import MAX_PLANES, MAX_SUBFRAMES, Config
 from nhfd.device_settings import COLOURS
+from nhfd.frame_message import CaptureRequest, Region
 from nhfd.scene.io import SCENE_NAMES, SCENE_SUFFIXES, is_sog_folder
 from nhfd.worker_messages import ModelLoaded, SceneLoaded
 
 from .arming import ArmingGate
 from .audit import AuditLog
 from .bench import Bench, stage_mm_for_focus
-from .citl import citl_problem
+from .citl import citl_capture, citl_problem
 from .colour import ShownViews, capture_colours, check_laser_command
 from .guardian_link import LaserLink
 from .jobs import Job, JobRunner, submit_or_busy
@@ -370,12 +379,11 @@ def _end_pattern(ctx: RpcContext) -> None:
                        {"device": "slm"}) from None
 
 
-def _pattern_frame(path: Any, hw: tuple[int, int]) -> np.ndarray:
-    """The .npy at `path` as a panel frame uint8 [3, H, W], or RpcError naming what is wrong."""
-    h, w = hw
-    allowed = f"uint8 [3, {h}, {w}], [{h}, {w}, 3] or [{h}, {w}] (.npy, no pickles)"
+def _npy_header(path: Any, allowed: str) -> tuple[tuple[int, ...], np.dtype]:
+    """The shape and dtype of the .npy at `path`, from its header alone (nothing else is read
+    before they are checked), or RpcError naming the file."""
     fmt = np.lib.format
-    try:  # the header first: the dtype and shape are checked before any data is read
+    try:
         with path.open("rb") as f:
             version = fmt.read_magic(f)
             shape, _, dtype = (fmt.read_array_header_1_0(f) if version == (1, 0)
@@ -386,19 +394,46 @@ def _pattern_frame(path: Any, hw: tuple[int, int]) -> np.ndarray:
     if dtype != np.uint8:
         raise RpcError(INVALID_FILE, f"path: {path} holds {dtype}, not uint8 grey levels",
                        {"field": "path", "allowed": allowed})
-    if tuple(shape) not in ((3, h, w), (h, w, 3), (h, w)):
-        raise RpcError(INVALID_FILE, f"path: {path} has shape {list(shape)}, not the panel's "
-                       f"{h} x {w}", {"field": "path", "allowed": allowed})
+    return tuple(shape), dtype
+
+
+def _npy_data(path: Any, allowed: str) -> np.ndarray:
     try:
-        a = np.load(path, allow_pickle=False)
+        return np.load(path, allow_pickle=False)
     except Exception as exc:
         raise RpcError(INVALID_FILE, f"path: {path} is not a readable .npy array: {exc}",
                        {"field": "path", "allowed": allowed}) from None
+
+
+def _pattern_frame(path: Any, hw: tuple[int, int]) -> np.ndarray:
+    """The .npy at `path` as a panel frame uint8 [3, H, W], or RpcError naming what is wrong."""
+    h, w = hw
+    allowed = f"uint8 [3, {h}, {w}], [{h}, {w}, 3] or [{h}, {w}] (.npy, no pickles)"
+    shape, _ = _npy_header(path, allowed)
+    if shape not in ((3, h, w), (h, w, 3), (h, w)):
+        raise RpcError(INVALID_FILE, f"path: {path} has shape {list(shape)}, not the panel's "
+                       f"{h} x {w}", {"field": "path", "allowed": allowed})
+    a = _npy_data(path, allowed)
     if a.shape == (3, h, w):
         return np.ascontiguousarray(a)
     if a.shape == (h, w, 3):
         return np.ascontiguousarray(a.transpose(2, 0, 1))
     return np.ascontiguousarray(np.broadcast_to(a, (3, h, w)))
+
+
+def _region_patterns(path: Any, hw: tuple[int, int], top: int, left: int) -> np.ndarray:
+    """The .npy at `path` as K subframes of a region at (`top`, `left`) of the `hw` panel,
+    uint8 [K, 3, h, w] (1 <= K <= MAX_SUBFRAMES, inside the panel), or RpcError."""
+    h, w = hw
+    allowed = (f"uint8 [K, 3, h, w] (.npy, no pickles), 1 <= K <= {MAX_SUBFRAMES}, "
+               f"top + h <= {h} and left + w <= {w}")
+    shape, _ = _npy_header(path, allowed)
+    if (len(shape) != 4 or not 1 <= shape[0] <= MAX_SUBFRAMES or shape[1] != 3
+            or not 1 <= shape[2] <= h - top or not 1 <= shape[3] <= w - left):
+        raise RpcError(INVALID_FILE, f"path: {path} has shape {list(shape)}: not subframes of "
+                       f"a region at row {top}, column {left} of the {w} x {h} panel",
+                       {"field": "path", "allowed": allowed})
+    return np.ascontiguousarray(_npy_data(path, allowed))
 
 
 def _show_pattern(ctx: RpcContext, conn: Connection, p: Params) -> Any:
@@ -490,6 +525,53 @@ def _capture(ctx: RpcContext, conn: Connection, p: Params) -> Any:
     job = submit_or_busy(ctx.bench_jobs, Job("capture", {
         "path": str(path), "frames": frames, "exposure_s": exposure_s, "dark": dark}, run))
     return {"job": job.id, "path": str(path)}
+
+
+# What a focal-stack capture is called in refusals and the audit log.
+STACK_CAPTURE = "a focal-stack capture"
+
+
+def _capture_stack(ctx: RpcContext, conn: Connection, p: Params) -> Any:
+    raw = p.string("path")
+    s = ctx.config.slm
+    top = p.integer("top", 0, s.height_px - 1)
+    left = p.integer("left", 0, s.width_px - 1)
+    z_m = p.numbers("z_m", -1.0, 1.0, MAX_PLANES)
+    out_raw = p.string("out")
+    frames = p.integer("frames", 1, 1000, None)
+    p.done()
+    path = _checked_file("path", raw, ctx.pattern_dirs, ctx.base_dir, PATTERN_SUFFIXES)
+    out = inside("out", out_raw, [*ctx.pattern_dirs, *ctx.snapshot_dirs], ctx.base_dir)
+    if out.suffix.lower() != ".npz":
+        raise bad_param("out", f"{out_raw!r} does not end in .npz", "a .npz file name")
+    grey = _region_patterns(path, (s.height_px, s.width_px), top, left)
+    problem = citl_problem(ctx.config, ctx.calibration, ctx.bench, STACK_CAPTURE)
+    if problem:
+        raise RpcError(NOT_AVAILABLE, problem)
+    ctx.arming.authorise_emission(conn, STACK_CAPTURE)
+    session = ctx.laser.session  # a laser off, disarm or stop before it ends ends it
+    k, _, h, w = grey.shape
+    request = CaptureRequest(Region(top, left, h, w, 0, 0), grey, tuple(z_m), frames or 0)
+
+    def run(job: Job) -> dict[str, Any]:
+        reply = citl_capture(job, request, config=ctx.config, calibration=ctx.calibration,
+                             bench=ctx.bench, panel=ctx.panel, laser=ctx.laser, audit=ctx.audit,
+                             shown=ctx.frames, wanted=lambda: True, session=session,
+                             what="focal-stack capture")
+        assert reply.images is not None and reply.saturated is not None
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = out.with_name(f".{out.stem}.tmp.npz")
+        np.savez(tmp, images=reply.images.astype(np.float32), saturated=reply.saturated,
+                 z_m=np.asarray(request.z_m, np.float64))
+        tmp.replace(out)
+        return {"path": str(out), "planes": len(z_m), "subframes": k,
+                "max_linear": float(reply.images.max()),
+                "saturated_fraction": float(reply.saturated.mean())}
+
+    job = submit_or_busy(ctx.bench_jobs, Job("capture_stack", {
+        "path": str(path), "top": top, "left": left, "z_m": z_m, "out": str(out),
+        "frames": frames}, run))
+    return {"job": job.id, "path": str(out)}
 
 
 def _checked_file(field: str, raw: str, dirs: list[Any], base: Any,
@@ -650,6 +732,7 @@ METHODS: dict[str, Method] = {
     "show_pattern": Method(_show_pattern, audited=True),
     "stage_move": Method(_stage_move, audited=True),
     "capture": Method(_capture, audited=True),
+    "capture_stack": Method(_capture_stack, audited=True),
     "load_scene": Method(_load_scene, audited=True),
     "load_model": Method(_load_model, audited=True),
     "job": Method(_job, audited=False, while_stopping=True),

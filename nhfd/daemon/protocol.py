@@ -329,6 +329,15 @@ class Params:
         return [check_number(f"{self._prefix}{name}[{i}]", v, low, high)
                 for i, v in enumerate(value)]
 
+    def numbers(self, name: str, low: float, high: float, max_len: int) -> list[float]:
+        """`name` as a list of 1 to `max_len` finite floats in [low, high] (required)."""
+        allowed = f"a list of 1 to {max_len} finite numbers in [{low:g}, {high:g}]"
+        value = self._get(name, self._MISSING, allowed)
+        if not isinstance(value, list) or not 0 < len(value) <= max_len:
+            raise bad_param(self._prefix + name, f"got {_show(value)}", allowed)
+        return [check_number(f"{self._prefix}{name}[{i}]", v, low, high)
+                for i, v in enumerate(value)]
+
     def obj(self, name: str, default: Any = _MISSING) -> Params | None:
         """`name` as a nested object, read by its own Params (its errors name `name.field`); absent:
         as `number`."""

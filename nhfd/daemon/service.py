@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from nhfd import __version__
-from nhfd.calibration import CalibrationStore, other_bench
+from nhfd.calibration import CalibrationStore, fingerprint, other_bench
 from nhfd.config import Config, ConfigError, ServerSettings, cross_field_problems
 from nhfd.frame_message import CaptureReply, CaptureRequest
 
@@ -166,6 +166,7 @@ def calibration_status(config: Config, calibration: CalibrationStore,
                 "stage_at_reference_mm": c.stage_at_reference_mm,
                 "focus_range_mm": list(c.focus_range_mm)}
     return {"loaded": True, "file": cal.source, "created": cal.created,
+            "sha256": fingerprint(cal),
             "fitted_on": cal.fitted_on.get("capture", ""),
             "focus_mapping": "stage_mm = stage_at_slm_mm + (z0 + z_mm - z_offset_G) / "
                              "stage_scale",

@@ -25,12 +25,19 @@ from PIL import Image
 from nhfd.calib.citl import CameraLoop
 from nhfd.calib.learn import (
     CONTENT_PEAK,
+    PARTIAL_NAME,
+    Captured,
     LearnPlan,
     LearnResult,
+    camera_loop,
     content_field,
     fidelity,
     learn,
     learn_settings,
+    load_captured,
+    load_partial,
+    resume_key,
+    save_captured,
 )
 from nhfd.calibration import Calibration
 from nhfd.cli.main import main
@@ -83,7 +90,8 @@ def _devices(twin: TrueBench) -> Iterator[BenchDevices]:
 def _learn(twin: TrueBench, out: Path | None) -> tuple[LearnResult, Calibration, BenchDevices]:
     cal = truth_calibration(twin, twin.roi_for_panel(PANEL_HW))
     with _devices(twin) as devices:
-        result = learn(devices, cal, Config(), PLAN, out, panel_hw=PANEL_HW, say=lambda _m: None)
+        result = learn(camera_loop(devices, cal), cal, Config(), PLAN, out, panel_hw=PANEL_HW,
+                       say=lambda _m: None)
         assert devices.laser.twin.max_emitted_pct() <= POWER_PCT + 1e-9
         assert not any(c.enabled for c in devices.laser.status().channels.values())
     return result, cal, devices
@@ -219,10 +227,14 @@ def test_a_twin_file_with_an_unknown_key_is_refused_before_anything_is_captured(
     assert not out.exists()
 
 
-def test_learn_without_direct_says_what_is_built(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["calib", "learn", "--out", "unused"]) == 2
-    assert "only --direct (the simulated bench in this process) is built" in \
-        capsys.readouterr().err
+def test_learn_without_direct_and_without_a_daemon_says_how_to_go_on(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    sock = tmp_path / "none.sock"
+    assert main(["calib", "learn", "--out", str(tmp_path / "out"), "--socket", str(sock)]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot reach the daemon: no nhfd serve at {sock}" in err, err
+    assert "start nhfd serve, or pass --direct" in err, err
+    assert not (tmp_path / "out").exists()
 
 
 def test_sgd_through_the_learned_bench_ends_closer_to_what_the_camera_sees(with_effects
@@ -272,7 +284,7 @@ def test_a_disarm_stops_the_capture_and_nothing_is_emitted_after(tmp_path: Path)
 
         devices.camera.capture = capture  # type: ignore[method-assign]
         with pytest.raises(CaptureStopped, match="the lasers are not armed"):
-            learn(devices, cal, Config(), PLAN, tmp_path, panel_hw=PANEL_HW,
+            learn(camera_loop(devices, cal), cal, Config(), PLAN, tmp_path, panel_hw=PANEL_HW,
                   say=lambda _m: None)
         assert disarmed_at and 0 < record.max_emitted_pct() <= POWER_PCT + 1e-9  # it captured
         for name in COLOURS:
@@ -281,3 +293,28 @@ def test_a_disarm_stops_the_capture_and_nothing_is_emitted_after(tmp_path: Path)
         assert not any(c.enabled for c in laser.status().channels.values())
     assert not (tmp_path / "learned.safetensors").exists()
     assert not (tmp_path / "calibration.toml").exists()
+
+
+def test_a_partial_capture_of_another_plan_is_refused_and_kept(tmp_path: Path) -> None:
+    rng = np.random.default_rng(11)
+    grey = rng.integers(0, 256, (4, 3, 8, 8), dtype=np.uint8)
+    data = Captured(grey, ("random",) * 4, rng.random((2, 3, 3, 6, 6), dtype=np.float32),
+                    np.ones((6, 6), bool), 1.5)
+    path = save_captured(data, tmp_path / PARTIAL_NAME, key="plan-a")
+    before = path.read_bytes()
+    resumed = load_partial(path, "plan-a", grey, data.kinds)
+    assert resumed is not None and np.array_equal(resumed.images, data.images)
+    for key, other in (("plan-b", grey), ("plan-a", grey[::-1])):
+        with pytest.raises(ValueError, match=f"{path}: 2 patterns captured with another plan"):
+            load_partial(path, key, other, data.kinds)
+    assert path.read_bytes() == before  # refused, not overwritten
+    # A partial set is not a whole one: the fit's loader refuses it.
+    with pytest.raises(ValueError, match=r"captures float32 \(2, 3, 3, 6, 6\): must be float32 "
+                                         r"\[4, D, 3, h, w\]"):
+        load_captured(path)
+    # A plan that differs only in the fit's fields resumes; one that changes the patterns not.
+    cal = truth_calibration(TrueBench(), TrueBench().roi_for_panel(PANEL_HW))
+    s = learn_settings(Config(), cal, WINDOW_HW, PANEL_HW)
+    key = resume_key(PLAN, s, cal)
+    assert resume_key(dataclasses.replace(PLAN, steps=5, batch=1), s, cal) == key
+    assert resume_key(dataclasses.replace(PLAN, seed=PLAN.seed + 1), s, cal) != key
