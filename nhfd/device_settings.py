@@ -29,24 +29,26 @@ Percent = Annotated[float, Field(ge=0, le=100)]
 ParamId = Annotated[int, Field(ge=0, le=0xFFFF)]
 
 
-# Why the camera in the loop (`citl`) cannot capture with these lasers; it never arms and never
-# sets a power, so the remedy is always a person's.
-CITL_NEVER_ARMS = ("citl never arms: arm the lasers (nhfctl laser arm) and set each colour's "
-                   "power (nhfctl laser power COLOUR PCT), then ask again")
+# Why the camera in the loop (`citl`, and the learned bench's captures) cannot capture with these
+# lasers; it never arms and never sets a power, so the remedy is always a person's.
+NEVER_ARMS = ("{who} never arms: arm the lasers (nhfctl laser arm) and set each colour's "
+              "power (nhfctl laser power COLOUR PCT), then ask again")
 
 
 def citl_laser_refusal(fault: str | None, armed: bool, armed_remaining_s: float,
-                       powers_pct: dict[str, float]) -> str | None:
-    """Why citl may not switch the diodes on (None: it may): a fault, the arming absent or
-    expired, or a colour at 0 % power (citl fits every colour). One rule for the daemon's
-    capture job (`nhfd.daemon.citl`) and the offline loop (`nhfd.calib.citl.CameraLoop`)."""
+                       powers_pct: dict[str, float], who: str = "citl") -> str | None:
+    """Why citl (or `who` else captures with citl's sequence) may not switch the diodes on
+    (None: it may): a fault, the arming absent or expired, or a colour at 0 % power (it fits
+    every colour). One rule for the daemon's capture job (`nhfd.daemon.citl`), the offline loop
+    (`nhfd.calib.citl.CameraLoop`) and `nhfd calib learn`'s check before it starts."""
+    never = NEVER_ARMS.format(who=who)
     if fault:
         return f"laser fault: {fault}"
     if not armed or armed_remaining_s <= 0:
-        return f"the lasers are not armed; {CITL_NEVER_ARMS}"
+        return f"the lasers are not armed; {never}"
     dark = [ch for ch in COLOURS if powers_pct.get(ch, 0.0) <= 0]
     if dark:
-        return f"{', '.join(dark)} at 0% power: citl fits every colour; {CITL_NEVER_ARMS}"
+        return f"{', '.join(dark)} at 0% power: {who} fits every colour; {never}"
     return None
 
 

@@ -45,6 +45,7 @@ from nhfd.cli.args import parse_wxh
 from nhfd.config import Config, load_config
 from nhfd.daemon.client import Client
 from nhfd.daemon.paths import socket_path
+from nhfd.device_settings import COLOURS, citl_laser_refusal
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.refine import CaptureStopped
@@ -259,6 +260,28 @@ def _daemon_calibration(status: dict, given: str | None) -> Calibration:
     return cal
 
 
+def _check_daemon_bench(status: dict, config: Config) -> None:
+    """Refuse, before any pattern is made, a daemon that cannot capture the stacks or does not
+    share this configuration's optics: the reference plane's distance, its colour mode, the
+    arming and powers a person sets (`citl_laser_refusal`, the capture job's own rule)."""
+    z0_m = float(status["panel"].get("z0_m", config.optics.z0_m))
+    if abs(z0_m - config.optics.z0_m) > 1e-9:
+        raise ValueError(f"optics.z0_mm = {config.optics.z0_mm:g} here, {z0_m * 1e3:g} in the "
+                         "daemon: pass the daemon's configuration (--config)")
+    mode = (status.get("colour") or {}).get("mode")
+    if mode != "capture":
+        raise ValueError(f"the daemon's daemon.frames.colour_mode is {mode!r}: nhfd calib learn "
+                         "needs 'capture' (the daemon switches each diode on alone)")
+    laser = status.get("laser") or {}
+    channels = laser.get("channels") or {}
+    refusal = citl_laser_refusal(
+        laser.get("fault"), bool(laser.get("armed")), float(laser.get("armed_remaining_s") or 0),
+        {ch: float((channels.get(ch) or {}).get("power_pct", 0.0)) for ch in COLOURS},
+        who="nhfd calib learn")
+    if refusal:
+        raise ValueError(refusal)
+
+
 def _learn_daemon(args: argparse.Namespace, window_hw: tuple[int, int], out: Path) -> int:
     for flag, value in (("--sim-seed", args.sim_seed), ("--twin", args.twin),
                         ("--power", args.power)):
@@ -277,6 +300,7 @@ def _learn_daemon(args: argparse.Namespace, window_hw: tuple[int, int], out: Pat
     with client:
         status = client.status()
         cal = _daemon_calibration(status, args.calibration)
+        _check_daemon_bench(status, config)
         panel = status["panel"]
         panel_hw = (int(panel["height_px"]), int(panel["width_px"]))
         work = out / "daemon"

@@ -66,13 +66,13 @@ def citl_problem(config: Config, calibration: CalibrationStore, bench: Any,
     return None
 
 
-def _check_laser(laser: LaserLink) -> dict[str, float]:
+def _check_laser(laser: LaserLink, what: str) -> dict[str, float]:
     """The powers a person set, per colour, while the arming holds; CitlStopped otherwise."""
     status = laser.status()
     channels = status.get("channels") or {}
     powers = {ch: float(channels.get(ch, {}).get("power_pct", 0.0)) for ch in COLOURS}
     refusal = citl_laser_refusal(status.get("fault"), bool(status.get("armed")),
-                                 float(status.get("armed_remaining_s") or 0.0), powers)
+                                 float(status.get("armed_remaining_s") or 0.0), powers, what)
     if refusal:
         raise CitlStopped(refusal)
     return powers
@@ -102,7 +102,7 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config,
     if stage.settings.require_homed and not stage.state().homed:
         raise CitlStopped("the stage is not homed: home it first (nhfctl focus Z_MM --home)")
     laser.refresh()
-    powers = _check_laser(laser)  # before anything moves or emits
+    powers = _check_laser(laser, what)  # before anything moves or emits
     r = request.region
     frames = request.frames or None
     buffer = PanelBuffer(panel.blank_frame())
@@ -118,7 +118,7 @@ def citl_capture(job: Job, request: CaptureRequest, *, config: Config,
 
     def before_colour(name: str) -> None:
         go_on()
-        _check_laser(laser)
+        _check_laser(laser, what)
         phase(f"capturing {name} at plane {where['plane'] + 1} of {planes}")
 
     def at_plane(i: int) -> None:

@@ -236,7 +236,8 @@ def test_calib_learn_through_the_daemon_stops_on_a_disarm_and_the_same_command_r
         r.stop()
 
 
-def test_calib_learn_through_the_daemon_refuses_another_calibration(short_dir, tiny, capsys):
+def test_calib_learn_through_the_daemon_refuses_what_it_cannot_capture_with(short_dir, tiny,
+                                                                            capsys):
     r = _running(short_dir, tiny, armed=False)
     try:
         active = r.daemon.calibration.active()
@@ -249,6 +250,16 @@ def test_calib_learn_through_the_daemon_refuses_another_calibration(short_dir, t
         assert f"--calibration {path} is not the calibration the daemon applies" in err, err
         assert main([*argv[:-2], "--sim-seed", "3"]) == 2
         assert "--sim-seed: for the simulated bench (--direct)" in capsys.readouterr().err
+        # Checked before any pattern is made: the optics this command codes with, the arming.
+        other_z0 = short_dir / "other-z0.toml"
+        other_z0.write_text(f"[optics]\nz0_mm = {r.daemon.config.optics.z0_mm + 5}\n")
+        assert main([*argv[:-2], "--config", str(other_z0)]) == 2
+        assert (f"optics.z0_mm = {r.daemon.config.optics.z0_mm + 5:g} here, "
+                f"{r.daemon.config.optics.z0_mm:g} in the daemon") in capsys.readouterr().err
+        assert main(argv[:-2]) == 2
+        assert ("the lasers are not armed; nhfd calib learn never arms: arm the lasers"
+                in capsys.readouterr().err)
+        assert not (short_dir / "calib" / "x").exists()
         assert r.daemon.laser.twin.max_emitted_pct() == 0.0
     finally:
         r.stop()
