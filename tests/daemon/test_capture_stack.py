@@ -27,7 +27,7 @@ from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.refine import BenchForward, grey_phase
 
 from .conftest import Running, wait_until
-from .test_citl_daemon import POWERS, citl_config
+from .test_citl_daemon import POWERS, citl_config, prepare_bench
 from .test_colour import on_at
 
 WINDOW_HW = (32, 32)
@@ -43,13 +43,7 @@ def _config(root: Path, tiny) -> Config:
 
 def _running(root: Path, tiny, *, armed: bool = True) -> Running:
     r = Running(_config(root, tiny), root)
-    c = r.client()
-    job = c.call("focus", z_mm=0.0, home=True)["job"]  # the capture never homes the stage
-    wait_until(lambda: c.call("job", id=job)["state"] == "done", 20, "the stage homed")
-    if armed:
-        c.call("laser", action="arm", duration_s=600.0)
-    for ch, pct in POWERS.items():
-        c.call("laser", action="power", channel=ch, power_pct=pct)
+    prepare_bench(r.client(), armed=armed)
     return r
 
 

@@ -48,13 +48,19 @@ def _running(root: Path, tiny, *, armed: bool, **refine) -> Running:
     c.call("load_scene", path=str(root / "scenes" / "cloud.ply"))
     c.call("load_model", path=str(root / "models" / "tiny.onnx"))
     wait_for_frames(c)
-    job = c.call("focus", z_mm=0.0, home=True)["job"]  # citl never homes the stage itself
+    prepare_bench(c, armed=armed)
+    return r
+
+
+def prepare_bench(c, *, armed: bool) -> None:
+    """What a person does before the daemon captures with each diode: home the stage (citl's
+    captures never home it themselves), arm (when `armed`), set each colour's power."""
+    job = c.call("focus", z_mm=0.0, home=True)["job"]
     wait_until(lambda: c.call("job", id=job)["state"] == "done", 20, "the stage homed")
     if armed:
         c.call("laser", action="arm", duration_s=600.0)
     for ch, pct in POWERS.items():
         c.call("laser", action="power", channel=ch, power_pct=pct)
-    return r
 
 
 def _citl_jobs(c) -> list[dict]:
