@@ -116,6 +116,19 @@ def identify_dots(points: np.ndarray, layout: DotLayout) -> np.ndarray:
     vec = strong[nn] - strong
     length = np.linalg.norm(vec, axis=1)
     spacing = float(np.median(length))
+    # Where the dots' brightness varies over the panel (crosstalk, unmodulated light), the
+    # stronger half can be every other dot, whose nearest neighbours are the lattice's
+    # diagonals: a lattice at 1/sqrt(2) of that spacing that most of the strong points sit on
+    # (a neighbour among all the points at that distance) is the dots' own.
+    d_all = np.linalg.norm(strong[:, None] - points[None], axis=-1)
+    d_all[d_all == 0] = np.inf
+    finer = spacing / math.sqrt(2)
+    near = np.abs(d_all / finer - 1) < 0.1
+    has = near.any(axis=1)
+    if has.mean() > 0.5:  # each such point's step is to that neighbour (the rest, diagonals,
+        vec[has] = points[near.argmax(axis=1)[has]] - strong[has]  # fall out of `steps`)
+        length = np.linalg.norm(vec, axis=1)
+        spacing = float(np.median(length[has]))
     # Orientation modulo 90 degrees: the mean of exp(4 i phi) over the lattice steps.
     steps = np.abs(length / spacing - 1) < 0.2
     if not steps.any():
