@@ -570,6 +570,8 @@ class OnnxModel:
         self.multiple = self.info.input_multiple
         self.amplitude_scale = self.info.amplitude_scale
         self.colours = self.info.colours
+        # frames per inference: the outputs are [B, 3 K, H, W] (`ServingNet(subframes=K)`)
+        self.subframes = self.info.subframes
 
     def _gpu_providers(self, configured: list[str], available: list[str],
                        input_hw: tuple[int, int] | None, engine_cache_dir: str | Path | None,
@@ -609,7 +611,8 @@ class OnnxModel:
                              f"{self.channels}, H, W]")
         x = x.detach().to(torch.float32).contiguous()
         b, _c, h, w = x.shape
-        amp = torch.empty((b, self.colours, h, w), dtype=torch.float32, device=x.device)
+        amp = torch.empty((b, self.colours * self.subframes, h, w), dtype=torch.float32,
+                          device=x.device)
         phase = torch.empty_like(amp)
         kind = "cuda" if x.device.type == "cuda" else "cpu"
         index = (x.device.index or 0) if kind == "cuda" else 0

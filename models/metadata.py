@@ -23,6 +23,7 @@ from nhfd.model_info import (
     INPUT_MULTIPLE_MAX,
     PITCH_MAX_M,
     PIXELS_MAX,
+    SUBFRAMES_RANGE,
     WAVELENGTH_RANGE_M,
     Z0_MAX_M,
     CheckedSize,
@@ -272,6 +273,7 @@ def parse_model_info(meta: dict[str, Any], source: str, graph_input: str | None 
             train_steps=meta.get("train_steps"),
             scene_sha256=meta.get("scene_sha256"),
             precision=meta.get("precision"),
+            subframes=int(meta.get("subframes") or 1),
         )
     except ValueError as exc:  # validate_metadata passed: a check of the value's own
         raise InvalidMetadata(f"{source}: {exc}") from None
@@ -467,6 +469,8 @@ def validate_metadata(meta: dict[str, Any], source: str, graph_input: str | None
     for key in ("parameters", "train_steps", "opset"):  # status reports them as numbers
         if meta.get(key) is not None and not _is_int(meta[key]):
             f.refuse(key, meta[key], "an integer or null")
+    if meta.get("subframes") is not None:  # one head per subframe (nhfd model tune)
+        f.integer("subframes", meta["subframes"], *SUBFRAMES_RANGE, "frames one inference emits")
     for key in ("profile", "scene_sha256", "precision", "nhfd_version"):
         if meta.get(key) is not None and not isinstance(meta[key], str):
             f.refuse(key, meta[key], "a string or null")

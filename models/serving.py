@@ -54,11 +54,16 @@ def softplus_exportable(a: torch.Tensor) -> torch.Tensor:
 
 
 class ServingNet(nn.Module):
-    """`net`'s function with export-friendly ends around `net.trunk`."""
+    """`net`'s function with export-friendly ends around `net.trunk`.
 
-    def __init__(self, net: NHFNet) -> None:
+    `subframes` K: the heads emit K frames per inference, amplitude and phase `[B, 3 K, H, W]`
+    (subframe k in channels 3k..3k+2), each head `net.head`'s to begin with (`with_subframes`
+    makes them differ, so tuning can take them apart)."""
+
+    def __init__(self, net: NHFNet, subframes: int = 1) -> None:
         super().__init__()
         self.net = net
+        self.subframes = int(subframes)
         f, c = net.spec.unshuffle, net.spec.channels
         self.unshuffle = nn.Conv2d(c, c * f * f, f, stride=f)
         weight, bias = _unshuffle_weights(c, f)
@@ -71,14 +76,36 @@ class ServingNet(nn.Module):
         w0 = head_w.shape[1]
         stacked = torch.cat([head_w, net.head.bias.detach()[:, None]], dim=1)
         stacked = stacked.T.reshape(w0 + 1, 6, f, f)
-        self.amplitude = nn.ConvTranspose2d(w0 + 1, 3, f, stride=f, bias=False)
-        self.phase = nn.ConvTranspose2d(w0 + 1, 3, f, stride=f, bias=False)
+        k = self.subframes
+        self.amplitude = nn.ConvTranspose2d(w0 + 1, 3 * k, f, stride=f, bias=False)
+        self.phase = nn.ConvTranspose2d(w0 + 1, 3 * k, f, stride=f, bias=False)
         with torch.no_grad():
-            self.amplitude.weight.copy_(stacked[:, :3])
-            self.phase.weight.copy_(stacked[:, 3:])
+            self.amplitude.weight.copy_(stacked[:, :3].repeat(1, k, 1, 1))
+            self.phase.weight.copy_(stacked[:, 3:].repeat(1, k, 1, 1))
+
+    def with_subframes(self, k: int, jitter: float, seed: int) -> ServingNet:
+        """This network with K heads (it must have one): each the present head, and the phase
+        weights of subframes 1..K-1 moved by seeded noise of `jitter` x their rms, so that
+        tuning on the subframes' mean intensity takes them apart (identical heads get identical
+        gradients and stay one frame shown K times). Subframe 0 is the present head exactly."""
+        if self.subframes != 1:
+            raise ValueError(f"subframes = {self.subframes}: only a one-frame network is "
+                             "widened to K subframes")
+        out = ServingNet(self.net, subframes=k)  # the same trunk (shared, not copied)
+        with torch.no_grad():
+            out.unshuffle.weight.copy_(self.unshuffle.weight)
+            out.unshuffle.bias.copy_(self.unshuffle.bias)
+            out.amplitude.weight.copy_(self.amplitude.weight.repeat(1, k, 1, 1))
+            out.phase.weight.copy_(self.phase.weight.repeat(1, k, 1, 1))
+            if k > 1 and jitter > 0:
+                w = self.phase.weight
+                g = torch.Generator().manual_seed(int(seed))
+                noise = torch.randn((w.shape[0], 3 * (k - 1), *w.shape[2:]), generator=g)
+                out.phase.weight[:, 3:] += noise * (jitter * w.pow(2).mean().sqrt())
+        return out
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Same contract as `NHFNet.forward`."""
+        """Same contract as `NHFNet.forward`; with K subframes the outputs have 3 K channels."""
         x = self.net.trunk(self.unshuffle(x.float()))
         x = torch.cat([x, torch.ones_like(x[:, :1])], dim=1)
         return softplus_exportable(self.amplitude(x)), self.phase(x)

@@ -17,8 +17,8 @@ model's fp16 file, which rounds some operators to float16. int8 files are refuse
 arithmetic is onnxruntime's.
 
 `TorchModel` has `OnnxModel`'s serving interface (`metadata`, `info`, `inputs`, `channels`,
-`multiple`, `amplitude_scale`, `colours`, `device`, `input_shape`, `providers`, `run_raw`,
-`run_on`, `__call__`), so the frame path does not ask which one it has.
+`multiple`, `amplitude_scale`, `colours`, `subframes`, `device`, `input_shape`, `providers`,
+`run_raw`, `run_on`, `__call__`), so the frame path does not ask which one it has.
 """
 
 from __future__ import annotations
@@ -85,7 +85,8 @@ class TorchModel:
             raise NotAModel(f"{name}: an int8 model ({', '.join(quantised)}): it serves with "
                             "onnxruntime on the CPU, not with daemon.frames.inference = \"torch\"")
         weights = {i.name: numpy_helper.to_array(i) for i in graph.initializer}
-        self.module = _rebuild(self.metadata, weights, name)
+        self.subframes = self.info.subframes
+        self.module = _rebuild(self.metadata, weights, name, self.subframes)
         worst = _compare(self.module, reference, self.channels, self.multiple)
         tol = REBUILD_TOL["fp16" if self.info.precision == "fp16" else "fp32"]
         if not worst <= tol:  # NaN fails too
@@ -128,8 +129,10 @@ class TorchModel:
         return amp.cpu().numpy(), phase.cpu().numpy()
 
 
-def _rebuild(metadata: dict, weights: dict[str, np.ndarray], name: str) -> ServingNet:
-    """`ServingNet(NHFNet(spec))` with the file's weights (float16 ones promoted, exactly)."""
+def _rebuild(metadata: dict, weights: dict[str, np.ndarray], name: str, subframes: int = 1
+             ) -> ServingNet:
+    """`ServingNet(NHFNet(spec), subframes)` with the file's weights (float16 ones promoted,
+    exactly)."""
     spec_json = metadata.get("net")
     if not isinstance(spec_json, dict):
         raise NotAModel(f"{name}: its metadata has no network spec (\"net\"): exported by an "
@@ -139,7 +142,7 @@ def _rebuild(metadata: dict, weights: dict[str, np.ndarray], name: str) -> Servi
     except (TypeError, ValueError) as exc:
         raise NotAModel(f"{name}: its network spec {spec_json} is not one nhfd builds: "
                         f"{exc}") from None
-    module = ServingNet(build_net(spec, seed=0))
+    module = ServingNet(build_net(spec, seed=0), subframes=subframes)
     state = module.state_dict()
     missing = sorted(k for k in state if k not in weights and k not in FOLDED)
     if missing:

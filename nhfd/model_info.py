@@ -37,6 +37,10 @@ INPUT_MULTIPLE_MAX = 8 * 2**6
 AMPLITUDE_SCALE_RANGE = (1e-12, 1e12)
 # The graph's input: sRGB, or sRGB and the mapped depth (`nhfd.models.inputs`).
 INPUTS = ("rgb", "rgbd")
+# Real-time subframes: a model may emit K frames per inference (one head per subframe, tuned
+# jointly on their mean intensity, `nhfd model tune --subframes`), shown in turn, one per
+# refresh. Eight at 60 Hz is a 7.5 Hz cycle, where flicker starts to show.
+SUBFRAMES_RANGE = (1, 8)
 
 
 def _number(name: str, value: Any, lo: float, hi: float, unit: str, *, open_lo: bool = False,
@@ -225,6 +229,7 @@ class ModelInfo:
     train_steps: int | None = None
     scene_sha256: str | None = None
     precision: str | None = None
+    subframes: int = 1
 
     def __post_init__(self) -> None:
         for name in ("wavelengths_m", "cutoff_per_px", "volume_m", "train_size_hw"):
@@ -271,6 +276,10 @@ class ModelInfo:
         if self.inputs == "rgbd" and self.mapping is None:
             raise ValueError("model info mapping = None: an rgbd model needs the scene's depth "
                              "mapping (a_m, b_m)")
+        k, (lo, hi) = self.subframes, SUBFRAMES_RANGE
+        if not (isinstance(k, int) and not isinstance(k, bool) and lo <= k <= hi):
+            raise ValueError(f"model info subframes = {k!r}: expected a whole number in "
+                             f"{lo}..{hi} (the frames one inference emits)")
 
     @property
     def colours(self) -> int:
@@ -317,4 +326,4 @@ class ModelInfo:
                 "pose_envelope": (None if self.pose_envelope is None
                                   else self.pose_envelope.to_json()),
                 "parameters": self.parameters, "train_steps": self.train_steps,
-                "scene_sha256": self.scene_sha256}
+                "scene_sha256": self.scene_sha256, "subframes": self.subframes}

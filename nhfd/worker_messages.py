@@ -293,14 +293,19 @@ class LoadFailed:
 @dataclass(frozen=True, slots=True)
 class FrameDone:
     """View `seq`'s frame: `message` says where its region goes, where its arrays are (the
-    slot the request named, or in the message) and how it was computed."""
+    slot the request named, or in the message) and how it was computed. A model of K > 1
+    subframes sends all K as `subframes` (a `RefinedFrame` of tier "network", in a refine slot
+    or pickled), its first the message's own; None for one frame."""
 
     seq: int
     message: FrameMessage
+    subframes: RefinedFrame | None = None
 
     def __post_init__(self) -> None:
         _index("frame done", "seq", self.seq)
         _typed("frame done", "message", self.message, FrameMessage)
+        if self.subframes is not None:
+            _typed("frame done", "subframes", self.subframes, RefinedFrame)
 
 
 @dataclass(frozen=True, slots=True)

@@ -19,6 +19,7 @@ from nhfd.config import Config, load_config
 from nhfd.daemon.client import Client, DaemonUnavailable
 from nhfd.daemon.paths import socket_path
 from nhfd.daemon.protocol import RpcError
+from nhfd.model_info import SUBFRAMES_RANGE
 from nhfd.models.build import STAGES, Recipe, resolve_device, run_build
 from nhfd.models.export import compare_with_torch
 from nhfd.models.metadata import SIZE_TOLERANCE
@@ -141,6 +142,11 @@ def tune_budget_arguments(p: argparse.ArgumentParser, d: tune.TuneSettings,
                    help=f"training views to tune on (default {d.views})")
     p.add_argument(f"--{prefix}size", default=f"{d.window_hw[1]}x{d.window_hw[0]}",
                    help="the tuning's frame window WxH (default %(default)s)")
+    lo, hi = SUBFRAMES_RANGE
+    p.add_argument(f"--{prefix}subframes", type=int, default=d.subframes, metavar="K",
+                   help=f"frames per inference, {lo}..{hi}: K heads tuned jointly on their mean "
+                   "intensity, shown in turn one per refresh (default %(default)s; a one-frame "
+                   "model is widened)")
 
 
 def run_model_build(args: argparse.Namespace) -> int:
@@ -198,7 +204,8 @@ def build_tuning(args: argparse.Namespace, config: Config
         return None
     w, h = parse_wxh(args.tune_size, "--tune-size")
     settings = tune.TuneSettings(steps=args.tune_steps, seconds=args.tune_seconds,
-                                 views=args.tune_views, window_hw=(h, w))
+                                 views=args.tune_views, window_hw=(h, w),
+                                 subframes=args.tune_subframes)
     cal = Calibration.load(args.calibration)
     try:
         check_bench(cal, config.optics.wavelengths_m, config.slm.pitch_m)
@@ -298,7 +305,7 @@ def run_model_tune(args: argparse.Namespace) -> int:
     w, h = parse_wxh(args.size)
     settings = tune.TuneSettings(steps=args.steps, seconds=args.seconds, views=args.views,
                                  window_hw=(h, w), ssim_weight=args.ssim_weight,
-                                 device=args.device)
+                                 device=args.device, subframes=args.subframes)
     cal = Calibration.load(args.calibration)
     res = tune.tune_model(args.model, scene_from_file(args.scene), args.scene, cal, args.out,
                           settings, config=config, dataset=args.dataset)

@@ -41,7 +41,7 @@ render can never be larger, so a model, scene or refocus that changes the window
 slot), and unlinks it whenever the worker is closed: stop, crash, restart. The slot is named in
 each frame request; the worker writes only that one, and the daemon names it again only after
 it has copied the frame out, so no slot is overwritten while the daemon reads it. A
-refinement's better frames come the same way, in two refine slots (`REFINE_SLOTS`) that the
+refinement's better frames come the same way, in refine slots (`REFINE_SLOTS`) that the
 worker and the daemon hand back and forth: the daemon pastes one subframe per refresh straight
 from the slot it shows, and gives the other back (`FrameWorker.free_refine`) once it shows a
 newer frame, so no turn of the control loop does work proportional to K subframes.
@@ -73,6 +73,7 @@ import numpy as np
 from nhfd.calibration import Calibration, CalibrationStore
 from nhfd.config import Config, FramesSettings
 from nhfd.frame_message import CaptureReply, CaptureRequest, FrameMessage, RefinedFrame
+from nhfd.model_info import SUBFRAMES_RANGE
 from nhfd.worker_messages import (
     FROM_WORKER,
     BetterFrame,
@@ -121,10 +122,12 @@ WORKER_MODULE = "nhfd.pipeline.worker"
 # frame at a time (in the worker, or waiting for its refresh), and sends the next view only once
 # that frame is on the panel and its slot is free. (~12.4 MB at 1920 x 1080, per worker.)
 SLOTS = 1
-# Refine slots per worker: a refinement's K subframes `[K, 3, H, W]` (each slot sized for the
-# panel and `refine.subframes`). Two, double-buffered: the worker writes a better frame into one
-# while the daemon shows the other, and the daemon gives a slot back once it shows a newer one.
-REFINE_SLOTS = 2
+# Refine slots per worker: a refinement's K subframes `[K, 3, H, W]`, or a K-subframe model's
+# (each slot sized for the panel and the larger K). Three: the worker writes a better frame into
+# one while the daemon shows another (double-buffered), and a K-subframe model's next frame
+# takes the third while the one shown cycles; the daemon gives a slot back once it shows a newer
+# one. (tmpfs pages: only what is written takes memory.)
+REFINE_SLOTS = 3
 # The /dev/shm names of the slots start with this (then the daemon's pid, a counter, the slot).
 SHM_PREFIX = "nhfd-"
 # The frame link's names, and those of its parts it re-exports (the daemon's citl, its tests and
@@ -212,7 +215,9 @@ class FrameWorker:
         pages: only what a frame writes takes memory)."""
         panel = self.config.slm
         plane = 3 * int(panel.height_px) * int(panel.width_px)
-        nbytes, refine_bytes = 2 * plane, int(self.config.refine.subframes) * plane
+        # a refinement's K or a K-subframe model's, whichever is more
+        k = max(int(self.config.refine.subframes), SUBFRAMES_RANGE[1])
+        nbytes, refine_bytes = 2 * plane, k * plane
         tag = f"{SHM_PREFIX}{os.getpid()}-{next(self._workers)}"
         try:
             for i in range(SLOTS):
@@ -453,6 +458,12 @@ class FrameLink:
         return self.pacer.shown_seq
 
     @property
+    def subframes_shown(self) -> int:
+        """How many subframes take turns on the panel now, one per refresh (1: a still frame)."""
+        r = self.pacer.refinement
+        return r.subframes if r is not None and self.pacer.cycling else 1
+
+    @property
     def last_frame(self) -> np.ndarray | None:
         """The last view frame as shown (`[3, H, W]` uint8), or None."""
         return self.pacer.last_frame
@@ -642,8 +653,8 @@ class FrameLink:
             case Loaded() | LoadFailed():
                 if self.loads.answered(msg):
                     self._resend = True  # the current view again, with the new model or scene
-            case FrameDone(seq=seq, message=message):
-                self._frame_done(seq, message)
+            case FrameDone(seq=seq, message=message, subframes=subframes):
+                self._frame_done(seq, message, subframes)
             case FrameFailed(seq=seq, error=error):
                 self._inflight_over()
                 self.events.error("frame worker", f"view {seq}: {error}")
@@ -664,8 +675,10 @@ class FrameLink:
             case _:
                 self.events.error("frame worker", refusal(msg, "the frame link", FROM_WORKER))
 
-    def _frame_done(self, seq: int, message: Any) -> None:
-        """View `seq`'s frame is back: it waits for its refresh (`FramePacer.arrived`)."""
+    def _frame_done(self, seq: int, message: Any, subframes: RefinedFrame | None = None
+                    ) -> None:
+        """View `seq`'s frame (and a K-subframe model's K) is back: it waits for its refresh
+        (`FramePacer.arrived`)."""
         inflight, self.inflight = self.inflight, None
         if not isinstance(message, FrameMessage):  # a worker speaking another protocol
             if inflight is not None:
@@ -674,7 +687,7 @@ class FrameLink:
                                               f"{type(message).__name__}")
             return
         sent_s = inflight.sent_s if inflight is not None and inflight.seq == seq else None
-        self.pacer.arrived(seq, message, sent_s)
+        self.pacer.arrived(seq, message, sent_s, subframes)
 
     def _inflight_over(self) -> None:
         """The view in the worker came to nothing (failed, cancelled): its slot is free."""

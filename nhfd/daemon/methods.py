@@ -103,6 +103,8 @@ class Frames(ShownViews, Protocol):
     loads (which block the calling load job until the worker answers)."""
 
     model_path: str | None
+    subframes_shown: int  # K subframes taking turns on the panel, one per refresh (1: still)
+    refresh_s: float  # the panel's refresh period
 
     def load_scene(self, path: str) -> SceneLoaded:
         """Load the scene file at `path` into the worker, blocking until it answers: the scene's
@@ -520,11 +522,38 @@ def _capture(ctx: RpcContext, conn: Connection, p: Params) -> Any:
                 "shape": list(image.shape),
                 "saturated_fraction": float(saturated.mean()) if saturated.size else 0.0,
                 "max_linear": float(image.max()) if image.size else 0.0,
-                "stage_mm": stage, "showing": ctx.panel.showing}
+                "stage_mm": stage, "showing": ctx.panel.showing,
+                **exposure_over_cycle(exposure, ctx.frames.subframes_shown,
+                                      ctx.frames.refresh_s)}
 
     job = submit_or_busy(ctx.bench_jobs, Job("capture", {
         "path": str(path), "frames": frames, "exposure_s": exposure_s, "dark": dark}, run))
     return {"job": job.id, "path": str(path)}
+
+
+# An exposure within this fraction of a whole number of subframe cycles holds every subframe
+# equally (to this fraction of one subframe's light).
+CYCLE_TOLERANCE = 0.05
+
+
+def exposure_over_cycle(exposure_s: float, subframes: int, refresh_s: float) -> dict[str, Any]:
+    """What a capture's exposure spans of the K subframes taking turns on the panel: K, the
+    cycle's seconds and how many cycles the exposure holds; with a `warning` unless it holds a
+    whole number of them (within `CYCLE_TOLERANCE`), when the image weighs some subframes more
+    than others. Empty for a still frame."""
+    if subframes <= 1:
+        return {}
+    cycle_s = subframes * refresh_s
+    cycles = exposure_s / cycle_s
+    out: dict[str, Any] = {"subframes": subframes, "cycle_s": round(cycle_s, 6),
+                           "exposure_cycles": round(cycles, 3)}
+    whole = max(1, round(cycles))
+    if abs(cycles - whole) > CYCLE_TOLERANCE or cycles < 1 - CYCLE_TOLERANCE:
+        out["warning"] = (f"exposure {exposure_s * 1e3:g} ms spans {cycles:.2f} cycles of the "
+                          f"{subframes} subframes shown in turn ({cycle_s * 1e3:g} ms at "
+                          f"{1 / refresh_s:g} Hz): the image weighs them unequally; set "
+                          f"exposure_s to a whole number of cycles ({whole * cycle_s:g} s)")
+    return out
 
 
 # What a focal-stack capture is called in refusals and the audit log.

@@ -8,7 +8,10 @@ needs to be ready for the refresh after (`send_at_s`: 1.5 recent frame times plu
 before it), so the frame shown is the newest one just before that refresh. A view that asked
 for a tier above the network's is refined while it rests (`Refinement`): each better frame's K
 subframes are shown one per refresh, straight from the refine slot they came in, and the slot
-shown before goes back to the worker. Frames are built in `PANELS_REUSED` panels used in turn
+shown before goes back to the worker. A model of K > 1 subframes sends all K with its frame
+(in a refine slot): once the first is shown the K take turns the same way, while the view
+moves as while it rests (a `Refinement` of tier "network", which `refine_status` does not
+report). Frames are built in `PANELS_REUSED` panels used in turn
 (`PanelBuffer`'s `reuse`): the control loop never builds a fresh 6 MB panel per refresh. `status`
 counts frames shown, dropped and late (`FrameCounts`).
 
@@ -109,6 +112,7 @@ class WaitingFrame:
     seq: int
     message: FrameMessage
     sent_s: float | None
+    subframes: RefinedFrame | None = None
 
 
 @dataclass
@@ -273,14 +277,19 @@ class FramePacer:
 
     # -- frames from the worker ----------------------------------------------------------------
 
-    def arrived(self, seq: int, message: FrameMessage, sent_s: float | None) -> None:
+    def arrived(self, seq: int, message: FrameMessage, sent_s: float | None,
+                subframes: RefinedFrame | None = None) -> None:
         """View `seq`'s frame is back (`sent_s`: when the view went out, None when it was not
-        the one in flight): it waits for its refresh, and the worker's frame time is learnt."""
+        the one in flight; `subframes`: a K-subframe model's K): it waits for its refresh, and
+        the worker's frame time is learnt. A frame it overtakes gives its subframes' refine
+        slot back."""
         if sent_s is not None and message.ready_s is not None:
             took = max(0.0, message.ready_s - sent_s)
             self.compute_s = took if self.compute_s is None else (
                 0.7 * self.compute_s + 0.3 * took)
-        self.waiting = WaitingFrame(seq, message, sent_s)  # one frame at a time
+        if self.waiting is not None and self.waiting.subframes is not None:
+            self.slots().free_refine(self.waiting.subframes.slot)
+        self.waiting = WaitingFrame(seq, message, sent_s, subframes)  # one frame at a time
 
     def show_due(self) -> None:
         """Show the waiting frame, or the refinement's next subframe, when its refresh is due."""
@@ -363,6 +372,8 @@ class FramePacer:
             # The panel applies the colour mode, and holds the frame back during a capture.
             frame = self.panel().show_view(panel, seq)
         except Exception as exc:
+            if waiting.subframes is not None:
+                self.slots().free_refine(waiting.subframes.slot)
             self.error("slm", f"showing view {seq}: {type(exc).__name__}: {exc}")
             if isinstance(exc, SLMOutputLost):  # the control loop switches lasers off
                 self.slm_lost(str(exc))
@@ -375,7 +386,8 @@ class FramePacer:
         if waiting.sent_s is not None:
             timings["view_to_slm_ms"] = round((done - waiting.sent_s) * 1e3, 3)
         timings.update(seq=seq, cached=message.cached,
-                       clipped_fraction=list(message.clipped_fraction))
+                       clipped_fraction=list(message.clipped_fraction),
+                       subframes=1 if waiting.subframes is None else waiting.subframes.subframes)
         self.timings = timings
         self.warnings = list(message.warnings)
         self.last_rgb, self.last_frame = rgb, frame
@@ -389,7 +401,25 @@ class FramePacer:
             self.refinement = Refinement(seq, quality, {
                 "tier": message.tier if done else quality, "iterations": 0, "seconds": 0.0,
                 "loss": None, "psnr_db": None, "start_psnr_db": None, "stop": done})
+        if waiting.subframes is not None:
+            self._cycle_network(seq, waiting.subframes)
         self.shown(seq)
+
+    def _cycle_network(self, seq: int, subframes: RefinedFrame) -> None:
+        """View `seq`'s network frame has K subframes: the first is on the panel, the K take
+        turns from the next refresh (in the view's refinement when it asked for one, until a
+        better frame replaces them)."""
+        slots = self.slots()
+        try:
+            greys = slots.refined_arrays(subframes)
+        except ValueError as exc:
+            self.error("frame worker", f"view {seq}'s subframes: {exc}")
+            slots.free_refine(subframes.slot)
+            return
+        if self.refinement is None:
+            self.refinement = Refinement(seq, "network", dict(subframes.report))
+        r = self.refinement
+        r.region, r.greys, r.slot, r.index = subframes.region, greys, subframes.slot, 0
 
     def _panel(self, message: FrameMessage) -> tuple[np.ndarray, np.ndarray | None]:
         """The full panel: the blank frame (the zero pattern of the coding in use) outside the
@@ -464,7 +494,7 @@ class FramePacer:
         `capture`: what the bench does for the capture the worker waits for (None: it waits
         for none; `CaptureRelay.waiting_phase`)."""
         r = self.refinement
-        if r is None:
+        if r is None or r.tier == "network":  # a K-subframe network frame: no refinement
             return None
         out = {**r.report, "tier": r.tier, "stage": r.report.get("tier", r.tier),
                "seq": r.seq, "swaps": r.swaps, "subframes": r.subframes,

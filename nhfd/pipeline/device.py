@@ -190,10 +190,13 @@ class StageClock:
 
     @property
     def seconds(self) -> dict[str, float]:
-        """Each stage's duration in seconds, by name, in order (waits for the last mark)."""
+        """Each stage's duration in seconds, by name, in order (waits for the last mark); a
+        stage named more than once (each of K subframes) sums its turns."""
         self._marks[-1].synchronize()
-        return {n: 1e-3 * a.elapsed_time(b)
-                for n, a, b in zip(self._names, self._marks[:-1], self._marks[1:], strict=True)}
+        out: dict[str, float] = {}
+        for n, a, b in zip(self._names, self._marks[:-1], self._marks[1:], strict=True):
+            out[n] = out.get(n, 0.0) + 1e-3 * a.elapsed_time(b)
+        return out
 
 
 def _cuda_mark(device: torch.device) -> Any:

@@ -61,7 +61,9 @@ class Frame:
     """One computed frame: the coded region (grey `[3, h, w]` uint8; from a device frame a view
     of its `[h, w, 3]` array, the SLM's layout) and where it goes, the
     rendered view (sRGB `[3, H, W]` float32; None from a device frame, which brings back only
-    its preview) and the seconds each stage took."""
+    its preview) and the seconds each stage took. A model of K > 1 subframes
+    (`ModelInfo.subframes`) gives all K, `subframes` `[K, 3, h, w]` uint8 (`grey` is the
+    first; the clipped fractions the largest per colour); None for one."""
 
     region: Region
     grey: np.ndarray
@@ -69,6 +71,7 @@ class Frame:
     rgb: np.ndarray | None = None
     clipped_fraction: tuple[float, ...] = ()
     preview_u8: np.ndarray | None = None
+    subframes: np.ndarray | None = None
 
     @property
     def preview(self) -> np.ndarray | None:
@@ -101,12 +104,42 @@ def compute_frame(view: View, scene: Scene, model: Any, encoder: Encoder) -> Fra
     clock.stage("render")
     amplitude, phase = infer(model, rendered)
     clock.stage("inference")
+    greys, clips = [], []
     with torch.no_grad():
-        slm_field = encoder.to_slm(reference_field(amplitude, phase, s.amplitude_scale))
-        clock.stage("propagation")
-        grey, clipped = encoder.code(slm_field)
-        clock.stage("coding")
-    return Frame(encoder.region, grey, clock.seconds, rendered.rgb, clipped)
+        # K subframes: the same stages per subframe (the propagation's and coding's times are
+        # the K together)
+        pairs = subframe_fields(amplitude, phase)
+        for a, p in pairs:
+            slm_field = encoder.to_slm(reference_field(a, p, s.amplitude_scale))
+            clock.stage("propagation")
+            grey, clipped = encoder.code(slm_field)
+            # the coder's output buffer serves the next subframe: K > 1 copies each out
+            greys.append(grey if len(pairs) == 1 else grey.copy())
+            clips.append(clipped)
+            clock.stage("coding")
+    return _frame_of(encoder, greys, clips, clock.seconds, rendered.rgb)
+
+
+def subframe_fields(amplitude: Any, phase: Any) -> list[tuple[Any, Any]]:
+    """A network's outputs `[3 K, h, w]` (arrays or tensors) as K (amplitude, phase) pairs
+    `[3, h, w]`: subframe k in channels 3k..3k+2 (`ServingNet(subframes=K)`)."""
+    c = int(amplitude.shape[0])
+    if c % 3 or phase.shape[0] != c:
+        raise ValueError(f"network outputs of {c} and {phase.shape[0]} channels: expected "
+                         "3 K each (K subframes of three colours)")
+    return [(amplitude[i : i + 3], phase[i : i + 3]) for i in range(0, c, 3)]
+
+
+def _frame_of(encoder: Encoder, greys: list[np.ndarray], clips: list[tuple[float, ...]],
+              timings_s: dict[str, float], rgb: np.ndarray | None,
+              preview: np.ndarray | None = None) -> Frame:
+    """The `Frame` of K coded subframes (one is kept as the coder gave it; K are stacked into
+    one array)."""
+    if len(greys) == 1:
+        return Frame(encoder.region, greys[0], timings_s, rgb, clips[0], preview)
+    stacked = np.stack(greys)
+    clipped = tuple(float(max(c[i] for c in clips)) for i in range(len(clips[0])))
+    return Frame(encoder.region, stacked[0], timings_s, rgb, clipped, preview, stacked)
 
 
 def render_view(view: View, scene: Scene, info: ModelInfo, window_hw: tuple[int, int],
@@ -140,18 +173,26 @@ def compute_frame_on_device(view: View, scene: Scene, model: Any, encoder: Encod
         else:  # a callable on NumPy arrays (tests' stand-ins)
             amplitude, phase = (_on(v, dev) for v in model(x.cpu().numpy()))
         clock.stage("inference")
-        slm_field = graphs.run("propagation", lambda a, p: encoder.to_slm(
-            reference_field(a, p, s.amplitude_scale)), amplitude, phase)
-        clock.stage("propagation")
-        coded = graphs.run("coding", lambda f, v: _code_on_device(encoder, f, v), slm_field, rgb)
-        started = encoder.host.start(*coded)
-        clock.stage("coding")
-        grey_hwc, clipped, bad, preview = encoder.host.wait(started)
-    fractions = encoder.check_coded(clipped, bad)
-    # [3, h, w] as a view of the [h, w, 3] array: the SLM's layout, which the daemon pastes
-    # into its panel row by row (`PanelBuffer`) instead of interleaving three planes.
-    grey = grey_hwc.transpose(2, 0, 1)
-    return Frame(encoder.region, grey, clock.seconds, None, fractions, preview)
+        pairs = subframe_fields(amplitude, phase)
+        greys, clips = [], []
+        for a, p in pairs:
+            slm_field = graphs.run("propagation", lambda a, p: encoder.to_slm(
+                reference_field(a, p, s.amplitude_scale)), a.contiguous(), p.contiguous())
+            clock.stage("propagation")
+            coded = graphs.run("coding", lambda f, v: _code_on_device(encoder, f, v), slm_field,
+                               rgb)
+            started = encoder.host.start(*coded)
+            clock.stage("coding")
+            grey_hwc, clipped, bad, preview = encoder.host.wait(started)
+            clips.append(encoder.check_coded(clipped, bad))
+            # [3, h, w] as a view of the [h, w, 3] array: the SLM's layout, which the daemon
+            # pastes into its panel row by row (`PanelBuffer`) instead of interleaving three
+            # planes. The host copy's buffers serve the next subframe: K > 1 copies each out.
+            grey = grey_hwc.transpose(2, 0, 1)
+            greys.append(grey if len(pairs) == 1 else grey.copy())
+            if len(pairs) > 1:
+                preview = preview.copy()
+    return _frame_of(encoder, greys, clips, clock.seconds, None, preview)
 
 
 def _code_on_device(encoder: Encoder, slm_field: torch.Tensor, rgb: torch.Tensor

@@ -43,6 +43,7 @@ import torch.fft as fft
 from nhfd.calibration import Calibration, bench_record, check_bench, fingerprint
 from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
+from nhfd.model_info import SUBFRAMES_RANGE
 from nhfd.models.inputs import network_input
 from nhfd.models.loss import box_ssim
 from nhfd.models.metadata import METADATA_KEY, expected_from_config, parse_metadata
@@ -54,6 +55,7 @@ from nhfd.scene.cameras import look_at
 from nhfd.views import Pose, View
 
 from .encoder import Encoder, reference_field
+from .frame import subframe_fields
 from .refine import Prepared, grey_phase, prepare, psnr_db, stack_loss
 from .view import Scene
 
@@ -66,6 +68,11 @@ SSIM_WEIGHT_RANGE = (0.0, 1.0)
 PLANES_RANGE = (1, 8)
 CHECKPOINT_EVERY_RANGE = (1, 100_000)
 WINDOW_RANGE_PX = (16, 4096)
+# A one-frame model widened to K subframes starts with K copies of its head, the phase weights of
+# subframes 1..K-1 moved by this much of their rms (seeded): enough to break the copies' symmetry
+# (identical heads get identical gradients), small enough that the first step starts where the
+# one-frame model is.
+SUBFRAME_JITTER = 0.05
 # The gradient's norm is clipped to this: one view's step never throws the network far.
 GRAD_CLIP = 1.0
 CHECKPOINT = "checkpoint.pt"
@@ -92,7 +99,9 @@ class TuneSettings:
     (resumes included), `views` training views, the `window_hw` (h, w px) frame window, Adam's
     `learning_rate`, the structural term's weight `ssim_weight` (the loss is `stack_loss` +
     ssim_weight x (1 - SSIM)), `planes` content planes per view (as `refine.planes`), a
-    checkpoint every `checkpoint_every` steps, the `seed` of the views' order, and `device`.
+    checkpoint every `checkpoint_every` steps, the `seed` of the views' order (and of the
+    subframe heads' jitter), `device`, and `subframes` K: the frames one inference emits, tuned
+    jointly on their mean intensity (a one-frame model is widened to K heads).
     ValueError (`TuneError`) naming the setting and its range."""
 
     steps: int = 200
@@ -105,6 +114,7 @@ class TuneSettings:
     checkpoint_every: int = 20
     seed: int = 0
     device: str = "cpu"
+    subframes: int = 1
 
     def __post_init__(self) -> None:
         _range("steps (--steps)", self.steps, *STEPS_RANGE)
@@ -120,6 +130,10 @@ class TuneSettings:
         _range("ssim_weight (--ssim-weight)", self.ssim_weight, *SSIM_WEIGHT_RANGE)
         _range("planes", self.planes, *PLANES_RANGE)
         _range("checkpoint_every", self.checkpoint_every, *CHECKPOINT_EVERY_RANGE)
+        _range("subframes (--subframes)", self.subframes, *SUBFRAMES_RANGE)
+        if not isinstance(self.subframes, int):
+            raise TuneError(f"subframes (--subframes) = {self.subframes!r}: must be a whole "
+                            "number")
         if self.device != "cpu" and not str(self.device).startswith("cuda"):
             raise TuneError(f"device (--device) = {self.device!r}: must be cpu or cuda[:N]")
 
@@ -342,12 +356,12 @@ def prepare_views(views: Sequence[View], scene: Scene, model: TorchModel, config
 def view_loss(net: torch.nn.Module, v: TuneView, amplitude_scale: float, ssim_weight: float
               ) -> tuple[torch.Tensor, float, float]:
     """One view's tuning loss through the network, the differentiable coding and the bench
-    model: (loss, MSE, SSIM)."""
+    model: (loss, MSE, SSIM). A network of K subframes is scored on their mean intensity."""
     amp, phase = net(v.x)
     h, w = v.hw
-    ref = reference_field(amp[0, :, :h, :w], phase[0, :, :h, :w], amplitude_scale)
-    shown, _ = v.coding(ref)
-    seen = v.prepared.model(shown[None]).mean(0)
+    shown = [v.coding(reference_field(a, p, amplitude_scale))[0]
+             for a, p in subframe_fields(amp[0, :, :h, :w], phase[0, :, :h, :w])]
+    seen = v.prepared.model(torch.stack(shown)).mean(0)
     return tune_loss(seen, v.prepared, ssim_weight, v.ssim_window_px)
 
 
@@ -456,6 +470,10 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
         check_bench(calibration, tuple(model.info.wavelengths_m), model.info.pitch_m)
     except ValueError as exc:
         raise TuneError(f"--calibration: {exc}") from None
+    if model.subframes not in (1, settings.subframes):
+        raise TuneError(f"subframes (--subframes) = {settings.subframes}: {model_path} emits "
+                        f"{model.subframes} subframes; tune it at --subframes "
+                        f"{model.subframes}, or tune its one-frame source")
     if poses is None:
         poses = training_poses_of(meta, scene, None if dataset is None else Path(dataset))
     views = choose_views(poses, settings.views)
@@ -473,7 +491,10 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
             raise TuneError(f"--out {out}: its checkpoint was made with another "
                             f"{', '.join(changed)}: choose another folder or remove {ckpt_path}")
 
-    net = model.module.train()
+    net = model.module
+    if settings.subframes != model.subframes:
+        net = net.with_subframes(settings.subframes, SUBFRAME_JITTER, settings.seed)
+    net = net.train()
     params = trainable(net)
     opt = torch.optim.Adam(params, lr=settings.learning_rate)
     tv = prepare_views(views, scene, model, config, calibration, settings, panel_hw, say)
@@ -546,6 +567,7 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
         **bench_record(calibration, _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")),
         "source_model_sha256": model_sha, "steps": step, "seconds": round(elapsed, 1),
         "views": len(tv), "window_hw": list(settings.window_hw),
+        "subframes": settings.subframes,
         "ssim_weight": settings.ssim_weight, "learning_rate": settings.learning_rate,
         "train_views_bench": {"psnr_db_before": _mean(before)[0],
                               "psnr_db_after": _mean(after)[0],
@@ -572,7 +594,10 @@ def write_tuned_model(source: str | Path, module: torch.nn.Module, path: str | P
 
     source, path = Path(source), Path(path)
     model = onnx.load(str(source))
-    state = {k: v.detach().cpu() for k, v in module.state_dict().items()}
+    k = int(getattr(module, "subframes", 1))
+    if k > 1:  # K heads: the head weights' shapes and the outputs' channels change
+        _widen_outputs(model, k)
+    state = {n: v.detach().cpu() for n, v in module.state_dict().items()}
     for init in model.graph.initializer:
         if init.name in state and init.name not in FOLDED:
             dtype = numpy_helper.to_array(init).dtype
@@ -581,6 +606,8 @@ def write_tuned_model(source: str | Path, module: torch.nn.Module, path: str | P
     meta = parse_metadata({p.key: p.value for p in model.metadata_props}, str(source))
     checked = meta.pop("checked_sizes", [])
     meta["tuned_for"] = tuned_for
+    if k > 1:
+        meta["subframes"] = k
     for prop in model.metadata_props:
         if prop.key == METADATA_KEY:
             prop.value = json.dumps(meta)
@@ -592,3 +619,15 @@ def write_tuned_model(source: str | Path, module: torch.nn.Module, path: str | P
     if check_sizes and checked:
         check_and_record(path, [tuple(e["hw"]) for e in checked])
     return path
+
+
+def _widen_outputs(model: Any, k: int) -> None:
+    """An exported `ServingNet` graph as one of K subframes: its outputs (amplitude, phase)
+    declared with 3 K channels, and the shapes inferred for its inner values dropped (the heads'
+    weights, written next, carry the new ones; onnxruntime infers the rest again)."""
+    for out in model.graph.output:
+        dim = out.type.tensor_type.shape.dim[1]
+        dim.Clear()
+        dim.dim_value = 3 * k
+    del model.graph.value_info[:]
+

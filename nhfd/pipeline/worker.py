@@ -15,7 +15,7 @@ table in docs/frames.md), matched by type; a message of any other type is answer
                      CaptureAnswer(req_id, reply)    RefineSlotFree(slot)   Stop()
   worker -> daemon   WorkerReady(pid)
                      Loaded(req_id, ModelLoaded | SceneLoaded)   LoadFailed(req_id, error)
-                     FrameDone(seq, message)         FrameFailed(seq, error)
+                     FrameDone(seq, message, subframes)   FrameFailed(seq, error)
                      BetterFrame(seq, frame)         RefineFailed(seq, error)
                      FrameCancelled(seq)             CaptureAsked(seq, req_id, request)
                      MessageRefused(kind, error)
@@ -24,7 +24,7 @@ A view whose `quality` is above "network" is refined after its network frame is 
 (`Refiner`, a thread): each better frame comes as a `BetterFrame` (a `RefinedFrame`) until the
 refinement stops or any message from the daemon but a `CaptureAnswer` or a `RefineSlotFree`
 cancels it (`CancelFrame` does only that: a newer view waits for a scene's exact frame no
-longer). A better frame's K subframes go into one of the daemon's two refine slots (shared
+longer). A better frame's K subframes go into one of the daemon's refine slots (shared
 memory), which the daemon gives back with `RefineSlotFree` once it shows newer ones; so what
 crosses the pipe is small whatever K. A `citl` view's steps ask the daemon's bench for captures
 (`nhfd.pipeline.citl.RemoteCapture`: a `CaptureAsked`, answered by a `CaptureAnswer`). With no
@@ -226,8 +226,8 @@ def trial_input(channels: int, multiple: int, window_hw: tuple[int, int]
 def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
     """Run `model` once on a frame of `window_hw` (padded to its input multiple, as frames are)
     and refuse it, with `ModelUnfit`, unless it takes that input and returns finite amplitude
-    and phase of [1, colours, H, W]. Before the swap: a model that passes the metadata check
-    but cannot serve frames must not replace a working one."""
+    and phase of [1, colours x subframes, H, W]. Before the swap: a model that passes the
+    metadata check but cannot serve frames must not replace a working one."""
     c, m = model.channels, model.multiple
     (_, _, ph, pw), want = trial_input(c, m, window_hw)
     declared = list(model.input_shape)
@@ -246,11 +246,13 @@ def check_inference(model: Any, window_hw: tuple[int, int], path: str) -> None:
     except Exception as exc:  # onnxruntime's own types: the first line says what
         first = (str(exc).strip().splitlines() or [type(exc).__name__])[0][:300]
         raise ModelUnfit(f"{path}: a test inference on a {want} input failed: {first}") from None
-    colours = model.info.colours
+    # K subframes of three colours (`ModelInfo.subframes`, its metadata's word)
+    colours = model.info.colours * model.info.subframes
     for name, out in zip(("amplitude", "phase"), outputs, strict=True):
         if list(out.shape) != [1, colours, ph, pw]:
             raise ModelUnfit(f"{path}: output {name} shape: expected [1, {colours}, {ph}, {pw}], "
-                             f"found {list(out.shape)}")
+                             f"found {list(out.shape)} ({model.info.subframes} subframes of "
+                             f"{model.info.colours} colours)")
         bad = int(out.size - np.count_nonzero(np.isfinite(out)))
         if bad:
             raise ModelUnfit(f"{path}: output {name}: expected finite values, found {bad} of "
@@ -384,7 +386,9 @@ class _WorkerState:
         self.encoders: dict[float, Encoder] = {}  # refocus_m -> Encoder (each its own kernels)
         # (view, model id, scene id) -> the frame with its arrays: a view is a frozen value, so
         # it keys the cache itself (equal views, equal keys)
-        self.cache: OrderedDict[tuple[View, int, int], FrameMessage] = OrderedDict()
+        # each frame's message and, from a model of K > 1 subframes, all K `[K, 3, h, w]`
+        self.cache: OrderedDict[tuple[View, int, int], tuple[FrameMessage, np.ndarray | None]] \
+            = OrderedDict()
         self.cache_size = int(config.daemon.frames.cache_frames)
 
     def load_model(self, path: str) -> ModelLoaded:
@@ -458,8 +462,9 @@ class _WorkerState:
                                                cuda_graphs=self.config.daemon.frames.cuda_graphs)
         return self.encoders[refocus_m]
 
-    def frame(self, view: View) -> FrameMessage:
-        """The frame for `view`, holding its arrays (computed, or from the frame cache)."""
+    def frame(self, view: View) -> tuple[FrameMessage, np.ndarray | None]:
+        """The frame for `view`, holding its arrays (computed, or from the frame cache), and
+        from a model of K > 1 subframes all K `[K, 3, h, w]` uint8 (None for one)."""
         if self.model is None:
             raise RuntimeError("no model loaded (load_model, or daemon.frames.model)")
         if self.scene is None:
@@ -468,17 +473,18 @@ class _WorkerState:
         key = (view, self.model_id, self.scene_id)
         if key in self.cache:
             self.cache.move_to_end(key)
-            return self.cache[key].from_cache()
+            cached, subframes = self.cache[key]
+            return cached.from_cache(), subframes
         frame = compute_frame(view, self.scene, self.model, self.encoder(view.refocus_m))
         message = FrameMessage.of_arrays(
             frame.region, frame.grey, frame.preview, StageTimes.from_seconds(frame.timings_s),
             frame.clipped_fraction,
             envelope_warnings(view, self.scene.frame, self.model.info.pose_envelope))
         if self.cache_size:
-            self.cache[key] = message
+            self.cache[key] = (message, frame.subframes)
             while len(self.cache) > self.cache_size:
                 self.cache.popitem(last=False)
-        return message
+        return message, frame.subframes
 
 
 class Refiner:
@@ -720,15 +726,33 @@ def _frame(send: Callable[[FromWorker], None], state: _WorkerState, shm: FrameSl
         refiner.start_without_model(seq, view, state, first)
         return
     try:
-        message = state.frame(view)
+        message, subframes = state.frame(view)
         network = message.grey
         if slot is not None and shm is not None:
             message = shm.write(slot, message)
+        cycle = None if subframes is None else network_subframes(message, subframes, shm)
         # When the frame was whole in its slot (CLOCK_MONOTONIC, shared by both processes):
         # the daemon's "late" counts from here.
-        send(FrameDone(seq, message.ready(time.monotonic())))
+        send(FrameDone(seq, message.ready(time.monotonic()), cycle))
     except Exception as exc:
         send(FrameFailed(seq, f"{type(exc).__name__}: {exc}"))
         return
     if network is not None:
         refiner.start(seq, view, state, network)
+
+
+def network_subframes(message: FrameMessage, subframes: np.ndarray, shm: FrameSlots | None
+                      ) -> RefinedFrame:
+    """A network frame's K subframes `[K, 3, h, w]` as the daemon cycles them (a `RefinedFrame`
+    of tier "network"): in a free refine slot, or pickled in the message when none is free (a
+    frame never waits for one: the daemon gives slots back through the pipe this thread
+    reads)."""
+    seconds = round(sum(message.timings.seconds().values()), 6)
+    report = {"tier": "network", "iterations": 0, "seconds": seconds,
+              "loss": None, "psnr_db": None, "start_psnr_db": None, "stop": "subframes"}
+    frame = RefinedFrame(message.region, np.ascontiguousarray(subframes), report)
+    if shm is None:
+        return frame
+    written = shm.write_refined(frame, 0.0)
+    return written if written.slot is not None else frame
+

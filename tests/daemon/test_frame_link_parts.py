@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import threading
 import time
+from dataclasses import replace
 from types import SimpleNamespace
 from typing import Any
 
@@ -171,12 +172,12 @@ class FakePanel:
 
 
 class FakeSlots:
-    """The worker's slots: two refine slots of K subframes each, in memory."""
+    """The worker's slots: three refine slots of K subframes each, in memory."""
 
     def __init__(self) -> None:
         rng = np.random.default_rng(3)
         self.refine = [rng.integers(0, 256, (K, 3, REGION.height, REGION.width), np.uint8)
-                       for _ in range(2)]
+                       for _ in range(3)]
         self.freed: list[int | None] = []
         self.released: list[int | None] = []
 
@@ -264,6 +265,71 @@ def test_the_pacer_shows_one_frame_per_refresh_and_k_subframes_in_turn_in_reused
     pacer.show_due()
     assert host.slots.freed == [0, 0, 1] and pacer.refinement is None
     assert pacer.counts.shown == 2 and host.errors == []
+
+
+NETWORK_REPORT = {**REPORT, "tier": "network", "iterations": 0, "stop": "subframes"}
+
+
+@pytest.mark.parametrize("quality", ["network", "sgd"])
+def test_a_k_subframe_models_frames_take_turns_while_the_view_moves(quality):
+    """A model of K subframes sends its K with each frame (in a refine slot): the frame's own
+    (the first) is shown, then the K in turn, one per refresh, for a moving view as for one at
+    rest; a frame overtaken while it waits gives its slot back, and so does the frame shown once
+    a newer one replaces it. A network view's cycle is no refinement in status."""
+    pacer, host = pacer_on_fakes()
+    r = REGION
+    subframes = RefinedFrame(REGION, None, NETWORK_REPORT, slot=0, grey_shape=(K, 3, 4, 6))
+    host.views.seq, host.views.view = 1, View(Orbit(0.0, 0.0, 1.0), quality=quality)
+    pacer.arrived(1, network_frame(1), None, subframes)
+    pacer.show_due()
+    assert pacer.cycling and pacer.timings["subframes"] == K
+    for _ in range(2 * K):
+        due(pacer)
+        pacer.show_due()
+    shown = [frame[:, r.rows, r.cols] for _, frame in host.panel.shown]
+    assert np.array_equal(shown[0], network_frame(1).grey)
+    for i, grey in enumerate(shown[1:], start=1):  # subframe 1, 2, ..., K - 1, 0, 1, ...
+        assert np.array_equal(grey, host.slots.refine[0][i % K]), i
+    assert len({g.tobytes() for g in shown[1:]}) == K  # K distinct frames in turn
+    if quality == "network":
+        assert pacer.refine_status() is None
+    else:  # the refinement starts from the network's K; its better frames replace them
+        assert pacer.refine_status()["tier"] == "sgd"
+        pacer.refined(1, RefinedFrame(REGION, None, REPORT, slot=1, grey_shape=(K, 3, 4, 6)))
+        assert host.slots.freed == [0] and pacer.refinement.swaps == 1
+        host.slots.freed.clear()
+
+    # The view moves: view 2's frame waits, view 3's overtakes it (its slot goes back at once).
+    on_panel = pacer.refinement.slot
+    two, three = (slot for slot in range(3) if slot != on_panel)
+    host.views.seq, host.views.view = 3, View(Orbit(2.0, 0.0, 1.0), quality=quality)
+    pacer.arrived(2, network_frame(2), None, replace(subframes, slot=two))
+    pacer.arrived(3, network_frame(3), None, replace(subframes, slot=three))
+    assert host.slots.freed == [two]
+    due(pacer)
+    pacer.show_due()  # view 3 on the panel: the slot view 1 cycled from goes back
+    assert host.slots.freed == [two, on_panel] and pacer.cycling
+    assert pacer.refinement.seq == 3 and pacer.refinement.slot == three
+    assert pacer.counts.shown == 2 and host.errors == []
+
+
+def test_a_capture_says_what_its_exposure_spans_of_the_subframes_taking_turns():
+    """At 60 Hz, 4 subframes cycle in 66.7 ms: an exposure of one or two cycles holds each
+    equally; 10 ms (0.15 cycles) or 100 ms (1.5) weighs them unequally, and the warning says
+    so with the exposure to set. A still frame adds nothing to the capture's result."""
+    from nhfd.daemon.methods import exposure_over_cycle
+
+    assert exposure_over_cycle(0.01, 1, 1 / 60) == {}
+    for exposure_s in (4 / 60, 8 / 60, 4.1 / 60):
+        got = exposure_over_cycle(exposure_s, 4, 1 / 60)
+        assert "warning" not in got and got["subframes"] == 4
+        assert got["cycle_s"] == pytest.approx(4 / 60, abs=1e-6)
+    short = exposure_over_cycle(0.01, 4, 1 / 60)
+    assert short["exposure_cycles"] == 0.15
+    assert short["warning"] == ("exposure 10 ms spans 0.15 cycles of the 4 subframes shown in "
+                                "turn (66.6667 ms at 60 Hz): the image weighs them unequally; "
+                                "set exposure_s to a whole number of cycles (0.0666667 s)")
+    assert "(0.133333 s)" in exposure_over_cycle(0.1, 4, 1 / 60)["warning"]
 
 
 def test_the_pacer_sends_a_view_just_in_time_and_counts_late_frames():

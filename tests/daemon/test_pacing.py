@@ -203,9 +203,9 @@ def test_a_crashed_worker_leaves_no_shared_memory_and_its_successor_gets_new_slo
     try:
         first = our_segments()
         # One frame slot: the link holds one frame at a time (in the worker or waiting for its
-        # refresh), so a second would never be needed (each is the panel's size); and the two
-        # refine slots a refinement's better frames take turns in.
-        assert len(first) == frame_link.SLOTS + frame_link.REFINE_SLOTS == 3
+        # refresh), so a second would never be needed (each is the panel's size); and the three
+        # refine slots a refinement's better frames and a K-subframe model's take turns in.
+        assert len(first) == frame_link.SLOTS + frame_link.REFINE_SLOTS == 4
         host.views.submit(orbit(CRASH_DEG))
         wait_until(lambda: (link.step(), link.state == LinkState.CRASHED)[1], 10, "the crash")
         assert our_segments() == []  # unlinked with the crashed worker

@@ -202,7 +202,8 @@ def test_the_model_reports_itself_as_status_always_showed_it():
     out = MODEL.to_json()
     assert list(out) == [
         "path", "profile", "train_size_hw", "fx", "amplitude_scale", "z0_m", "volume_m",
-        "mapping", "pose_envelope", "parameters", "train_steps", "scene_sha256", "providers",
+        "mapping", "pose_envelope", "parameters", "train_steps", "scene_sha256", "subframes",
+        "providers",
         "loaded_s", "load_memory_mb", "inference", "inference_reason", "variant",
         "variant_reason", "served", "window_hw", "checked_sizes_hw", "checked_sizes_recorded",
         "device", "device_reason", "size_warning", "tuned_for"]

@@ -116,6 +116,9 @@ CASES = [
     ("input_multiple", 12, f"a power of two in 1..{INPUT_MULTIPLE_MAX}"),
     ("input_multiple", 16.0, f"a power of two in 1..{INPUT_MULTIPLE_MAX}"),
     ("input_multiple", 32, "net.unshuffle x 2^net.depth = 16"),
+    ("subframes", 0, "an integer in 1..8 (frames one inference emits)"),
+    ("subframes", 9, "an integer in 1..8 (frames one inference emits)"),
+    ("subframes", 2.5, "an integer in 1..8 (frames one inference emits)"),
     ("volume_m", [0.003, -0.003], "[near, far] in metres from the reference plane with near < "
                                   "far"),
     ("volume_m", [-0.007, 0.003], "a near end in front of the SLM (z0_m + near > 0"),

@@ -39,7 +39,7 @@ from nhfd.optics import grey_to_phase, phase_to_grey
 from nhfd.pipeline import tune as T
 from nhfd.pipeline.encoder import Encoder, reference_field
 from nhfd.pipeline.frame import compute_frame, infer, render_view
-from nhfd.pipeline.refine import prepare
+from nhfd.pipeline.refine import grey_phase, prepare, psnr_db, stack_loss
 from nhfd.pipeline.settings import frame_settings
 from nhfd.pipeline.view import scene_from_file, view_pose
 from nhfd.scene.cameras import orbit, orbit_position
@@ -302,6 +302,10 @@ def test_bad_settings_are_refused_naming_the_setting_and_range() -> None:
         settings(window_hw=(48, 8))
     with pytest.raises(T.TuneError, match=r"device \(--device\) = 'tpu'"):
         settings(device="tpu")
+    for k in (0, 9):
+        with pytest.raises(T.TuneError, match=rf"subframes \(--subframes\) = {k}: must be in "
+                                              r"1\.\.8"):
+            settings(subframes=k)
 
 
 def test_bad_input_is_refused_with_nothing_written(tmp_path, scene, model_file) -> None:
@@ -425,3 +429,40 @@ def test_the_command_tunes_and_writes_a_checked_model(tmp_path, model_file, caps
     assert [e["hw"] for e in got["checked_sizes"]] == \
         [e["hw"] for e in read_metadata(model_file)["checked_sizes"]]
     assert all(e["ok"] for e in got["checked_sizes"])
+
+
+def test_k_subframes_are_tuned_on_their_mean_and_served_as_k_frames(tmp_path, scene, meta,
+                                                                     model_file) -> None:
+    """`--subframes 2`: the one-frame model is widened to two heads and tuned on their mean
+    intensity. The file records K (metadata `subframes`, `tuned_for.subframes`), both
+    runtimes serve it, the frame path gives two distinct subframes, and what the loss scored
+    is their mean as shown: the bench model's stack of the two grey frames' mean intensity,
+    not the first frame's. A K = 2 model is not tuned at another K; nothing is written."""
+    k = 2
+    s = settings(subframes=k, steps=4)
+    res = run(model_file, scene, tmp_path / "out", s)
+    assert res is not None and res.tuned_for["subframes"] == k
+    tuned = TorchModel(res.path)
+    assert tuned.info.subframes == load_model(res.path, Config()).info.subframes == k
+    assert read_metadata(res.path)["subframes"] == k
+    view = View(Orbit(*envelope_view(meta, *HELD_OUT[0])))
+    [v] = T.prepare_views([view], scene, tuned, Config(), CAL, s, PANEL_HW, say=lambda _m: None)
+    frame = compute_frame(view, scene, tuned, v.prepared.encoder)
+    assert frame.subframes.shape == (k, *frame.grey.shape)
+    assert np.array_equal(frame.subframes[0], frame.grey)
+    assert np.mean(frame.subframes[0] != frame.subframes[1]) > 0.01  # two frames, not one twice
+    with torch.no_grad():
+        _, loss_mse, _ = T.view_loss(tuned.module, v, tuned.amplitude_scale, 0.0)
+        shown = torch.stack([grey_phase(g, v.prepared.encoder) for g in frame.subframes])
+        seen = v.prepared.model(shown)  # [K, planes, colours, h, w]
+        mean_mse = float(stack_loss(seen.mean(0), v.prepared.target))
+        first_mse = float(stack_loss(seen[0], v.prepared.target))
+    assert abs(psnr_db(mean_mse) - psnr_db(loss_mse)) < 0.01, (mean_mse, loss_mse)
+    assert abs(psnr_db(first_mse) - psnr_db(loss_mse)) > 0.1, (first_mse, loss_mse)
+
+    out = tmp_path / "again"
+    with pytest.raises(T.TuneError, match=r"subframes \(--subframes\) = 3: .*emits 2 "
+                                          r"subframes; tune it at --subframes 2"):
+        T.tune_model(res.path, scene, SCENE, CAL, out, settings(subframes=3), panel_hw=PANEL_HW,
+                     check_sizes=False, say=lambda _m: None)
+    _nothing_written(out)
