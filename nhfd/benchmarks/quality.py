@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import itertools
 import json
 import math
 import time
@@ -485,6 +486,11 @@ def tuning_poses(meta: dict[str, Any], scene: Scene, info: ModelInfo, dataset: s
             "a grid over the model's pose envelope (the model records no training poses)")
 
 
+def tuned_key(scene: str, k: int) -> str:
+    """Where the JSON keeps a scene's tuning record for K subframes ("donut", "donut K=4")."""
+    return scene if k == 1 else f"{scene} K={k}"
+
+
 def tune_for_bench(model_path: Path, scene: Scene, scene_path: Path, calibration: Calibration,
                    settings: TuneSettings, poses: Sequence[View], folder_root: Path,
                    config: Config, panel_hw: tuple[int, int]
@@ -627,9 +633,6 @@ def run(args: argparse.Namespace) -> int:
     if any(t in tiers for t in LEARNED_TIERS):  # refused before anything is captured
         learned_plan = LearnPlan(window_hw=window_hw, sgd_patterns=args.learn_patterns,
                                  steps=args.learn_steps)
-    if tune_settings is not None and ks != [1]:
-        result["tuned_note"] = ("the tuned tier is measured at K = 1 only: the network emits "
-                                "one frame per inference")
     rng = np.random.default_rng(args.seed)
     with sim_devices(aberrated(twin, unknown_zernike), panel_hw) as devices:
         learned_cal = None
@@ -655,32 +658,34 @@ def run(args: argparse.Namespace) -> int:
                                window_hw=(64, 96), panel_hw=sim_panel_hw((64, 96)),
                                planes=base.planes)
                 compute_frame(warm.view, scene, model, warm.encoder)
-            tuned: dict[str, tuple[Any, TuneResult]] = {}  # tier -> (model, its tuning)
+            # (tier, K) -> (the model, its tuning): K heads tuned on their mean per K
+            tuned: dict[tuple[str, int], tuple[Any, TuneResult]] = {}
             if tune_settings is not None and model is not None:
                 scene_path = Path(args.scene)
                 poses, poses_from = tuning_poses(read_metadata(args.model), scene, info,
                                                  args.tune_dataset)
                 ts = replace(tune_settings, views=min(tune_settings.views, len(poses)))
-                for tier, cal, cfg, suffix in (("tuned", calibration, config, ""),
-                                               ("tuned-learned", learned_cal, learned_config,
-                                                "-learned")):
+                for (tier, cal, cfg, suffix), k in itertools.product(
+                        (("tuned", calibration, config, ""),
+                         ("tuned-learned", learned_cal, learned_config, "-learned")), ks):
                     if tier not in tiers:
                         continue
                     assert cal is not None
                     bench = "learned" if suffix else "calibrated"
-                    print(f"{name}: {tier}: tuning through the run's {bench} bench on "
+                    print(f"{name}: {tier} K={k}: tuning through the run's {bench} bench on "
                           f"{ts.views} of {len(poses)} poses ({poses_from}), {ts.steps} steps",
                           flush=True)
+                    tk = replace(ts, subframes=k)
                     res, tune_s, folder = tune_for_bench(
-                        Path(args.model), scene, scene_path, cal, ts, poses,
+                        Path(args.model), scene, scene_path, cal, tk, poses,
                         out.parent / f"{out.stem}-tune-{name}{suffix}", cfg, panel_hw)
-                    tuned[tier] = (load_model(res.path, config), res)
-                    compute_frame(warm.view, scene, tuned[tier][0], warm.encoder)  # warmed
-                    result.setdefault(TUNED_RECORD[tier], {})[name] = {
+                    tuned[tier, k] = (load_model(res.path, config), res)
+                    compute_frame(warm.view, scene, tuned[tier, k][0], warm.encoder)  # warmed
+                    result.setdefault(TUNED_RECORD[tier], {})[tuned_key(name, k)] = {
                         "dir": str(folder), "poses_from": poses_from, "tune_s": round(tune_s, 1),
                         "steps": res.steps, "steps_s": round(res.seconds, 1),
                         "views": [v.to_json() for v in choose_views(poses, ts.views)],
-                        "settings": ts.key(), "tuned_for": res.tuned_for}
+                        "settings": tk.key(), "tuned_for": res.tuned_for}
             for i, view in enumerate(seeded_views(rng, args.views, scene, info, window_hw)):
                 arm_twin(devices)  # each view's captures within an arming (tuning outlasts one)
                 p = prepare(config, view, scene, info=info, calibration=calibration,
@@ -699,11 +704,12 @@ def run(args: argparse.Namespace) -> int:
                         rows.append(_row(name, i, "network", 1, net_s, start, p, loop))
                 p_learned = (through_learned(p, learned_cal) if learned_cal is not None
                              else None)
-                for tier, (net, res) in tuned.items():
+                for (tier, k), (net, res) in tuned.items():
                     t0 = time.perf_counter()
-                    grey = compute_frame(view, scene, net, p.encoder).grey
-                    record = result[TUNED_RECORD[tier]][name]
-                    rows.append(_row(name, i, tier, 1, time.perf_counter() - t0, grey,
+                    frame = compute_frame(view, scene, net, p.encoder)
+                    grey = frame.grey if frame.subframes is None else frame.subframes
+                    record = result[TUNED_RECORD[tier]][tuned_key(name, k)]
+                    rows.append(_row(name, i, tier, k, time.perf_counter() - t0, grey,
                                      p if tier == "tuned" else p_learned, loop,
                                      extra={"tune_s": record["tune_s"],
                                             "tune_steps_s": round(res.seconds, 3),
