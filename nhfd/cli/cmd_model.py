@@ -147,6 +147,9 @@ def tune_budget_arguments(p: argparse.ArgumentParser, d: tune.TuneSettings,
                    help=f"frames per inference, {lo}..{hi}: K heads tuned jointly on their mean "
                    "intensity, shown in turn one per refresh (default %(default)s; a one-frame "
                    "model is widened)")
+    p.add_argument(f"--{prefix}subframe-jitter", type=float, default=d.subframe_jitter,
+                   metavar="F", help="how far the K heads' phase weights start apart, x their "
+                   "rms, 0..2 (default %(default)s)")
 
 
 def run_model_build(args: argparse.Namespace) -> int:
@@ -205,7 +208,8 @@ def build_tuning(args: argparse.Namespace, config: Config
     w, h = parse_wxh(args.tune_size, "--tune-size")
     settings = tune.TuneSettings(steps=args.tune_steps, seconds=args.tune_seconds,
                                  views=args.tune_views, window_hw=(h, w),
-                                 subframes=args.tune_subframes)
+                                 subframes=args.tune_subframes,
+                                 subframe_jitter=args.tune_subframe_jitter)
     cal = Calibration.load(args.calibration)
     try:
         check_bench(cal, config.optics.wavelengths_m, config.slm.pitch_m)
@@ -305,7 +309,8 @@ def run_model_tune(args: argparse.Namespace) -> int:
     w, h = parse_wxh(args.size)
     settings = tune.TuneSettings(steps=args.steps, seconds=args.seconds, views=args.views,
                                  window_hw=(h, w), ssim_weight=args.ssim_weight,
-                                 device=args.device, subframes=args.subframes)
+                                 device=args.device, subframes=args.subframes,
+                                 subframe_jitter=args.subframe_jitter)
     cal = Calibration.load(args.calibration)
     res = tune.tune_model(args.model, scene_from_file(args.scene), args.scene, cal, args.out,
                           settings, config=config, dataset=args.dataset)

@@ -306,6 +306,9 @@ def test_bad_settings_are_refused_naming_the_setting_and_range() -> None:
         with pytest.raises(T.TuneError, match=rf"subframes \(--subframes\) = {k}: must be in "
                                               r"1\.\.8"):
             settings(subframes=k)
+    with pytest.raises(T.TuneError, match=r"subframe_jitter \(--subframe-jitter\) = -0\.1: "
+                                          r"must be in 0\.\.2"):
+        settings(subframe_jitter=-0.1)
 
 
 def test_bad_input_is_refused_with_nothing_written(tmp_path, scene, model_file) -> None:
