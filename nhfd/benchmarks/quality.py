@@ -42,7 +42,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -179,8 +179,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--model", default=str(DONUT_MODEL), help="the donut's model")
     p.add_argument("--scene", default=str(DONUT), help="the model's scene")
     p.add_argument("--other-scene", default=str(GUITAR),
-                   help="a scene refined without a model (default: the shared guitar); "
-                        "'none' to skip")
+                   help="a second scene (default: the shared guitar); 'none' to skip")
+    p.add_argument("--other-model", metavar="FILE",
+                   help="the second scene's model: its network and tuned tiers run there too, "
+                        "and the goal over its exact frame is judged (default: none, the "
+                        "second scene refined without a model)")
     p.add_argument("--bench-seed", type=int, default=BENCH_SEED,
                    help=f"the twin's seed (TrueBench.randomised; default {BENCH_SEED})")
     p.add_argument("--twin", metavar="FILE",
@@ -562,16 +565,37 @@ def _ks(text: str) -> list[int]:
     return ks
 
 
-def _scene_runs(args: argparse.Namespace, config: Config, window_hw: tuple[int, int]
-                ) -> list[tuple[str, Scene, Any]]:
-    runs = []
-    model = load_model(args.model, config)
-    runs.append((Path(args.scene).name.split(".")[0], scene_from_file(args.scene), model))
-    if args.other_scene and args.other_scene.lower() != "none":
-        other = Path(args.other_scene)
-        if not other.exists():
-            raise FileNotFoundError(f"--other-scene {other}: not found (or 'none' to skip)")
-        runs.append((other.name.split(".")[0], scene_from_file(other), None))
+@dataclass
+class SceneRun:
+    """A scene measured: its name, the scene and its file, and its model (None: refined
+    without one) and the model's file."""
+
+    name: str
+    scene: Scene
+    scene_path: Path
+    model: Any
+    model_path: Path | None
+
+
+def _scene_runs(args: argparse.Namespace, config: Config) -> list[SceneRun]:
+    """The model's scene, then --other-scene (with --other-model's model, if given). Refused
+    before anything is captured: a file not found, a model without a second scene."""
+    other = None if not args.other_scene or args.other_scene.lower() == "none" \
+        else Path(args.other_scene)
+    if args.other_model and other is None:
+        raise ValueError(f"--other-model {args.other_model}: needs --other-scene (its scene), "
+                         "not 'none'")
+    for flag, path in (("--other-scene", other), ("--other-model", args.other_model)):
+        if path is not None and not Path(path).exists():
+            raise FileNotFoundError(f"{flag} {path}: not found")
+    scene_path = Path(args.scene)
+    runs = [SceneRun(scene_path.name.split(".")[0], scene_from_file(scene_path), scene_path,
+                     load_model(args.model, config), Path(args.model))]
+    if other is not None:
+        model_path = Path(args.other_model) if args.other_model else None
+        runs.append(SceneRun(other.name.split(".")[0], scene_from_file(other), other,
+                             load_model(model_path, config) if model_path else None,
+                             model_path))
     return runs
 
 
@@ -607,10 +631,10 @@ def run(args: argparse.Namespace) -> int:
     machine = describe()
     print(f"nhfd bench quality: {w} x {h} window on a {panel_hw[1]} x {panel_hw[0]} simulated "
           f"panel; {machine['cpu']}, {machine['cores']} cores", flush=True)
+    runs = _scene_runs(args, config)  # files refused before the calibration's minutes
     t0 = time.perf_counter()
     calibration = twin_calibration(cal_dir, twin, panel_hw)
     calibration_s = time.perf_counter() - t0
-    runs = _scene_runs(args, config, window_hw)
     rows: list[dict[str, Any]] = []
     views_json: list[dict[str, Any]] = []
     result: dict[str, Any] = {
@@ -650,7 +674,8 @@ def run(args: argparse.Namespace) -> int:
                   f"capture about {rec['bench_capture_s'] / 60:.1f} min)", flush=True)
         learned_config = config.model_copy(update={"refine": config.refine.model_copy(
             update={"bench_model": "learned"})})
-        for name, scene, model in runs:
+        for run_ in runs:
+            name, scene, model = run_.name, run_.scene, run_.model
             info = model.info if model is not None else None
             if model is not None:  # warm-up: the renderer's kernels, the session
                 warm = prepare(config, seeded_views(np.random.default_rng(99), 1, scene, info,
@@ -661,9 +686,10 @@ def run(args: argparse.Namespace) -> int:
             # (tier, K) -> (the model, its tuning): K heads tuned on their mean per K
             tuned: dict[tuple[str, int], tuple[Any, TuneResult]] = {}
             if tune_settings is not None and model is not None:
-                scene_path = Path(args.scene)
-                poses, poses_from = tuning_poses(read_metadata(args.model), scene, info,
-                                                 args.tune_dataset)
+                assert run_.model_path is not None
+                # --tune-dataset is the first model's dataset
+                poses, poses_from = tuning_poses(read_metadata(run_.model_path), scene, info,
+                                                 args.tune_dataset if run_ is runs[0] else None)
                 ts = replace(tune_settings, views=min(tune_settings.views, len(poses)))
                 for (tier, cal, cfg, suffix), k in itertools.product(
                         (("tuned", calibration, config, ""),
@@ -677,7 +703,7 @@ def run(args: argparse.Namespace) -> int:
                           flush=True)
                     tk = replace(ts, subframes=k)
                     res, tune_s, folder = tune_for_bench(
-                        Path(args.model), scene, scene_path, cal, tk, poses,
+                        run_.model_path, scene, run_.scene_path, cal, tk, poses,
                         out.parent / f"{out.stem}-tune-{name}{suffix}", cfg, panel_hw)
                     tuned[tier, k] = (load_model(res.path, config), res)
                     compute_frame(warm.view, scene, tuned[tier, k][0], warm.encoder)  # warmed

@@ -234,6 +234,53 @@ def test_the_tuned_tier_scores_the_model_tuned_through_the_runs_calibration(
     assert k4["diffs"] == [round(rows["tuned", 4]["psnr_db"], 3)]
 
 
+def test_a_second_scene_with_its_model_is_tuned_and_judged_over_its_exact_frame(
+        tmp_path, monkeypatch) -> None:
+    """--other-model gives the second scene the model tiers: its tuned model is tuned on that
+    scene, in its own folder, and the goal over the exact frame is judged on that scene's
+    pairs only. (The second scene is the donut's file under another name with the same model:
+    the subject is the run's bookkeeping.)"""
+    monkeypatch.setattr(Q, "twin_calibration", lambda _folder, twin, panel_hw, **_kw:
+                        truth_calibration(twin, twin.roi_for_panel(panel_hw)))
+    other = tmp_path / "ring.ply"
+    other.write_bytes(Q.DONUT.read_bytes())
+    out = tmp_path / "quality.json"
+    assert Q.run(_bench_args("--size", "64x48", "--views", "1", "--tiers", "exact,tuned",
+                             "--subframes", "1", "--other-scene", str(other), "--other-model",
+                             str(Q.DONUT_MODEL), "--tune-steps", "1", "--tune-views", "1",
+                             "--unknown-zernike", "none", "--out", str(out),
+                             "--plot", "")) == 0
+    result = json.loads(out.read_text())
+    rows = {(r["scene"], r["tier"]): r for r in result["rows"]}
+    assert set(rows) == {(s, t) for s in ("donut", "ring") for t in ("exact", "tuned")}
+    assert Path(result["tuned"]["ring"]["dir"]).parent.name == "quality-tune-ring"
+    assert result["tuned"]["ring"]["dir"] != result["tuned"]["donut"]["dir"]
+    goal = {g["goal"]: g for g in result["goals"]}[
+        f"tuned (K=1) over the exact frame on another scene >= +{Q.GOAL_TUNED_OVER_EXACT_DB:g} "
+        "dB captured"]
+    assert goal["diffs"] == [round(rows["ring", "tuned"]["psnr_db"]
+                                   - rows["ring", "exact"]["psnr_db"], 3)]
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (("--other-scene", "none", "--other-model", "m.onnx"),
+     "--other-model m.onnx: needs --other-scene (its scene), not 'none'"),
+    (("--other-scene", "no-such.ply"), "--other-scene no-such.ply: not found"),
+    (("--other-model", "no-such.onnx"), "--other-model no-such.onnx: not found"),
+])
+def test_a_second_scene_or_model_that_cannot_run_is_refused_before_the_calibration(
+        tmp_path, monkeypatch, argv, message) -> None:
+    def calibrate(*_a, **_kw):
+        raise AssertionError("calibrated before the files were checked")
+
+    monkeypatch.setattr(Q, "twin_calibration", calibrate)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises((ValueError, FileNotFoundError)) as info:
+        Q.run(_bench_args(*argv, "--out", str(tmp_path / "q.json"), "--plot", ""))
+    assert str(info.value) == message
+    assert not (tmp_path / "q.json").exists()
+
+
 def test_the_tuned_goals_are_checked_on_the_rows() -> None:
     rows = [*ROWS, _row("donut", 0, "tuned", 1, 27.5, 0.2, 0.6),
             _row("donut", 1, "tuned", 1, 26.9, 0.2, 0.7)]
