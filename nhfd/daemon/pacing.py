@@ -317,11 +317,8 @@ class FramePacer:
         current.report = dict(refined.report)
         if not refined.subframes:
             return
-        try:
-            greys = slots.refined_arrays(refined)
-        except ValueError as exc:
-            self.error("frame worker", f"view {seq}'s refined frame: {exc}")
-            slots.free_refine(refined.slot)
+        greys = self._slot_arrays(slots, refined, f"view {seq}'s refined frame")
+        if greys is None:
             return
         previous = current.slot
         current.region, current.greys, current.slot = refined.region, greys, refined.slot
@@ -410,16 +407,23 @@ class FramePacer:
         turns from the next refresh (in the view's refinement when it asked for one, until a
         better frame replaces them)."""
         slots = self.slots()
-        try:
-            greys = slots.refined_arrays(subframes)
-        except ValueError as exc:
-            self.error("frame worker", f"view {seq}'s subframes: {exc}")
-            slots.free_refine(subframes.slot)
+        greys = self._slot_arrays(slots, subframes, f"view {seq}'s subframes")
+        if greys is None:
             return
         if self.refinement is None:
             self.refinement = Refinement(seq, "network", dict(subframes.report))
         r = self.refinement
         r.region, r.greys, r.slot, r.index = subframes.region, greys, subframes.slot, 0
+
+    def _slot_arrays(self, slots: Any, refined: RefinedFrame, what: str) -> np.ndarray | None:
+        """`refined`'s subframes (`refined_arrays`), or None with the error reported and its
+        slot given back when they cannot be read."""
+        try:
+            return slots.refined_arrays(refined)
+        except ValueError as exc:
+            self.error("frame worker", f"{what}: {exc}")
+            slots.free_refine(refined.slot)
+            return None
 
     def _panel(self, message: FrameMessage) -> tuple[np.ndarray, np.ndarray | None]:
         """The full panel: the blank frame (the zero pattern of the coding in use) outside the

@@ -40,8 +40,8 @@ def arrays_in(obj: Any) -> list[str]:
     return []
 
 
-def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_segments):
-    config = small_config(daemon={"frames": {"cache_frames": 0}})
+def _spied_link(config: Any) -> tuple[Any, Any, list[Any]]:
+    """A host's frame link whose worker's messages are also kept, in order, in the list."""
     host = _Host(config)
     link = host.frame_link()
     received: list[Any] = []
@@ -53,6 +53,12 @@ def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_se
         return msgs
 
     link.worker.receive = spy
+    return host, link, received
+
+
+def test_frames_shown_through_shared_memory_are_compute_frames_grey(tiny, our_segments):
+    config = small_config(daemon={"frames": {"cache_frames": 0}})
+    host, link, received = _spied_link(config)
     model = load_model(tiny["model"], config)
     load = read_scene(str(tiny["scene"]))
     scene = Scene(load.gaussians, scene_frame(load.gaussians, str(tiny["scene"])))
@@ -141,17 +147,7 @@ def test_a_k_subframe_models_frames_take_turns_on_the_panel(tiny, our_segments, 
                              check_sizes=False)
     # (written as a tuned file is: served under no calibration only with the override)
     config = small_config(daemon={"frames": {"cache_frames": 0, "allow_other_bench": True}})
-    host = _Host(config)
-    link = host.frame_link()
-    received: list[Any] = []
-    receive = link.worker.receive
-
-    def spy() -> list[Any]:
-        msgs = receive()
-        received.extend(msgs)
-        return msgs
-
-    link.worker.receive = spy
+    host, link, received = _spied_link(config)
     model = load_model(path, config)
     load = read_scene(str(tiny["scene"]))
     scene = Scene(load.gaussians, scene_frame(load.gaussians, str(tiny["scene"])))
