@@ -327,3 +327,11 @@ class ModelInfo:
                                   else self.pose_envelope.to_json()),
                 "parameters": self.parameters, "train_steps": self.train_steps,
                 "scene_sha256": self.scene_sha256, "subframes": self.subframes}
+
+
+def recorded_scenes(metadata: dict[str, Any]) -> tuple[str, ...]:
+    """The scene files a model's metadata says it was built from, as SHA-256 hex: the scene it
+    was trained on (`scene_sha256`) and, for a model `nhfd model build` made, the source file it
+    reduced (`source_scene_sha256`). Empty when it records none (an older or foreign model)."""
+    return tuple(str(s) for s in (metadata.get("scene_sha256"),
+                                  metadata.get("source_scene_sha256")) if s)

@@ -58,7 +58,7 @@ from nhfd.cli.args import parse_wxh
 from nhfd.config import Config, load_config, refine_settings
 from nhfd.dataset.build import sha256_file
 from nhfd.drivers.simcamera import TrueBench
-from nhfd.model_info import ModelInfo
+from nhfd.model_info import ModelInfo, recorded_scenes
 from nhfd.models.export import load_model
 from nhfd.models.sizes import read_metadata
 from nhfd.optics.quality import speckle_contrast, stack_quality
@@ -577,6 +577,17 @@ class SceneRun:
     model_path: Path | None
 
 
+def _check_built_from(model: str | Path, scene: Path, model_flag: str, scene_flag: str) -> None:
+    """Refuse a model whose metadata records another scene than the file it is measured on
+    (without it, the network tiers would score a model on a scene it never saw). A model that
+    records no scene passes here; the tuned tier refuses it itself."""
+    recorded = recorded_scenes(read_metadata(Path(model)))
+    if recorded and sha256_file(scene) not in recorded:
+        raise ValueError(f"{model_flag} {model}: built from another scene than {scene_flag} "
+                         f"{scene} (SHA-256 {recorded[0][:12]}... in the model's metadata, "
+                         f"{sha256_file(scene)[:12]}... for the file)")
+
+
 def _scene_runs(args: argparse.Namespace, config: Config) -> list[SceneRun]:
     """The model's scene, then --other-scene (with --other-model's model, if given). Refused
     before anything is captured: a file not found, a model without a second scene."""
@@ -589,6 +600,9 @@ def _scene_runs(args: argparse.Namespace, config: Config) -> list[SceneRun]:
         if path is not None and not Path(path).exists():
             raise FileNotFoundError(f"{flag} {path}: not found")
     scene_path = Path(args.scene)
+    _check_built_from(args.model, scene_path, "--model", "--scene")
+    if other is not None and args.other_model:
+        _check_built_from(args.other_model, other, "--other-model", "--other-scene")
     runs = [SceneRun(scene_path.name.split(".")[0], scene_from_file(scene_path), scene_path,
                      load_model(args.model, config), Path(args.model))]
     if other is not None:

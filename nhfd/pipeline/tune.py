@@ -43,7 +43,7 @@ import torch.fft as fft
 from nhfd.calibration import Calibration, bench_record, check_bench, fingerprint
 from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
-from nhfd.model_info import SUBFRAMES_RANGE
+from nhfd.model_info import SUBFRAMES_RANGE, recorded_scenes
 from nhfd.models.inputs import network_input
 from nhfd.models.loss import box_ssim
 from nhfd.models.metadata import METADATA_KEY, expected_from_config, parse_metadata
@@ -464,13 +464,13 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
         raise TuneError(str(exc)) from None
     meta = model.metadata
     scene_sha = sha256_file(Path(scene_path))
-    recorded = [meta.get("scene_sha256"), meta.get("source_scene_sha256")]
-    if not any(recorded):
+    recorded = recorded_scenes(meta)
+    if not recorded:
         raise TuneError(f"{model_path}: its metadata records no scene (scene_sha256): tune a "
                         "model `nhfd model build` made")
     if scene_sha not in recorded:
         raise TuneError(f"--scene {scene_path}: not the scene {model_path} was built from "
-                        f"(scene_sha256 {str(recorded[0] or recorded[1])[:12]}...)")
+                        f"(scene_sha256 {recorded[0][:12]}...)")
     if model.info.mapping is None:
         raise TuneError(f"{model_path}: its metadata has no depth mapping (mapping): the "
                         "exact target needs it")

@@ -281,6 +281,31 @@ def test_a_second_scene_or_model_that_cannot_run_is_refused_before_the_calibrati
     assert not (tmp_path / "q.json").exists()
 
 
+@pytest.mark.parametrize(("model_flag", "scene_flag"), [("--model", "--scene"),
+                                                      ("--other-model", "--other-scene")])
+def test_a_model_built_from_another_scene_is_refused_naming_both_before_the_calibration(
+        tmp_path, monkeypatch, model_flag, scene_flag) -> None:
+    """A model measured on a scene its metadata does not record would score a scene it never
+    saw (the network tiers have no other check): refused with both files and both hashes."""
+    def calibrate(*_a, **_kw):
+        raise AssertionError("calibrated before the files were checked")
+
+    monkeypatch.setattr(Q, "twin_calibration", calibrate)
+    other = tmp_path / "other.ply"
+    other.write_bytes(Q.DONUT.read_bytes() + b"\n")  # one byte more: another file
+    argv = [model_flag, str(Q.DONUT_MODEL), scene_flag, str(other)]
+    if model_flag == "--other-model":
+        argv += ["--scene", str(Q.DONUT)]
+    with pytest.raises(ValueError) as info:
+        Q.run(_bench_args(*argv, "--out", str(tmp_path / "q.json"), "--plot", ""))
+    recorded = Q.recorded_scenes(Q.read_metadata(Q.DONUT_MODEL))
+    assert str(info.value) == (
+        f"{model_flag} {Q.DONUT_MODEL}: built from another scene than {scene_flag} {other} "
+        f"(SHA-256 {recorded[0][:12]}... in the model's metadata, "
+        f"{Q.sha256_file(other)[:12]}... for the file)")
+    assert not (tmp_path / "q.json").exists()
+
+
 def test_the_tuned_goals_are_checked_on_the_rows() -> None:
     rows = [*ROWS, _row("donut", 0, "tuned", 1, 27.5, 0.2, 0.6),
             _row("donut", 1, "tuned", 1, 26.9, 0.2, 0.7)]
