@@ -218,6 +218,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "reused when present)")
     p.add_argument("--plot", default="docs/figures/quality.png",
                    help="the figure to write ('' for none)")
+    p.add_argument("--replot", metavar="JSON,...",
+                   help="measure nothing: plot (--plot) the rows of these runs' JSON files in "
+                        "one figure, a row measured in two files taken from the first; the "
+                        "runs must share the machine (their seconds), size, twin and views")
     p.add_argument("--unknown-zernike", default=",".join(f"{a:g}" for a in UNKNOWN_ZERNIKE_RAD),
                    metavar="RAD,...",
                    help="the aberration added to the twin after its calibration, radians at "
@@ -231,6 +235,68 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _mean(values: Sequence[float]) -> float:
     return float(np.mean(values)) if len(values) else math.nan
+
+
+# What runs plotted together must share: seconds are a machine's, PSNR a twin's and views'
+# (the seeded views are checked for each scene two runs both measured).
+REPLOT_SHARED = ("machine", "size", "twin")
+
+
+def _views_by_scene(record: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
+    views: dict[str, list[dict[str, Any]]] = {}
+    for v in record.get("views") or []:
+        views.setdefault(v["scene"], []).append(v)
+    return views
+
+
+def merged_rows(records: Sequence[tuple[str, dict[str, Any]]]) -> list[dict[str, Any]]:
+    """The rows of several runs' JSONs (`(name, record)`, in order) as one run's: a (scene,
+    tier, K, view) measured in two files is taken from the first. A run whose machine, size,
+    twin or seeded views of a scene both measured differ from the first's is refused naming
+    the file and the field."""
+    first_name, first = records[0]
+    rows: dict[tuple[Any, ...], dict[str, Any]] = {}
+    for name, record in records:
+        for key in REPLOT_SHARED:
+            if record.get(key) != first.get(key):
+                raise ValueError(f"--replot {name}: another {key} than {first_name}'s "
+                                 f"({record.get(key)!r} against {first.get(key)!r}); plot "
+                                 "only runs of one machine, size, twin and views together")
+        for scene, views in _views_by_scene(record).items():
+            if views != _views_by_scene(first).get(scene, views):
+                raise ValueError(f"--replot {name}: other {scene} views than {first_name}'s; "
+                                 "plot only runs of one machine, size, twin and views together")
+        for r in record.get("rows") or []:
+            rows.setdefault((r["scene"], r["tier"], int(r["k"]), r["view"]), r)
+    if not rows:
+        raise ValueError(f"--replot {','.join(n for n, _ in records)}: no rows to plot")
+    return list(rows.values())
+
+
+def replot(files: str, plot: str) -> int:
+    """`--replot`: the merged rows of `files` (comma-separated JSONs) in the figure `plot`, and
+    their table printed; nothing measured."""
+    if not plot:
+        raise ValueError("--replot: needs --plot (the figure to write), not ''")
+    names = [f.strip() for f in files.split(",") if f.strip()]
+    records = []
+    for name in names:
+        if not Path(name).is_file():
+            raise FileNotFoundError(f"--replot {name}: not found")
+        try:
+            records.append((name, json.loads(Path(name).read_text())))
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"--replot {name}: not a bench quality JSON ({exc})") from None
+    rows = merged_rows(records)
+    summary = summarise(rows)
+    machine, (w, h) = records[0][1]["machine"], records[0][1]["window_hw"][::-1]
+    print(table(summary))
+    title = (f"captured PSNR against seconds per frame, {w} x {h}, simulated bench\n"
+             f"{machine['cpu']}, {machine['cores']} cores; {len(records)} runs of nhfd bench "
+             "quality")
+    _plot(Path(plot), rows, summary, title)
+    print(f"wrote {plot}")
+    return 0
 
 
 def summarise(rows: Sequence[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -461,7 +527,7 @@ def _plot(path: Path, rows: Sequence[dict[str, Any]], summary: Sequence[dict[str
         ax.set_ylabel("captured PSNR (dB)")
         ax.set_title(f"{scene} (faint: each view; bold: their mean)", fontsize=9)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7, loc="upper left", framealpha=0.8)
+        ax.legend(fontsize=7, loc="best", framealpha=0.8)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -614,6 +680,8 @@ def _scene_runs(args: argparse.Namespace, config: Config) -> list[SceneRun]:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.replot:
+        return replot(args.replot, args.plot)
     t_all = time.perf_counter()
     config = load_config(args.config).config
     w, h = parse_wxh(args.size)

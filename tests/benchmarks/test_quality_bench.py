@@ -394,3 +394,54 @@ def test_the_learned_goals_are_checked_on_the_rows() -> None:
     assert g["diffs"] == [4.5] and g["met"] is True
     assert goals[f"tuned-learned (K=1) captured PSNR on the model's scene >= "
                  f"{Q.GOAL_TUNED_LEARNED_K1_DB:g} dB"]["met"] is True
+
+
+def _record(cpu: str, rows: list[dict], views: list[dict]) -> dict:
+    return {"machine": {"cpu": cpu, "cores": 2}, "size": "64x48", "window_hw": [48, 64],
+            "twin": {"seed": 7}, "views": views, "rows": rows}
+
+
+def test_replotted_runs_merge_their_rows_the_first_run_winning_a_row_both_measured() -> None:
+    donut = [{"scene": "donut", "view": 0, "azimuth_deg": 13.8}]
+    a = _record("A", [_row("donut", 0, "network", 1, 24.0, 0.3),
+                      _row("donut", 0, "tuned", 4, 26.0, 0.2)], donut)
+    b = _record("A", [_row("donut", 0, "network", 1, 99.0, 0.3),
+                      _row("donut", 0, "tuned-learned", 4, 27.0, 0.1),
+                      _row("ring", 0, "exact", 1, 30.0, 0.3)],
+                [*donut, {"scene": "ring", "view": 0, "azimuth_deg": 50.0}])
+    rows = Q.merged_rows([("a.json", a), ("b.json", b)])
+    assert [(r["scene"], r["tier"], r["k"], r["psnr_db"]) for r in rows] == [
+        ("donut", "network", 1, 24.0), ("donut", "tuned", 4, 26.0),
+        ("donut", "tuned-learned", 4, 27.0), ("ring", "exact", 1, 30.0)]
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"machine": {"cpu": "B", "cores": 2}}, "--replot b.json: another machine than a.json's"),
+    ({"twin": {"seed": 8}}, "--replot b.json: another twin than a.json's"),
+    ({"views": [{"scene": "donut", "view": 0, "azimuth_deg": 40.0}]},
+     "--replot b.json: other donut views than a.json's"),
+])
+def test_replotted_runs_of_another_machine_twin_or_views_are_refused_naming_them(
+        change, message) -> None:
+    a = _record("A", [_row("donut", 0, "network", 1, 24.0, 0.3)],
+                [{"scene": "donut", "view": 0, "azimuth_deg": 13.8}])
+    with pytest.raises(ValueError) as info:
+        Q.merged_rows([("a.json", a), ("b.json", {**a, **change})])
+    assert str(info.value).startswith(message)
+
+
+def test_replot_writes_the_merged_figure_and_refuses_no_figure_or_a_bad_file(tmp_path) -> None:
+    a = _record("A", [_row("donut", 0, "network", 1, 24.0, 0.3)],
+                [{"scene": "donut", "view": 0, "azimuth_deg": 13.8}])
+    (tmp_path / "a.json").write_text(json.dumps(a))
+    (tmp_path / "bad.json").write_text("{")
+    figure = tmp_path / "f.png"
+    with pytest.raises(ValueError, match=r"^--replot: needs --plot"):
+        Q.run(_bench_args("--replot", str(tmp_path / "a.json"), "--plot", ""))
+    with pytest.raises(ValueError, match=r"bad.json: not a bench quality JSON"):
+        Q.replot(f"{tmp_path / 'a.json'},{tmp_path / 'bad.json'}", str(figure))
+    with pytest.raises(FileNotFoundError, match=r"--replot .*nope.json: not found"):
+        Q.replot(str(tmp_path / "nope.json"), str(figure))
+    assert not figure.exists()
+    assert Q.run(_bench_args("--replot", str(tmp_path / "a.json"), "--plot", str(figure))) == 0
+    assert figure.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
