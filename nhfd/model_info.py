@@ -335,3 +335,13 @@ def recorded_scenes(metadata: dict[str, Any]) -> tuple[str, ...]:
     reduced (`source_scene_sha256`). Empty when it records none (an older or foreign model)."""
     return tuple(str(s) for s in (metadata.get("scene_sha256"),
                                   metadata.get("source_scene_sha256")) if s)
+
+
+def scene_mismatch(metadata: dict[str, Any], scene_sha256: str) -> str | None:
+    """None when a model's metadata records no scene or records this one (`scene_sha256`, the
+    file's hash); else both hashes, for the refusal that names them."""
+    recorded = recorded_scenes(metadata)
+    if not recorded or scene_sha256 in recorded:
+        return None
+    return (f"SHA-256 {recorded[0][:12]}... in the model's metadata, {scene_sha256[:12]}... for "
+            "the file")

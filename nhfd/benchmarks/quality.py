@@ -58,7 +58,7 @@ from nhfd.cli.args import parse_wxh
 from nhfd.config import Config, load_config, refine_settings
 from nhfd.dataset.build import sha256_file
 from nhfd.drivers.simcamera import TrueBench
-from nhfd.model_info import ModelInfo, recorded_scenes
+from nhfd.model_info import ModelInfo, scene_mismatch
 from nhfd.models.export import load_model
 from nhfd.models.sizes import read_metadata
 from nhfd.optics.quality import speckle_contrast, stack_quality
@@ -240,6 +240,10 @@ def _mean(values: Sequence[float]) -> float:
 # What runs plotted together must share: seconds are a machine's, PSNR a twin's and views'
 # (the seeded views are checked for each scene two runs both measured).
 REPLOT_SHARED = ("machine", "size", "twin")
+# What a run's JSON must hold to be plotted, and each of its rows.
+REPLOT_KEYS = (*REPLOT_SHARED, "window_hw", "views", "rows")
+REPLOT_ROW_KEYS = ("scene", "view", "tier", "k", "seconds", "psnr_db", "ssim", "speckle",
+                   "model_psnr_db")
 
 
 def _views_by_scene(record: dict[str, Any]) -> dict[str, list[dict[str, Any]]]:
@@ -255,6 +259,7 @@ def merged_rows(records: Sequence[tuple[str, dict[str, Any]]]) -> list[dict[str,
     twin or seeded views of a scene both measured differ from the first's is refused naming
     the file and the field."""
     first_name, first = records[0]
+    first_views = _views_by_scene(first)
     rows: dict[tuple[Any, ...], dict[str, Any]] = {}
     for name, record in records:
         for key in REPLOT_SHARED:
@@ -263,7 +268,7 @@ def merged_rows(records: Sequence[tuple[str, dict[str, Any]]]) -> list[dict[str,
                                  f"({record.get(key)!r} against {first.get(key)!r}); plot "
                                  "only runs of one machine, size, twin and views together")
         for scene, views in _views_by_scene(record).items():
-            if views != _views_by_scene(first).get(scene, views):
+            if views != first_views.get(scene, views):
                 raise ValueError(f"--replot {name}: other {scene} views than {first_name}'s; "
                                  "plot only runs of one machine, size, twin and views together")
         for r in record.get("rows") or []:
@@ -284,9 +289,16 @@ def replot(files: str, plot: str) -> int:
         if not Path(name).is_file():
             raise FileNotFoundError(f"--replot {name}: not found")
         try:
-            records.append((name, json.loads(Path(name).read_text())))
+            record = json.loads(Path(name).read_text())
         except json.JSONDecodeError as exc:
             raise ValueError(f"--replot {name}: not a bench quality JSON ({exc})") from None
+        missing = [k for k in REPLOT_KEYS if not isinstance(record, dict) or k not in record]
+        if not missing:
+            missing = sorted({k for r in record["rows"] for k in REPLOT_ROW_KEYS if k not in r})
+        if missing:
+            raise ValueError(f"--replot {name}: not a bench quality JSON (no "
+                             f"{', '.join(missing)})")
+        records.append((name, record))
     rows = merged_rows(records)
     summary = summarise(rows)
     machine, (w, h) = records[0][1]["machine"], records[0][1]["window_hw"][::-1]
@@ -643,15 +655,15 @@ class SceneRun:
     model_path: Path | None
 
 
-def _check_built_from(model: str | Path, scene: Path, model_flag: str, scene_flag: str) -> None:
+def _check_built_from(model: Any, model_path: Path, scene: Path, model_flag: str,
+                      scene_flag: str) -> None:
     """Refuse a model whose metadata records another scene than the file it is measured on
     (without it, the network tiers would score a model on a scene it never saw). A model that
     records no scene passes here; the tuned tier refuses it itself."""
-    recorded = recorded_scenes(read_metadata(Path(model)))
-    if recorded and sha256_file(scene) not in recorded:
-        raise ValueError(f"{model_flag} {model}: built from another scene than {scene_flag} "
-                         f"{scene} (SHA-256 {recorded[0][:12]}... in the model's metadata, "
-                         f"{sha256_file(scene)[:12]}... for the file)")
+    hashes = scene_mismatch(model.metadata, sha256_file(scene))
+    if hashes:
+        raise ValueError(f"{model_flag} {model_path}: built from another scene than "
+                         f"{scene_flag} {scene} ({hashes})")
 
 
 def _scene_runs(args: argparse.Namespace, config: Config) -> list[SceneRun]:
@@ -666,16 +678,17 @@ def _scene_runs(args: argparse.Namespace, config: Config) -> list[SceneRun]:
         if path is not None and not Path(path).exists():
             raise FileNotFoundError(f"{flag} {path}: not found")
     scene_path = Path(args.scene)
-    _check_built_from(args.model, scene_path, "--model", "--scene")
-    if other is not None and args.other_model:
-        _check_built_from(args.other_model, other, "--other-model", "--other-scene")
+    model = load_model(args.model, config)
+    _check_built_from(model, Path(args.model), scene_path, "--model", "--scene")
+    other_model = load_model(args.other_model, config) if args.other_model else None
+    if other is not None and other_model is not None:
+        _check_built_from(other_model, Path(args.other_model), other, "--other-model",
+                          "--other-scene")
     runs = [SceneRun(scene_path.name.split(".")[0], scene_from_file(scene_path), scene_path,
-                     load_model(args.model, config), Path(args.model))]
+                     model, Path(args.model))]
     if other is not None:
-        model_path = Path(args.other_model) if args.other_model else None
         runs.append(SceneRun(other.name.split(".")[0], scene_from_file(other), other,
-                             load_model(model_path, config) if model_path else None,
-                             model_path))
+                             other_model, Path(args.other_model) if args.other_model else None))
     return runs
 
 

@@ -42,7 +42,7 @@ from nhfd.daemon.client import Client
 from nhfd.daemon.service import Daemon
 from nhfd.dataset.build import sha256_file
 from nhfd.drivers.simcamera import TrueBench
-from nhfd.model_info import ModelInfo, recorded_scenes
+from nhfd.model_info import ModelInfo, scene_mismatch
 from nhfd.models.export import OnnxModel, load_model
 from nhfd.models.inputs import mapped_depth
 from nhfd.optics.color import srgb_to_linear
@@ -115,15 +115,12 @@ def check_model_and_scene(model: Path, scene: Path, config: Config) -> dict[str,
         raise FileNotFoundError(f"the scene {scene} is not there (the donut ships in "
                                 f"{DEFAULT_SCENE.parent}; pass --scene PATH for another)")
     meta = load_model(model, config).metadata
-    recorded = recorded_scenes(meta)
-    if recorded:
-        have = sha256_file(scene)
-        if have not in recorded:
-            raise ValueError(
-                f"the model {model} was trained on another scene than {scene} (SHA-256 "
-                f"{recorded[0][:12]}... in the model's metadata, {have[:12]}... for the "
-                f"file): pass --scene with the scene the model was built from, or --model with "
-                f"a model built from {scene.name}")
+    hashes = scene_mismatch(meta, sha256_file(scene))
+    if hashes:
+        raise ValueError(
+            f"the model {model} was trained on another scene than {scene} ({hashes}): pass "
+            f"--scene with the scene the model was built from, or --model with a model built "
+            f"from {scene.name}")
     panel = (int(config.slm.height_px), int(config.slm.width_px))
     model_panel = tuple(int(v) for v in meta.get("panel_hw") or panel)
     if model_panel != panel:

@@ -33,7 +33,7 @@ from nhfd.calib.learn import LearnPlan
 from nhfd.calib.sim import sim_panel_hw
 from nhfd.calibration import Calibration, fingerprint
 from nhfd.drivers.simcamera import TrueBench
-from nhfd.model_info import PoseEnvelope
+from nhfd.model_info import PoseEnvelope, recorded_scenes
 from tests.calib.twin_stack import truth_calibration
 
 
@@ -298,7 +298,7 @@ def test_a_model_built_from_another_scene_is_refused_naming_both_before_the_cali
         argv += ["--scene", str(Q.DONUT)]
     with pytest.raises(ValueError) as info:
         Q.run(_bench_args(*argv, "--out", str(tmp_path / "q.json"), "--plot", ""))
-    recorded = Q.recorded_scenes(Q.read_metadata(Q.DONUT_MODEL))
+    recorded = recorded_scenes(Q.read_metadata(Q.DONUT_MODEL))
     assert str(info.value) == (
         f"{model_flag} {Q.DONUT_MODEL}: built from another scene than {scene_flag} {other} "
         f"(SHA-256 {recorded[0][:12]}... in the model's metadata, "
@@ -435,11 +435,17 @@ def test_replot_writes_the_merged_figure_and_refuses_no_figure_or_a_bad_file(tmp
                 [{"scene": "donut", "view": 0, "azimuth_deg": 13.8}])
     (tmp_path / "a.json").write_text(json.dumps(a))
     (tmp_path / "bad.json").write_text("{")
+    (tmp_path / "norows.json").write_text(json.dumps({k: v for k, v in a.items() if k != "rows"}))
+    (tmp_path / "badrow.json").write_text(json.dumps({**a, "rows": [{"scene": "donut"}]}))
     figure = tmp_path / "f.png"
     with pytest.raises(ValueError, match=r"^--replot: needs --plot"):
         Q.run(_bench_args("--replot", str(tmp_path / "a.json"), "--plot", ""))
     with pytest.raises(ValueError, match=r"bad.json: not a bench quality JSON"):
         Q.replot(f"{tmp_path / 'a.json'},{tmp_path / 'bad.json'}", str(figure))
+    with pytest.raises(ValueError, match=r"norows.json: not a bench quality JSON \(no rows\)$"):
+        Q.replot(str(tmp_path / "norows.json"), str(figure))
+    with pytest.raises(ValueError, match=r"badrow.json: not a bench quality JSON \(no k, "):
+        Q.replot(str(tmp_path / "badrow.json"), str(figure))
     with pytest.raises(FileNotFoundError, match=r"--replot .*nope.json: not found"):
         Q.replot(str(tmp_path / "nope.json"), str(figure))
     assert not figure.exists()
