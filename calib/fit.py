@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from nhfd.calibration import Calibration
+from nhfd.calibration import Calibration, unmodulated_amplitude
 from nhfd.optics import PhaseCurve
 from nhfd.optics.camera_grid import to_slm_grid
 
@@ -155,8 +155,8 @@ def _source_terms(source: SourceFit | None, panel_hw: tuple[int, int], pitch_m: 
     unmod = 0j
     if source is not None and source.unmodulated_fraction is not None and \
             source.unmodulated_phase_rad is not None:
-        f0 = source.unmodulated_fraction[c]
-        unmod = complex(np.sqrt(f0 / (1 - f0)) * np.exp(-1j * source.unmodulated_phase_rad[c]))
+        unmod = unmodulated_amplitude(source.unmodulated_fraction[c],
+                                      source.unmodulated_phase_rad[c])
     return amp, unmod
 
 

@@ -54,6 +54,12 @@ WAVELENGTH_REL_TOL = 5e-3
 PITCH_REL_TOL = 1e-3
 
 
+# The most unmodulated light a calibration may record (intensity fraction): a panel that leaves
+# more than half its light unmodulated is not a phase modulator, and a fraction near 1 would make
+# the bench models' relative amplitude sqrt(f / (1 - f)) unbounded.
+MAX_UNMODULATED_FRACTION = 0.5
+
+
 class CalibrationFileError(ValueError):
     """A calibration file is missing, corrupt, foreign, from an unknown version, or fitted for
     another bench (other wavelengths or pitch than the configured ones)."""
@@ -136,6 +142,18 @@ class Calibration:
                 raise ValueError(f"z_offset_m[{c}] = {z!r}: must be finite, |z| <= 0.05 m")
             if not (math.isfinite(k) and k > 0):
                 raise ValueError(f"intensity[{c}] = {k!r}: must be finite and > 0")
+        if self.unmodulated_fraction or self.unmodulated_phase_rad:
+            if len(self.unmodulated_fraction) != 3 or len(self.unmodulated_phase_rad) != 3:
+                raise ValueError("zero_order: need one unmodulated_fraction and one phase_rad "
+                                 "per colour")
+            for c, (f, ph) in enumerate(zip(self.unmodulated_fraction,
+                                            self.unmodulated_phase_rad, strict=True)):
+                if not 0 <= f <= MAX_UNMODULATED_FRACTION:
+                    raise ValueError(f"zero_order.unmodulated_fraction[{c}] = {f!r}: must be in "
+                                     f"0..{MAX_UNMODULATED_FRACTION} (the bench models add it "
+                                     "to every frame)")
+                if not math.isfinite(ph):
+                    raise ValueError(f"zero_order.phase_rad[{c}] = {ph!r}: must be finite")
         if self.learned_file or self.learned_sha256:
             name = self.learned_file
             if not name or "/" in name or "\\" in name or name.startswith(".") or \
@@ -304,6 +322,14 @@ class Calibration:
                                        f"{exc}") from None
         except ValueError as exc:
             raise CalibrationFileError(f"calibration file {path}: {exc}") from None
+
+
+def unmodulated_amplitude(fraction: float, phase_rad: float) -> complex:
+    """The unmodulated light that leaves the panel as a complex amplitude relative to the
+    modulated light's unit one, from the flat frames' fit: an intensity `fraction` of all the
+    light, at `phase_rad` against grey 0's. A bench model's field leaving the panel is
+    `exp(i phase) + this` (the calibration's and refinement's bench models)."""
+    return complex(math.sqrt(fraction / (1 - fraction)) * np.exp(-1j * phase_rad))
 
 
 def check_bench(cal: Calibration, wavelengths_m: tuple[float, ...], pitch_m: float) -> None:

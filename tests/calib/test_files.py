@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -106,3 +107,36 @@ def test_colour_without_focus_refused() -> None:
     peaks = [(c, z, 10.0 + z * 1e3) for c in (0, 1) for z in (-1.5e-3, 0.0, 1.5e-3)]
     with pytest.raises(FocusError, match="colour B"):
         fit_depth(np.asarray(peaks).tolist())
+
+
+@pytest.mark.parametrize("fraction, phase, message", [
+    ("[0.03, 1.0, 0.03]", "[0.1, 0.1, 0.1]",
+     r"zero_order\.unmodulated_fraction\[1\] = 1\.0: must be in 0\.\.0\.5"),
+    ("[0.03, 0.03, nan]", "[0.1, 0.1, 0.1]",
+     r"zero_order\.unmodulated_fraction\[2\] = nan: must be in 0\.\.0\.5"),
+    ("[-0.01, 0.03, 0.03]", "[0.1, 0.1, 0.1]",
+     r"zero_order\.unmodulated_fraction\[0\] = -0\.01: must be in 0\.\.0\.5"),
+    ("[0.03, 0.03, 0.03]", "[0.1, inf, 0.1]", r"zero_order\.phase_rad\[1\] = inf: must be finite"),
+    ("[0.03, 0.03]", "[0.1, 0.1, 0.1]", r"zero_order: need one unmodulated_fraction and one "
+                                         r"phase_rad per colour"),
+])
+def test_unmodulated_light_out_of_range_is_refused(fitted, tmp_path: Path, fraction: str,
+                                                   phase: str, message: str) -> None:
+    """The unmodulated light a calibration records is the intensity fraction f of the light
+    leaving the panel; a bench model adds it as sqrt(f / (1 - f)), unbounded as f nears 1. A file
+    out of range is refused naming the file and the value, not read into NaN or Inf."""
+    ok = replace(fitted, unmodulated_fraction=(0.03,) * 3, unmodulated_fraction_std=(0.001,) * 3,
+                 unmodulated_phase_rad=(0.1,) * 3)
+    text = ok.to_toml()
+    lines = text.splitlines()
+    i = lines.index("[zero_order]")
+    for j in range(i, len(lines)):
+        if lines[j].startswith("unmodulated_fraction ="):
+            lines[j] = f"unmodulated_fraction = {fraction}"
+        elif lines[j].startswith("phase_rad ="):
+            lines[j] = f"phase_rad = {phase}"
+    bad = tmp_path / "zero-order.toml"
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(CalibrationFileError, match=rf"zero-order\.toml.*{message}"):
+        Calibration.load(bad)
+    assert Calibration.load(ok.save(tmp_path / "ok.toml")).unmodulated_fraction == (0.03,) * 3

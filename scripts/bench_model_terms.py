@@ -1,0 +1,117 @@
+"""Would the bench model that refinement steps through predict the camera better with the two
+terms the calibration's own model has and it lacks: the fitted coherent unmodulated light, and
+the pixels' flat square shape? On the quality benchmark's calibrated twin (`nhfd bench
+quality`'s seed, 512 x 288, its calibration folder reused or made), for the zero pattern, a flat
+grey frame and the donut network's frame of its first seeded view: each frame captured at the
+content planes, and each model variant's prediction scored against the capture (PSNR, a gain
+fitted per colour), with the mean captured and predicted light of the zero pattern against the
+flat frame's.
+
+    .venv/bin/python scripts/bench_model_terms.py [CALIBRATION_DIR]
+
+What it measured is in docs/refine.md ("Two terms the bench model leaves out on purpose").
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nhfd.benchmarks.quality import BENCH_SEED, DONUT, DONUT_MODEL, seeded_views
+from nhfd.calib.citl import CameraLoop
+from nhfd.calib.sim import arm_twin, sim_devices, sim_panel_hw, twin_calibration
+from nhfd.calibration import unmodulated_amplitude
+from nhfd.config import load_config
+from nhfd.drivers.simcamera import TrueBench
+from nhfd.models.export import load_model
+from nhfd.optics import Aperture, propagate
+from nhfd.optics.pupil import apply_pupil, pupil_scales
+from nhfd.optics.quality import stack_quality
+from nhfd.pipeline.frame import compute_frame
+from nhfd.pipeline.refine import Prepared, grey_phase, prepare
+from nhfd.pipeline.view import scene_from_file
+
+WINDOW_HW = (288, 512)
+VARIANTS = {"as shipped": (False, False), "unmodulated light": (True, False),
+            "flat pixels": (False, True), "both": (True, True)}
+
+
+def predict(p: Prepared, grey: np.ndarray, unmodulated: tuple[complex, ...], pixels: bool
+            ) -> torch.Tensor:
+    """`BenchForward`'s intensity `[D, C, h, w]` of one frame, with the unmodulated light added
+    to the panel's field and the pixels' sinc in its spectrum where asked."""
+    s, r = p.encoder.settings, p.encoder.region
+    phase = grey_phase(grey[None], p.encoder)[0].double()
+    source = p.encoder.source_amplitude()
+    cutoffs = s.aperture.cutoffs(3)
+    scales = pupil_scales(s.zernike_wavelength_m, s.wavelengths_m)
+    out = []
+    for c, lam in enumerate(s.wavelengths_m):
+        u = torch.polar(torch.ones_like(phase[c]), phase[c])
+        if unmodulated:
+            u = u + unmodulated[c]
+        if source is not None:
+            u = u * source[c]
+        if pixels:
+            fy = torch.fft.fftfreq(2 * u.shape[0], dtype=torch.float64)[:, None]
+            fx = torch.fft.fftfreq(2 * u.shape[1], dtype=torch.float64)[None, :]
+            spec = torch.fft.fft2(u, s=(2 * u.shape[0], 2 * u.shape[1]))
+            u = torch.fft.ifft2(spec * torch.sinc(fx) * torch.sinc(fy))[: u.shape[0], : u.shape[1]]
+        u = apply_pupil(u[None].to(torch.complex64), cutoffs[c], s.zernike_rad, scales[c])
+        zc = s.colour_propagation_z_m[c]
+        v = propagate(u, [-zc + dz for dz in p.target.planes_m], s.pitch_m, [lam],
+                      aperture=Aperture(s.aperture_shape, (cutoffs[c],)),  # type: ignore[arg-type]
+                      padding=s.padding)[:, 0]
+        out.append(v[:, r.window_top : r.window_top + s.window_hw[0],
+                     r.window_left : r.window_left + s.window_hw[1]].abs().square())
+    return torch.stack(out, dim=1).float()
+
+
+def main() -> int:
+    config = load_config(None).config
+    panel_hw = sim_panel_hw(WINDOW_HW)
+    cal_dir = Path(sys.argv[1] if len(sys.argv) > 1 else
+                   f"out/bench/quality-calibration-{WINDOW_HW[1]}x{WINDOW_HW[0]}")
+    twin = TrueBench.randomised(BENCH_SEED)
+    cal = twin_calibration(cal_dir, twin, panel_hw)
+    dc = tuple(unmodulated_amplitude(f, ph) for f, ph in
+               zip(cal.unmodulated_fraction, cal.unmodulated_phase_rad, strict=True))
+    print(f"the calibration's unmodulated light: {[f'{a:.3f}' for a in dc]} (relative amplitude)")
+    model = load_model(DONUT_MODEL, config)
+    scene = scene_from_file(DONUT)
+    view = seeded_views(np.random.default_rng(0), 1, scene, model.info, WINDOW_HW)[0]
+    with sim_devices(twin, panel_hw) as devices:
+        arm_twin(devices)
+        p = prepare(config, view, scene, info=model.info, calibration=cal, window_hw=WINDOW_HW,
+                    panel_hw=panel_hw, planes=config.refine.planes)
+        loop = CameraLoop(devices, cal, p.encoder)
+        r = p.encoder.region
+        network = np.asarray(compute_frame(view, scene, model, p.encoder).grey)
+        frames = {"zero pattern": p.encoder.zero[:, r.top : r.top + r.height,
+                                                 r.left : r.left + r.width].copy(),
+                  "flat grey 128": np.full_like(network, 128), "network frame": network}
+        light = {}
+        for name, grey in frames.items():
+            captured, seen = loop(grey[None], p.target.planes_m)
+            cap = torch.as_tensor(captured).float()
+            mask = p.target.mask & torch.as_tensor(seen)
+            scores = []
+            for variant, (with_dc, pixels) in VARIANTS.items():
+                pred = predict(p, grey, dc if with_dc else (), pixels)
+                q = stack_quality(cap, pred, planes_m=p.target.planes_m, mask=mask,
+                                  fit_gains=True)
+                scores.append(f"{variant} {q.psnr_db:.2f} dB")
+                light[name, variant] = float(pred[:, :, mask].mean())
+            light[name, "captured"] = float(cap[:, :, mask].mean())
+            print(f"{name}: the capture predicted by " + ", ".join(scores), flush=True)
+    for variant in ("captured", *VARIANTS):
+        ratio = light["zero pattern", variant] / light["flat grey 128", variant]
+        print(f"zero pattern's light / the flat frame's, {variant}: {ratio:.2g}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
