@@ -242,7 +242,9 @@ def tile_check(session: Any, meta: dict[str, Any], hw: tuple[int, int],
     h, w = hw
     x = seeded_input(_channels(session), hw, _SEED)
     full = _run(session, x)
-    colours = len(meta.get("wavelengths_m") or [0, 0, 0])
+    # A model of K subframes emits K frames' colours in each output (`nhfd model tune
+    # --subframes`).
+    colours = len(meta.get("wavelengths_m") or [0, 0, 0]) * int(meta.get("subframes") or 1)
     if any(o.shape != (1, colours, h, w) or not np.isfinite(o).all() for o in full):
         return float("inf"), (f"finite outputs of shape [1, {colours}, {h}, {w}]: "
                               f"found {[list(o.shape) for o in full]} or non-finite values")
