@@ -78,8 +78,8 @@ from nhfd.pipeline.tune import (
     TuneResult,
     TuneSettings,
     choose_views,
-    training_poses_of,
     tune_model,
+    tuning_poses,
 )
 from nhfd.pipeline.view import Scene, scene_from_file, suggested_radius
 from nhfd.views import Orbit, View
@@ -150,12 +150,6 @@ GOAL_TUNE_SECONDS = 900.0
 # on the calibrated twin, the tuned network within 1 dB of it.
 GOAL_SGD_LEARNED_K1_DB = 29.8
 GOAL_TUNED_LEARNED_K1_DB = 29.3
-# Stand-in training poses for a model that records none and whose dataset is not given: this
-# grid of fractions of its pose envelope's azimuth, elevation and distance (the seeded views
-# scored are drawn at random inside the envelope: never one of these). The distance is in the
-# grid because 6 poses at the mid distance alone over-fitted them: at 512 x 288 a nearer
-# seeded view lost 1.0 dB captured to the tuning.
-TUNE_GRID = tuple((f, g, h) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7) for h in (0.25, 0.75))
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -547,26 +541,6 @@ def _plot(path: Path, rows: Sequence[dict[str, Any]], summary: Sequence[dict[str
     plt.close(fig)
 
 
-def tuning_poses(meta: dict[str, Any], scene: Scene, info: ModelInfo, dataset: str | None
-                 ) -> tuple[list[View], str]:
-    """The poses the tuned tier tunes on, and where they come from: the training split of
-    `dataset` (the model's), else the model's recorded training poses, else (a model that
-    records none, like the shipped donut's) `TUNE_GRID` over its pose envelope. Never the
-    seeded views the bench scores (`seeded_views` draws those at random)."""
-    if dataset is not None or (meta.get("train_poses") or {}).get("positions"):
-        poses = training_poses_of(meta, scene, None if dataset is None else Path(dataset))
-        return poses, ("the training split of --tune-dataset" if dataset is not None
-                       else "the model's recorded training poses")
-    env = info.pose_envelope
-    if env is None or not (env.azimuth_deg and env.elevation_deg and env.distance):
-        raise ValueError("tuned tier: the model records no training poses and no pose "
-                         "envelope: give its dataset with --tune-dataset DIR")
-    (a0, a1), (e0, e1), (d0, d1) = env.azimuth_deg, env.elevation_deg, env.distance
-    return ([View(Orbit(a0 + (a1 - a0) * f, e0 + (e1 - e0) * g, d0 + (d1 - d0) * h))
-             for f, g, h in TUNE_GRID],
-            "a grid over the model's pose envelope (the model records no training poses)")
-
-
 def tuned_key(scene: str, k: int) -> str:
     """Where the JSON keeps a scene's tuning record for K subframes ("donut", "donut K=4")."""
     return scene if k == 1 else f"{scene} K={k}"
@@ -783,8 +757,10 @@ def run(args: argparse.Namespace) -> int:
             if tune_settings is not None and model is not None:
                 assert run_.model_path is not None
                 # --tune-dataset is the first model's dataset
+                dataset = args.tune_dataset if run_ is runs[0] else None
                 poses, poses_from = tuning_poses(read_metadata(run_.model_path), scene, info,
-                                                 args.tune_dataset if run_ is runs[0] else None)
+                                                 None if dataset is None else Path(dataset),
+                                                 "--tune-dataset")
                 ts = replace(tune_settings, views=min(tune_settings.views, len(poses)))
                 for (tier, cal, cfg, suffix), k in itertools.product(
                         (("tuned", calibration, config, ""),

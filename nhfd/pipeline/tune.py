@@ -43,7 +43,7 @@ import torch.fft as fft
 from nhfd.calibration import Calibration, bench_record, check_bench, fingerprint
 from nhfd.config import Config
 from nhfd.dataset.build import sha256_file
-from nhfd.model_info import SUBFRAMES_RANGE, recorded_scenes
+from nhfd.model_info import SUBFRAMES_RANGE, ModelInfo, recorded_scenes
 from nhfd.models.inputs import network_input
 from nhfd.models.loss import box_ssim
 from nhfd.models.metadata import METADATA_KEY, expected_from_config, parse_metadata
@@ -52,7 +52,7 @@ from nhfd.models.torch_model import FOLDED, TorchModel
 from nhfd.optics import colour_gains
 from nhfd.optics.dpac import AMPLITUDE_CEILING, checkerboard, empty_below, wrap_phase
 from nhfd.scene.cameras import look_at
-from nhfd.views import Pose, View
+from nhfd.views import Orbit, Pose, View
 
 from .encoder import Encoder, reference_field
 from .frame import subframe_fields
@@ -305,6 +305,37 @@ def training_poses_of(metadata: dict[str, Any], scene: Scene, dataset: Path | No
             for p in recorded["positions"]]
 
 
+# Stand-in training poses for a model that records none and whose dataset is not given (the
+# shipped donut's): this grid of fractions of its pose envelope's azimuth, elevation and
+# distance. The distance is in the grid because 6 poses at the mid distance alone over-fitted
+# them: at 512 x 288 a nearer seeded view lost 1.0 dB captured to the tuning (`nhfd bench
+# quality`, whose scored views are drawn at random inside the envelope: never one of these).
+ENVELOPE_GRID = tuple((f, g, h) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7)
+                      for h in (0.25, 0.75))
+
+
+def tuning_poses(metadata: dict[str, Any], scene: Scene, info: ModelInfo,
+                 dataset: Path | None, dataset_flag: str = "--dataset"
+                 ) -> tuple[list[View], str]:
+    """The poses tuning chooses its views from, and where they come from: the training split of
+    `dataset` (the model's), else the model's recorded training poses, else, for a model that
+    records none, `ENVELOPE_GRID` over its pose envelope. TuneError naming `dataset_flag` when
+    the model has neither poses nor an envelope."""
+    if dataset is not None or (metadata.get("train_poses") or {}).get("positions"):
+        poses = training_poses_of(metadata, scene, dataset)
+        return poses, (f"the training split of {dataset_flag}" if dataset is not None
+                       else "the model's recorded training poses")
+    env = info.pose_envelope
+    if env is None or not (env.azimuth_deg and env.elevation_deg and env.distance):
+        raise TuneError(f"the model records no training poses (train_poses) and no pose "
+                        f"envelope: give its dataset with {dataset_flag} DIR (nhfd dataset "
+                        "build)")
+    (a0, a1), (e0, e1), (d0, d1) = env.azimuth_deg, env.elevation_deg, env.distance
+    return ([View(Orbit(a0 + (a1 - a0) * f, e0 + (e1 - e0) * g, d0 + (d1 - d0) * h))
+             for f, g, h in ENVELOPE_GRID],
+            "a grid over the model's pose envelope (the model records no training poses)")
+
+
 def choose_views(poses: Sequence[View], n: int) -> list[View]:
     """`n` of the training poses, evenly spread over their order (refused when there are
     fewer)."""
@@ -451,9 +482,8 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
     (without writing the model) after that many steps in all, as an interruption would (tests);
     then returns None. `check_sizes`: check the tuned file at its original model's
     `checked_sizes` (the ONNX-only tile check) and record them. `poses`: the training poses
-    to choose the views from, for a model that records none and whose dataset is not at hand
-    (`nhfd bench quality`: a grid over its pose envelope); default the dataset's or the
-    model's recorded ones."""
+    to choose the views from; default `tuning_poses`: the dataset's, the model's recorded ones,
+    or a grid over its pose envelope."""
     config = config or Config()
     model_path, out = Path(model_path), Path(out)
     # Everything that can be refused is, before anything is written.
@@ -483,7 +513,9 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
                         f"{model.subframes} subframes; tune it at --subframes "
                         f"{model.subframes}, or tune its one-frame source")
     if poses is None:
-        poses = training_poses_of(meta, scene, None if dataset is None else Path(dataset))
+        poses, poses_from = tuning_poses(meta, scene, model.info,
+                                         None if dataset is None else Path(dataset))
+        say(f"tuning views: {settings.views} of {len(poses)} poses, {poses_from}")
     views = choose_views(poses, settings.views)
     model_sha = sha256_file(model_path)
     cal_sha = fingerprint(calibration)

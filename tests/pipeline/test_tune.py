@@ -33,7 +33,7 @@ from nhfd.config import Config
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.models.export import load_model
 from nhfd.models.metadata import METADATA_KEY
-from nhfd.models.sizes import read_metadata
+from nhfd.models.sizes import check_and_record, read_metadata, window_check
 from nhfd.models.torch_model import TorchModel
 from nhfd.optics import grey_to_phase, phase_to_grey
 from nhfd.pipeline import tune as T
@@ -334,8 +334,10 @@ def test_bad_input_is_refused_with_nothing_written(tmp_path, scene, model_file) 
     with pytest.raises(T.TuneError, match=r"views \(--views\) = 7: must be in 1\.\.6 "):
         run(model_file, scene, out, settings(views=7))
     _nothing_written(out)
-    with pytest.raises(T.TuneError, match=r"no training poses \(train_poses\).*--dataset"):
-        run(MODEL, scene, out, settings())  # the shipped file records none
+    lost = write_model(tmp_path / "lost.onnx", pose_envelope=None)  # and no train_poses
+    with pytest.raises(T.TuneError, match=r"no training poses \(train_poses\) and no pose "
+                                          r"envelope: give its dataset with --dataset DIR"):
+        run(lost, scene, out, settings())
     _nothing_written(out)
     bare = write_model(tmp_path / "bare.onnx", scene_sha256=None, source_scene_sha256=None)
     with pytest.raises(T.TuneError, match=r"records no scene \(scene_sha256\)"):
@@ -416,6 +418,27 @@ def test_the_views_are_the_datasets_training_split(tmp_path, scene, meta) -> Non
         T.training_poses_of({**meta, "dataset_manifest_sha256": "0" * 64}, scene, tmp_path)
 
 
+def test_a_model_that_records_no_poses_tunes_on_a_grid_over_its_pose_envelope(scene) -> None:
+    """The shipped model records no training poses: without --dataset, tuning chooses from 12
+    poses at 20, 50 and 80 % of its envelope's azimuth, 30 and 70 % of its elevation, 25 and
+    75 % of its distance (the envelope of the poses it was trained on), and says so."""
+    info = load_model(MODEL, Config()).info
+    env = info.pose_envelope
+    poses, where = T.tuning_poses(read_metadata(MODEL), scene, info, None)
+    assert where == ("a grid over the model's pose envelope (the model records no training "
+                     "poses)")
+    (a0, a1), (e0, e1), (d0, d1) = env.azimuth_deg, env.elevation_deg, env.distance
+    got = {(round((v.camera.azimuth_deg - a0) / (a1 - a0), 9),
+            round((v.camera.elevation_deg - e0) / (e1 - e0), 9),
+            round((v.camera.radius - d0) / (d1 - d0), 9)) for v in poses}
+    assert got == {(f, g, h) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7) for h in (0.25, 0.75)}
+    # Recorded poses come first: the copy that records six.
+    recorded, where = T.tuning_poses(
+        {**read_metadata(MODEL), "train_poses": {"positions": [[0.6, 0.1, 0.3]] * 6,
+                                                 "center": [0.0, 0.0, 0.0]}}, scene, info, None)
+    assert len(recorded) == 6 and where == "the model's recorded training poses"
+
+
 def test_the_command_tunes_and_writes_a_checked_model(tmp_path, model_file, capsys) -> None:
     """`nhfd model tune` end to end (the configured panel; sizes checked again): progress lines
     with a time estimate, the tuned file with its record and its checked sizes."""
@@ -469,3 +492,34 @@ def test_k_subframes_are_tuned_on_their_mean_and_served_as_k_frames(tmp_path, sc
         T.tune_model(res.path, scene, SCENE, CAL, out, settings(subframes=3), panel_hw=PANEL_HW,
                      check_sizes=False, say=lambda _m: None)
     _nothing_written(out)
+
+
+def test_a_k_subframe_model_passes_its_size_checks_and_is_served(tmp_path) -> None:
+    """A model of K subframes emits 3 K channels per output. The size check expected 3 and
+    failed every size, so the daemon refused a tuned K = 4 model at any window, its own training
+    size included. Its check passes now, and a file whose metadata claims another K still
+    fails it."""
+    net = TorchModel(MODEL).module.with_subframes(4, 0.3, 0)
+    path = T.write_tuned_model(MODEL, net, tmp_path / "k4.onnx", {"label": "test"},
+                               check_sizes=False)
+    meta = check_and_record(path, [(288, 512)])
+    (entry,) = meta["checked_sizes"]
+    assert entry["ok"] and entry["max_abs_diff"] <= 1e-4, entry
+    info = load_model(path, Config()).info
+    assert window_check(info, (288, 512), str(path), allow=False) is None
+    lying = T.write_tuned_model(MODEL, net, tmp_path / "k2.onnx", {"label": "test"},
+                                check_sizes=False)
+    onnx_meta = read_metadata(lying)
+    onnx_meta["subframes"] = 2
+    _set_metadata(lying, onnx_meta)
+    (bad,) = check_and_record(lying, [(288, 512)])["checked_sizes"]
+    assert not bad["ok"]
+    assert "finite outputs of shape [1, 6, 288, 512]: found [[1, 12, 288, 512]" in bad["against"]
+
+
+def _set_metadata(path: Path, meta: dict) -> None:
+    m = onnx.load(str(path))
+    for p in m.metadata_props:
+        if p.key == METADATA_KEY:
+            p.value = json.dumps(meta)
+    onnx.save(m, str(path))
