@@ -27,6 +27,11 @@ another variant is measured. A refinement begins with the view's light-field inv
 s at 512 x 288 on 2 cores) and only then steps: rests longer than that put the new view in a
 step; each row records the iterations the worker had reported (`refine.swap_every`).
 
+--side-by-side measures the --model files the same way, one worker each given the same views in
+turn, instead of one after another (each in turn, on a machine whose load drifts, gave a tuned
+model 0.84 to 1.16 times its source's median in two runs); each result then also gives its median
+over the first model's (`median_vs_first`). The models' frame windows must be the same.
+
 After the results, one markdown table (one row per result, also written as <json stem>.md beside
 the JSON) under a line naming the machine: the form the README quotes.
 """
@@ -89,6 +94,7 @@ class Variant(NamedTuple):
     inference: str | None = None  # daemon.frames.inference
     cuda_graphs: bool | None = None  # daemon.frames.cuda_graphs
     quality: str | None = None  # the tier each view asks for (None: network)
+    model: str | None = None  # the model file this worker serves (None: the measured model)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -122,6 +128,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quality", default=None,
                    help=f"comma list of tiers the views ask for, to compare: "
                         f"{', '.join(QUALITY_TIERS)} (default network)")
+    p.add_argument("--side-by-side", action="store_true",
+                   help="measure the --model files side by side, one worker each, given the "
+                        "same views in turn, instead of one after another: their medians "
+                        "compare on a loaded machine (a tuned model against its source); "
+                        "each row also gives its median over the first model's")
     p.add_argument("--rest-ms", default="0,400", metavar="MIN,MAX",
                    help="with --quality: each view rests a seeded random time in this range "
                         "while it is refined (ms, 0 to 60000; default 0,400)")
@@ -203,10 +214,19 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
     info = OnnxModel(model).info
     variants = [Variant(*v) for v in variants]
     configs = [_variant_config(config, v) for v in variants]
+    files = [Path(v.model) if v.model else model for v in variants]
+    infos = {f: OnnxModel(f).info for f in set(files)}
     rests_s = np.random.default_rng(REST_SEED).uniform(rest_ms[0] * 1e-3, rest_ms[1] * 1e-3,
                                                         warmup + views)
-    for cfg in configs:  # before any worker starts
-        _check_fits(cfg.daemon.frames, cfg.slm, model, info)
+    for cfg, f in zip(configs, files, strict=True):  # before any worker starts
+        _check_fits(cfg.daemon.frames, cfg.slm, f, infos[f])
+    windows = {f: frame_window_hw(cfg.daemon.frames, cfg.slm, infos[f])
+               for cfg, f in zip(configs, files, strict=True)}
+    if len(set(windows.values())) > 1:
+        raise ValueError("--side-by-side: the models' frame windows differ ("
+                         + ", ".join(f"{f}: {w} x {h}" for f, (h, w) in windows.items())
+                         + "): the same views must make the same frames' work; set "
+                           "--frame-size-px W H")
     runs = []
     try:
         for cfg in configs:
@@ -214,8 +234,8 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
             link = host.frame_link()
             runs.append((cfg, host, link, []))
             link.ensure_started()  # the workers' imports overlap; loads follow one by one
-        for _cfg, _host, link, _rows in runs:
-            _load(link, scene, model)
+        for (_cfg, _host, link, _rows), f in zip(runs, files, strict=True):
+            _load(link, scene, f)
         for i, view in enumerate(_orbit(info, warmup + views)):
             for k in range(len(runs)):
                 _cfg, host, link, rows = runs[(i + k) % len(runs)]
@@ -237,9 +257,10 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
     finally:
         for _cfg, _host, link, _rows in runs:
             link.close()
-    return [{**_result(model, info, cfg.daemon.frames, rows, report),
+    return [{**_result(f, infos[f], cfg.daemon.frames, rows, report),
              "quality": v.quality or "network", "rest_ms": list(rest_ms)}
-            for (cfg, _host, _link, rows), report, v in zip(runs, reports, variants, strict=True)]
+            for (cfg, _host, _link, rows), report, v, f in zip(runs, reports, variants, files,
+                                                               strict=True)]
 
 
 def _variant_config(config: Config, v: Variant) -> Config:
@@ -363,10 +384,16 @@ def run(args: argparse.Namespace) -> int:
     variants = [Variant(t, q, d, n, g, tier) for d in devices for n in inferences for q in int8s
                 for t in transports for g in graphs for tier in qualities]
     results = []
+    side_by_side = getattr(args, "side_by_side", False)
     for cfg in configs:  # each size in turn, its variants side by side
-        for model in models:
-            for r in measure_side_by_side(cfg, model, Path(args.scene), args.views,
-                                          args.warmup, variants, rest_ms):
+        # --side-by-side: every model's workers in one run; else each model in turn
+        for group in ([models] if side_by_side else [[m] for m in models]):
+            these = [v._replace(model=str(m)) for m in group for v in variants]
+            measured = measure_side_by_side(cfg, group[0], Path(args.scene), args.views,
+                                            args.warmup, these, rest_ms)
+            if side_by_side:
+                against_first(measured, len(variants))
+            for r in measured:
                 results.append(r)
                 _print(r, cfg.daemon.frames)
     machine = _machine(results)
@@ -382,6 +409,15 @@ def run(args: argparse.Namespace) -> int:
     print(table, end="")
     print(f"wrote {out} and {md}")
     return 0
+
+
+def against_first(results: list[dict[str, Any]], per_model: int) -> None:
+    """Add to each result of a side-by-side run (`per_model` variants per model, in the
+    models' order) its median view-to-panel time over the first model's for the same variant:
+    `median_vs_first` (1 for the first model's own)."""
+    for i, r in enumerate(results):
+        first = results[i % per_model]["stages"]["total"]["median_ms"]
+        r["median_vs_first"] = r["stages"]["total"]["median_ms"] / first
 
 
 def _rest_range(text: str) -> tuple[float, float]:
@@ -456,6 +492,8 @@ def _command(args: argparse.Namespace) -> str:
         words += ["--inference", args.inference]
     if getattr(args, "quality", None):
         words += ["--quality", args.quality, "--rest-ms", args.rest_ms]
+    if getattr(args, "side_by_side", False):
+        words += ["--side-by-side"]
     words += ["--views", str(args.views), "--warmup", str(args.warmup), "--json", args.json]
     return shlex.join(words)
 
@@ -496,15 +534,29 @@ def _markdown(results: list[dict[str, Any]], machine: dict[str, Any], command: s
              f"Command: `{command}`", "",
              "| " + " | ".join(TABLE_COLUMNS) + " |",
              "|" + "---|" * 7 + "---:|" * (len(TABLE_COLUMNS) - 7)]
+    names = _model_names([r["model"] for r in results])
     for r in results:
         s = r["stages"]
-        cells = [Path(r["model"]).name, f"{r['size_wh'][0]} x {r['size_wh'][1]}",
+        cells = [names[r["model"]], f"{r['size_wh'][0]} x {r['size_wh'][1]}",
                  _device_label(r), str(r["inference"]), r["transport"],
                  f"{r['int8']}: {r['variant']}", r.get("quality", "network"),
                  _ms(s["total"]["median_ms"]), _ms(s["total"]["p99_ms"]),
                  *(_ms(s[k]["median_ms"]) for k in STAGES)]
         lines.append("| " + " | ".join(cells) + " |")
+    ratios = [r for r in results if "median_vs_first" in r]
+    if ratios:
+        lines += ["", f"Side by side, each median over {names[ratios[0]['model']]}'s: "
+                  + ", ".join(f"{names[r['model']]} {r['median_vs_first']:.2f}x"
+                              for r in ratios[1:] if r["model"] != ratios[0]["model"]) + "."]
     return "\n".join(lines) + "\n"
+
+
+def _model_names(paths: list[str]) -> dict[str, str]:
+    """Each model file's name in the table: its file name, or its folder and name where two
+    files share a name (tuned models are all model.onnx)."""
+    names = {p: Path(p).name for p in paths}
+    shared = {n for n in names.values() if sum(v == n for v in names.values()) > 1}
+    return {p: (f"{Path(p).parent.name}/{n}" if n in shared else n) for p, n in names.items()}
 
 
 def _print(r: dict[str, Any], frames: FramesSettings) -> None:
@@ -524,3 +576,5 @@ def _print(r: dict[str, Any], frames: FramesSettings) -> None:
               f"{_ms(s[k]['p99_ms']):>8}")
     print(f"  after rendering: {r['after_render_median_ms']:.1f} ms (goal <= 100 ms); "
           f"IPC and waiting: {r['ipc_and_wait_median_ms']:.1f} ms")
+    if "median_vs_first" in r:
+        print(f"  median over the first model's, side by side: {r['median_vs_first']:.2f}x")

@@ -6,11 +6,13 @@ assertions; a bad device is refused before any worker starts."""
 
 from __future__ import annotations
 
+import argparse
 import json
 import re
 from pathlib import Path
 from typing import Any
 
+import onnx
 import pytest
 
 from nhfd.benchmarks import pipeline
@@ -151,3 +153,55 @@ def test_a_model_larger_than_the_panel_is_refused_before_any_worker_starts(tiny,
     assert (f"{tiny['model']}: frame window 96 x 64 (the model's training size: "
             "daemon.frames.size_px is empty) does not fit the panel 64 x 48") in err, err
     assert started == []
+
+
+def test_models_are_measured_side_by_side_on_the_same_views(tiny, tmp_path, monkeypatch):
+    """--side-by-side: one worker per model, the same views in turn, each result's median over
+    the first model's; two files of one name are told apart by their folder; models whose
+    frame windows differ are refused before any worker starts."""
+    (tmp_path / "nhfd.toml").write_text(CONFIG)
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    a = tmp_path / "a" / "model.onnx"
+    b = tmp_path / "b" / "model.onnx"
+    a.write_bytes(Path(tiny["model"]).read_bytes())
+    b.write_bytes(a.read_bytes())
+    out = tmp_path / "s.json"
+    assert main(["bench", "pipeline", "--config", str(tmp_path / "nhfd.toml"), "--model", str(a),
+                 "--model", str(b), "--scene", str(tiny["scene"]), "--side-by-side",
+                 "--views", "2", "--warmup", "1", "--json", str(out)]) == 0
+    results = json.loads(out.read_text())["results"]
+    assert [r["model"] for r in results] == [str(a), str(b)]
+    assert [row["azimuth_deg"] for row in results[0]["rows"]] == [
+        row["azimuth_deg"] for row in results[1]["rows"]]
+    first = results[0]["stages"]["total"]["median_ms"]
+    assert results[0]["median_vs_first"] == 1.0
+    assert results[1]["median_vs_first"] == pytest.approx(
+        results[1]["stages"]["total"]["median_ms"] / first)
+    md = out.with_suffix(".md").read_text()
+    assert "| a/model.onnx |" in md and "| b/model.onnx |" in md
+    assert f"each median over a/model.onnx's: b/model.onnx {results[1]['median_vs_first']:.2f}x" \
+        in md
+    assert "--side-by-side" in md.splitlines()[1]
+    # Another training window (daemon.frames.size_px empty: each model's own) is refused.
+    m = onnx.load(str(b))
+    for prop in m.metadata_props:
+        if prop.key == "nhfd":
+            meta = json.loads(prop.value)
+            meta["train_size_hw"] = [48, 64]
+            prop.value = json.dumps(meta)
+    onnx.save(m, str(b))
+    started = []
+    monkeypatch.setattr(pipeline, "FrameLink", lambda host: started.append(host))
+    with pytest.raises(ValueError, match=r"--side-by-side: the models' frame windows differ \(.*"
+                                         r"a/model\.onnx: 96 x 64, .*b/model\.onnx: 64 x 48\)"):
+        pipeline.run(pipeline_args(a, b, tiny["scene"], tmp_path))
+    assert started == []
+
+
+def pipeline_args(a: Path, b: Path, scene: Path, root: Path) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    pipeline.register(parser.add_subparsers())
+    return parser.parse_args(["pipeline", "--config", str(root / "nhfd.toml"), "--model", str(a),
+                              "--model", str(b), "--scene", str(scene), "--side-by-side",
+                              "--views", "1", "--json", str(root / "x.json")])
