@@ -760,7 +760,7 @@ def run(args: argparse.Namespace) -> int:
                 dataset = args.tune_dataset if run_ is runs[0] else None
                 poses, poses_from = tuning_poses(read_metadata(run_.model_path), scene, info,
                                                  None if dataset is None else Path(dataset),
-                                                 "--tune-dataset")
+                                                 "--tune-dataset", tune_settings.views)
                 ts = replace(tune_settings, views=min(tune_settings.views, len(poses)))
                 for (tier, cal, cfg, suffix), k in itertools.product(
                         (("tuned", calibration, config, ""),

@@ -306,21 +306,27 @@ def training_poses_of(metadata: dict[str, Any], scene: Scene, dataset: Path | No
 
 
 # Stand-in training poses for a model that records none and whose dataset is not given (the
-# shipped donut's): this grid of fractions of its pose envelope's azimuth, elevation and
-# distance. The distance is in the grid because 6 poses at the mid distance alone over-fitted
-# them: at 512 x 288 a nearer seeded view lost 1.0 dB captured to the tuning (`nhfd bench
-# quality`, whose scored views are drawn at random inside the envelope: never one of these).
-ENVELOPE_GRID = tuple((f, g, h) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7)
-                      for h in (0.25, 0.75))
+# shipped donut's): grids of fractions of its pose envelope's azimuth, elevation and distance,
+# the smallest that has the views asked for. The distance is in them because 6 poses at the mid
+# distance alone over-fitted them: at 512 x 288 a nearer seeded view lost 1.0 dB captured to the
+# tuning (`nhfd bench quality`, whose scored views are drawn at random inside the envelope:
+# never one of these). 24 of the 27 tuned through the learned bench gained 1.0 dB captured over
+# 8 of the 12 (docs/tune.md).
+ENVELOPE_GRIDS = (
+    tuple((f, g, h) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7) for h in (0.25, 0.75)),
+    tuple((f, g, h) for f in (0.15, 0.5, 0.85) for g in (0.15, 0.5, 0.85)
+          for h in (0.15, 0.5, 0.85)),
+)
 
 
 def tuning_poses(metadata: dict[str, Any], scene: Scene, info: ModelInfo,
-                 dataset: Path | None, dataset_flag: str = "--dataset"
+                 dataset: Path | None, dataset_flag: str = "--dataset", views: int = 1
                  ) -> tuple[list[View], str]:
-    """The poses tuning chooses its views from, and where they come from: the training split of
-    `dataset` (the model's), else the model's recorded training poses, else, for a model that
-    records none, `ENVELOPE_GRID` over its pose envelope. TuneError naming `dataset_flag` when
-    the model has neither poses nor an envelope."""
+    """The poses tuning chooses `views` views from, and where they come from: the training split
+    of `dataset` (the model's), else the model's recorded training poses, else, for a model that
+    records none, the smallest of `ENVELOPE_GRIDS` over its pose envelope with at least
+    `views` poses. TuneError naming `dataset_flag` when the model has neither poses nor an
+    envelope, or asks for more views than the largest grid has."""
     if dataset is not None or (metadata.get("train_poses") or {}).get("positions"):
         poses = training_poses_of(metadata, scene, dataset)
         return poses, (f"the training split of {dataset_flag}" if dataset is not None
@@ -330,9 +336,14 @@ def tuning_poses(metadata: dict[str, Any], scene: Scene, info: ModelInfo,
         raise TuneError(f"the model records no training poses (train_poses) and no pose "
                         f"envelope: give its dataset with {dataset_flag} DIR (nhfd dataset "
                         "build)")
+    grid = next((g for g in ENVELOPE_GRIDS if len(g) >= views), None)
+    if grid is None:
+        raise TuneError(f"views = {views}: a model that records no training poses tunes on at "
+                        f"most {len(ENVELOPE_GRIDS[-1])} poses of a grid over its pose "
+                        f"envelope; give its dataset with {dataset_flag} DIR for more")
     (a0, a1), (e0, e1), (d0, d1) = env.azimuth_deg, env.elevation_deg, env.distance
     return ([View(Orbit(a0 + (a1 - a0) * f, e0 + (e1 - e0) * g, d0 + (d1 - d0) * h))
-             for f, g, h in ENVELOPE_GRID],
+             for f, g, h in grid],
             "a grid over the model's pose envelope (the model records no training poses)")
 
 
@@ -514,7 +525,8 @@ def tune_model(model_path: str | Path, scene: Scene, scene_path: str | Path,
                         f"{model.subframes}, or tune its one-frame source")
     if poses is None:
         poses, poses_from = tuning_poses(meta, scene, model.info,
-                                         None if dataset is None else Path(dataset))
+                                         None if dataset is None else Path(dataset),
+                                         views=settings.views)
         say(f"tuning views: {settings.views} of {len(poses)} poses, {poses_from}")
     views = choose_views(poses, settings.views)
     model_sha = sha256_file(model_path)

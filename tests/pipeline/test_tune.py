@@ -421,7 +421,8 @@ def test_the_views_are_the_datasets_training_split(tmp_path, scene, meta) -> Non
 def test_a_model_that_records_no_poses_tunes_on_a_grid_over_its_pose_envelope(scene) -> None:
     """The shipped model records no training poses: without --dataset, tuning chooses from 12
     poses at 20, 50 and 80 % of its envelope's azimuth, 30 and 70 % of its elevation, 25 and
-    75 % of its distance (the envelope of the poses it was trained on), and says so."""
+    75 % of its distance (the envelope of the poses it was trained on), and says so; for more
+    than 12 views, from 27; for more than 27 it is refused naming the dataset's flag."""
     info = load_model(MODEL, Config()).info
     env = info.pose_envelope
     poses, where = T.tuning_poses(read_metadata(MODEL), scene, info, None)
@@ -432,6 +433,16 @@ def test_a_model_that_records_no_poses_tunes_on_a_grid_over_its_pose_envelope(sc
             round((v.camera.elevation_deg - e0) / (e1 - e0), 9),
             round((v.camera.radius - d0) / (d1 - d0), 9)) for v in poses}
     assert got == {(f, g, h) for f in (0.2, 0.5, 0.8) for g in (0.3, 0.7) for h in (0.25, 0.75)}
+    # More views than 12: the 27-pose grid, 15, 50 and 85 % of each.
+    dense, _ = T.tuning_poses(read_metadata(MODEL), scene, info, None, views=13)
+    got = {(round((v.camera.azimuth_deg - a0) / (a1 - a0), 9),
+            round((v.camera.elevation_deg - e0) / (e1 - e0), 9),
+            round((v.camera.radius - d0) / (d1 - d0), 9)) for v in dense}
+    assert got == {(f, g, h) for f in (0.15, 0.5, 0.85) for g in (0.15, 0.5, 0.85)
+                   for h in (0.15, 0.5, 0.85)}
+    with pytest.raises(T.TuneError, match=r"views = 28: a model that records no training poses "
+                                          r"tunes on at most 27 poses .*--tune-dataset DIR"):
+        T.tuning_poses(read_metadata(MODEL), scene, info, None, "--tune-dataset", views=28)
     # Recorded poses come first: the copy that records six.
     recorded, where = T.tuning_poses(
         {**read_metadata(MODEL), "train_poses": {"positions": [[0.6, 0.1, 0.3]] * 6,
