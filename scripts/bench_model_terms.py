@@ -7,14 +7,17 @@ content planes, and each model variant's prediction scored against the capture (
 fitted per colour), with the mean captured and predicted light of the zero pattern against the
 flat frame's.
 
-    .venv/bin/python scripts/bench_model_terms.py [CALIBRATION_DIR]
+    .venv/bin/python scripts/bench_model_terms.py [--twin TWIN.toml] [--calibration-dir DIR]
+
+`--twin`: another twin, a TOML of the simulated bench's fields as `nhfd bench quality --twin`
+takes (`randomised_seed = 7` and the fields to change), calibrated into its own folder.
 
 What it measured is in docs/refine.md ("Two terms the bench model leaves out on purpose").
 """
 
 from __future__ import annotations
 
-import sys
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -71,11 +74,21 @@ def predict(p: Prepared, grey: np.ndarray, unmodulated: tuple[complex, ...], pix
 
 
 def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--twin", help="a twin's TOML (default: the quality benchmark's seed)")
+    parser.add_argument("--calibration-dir", help="where its calibration is made or reused "
+                        "(default: bench quality's, or out/bench/terms-<twin file's stem>)")
+    args = parser.parse_args()
     config = load_config(None).config
     panel_hw = sim_panel_hw(WINDOW_HW)
-    cal_dir = Path(sys.argv[1] if len(sys.argv) > 1 else
-                   f"out/bench/quality-calibration-{WINDOW_HW[1]}x{WINDOW_HW[0]}")
-    twin = TrueBench.randomised(BENCH_SEED)
+    if args.twin:
+        twin = TrueBench.from_toml(args.twin)
+        default_dir = f"out/bench/terms-{Path(args.twin).stem}"
+    else:
+        twin = TrueBench.randomised(BENCH_SEED)
+        default_dir = f"out/bench/quality-calibration-{WINDOW_HW[1]}x{WINDOW_HW[0]}"
+    cal_dir = Path(args.calibration_dir or default_dir)
     cal = twin_calibration(cal_dir, twin, panel_hw)
     dc = tuple(unmodulated_amplitude(f, ph) for f, ph in
                zip(cal.unmodulated_fraction, cal.unmodulated_phase_rad, strict=True))
