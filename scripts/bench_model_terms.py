@@ -38,16 +38,30 @@ from nhfd.pipeline.refine import Prepared, grey_phase, prepare
 from nhfd.pipeline.view import scene_from_file
 
 WINDOW_HW = (288, 512)
-VARIANTS = {"as shipped": (False, False), "unmodulated light": (True, False),
-            "flat pixels": (False, True), "both": (True, True)}
+# Each variant: (its name, with the unmodulated light, with the pixels' shape).
+VARIANTS = (("as shipped", False, False), ("unmodulated light", True, False),
+            ("flat pixels", False, True), ("both", True, True))
+# Samples per pixel per axis where the crosstalk is modelled (it blurs the phase within pixels).
+CROSSTALK_OVERSAMPLE = 2
 
 
-def predict(p: Prepared, grey: np.ndarray, unmodulated: tuple[complex, ...], pixels: bool
-            ) -> torch.Tensor:
+def predict(p: Prepared, grey: np.ndarray, unmodulated: tuple[complex, ...], pixels: bool,
+            crosstalk_m: float = 0.0) -> torch.Tensor:
     """`BenchForward`'s intensity `[D, C, h, w]` of one frame, with the unmodulated light added
-    to the panel's field and the pixels' sinc in its spectrum where asked."""
+    to the panel's field and the pixels' sinc in its spectrum where asked. With `crosstalk_m`
+    (a Gaussian's sigma, metres), the phase is blurred across pixel edges on a grid
+    `CROSSTALK_OVERSAMPLE` times finer (flat pixels there by construction), and each pixel's
+    intensity is the mean of its samples."""
     s, r = p.encoder.settings, p.encoder.region
+    n = CROSSTALK_OVERSAMPLE if crosstalk_m > 0 else 1
     phase = grey_phase(grey[None], p.encoder)[0].double()
+    phase = phase.repeat_interleave(n, dim=-2).repeat_interleave(n, dim=-1)
+    if crosstalk_m > 0:  # the unwrapped phase (the liquid crystal's voltage) is blurred
+        sigma = crosstalk_m / (s.pitch_m / n)
+        fy = torch.fft.fftfreq(phase.shape[-2], dtype=torch.float64)[:, None]
+        fx = torch.fft.fftfreq(phase.shape[-1], dtype=torch.float64)[None, :]
+        blur = torch.exp(-2 * np.pi**2 * sigma**2 * (fx**2 + fy**2))
+        phase = torch.fft.ifft2(torch.fft.fft2(phase) * blur).real
     source = p.encoder.source_amplitude()
     cutoffs = s.aperture.cutoffs(3)
     scales = pupil_scales(s.zernike_wavelength_m, s.wavelengths_m)
@@ -57,19 +71,21 @@ def predict(p: Prepared, grey: np.ndarray, unmodulated: tuple[complex, ...], pix
         if unmodulated:
             u = u + unmodulated[c]
         if source is not None:
-            u = u * source[c]
-        if pixels:
+            u = u * source[c].repeat_interleave(n, dim=-2).repeat_interleave(n, dim=-1)
+        if pixels and n == 1:
             fy = torch.fft.fftfreq(2 * u.shape[0], dtype=torch.float64)[:, None]
             fx = torch.fft.fftfreq(2 * u.shape[1], dtype=torch.float64)[None, :]
             spec = torch.fft.fft2(u, s=(2 * u.shape[0], 2 * u.shape[1]))
             u = torch.fft.ifft2(spec * torch.sinc(fx) * torch.sinc(fy))[: u.shape[0], : u.shape[1]]
-        u = apply_pupil(u[None].to(torch.complex64), cutoffs[c], s.zernike_rad, scales[c])
+        u = apply_pupil(u[None].to(torch.complex64), cutoffs[c] / n, s.zernike_rad, scales[c])
         zc = s.colour_propagation_z_m[c]
-        v = propagate(u, [-zc + dz for dz in p.target.planes_m], s.pitch_m, [lam],
-                      aperture=Aperture(s.aperture_shape, (cutoffs[c],)),  # type: ignore[arg-type]
-                      padding=s.padding)[:, 0]
+        v = propagate(u, [-zc + dz for dz in p.target.planes_m], s.pitch_m / n, [lam],
+                      aperture=Aperture(s.aperture_shape, (cutoffs[c] / n,)),  # type: ignore[arg-type]
+                      padding=s.padding)[:, 0].abs().square()
+        if n > 1:
+            v = torch.nn.functional.avg_pool2d(v[:, None].float(), n)[:, 0]
         out.append(v[:, r.window_top : r.window_top + s.window_hw[0],
-                     r.window_left : r.window_left + s.window_hw[1]].abs().square())
+                     r.window_left : r.window_left + s.window_hw[1]])
     return torch.stack(out, dim=1).float()
 
 
@@ -79,7 +95,17 @@ def main() -> int:
     parser.add_argument("--twin", help="a twin's TOML (default: the quality benchmark's seed)")
     parser.add_argument("--calibration-dir", help="where its calibration is made or reused "
                         "(default: bench quality's, or out/bench/terms-<twin file's stem>)")
+    parser.add_argument("--crosstalk-um", type=float, default=0.0,
+                        help="also model a crosstalk of this sigma (um, 0..4), alone and with "
+                             "the unmodulated light: a value you supply, not a fitted one")
     args = parser.parse_args()
+    if not 0 <= args.crosstalk_um <= 4:
+        parser.error(f"--crosstalk-um {args.crosstalk_um}: must be in 0..4 um")
+    variants = [(name, dc, px, 0.0) for name, dc, px in VARIANTS]
+    if args.crosstalk_um:
+        x = args.crosstalk_um * 1e-6
+        variants += [(f"crosstalk {args.crosstalk_um:g} um", False, False, x),
+                     (f"crosstalk {args.crosstalk_um:g} um + unmodulated light", True, False, x)]
     config = load_config(None).config
     panel_hw = sim_panel_hw(WINDOW_HW)
     if args.twin:
@@ -112,15 +138,15 @@ def main() -> int:
             cap = torch.as_tensor(captured).float()
             mask = p.target.mask & torch.as_tensor(seen)
             scores = []
-            for variant, (with_dc, pixels) in VARIANTS.items():
-                pred = predict(p, grey, dc if with_dc else (), pixels)
+            for variant, with_dc, pixels, crosstalk_m in variants:
+                pred = predict(p, grey, dc if with_dc else (), pixels, crosstalk_m)
                 q = stack_quality(cap, pred, planes_m=p.target.planes_m, mask=mask,
                                   fit_gains=True)
                 scores.append(f"{variant} {q.psnr_db:.2f} dB")
                 light[name, variant] = float(pred[:, :, mask].mean())
             light[name, "captured"] = float(cap[:, :, mask].mean())
             print(f"{name}: the capture predicted by " + ", ".join(scores), flush=True)
-    for variant in ("captured", *VARIANTS):
+    for variant in ("captured", *(v[0] for v in variants)):
         ratio = light["zero pattern", variant] / light["flat grey 128", variant]
         print(f"zero pattern's light / the flat frame's, {variant}: {ratio:.2g}")
     return 0
