@@ -5,9 +5,11 @@ quality`'s seed, 512 x 288, its calibration folder reused or made), for the zero
 grey frame and the donut network's frame of its first seeded view: each frame captured at the
 content planes, and each model variant's prediction scored against the capture (PSNR, a gain
 fitted per colour), with the mean captured and predicted light of the zero pattern against the
-flat frame's.
+flat frame's. With `--crosstalk-um S --sgd-steps N`, also `sgd` from the network's frame through
+the shipped model and through a crosstalk of S and the unmodulated light, both captured.
 
     .venv/bin/python scripts/bench_model_terms.py [--twin TWIN.toml] [--calibration-dir DIR]
+        [--crosstalk-um S [--sgd-steps N]]
 
 `--twin`: another twin, a TOML of the simulated bench's fields as `nhfd bench quality --twin`
 takes (`randomised_seed = 7` and the fields to change), calibrated into its own folder.
@@ -18,23 +20,26 @@ What it measured is in docs/refine.md ("Two terms the bench model leaves out on 
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from nhfd.benchmarks.quality import BENCH_SEED, DONUT, DONUT_MODEL, seeded_views
 from nhfd.calib.citl import CameraLoop
 from nhfd.calib.sim import arm_twin, sim_devices, sim_panel_hw, twin_calibration
 from nhfd.calibration import unmodulated_amplitude
-from nhfd.config import load_config
+from nhfd.config import load_config, refine_settings
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.models.export import load_model
 from nhfd.optics import Aperture, propagate
 from nhfd.optics.pupil import apply_pupil, pupil_scales
 from nhfd.optics.quality import stack_quality
+from nhfd.pipeline.encoder import Encoder
 from nhfd.pipeline.frame import compute_frame
-from nhfd.pipeline.refine import Prepared, grey_phase, prepare
+from nhfd.pipeline.refine import BenchForward, Prepared, grey_phase, prepare, sgd_frame
 from nhfd.pipeline.view import scene_from_file
 
 WINDOW_HW = (288, 512)
@@ -45,23 +50,57 @@ VARIANTS = (("as shipped", False, False), ("unmodulated light", True, False),
 CROSSTALK_OVERSAMPLE = 2
 
 
+class CrosstalkBench(BenchForward):
+    """The shipped bench model plus a crosstalk and the unmodulated light: the phase `[K, C, Hr,
+    Wr]` repeated on a grid `CROSSTALK_OVERSAMPLE` times finer (flat pixels there), blurred by a
+    Gaussian of `crosstalk_m` (the liquid crystal's unwrapped phase, its voltage, is what the
+    fringing field smooths), the unmodulated light `unmodulated` added, then the illumination,
+    pupil, aperture and propagation as `BenchForward` has them, and each pixel's intensity the
+    mean of its samples. Differentiable, so `sgd` can step through it."""
+
+    def __init__(self, encoder: Encoder, planes_m: tuple[float, ...], crosstalk_m: float,
+                 unmodulated: tuple[complex, ...]) -> None:
+        super().__init__(encoder, planes_m)
+        self.crosstalk_m, self.unmodulated_light = crosstalk_m, unmodulated
+
+    def __call__(self, phase: torch.Tensor, cancelled: object = None) -> torch.Tensor:
+        s, n = self.encoder.settings, CROSSTALK_OVERSAMPLE
+        fine = phase.repeat_interleave(n, dim=-2).repeat_interleave(n, dim=-1)
+        sigma = self.crosstalk_m / (s.pitch_m / n)
+        fy = torch.fft.fftfreq(fine.shape[-2], device=fine.device)[:, None]
+        fx = torch.fft.fftfreq(fine.shape[-1], device=fine.device)[None, :]
+        blur = torch.exp(-2 * np.pi**2 * sigma**2 * (fx**2 + fy**2))
+        fine = torch.fft.ifft2(torch.fft.fft2(fine) * blur).real
+        scales = pupil_scales(s.zernike_wavelength_m, s.wavelengths_m)
+        out = []
+        for c, lam in enumerate(s.wavelengths_m):
+            u = torch.polar(torch.ones_like(fine[:, c]), fine[:, c])
+            if self.unmodulated_light:
+                u = u + self.unmodulated_light[c]
+            if self.source is not None:
+                u = u * self.source[c].repeat_interleave(n, dim=-2).repeat_interleave(n, dim=-1)
+            u = apply_pupil(u, self.cutoffs[c] / n, s.zernike_rad, scales[c])
+            v = propagate(u[:, None], self.z_m[c], s.pitch_m / n, [lam],
+                          aperture=Aperture(s.aperture_shape, (self.cutoffs[c] / n,)),  # type: ignore[arg-type]
+                          padding=s.padding)[:, :, 0].abs().square()  # [K, D, nHr, nWr]
+            k, d, hh, ww = v.shape
+            v = F.avg_pool2d(v.reshape(k * d, 1, hh, ww), n).reshape(k, d, hh // n, ww // n)
+            out.append(v[..., self.window[0], self.window[1]])
+        return torch.stack(out, dim=2)
+
+
 def predict(p: Prepared, grey: np.ndarray, unmodulated: tuple[complex, ...], pixels: bool,
             crosstalk_m: float = 0.0) -> torch.Tensor:
-    """`BenchForward`'s intensity `[D, C, h, w]` of one frame, with the unmodulated light added
-    to the panel's field and the pixels' sinc in its spectrum where asked. With `crosstalk_m`
-    (a Gaussian's sigma, metres), the phase is blurred across pixel edges on a grid
-    `CROSSTALK_OVERSAMPLE` times finer (flat pixels there by construction), and each pixel's
-    intensity is the mean of its samples."""
+    """What a bench model predicts of one frame, `[D, C, h, w]`: `BenchForward`'s with the
+    unmodulated light added to the panel's field and the pixels' sinc in its spectrum where
+    asked, or, with `crosstalk_m`, `CrosstalkBench`'s."""
+    phase = grey_phase(grey[None], p.encoder)
+    if crosstalk_m > 0:
+        with torch.no_grad():
+            return CrosstalkBench(p.encoder, p.target.planes_m, crosstalk_m,
+                                  unmodulated)(phase)[0].float()
     s, r = p.encoder.settings, p.encoder.region
-    n = CROSSTALK_OVERSAMPLE if crosstalk_m > 0 else 1
-    phase = grey_phase(grey[None], p.encoder)[0].double()
-    phase = phase.repeat_interleave(n, dim=-2).repeat_interleave(n, dim=-1)
-    if crosstalk_m > 0:  # the unwrapped phase (the liquid crystal's voltage) is blurred
-        sigma = crosstalk_m / (s.pitch_m / n)
-        fy = torch.fft.fftfreq(phase.shape[-2], dtype=torch.float64)[:, None]
-        fx = torch.fft.fftfreq(phase.shape[-1], dtype=torch.float64)[None, :]
-        blur = torch.exp(-2 * np.pi**2 * sigma**2 * (fx**2 + fy**2))
-        phase = torch.fft.ifft2(torch.fft.fft2(phase) * blur).real
+    phase = phase[0].double()
     source = p.encoder.source_amplitude()
     cutoffs = s.aperture.cutoffs(3)
     scales = pupil_scales(s.zernike_wavelength_m, s.wavelengths_m)
@@ -71,21 +110,19 @@ def predict(p: Prepared, grey: np.ndarray, unmodulated: tuple[complex, ...], pix
         if unmodulated:
             u = u + unmodulated[c]
         if source is not None:
-            u = u * source[c].repeat_interleave(n, dim=-2).repeat_interleave(n, dim=-1)
-        if pixels and n == 1:
+            u = u * source[c]
+        if pixels:
             fy = torch.fft.fftfreq(2 * u.shape[0], dtype=torch.float64)[:, None]
             fx = torch.fft.fftfreq(2 * u.shape[1], dtype=torch.float64)[None, :]
             spec = torch.fft.fft2(u, s=(2 * u.shape[0], 2 * u.shape[1]))
             u = torch.fft.ifft2(spec * torch.sinc(fx) * torch.sinc(fy))[: u.shape[0], : u.shape[1]]
-        u = apply_pupil(u[None].to(torch.complex64), cutoffs[c] / n, s.zernike_rad, scales[c])
+        u = apply_pupil(u[None].to(torch.complex64), cutoffs[c], s.zernike_rad, scales[c])
         zc = s.colour_propagation_z_m[c]
-        v = propagate(u, [-zc + dz for dz in p.target.planes_m], s.pitch_m / n, [lam],
-                      aperture=Aperture(s.aperture_shape, (cutoffs[c] / n,)),  # type: ignore[arg-type]
-                      padding=s.padding)[:, 0].abs().square()
-        if n > 1:
-            v = torch.nn.functional.avg_pool2d(v[:, None].float(), n)[:, 0]
+        v = propagate(u, [-zc + dz for dz in p.target.planes_m], s.pitch_m, [lam],
+                      aperture=Aperture(s.aperture_shape, (cutoffs[c],)),  # type: ignore[arg-type]
+                      padding=s.padding)[:, 0]
         out.append(v[:, r.window_top : r.window_top + s.window_hw[0],
-                     r.window_left : r.window_left + s.window_hw[1]])
+                     r.window_left : r.window_left + s.window_hw[1]].abs().square())
     return torch.stack(out, dim=1).float()
 
 
@@ -98,9 +135,15 @@ def main() -> int:
     parser.add_argument("--crosstalk-um", type=float, default=0.0,
                         help="also model a crosstalk of this sigma (um, 0..4), alone and with "
                              "the unmodulated light: a value you supply, not a fitted one")
+    parser.add_argument("--sgd-steps", type=int, default=0,
+                        help="with --crosstalk-um: also refine the network frame by sgd for "
+                             "this many steps through the shipped model and through the "
+                             "crosstalk and unmodulated light, and capture both (1..1000)")
     args = parser.parse_args()
     if not 0 <= args.crosstalk_um <= 4:
         parser.error(f"--crosstalk-um {args.crosstalk_um}: must be in 0..4 um")
+    if args.sgd_steps and not (args.crosstalk_um and 1 <= args.sgd_steps <= 1000):
+        parser.error(f"--sgd-steps {args.sgd_steps}: must be in 1..1000, with --crosstalk-um")
     variants = [(name, dc, px, 0.0) for name, dc, px in VARIANTS]
     if args.crosstalk_um:
         x = args.crosstalk_um * 1e-6
@@ -146,6 +189,23 @@ def main() -> int:
                 light[name, variant] = float(pred[:, :, mask].mean())
             light[name, "captured"] = float(cap[:, :, mask].mean())
             print(f"{name}: the capture predicted by " + ", ".join(scores), flush=True)
+        if args.sgd_steps:
+            settings = refine_settings(config.refine, {"iterations": args.sgd_steps,
+                                                       "tolerance": 0.0})
+            models = {"the shipped model": p.model,
+                      f"crosstalk {args.crosstalk_um:g} um + unmodulated light":
+                          CrosstalkBench(p.encoder, p.target.planes_m,
+                                         args.crosstalk_um * 1e-6, dc)}
+            for label, bench in models.items():
+                refined = sgd_frame(replace(p, model=bench), settings, start=network)
+                grey = np.asarray(refined.grey)
+                captured, seen = loop(grey[None] if grey.ndim == 3 else grey, p.target.planes_m)
+                q = stack_quality(torch.as_tensor(captured).float(), p.target.intensity,
+                                  planes_m=p.target.planes_m,
+                                  mask=p.target.mask & torch.as_tensor(seen), fit_gains=True)
+                print(f"sgd, {args.sgd_steps} steps through {label}: captured {q.psnr_db:.2f} "
+                      f"dB, SSIM {q.ssim:.3f} (its model's {refined.report.psnr_db:.2f} dB)",
+                      flush=True)
     for variant in ("captured", *(v[0] for v in variants)):
         ratio = light["zero pattern", variant] / light["flat grey 128", variant]
         print(f"zero pattern's light / the flat frame's, {variant}: {ratio:.2g}")
