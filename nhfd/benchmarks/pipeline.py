@@ -211,16 +211,15 @@ def measure_side_by_side(config: Config, model: Path, scene: Path, views: int, w
     `config`: the whole configuration, because each worker runs under all of it (the frame
     pipeline joins `[daemon]`, `[slm]`, `[optics]`, `[coding]` and `[calibration]`), with the
     variant's `[daemon.frames]` settings and `[slm]` refresh on top (`_variant_config`)."""
-    info = OnnxModel(model).info
     variants = [Variant(*v) for v in variants]
     configs = [_variant_config(config, v) for v in variants]
     files = [Path(v.model) if v.model else model for v in variants]
-    infos = {f: OnnxModel(f).info for f in set(files)}
+    infos = {f: OnnxModel(f).info for f in {model, *files}}  # each file read once
+    info = infos[model]
     rests_s = np.random.default_rng(REST_SEED).uniform(rest_ms[0] * 1e-3, rest_ms[1] * 1e-3,
                                                         warmup + views)
-    for cfg, f in zip(configs, files, strict=True):  # before any worker starts
-        _check_fits(cfg.daemon.frames, cfg.slm, f, infos[f])
-    windows = {f: frame_window_hw(cfg.daemon.frames, cfg.slm, infos[f])
+    # before any worker starts: each window fits the panel, and (side by side) they agree
+    windows = {f: _window_that_fits(cfg.daemon.frames, cfg.slm, f, infos[f])
                for cfg, f in zip(configs, files, strict=True)}
     if len(set(windows.values())) > 1:
         raise ValueError("--side-by-side: the models' frame windows differ ("
@@ -281,12 +280,14 @@ def _variant_config(config: Config, v: Variant) -> Config:
     return Config.model_validate(_overlay(config.model_dump(), overlay))
 
 
-def _check_fits(frames: FramesSettings, slm: SLMSettings, model: Path, info: ModelInfo) -> None:
-    """Refuse a frame window larger than the panel before a worker starts for it (the
-    configuration checked daemon.frames.size_px; `frame_window_hw` checks the model's training
-    size that stands in for an empty one)."""
+def _window_that_fits(frames: FramesSettings, slm: SLMSettings, model: Path, info: ModelInfo
+                      ) -> tuple[int, int]:
+    """The frame window (h, w) a worker for `model` would run, or a ValueError naming the model
+    when it is larger than the panel, before a worker starts for it (the configuration checked
+    daemon.frames.size_px; `frame_window_hw` checks the model's training size that stands in
+    for an empty one)."""
     try:
-        frame_window_hw(frames, slm, info)
+        return frame_window_hw(frames, slm, info)
     except ValueError as exc:
         raise ValueError(f"{model}: {exc}") from None
 

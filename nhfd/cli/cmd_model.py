@@ -119,8 +119,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     t.add_argument("--out", required=True, help="output folder: model.onnx, tune.json and "
                    "checkpoint.pt (an interrupted run resumes from it)")
     t.add_argument("--dataset", help="the model's dataset folder, for its training poses "
-                   "(default: the poses the model records, else a grid of 12 over its pose "
-                   "envelope)")
+                   "(default: the poses the model records, else a grid over its pose "
+                   "envelope: 12 poses, 27 for more than 12 --views)")
     d = tune.TuneSettings()
     tune_budget_arguments(t, d)
     t.add_argument("--ssim-weight", type=float, default=d.ssim_weight,

@@ -12,11 +12,11 @@ import re
 from pathlib import Path
 from typing import Any
 
-import onnx
 import pytest
 
 from nhfd.benchmarks import pipeline
 from nhfd.cli.main import main
+from tests.model_files import with_metadata
 
 # The small bench of tests/daemon/test_frames.py (SMALL): a 192 x 128 panel; the tiny model is
 # checked only at its 96 x 64 training size, so the smaller window is served unchecked.
@@ -184,13 +184,7 @@ def test_models_are_measured_side_by_side_on_the_same_views(tiny, tmp_path, monk
         in md
     assert "--side-by-side" in md.splitlines()[1]
     # Another training window (daemon.frames.size_px empty: each model's own) is refused.
-    m = onnx.load(str(b))
-    for prop in m.metadata_props:
-        if prop.key == "nhfd":
-            meta = json.loads(prop.value)
-            meta["train_size_hw"] = [48, 64]
-            prop.value = json.dumps(meta)
-    onnx.save(m, str(b))
+    with_metadata(b, b, train_size_hw=[48, 64])
     started = []
     monkeypatch.setattr(pipeline, "FrameLink", lambda host: started.append(host))
     with pytest.raises(ValueError, match=r"--side-by-side: the models' frame windows differ \(.*"

@@ -27,6 +27,7 @@ from nhfd.pipeline.frame import compute_frame
 from nhfd.pipeline.settings import frame_settings, zero_pattern
 from nhfd.pipeline.view import Scene, SceneFrame
 from nhfd.views import Pose, View
+from tests.model_files import with_metadata
 
 # A 64 x 96 window on a 128 x 192 panel: the window plus the propagation margin (24 px at
 # z0 = 6 mm) fits with room to spare, so "outside the region" is a real part of the panel.
@@ -90,16 +91,7 @@ def make_tiny_scene(path: Path, n: int = 300, seed: int = 0) -> Path:
 
 def wrong_optics_copy(model: Path, out: Path, z0_m: float = 0.007) -> Path:
     """The same network with its metadata claiming another z0 (a model for other optics)."""
-    import onnx
-
-    m = onnx.load(str(model))
-    for prop in m.metadata_props:
-        if prop.key == "nhfd":
-            meta = json.loads(prop.value)
-            meta["z0_m"] = z0_m
-            prop.value = json.dumps(meta)
-    onnx.save(m, str(out))
-    return out
+    return with_metadata(model, out, z0_m=z0_m)
 
 
 def relative_error_up_to_phase(shown: torch.Tensor, wanted: torch.Tensor) -> list[float]:

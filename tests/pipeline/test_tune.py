@@ -20,7 +20,6 @@ from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
-import onnx
 import pytest
 import torch
 
@@ -32,7 +31,6 @@ from nhfd.cli.main import main
 from nhfd.config import Config
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.models.export import load_model
-from nhfd.models.metadata import METADATA_KEY
 from nhfd.models.sizes import check_and_record, read_metadata, window_check
 from nhfd.models.torch_model import TorchModel
 from nhfd.optics import grey_to_phase, phase_to_grey
@@ -45,6 +43,7 @@ from nhfd.pipeline.view import scene_from_file, view_pose
 from nhfd.scene.cameras import orbit, orbit_position
 from nhfd.views import Orbit, View
 from tests.calib.twin_stack import quick_devices, truth_calibration
+from tests.model_files import with_metadata
 
 REPO = Path(__file__).resolve().parents[2]
 MODEL = REPO / "models" / "nhf-donut-512.onnx"
@@ -86,18 +85,7 @@ def envelope_view(meta: dict, f: float, g: float) -> tuple[float, float, float]:
 
 def write_model(path: Path, **changes: object) -> Path:
     """The shipped model with `changes` to its metadata (None removes a key)."""
-    m = onnx.load(str(MODEL))
-    for p in m.metadata_props:
-        if p.key == METADATA_KEY:
-            meta = json.loads(p.value)
-            for k, v in changes.items():
-                if v is None:
-                    meta.pop(k, None)
-                else:
-                    meta[k] = v
-            p.value = json.dumps(meta)
-    onnx.save(m, str(path))
-    return path
+    return with_metadata(MODEL, path, **changes)
 
 
 @pytest.fixture(scope="module")
@@ -520,17 +508,8 @@ def test_a_k_subframe_model_passes_its_size_checks_and_is_served(tmp_path) -> No
     assert window_check(info, (288, 512), str(path), allow=False) is None
     lying = T.write_tuned_model(MODEL, net, tmp_path / "k2.onnx", {"label": "test"},
                                 check_sizes=False)
-    onnx_meta = read_metadata(lying)
-    onnx_meta["subframes"] = 2
-    _set_metadata(lying, onnx_meta)
+    with_metadata(lying, lying, subframes=2)
     (bad,) = check_and_record(lying, [(288, 512)])["checked_sizes"]
     assert not bad["ok"]
     assert "finite outputs of shape [1, 6, 288, 512]: found [[1, 12, 288, 512]" in bad["against"]
 
-
-def _set_metadata(path: Path, meta: dict) -> None:
-    m = onnx.load(str(path))
-    for p in m.metadata_props:
-        if p.key == METADATA_KEY:
-            p.value = json.dumps(meta)
-    onnx.save(m, str(path))
