@@ -60,7 +60,6 @@ from nhfd.dataset.build import sha256_file
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.model_info import ModelInfo, scene_mismatch
 from nhfd.models.export import load_model
-from nhfd.models.sizes import read_metadata
 from nhfd.optics.quality import speckle_contrast, stack_quality
 from nhfd.pipeline.frame import compute_frame
 from nhfd.pipeline.refine import (
@@ -758,7 +757,7 @@ def run(args: argparse.Namespace) -> int:
                 assert run_.model_path is not None
                 # --tune-dataset is the first model's dataset
                 dataset = args.tune_dataset if run_ is runs[0] else None
-                poses, poses_from = tuning_poses(read_metadata(run_.model_path), scene, info,
+                poses, poses_from = tuning_poses(model.metadata, scene, info,
                                                  None if dataset is None else Path(dataset),
                                                  "--tune-dataset", tune_settings.views)
                 ts = replace(tune_settings, views=min(tune_settings.views, len(poses)))
