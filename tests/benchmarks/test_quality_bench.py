@@ -34,6 +34,7 @@ from nhfd.calib.sim import sim_panel_hw
 from nhfd.calibration import Calibration, fingerprint
 from nhfd.drivers.simcamera import TrueBench
 from nhfd.model_info import PoseEnvelope, recorded_scenes
+from nhfd.models.sizes import read_metadata
 from tests.calib.twin_stack import truth_calibration
 
 
@@ -298,7 +299,7 @@ def test_a_model_built_from_another_scene_is_refused_naming_both_before_the_cali
         argv += ["--scene", str(Q.DONUT)]
     with pytest.raises(ValueError) as info:
         Q.run(_bench_args(*argv, "--out", str(tmp_path / "q.json"), "--plot", ""))
-    recorded = recorded_scenes(Q.read_metadata(Q.DONUT_MODEL))
+    recorded = recorded_scenes(read_metadata(Q.DONUT_MODEL))
     assert str(info.value) == (
         f"{model_flag} {Q.DONUT_MODEL}: built from another scene than {scene_flag} {other} "
         f"(SHA-256 {recorded[0][:12]}... in the model's metadata, "
